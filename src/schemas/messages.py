@@ -1,0 +1,203 @@
+"""Wire message models. Frozen, strict (unknown keys rejected), quantised on construction.
+
+All times are ``int`` nanoseconds since the Unix epoch in the clock of the node that
+took them (``*_time_ns``). Positions are metres in the frame named by ``frame_id``.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, ClassVar
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+
+from . import quantize as q
+from .classes import ObjectClass
+
+SCHEMA_VERSION = 1
+MAX_OBJECTS = 1024
+
+# Plausible wall-clock range: 2000-01-01 .. 2100-01-01. Anything outside is a broken clock.
+MIN_TIME_NS = 946_684_800 * 10**9
+MAX_TIME_NS = 4_102_444_800 * 10**9
+
+SOURCE_VEHICLE = 1
+SOURCE_RSU = 2
+
+NodeId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
+TimeNs = Annotated[int, Field(ge=MIN_TIME_NS, le=MAX_TIME_NS)]
+Seq = Annotated[int, Field(ge=0, lt=2**63)]
+
+
+def _grid(step: float):
+    return AfterValidator(lambda v: q.quantize(v, step))
+
+
+def _yaw(v: float) -> float:
+    # k in [-1800, 1799] so that the grid value stays inside [-pi, pi)
+    k = q.code(q.wrap_angle(v), q.YAW_RAD)
+    return (k - 3600 if k >= 1800 else k) * q.YAW_RAD
+
+
+Position = Annotated[float, Field(ge=-1e6, le=1e6, allow_inf_nan=False), _grid(q.POSITION_M)]
+Height = Annotated[float, Field(ge=-1e4, le=1e4, allow_inf_nan=False), _grid(q.POSITION_M)]
+Size = Annotated[float, Field(ge=0.0, le=100.0, allow_inf_nan=False), _grid(q.SIZE_M)]
+Speed = Annotated[float, Field(ge=-200.0, le=200.0, allow_inf_nan=False), _grid(q.SPEED_MPS)]
+Accel = Annotated[float, Field(ge=-100.0, le=100.0, allow_inf_nan=False), _grid(q.ACCEL_MPS2)]
+Yaw = Annotated[float, Field(ge=-100.0, le=100.0, allow_inf_nan=False), AfterValidator(_yaw)]
+YawRate = Annotated[float, Field(ge=-30.0, le=30.0, allow_inf_nan=False), _grid(q.YAW_RATE_RADPS)]
+Variance = Annotated[float, Field(ge=0.0, le=1e4, allow_inf_nan=False), _grid(q.COV_M2)]
+Covariance = Annotated[float, Field(ge=-1e4, le=1e4, allow_inf_nan=False), _grid(q.COV_M2)]
+Confidence = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False), _grid(q.CONFIDENCE)]
+AgeS = Annotated[float, Field(ge=0.0, le=1e6, allow_inf_nan=False), _grid(q.AGE_S)]
+
+
+class Message(BaseModel):
+    """Base of every wire message: immutable, no unknown keys, no NaN."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+    TYPE: ClassVar[str] = "message"
+
+
+class ObjectState(Message):
+    """One object. Map frame on RSU lists, base_link on fused lists."""
+
+    TYPE: ClassVar[str] = "object"
+    id: Annotated[int, Field(ge=0, lt=2**32)]
+    cls: ObjectClass = ObjectClass.UNKNOWN
+    x: Position
+    y: Position
+    z: Height = 0.0
+    length: Size
+    width: Size
+    height: Size = 1.5
+    yaw: Yaw = 0.0
+    vx: Speed = 0.0
+    vy: Speed = 0.0
+    ax: Accel = 0.0
+    ay: Accel = 0.0
+    yaw_rate: YawRate = 0.0
+    cov_xx: Variance = 1.0
+    cov_xy: Covariance = 0.0
+    cov_yy: Variance = 1.0
+    confidence: Confidence = 1.0
+    age_s: AgeS = 0.0
+
+
+class FusedObject(ObjectState):
+    """A fused object; ``sources`` is a bitmask of SOURCE_VEHICLE | SOURCE_RSU."""
+
+    TYPE: ClassVar[str] = "fused_object"
+    sources: Annotated[int, Field(ge=0, le=255)] = SOURCE_VEHICLE
+
+
+class ObjectListHeader(Message):
+    TYPE: ClassVar[str] = "object_list_header"
+    schema_version: int = SCHEMA_VERSION
+    rsu_id: NodeId
+    seq: Seq
+    capture_time_ns: TimeNs
+    publish_time_ns: TimeNs
+    frame_id: Annotated[str, Field(max_length=64)] = "map"
+    sensor: Annotated[str, Field(max_length=128)] = ""
+
+    @model_validator(mode="after")
+    def _publish_after_capture(self) -> "ObjectListHeader":
+        if self.publish_time_ns < self.capture_time_ns:
+            raise ValueError("publish_time_ns is before capture_time_ns (same RSU clock)")
+        return self
+
+
+class ObjectList(Message):
+    """RSU -> vehicles on ``v2x/rsu/{rsu_id}/objects``; positions in ``map``."""
+
+    TYPE: ClassVar[str] = "object_list"
+    header: ObjectListHeader
+    objects: Annotated[tuple[ObjectState, ...], Field(max_length=MAX_OBJECTS)] = ()
+
+
+class FusedObjectList(Message):
+    """OBU output on ``v2x/obu/{vehicle_id}/objects``; positions in ``base_link``.
+
+    ``cycle_time_ns`` is the own LiDAR capture time of the cycle (OBU clock); the
+    ego pose (map frame) is the one used to express the objects in base_link.
+    """
+
+    TYPE: ClassVar[str] = "fused_object_list"
+    schema_version: int = SCHEMA_VERSION
+    vehicle_id: NodeId
+    seq: Seq
+    cycle_time_ns: TimeNs
+    publish_time_ns: TimeNs
+    frame_id: Annotated[str, Field(max_length=64)] = "base_link"
+    fusion: Annotated[str, Field(max_length=32)] = ""
+    mode: Annotated[str, Field(max_length=32)] = ""
+    ego_x: Position = 0.0
+    ego_y: Position = 0.0
+    ego_yaw: Yaw = 0.0
+    objects: Annotated[tuple[FusedObject, ...], Field(max_length=MAX_OBJECTS)] = ()
+
+
+class TimeRequest(Message):
+    """OBU -> RSU query payload on ``v2x/rsu/{rsu_id}/time``: t1 = OBU send time."""
+
+    TYPE: ClassVar[str] = "time_request"
+    obu_id: NodeId
+    seq: Seq
+    t1_ns: TimeNs
+
+
+class TimeReply(Message):
+    """RSU reply: t2 = RSU receive, t3 = RSU send (RSU clock); t1 echoed."""
+
+    TYPE: ClassVar[str] = "time_reply"
+    rsu_id: NodeId
+    seq: Seq
+    t1_ns: TimeNs
+    t2_ns: TimeNs
+    t3_ns: TimeNs
+
+    @model_validator(mode="after")
+    def _send_after_receive(self) -> "TimeReply":
+        if self.t3_ns < self.t2_ns:
+            raise ValueError("t3_ns (RSU send) is before t2_ns (RSU receive)")
+        return self
+
+
+class EgoPose(Message):
+    """Vehicle pose in ``map`` on ``v2x/obu/{vehicle_id}/pose``."""
+
+    TYPE: ClassVar[str] = "ego_pose"
+    vehicle_id: NodeId
+    t_ns: TimeNs
+    x: Position
+    y: Position
+    yaw: Yaw = 0.0
+    vx: Speed = 0.0
+    vy: Speed = 0.0
+
+
+class RsuLinkStatus(Message):
+    """What the OBU knows about one RSU: clock relation and data flow."""
+
+    TYPE: ClassVar[str] = "rsu_link_status"
+    rsu_id: NodeId
+    clock_offset_ns: int | None = None  # theta = rsu_clock - obu_clock
+    clock_uncertainty_ns: int | None = None
+    sync_samples: Annotated[int, Field(ge=0)] = 0
+    messages_accepted: Annotated[int, Field(ge=0)] = 0
+    last_data_age_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None
+
+
+class ObuMetrics(Message):
+    """Periodic OBU health on ``v2x/obu/{vehicle_id}/metrics``."""
+
+    TYPE: ClassVar[str] = "obu_metrics"
+    vehicle_id: NodeId
+    t_ns: TimeNs
+    cycles: Annotated[int, Field(ge=0)] = 0
+    output_deadline_misses: Annotated[int, Field(ge=0)] = 0
+    mode: Annotated[str, Field(max_length=32)] = ""
+    rsus: Annotated[tuple[RsuLinkStatus, ...], Field(max_length=64)] = ()
+    rejected: dict[Annotated[str, Field(max_length=64)], Annotated[int, Field(ge=0)]] = Field(
+        default_factory=dict, max_length=64
+    )

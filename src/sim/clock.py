@@ -1,0 +1,63 @@
+"""Clock models. Pure code never reads a clock; services are handed one of these.
+
+Every reading is ``int`` nanoseconds since the Unix epoch in that clock's own time base.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+
+class Clock(Protocol):
+    def now_ns(self) -> int: ...
+
+
+class SystemClock:
+    """The host's wall clock (taken as true time in simulations on one host)."""
+
+    def now_ns(self) -> int:
+        return time.time_ns()
+
+
+@dataclass
+class SimClock:
+    """A clock the offline runner sets; reads return the simulated true time."""
+
+    t_ns: int = 0
+
+    def now_ns(self) -> int:
+        return self.t_ns
+
+
+@dataclass(frozen=True)
+class ClockStep:
+    at_true_ns: int  # true time at which the step happens
+    step_ns: int  # added to the local reading from then on
+
+
+@dataclass(frozen=True)
+class DriftingClock:
+    """A node clock that is offset, drifts and may step relative to a true base clock.
+
+    local(t) = t + offset_ns + drift_ppm * 1e-6 * (t - ref_ns) + sum(step_ns for steps with t >= at)
+    """
+
+    base: Clock
+    offset_ns: int = 0
+    drift_ppm: float = 0.0
+    ref_ns: int = 0
+    steps: tuple[ClockStep, ...] = field(default=())
+
+    def local_from_true(self, true_ns: int) -> int:
+        drift_ns = round(self.drift_ppm * 1e-6 * (true_ns - self.ref_ns))
+        steps_ns = sum(s.step_ns for s in self.steps if true_ns >= s.at_true_ns)
+        return true_ns + self.offset_ns + drift_ns + steps_ns
+
+    def offset_at(self, true_ns: int) -> int:
+        """theta(t) = local(t) - t: the truth a clock-sync estimator is scored against."""
+        return self.local_from_true(true_ns) - true_ns
+
+    def now_ns(self) -> int:
+        return self.local_from_true(self.base.now_ns())
