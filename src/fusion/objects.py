@@ -67,7 +67,9 @@ class ObjectArray:
         )
 
     def take(self, index) -> "ObjectArray":
-        """Rows selected by an index array or boolean mask."""
+        """Rows selected by an index, index array or boolean mask (always an ObjectArray)."""
+        if np.ndim(index) == 0:
+            index = [index]
         return ObjectArray(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
 
     def with_(self, **changes) -> "ObjectArray":

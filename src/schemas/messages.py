@@ -6,6 +6,7 @@ took them (``*_time_ns``). Positions are metres in the frame named by ``frame_id
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, ClassVar
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
@@ -26,6 +27,9 @@ SOURCE_RSU = 2
 NodeId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
 TimeNs = Annotated[int, Field(ge=MIN_TIME_NS, le=MAX_TIME_NS)]
 Seq = Annotated[int, Field(ge=0, lt=2**63)]
+# Every integer must fit a msgpack int64 so that any valid message can be encoded.
+Count = Annotated[int, Field(ge=0, lt=2**63)]
+Int64 = Annotated[int, Field(ge=-(2**63), lt=2**63)]
 
 
 def _grid(step: float):
@@ -44,7 +48,12 @@ Size = Annotated[float, Field(ge=0.0, le=100.0, allow_inf_nan=False), _grid(q.SI
 Speed = Annotated[float, Field(ge=-200.0, le=200.0, allow_inf_nan=False), _grid(q.SPEED_MPS)]
 Accel = Annotated[float, Field(ge=-100.0, le=100.0, allow_inf_nan=False), _grid(q.ACCEL_MPS2)]
 Yaw = Annotated[float, Field(ge=-100.0, le=100.0, allow_inf_nan=False), AfterValidator(_yaw)]
-YawRate = Annotated[float, Field(ge=-30.0, le=30.0, allow_inf_nan=False), _grid(q.YAW_RATE_RADPS)]
+# 30 rad/s rounded up to the grid: the quantised value of any accepted input must itself be
+# accepted, or a decoded message would fail re-validation (30.0 quantises to 30.00046).
+YAW_RATE_MAX = math.ceil(30.0 / q.YAW_RATE_RADPS) * q.YAW_RATE_RADPS
+YawRate = Annotated[
+    float, Field(ge=-YAW_RATE_MAX, le=YAW_RATE_MAX, allow_inf_nan=False), _grid(q.YAW_RATE_RADPS)
+]
 Variance = Annotated[float, Field(ge=0.0, le=1e4, allow_inf_nan=False), _grid(q.COV_M2)]
 Covariance = Annotated[float, Field(ge=-1e4, le=1e4, allow_inf_nan=False), _grid(q.COV_M2)]
 Confidence = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False), _grid(q.CONFIDENCE)]
@@ -92,7 +101,7 @@ class FusedObject(ObjectState):
 
 class ObjectListHeader(Message):
     TYPE: ClassVar[str] = "object_list_header"
-    schema_version: int = SCHEMA_VERSION
+    schema_version: Count = SCHEMA_VERSION
     rsu_id: NodeId
     seq: Seq
     capture_time_ns: TimeNs
@@ -123,7 +132,7 @@ class FusedObjectList(Message):
     """
 
     TYPE: ClassVar[str] = "fused_object_list"
-    schema_version: int = SCHEMA_VERSION
+    schema_version: Count = SCHEMA_VERSION
     vehicle_id: NodeId
     seq: Seq
     cycle_time_ns: TimeNs
@@ -181,10 +190,10 @@ class RsuLinkStatus(Message):
 
     TYPE: ClassVar[str] = "rsu_link_status"
     rsu_id: NodeId
-    clock_offset_ns: int | None = None  # theta = rsu_clock - obu_clock
-    clock_uncertainty_ns: int | None = None
-    sync_samples: Annotated[int, Field(ge=0)] = 0
-    messages_accepted: Annotated[int, Field(ge=0)] = 0
+    clock_offset_ns: Int64 | None = None  # theta = rsu_clock - obu_clock
+    clock_uncertainty_ns: Int64 | None = None
+    sync_samples: Count = 0
+    messages_accepted: Count = 0
     last_data_age_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None
 
 
@@ -194,10 +203,10 @@ class ObuMetrics(Message):
     TYPE: ClassVar[str] = "obu_metrics"
     vehicle_id: NodeId
     t_ns: TimeNs
-    cycles: Annotated[int, Field(ge=0)] = 0
-    output_deadline_misses: Annotated[int, Field(ge=0)] = 0
+    cycles: Count = 0
+    output_deadline_misses: Count = 0
     mode: Annotated[str, Field(max_length=32)] = ""
     rsus: Annotated[tuple[RsuLinkStatus, ...], Field(max_length=64)] = ()
-    rejected: dict[Annotated[str, Field(max_length=64)], Annotated[int, Field(ge=0)]] = Field(
+    rejected: dict[Annotated[str, Field(max_length=64)], Count] = Field(
         default_factory=dict, max_length=64
     )

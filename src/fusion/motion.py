@@ -1,0 +1,27 @@
+"""Kinematic prediction of object sets with explicit time steps."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .objects import ObjectArray
+
+
+def predict_cv(objs: ObjectArray, dt_s) -> ObjectArray:
+    """Constant velocity: p(t + dt) = p + v dt. ``dt_s`` scalar or (N,) seconds.
+
+    Position covariance grows by the velocity uncertainty we do not carry; callers
+    that need honest covariances use a Kalman filter instead.
+    """
+    dt = np.broadcast_to(np.asarray(dt_s, dtype=float), (len(objs),))
+    return objs.with_(xy=objs.xy + objs.vxy * dt[:, None], age_s=objs.age_s + np.maximum(dt, 0.0))
+
+
+def predict_ca(objs: ObjectArray, dt_s) -> ObjectArray:
+    """Constant acceleration: p += v dt + a dt^2 / 2, v += a dt."""
+    dt = np.broadcast_to(np.asarray(dt_s, dtype=float), (len(objs),))[:, None]
+    return objs.with_(
+        xy=objs.xy + objs.vxy * dt + 0.5 * objs.axy * dt**2,
+        vxy=objs.vxy + objs.axy * dt,
+        age_s=objs.age_s + np.maximum(dt[:, 0], 0.0),
+    )

@@ -1,0 +1,55 @@
+"""Time-indexed ego poses, so data can be paired with the pose at its own time."""
+
+from __future__ import annotations
+
+import bisect
+from collections import deque
+
+import numpy as np
+
+from .frames import Pose2D, wrap_angle
+
+
+class PoseHistory:
+    """Poses sorted by time (ns, one clock); keeps ``horizon_s`` of history."""
+
+    def __init__(self, horizon_s: float = 5.0):
+        self._horizon_ns = int(horizon_s * 1e9)
+        self._t: deque[int] = deque()
+        self._poses: deque[Pose2D] = deque()
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def add(self, t_ns: int, pose: Pose2D) -> None:
+        """Insert a pose; out-of-order poses are placed where they belong."""
+        i = bisect.bisect_right(self._t, t_ns)
+        self._t.insert(i, t_ns)
+        self._poses.insert(i, pose)
+        while self._t and self._t[-1] - self._t[0] > self._horizon_ns:
+            self._t.popleft()
+            self._poses.popleft()
+
+    def at(self, t_ns: int) -> Pose2D | None:
+        """Pose at t_ns: linear interpolation between neighbours, constant-velocity
+        extrapolation outside the stored span; None when empty."""
+        if not self._t:
+            return None
+        i = bisect.bisect_left(self._t, t_ns)
+        if i == 0 or i == len(self._t):
+            j = 0 if i == 0 else len(self._t) - 1
+            return _extrapolate(self._poses[j], (t_ns - self._t[j]) * 1e-9)
+        t0, t1 = self._t[i - 1], self._t[i]
+        a = (t_ns - t0) / (t1 - t0) if t1 > t0 else 0.0
+        return _interpolate(self._poses[i - 1], self._poses[i], a)
+
+
+def _interpolate(p: Pose2D, q: Pose2D, a: float) -> Pose2D:
+    # yaw along the shorter arc: yaw = p + a * wrap(q - p)
+    yaw = float(wrap_angle(p.yaw + a * float(wrap_angle(q.yaw - p.yaw))))
+    lerp = lambda u, v: (1 - a) * u + a * v  # noqa: E731
+    return Pose2D(lerp(p.x, q.x), lerp(p.y, q.y), yaw, lerp(p.vx, q.vx), lerp(p.vy, q.vy))
+
+
+def _extrapolate(p: Pose2D, dt_s: float) -> Pose2D:
+    return Pose2D(p.x + p.vx * dt_s, p.y + p.vy * dt_s, p.yaw, p.vx, p.vy)

@@ -1,0 +1,27 @@
+"""Link emulator configuration: one frozen model, loaded from YAML plus CLI overrides."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field
+
+# <protocol>/<address>[?<metadata>][#<config>], e.g. tcp/127.0.0.1:7447 or udp/[::1]:7447
+Endpoint = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+/\S+$")]
+
+
+class LinkConfig(BaseModel):
+    """Where the emulator connects and which profile it imposes.
+
+    ``rsu_connect`` and ``vehicle_connect`` are Zenoh endpoints (e.g. ``tcp/10.0.0.1:7447``)
+    of the two sides; the emulator opens one session per side and is their only path.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    link_id: str = Field(default="link1", pattern=r"^[A-Za-z0-9_-]{1,64}$", description="names v2x/link/{link_id}/*")
+    rsu_connect: list[Endpoint] = Field(min_length=1, description="Zenoh endpoints of the RSU side")
+    vehicle_connect: list[Endpoint] = Field(min_length=1, description="Zenoh endpoints of the vehicle side")
+    profile: str = Field(default="lte-v2x", min_length=1, description="bundled profile name or YAML path")
+    seed: int = Field(default=0, ge=0, description="seed of the channel draws")
+    stats_period_s: float = Field(default=1.0, gt=0.0, description="period of the stats publication in s")

@@ -1,0 +1,46 @@
+"""OBU service configuration (YAML + CLI overrides, validated at start-up)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from schemas.keys import check_id
+
+from .pipeline import FUSION_METHODS, ObuPipelineConfig
+
+
+class ObuConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    vehicle_id: str = "ego"
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7448"])
+    connect: list[str] = Field(default_factory=list)
+    scenario: str = "red-light-runner"
+    seed: int = Field(0, ge=0)
+    start_at_ns: int | None = Field(None, description="scenario time zero (true clock); default: start-up time")
+    duration_s: float | None = Field(None, gt=0)
+    fusion: str = "iou-merge"
+    iou_threshold: float = Field(0.1, gt=0, le=1)
+    max_rsu_age_s: float = Field(1.0, gt=0, le=30)
+    deadline_ms: float = Field(100.0, gt=0, le=10_000)
+    fuse_delay_ms: float = Field(50.0, ge=0, le=10_000, description="own perception latency: LiDAR capture -> fusion")
+    sync_rate_hz: float = Field(2.0, gt=0, le=100)
+    time_query_timeout_s: float = Field(2.0, gt=0, le=60)
+
+    @field_validator("vehicle_id")
+    @classmethod
+    def _valid_id(cls, v: str) -> str:
+        return check_id(v)
+
+    @field_validator("fusion")
+    @classmethod
+    def _valid_fusion(cls, v: str) -> str:
+        if v not in FUSION_METHODS:
+            raise ValueError(f"must be one of {FUSION_METHODS}")
+        return v
+
+    def pipeline_config(self) -> ObuPipelineConfig:
+        return ObuPipelineConfig(
+            vehicle_id=self.vehicle_id, fusion=self.fusion, iou_threshold=self.iou_threshold,
+            max_rsu_age_s=self.max_rsu_age_s, deadline_ms=self.deadline_ms,
+        )

@@ -1,0 +1,123 @@
+"""OBU node: the Zenoh shell around the OBU pipeline.
+
+Zenoh callbacks only stamp the receive time and enqueue; the loop in ``run`` owns the
+pipeline, wakes at each cycle's capture and fusion times and at each time-sync
+exchange, and publishes every cycle whether or not RSU data arrived.
+"""
+
+from __future__ import annotations
+
+import heapq
+import queue
+import threading
+
+import numpy as np
+
+from schemas import keys
+from schemas.codec import CodecError, decode, encode
+from schemas.messages import EgoPose, ObjectList, TimeReply
+from schemas.runtime import announce, log
+from schemas.transport import open_session
+from sim.clock import Clock, SystemClock
+from sim.scenario import load_scenario
+from sim.world import World
+
+from .config import ObuConfig
+from .pipeline import ObuPipeline
+from .source import OwnFrame, SimulatedVehicle
+
+
+class ObuNode:
+    def __init__(self, config: ObuConfig, clock: Clock | None = None):
+        self.config = config
+        self.clock = clock or SystemClock()
+        self.start_ns = config.start_at_ns or self.clock.now_ns()
+        self.world = World(load_scenario(config.scenario))
+        self.duration_s = config.duration_s or self.world.scenario.duration_s
+        self.vehicle = SimulatedVehicle(self.world, config.seed, self.start_ns)
+        self.pipeline = ObuPipeline(config.pipeline_config())
+        self._inbox: queue.Queue = queue.Queue()
+        self._events: list = []
+
+    def run(self, stop: threading.Event) -> None:
+        session = open_session(self.config.listen, self.config.connect)
+        vid = self.config.vehicle_id
+        entities = []
+        try:
+            self._pub = {name: session.declare_publisher(key) for name, key in
+                         (("objects", keys.obu_objects(vid)), ("metrics", keys.obu_metrics(vid)), ("pose", keys.obu_pose(vid)))}
+            entities = [*self._pub.values(), session.declare_subscriber(keys.RSU_OBJECTS_ALL, self._on_rsu_sample)]
+            self._session = session
+            self._schedule()
+            announce("ready", "obu", vehicle_id=vid, listen=self.config.listen)
+            self._loop(stop)
+        finally:
+            for entity in entities:
+                entity.undeclare()
+            session.close()
+            p = self.pipeline
+            log("obu", f"stopped: {p.cycles} cycles, {p.deadline_misses} deadline misses, rejected {dict(p.rejected)}")
+
+    # --- Zenoh callbacks: stamp and enqueue only ---------------------------------------
+    def _on_rsu_sample(self, sample) -> None:
+        self._inbox.put(("rsu", sample.payload.to_bytes(), self.clock.now_ns()))
+
+    def _on_time_reply(self, reply) -> None:
+        if reply.ok is not None:
+            self._inbox.put(("time", reply.ok.payload.to_bytes(), self.clock.now_ns()))
+
+    # --- the loop ------------------------------------------------------------------------
+    def _schedule(self) -> None:
+        now = self.clock.now_ns()
+        for t in self.vehicle.cycle_times_ns(self.duration_s):
+            if t >= now:
+                heapq.heappush(self._events, (int(t), 1, "capture", None))
+        period_ns = round(1e9 / self.config.sync_rate_hz)
+        for t in np.arange(max(now, self.start_ns - 2 * period_ns), self.start_ns + self.duration_s * 1e9, period_ns):
+            heapq.heappush(self._events, (int(t), 2, "sync", None))
+        heapq.heappush(self._events, (self.start_ns + round((self.duration_s + 1.0) * 1e9), 3, "end", None))
+
+    def _loop(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            due_ns, _, kind, arg = self._events[0]
+            timeout_s = (due_ns - self.clock.now_ns()) * 1e-9
+            if timeout_s > 0:
+                try:
+                    self._handle_input(*self._inbox.get(timeout=min(timeout_s, 0.2)))
+                except queue.Empty:
+                    pass
+                continue
+            heapq.heappop(self._events)
+            if kind == "end":
+                return
+            getattr(self, f"_do_{kind}")(due_ns, arg)
+
+    def _handle_input(self, kind: str, data: bytes, receive_ns: int) -> None:
+        try:
+            if kind == "rsu":
+                self.pipeline.on_rsu_message(decode(data, ObjectList), receive_ns)
+            else:
+                self.pipeline.on_time_reply(decode(data, TimeReply), receive_ns)
+        except CodecError as exc:
+            self.pipeline.reject(exc.reason)
+            log("obu", f"rejected {kind} message: {exc}")
+
+    def _do_capture(self, due_ns: int, _) -> None:
+        frame = self.vehicle.capture(due_ns)
+        self.pipeline.on_pose(frame.capture_ns, frame.pose)
+        p = frame.pose
+        self._pub["pose"].put(encode(EgoPose(vehicle_id=self.config.vehicle_id, t_ns=frame.capture_ns,
+                                             x=p.x, y=p.y, yaw=p.yaw, vx=p.vx, vy=p.vy)))
+        fuse_ns = frame.capture_ns + round(self.config.fuse_delay_ms * 1e6)
+        heapq.heappush(self._events, (fuse_ns, 0, "fuse", frame))
+
+    def _do_fuse(self, _due_ns: int, frame: OwnFrame) -> None:
+        self.pipeline.on_detections(frame.detections, frame.capture_ns)
+        out = self.pipeline.fuse(self.clock.now_ns())
+        self._pub["objects"].put(encode(out))
+        self._pub["metrics"].put(encode(self.pipeline.metrics(self.clock.now_ns())))
+
+    def _do_sync(self, _due_ns: int, _) -> None:
+        request = self.pipeline.make_time_request(self.clock.now_ns())
+        self._session.get(keys.RSU_TIME_ALL, self._on_time_reply, payload=encode(request),
+                          timeout=self.config.time_query_timeout_s)

@@ -1,0 +1,39 @@
+"""The vehicle's own sensing: simulated LiDAR detections and localisation."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fusion.frames import Pose2D
+from fusion.objects import ObjectArray
+from sim.seeding import stream
+from sim.sensors import Lidar, Localization, frame_times
+from sim.world import World
+
+
+@dataclass(frozen=True)
+class OwnFrame:
+    capture_ns: int  # OBU clock (the true clock in simulation)
+    pose: Pose2D  # localisation estimate, map frame
+    detections: ObjectArray  # base_link
+
+
+class SimulatedVehicle:
+    """Ego LiDAR (10 Hz) and localisation sampling the simulated world."""
+
+    def __init__(self, world: World, seed: int, start_ns: int):
+        self.world = world
+        self.start_ns = start_ns
+        self.lidar = Lidar(world.scenario.lidar, stream(seed, "lidar"))
+        self.localization = Localization(world.scenario.localization, stream(seed, "localization"))
+
+    def cycle_times_ns(self, duration_s: float) -> np.ndarray:
+        """(K,) int64 LiDAR capture times: the OBU's 10 Hz cycles."""
+        t_s = frame_times(self.world.scenario.lidar.rate_hz, duration_s)
+        return self.start_ns + np.round(t_s * 1e9).astype(np.int64)
+
+    def capture(self, capture_ns: int) -> OwnFrame:
+        t_s = (capture_ns - self.start_ns) * 1e-9
+        return OwnFrame(int(capture_ns), self.localization.measure(self.world, t_s), self.lidar.detect(self.world, t_s))

@@ -1,0 +1,46 @@
+"""``v2i rsu``: run the roadside unit service."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from schemas.config import ConfigError, load_config
+from schemas.runtime import stop_on_signals
+
+from .config import RsuConfig
+
+
+def configure_parser(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Roadside unit: perceives the scenario with its (simulated) camera, tracks, and publishes "
+        "timestamped object lists on v2x/rsu/{id}/objects; answers NTP-style time queries on "
+        "v2x/rsu/{id}/time. Its clock can be offset, drifting and stepped on purpose."
+    )
+    p.add_argument("--config", metavar="FILE", help="YAML file with RsuConfig fields (CLI flags override it)")
+    p.add_argument("--rsu-id", help="RSU id used in key expressions (default rsu1)")
+    p.add_argument("--listen", action="append", metavar="EP", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    p.add_argument("--connect", action="append", metavar="EP", help="Zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--scenario", help="bundled scenario name or YAML path (default red-light-runner)")
+    p.add_argument("--seed", type=int, help="seed of the camera noise (default 0)")
+    p.add_argument("--start-at-ns", type=int, help="scenario time zero in Unix ns (true clock); default: now")
+    p.add_argument("--duration", dest="duration_s", type=float, help="seconds to run (default: scenario duration)")
+    p.add_argument("--clock-offset-ms", type=float, help="RSU clock offset from true time, ms")
+    p.add_argument("--clock-drift-ppm", type=float, help="RSU clock drift, ppm")
+    p.add_argument("--clock-step-ms", type=float, help="RSU clock step size, ms (with --clock-step-at-s)")
+    p.add_argument("--clock-step-at-s", type=float, help="scenario time of the RSU clock step, s")
+
+
+def run(args: argparse.Namespace) -> int:
+    fields = ("rsu_id", "listen", "connect", "scenario", "seed", "start_at_ns", "duration_s",
+              "clock_offset_ms", "clock_drift_ppm", "clock_step_ms", "clock_step_at_s")
+    try:
+        config = load_config(RsuConfig, args.config, {f: getattr(args, f) for f in fields})
+        from .node import RsuNode
+
+        node = RsuNode(config)
+    except (ConfigError, ValueError, FileNotFoundError) as exc:
+        print(f"v2i rsu: {exc}", file=sys.stderr)
+        return 2
+    node.run(stop_on_signals())
+    return 0

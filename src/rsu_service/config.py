@@ -1,0 +1,37 @@
+"""RSU service configuration (YAML + CLI overrides, validated at start-up)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from schemas.keys import check_id
+from sim.clock import Clock, ClockStep, DriftingClock
+
+
+class RsuConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    rsu_id: str = "rsu1"
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = Field(default_factory=list)
+    scenario: str = "red-light-runner"
+    seed: int = Field(0, ge=0)
+    start_at_ns: int | None = Field(None, description="scenario time zero (true clock); default: start-up time")
+    duration_s: float | None = Field(None, gt=0, description="default: the scenario's duration")
+    clock_offset_ms: float = Field(0.0, ge=-86_400_000, le=86_400_000)
+    clock_drift_ppm: float = Field(0.0, ge=-1000, le=1000)
+    clock_step_ms: float = Field(0.0, ge=-86_400_000, le=86_400_000)
+    clock_step_at_s: float | None = Field(None, ge=0, description="scenario time of the clock step")
+
+    @field_validator("rsu_id")
+    @classmethod
+    def _valid_id(cls, v: str) -> str:
+        return check_id(v)
+
+    def clock(self, base: Clock, start_ns: int) -> DriftingClock:
+        """The RSU's own clock over the true ``base`` clock: offset, drifting, maybe stepping."""
+        steps = ()
+        if self.clock_step_ms and self.clock_step_at_s is not None:
+            steps = (ClockStep(start_ns + round(self.clock_step_at_s * 1e9), round(self.clock_step_ms * 1e6)),)
+        return DriftingClock(base, offset_ns=round(self.clock_offset_ms * 1e6), drift_ppm=self.clock_drift_ppm,
+                             ref_ns=start_ns, steps=steps)

@@ -1,0 +1,89 @@
+"""RSU node: the Zenoh shell around the RSU pipeline and its perception source."""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter
+
+from schemas import keys
+from schemas.codec import CodecError, MalformedMessage, decode, encode
+from schemas.messages import TimeRequest
+from schemas.runtime import announce, log
+from schemas.transport import open_session
+from sim.clock import Clock, SystemClock
+from sim.scenario import load_scenario
+from sim.world import World
+
+from .config import RsuConfig
+from .pipeline import RsuPipeline, RsuPipelineConfig, answer_time_request
+from .source import SimulatedCamera
+
+
+class RsuNode:
+    """Publishes object lists at the camera rate and answers time queries."""
+
+    def __init__(self, config: RsuConfig, true_clock: Clock | None = None):
+        self.config = config
+        self.true_clock = true_clock or SystemClock()
+        self.start_ns = config.start_at_ns or self.true_clock.now_ns()
+        self.world = World(load_scenario(config.scenario))
+        self.duration_s = config.duration_s or self.world.scenario.duration_s
+        self.clock = config.clock(self.true_clock, self.start_ns)
+        self.source = SimulatedCamera(self.world, config.seed, self.start_ns)
+        self.pipeline = RsuPipeline(RsuPipelineConfig(rsu_id=config.rsu_id, sensor="camera/simulated"))
+        self.rejected: Counter[str] = Counter()
+        self.published = 0
+        self._lock = threading.Lock()
+
+    def run(self, stop: threading.Event) -> None:
+        session = open_session(self.config.listen, self.config.connect)
+        entities = []
+        try:
+            publisher = session.declare_publisher(keys.rsu_objects(self.config.rsu_id))
+            entities = [publisher, session.declare_queryable(keys.rsu_time(self.config.rsu_id), self._on_time_query),
+                        session.liveliness().declare_token(keys.rsu_alive(self.config.rsu_id))]
+            announce("ready", "rsu", rsu_id=self.config.rsu_id, listen=self.config.listen)
+            self._publish_frames(publisher, stop)
+        finally:
+            for entity in entities:
+                entity.undeclare()
+            session.close()
+            log("rsu", f"stopped: {self.published} object lists published, rejected {dict(self.rejected)}")
+
+    def _publish_frames(self, publisher, stop: threading.Event) -> None:
+        for capture_ns in self.source.capture_times_ns(self.duration_s):
+            if not self._sleep_until(capture_ns, stop):
+                return
+            frame = self.source.capture(int(capture_ns))
+            if not self._sleep_until(frame.ready_true_ns, stop):
+                return
+            msg = self.pipeline.on_frame(
+                frame.detections, self.clock.local_from_true(frame.capture_true_ns), self.clock.now_ns()
+            )
+            publisher.put(encode(msg))
+            self.published += 1
+        self._sleep_until(self.start_ns + round((self.duration_s + 1.0) * 1e9), stop)
+
+    def _sleep_until(self, true_ns: int, stop: threading.Event) -> bool:
+        """Wait for a true-clock time; False when stopped first."""
+        while not stop.is_set():
+            remaining_s = (true_ns - self.true_clock.now_ns()) * 1e-9
+            if remaining_s <= 0:
+                return True
+            stop.wait(remaining_s)
+        return False
+
+    def _on_time_query(self, query) -> None:
+        # Answered in the callback: it reads only the clock and must stamp t2/t3 tightly.
+        t2_ns = self.clock.now_ns()
+        try:
+            payload = query.payload
+            if payload is None:
+                raise MalformedMessage("time query without payload")
+            request = decode(payload.to_bytes(), TimeRequest)
+        except CodecError as exc:
+            with self._lock:
+                self.rejected[exc.reason] += 1
+            return
+        reply = answer_time_request(request, self.config.rsu_id, t2_ns, self.clock.now_ns())
+        query.reply(keys.rsu_time(self.config.rsu_id), encode(reply))

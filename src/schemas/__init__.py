@@ -1,0 +1,61 @@
+"""Wire contract: message models, the msgpack codec and key expressions (no Zenoh here)."""
+
+from . import keys
+from .classes import ObjectClass
+from .codec import (
+    MAX_MESSAGE_BYTES,
+    CodecError,
+    InvalidMessage,
+    MalformedMessage,
+    MessageTooLarge,
+    SchemaVersionError,
+    WrongMessageType,
+    decode,
+    encode,
+)
+from .messages import (
+    MAX_OBJECTS,
+    SCHEMA_VERSION,
+    SOURCE_RSU,
+    SOURCE_VEHICLE,
+    EgoPose,
+    FusedObject,
+    FusedObjectList,
+    Message,
+    ObjectList,
+    ObjectListHeader,
+    ObjectState,
+    ObuMetrics,
+    RsuLinkStatus,
+    TimeReply,
+    TimeRequest,
+)
+
+__all__ = [
+    "MAX_MESSAGE_BYTES",
+    "MAX_OBJECTS",
+    "SCHEMA_VERSION",
+    "SOURCE_RSU",
+    "SOURCE_VEHICLE",
+    "CodecError",
+    "EgoPose",
+    "FusedObject",
+    "FusedObjectList",
+    "InvalidMessage",
+    "MalformedMessage",
+    "Message",
+    "MessageTooLarge",
+    "ObjectClass",
+    "ObjectList",
+    "ObjectListHeader",
+    "ObjectState",
+    "ObuMetrics",
+    "RsuLinkStatus",
+    "SchemaVersionError",
+    "TimeReply",
+    "TimeRequest",
+    "WrongMessageType",
+    "decode",
+    "encode",
+    "keys",
+]

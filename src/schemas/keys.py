@@ -1,0 +1,93 @@
+"""Zenoh key expressions of the V2X system; identical on the RSU and vehicle sides.
+
+Ids (``rsu_id``, ``vehicle_id``, ``link_id``) are 1-64 characters of ``[A-Za-z0-9_-]``, so
+they can never inject a ``/`` or a wildcard into a key expression.
+"""
+
+from __future__ import annotations
+
+import re
+
+ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+RSU_TOPICS = ("objects", "predictions", "time", "alive")
+
+RSU_OBJECTS_ALL = "v2x/rsu/*/objects"
+RSU_PREDICTIONS_ALL = "v2x/rsu/*/predictions"
+RSU_TIME_ALL = "v2x/rsu/*/time"
+RSU_ALIVE_ALL = "v2x/rsu/*/alive"
+
+
+def check_id(node_id: str) -> str:
+    """``node_id`` unchanged if it is a valid id, else ValueError."""
+    if not isinstance(node_id, str) or not ID_PATTERN.fullmatch(node_id):
+        raise ValueError(f"invalid id {node_id!r}: must be 1-64 characters of A-Z a-z 0-9 _ -")
+    return node_id
+
+
+def _rsu(rsu_id: str, topic: str) -> str:
+    return f"v2x/rsu/{check_id(rsu_id)}/{topic}"
+
+
+def _obu(vehicle_id: str, topic: str) -> str:
+    return f"v2x/obu/{check_id(vehicle_id)}/{topic}"
+
+
+def _link(link_id: str, topic: str) -> str:
+    return f"v2x/link/{check_id(link_id)}/{topic}"
+
+
+def rsu_objects(rsu_id: str) -> str:
+    """Object lists published by an RSU (RSU -> vehicles)."""
+    return _rsu(rsu_id, "objects")
+
+
+def rsu_predictions(rsu_id: str) -> str:
+    """Long-horizon predicted trajectories published by an RSU."""
+    return _rsu(rsu_id, "predictions")
+
+
+def rsu_time(rsu_id: str) -> str:
+    """Queryable of an RSU answering NTP-style time requests."""
+    return _rsu(rsu_id, "time")
+
+
+def rsu_alive(rsu_id: str) -> str:
+    """Liveliness token of an RSU."""
+    return _rsu(rsu_id, "alive")
+
+
+def obu_objects(vehicle_id: str) -> str:
+    """Fused object lists published by a vehicle's OBU."""
+    return _obu(vehicle_id, "objects")
+
+
+def obu_metrics(vehicle_id: str) -> str:
+    """Periodic OBU health metrics."""
+    return _obu(vehicle_id, "metrics")
+
+
+def obu_pose(vehicle_id: str) -> str:
+    """Ego pose of a vehicle in the map frame."""
+    return _obu(vehicle_id, "pose")
+
+
+def link_control(link_id: str) -> str:
+    """Control channel of a link emulator."""
+    return _link(link_id, "control")
+
+
+def link_stats(link_id: str) -> str:
+    """Statistics published by a link emulator."""
+    return _link(link_id, "stats")
+
+
+def rsu_id_from_key(key: str) -> str:
+    """The RSU id in a concrete RSU key such as ``v2x/rsu/rsu-1/objects``; ValueError otherwise."""
+    parts = str(key).split("/")
+    if len(parts) != 4 or parts[:2] != ["v2x", "rsu"] or parts[3] not in RSU_TOPICS:
+        raise ValueError(f"{key!r} is not an RSU key (v2x/rsu/<rsu_id>/{{{','.join(RSU_TOPICS)}}})")
+    try:
+        return check_id(parts[2])
+    except ValueError:
+        raise ValueError(f"{key!r} is not an RSU key: bad rsu id {parts[2]!r}") from None

@@ -1,0 +1,34 @@
+"""Process conventions shared by the services and the orchestrator that starts them.
+
+A service prints exactly one JSON line ``{"event": "ready", "service": ...}`` on stdout
+once its Zenoh session is open and declared, and stops cleanly on SIGINT or SIGTERM.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM (main thread only)."""
+    stop = threading.Event()
+
+    def _handler(signum, frame):  # noqa: ARG001
+        stop.set()
+
+    signal.signal(signal.SIGINT, _handler)
+    signal.signal(signal.SIGTERM, _handler)
+    return stop
+
+
+def announce(event: str, service: str, **fields) -> None:
+    """One flushed JSON line on stdout for an orchestrator to read."""
+    print(json.dumps({"event": event, "service": service, **fields}), flush=True)
+
+
+def log(service: str, message: str) -> None:
+    """A human-readable line on stderr, prefixed with the service name."""
+    print(f"[{service}] {message}", file=sys.stderr, flush=True)

@@ -1,0 +1,128 @@
+"""2-D line of sight in the ground plane (bird's-eye view).
+
+A target is sampled at its centre, 4 corners and (optionally) 4 edge midpoints; a sample is
+visible when the segment origin -> sample crosses no occluder. Occluders are rotated boxes
+(slab test in each box's own frame), polygons (edge crossings + containment) and, optionally,
+the other targets' boxes (never the target itself).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from fusion.objects import ObjectArray
+
+# Sample offsets in units of (l/2, w/2) in the box frame: centre, corners, edge midpoints.
+_OFFSETS = {
+    1: np.array([[0.0, 0.0]]),
+    5: np.array([[0, 0], [1, 1], [1, -1], [-1, -1], [-1, 1]], dtype=float),
+    9: np.array([[0, 0], [1, 1], [1, -1], [-1, -1], [-1, 1], [1, 0], [0, -1], [-1, 0], [0, 1]], dtype=float),
+}
+
+
+def _rot(yaw: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 2, 2) for yaws (N,)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def box_points(xy: np.ndarray, lw: np.ndarray, yaw: np.ndarray, samples: int = 5) -> np.ndarray:
+    """Sample points (N, S, 2) of boxes: centres (N, 2), sizes (N, 2) [l, w], yaws (N,).
+
+    S = 1 (centre), 5 (+ corners CCW from front-left) or 9 (+ edge midpoints).
+    """
+    if samples not in _OFFSETS:
+        raise ValueError(f"samples must be one of {sorted(_OFFSETS)}, got {samples}")
+    local = _OFFSETS[samples][None] * (np.asarray(lw, dtype=float)[:, None, :] / 2.0)  # (N, S, 2)
+    # p = c + R(yaw) q
+    return np.asarray(xy, dtype=float)[:, None, :] + np.einsum("nij,nsj->nsi", _rot(np.asarray(yaw)), local)
+
+
+def segments_hit_boxes(a: np.ndarray, b: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(Q, B) bool: segment a[q] -> b[q] (Q, 2) intersects box [x, y, l, w, yaw] (B, 5).
+
+    Slab test in each box's frame: q(t) = R^T (a - c) + t R^T (b - a), t in [0, 1], inside
+    |q_x| <= l/2 and |q_y| <= w/2; per axis t in [(-h - q0)/d, (h - q0)/d] (sorted), the
+    segment hits when max over axes of the entries <= min over axes of the exits, clipped to [0, 1].
+    """
+    a, b, boxes = (np.asarray(v, dtype=float) for v in (a, b, boxes))
+    if len(a) == 0 or len(boxes) == 0:
+        return np.zeros((len(a), len(boxes)), dtype=bool)
+    rot = _rot(boxes[:, 4])  # (B, 2, 2)
+    half = boxes[None, :, 2:4] / 2.0  # (1, B, 2)
+    q0 = np.einsum("bji,qbj->qbi", rot, a[:, None, :] - boxes[None, :, :2])  # R^T (a - c)
+    d = np.einsum("bji,qj->qbi", rot, b - a)  # R^T (b - a)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (-half - q0) / d, (half - q0) / d  # d = 0: +-inf if inside the slab, same sign if not
+    enter = np.minimum(t1, t2).max(axis=-1)
+    leave = np.maximum(t1, t2).min(axis=-1)
+    return np.maximum(enter, 0.0) <= np.minimum(leave, 1.0)
+
+
+def _edges(polygons: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All polygon edges: starts (E, 2), ends (E, 2), index of each polygon's first edge (P,)."""
+    polys = [np.asarray(p, dtype=float) for p in polygons]
+    starts = np.concatenate(polys)
+    ends = np.concatenate([np.roll(p, -1, axis=0) for p in polys])
+    first = np.cumsum([0] + [len(p) for p in polys[:-1]])
+    return starts, ends, first
+
+
+def _cross(o: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """z of (p - o) x (q - o), broadcast over leading axes."""
+    return (p[..., 0] - o[..., 0]) * (q[..., 1] - o[..., 1]) - (p[..., 1] - o[..., 1]) * (q[..., 0] - o[..., 0])
+
+
+def segments_hit_polygons(a: np.ndarray, b: np.ndarray, polygons: Sequence[np.ndarray]) -> np.ndarray:
+    """(Q, P) bool: segment a[q] -> b[q] (Q, 2) intersects simple polygon p, each (K_p, 2).
+
+    Hit = the segment crosses an edge (orientation test: each segment's end points lie on
+    opposite sides of the other) or lies inside (end point b inside, crossing-number test).
+    """
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if len(a) == 0 or len(polygons) == 0:
+        return np.zeros((len(a), len(polygons)), dtype=bool)
+    c, d, first = _edges(polygons)
+    A, B, C, D = a[:, None], b[:, None], c[None], d[None]
+    crosses = (_cross(A, B, C) * _cross(A, B, D) <= 0) & (_cross(C, D, A) * _cross(C, D, B) <= 0)
+    # ray from b towards +x crosses edge (c, d): c and d straddle b_y and the crossing is right of b
+    straddle = (C[..., 1] > B[..., 1]) != (D[..., 1] > B[..., 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_at = C[..., 0] + (B[..., 1] - C[..., 1]) * (D[..., 0] - C[..., 0]) / (D[..., 1] - C[..., 1])
+    ray_hits = straddle & (B[..., 0] < x_at)
+    inside = np.add.reduceat(ray_hits.astype(np.int64), first, axis=1) % 2 == 1
+    return np.logical_or.reduceat(crosses, first, axis=1) | inside
+
+
+def visible_fraction(
+    origin_xy: np.ndarray,
+    targets: ObjectArray,
+    occluder_boxes: np.ndarray | None = None,
+    polygons: Sequence[np.ndarray] = (),
+    samples: int = 9,
+    targets_occlude: bool = True,
+) -> np.ndarray:
+    """Fraction (N,) in [0, 1] of each target's sample points seen from ``origin_xy`` (2,) m.
+
+    occluder_boxes (M, 5) [x, y, l, w, yaw rad] and polygons (each (K, 2)) are static
+    occluders; with ``targets_occlude`` every other target's box occludes too.
+    """
+    n = len(targets)
+    if n == 0:
+        return np.zeros(0)
+    pts = box_points(targets.xy, targets.lwh[:, :2], targets.yaw, samples).reshape(-1, 2)  # (N S, 2)
+    origin = np.broadcast_to(np.asarray(origin_xy, dtype=float), pts.shape)
+    owner = np.repeat(np.arange(n), samples)  # target of each sample point
+    blocked = np.zeros(len(pts), dtype=bool)
+    if occluder_boxes is not None and len(occluder_boxes):
+        blocked |= segments_hit_boxes(origin, pts, occluder_boxes).any(axis=1)
+    if len(polygons):
+        blocked |= segments_hit_polygons(origin, pts, polygons).any(axis=1)
+    if targets_occlude and n > 1:
+        boxes = np.column_stack([targets.xy, targets.lwh[:, :2], targets.yaw])
+        hits = segments_hit_boxes(origin, pts, boxes)
+        hits[np.arange(len(pts)), owner] = False  # a target never hides itself
+        blocked |= hits.any(axis=1)
+    return 1.0 - blocked.reshape(n, samples).mean(axis=1)

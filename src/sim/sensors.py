@@ -1,0 +1,174 @@
+"""Sensor models observing a ``World``: on-board LiDAR detector, roadside camera, localisation.
+
+Every model draws its noise from the injected ``numpy.random.Generator``; the same seed and
+the same call sequence give identical outputs. Noise is drawn for every actor in a fixed
+order before any selection, so one actor's visibility never shifts another actor's noise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fusion.frames import Pose2D, base_to_map_points, map_to_base, wrap_angle
+from fusion.objects import ObjectArray
+from schemas.classes import ObjectClass
+
+from .occlusion import visible_fraction
+from .scenario import LidarConfig, LocalizationConfig, RsuCameraConfig
+from .world import World
+
+SOURCE_VEHICLE = 1
+SOURCE_RSU = 2
+
+# Class-typical box sizes l, w, h (m): a monocular detector reports the class prior size
+# (seed 000 Sec. I: 3D-Net / CAROM take dimensions from the recognised vehicle type).
+CLASS_DEFAULT_LWH: dict[ObjectClass, tuple[float, float, float]] = {
+    ObjectClass.UNKNOWN: (4.0, 1.8, 1.6),
+    ObjectClass.CAR: (4.6, 1.85, 1.5),
+    ObjectClass.VAN: (5.9, 2.0, 2.6),
+    ObjectClass.TRUCK: (8.0, 2.5, 3.5),
+    ObjectClass.BUS: (12.0, 2.55, 3.2),
+    ObjectClass.PEDESTRIAN: (0.6, 0.6, 1.75),
+    ObjectClass.CYCLIST: (1.8, 0.6, 1.7),
+    ObjectClass.MOTORCYCLE: (2.2, 0.8, 1.5),
+}
+_MIN_SIZE_M = 0.1
+
+
+def frame_times(rate_hz: float, duration_s: float, phase_s: float = 0.0) -> np.ndarray:
+    """Capture times (K,) s: t_k = phase + k / rate for every t_k in [phase, duration)."""
+    count = max(int(np.ceil((duration_s - phase_s) * rate_hz - 1e-9)), 0)
+    return phase_s + np.arange(count) / rate_hz
+
+
+def _default_lwh(cls: np.ndarray) -> np.ndarray:
+    """Class prior sizes (N, 3) m for class codes (N,)."""
+    return np.array([CLASS_DEFAULT_LWH[ObjectClass(int(c))] for c in cls], dtype=float).reshape(-1, 3)
+
+
+class Lidar:
+    """On-board LiDAR + CenterPoint-like detector: detections in the ego's true base_link."""
+
+    def __init__(self, cfg: LidarConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self.rng = rng
+
+    def origin(self, ego: Pose2D) -> np.ndarray:
+        """Sensor position (2,) in map for the ego pose."""
+        return base_to_map_points(np.array([[self.cfg.mount.x, self.cfg.mount.y]]), ego)[0]
+
+    def visibility(self, world: World, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per actor (N,): distance from the sensor (m) and visible fraction seen from it."""
+        return self._visibility(world, world.actors_at(t_s), world.ego_at(t_s))
+
+    def _visibility(self, world: World, gt: ObjectArray, ego: Pose2D) -> tuple[np.ndarray, np.ndarray]:
+        # occluders: buildings + every other actor's box (the ego carries the sensor)
+        origin = self.origin(ego)
+        vis = visible_fraction(origin, gt, world.building_boxes, world.building_polygons, samples=9)
+        return np.hypot(*(gt.xy - origin).T), vis
+
+    def detect(self, world: World, t_s: float) -> ObjectArray:
+        """Detections at capture time t_s (s) in the true base_link; ids -1, sources 1."""
+        c, rng = self.cfg, self.rng
+        ego, gt = world.ego_at(t_s), world.actors_at(t_s)
+        dist, vis = self._visibility(world, gt, ego)
+        truth = map_to_base(gt, ego)  # over-ground velocity, rotated into base_link
+        n = len(truth)
+        detected = rng.random(n) < c.detection_probability
+        xy = truth.xy + rng.normal(0.0, c.position_noise_std_m, (n, 2))
+        z = truth.z + rng.normal(0.0, c.position_noise_std_m, n)
+        yaw = wrap_angle(truth.yaw + rng.normal(0.0, c.yaw_noise_std_rad, n))
+        lwh = np.maximum(truth.lwh + rng.normal(0.0, c.size_noise_std_m, (n, 3)), _MIN_SIZE_M)
+        vxy = truth.vxy + rng.normal(0.0, c.velocity_noise_std_mps, (n, 2))
+        # fewer returns on far or partly hidden objects -> lower score
+        confidence = np.clip(vis * (1.0 - 0.5 * dist / c.range_m), 0.05, 1.0)
+        keep = (dist <= c.range_m) & (vis >= c.min_visible_fraction) & detected
+        out = ObjectArray(
+            ids=np.full(n, -1, dtype=np.int64), cls=truth.cls, xy=xy, z=z, lwh=lwh, yaw=yaw, vxy=vxy,
+            cov_xy=np.tile(np.eye(2) * c.position_noise_std_m**2, (n, 1, 1)), confidence=confidence,
+            sources=np.full(n, SOURCE_VEHICLE, dtype=np.int64),
+        )
+        return out.take(keep)
+
+
+def mean_error_at(range_m: np.ndarray, cfg: RsuCameraConfig) -> np.ndarray:
+    """Mean Euclidean position error (N,) m of the camera at horizontal ranges (N,) m.
+
+    Piecewise constant over the configured bands; beyond the last band, the last value.
+    """
+    edges = np.array([b.max_range_m for b in cfg.position_error])
+    means = np.array([b.mean_error_m for b in cfg.position_error])
+    return means[np.minimum(np.searchsorted(edges, range_m, side="left"), len(means) - 1)]
+
+
+def per_axis_sigma(mean_error_m: np.ndarray) -> np.ndarray:
+    """Per-axis std (m) of an isotropic 2-D Gaussian error with the given mean Euclidean error.
+
+    |e| of e ~ N(0, sigma^2 I_2) is Rayleigh with mean sigma sqrt(pi/2), so
+    sigma = mean / sqrt(pi/2).
+    """
+    return np.asarray(mean_error_m, dtype=float) / np.sqrt(np.pi / 2.0)
+
+
+class RsuCamera:
+    """Roadside monocular camera + CAROM-like detector: detections in map, plus its delay."""
+
+    def __init__(self, cfg: RsuCameraConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self.rng = rng
+
+    @property
+    def position(self) -> np.ndarray:
+        return np.array([self.cfg.position.x, self.cfg.position.y])
+
+    def coverage(self, world: World, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per actor (N,): horizontal range from the pole (m) and whether it is observable.
+
+        Observable = within range_m, inside the horizontal FOV, and not hidden by buildings.
+        The camera looks down from the pole, so cars do not occlude each other.
+        """
+        return self._coverage(world, world.actors_at(t_s))
+
+    def _coverage(self, world: World, gt: ObjectArray) -> tuple[np.ndarray, np.ndarray]:
+        c = self.cfg
+        rel = gt.xy - self.position
+        rng_m = np.hypot(rel[:, 0], rel[:, 1])
+        off_axis = wrap_angle(np.arctan2(rel[:, 1], rel[:, 0]) - np.deg2rad(c.yaw_deg))
+        in_view = (rng_m <= c.range_m) & (np.abs(off_axis) <= np.deg2rad(c.fov_deg) / 2.0)
+        vis = visible_fraction(self.position, gt, world.building_boxes, world.building_polygons, targets_occlude=False)
+        return rng_m, in_view & (vis >= c.min_visible_fraction)
+
+    def detect(self, world: World, t_s: float) -> tuple[ObjectArray, float]:
+        """Detections of the frame captured at t_s (s) in map (ids -1, sources 2, no velocity),
+        and that frame's processing delay (s), uniform in processing_delay_ms."""
+        c, rng = self.cfg, self.rng
+        delay_s = rng.uniform(*c.processing_delay_ms) / 1000.0
+        truth = world.actors_at(t_s)
+        rng_m, observable = self._coverage(world, truth)
+        n = len(truth)
+        sigma = per_axis_sigma(mean_error_at(rng_m, c))
+        detected = rng.random(n) < c.detection_probability
+        xy = truth.xy + rng.normal(0.0, 1.0, (n, 2)) * sigma[:, None]
+        yaw = wrap_angle(truth.yaw + rng.normal(0.0, c.yaw_noise_std_rad, n))
+        lwh = np.maximum(_default_lwh(truth.cls) + rng.normal(0.0, c.size_noise_std_m, (n, 3)), _MIN_SIZE_M)
+        out = ObjectArray(
+            ids=np.full(n, -1, dtype=np.int64), cls=truth.cls, xy=xy, z=lwh[:, 2] / 2.0, lwh=lwh, yaw=yaw,
+            vxy=np.zeros((n, 2)), cov_xy=sigma[:, None, None] ** 2 * np.eye(2),
+            confidence=np.clip(1.0 - 0.5 * rng_m / c.range_m, 0.05, 1.0),
+            sources=np.full(n, SOURCE_RSU, dtype=np.int64),
+        )
+        return out.take(observable & detected), delay_s
+
+
+class Localization:
+    """Ego pose measurement: true pose + independent Gaussian noise on x, y, yaw."""
+
+    def __init__(self, cfg: LocalizationConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self.rng = rng
+
+    def measure(self, world: World, t_s: float) -> Pose2D:
+        """Noisy ego pose in map at t_s (s); velocity passed through unchanged."""
+        c, true = self.cfg, world.ego_at(t_s)
+        dx, dy, dyaw = self.rng.normal(0.0, 1.0, 3) * [c.x_std_m, c.y_std_m, c.yaw_std_rad]
+        return Pose2D(x=true.x + dx, y=true.y + dy, yaw=float(wrap_angle(true.yaw + dyaw)), vx=true.vx, vy=true.vy)

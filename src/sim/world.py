@@ -1,0 +1,157 @@
+"""Ground-truth world: every body's state at any time, from a ``Scenario``.
+
+Kinematics of one body (all bodies evaluated at once on padded arrays):
+    v(t)  piecewise linear through the keys (t_k, v_k), constant outside them
+    s(t)  = F(t) - F(0),  F an antiderivative of v, closed form per piece:
+            F(t) = F_k + v_k (t - t_k) + a_k (t - t_k)^2 / 2,  a_k = (v_{k+1} - v_k) / (t_{k+1} - t_k)
+    p(t)  = point at arc length s(t) on the polyline, clamped to [0, L] (stops at the end)
+    heading = tangent u of the current segment; velocity = v u; acceleration = (dv/dt) u.
+The centripetal term v^2 kappa is ignored: a polyline has zero curvature on its segments
+and turns instantly at its vertices (densify a path for a smooth turn).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fusion.frames import Pose2D
+from fusion.objects import ObjectArray
+
+from .scenario import Building, Scenario, Trajectory
+
+
+def _pad(rows: list[np.ndarray], fill_last: bool, fill: float = np.inf) -> np.ndarray:
+    """Ragged list of (K_i, ...) arrays -> (N, K_max, ...); pad with ``fill`` or the last row."""
+    k_max = max(len(r) for r in rows)
+    out = np.full((len(rows), k_max) + rows[0].shape[1:], fill, dtype=float)
+    for i, r in enumerate(rows):
+        out[i, : len(r)] = r
+        if fill_last:
+            out[i, len(r):] = r[-1]
+    return out
+
+
+class _SpeedProfiles:
+    """Piecewise-linear speed v(t) and its integral s(t) for N bodies, vectorised."""
+
+    def __init__(self, trajectories: list[Trajectory]):
+        keys = [np.asarray(tr.speed, dtype=float) for tr in trajectories]
+        slopes, integrals = [], []
+        for k in keys:
+            dt, dv = np.diff(k[:, 0]), np.diff(k[:, 1])
+            a = np.append(dv / dt, 0.0)  # slope to the next key; 0 after the last one
+            # F_{k+1} = F_k + v_k dt + a_k dt^2 / 2, F_0 = 0
+            integrals.append(np.concatenate([[0.0], np.cumsum(k[:-1, 1] * dt + 0.5 * a[:-1] * dt**2)]))
+            slopes.append(a)
+        self._t = _pad([k[:, 0] for k in keys], fill_last=False)  # inf: never reached
+        self._v = _pad([k[:, 1] for k in keys], fill_last=True)
+        self._a = _pad(slopes, fill_last=False, fill=0.0)
+        self._f = _pad(integrals, fill_last=True)
+        self._rows = np.arange(len(keys))
+        self._f0 = self._antiderivative(0.0)[0]
+
+    def _antiderivative(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """F(t), v(t), dv/dt, each (N,)."""
+        k = np.maximum((self._t <= t).sum(axis=1) - 1, 0)
+        before = t < self._t[:, 0]
+        r = self._rows
+        dt = np.where(before, 0.0, t - self._t[r, k])
+        a = np.where(before, 0.0, self._a[r, k])
+        v = self._v[r, k] + a * dt
+        f = np.where(before, self._v[:, 0] * (t - self._t[:, 0]), self._f[r, k] + self._v[r, k] * dt + 0.5 * a * dt**2)
+        return f, v, a
+
+    def at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Arc length s (N,) m, speed (N,) m/s, dv/dt (N,) m/s^2 at time t (s)."""
+        f, v, a = self._antiderivative(t)
+        return f - self._f0, v, a
+
+
+class _Paths:
+    """Polylines for N bodies: point and unit tangent at an arc length, vectorised."""
+
+    def __init__(self, trajectories: list[Trajectory]):
+        pts = [np.asarray(tr.path, dtype=float) for tr in trajectories]
+        tangents, cum = [], []
+        for tr, p in zip(trajectories, pts):
+            seg = np.diff(p, axis=0)
+            length = np.hypot(seg[:, 0], seg[:, 1])
+            if tr.is_static:
+                yaw = np.deg2rad(tr.yaw_deg or 0.0)
+                tangents.append(np.array([[np.cos(yaw), np.sin(yaw)]]))
+            else:
+                tangents.append(seg / length[:, None])
+            cum.append(np.concatenate([[0.0], np.cumsum(length)]))
+        self._p = _pad(pts, fill_last=True)
+        self._u = _pad(tangents, fill_last=True)
+        self._cum = _pad(cum, fill_last=False)  # inf: never reached
+        self.length = np.array([c[-1] for c in cum])  # (N,) m
+        self._last_seg = np.array([max(len(p) - 2, 0) for p in pts])
+        self._rows = np.arange(len(pts))
+
+    def at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Point (N, 2) m and unit tangent (N, 2) at arc lengths s (N,), clamped to [0, L]."""
+        s = np.clip(s, 0.0, self.length)
+        j = np.minimum(np.maximum((self._cum <= s[:, None]).sum(axis=1) - 1, 0), self._last_seg)
+        r = self._rows
+        u = self._u[r, j]
+        return self._p[r, j] + (s - self._cum[r, j])[:, None] * u, u
+
+
+class Trajectories:
+    """Kinematic state of N bodies at time t (map frame)."""
+
+    def __init__(self, trajectories: list[Trajectory]):
+        self._speed = _SpeedProfiles(trajectories)
+        self._paths = _Paths(trajectories)
+
+    def at(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """xy (N, 2) m, yaw (N,) rad, vxy (N, 2) m/s, axy (N, 2) m/s^2 at time t_s."""
+        s, v, a = self._speed.at(float(t_s))
+        xy, u = self._paths.at(s)
+        moving = (s >= 0.0) & (s < self._paths.length)  # stopped at either end of the path
+        yaw = np.arctan2(u[:, 1], u[:, 0])
+        return xy, yaw, np.where(moving, v, 0.0)[:, None] * u, np.where(moving, a, 0.0)[:, None] * u
+
+
+def _building_arrays(buildings: list[Building]) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """Boxes (M, 5) [x, y, l, w, yaw rad] and polygons, each (K, 2), of the static occluders."""
+    boxes = [[b.box.x, b.box.y, b.box.l, b.box.w, np.deg2rad(b.box.yaw_deg)] for b in buildings if b.box is not None]
+    polygons = tuple(np.asarray(b.polygon, dtype=float) for b in buildings if b.polygon is not None)
+    return np.asarray(boxes, dtype=float).reshape(-1, 5), polygons
+
+
+class World:
+    """Ground truth of a scenario. Actor ids are 1..N in YAML order; the ego has none."""
+
+    def __init__(self, scenario: Scenario):
+        self.scenario = scenario
+        actors = scenario.actors
+        self.ids = np.arange(1, len(actors) + 1, dtype=np.int64)
+        self.cls = np.array([int(a.cls) for a in actors], dtype=np.int64)
+        self.lwh = np.array([a.size for a in actors], dtype=float)  # (N, 3) m
+        self.actor_names: dict[int, str] = {int(i): a.name for i, a in zip(self.ids, actors)}
+        self.target_id: int = next(i for i, n in self.actor_names.items() if n == scenario.target)
+        self.ego_size = np.array(scenario.ego.size, dtype=float)  # (3,) l, w, h (m)
+        self.building_boxes, self.building_polygons = _building_arrays(scenario.buildings)
+        self._actors = Trajectories([a.trajectory for a in actors])
+        self._ego = Trajectories([scenario.ego.trajectory])
+
+    @property
+    def duration_s(self) -> float:
+        return self.scenario.duration_s
+
+    def actors_at(self, t_s: float) -> ObjectArray:
+        """Ground truth of every actor except the ego at time t_s (s), map frame."""
+        xy, yaw, vxy, axy = self._actors.at(t_s)
+        n = len(self.ids)
+        return ObjectArray(
+            ids=self.ids.copy(), cls=self.cls.copy(), xy=xy, z=self.lwh[:, 2] / 2.0, lwh=self.lwh.copy(),
+            yaw=yaw, vxy=vxy, axy=axy, cov_xy=np.zeros((n, 2, 2)), confidence=np.ones(n),
+            sources=np.zeros(n, dtype=np.int64),
+        )
+
+    def ego_at(self, t_s: float) -> Pose2D:
+        """True ego pose (box centre = base_link origin) and velocity in map at t_s (s)."""
+        xy, yaw, vxy, _ = self._ego.at(t_s)
+        return Pose2D(x=float(xy[0, 0]), y=float(xy[0, 1]), yaw=float(yaw[0]), vx=float(vxy[0, 0]), vy=float(vxy[0, 1]))

@@ -1,0 +1,121 @@
+"""``v2i``: one command for the services, the live demo and the offline evaluator."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+SUBCOMMANDS = {
+    "demo": "run RSU, link emulator and OBU as processes on loopback Zenoh and score the result",
+    "eval": "run the same pipelines offline with a simulated clock and link (deterministic)",
+    "rsu": "run the roadside unit service",
+    "obu": "run the on-board unit service",
+    "link": "run the link emulator between RSU and vehicle",
+}
+
+
+def _run_options(p: argparse.ArgumentParser) -> None:
+    from obu_service.pipeline import FUSION_METHODS
+
+    p.add_argument("--scenario", default="red-light-runner", help="bundled scenario name or YAML path (default %(default)s)")
+    p.add_argument("--profile", default="lte-v2x", help="link profile: bundled name or YAML path (default %(default)s)")
+    p.add_argument("--fusion", default="iou-merge", choices=FUSION_METHODS, help="fusion method (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed of sensor noise and link model (default %(default)s)")
+    p.add_argument("--duration", type=float, help="seconds of scenario to run (default: the scenario's duration)")
+    p.add_argument("--rsu-clock-offset-ms", type=float, default=0.0, help="injected RSU clock offset, ms")
+    p.add_argument("--rsu-clock-drift-ppm", type=float, default=0.0, help="injected RSU clock drift, ppm")
+    p.add_argument("--deadline-ms", type=float, default=100.0, help="OBU end-to-end deadline per cycle (default %(default)s)")
+    p.add_argument("--json", metavar="PATH", help="write the metrics JSON to PATH ('-' for stdout)")
+
+
+def _spec(args: argparse.Namespace):
+    from evaluation.spec import RunSpec
+
+    return RunSpec(
+        scenario=args.scenario, profile=args.profile, fusion=args.fusion, seed=args.seed, duration_s=args.duration,
+        rsu_clock_offset_ms=args.rsu_clock_offset_ms, rsu_clock_drift_ppm=args.rsu_clock_drift_ppm,
+        deadline_ms=args.deadline_ms,
+    )
+
+
+def _emit(report: dict, json_path: str | None) -> None:
+    """Human summary (stderr when the JSON goes to stdout) and the JSON report."""
+    from evaluation.spec import summary
+
+    print(summary(report), file=sys.stderr if json_path == "-" else sys.stdout)
+    if json_path == "-":
+        print(json.dumps(report, indent=2))
+    elif json_path:
+        Path(json_path).write_text(json.dumps(report, indent=2) + "\n")
+
+
+def _check_inputs(args: argparse.Namespace) -> None:
+    """Fail early, with the reason, on a scenario or profile that cannot be loaded."""
+    from link_emulator.profile import load_profile
+    from sim.scenario import load_scenario
+
+    load_scenario(args.scenario)
+    load_profile(args.profile)
+    if args.duration is not None and args.duration <= 0:
+        raise ValueError("--duration must be positive")
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from evaluation.runner import OfflineRun
+    from evaluation.spec import build_report
+
+    _check_inputs(args)
+    run = OfflineRun(_spec(args))
+    _emit(build_report(run.spec, run.world, run.execute(), driver="eval"), args.json)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from evaluation.demo import Demo, DemoError, LinkOutage
+
+    _check_inputs(args)
+    outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
+    demo = Demo(_spec(args), startup_s=args.startup, outage=outage)
+    try:
+        report = demo.run()
+    except DemoError as exc:
+        print(f"v2i demo: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("v2i demo: interrupted; all services stopped", file=sys.stderr)
+        return 130
+    _emit(report, args.json)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="v2i",
+        description="Cooperative perception between a roadside unit and a vehicle over an emulated V2X link.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parsers = {name: sub.add_parser(name, help=text, description=text) for name, text in SUBCOMMANDS.items()}
+    for name in ("demo", "eval"):
+        _run_options(parsers[name])
+    parsers["eval"].set_defaults(func=cmd_eval)
+    demo = parsers["demo"]
+    demo.add_argument("--startup", type=float, default=4.0, help="seconds given to the services to start (default %(default)s)")
+    demo.add_argument("--kill-link-at", type=float, metavar="S", help="chaos: kill the link emulator S seconds into the run")
+    demo.add_argument("--link-down-s", type=float, default=3.0, help="chaos: restart it this many seconds later (default %(default)s)")
+    demo.set_defaults(func=cmd_demo)
+    for name, module in (("rsu", "rsu_service.cli"), ("obu", "obu_service.cli"), ("link", "link_emulator.cli")):
+        mod = __import__(module, fromlist=["configure_parser", "run"])
+        mod.configure_parser(parsers[name])
+        parsers[name].set_defaults(func=mod.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"v2i {args.command}: {exc}", file=sys.stderr)
+        return 2

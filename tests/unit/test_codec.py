@@ -1,0 +1,491 @@
+"""Codec properties: exact round trip, only CodecError on hostile bytes, every model rule on decode."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from schemas import (
+    MAX_MESSAGE_BYTES,
+    MAX_OBJECTS,
+    SCHEMA_VERSION,
+    CodecError,
+    EgoPose,
+    FusedObject,
+    FusedObjectList,
+    InvalidMessage,
+    MalformedMessage,
+    MessageTooLarge,
+    ObjectClass,
+    ObjectList,
+    ObjectListHeader,
+    ObjectState,
+    ObuMetrics,
+    RsuLinkStatus,
+    SchemaVersionError,
+    TimeReply,
+    TimeRequest,
+    WrongMessageType,
+    decode,
+    encode,
+)
+from schemas.messages import MAX_TIME_NS, MIN_TIME_NS, YAW_RATE_MAX
+
+FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+T0 = 1_700_000_000 * 10**9
+
+# ---------------------------------------------------------------- strategies
+
+
+def floats(lo: float, hi: float) -> st.SearchStrategy[float]:
+    return st.floats(lo, hi, allow_nan=False, allow_infinity=False)
+
+
+times = st.integers(MIN_TIME_NS, MAX_TIME_NS)
+node_ids = st.from_regex(r"[A-Za-z0-9_-]{1,64}", fullmatch=True)
+seqs = st.integers(0, 2**63 - 1)
+counts = st.integers(0, 2**63 - 1)
+labels = st.text(max_size=32)
+
+OBJECT_FIELDS = dict(
+    id=st.integers(0, 2**32 - 1),
+    cls=st.sampled_from(ObjectClass),
+    x=floats(-1e6, 1e6),
+    y=floats(-1e6, 1e6),
+    z=floats(-1e4, 1e4),
+    length=floats(0, 100),
+    width=floats(0, 100),
+    height=floats(0, 100),
+    yaw=floats(-100, 100),
+    vx=floats(-200, 200),
+    vy=floats(-200, 200),
+    ax=floats(-100, 100),
+    ay=floats(-100, 100),
+    yaw_rate=floats(-YAW_RATE_MAX, YAW_RATE_MAX),
+    cov_xx=floats(0, 1e4),
+    cov_xy=floats(-1e4, 1e4),
+    cov_yy=floats(0, 1e4),
+    confidence=floats(0, 1),
+    age_s=floats(0, 1e6),
+)
+object_states = st.builds(ObjectState, **OBJECT_FIELDS)
+fused_objects = st.builds(FusedObject, **OBJECT_FIELDS, sources=st.integers(0, 255))
+ordered_times = st.tuples(times, times).map(sorted)
+
+
+@st.composite
+def object_lists(draw) -> ObjectList:
+    capture, publish = draw(ordered_times)
+    header = ObjectListHeader(
+        rsu_id=draw(node_ids),
+        seq=draw(seqs),
+        capture_time_ns=capture,
+        publish_time_ns=publish,
+        frame_id=draw(st.text(max_size=64)),
+        sensor=draw(st.text(max_size=128)),
+    )
+    return ObjectList(header=header, objects=tuple(draw(st.lists(object_states, max_size=12))))
+
+
+@st.composite
+def fused_object_lists(draw) -> FusedObjectList:
+    cycle, publish = draw(ordered_times)
+    return FusedObjectList(
+        vehicle_id=draw(node_ids),
+        seq=draw(seqs),
+        cycle_time_ns=cycle,
+        publish_time_ns=publish,
+        fusion=draw(labels),
+        mode=draw(labels),
+        ego_x=draw(floats(-1e6, 1e6)),
+        ego_y=draw(floats(-1e6, 1e6)),
+        ego_yaw=draw(floats(-100, 100)),
+        objects=tuple(draw(st.lists(fused_objects, max_size=12))),
+    )
+
+
+@st.composite
+def time_replies(draw) -> TimeReply:
+    t2, t3 = draw(ordered_times)
+    return TimeReply(rsu_id=draw(node_ids), seq=draw(seqs), t1_ns=draw(times), t2_ns=t2, t3_ns=t3)
+
+
+time_requests = st.builds(TimeRequest, obu_id=node_ids, seq=seqs, t1_ns=times)
+ego_poses = st.builds(
+    EgoPose,
+    vehicle_id=node_ids,
+    t_ns=times,
+    x=floats(-1e6, 1e6),
+    y=floats(-1e6, 1e6),
+    yaw=floats(-100, 100),
+    vx=floats(-200, 200),
+    vy=floats(-200, 200),
+)
+int64s = st.integers(-(2**63), 2**63 - 1)
+link_statuses = st.builds(
+    RsuLinkStatus,
+    rsu_id=node_ids,
+    clock_offset_ns=st.none() | int64s,
+    clock_uncertainty_ns=st.none() | int64s,
+    sync_samples=counts,
+    messages_accepted=counts,
+    last_data_age_ms=st.none() | st.floats(allow_nan=False, allow_infinity=False),
+)
+obu_metrics = st.builds(
+    ObuMetrics,
+    vehicle_id=node_ids,
+    t_ns=times,
+    cycles=counts,
+    output_deadline_misses=counts,
+    mode=labels,
+    rsus=st.lists(link_statuses, max_size=3).map(tuple),
+    rejected=st.dictionaries(st.text(max_size=64), counts, max_size=4),
+)
+messages = st.one_of(object_lists(), fused_object_lists(), time_requests, time_replies(), ego_poses, obu_metrics)
+MODELS = [ObjectList, FusedObjectList, TimeRequest, TimeReply, EgoPose, ObuMetrics]
+
+# ---------------------------------------------------------------- helpers
+
+
+def envelope(tag: str, body: object, version: object = SCHEMA_VERSION) -> bytes:
+    return msgpack.packb({"v": version, "t": tag, "d": body}, use_bin_type=True)
+
+
+def body_of(data: bytes) -> dict:
+    return msgpack.unpackb(data, raw=False)["d"]
+
+
+def header(**changes) -> ObjectListHeader:
+    fields = dict(rsu_id="rsu-1", seq=7, capture_time_ns=T0, publish_time_ns=T0 + 95_000_000) | changes
+    return ObjectListHeader(**fields)
+
+
+def car(i: int = 0, **changes) -> ObjectState:
+    fields = dict(id=i, cls=ObjectClass.CAR, x=10.0 + i, y=-3.0, length=4.5, width=1.8, yaw=0.3, vx=12.0) | changes
+    return ObjectState(**fields)
+
+
+def object_list(n: int) -> ObjectList:
+    rng = np.random.default_rng(1)
+    objects = tuple(
+        car(i, x=rng.uniform(-300, 300), y=rng.uniform(-300, 300), yaw=rng.uniform(-3, 3), vx=rng.uniform(-20, 20))
+        for i in range(n)
+    )
+    return ObjectList(header=header(), objects=objects)
+
+
+def decode_fails(data: bytes, model, error: type[CodecError]) -> CodecError:
+    with pytest.raises(error) as info:
+        decode(data, model)
+    return info.value
+
+
+def decode_safely(data: bytes) -> None:
+    """Decoding hostile bytes as any model may only succeed or raise CodecError."""
+    for model in MODELS:
+        try:
+            decode(data, model)
+        except CodecError as exc:
+            assert exc.reason in {"too_large", "malformed", "version", "wrong_type", "invalid"}
+            assert str(exc)
+
+
+# ---------------------------------------------------------------- properties
+
+
+@FAST
+@given(messages)
+def test_round_trip_is_exact(msg) -> None:
+    data = encode(msg)
+    back = decode(data, type(msg))
+    assert back == msg
+    assert encode(back) == data
+
+
+@FAST
+@given(st.binary(max_size=512))
+def test_random_bytes_raise_only_codec_errors(data: bytes) -> None:
+    decode_safely(data)
+
+
+@FAST
+@given(messages, st.data())
+def test_mutated_messages_raise_only_codec_errors(msg, data) -> None:
+    raw = bytearray(encode(msg))
+    for _ in range(data.draw(st.integers(1, 4))):
+        i = data.draw(st.integers(0, len(raw) - 1))
+        raw[i] = data.draw(st.integers(0, 255))
+    cut = data.draw(st.integers(0, len(raw)))
+    decode_safely(bytes(raw))
+    decode_safely(bytes(raw[:cut]))
+
+
+plain = st.recursive(
+    st.none() | st.booleans() | st.integers(-(2**64), 2**64) | st.floats()
+    | st.text(max_size=8) | st.binary(max_size=8),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4),
+    max_leaves=12,
+)
+
+
+@FAST
+@given(st.sampled_from(MODELS), st.dictionaries(st.sampled_from(["objects", "header", "x", "seq", "rsus"]), plain))
+def test_well_formed_envelopes_with_junk_bodies_raise_only_codec_errors(model, body) -> None:
+    try:
+        data = envelope(model.TYPE, body)
+    except (OverflowError, TypeError):
+        return  # not representable in msgpack at all
+    decode_safely(data)
+
+
+# ---------------------------------------------------------------- envelope
+
+
+def test_wrong_schema_version_is_rejected() -> None:
+    body = body_of(encode(object_list(2)))
+    err = decode_fails(envelope(ObjectList.TYPE, body, version=SCHEMA_VERSION + 1), ObjectList, SchemaVersionError)
+    assert err.reason == "version" and f"version {SCHEMA_VERSION + 1}" in str(err)
+    decode_fails(envelope(ObjectList.TYPE, body, version="1"), ObjectList, MalformedMessage)
+
+
+def test_version_is_checked_before_type_tag() -> None:
+    decode_fails(envelope("time_reply", {}, version=99), ObjectList, SchemaVersionError)
+
+
+def test_wrong_type_tag_is_rejected() -> None:
+    data = encode(TimeRequest(obu_id="car-1", seq=1, t1_ns=T0))
+    err = decode_fails(data, TimeReply, WrongMessageType)
+    assert err.reason == "wrong_type" and "time_request" in str(err) and "time_reply" in str(err)
+
+
+@pytest.mark.parametrize(
+    "value",
+    [[1, 2], {"v": 1, "t": "object_list"}, {"v": 1, "t": "object_list", "d": {}, "x": 0}, 3],
+)
+def test_wrong_envelope_shape_is_malformed(value) -> None:
+    err = decode_fails(msgpack.packb(value), ObjectList, MalformedMessage)
+    assert err.reason == "malformed"
+
+
+def test_body_that_is_not_a_map_is_malformed() -> None:
+    decode_fails(envelope(ObjectList.TYPE, [1, 2]), ObjectList, MalformedMessage)
+
+
+def test_trailing_bytes_and_garbage_are_malformed() -> None:
+    data = encode(object_list(1))
+    decode_fails(data + b"\x00", ObjectList, MalformedMessage)
+    decode_fails(data[:-1], ObjectList, MalformedMessage)
+    decode_fails(b"", ObjectList, MalformedMessage)
+    decode_fails(b"\xc1", ObjectList, MalformedMessage)
+
+
+def test_hostile_container_lengths_are_rejected_without_allocation() -> None:
+    # 1000 nested arrays each claiming 2**31 elements: tiny payload, huge pre-allocation if unbounded.
+    decode_fails(b"\xdd\x7f\xff\xff\xff" * 1000, ObjectList, MalformedMessage)
+    decode_fails(b"\x91" * 5000, ObjectList, MalformedMessage)
+
+
+# ---------------------------------------------------------------- size
+
+
+def test_oversize_encode_is_rejected() -> None:
+    msg = object_list(50)
+    with pytest.raises(MessageTooLarge) as info:
+        encode(msg, max_bytes=100)
+    assert info.value.reason == "too_large" and "limit is 100" in str(info.value)
+
+
+def test_oversize_decode_is_rejected_before_unpacking() -> None:
+    decode_fails(b"\xc1" * (MAX_MESSAGE_BYTES + 1), ObjectList, MessageTooLarge)
+    data = encode(object_list(5))
+    with pytest.raises(MessageTooLarge):
+        decode(data, ObjectList, max_bytes=len(data) - 1)
+    assert decode(data, ObjectList, max_bytes=len(data)) == object_list(5)
+
+
+def test_full_object_list_fits_the_default_limit() -> None:
+    msg = ObjectList(header=header(), objects=tuple(car(i) for i in range(MAX_OBJECTS)))
+    assert decode(encode(msg), ObjectList) == msg
+
+
+# ---------------------------------------------------------------- model rules on decode
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_non_finite_field_is_invalid(bad: float) -> None:
+    body = body_of(encode(EgoPose(vehicle_id="car-1", t_ns=T0, x=1.0, y=2.0))) | {"x": bad}
+    err = decode_fails(envelope(EgoPose.TYPE, body), EgoPose, InvalidMessage)
+    assert err.reason == "invalid" and err.field == "x" and "x:" in str(err)
+
+
+def test_non_finite_object_value_is_rejected_on_encode() -> None:
+    msg = ObjectList.model_construct(header=header(), objects=(car(0), car(1).model_copy(update={"vx": math.nan})))
+    with pytest.raises(InvalidMessage) as info:
+        encode(msg)
+    assert info.value.field == "objects.1.vx"
+
+
+def test_unknown_key_in_body_is_invalid() -> None:
+    body = body_of(encode(object_list(1))) | {"speed_limit": 50}
+    err = decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage)
+    assert err.field == "speed_limit"
+
+
+def test_unknown_key_in_header_is_invalid() -> None:
+    body = body_of(encode(object_list(1)))
+    body["header"]["extra"] = 1
+    assert decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage).field == "header.extra"
+
+
+@pytest.mark.parametrize("t_ns", [0, 86_400 * 10**9, 7_258_118_400 * 10**9])  # 1970-01-01, 1970-01-02, 2200-01-01
+def test_absurd_timestamp_is_invalid(t_ns: int) -> None:
+    body = {"obu_id": "car-1", "seq": 1, "t1_ns": t_ns}
+    err = decode_fails(envelope(TimeRequest.TYPE, body), TimeRequest, InvalidMessage)
+    assert err.field == "t1_ns"
+    body = body_of(encode(object_list(1)))
+    body["header"]["capture_time_ns"] = t_ns
+    assert decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage).field.startswith("header")
+
+
+def test_publish_before_capture_is_invalid() -> None:
+    body = body_of(encode(object_list(1)))
+    body["header"]["publish_time_ns"] = body["header"]["capture_time_ns"] - 1
+    err = decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage)
+    assert err.field == "header" and "publish_time_ns" in str(err)
+
+
+def test_out_of_model_range_column_value_is_invalid() -> None:
+    body = body_of(encode(object_list(3)))
+    x = np.frombuffer(body["objects"]["x"], "<i4").copy()
+    x[2] = 2**31 - 1  # fits int32, but 21474836 m is outside the model's +-1e6 m
+    body["objects"]["x"] = x.tobytes()
+    err = decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage)
+    assert err.field == "objects.2.x"
+
+
+def test_unknown_class_code_is_invalid() -> None:
+    body = body_of(encode(object_list(1)))
+    body["objects"]["cls"] = bytes([200])
+    assert decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage).field == "objects.0.cls"
+
+
+# ---------------------------------------------------------------- columns
+
+
+def test_truncated_column_is_malformed() -> None:
+    body = body_of(encode(object_list(4)))
+    body["objects"]["y"] = body["objects"]["y"][:-1]
+    err = decode_fails(envelope(ObjectList.TYPE, body), ObjectList, MalformedMessage)
+    assert "'y'" in str(err) and "expected 16 bytes" in str(err)
+
+
+@pytest.mark.parametrize("change", ["missing", "extra", "n_negative", "n_str", "not_bytes", "not_map"])
+def test_bad_column_map_is_malformed(change: str) -> None:
+    body = body_of(encode(object_list(2)))
+    cols = body["objects"]
+    if change == "missing":
+        del cols["yaw"]
+    elif change == "extra":
+        cols["colour"] = b"\x00\x00"
+    elif change == "n_negative":
+        cols["n"] = -1
+    elif change == "n_str":
+        cols["n"] = "2"
+    elif change == "not_bytes":
+        cols["id"] = [0, 1]
+    else:
+        body["objects"] = [cols]
+    decode_fails(envelope(ObjectList.TYPE, body), ObjectList, MalformedMessage)
+
+
+def test_object_count_above_max_is_invalid() -> None:
+    n = MAX_OBJECTS + 1
+    body = body_of(encode(object_list(1)))
+    body["objects"] = {"n": n} | {k: v * n for k, v in body["objects"].items() if k != "n"}
+    err = decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage)
+    assert err.field == "objects" and str(MAX_OBJECTS) in str(err)
+    too_many = ObjectList.model_construct(header=header(), objects=(car(0),) * n)
+    with pytest.raises(InvalidMessage):
+        encode(too_many)
+
+
+@pytest.mark.parametrize(("field", "value"), [("x", 3e7), ("id", 2**32), ("id", -1), ("vx", 400.0), ("length", -1.0)])
+def test_unrepresentable_value_is_rejected_on_encode_not_wrapped(field: str, value: float) -> None:
+    bad = car(0).model_copy(update={field: value})  # model_copy skips validation
+    with pytest.raises(InvalidMessage) as info:
+        encode(ObjectList.model_construct(header=header(), objects=(bad,)))
+    assert info.value.field == f"objects.0.{field}"
+
+
+def test_columns_are_little_endian_codes() -> None:
+    msg = ObjectList(header=header(), objects=(car(3, x=-1.25, yaw=-math.pi, confidence=0.5, age_s=2.5),))
+    cols = body_of(encode(msg))["objects"]
+    assert cols["n"] == 1
+    assert cols["id"] == (3).to_bytes(4, "little")
+    assert cols["x"] == (-125).to_bytes(4, "little", signed=True)
+    assert cols["yaw"] == (-1800).to_bytes(2, "little", signed=True)
+    assert cols["confidence"] == bytes([50]) and cols["age_s"] == (2500).to_bytes(4, "little")
+
+
+def test_fused_list_carries_sources_column() -> None:
+    obj = FusedObject(**dict(car(1)), sources=3)
+    msg = FusedObjectList(vehicle_id="car-1", seq=1, cycle_time_ns=T0, publish_time_ns=T0, objects=(obj,))
+    assert body_of(encode(msg))["objects"]["sources"] == b"\x03"
+    assert decode(encode(msg), FusedObjectList).objects[0].sources == 3
+
+
+def test_yaw_rate_limit_round_trips() -> None:
+    obj = car(0, yaw_rate=30.0)
+    msg = ObjectList(header=header(), objects=(obj,))
+    assert decode(encode(msg), ObjectList) == msg
+
+
+@pytest.mark.parametrize("yaw", [-math.pi, math.pi, 3 * math.pi, -100.0, 100.0, math.pi - 1e-12, -math.pi + 1e-12])
+def test_yaw_edges_round_trip(yaw: float) -> None:
+    msg = FusedObjectList(
+        vehicle_id="car-1", seq=1, cycle_time_ns=T0, publish_time_ns=T0, ego_yaw=yaw,
+        objects=(FusedObject(**dict(car(0, yaw=yaw))),),
+    )
+    back = decode(encode(msg), FusedObjectList)
+    assert back == msg and -math.pi <= back.objects[0].yaw < math.pi
+
+
+def test_columnar_encoding_is_compact() -> None:
+    msg = object_list(200)
+    data = encode(msg)
+    plain_size = len(msgpack.packb(msg.model_dump(mode="python")))
+    assert len(data) < plain_size / 3
+    assert decode(data, ObjectList) == msg
+
+
+def test_empty_object_list_round_trips() -> None:
+    msg = ObjectList(header=header())
+    assert decode(encode(msg), ObjectList) == msg
+
+
+def test_encode_and_decode_reject_non_messages() -> None:
+    with pytest.raises(TypeError):
+        encode({"v": 1})  # type: ignore[arg-type]
+    with pytest.raises(TypeError):
+        decode("not bytes", ObjectList)  # type: ignore[arg-type]
+
+
+def test_decode_accepts_bytearray_and_memoryview() -> None:
+    data = encode(object_list(2))
+    assert decode(bytearray(data), ObjectList) == decode(memoryview(data), ObjectList) == object_list(2)
+
+
+def test_importing_schemas_does_not_import_zenoh() -> None:
+    src = Path(__file__).resolve().parents[2] / "src"
+    code = "import sys, schemas; assert 'zenoh' not in sys.modules, 'zenoh imported'"
+    env = os.environ | {"PYTHONPATH": str(src)}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env)

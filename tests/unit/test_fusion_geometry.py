@@ -1,0 +1,55 @@
+import numpy as np
+import pytest
+import shapely
+
+from fusion.geometry import bev_iou, bev_iou_matrix, box_corners, box_polygons
+from fusion.merger import iou_merge
+from fusion.objects import ObjectArray
+
+
+def boxes_objs(boxes):
+    b = np.asarray(boxes, float).reshape(-1, 5)
+    n = len(b)
+    return ObjectArray(ids=np.arange(n), cls=np.ones(n, int), xy=b[:, :2], z=np.zeros(n),
+                       lwh=np.column_stack([b[:, 2:4], np.full(n, 1.5)]), yaw=b[:, 4], vxy=np.zeros((n, 2)))
+
+
+@pytest.mark.parametrize(
+    "a, b, expected",
+    [
+        ([0, 0, 4, 2, 0], [0, 0, 4, 2, 0], 1.0),
+        ([0, 0, 4, 2, 0], [10, 0, 4, 2, 0], 0.0),
+        ([0, 0, 2, 2, 0], [1, 0, 2, 2, 0], 1 / 3),  # overlap 2 of union 6
+        ([0, 0, 2, 2, 0], [0, 0, 2, 2, np.pi / 2], 1.0),  # a square turned 90 degrees is itself
+        ([0, 0, 4, 2, 0], [0, 0, 4, 2, np.pi / 2], 4 / 12),  # cross: 2x2 overlap, union 8 + 8 - 4
+    ],
+)
+def test_bev_iou_known_values(a, b, expected):
+    assert bev_iou(a, b) == pytest.approx(expected, abs=1e-9)
+
+
+def test_bev_iou_matrix_equals_pairwise_shapely():
+    rng = np.random.default_rng(3)
+    a = np.column_stack([rng.uniform(-5, 5, (20, 2)), rng.uniform(1, 5, (20, 2)), rng.uniform(-np.pi, np.pi, 20)])
+    b = np.column_stack([rng.uniform(-5, 5, (15, 2)), rng.uniform(1, 5, (15, 2)), rng.uniform(-np.pi, np.pi, 15)])
+    iou = bev_iou_matrix(a, b)
+    pa, pb = box_polygons(a), box_polygons(b)
+    for i in range(len(a)):
+        for j in range(len(b)):
+            inter = pa[i].intersection(pb[j]).area
+            assert iou[i, j] == pytest.approx(inter / (pa[i].area + pb[j].area - inter), abs=1e-9)
+
+
+def test_box_corners_rotate_about_centre():
+    corners = box_corners([[1.0, 2.0, 4.0, 2.0, np.pi / 2]])[0]
+    assert shapely.Polygon(corners).area == pytest.approx(8.0)
+    np.testing.assert_allclose(corners.mean(axis=0), [1.0, 2.0])
+    np.testing.assert_allclose(np.ptp(corners, axis=0), [2.0, 4.0], atol=1e-12)  # long side now along y
+
+
+def test_iou_merge_drops_rsu_duplicates_keeps_the_rest():
+    own = boxes_objs([[0, 0, 4, 2, 0]])
+    rsu = boxes_objs([[0.3, 0.1, 4, 2, 0.05], [30, 0, 4, 2, 0]])
+    merged = iou_merge(own, rsu, iou_threshold=0.1)
+    assert len(merged) == 2
+    np.testing.assert_allclose(merged.xy, [[0, 0], [30, 0]])
