@@ -1,0 +1,68 @@
+"""The OBU node on real Zenoh: bad input is rejected and counted, the loop keeps publishing."""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+
+import pytest
+
+from obu_service.config import ObuConfig
+from obu_service.node import ObuNode
+from rsu_service.config import RsuConfig
+from rsu_service.node import RsuNode
+from schemas import keys
+from schemas.codec import decode, encode
+from schemas.messages import FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics
+from schemas.transport import free_tcp_endpoint, open_session
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
+
+
+def wait_for(q: queue.Queue, predicate, timeout_s: float):
+    """The first item of q satisfying predicate, or fail after timeout_s."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            item = q.get(timeout=0.05)
+        except queue.Empty:
+            continue
+        if predicate(item):
+            return item
+    pytest.fail("expected message did not arrive in time")
+
+
+def test_obu_rejects_garbage_keeps_publishing_and_syncs_with_a_direct_rsu():
+    rsu_ep, obu_ep = free_tcp_endpoint(), free_tcp_endpoint()
+    start_ns = time.time_ns() + 1_000_000_000
+    rsu = RsuNode(RsuConfig(listen=[rsu_ep], start_at_ns=start_ns, duration_s=6.0, clock_offset_ms=250.0))
+    obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], start_at_ns=start_ns, duration_s=6.0))
+    stop = threading.Event()
+    threads = [threading.Thread(target=n.run, args=(stop,)) for n in (rsu, obu)]
+    for t in threads:
+        t.start()
+    probe = open_session(connect=[obu_ep])
+    outputs, metrics = queue.Queue(), queue.Queue()
+    subs = [probe.declare_subscriber(keys.obu_objects("ego"), lambda s: outputs.put(decode(s.payload.to_bytes(), FusedObjectList))),
+            probe.declare_subscriber(keys.obu_metrics("ego"), lambda s: metrics.put(decode(s.payload.to_bytes(), ObuMetrics)))]
+    try:
+        wait_for(outputs, lambda m: True, 10.0)
+        valid_but_absurd = ObjectList(header=ObjectListHeader(rsu_id="evil", seq=1, capture_time_ns=start_ns,
+                                                              publish_time_ns=start_ns))
+        for payload in (b"\x00garbage", encode(valid_but_absurd)[:-3], b"\x81\xa1v\x63"):
+            probe.put(keys.rsu_objects("evil"), payload)
+        m = wait_for(metrics, lambda m: sum(m.rejected.values()) >= 3 and any(
+            r.rsu_id == "rsu1" and r.clock_offset_ns is not None for r in m.rsus), 10.0)
+        offset = next(r for r in m.rsus if r.rsu_id == "rsu1").clock_offset_ns
+        assert abs(offset - 250_000_000) < 5_000_000  # direct loopback: error well under 5 ms
+        fused = wait_for(outputs, lambda o: o.mode == "inter", 10.0)
+        assert fused.cycle_time_ns >= start_ns
+    finally:
+        for s in subs:
+            s.undeclare()
+        probe.close()
+        stop.set()
+        for t in threads:
+            t.join(10.0)
+    assert not any(t.is_alive() for t in threads)
