@@ -5,7 +5,6 @@ from __future__ import annotations
 import bisect
 from collections import deque
 
-import numpy as np
 
 from .frames import Pose2D, wrap_angle
 

@@ -8,17 +8,14 @@ direction's jitter distribution, independently per message; it is lost with prob
 from __future__ import annotations
 
 import math
-from importlib import resources
-from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import Annotated, Literal, NamedTuple
 
 import numpy as np
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 from scipy.stats import norm
 
-from schemas.config import ConfigError
+from schemas.config import ConfigError, bundled_names, load_bundled_or_file
 
 _PROFILE_DIR = "profiles"  # data folder inside the link_emulator package
 _STRICT = ConfigDict(frozen=True, extra="forbid")
@@ -171,12 +168,7 @@ class LinkProfile(BaseModel):
 
 def bundled_profiles() -> list[str]:
     """Names of the profiles shipped in ``link_emulator/profiles/*.yaml``, sorted."""
-    return sorted(p.name.removesuffix(".yaml") for p in _profile_dir().iterdir() if p.name.endswith(".yaml"))
-
-
-def _profile_dir() -> Traversable:
-    """The bundled profiles folder, wherever the package is installed."""
-    return resources.files("link_emulator") / _PROFILE_DIR
+    return bundled_names("link_emulator", _PROFILE_DIR)
 
 
 def load_profile(name_or_path: str | Path) -> LinkProfile:
@@ -185,35 +177,4 @@ def load_profile(name_or_path: str | Path) -> LinkProfile:
     Raises ProfileError listing the bundled names when neither exists, or naming the bad
     field when the YAML does not validate.
     """
-    names = bundled_profiles()
-    if str(name_or_path) in names:
-        resource = _profile_dir() / f"{name_or_path}.yaml"
-        return _parse_profile(resource.read_text(encoding="utf-8"), f"bundled profile {name_or_path!r}")
-    path = Path(name_or_path)
-    if not path.is_file():
-        raise ProfileError(
-            f"unknown link profile {str(name_or_path)!r}: neither a bundled profile "
-            f"({', '.join(names)}) nor an existing file"
-        )
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ProfileError(f"cannot read link profile {path}: {exc}") from exc
-    return _parse_profile(text, f"link profile {path}")
-
-
-def _parse_profile(text: str, source: str) -> LinkProfile:
-    """Validate YAML text as a LinkProfile; errors name ``source`` and the bad field."""
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ProfileError(f"{source} is not valid YAML: {exc}") from exc
-    if not isinstance(data, dict):
-        raise ProfileError(f"{source} must be a mapping, got {type(data).__name__}")
-    try:
-        return LinkProfile.model_validate(data)
-    except ValidationError as exc:
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in err['loc']) or '<root>'}: {err['msg']}" for err in exc.errors()
-        )
-        raise ProfileError(f"invalid {source}: {problems}") from None
+    return load_bundled_or_file(LinkProfile, name_or_path, "link_emulator", _PROFILE_DIR, "link profile", ProfileError)

@@ -11,17 +11,16 @@ Trajectory model: a polyline ``path`` in map (m) and a piecewise-linear speed pr
 
 from __future__ import annotations
 
-from importlib.resources import files
 from pathlib import Path
 from typing import Annotated, Any
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from shapely.geometry import Polygon
 from shapely.validation import explain_validity
 
 from schemas.classes import ObjectClass
+from schemas.config import ConfigError, bundled_names, load_bundled_or_file
 
 Point2 = tuple[float, float]
 PosFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
@@ -30,7 +29,7 @@ Finite = Annotated[float, Field(allow_inf_nan=False)]
 Probability = Annotated[float, Field(ge=0.0, le=1.0)]
 
 
-class ScenarioError(ValueError):
+class ScenarioError(ConfigError):
     """A scenario that cannot be loaded; the message names the file and the bad field."""
 
 
@@ -215,40 +214,11 @@ class Scenario(_Frozen):
         return self
 
 
-def _scenario_dir() -> Path:
-    return Path(str(files("sim") / "scenarios"))
-
-
 def bundled_scenarios() -> list[str]:
     """Names of the scenarios shipped in ``sim/scenarios/*.yaml``, sorted."""
-    folder = _scenario_dir()
-    return sorted(p.stem for p in folder.glob("*.yaml")) if folder.is_dir() else []
-
-
-def _resolve(name_or_path: str | Path) -> Path:
-    bundled = bundled_scenarios()
-    if str(name_or_path) in bundled:
-        return _scenario_dir() / f"{name_or_path}.yaml"
-    path = Path(name_or_path)
-    if path.is_file():
-        return path
-    raise ScenarioError(f"unknown scenario {str(name_or_path)!r}: not a file and not a bundled name; bundled: {bundled}")
-
-
-def _format(exc: ValidationError) -> str:
-    return "; ".join(f"{'.'.join(str(p) for p in e['loc']) or '<root>'}: {e['msg']}" for e in exc.errors())
+    return bundled_names("sim", "scenarios")
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """A bundled scenario by name (e.g. ``"red-light-runner"``) or a YAML file by path."""
-    path = _resolve(name_or_path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ScenarioError(f"cannot read scenario {path}: {exc}") from exc
-    if not isinstance(data, dict):
-        raise ScenarioError(f"scenario {path} must be a mapping, got {type(data).__name__}")
-    try:
-        return Scenario.model_validate(data)
-    except ValidationError as exc:
-        raise ScenarioError(f"invalid scenario {path}: {_format(exc)}") from None
+    return load_bundled_or_file(Scenario, name_or_path, "sim", "scenarios", "scenario", ScenarioError)
