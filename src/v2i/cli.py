@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from pathlib import Path
 
@@ -78,6 +79,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _check_inputs(args)
     outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
     demo = Demo(_spec(args), startup_s=args.startup, outage=outage)
+    _interrupt_on(signal.SIGINT, signal.SIGTERM)
     try:
         report = demo.run()
     except DemoError as exc:
@@ -88,6 +90,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return 130
     _emit(report, args.json)
     return 0
+
+
+def _interrupt_on(*signals: int) -> None:
+    """Turn these signals into KeyboardInterrupt, even where a parent shell ignored them."""
+
+    def _raise(signum, frame):  # noqa: ARG001
+        raise KeyboardInterrupt
+
+    for sig in signals:
+        signal.signal(sig, _raise)
 
 
 def build_parser() -> argparse.ArgumentParser:
