@@ -114,10 +114,12 @@ class Demo:
         common = ["--scenario", s.scenario, "--seed", str(s.seed), "--start-at-ns", str(start_ns),
                   "--duration", str(self.duration_s)]
         if name == "rsu":
+            ahead = ["--predict-ahead"] if s.rsu_config().predict_ahead else []
             return base + ["--listen", self.rsu_ep, *common, "--clock-offset-ms", str(s.rsu_clock_offset_ms),
-                           "--clock-drift-ppm", str(s.rsu_clock_drift_ppm)]
+                           "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *ahead]
         if name == "obu":
-            return base + ["--listen", self.obu_ep, *common, "--fusion", s.fusion, "--deadline-ms", str(s.deadline_ms)]
+            return base + ["--listen", self.obu_ep, *common, "--fusion", s.fusion, "--compensation", s.compensation,
+                           "--deadline-ms", str(s.deadline_ms)]
         return base + ["--rsu-connect", self.rsu_ep, "--vehicle-connect", self.obu_ep, "--profile", s.profile,
                        "--seed", str(s.seed)]
 

@@ -12,7 +12,7 @@ import itertools
 from collections.abc import Callable
 
 from link_emulator.channel import LinkModel
-from link_emulator.profile import load_profile
+from link_emulator.profile import LinkProfile, load_profile
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import OwnFrame, SimulatedVehicle
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, answer_time_request
@@ -49,18 +49,20 @@ class EventQueue:
 class OfflineRun:
     """One scenario run; ``execute()`` returns the RunRecord scored by build_report."""
 
-    def __init__(self, spec: RunSpec, start_ns: int = EVAL_EPOCH_NS):
+    def __init__(self, spec: RunSpec, start_ns: int = EVAL_EPOCH_NS, link_profile: LinkProfile | None = None):
         self.spec = spec
         self.world = World(load_scenario(spec.scenario))
         self.duration_s = spec.duration_s or self.world.scenario.duration_s
         self.start_ns = start_ns
         self.clock = SimClock(start_ns)
         self.queue = EventQueue(self.clock)
-        self.link = LinkModel(load_profile(spec.profile), spec.seed)
+        self.link = LinkModel(link_profile or load_profile(spec.profile), spec.seed)
         self.rsu_clock = spec.rsu_config().clock(self.clock, start_ns)
         self.camera = SimulatedCamera(self.world, spec.seed, start_ns)
         self.vehicle = SimulatedVehicle(self.world, spec.seed, start_ns)
-        self.rsu = RsuPipeline(RsuPipelineConfig(rsu_id=self.world.scenario.rsu.id))
+        self.rsu_config = spec.rsu_config()
+        self.rsu = RsuPipeline(RsuPipelineConfig(rsu_id=self.world.scenario.rsu.id,
+                                                 predict_ahead=self.rsu_config.predict_ahead))
         self.obu_config = spec.obu_config()
         self.obu = ObuPipeline(self.obu_config.pipeline_config())
         self.record = RunRecord(start_ns, self.duration_s, [], [], [])
@@ -87,6 +89,11 @@ class OfflineRun:
         msg = self.rsu.on_frame(frame.detections, self.rsu_clock.local_from_true(frame.capture_true_ns),
                                 self.rsu_clock.now_ns())
         self._send(self.link.downlink, encode(msg), self._obu_receive)
+        if self.rsu.config.predict_ahead:
+            self.queue.at(self.clock.t_ns + self.camera.upsample_offset_ns, self._rsu_upsample)
+
+    def _rsu_upsample(self) -> None:
+        self._send(self.link.downlink, encode(self.rsu.upsampled(self.rsu_clock.now_ns())), self._obu_receive)
 
     def _rsu_time_query(self, data: bytes) -> None:
         request = decode(data, TimeRequest)

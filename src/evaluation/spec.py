@@ -21,7 +21,8 @@ EVAL_EPOCH_NS = 1_767_225_600 * 10**9
 class RunSpec:
     scenario: str = "red-light-runner"
     profile: str = "lte-v2x"
-    fusion: str = "iou-merge"
+    fusion: str = "kf"
+    compensation: str = "predict"
     seed: int = 0
     duration_s: float | None = None  # default: the scenario's
     rsu_clock_offset_ms: float = 0.0
@@ -31,11 +32,13 @@ class RunSpec:
     def rsu_config(self, **fields) -> RsuConfig:
         """The RSU service configuration this run implies (its clock is the injected truth)."""
         return RsuConfig(clock_offset_ms=self.rsu_clock_offset_ms, clock_drift_ppm=self.rsu_clock_drift_ppm,
-                         seed=self.seed, scenario=self.scenario, **fields)
+                         seed=self.seed, scenario=self.scenario, predict_ahead=self.compensation == "track-predict",
+                         **fields)
 
     def obu_config(self, **fields) -> ObuConfig:
         """The OBU service configuration this run implies."""
-        return ObuConfig(fusion=self.fusion, deadline_ms=self.deadline_ms, seed=self.seed, scenario=self.scenario, **fields)
+        return ObuConfig(fusion=self.fusion, compensation=self.compensation, deadline_ms=self.deadline_ms,
+                         seed=self.seed, scenario=self.scenario, **fields)
 
 
 @dataclass
@@ -77,7 +80,8 @@ def summary(report: dict) -> str:
     fd, vd = t["first_detection_distance_m"], v["first_detection_distance_m"]
     gain = f" ({fd / vd:.1f}x farther)" if fd and vd else ""
     lines = [
-        f"{report['scenario']} | profile {report['profile']} | fusion {report['fusion']} | seed {report['seed']} "
+        f"{report['scenario']} | profile {report['profile']} | fusion {report['fusion']} "
+        f"({report['compensation']}) | seed {report['seed']} "
         f"| {report['duration_s']:.1f} s, {report['cycles']} cycles ({report['driver']})",
         f"  red-light runner first seen at {_m(fd)} with V2I vs {_m(vd)} vehicle-only{gain}",
         f"  target: mean BEV IoU {_f(t['mean_bev_iou'])}, RMSE {_m(t['rmse_m'])} over {t['detected_cycles']} cycles",

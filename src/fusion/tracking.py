@@ -1,131 +1,392 @@
-"""Multi-object tracker: constant-velocity Kalman filters, batched over tracks.
+"""Multi-object tracker over the batched Kalman filters of ``fusion.kalman`` (map frame).
 
-State per track x = [px, py, vx, vy] (map frame, m and m/s), covariance P (4, 4).
-Predict: x' = F x, P' = F P F^T + Q with F = [[I, dt I], [0, I]] and Q the
-discrete white-noise-acceleration model (sigma_a^2 [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]).
-Update with a position z (2,) and covariance R (2, 2): S = H P H^T + R, K = P H^T S^-1,
-x += K (z - H x), P = (I - K H) P.
+Cycle (seed 001, two updates per cycle): ``predict(t)``, ``update(lidar, t, SOURCE_VEHICLE)``,
+``update(rsu, t, SOURCE_RSU)`` for each RSU list, ``prune(t)``, ``tracks(t)``; ``step(dets, t)``
+does one predict / update / prune / tracks. Times are seconds on any fixed origin; the
+filter never goes back in time (``fusion.oosm.OosmTracker`` re-filters late measurements).
 
-Life cycle: a new track is tentative; it is confirmed after ``confirm_hits`` updates;
-a confirmed track not updated coasts (predicted only) and is deleted once its last
-update is older than ``max_coast_s``; a tentative track is deleted at its first miss.
+Motion (``TrackerConfig.motion``): ``cv`` [x, y, vx, vy], ``ca`` [x, y, vx, vy, ax, ay],
+``ctrv`` [x, y, v, psi, omega] (EKF); process noise sigmas ``accel_std_mps2`` (CV, CTRV v-dot),
+``jerk_std_mps3`` (CA), ``yaw_accel_std_radps2`` (CTRV omega-dot). New tracks start at the
+detection (position covariance from the detection, velocity / acceleration / yaw / yaw rate
+from the detection with the ``init_*`` prior standard deviations).
+
+Association per ``update``: a pair (track, detection) is allowed when the classes are
+compatible (equal, or either is UNKNOWN = 0) and the pair passes the gate:
+``gate="distance"``: centre distance <= ``gate_m``; ``gate="mahalanobis"``:
+d2 = y^T S^-1 y <= ``gate_chi2`` (9.21: 99 % for 2 dof). Among allowed pairs a
+minimum-cost one-to-one assignment (scipy ``linear_sum_assignment``) with cost
+``distance`` (m), ``mahalanobis`` (d2) or ``iou`` (1 - BEV IoU of the predicted box and the
+detected box). Matched tracks get a Kalman update; unmatched detections spawn tracks.
+
+Life cycle (``tracks`` returns confirmed and coasting tracks):
+- tentative: spawned by an unmatched detection with one hit; every update adds a hit
+  (own LiDAR and an RSU in the same cycle give two); deleted by ``prune`` when its last
+  update is older than ``tentative_max_coast_s`` (0: at its first miss).
+- confirmed: hits >= ``confirm_hits`` and updated at the current time.
+- coasting: confirmed but not updated at the current time; predicted only.
+- deleted: by ``prune`` once its last update is older than ``max_coast_s``.
+
+Sources: each update carries a bitmask (``source_mask`` OR the detection's ``sources``);
+a track's ``sources`` is the OR of the bits that updated it within the last ``max_coast_s``.
+Ids are unique within a Tracker instance, starting at 1.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Literal
 
 import numpy as np
+import shapely
+from scipy.optimize import linear_sum_assignment
 
-from .association import assign, center_distance_cost
+from . import kalman
+from .association import Assignment
 from .frames import wrap_angle
+from .geometry import box_polygons
 from .objects import ObjectArray
 
-_H = np.hstack([np.eye(2), np.zeros((2, 2))])
+SOURCE_BITS = 8  # the wire's sources field is one byte
+_BIT_VALUES = 1 << np.arange(SOURCE_BITS)
+_BLOCKED = 1e12  # cost of a forbidden pair inside the assignment solver
 
 
 @dataclass(frozen=True)
 class TrackerConfig:
-    gate_m: float = 5.0  # centre-distance gate for association
-    accel_std_mps2: float = 3.0  # sigma_a of the process noise
-    init_speed_std_mps: float = 10.0  # prior std of an unknown velocity
+    """Tracker parameters (units in the names); the module docstring says how each is used."""
+
+    gate_m: float = 5.0  # centre-distance gate for association (gate="distance")
+    accel_std_mps2: float = 3.0  # sigma_a: CV white-noise acceleration, CTRV v-dot noise
+    init_speed_std_mps: float = 10.0  # prior std of an unknown velocity / speed
     confirm_hits: int = 2
     max_coast_s: float = 0.6
+    motion: Literal["cv", "ca", "ctrv"] = "cv"
+    gate: Literal["distance", "mahalanobis"] = "distance"
+    gate_chi2: float = kalman.CHI2_2DOF_99  # d2 gate for gate="mahalanobis"
+    cost: Literal["distance", "mahalanobis", "iou"] = "distance"
+    jerk_std_mps3: float = 5.0  # sigma_j: CA white-noise jerk
+    yaw_accel_std_radps2: float = 1.0  # sigma_alpha: CTRV omega-dot noise
+    init_accel_std_mps2: float = 3.0  # CA prior std of the acceleration
+    init_yaw_std_rad: float = 0.5  # CTRV prior std of the heading
+    init_yaw_rate_std_radps: float = 0.5  # CTRV prior std of the turn rate
+    tentative_max_coast_s: float = 0.3  # a tentative track survives misses this long (>= slowest source period)
+
+    def __post_init__(self) -> None:
+        for name, allowed in (("gate", ("distance", "mahalanobis")), ("cost", ("distance", "mahalanobis", "iou"))):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"TrackerConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        kalman.make_model(self.motion, 1.0, 1.0, 1.0)  # validates the name
+
+    def motion_model(self) -> kalman.MotionModel:
+        return kalman.make_model(self.motion, self.accel_std_mps2, self.jerk_std_mps3, self.yaw_accel_std_radps2)
+
+    def prior(self) -> kalman.StatePrior:
+        return kalman.StatePrior(self.init_speed_std_mps, self.init_accel_std_mps2, self.init_yaw_std_rad,
+                                 self.init_yaw_rate_std_radps)
 
 
-def cv_transition(dt_s: float, accel_std: float) -> tuple[np.ndarray, np.ndarray]:
-    """F (4, 4) and Q (4, 4) of the constant-velocity model over dt_s seconds."""
-    eye = np.eye(2)
-    f = np.block([[eye, dt_s * eye], [np.zeros((2, 2)), eye]])
-    q = accel_std**2 * np.block([[dt_s**4 / 4 * eye, dt_s**3 / 2 * eye], [dt_s**3 / 2 * eye, dt_s**2 * eye]])
-    return f, q
+@dataclass
+class TrackTable:
+    """Columns of N tracks: filter state x (N, n), P (N, n, n); ids, cls (N,); z (N,) m,
+    lwh (N, 3) m, yaw (N,) rad, confidence (N,) of the last detection; hits (N,);
+    born_s, updated_s (N,) s; seen_s (N, SOURCE_BITS) s, last update per source bit (-inf never)."""
+
+    x: np.ndarray
+    p: np.ndarray
+    ids: np.ndarray
+    cls: np.ndarray
+    z: np.ndarray
+    lwh: np.ndarray
+    yaw: np.ndarray
+    confidence: np.ndarray
+    hits: np.ndarray
+    born_s: np.ndarray
+    updated_s: np.ndarray
+    seen_s: np.ndarray
+
+    @classmethod
+    def empty(cls, dim_x: int) -> TrackTable:
+        z1 = np.zeros(0)
+        return cls(np.zeros((0, dim_x)), np.zeros((0, dim_x, dim_x)), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                   z1, np.zeros((0, 3)), z1, z1, np.zeros(0, np.int64), z1, z1, np.zeros((0, SOURCE_BITS)))
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def take(self, index) -> TrackTable:
+        return TrackTable(*(getattr(self, f.name)[index] for f in fields(self)))
+
+    def copy(self) -> TrackTable:
+        return TrackTable(*(getattr(self, f.name).copy() for f in fields(self)))
+
+    def append(self, other: TrackTable) -> TrackTable:
+        return TrackTable(*(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)))
+
+
+@dataclass(frozen=True)
+class TrackerSnapshot:
+    """The whole filter state of a Tracker (deep copies): time, next id, track table."""
+
+    t_s: float | None
+    next_id: int
+    table: TrackTable
+
+
+def compatible_classes(track_cls: np.ndarray, det_cls: np.ndarray) -> np.ndarray:
+    """True where classes are equal or either is UNKNOWN (0); paired arrays or broadcast (N, 1), (1, M)."""
+    return (track_cls == det_cls) | (track_cls == 0) | (det_cls == 0)
+
+
+@dataclass(frozen=True)
+class GatedPairs:
+    """K (track, detection) pairs inside the gate and class-compatible, with their cost (K,)."""
+
+    track: np.ndarray
+    det: np.ndarray
+    cost: np.ndarray
+
+
+def _trace2(c: np.ndarray) -> np.ndarray:
+    """Trace of 2 x 2 covariances (K, 2, 2): an upper bound of their largest eigenvalue."""
+    return c[:, 0, 0] + c[:, 1, 1]
+
+
+def _candidates(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs that may pass the gate: tracks near the detections' bounding box, then a bound on each pair.
+
+    Distance gate: |y| <= gate_m. Mahalanobis gate: d2 = y^T S^-1 y >= |y|^2 / lambda_max(S) and
+    lambda_max(S) <= tr(S) = tr(H P H^T) + tr(R), so a pair with |y|^2 > chi2 (tr P_xy + tr R) fails.
+    """
+    if not len(table) or not len(dets):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if config.gate == "distance":
+        lam_p, lam_r, reach_m = None, None, config.gate_m
+    else:
+        lam_p, lam_r = _trace2(table.p[:, :2, :2]), _trace2(dets.cov_xy)
+        reach_m = np.sqrt(config.gate_chi2 * (lam_p.max() + lam_r.max()))
+    (x_lo, y_lo), (x_hi, y_hi) = dets.xy.min(axis=0) - reach_m, dets.xy.max(axis=0) + reach_m
+    tx, ty = table.x[:, 0], table.x[:, 1]
+    rows = np.flatnonzero((tx >= x_lo) & (tx <= x_hi) & (ty >= y_lo) & (ty <= y_hi))
+    dx = np.subtract.outer(table.x[rows, 0], dets.xy[:, 0])
+    dy = np.subtract.outer(table.x[rows, 1], dets.xy[:, 1])
+    r2 = dx * dx + dy * dy
+    if config.gate == "distance":
+        near = r2 <= config.gate_m**2
+    else:
+        near = r2 <= config.gate_chi2 * np.add.outer(lam_p[rows], lam_r)
+    ti, di = np.nonzero(near)
+    ti = rows[ti]
+    keep = compatible_classes(table.cls[ti], dets.cls[di])
+    return ti[keep], di[keep]
+
+
+def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> GatedPairs:
+    """Class-compatible pairs inside the configured gate with the configured cost (see module doc)."""
+    ti, di = _candidates(config, table, dets)
+    y = dets.xy[di] - table.x[ti, :2]
+    dist = np.hypot(y[:, 0], y[:, 1])
+    if config.gate == "mahalanobis" or config.cost == "mahalanobis":
+        d2 = kalman.mahalanobis_sq_pairs(table.x[ti], table.p[ti], dets.xy[di], dets.cov_xy[di])
+    inside = dist <= config.gate_m if config.gate == "distance" else d2 <= config.gate_chi2
+    ti, di = ti[inside], di[inside]
+    if config.cost == "distance":
+        cost = dist[inside]
+    elif config.cost == "mahalanobis":
+        cost = d2[inside]
+    else:  # 1 - BEV IoU of the predicted box (last detected size and yaw) and the detected box
+        a = np.column_stack([table.x[ti, :2], table.lwh[ti, :2], table.yaw[ti]])
+        cost = 1.0 - paired_bev_iou(a, np.column_stack([dets.xy[di], dets.lwh[di, :2], dets.yaw[di]]))
+    return GatedPairs(ti, di, cost)
+
+
+def paired_bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU (K,) of paired BEV boxes a[k], b[k] (K, 5) [x, y, l, w, yaw]: |A n B| / (|A| + |B| - |A n B|).
+
+    Polygons from ``fusion.geometry``; one intersection per pair instead of a whole matrix.
+    """
+    if not len(a):
+        return np.zeros(0)
+    inter = shapely.area(shapely.intersection(box_polygons(a), box_polygons(b)))
+    union = a[:, 2] * a[:, 3] + b[:, 2] * b[:, 3] - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
+def _compact(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct values of index (sorted) and the position of each entry among them."""
+    present = np.zeros(size, bool)
+    present[index] = True
+    values = np.flatnonzero(present)
+    lookup = np.empty(size, np.int64)
+    lookup[values] = np.arange(len(values))
+    return values, lookup[index]
+
+
+def assign_pairs(pairs: GatedPairs, n_tracks: int, n_dets: int) -> Assignment:
+    """Minimum-cost one-to-one matching among the gated pairs (scipy linear_sum_assignment).
+
+    Only tracks and detections with a gated pair enter the solver (same optimum, smaller problem).
+    """
+    matches = np.zeros((0, 2), dtype=np.int64)
+    if len(pairs.track):
+        rows, ri = _compact(pairs.track, n_tracks)
+        cols, ci = _compact(pairs.det, n_dets)
+        sub = np.full((len(rows), len(cols)), _BLOCKED)
+        sub[ri, ci] = pairs.cost
+        r, c = linear_sum_assignment(sub)
+        ok = sub[r, c] < _BLOCKED
+        matches = np.column_stack([rows[r[ok]], cols[c[ok]]])
+    free_a, free_b = np.ones(n_tracks, bool), np.ones(n_dets, bool)
+    free_a[matches[:, 0]], free_b[matches[:, 1]] = False, False
+    return Assignment(matches, np.flatnonzero(free_a), np.flatnonzero(free_b))
+
+
+def associate(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> Assignment:
+    """Gate, cost and assign the detections to the tracks (indices into table and dets)."""
+    return assign_pairs(gated_pairs(config, table, dets), len(table), len(dets))
+
+
+def association_cost(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> np.ndarray:
+    """Dense cost (N tracks, M detections) of the gated pairs; inf elsewhere."""
+    pairs = gated_pairs(config, table, dets)
+    cost = np.full((len(table), len(dets)), np.inf)
+    cost[pairs.track, pairs.det] = pairs.cost
+    return cost
+
+
+def assign_gated(cost: np.ndarray) -> Assignment:
+    """Minimum-cost one-to-one matching among the finite entries of a dense cost (N, M)."""
+    ti, di = np.nonzero(np.isfinite(cost))
+    return assign_pairs(GatedPairs(ti, di, cost[ti, di]), *cost.shape)
+
+
+def source_mask_bits(masks: np.ndarray) -> np.ndarray:
+    """(K, SOURCE_BITS) booleans of K bitmasks; bits beyond the wire's byte are refused."""
+    masks = np.asarray(masks, dtype=np.int64)
+    if np.any((masks < 0) | (masks >= 1 << SOURCE_BITS)):
+        raise ValueError(f"source bitmasks must be in [0, {1 << SOURCE_BITS}), got {masks.max()}")
+    return (masks[:, None] & _BIT_VALUES[None, :]) != 0
 
 
 class Tracker:
-    """Tracks of one source; ids are unique within this instance, starting at 1."""
+    """Multi-object tracker; see the module docstring for the cycle, gating and life cycle."""
 
     def __init__(self, config: TrackerConfig = TrackerConfig()):
         self.config = config
+        self.model = config.motion_model()
+        self._prior = config.prior()
         self._next_id = 1
         self._t_s: float | None = None
-        self._x = np.zeros((0, 4))
-        self._p = np.zeros((0, 4, 4))
-        self._meta = ObjectArray.empty()  # ids, cls, z, lwh, yaw, confidence of each track
-        self._hits = np.zeros(0, dtype=int)
-        self._born_s = np.zeros(0)
-        self._updated_s = np.zeros(0)
+        self._table = TrackTable.empty(self.model.dim_x)
 
     def __len__(self) -> int:
-        return len(self._x)
+        return len(self._table)
+
+    @property
+    def time_s(self) -> float | None:
+        """Time of the filter state (None before the first call)."""
+        return self._t_s
 
     def step(self, dets: ObjectArray, t_s: float) -> ObjectArray:
-        """Predict every track to t_s, update with detections (map frame), return confirmed tracks."""
-        self._predict(t_s)
-        cost = center_distance_cost(self._x[:, :2], dets.xy, self._meta.cls, dets.cls)
-        result = assign(cost, self.config.gate_m)
-        self._update(result.matches, dets, t_s)
-        self._prune(t_s)
-        self._spawn(dets.take(result.unmatched_b), t_s)
-        return self.confirmed(t_s)
+        """Predict to t_s, update with detections (map frame), prune, return confirmed and coasting tracks."""
+        self.predict(t_s)
+        self.update(dets, t_s)
+        self.prune(t_s)
+        return self.tracks(t_s)
 
-    def confirmed(self, t_s: float) -> ObjectArray:
-        keep = self._hits >= self.config.confirm_hits
-        return self._as_objects(t_s).take(keep)
-
-    def _predict(self, t_s: float) -> None:
-        if self._t_s is not None and len(self._x):
-            f, q = cv_transition(t_s - self._t_s, self.config.accel_std_mps2)
-            self._x = self._x @ f.T
-            self._p = f @ self._p @ f.T + q
+    def predict(self, t_s: float) -> None:
+        """Predict every track to t_s (x' = f(x), P' = F P F^T + Q); t_s must not precede the filter time."""
+        self._check_time(t_s)
+        if self._t_s is not None and t_s > self._t_s and len(self._table):
+            self._table.x, self._table.p = kalman.predict(self._table.x, self._table.p, self.model, t_s - self._t_s)
         self._t_s = t_s
 
-    def _update(self, matches: np.ndarray, dets: ObjectArray, t_s: float) -> None:
+    def update(self, dets: ObjectArray, t_s: float, source_mask: int = 0) -> None:
+        """Associate detections (map frame) with the tracks predicted to t_s, update the matched
+        tracks, spawn tracks from the unmatched detections. Several updates per cycle are allowed."""
+        self.predict(t_s)
+        bits = source_mask_bits(np.asarray(dets.sources) | int(source_mask))
+        result = associate(self.config, self._table, dets)
+        self._correct(result.matches, dets, bits, t_s)
+        self._spawn(dets, result.unmatched_b, bits, t_s)
+
+    def prune(self, t_s: float) -> None:
+        """Delete stale tracks (last update older than max_coast_s) and missed tentative tracks."""
+        tab = self._table
+        since_s = t_s - tab.updated_s
+        tentative = tab.hits < self.config.confirm_hits
+        doomed = (since_s > self.config.max_coast_s) | (tentative & (since_s > self.config.tentative_max_coast_s))
+        if doomed.any():
+            self._table = tab.take(~doomed)
+
+    def tracks(self, t_s: float) -> ObjectArray:
+        """Confirmed and coasting tracks at t_s (map frame), predicted on a copy: the filter is not changed
+        (a t_s before the filter time extrapolates backwards with the motion model).
+
+        ids, cls, z, lwh, yaw, confidence from the last detection; xy, vxy, axy, yaw_rate and
+        cov_xy (position block of P) from the filter; age_s since birth; sources (see module doc).
+        """
+        tab = self._table
+        keep = (tab.hits >= self.config.confirm_hits) & (t_s - tab.updated_s <= self.config.max_coast_s)
+        tab = tab.take(keep)
+        x, p = tab.x, tab.p
+        if self._t_s is not None and t_s != self._t_s and len(tab):
+            x, p = kalman.predict(x, p, self.model, t_s - self._t_s)
+        recent = (t_s - tab.seen_s) <= self.config.max_coast_s
+        return ObjectArray(
+            ids=tab.ids, cls=tab.cls, xy=x[:, :2].copy(), z=tab.z, lwh=tab.lwh, yaw=tab.yaw,
+            vxy=np.array(self.model.velocity(x)), axy=self.model.acceleration(x), yaw_rate=self.model.yaw_rate(x),
+            cov_xy=p[:, :2, :2].copy(), confidence=tab.confidence, age_s=t_s - tab.born_s,
+            sources=(recent * _BIT_VALUES[None, :]).sum(axis=1).astype(np.int64),
+        )
+
+    def lifecycle(self, t_s: float) -> dict[int, str]:
+        """State of every live track at t_s by id: ``tentative``, ``confirmed`` or ``coasting``."""
+        tab = self._table
+        confirmed = tab.hits >= self.config.confirm_hits
+        coasting = confirmed & (tab.updated_s < t_s)
+        names = np.where(coasting, "coasting", np.where(confirmed, "confirmed", "tentative"))
+        return {int(i): str(n) for i, n in zip(tab.ids, names)}
+
+    def snapshot(self) -> TrackerSnapshot:
+        """Deep copy of the whole filter state."""
+        return TrackerSnapshot(self._t_s, self._next_id, self._table.copy())
+
+    def restore(self, snapshot: TrackerSnapshot) -> None:
+        """Return to a snapshot (copied again, so it can be restored more than once)."""
+        self._t_s, self._next_id, self._table = snapshot.t_s, snapshot.next_id, snapshot.table.copy()
+
+    def _check_time(self, t_s: float) -> None:
+        if self._t_s is not None and t_s < self._t_s:
+            raise ValueError(f"t_s={t_s} precedes the filter time {self._t_s}; use fusion.oosm.OosmTracker")
+
+    def _correct(self, matches: np.ndarray, dets: ObjectArray, bits: np.ndarray, t_s: float) -> None:
         if not len(matches):
             return
         ti, di = matches[:, 0], matches[:, 1]
-        p = self._p[ti]
-        s = p[:, :2, :2] + dets.cov_xy[di]  # S = H P H^T + R
-        k = p[:, :, :2] @ np.linalg.inv(s)  # K = P H^T S^-1, (K, 4, 2)
-        innov = dets.xy[di] - self._x[ti, :2]
-        self._x[ti] += np.einsum("kij,kj->ki", k, innov)
-        self._p[ti] = (np.eye(4) - k @ _H) @ p
-        self._meta.lwh[ti] = dets.lwh[di]
-        self._meta.z[ti] = dets.z[di]
-        self._meta.yaw[ti] = wrap_angle(dets.yaw[di])
-        self._meta.confidence[ti] = dets.confidence[di]
-        self._hits[ti] += 1
-        self._updated_s[ti] = t_s
+        tab = self._table
+        tab.x[ti], tab.p[ti], _ = kalman.update(tab.x[ti], tab.p[ti], dets.xy[di], dets.cov_xy[di])
+        tab.cls[ti] = np.where(tab.cls[ti] == 0, dets.cls[di], tab.cls[ti])  # UNKNOWN adopts a class
+        tab.z[ti], tab.lwh[ti], tab.yaw[ti] = dets.z[di], dets.lwh[di], wrap_angle(dets.yaw[di])
+        tab.confidence[ti] = dets.confidence[di]
+        tab.hits[ti] += 1
+        tab.updated_s[ti] = t_s
+        seen = tab.seen_s[ti]
+        seen[bits[di]] = t_s
+        tab.seen_s[ti] = seen
 
-    def _prune(self, t_s: float) -> None:
-        stale = t_s - self._updated_s > self.config.max_coast_s
-        tentative_miss = (self._hits < self.config.confirm_hits) & (self._updated_s < t_s)
-        self._keep(~(stale | tentative_miss))
-
-    def _keep(self, mask: np.ndarray) -> None:
-        self._x, self._p, self._meta = self._x[mask], self._p[mask], self._meta.take(mask)
-        self._hits, self._born_s, self._updated_s = self._hits[mask], self._born_s[mask], self._updated_s[mask]
-
-    def _spawn(self, dets: ObjectArray, t_s: float) -> None:
-        n = len(dets)
+    def _spawn(self, dets: ObjectArray, index: np.ndarray, bits: np.ndarray, t_s: float) -> None:
+        """New tentative tracks from the detections dets[index]."""
+        n = len(index)
         if not n:
             return
-        ids = np.arange(self._next_id, self._next_id + n)
+        m = kalman.Measured(dets.xy[index], dets.cov_xy[index], dets.vxy[index], dets.axy[index], dets.yaw[index],
+                            dets.yaw_rate[index])
+        x, p = self.model.initial(m, self._prior)
+        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
-        x = np.column_stack([dets.xy, dets.vxy])
-        p = np.zeros((n, 4, 4))
-        p[:, :2, :2] = dets.cov_xy
-        p[:, 2:, 2:] = np.eye(2) * self.config.init_speed_std_mps**2
-        self._x, self._p = np.vstack([self._x, x]), np.concatenate([self._p, p])
-        self._meta = ObjectArray.concat([self._meta, dets.with_(ids=ids)])
-        self._hits = np.concatenate([self._hits, np.ones(n, dtype=int)])
-        self._born_s = np.concatenate([self._born_s, np.full(n, t_s)])
-        self._updated_s = np.concatenate([self._updated_s, np.full(n, t_s)])
-
-    def _as_objects(self, t_s: float) -> ObjectArray:
-        return self._meta.with_(
-            xy=self._x[:, :2].copy(),
-            vxy=self._x[:, 2:].copy(),
-            axy=np.zeros((len(self), 2)),
-            cov_xy=self._p[:, :2, :2].copy(),
-            age_s=t_s - self._born_s,
-        )
+        born = np.full(n, t_s)
+        new = TrackTable(x, p, ids, dets.cls[index].astype(np.int64), dets.z[index].astype(float),
+                         dets.lwh[index].astype(float), wrap_angle(m.yaw), dets.confidence[index].astype(float),
+                         np.ones(n, np.int64), born, born.copy(), np.where(bits[index], t_s, -np.inf))
+        self._table = self._table.append(new)

@@ -9,7 +9,7 @@ from schemas.config import ConfigError, load_config
 from schemas.runtime import stop_on_signals
 
 from .config import ObuConfig
-from .pipeline import FUSION_METHODS
+from .pipeline import COMPENSATIONS, FUSION_METHODS
 
 
 def configure_parser(p: argparse.ArgumentParser) -> None:
@@ -27,13 +27,15 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="seed of the LiDAR and localisation noise (default 0)")
     p.add_argument("--start-at-ns", type=int, help="scenario time zero in Unix ns (true clock); default: now")
     p.add_argument("--duration", dest="duration_s", type=float, help="seconds to run (default: scenario duration)")
-    p.add_argument("--fusion", choices=FUSION_METHODS, help="fusion method (default iou-merge)")
+    p.add_argument("--fusion", choices=FUSION_METHODS, help="fusion method (default kf)")
+    p.add_argument("--compensation", choices=COMPENSATIONS,
+                   help="RSU delay compensation (default predict); oosm needs --fusion kf")
     p.add_argument("--deadline-ms", type=float, help="end-to-end deadline per cycle from LiDAR capture (default 100)")
     p.add_argument("--sync-rate-hz", type=float, help="time-sync exchanges per second (default 2)")
 
 
 def run(args: argparse.Namespace) -> int:
-    fields = ("vehicle_id", "listen", "connect", "scenario", "seed", "start_at_ns", "duration_s", "fusion",
+    fields = ("vehicle_id", "listen", "connect", "scenario", "seed", "start_at_ns", "duration_s", "fusion", "compensation",
               "deadline_ms", "sync_rate_hz")
     try:
         config = load_config(ObuConfig, args.config, {f: getattr(args, f) for f in fields})

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from schemas.keys import check_id
 
-from .pipeline import FUSION_METHODS, ObuPipelineConfig
+from .pipeline import COMPENSATIONS, FUSION_METHODS, ObuPipelineConfig
 
 
 class ObuConfig(BaseModel):
@@ -19,7 +19,8 @@ class ObuConfig(BaseModel):
     seed: int = Field(0, ge=0)
     start_at_ns: int | None = Field(None, description="scenario time zero (true clock); default: start-up time")
     duration_s: float | None = Field(None, gt=0)
-    fusion: str = "iou-merge"
+    fusion: str = "kf"
+    compensation: str = "predict"
     iou_threshold: float = Field(0.1, gt=0, le=1)
     max_rsu_age_s: float = Field(1.0, gt=0, le=30)
     deadline_ms: float = Field(100.0, gt=0, le=10_000)
@@ -39,8 +40,22 @@ class ObuConfig(BaseModel):
             raise ValueError(f"must be one of {FUSION_METHODS}")
         return v
 
+    @field_validator("compensation")
+    @classmethod
+    def _valid_compensation(cls, v: str) -> str:
+        if v not in COMPENSATIONS:
+            raise ValueError(f"must be one of {COMPENSATIONS}")
+        return v
+
+    @model_validator(mode="after")
+    def _oosm_needs_kf(self) -> "ObuConfig":
+        if self.compensation == "oosm" and not self.fusion.startswith("kf"):
+            raise ValueError("compensation 'oosm' re-runs a filter: use it with fusion 'kf'")
+        return self
+
     def pipeline_config(self) -> ObuPipelineConfig:
         return ObuPipelineConfig(
-            vehicle_id=self.vehicle_id, fusion=self.fusion, iou_threshold=self.iou_threshold,
+            vehicle_id=self.vehicle_id, fusion=self.fusion, compensation=self.compensation,
+            iou_threshold=self.iou_threshold,
             max_rsu_age_s=self.max_rsu_age_s, deadline_ms=self.deadline_ms,
         )

@@ -11,24 +11,26 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.frames import Pose2D, map_to_base
-from fusion.merger import iou_merge
-from fusion.motion import predict_cv
+from fusion.frames import Pose2D
 from fusion.objects import ObjectArray
 from fusion.pose_history import PoseHistory
 from fusion.wire import objects_from_states, states_from_objects
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObuMetrics, RsuLinkStatus, TimeReply, TimeRequest
 
 from .clock_sync import ClockSync, SyncSample
+from .methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, make_fusion
 
-FUSION_METHODS = ("iou-merge", "vehicle-only", "rsu-only")
+__all__ = ["COMPENSATIONS", "FUSION_METHODS", "ObuPipeline", "ObuPipelineConfig"]
+
 RSU_ID_BASE = 1_000_000  # output ids of RSU objects: RSU_ID_BASE * (rsu index + 1) + RSU track id
+MAX_RSUS = 64  # distinct RSU ids tracked; more are rejected (a flood of ids must not grow memory)
 
 
 @dataclass(frozen=True)
 class ObuPipelineConfig:
     vehicle_id: str = "ego"
-    fusion: str = "iou-merge"
+    fusion: str = "kf"
+    compensation: str = "predict"
     iou_threshold: float = 0.1  # seed 000 merger: an RSU object this overlapping an own one is a duplicate
     max_rsu_age_s: float = 1.0  # older RSU frames are not fused
     deadline_ms: float = 100.0  # end-to-end: own LiDAR capture -> publish
@@ -36,16 +38,18 @@ class ObuPipelineConfig:
     frames_kept: int = 8
 
     def __post_init__(self) -> None:
-        if self.fusion not in FUSION_METHODS:
-            raise ValueError(f"fusion must be one of {FUSION_METHODS}, got {self.fusion!r}")
+        make_fusion(self.fusion, self.compensation, self.iou_threshold)  # validates the pair
 
 
 @dataclass
-class _RsuFrame:
+class _Received:
+    """An RSU list as received: RSU-clock times, placed in OBU time at fusion time."""
+
     capture_rsu_ns: int
-    receive_ns: int
+    valid_rsu_ns: int
     seq: int
     objects: ObjectArray  # map frame
+    used: bool = False  # consumed by a tracking fusion (each list is a measurement once)
 
 
 @dataclass
@@ -65,6 +69,7 @@ class ObuPipeline:
         self.cycles = 0
         self.deadline_misses = 0
         self.last_mode = "vehicle-only"
+        self._fusion = make_fusion(config.fusion, config.compensation, config.iou_threshold)
         self._rsus: dict[str, _RsuState] = {}
         self._own: tuple[int, ObjectArray] | None = None
         self._pending_sync: dict[int, int] = {}  # request seq -> t1_ns
@@ -85,7 +90,8 @@ class ObuPipeline:
         if t1 is None or t1 != reply.t1_ns:
             self.rejected["time_reply_unmatched"] += 1
             return
-        if not self._rsu(reply.rsu_id).sync.add(SyncSample(t1, reply.t2_ns, reply.t3_ns, t4_ns)):
+        state = self._rsu(reply.rsu_id)
+        if state is not None and not state.sync.add(SyncSample(t1, reply.t2_ns, reply.t3_ns, t4_ns)):
             self.rejected["time_reply_inconsistent"] += 1
 
     def clock_offset(self, rsu_id: str):
@@ -97,13 +103,16 @@ class ObuPipeline:
     def on_pose(self, t_ns: int, pose: Pose2D) -> None:
         self.poses.add(t_ns, pose)
 
-    def on_rsu_message(self, msg: ObjectList, receive_ns: int) -> None:
+    def on_rsu_message(self, msg: ObjectList, receive_ns: int) -> None:  # noqa: ARG002 (kept for link stats)
         state = self._rsu(msg.header.rsu_id)
+        if state is None:
+            return
         if any(f.seq == msg.header.seq for f in state.frames):
             self.rejected["duplicate"] += 1
             return
-        frame = _RsuFrame(msg.header.capture_time_ns, receive_ns, msg.header.seq, objects_from_states(msg.objects))
-        state.frames.append(frame)
+        objects = objects_from_states(msg.objects)
+        objects = objects.with_(ids=RSU_ID_BASE * (state.index + 1) + objects.ids, sources=np.full(len(objects), SOURCE_RSU))
+        state.frames.append(_Received(msg.header.capture_time_ns, msg.header.valid_time_ns, msg.header.seq, objects))
         state.accepted += 1
         while len(state.frames) > self.config.frames_kept:
             state.frames.popleft()
@@ -123,12 +132,11 @@ class ObuPipeline:
             raise RuntimeError("fuse() before any on_detections()")
         cycle_ns, own = self._own
         ego = self.poses.at(cycle_ns) or Pose2D(0.0, 0.0, 0.0)
-        rsu = self._rsu_objects(cycle_ns, ego)
-        fused = self._combine(own, rsu)
-        self.last_mode = "inter" if len(rsu) and self.config.fusion != "vehicle-only" else "vehicle-only"
+        newest, fresh = self._usable_frames(cycle_ns)
+        fused = self._fusion.fuse(cycle_ns, ego, own.with_(ids=np.arange(1, len(own) + 1)), newest, fresh)
+        self.last_mode = "inter" if (newest or fresh) and self.config.fusion != "vehicle-only" else "vehicle-only"
         self.cycles += 1
-        late = now_ns > cycle_ns + int(self.config.deadline_ms * 1e6)
-        self.deadline_misses += int(late)
+        self.deadline_misses += int(now_ns > cycle_ns + int(self.config.deadline_ms * 1e6))
         self._out_seq += 1
         return FusedObjectList(
             vehicle_id=self.config.vehicle_id, seq=self._out_seq, cycle_time_ns=cycle_ns, publish_time_ns=now_ns,
@@ -136,43 +144,33 @@ class ObuPipeline:
             objects=states_from_objects(fused, fused=True),
         )
 
-    def _combine(self, own: ObjectArray, rsu: ObjectArray) -> ObjectArray:
-        own = own.with_(ids=np.arange(1, len(own) + 1))
-        if self.config.fusion == "vehicle-only":
-            return own
-        if self.config.fusion == "rsu-only":
-            return rsu
-        return iou_merge(own, rsu, self.config.iou_threshold)
+    def _usable_frames(self, cycle_ns: int) -> tuple[list[RsuFrame], list[RsuFrame]]:
+        """(newest usable frame of each RSU, frames not yet consumed by tracking), in OBU time.
 
-    def _rsu_objects(self, cycle_ns: int, ego: Pose2D) -> ObjectArray:
-        """Newest usable frame of each RSU, predicted to the cycle time, in base_link.
-
-        Seed 000 eq. 3-4 move objects to base_link with the ego pose at capture time;
-        here they are predicted in ``map`` first (p(t) = p + v (t - t_capture)) and then
-        moved with the pose at the cycle time, which equals eq. 3-4 followed by ego-motion
-        compensation from the capture to the cycle time.
+        A frame is usable once the RSU clock is related to ours and while its age at the
+        cycle, |cycle - valid|, is within max_rsu_age_s.
         """
-        parts = []
-        for rsu_id, state in self._rsus.items():
-            frame, capture_ns = self._newest_usable(state, cycle_ns)
-            if frame is None:
+        newest, fresh = [], []
+        for state in self._rsus.values():
+            est = state.sync.estimate()
+            if est is None or not state.frames:
                 continue
-            objs = predict_cv(frame.objects, (cycle_ns - capture_ns) * 1e-9)
-            objs = map_to_base(objs, ego).with_(
-                ids=RSU_ID_BASE * (state.index + 1) + frame.objects.ids, sources=np.full(len(objs), SOURCE_RSU)
-            )
-            parts.append(objs)
-        return ObjectArray.concat(parts)
-
-    def _newest_usable(self, state: _RsuState, cycle_ns: int) -> tuple[_RsuFrame | None, int]:
-        est = state.sync.estimate()
-        if est is None or not state.frames:
-            return None, 0
-        frame = max(state.frames, key=lambda f: f.capture_rsu_ns)
-        capture_ns = frame.capture_rsu_ns - est.offset_ns  # t_obu = t_rsu - theta
-        age_s = (cycle_ns - capture_ns) * 1e-9
-        state.last_age_ms = age_s * 1e3
-        return (frame, capture_ns) if abs(age_s) <= self.config.max_rsu_age_s else (None, 0)
+            frames = sorted(state.frames, key=lambda f: f.valid_rsu_ns)
+            placed, previous = [], None
+            for raw in frames:  # t_obu = t_rsu - theta
+                previous = RsuFrame(state.index, raw.seq, raw.capture_rsu_ns - est.offset_ns,
+                                    raw.valid_rsu_ns - est.offset_ns, raw.objects, previous)
+                placed.append((raw, previous))
+            age_s = (cycle_ns - placed[-1][1].valid_ns) * 1e-9
+            state.last_age_ms = age_s * 1e3
+            limit_ns = self.config.max_rsu_age_s * 1e9
+            if abs(age_s) <= self.config.max_rsu_age_s:
+                newest.append(placed[-1][1])
+            for raw, frame in placed:
+                if not raw.used and abs(cycle_ns - frame.valid_ns) <= limit_ns and frame.valid_ns <= cycle_ns:
+                    raw.used = True
+                    fresh.append(frame)
+        return newest, fresh
 
     # --- reporting -------------------------------------------------------------------
     def metrics(self, now_ns: int) -> ObuMetrics:
@@ -192,7 +190,10 @@ class ObuPipeline:
             last_data_age_ms=state.last_age_ms,
         )
 
-    def _rsu(self, rsu_id: str) -> _RsuState:
+    def _rsu(self, rsu_id: str) -> _RsuState | None:
         if rsu_id not in self._rsus:
+            if len(self._rsus) >= MAX_RSUS:
+                self.rejected["too_many_rsus"] += 1
+                return None
             self._rsus[rsu_id] = _RsuState(index=len(self._rsus), sync=ClockSync(self.config.sync_window))
         return self._rsus[rsu_id]

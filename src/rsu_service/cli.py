@@ -29,11 +29,14 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clock-drift-ppm", type=float, help="RSU clock drift, ppm")
     p.add_argument("--clock-step-ms", type=float, help="RSU clock step size, ms (with --clock-step-at-s)")
     p.add_argument("--clock-step-at-s", type=float, help="scenario time of the RSU clock step, s")
+    p.add_argument("--predict-ahead", action="store_true", default=None,
+                   help="track-predict compensation: publish tracks predicted to the publish time, "
+                        "and once more half a frame later (5 Hz camera -> 10 Hz lists)")
 
 
 def run(args: argparse.Namespace) -> int:
     fields = ("rsu_id", "listen", "connect", "scenario", "seed", "start_at_ns", "duration_s",
-              "clock_offset_ms", "clock_drift_ppm", "clock_step_ms", "clock_step_at_s")
+              "clock_offset_ms", "clock_drift_ppm", "clock_step_ms", "clock_step_at_s", "predict_ahead")
     try:
         config = load_config(RsuConfig, args.config, {f: getattr(args, f) for f in fields})
         from .node import RsuNode

@@ -22,6 +22,8 @@ class RsuConfig(BaseModel):
     clock_drift_ppm: float = Field(0.0, ge=-1000, le=1000)
     clock_step_ms: float = Field(0.0, ge=-86_400_000, le=86_400_000)
     clock_step_at_s: float | None = Field(None, ge=0, description="scenario time of the clock step")
+    predict_ahead: bool = Field(False, description="track-predict: publish tracks predicted to the publish "
+                                                   "time and upsample 5 Hz to 10 Hz (seed 000 Algorithm 1)")
 
     @field_validator("rsu_id")
     @classmethod

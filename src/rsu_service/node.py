@@ -30,7 +30,8 @@ class RsuNode:
         self.duration_s = config.duration_s or self.world.scenario.duration_s
         self.clock = config.clock(self.true_clock, self.start_ns)
         self.source = SimulatedCamera(self.world, config.seed, self.start_ns)
-        self.pipeline = RsuPipeline(RsuPipelineConfig(rsu_id=config.rsu_id, sensor="camera/simulated"))
+        self.pipeline = RsuPipeline(RsuPipelineConfig(rsu_id=config.rsu_id, sensor="camera/simulated",
+                                                      predict_ahead=config.predict_ahead))
         self.rejected: Counter[str] = Counter()
         self.published = 0
         self._lock = threading.Lock()
@@ -62,6 +63,9 @@ class RsuNode:
             )
             publisher.put(encode(msg))
             self.published += 1
+            if self.config.predict_ahead and self._sleep_until(frame.ready_true_ns + self.source.upsample_offset_ns, stop):
+                publisher.put(encode(self.pipeline.upsampled(self.clock.now_ns())))
+                self.published += 1
         self._sleep_until(self.start_ns + round((self.duration_s + 1.0) * 1e9), stop)
 
     def _sleep_until(self, true_ns: int, stop: threading.Event) -> bool:

@@ -1,12 +1,18 @@
 """RSU pipeline (pure): detections -> tracks -> timestamped object list.
 
 Driven by calls with RSU-clock times; the node (live) and the offline runner feed it.
+With ``predict_ahead`` (the track-predict compensation, seed 000 Algorithm 1) the RSU
+publishes its tracks predicted to the publish time instead of the capture time, and
+``upsampled(at_ns)`` gives the same tracks predicted further, so that a 5 Hz camera
+yields 10 Hz object lists. The header's ``prediction_ns`` says how far ahead the
+objects were predicted, so the vehicle measures the rest of the delay itself.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from fusion.motion import predict_ca
 from fusion.objects import ObjectArray
 from fusion.tracking import Tracker, TrackerConfig
 from fusion.wire import states_from_objects
@@ -18,6 +24,7 @@ class RsuPipelineConfig:
     rsu_id: str = "rsu1"
     sensor: str = "camera"
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    predict_ahead: bool = False  # track-predict: publish tracks predicted to the publish time
 
 
 class RsuPipeline:
@@ -28,18 +35,33 @@ class RsuPipeline:
         self._tracker = Tracker(config.tracker)
         self._t_ref_ns: int | None = None
         self._seq = 0
+        self._last: tuple[int, ObjectArray] | None = None  # (capture_ns, confirmed tracks)
 
     def on_frame(self, dets: ObjectArray, capture_ns: int, publish_ns: int) -> ObjectList:
         """One processed camera frame: capture and publish times in the RSU clock (ns)."""
         if self._t_ref_ns is None:
             self._t_ref_ns = capture_ns
         tracks = self._tracker.step(dets, (capture_ns - self._t_ref_ns) * 1e-9)
+        self._last = (capture_ns, tracks)
+        ahead_ns = max(publish_ns - capture_ns, 0) if self.config.predict_ahead else 0
+        return self._message(capture_ns, tracks, ahead_ns, publish_ns)
+
+    def upsampled(self, publish_ns: int) -> ObjectList | None:
+        """The last frame's tracks predicted to ``publish_ns`` (Algorithm 1's second pose)."""
+        if self._last is None or not self.config.predict_ahead:
+            return None
+        capture_ns, tracks = self._last
+        return self._message(capture_ns, tracks, max(publish_ns - capture_ns, 0), publish_ns)
+
+    def _message(self, capture_ns: int, tracks: ObjectArray, ahead_ns: int, publish_ns: int) -> ObjectList:
+        # p(t + dt) = p + v dt + a dt^2 / 2 over the prediction horizon
+        objs = predict_ca(tracks, ahead_ns * 1e-9) if ahead_ns else tracks
         header = ObjectListHeader(
-            rsu_id=self.config.rsu_id, seq=self._seq, capture_time_ns=capture_ns,
+            rsu_id=self.config.rsu_id, seq=self._seq, capture_time_ns=capture_ns, prediction_ns=ahead_ns,
             publish_time_ns=max(publish_ns, capture_ns), sensor=self.config.sensor,
         )
         self._seq += 1
-        return ObjectList(header=header, objects=states_from_objects(tracks))
+        return ObjectList(header=header, objects=states_from_objects(objs))
 
 
 def answer_time_request(request: TimeRequest, rsu_id: str, t2_ns: int, t3_ns: int) -> TimeReply:

@@ -33,6 +33,11 @@ class SimulatedCamera:
         self.start_ns = start_ns
         self.camera = RsuCamera(world.scenario.rsu, stream(seed, "rsu_camera"))
 
+    @property
+    def upsample_offset_ns(self) -> int:
+        """Half a frame period: when the upsampled (second) list of a frame is published."""
+        return round(0.5e9 / self.world.scenario.rsu.rate_hz)
+
     def capture_times_ns(self, duration_s: float) -> np.ndarray:
         """(K,) int64 true capture times within the run."""
         t_s = frame_times(self.world.scenario.rsu.rate_hz, duration_s)

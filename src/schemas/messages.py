@@ -108,6 +108,13 @@ class ObjectListHeader(Message):
     publish_time_ns: TimeNs
     frame_id: Annotated[str, Field(max_length=64)] = "map"
     sensor: Annotated[str, Field(max_length=128)] = ""
+    # The objects are valid at capture_time_ns + prediction_ns: non-zero when the RSU has
+    # already predicted them forward (track-predict compensation, seed 000 Algorithm 1).
+    prediction_ns: Annotated[int, Field(ge=0, le=10_000_000_000)] = 0
+
+    @property
+    def valid_time_ns(self) -> int:
+        return self.capture_time_ns + self.prediction_ns
 
     @model_validator(mode="after")
     def _publish_after_capture(self) -> "ObjectListHeader":

@@ -18,11 +18,14 @@ SUBCOMMANDS = {
 
 
 def _run_options(p: argparse.ArgumentParser) -> None:
-    from obu_service.pipeline import FUSION_METHODS
+    from obu_service.pipeline import COMPENSATIONS, FUSION_METHODS
 
     p.add_argument("--scenario", default="red-light-runner", help="bundled scenario name or YAML path (default %(default)s)")
     p.add_argument("--profile", default="lte-v2x", help="link profile: bundled name or YAML path (default %(default)s)")
-    p.add_argument("--fusion", default="iou-merge", choices=FUSION_METHODS, help="fusion method (default %(default)s)")
+    p.add_argument("--fusion", default="kf", choices=FUSION_METHODS, help="fusion method (default %(default)s)")
+    p.add_argument("--compensation", default="predict", choices=COMPENSATIONS,
+                   help="RSU delay compensation (default %(default)s); track-predict makes the RSU predict "
+                        "and upsample, oosm (kf only) re-filters late RSU data at its own time")
     p.add_argument("--seed", type=int, default=0, help="seed of sensor noise and link model (default %(default)s)")
     p.add_argument("--duration", type=float, help="seconds of scenario to run (default: the scenario's duration)")
     p.add_argument("--rsu-clock-offset-ms", type=float, default=0.0, help="injected RSU clock offset, ms")
@@ -35,7 +38,8 @@ def _spec(args: argparse.Namespace):
     from evaluation.spec import RunSpec
 
     return RunSpec(
-        scenario=args.scenario, profile=args.profile, fusion=args.fusion, seed=args.seed, duration_s=args.duration,
+        scenario=args.scenario, profile=args.profile, fusion=args.fusion, compensation=args.compensation,
+        seed=args.seed, duration_s=args.duration,
         rsu_clock_offset_ms=args.rsu_clock_offset_ms, rsu_clock_drift_ppm=args.rsu_clock_drift_ppm,
         deadline_ms=args.deadline_ms,
     )
@@ -68,8 +72,24 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from evaluation.spec import build_report
 
     _check_inputs(args)
+    if args.table:
+        return cmd_tables(args)
     run = OfflineRun(_spec(args))
     _emit(build_report(run.spec, run.world, run.execute(), driver="eval"), args.json)
+    return 0
+
+
+def cmd_tables(args: argparse.Namespace) -> int:
+    from evaluation.tables import run_tables, seed_tables, to_markdown, write_report
+
+    seeds = list(range(args.seed, args.seed + args.seeds))
+    tables = seed_tables(_spec(args))
+    print(f"v2i eval: {sum(len(t.rows) for t in tables)} configurations x {len(seeds)} seeds", file=sys.stderr)
+    results = run_tables(tables, seeds, workers=args.workers)
+    if args.report:
+        write_report(results, seeds, Path(args.report))
+        print(f"v2i eval: wrote {args.report}/tables.md, tables.json and plots", file=sys.stderr)
+    print(to_markdown(results, seeds))
     return 0
 
 
@@ -111,7 +131,13 @@ def build_parser() -> argparse.ArgumentParser:
     parsers = {name: sub.add_parser(name, help=text, description=text) for name, text in SUBCOMMANDS.items()}
     for name in ("demo", "eval"):
         _run_options(parsers[name])
-    parsers["eval"].set_defaults(func=cmd_eval)
+    ev = parsers["eval"]
+    ev.add_argument("--table", choices=["seeds"], help="run the experiment tables (seed 000 Tables I-III, "
+                    "seed 001 Table 1, OTVIC Table IV) instead of one run")
+    ev.add_argument("--seeds", type=int, default=5, help="with --table: seeds --seed .. --seed+N-1 (default %(default)s)")
+    ev.add_argument("--report", metavar="DIR", help="with --table: write tables.md, tables.json and PNG plots here")
+    ev.add_argument("--workers", type=int, default=2, help="with --table: parallel runs (default %(default)s)")
+    ev.set_defaults(func=cmd_eval)
     demo = parsers["demo"]
     demo.add_argument("--startup", type=float, default=4.0, help="seconds given to the services to start (default %(default)s)")
     demo.add_argument("--kill-link-at", type=float, metavar="S", help="chaos: kill the link emulator S seconds into the run")

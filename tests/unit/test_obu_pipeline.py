@@ -21,7 +21,7 @@ def objs(xy, vxy=None, ids=None):
 
 
 def synced_pipeline(**cfg) -> ObuPipeline:
-    p = ObuPipeline(ObuPipelineConfig(**cfg))
+    p = ObuPipeline(ObuPipelineConfig(**{"fusion": "iou-merge", **cfg}))
     req = p.make_time_request(T0)
     p.on_time_reply(answer_time_request(req, "rsu1", T0 + 5_000_000 + THETA, T0 + 5_000_000 + THETA), T0 + 10_000_000)
     return p
@@ -61,7 +61,7 @@ def test_duplicate_rsu_object_is_dropped_by_iou_merge():
 
 
 def test_without_sync_or_with_stale_data_it_publishes_vehicle_only():
-    p = ObuPipeline()
+    p = ObuPipeline(ObuPipelineConfig(fusion="iou-merge"))
     cycle = T0 + 1_000_000_000
     p.on_rsu_message(rsu_list(cycle, [10.0, 0.0], [0, 0]), cycle)
     p.on_detections(objs([[30.0, 0.0]]), cycle)

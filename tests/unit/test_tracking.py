@@ -2,8 +2,10 @@ import numpy as np
 import pytest
 
 from fusion.association import assign, center_distance_cost
+from fusion.geometry import bev_iou_matrix
 from fusion.objects import ObjectArray
-from fusion.tracking import Tracker, TrackerConfig
+from fusion.oosm import OosmTracker
+from fusion.tracking import Tracker, TrackerConfig, assign_gated, association_cost
 
 
 def dets(xy, cls=1, std=0.5):
@@ -44,3 +46,247 @@ def test_tracker_life_cycle():
     assert len(tracker.step(dets(np.zeros((0, 2))), 0.4)) == 1  # coasting
     assert len(tracker.step(dets(np.zeros((0, 2))), 0.8)) == 0  # deleted
     assert len(tracker) == 0
+
+
+# --- split API, gating, cost, life cycle, classes, sources, motion models -------------------------
+
+LIDAR, RSU = 1, 2
+
+
+def confirmed_tracker(xy=(0.0, 0.0), **cfg):
+    tracker = Tracker(TrackerConfig(**cfg))
+    for t in (0.0, 0.1, 0.2):
+        tracker.predict(t)
+        tracker.update(dets(xy, std=0.2), t, LIDAR)
+        tracker.prune(t)
+    return tracker
+
+
+def test_two_updates_per_cycle_fuse_lidar_then_rsu():
+    tracker = confirmed_tracker()
+    tracker.predict(0.3)
+    tracker.update(dets([0.1, 0.0], std=0.2), 0.3, LIDAR)
+    var_lidar = tracker.tracks(0.3).cov_xy[0, 0, 0]
+    tracker.update(dets([[0.0, 0.1], [40.0, 0.0]], std=0.5), 0.3, RSU)  # the target, and one only the RSU sees
+    tracker.prune(0.3)
+    assert len(tracker) == 2
+    out = tracker.tracks(0.3)
+    assert len(out) == 1 and out.sources[0] == LIDAR | RSU
+    assert out.cov_xy[0, 0, 0] < var_lidar  # the second update adds information
+    tracker.predict(0.4)
+    tracker.update(dets([40.0, 0.0]), 0.4, RSU)
+    assert {int(s) for s in tracker.tracks(0.4).sources} == {LIDAR | RSU, RSU}
+
+
+def test_mahalanobis_gate_rejects_an_outlier_the_distance_gate_accepts():
+    for gate, expected_tracks in (("distance", 1), ("mahalanobis", 2)):
+        tracker = confirmed_tracker(gate=gate)
+        tracker.predict(0.3)
+        tracker.update(dets([3.5, 0.0], std=0.2), 0.3, LIDAR)  # 3.5 m < gate_m, d2 >> 9.21
+        assert len(tracker) == expected_tracks, gate
+
+
+def test_mahalanobis_cost_prefers_the_likely_track_over_the_nearest():
+    tracker = Tracker(TrackerConfig(cost="mahalanobis", gate="mahalanobis"))
+    tracker.predict(0.0)
+    tracker.update(dets([[0.0, 0.0], [3.0, 0.0]]), 0.0, LIDAR)
+    tracker._table.p[0, :2, :2] = np.eye(2) * 25.0  # track 1 very uncertain, track 2 sure
+    tracker._table.p[1, :2, :2] = np.eye(2) * 0.01
+    cost = association_cost(tracker.config, tracker._table, dets([1.8, 0.0]))
+    assert assign_gated(cost).matches.tolist() == [[0, 0]]  # nearer to track 2, likelier for track 1
+
+
+def test_iou_cost_is_one_minus_bev_iou_inside_the_gate():
+    tracker = confirmed_tracker(cost="iou")
+    d = dets([[1.0, 0.3], [30.0, 0.0]])
+    cost = association_cost(tracker.config, tracker._table, d)
+    box = np.column_stack([tracker._table.x[:, :2], tracker._table.lwh[:, :2], tracker._table.yaw])
+    assert cost[0, 0] == pytest.approx(1.0 - bev_iou_matrix(box, np.column_stack([d.xy, d.lwh[:, :2], d.yaw]))[0, 0])
+    assert np.isinf(cost[0, 1])  # outside the 5 m gate
+    tracker.predict(0.3)
+    tracker.update(d, 0.3, LIDAR)
+    assert len(tracker) == 2 and tracker.tracks(0.3).xy[0, 0] > 0.1
+
+
+def test_life_cycle_tentative_confirmed_coasting_deleted():
+    cfg = TrackerConfig(confirm_hits=3, max_coast_s=0.5, tentative_max_coast_s=0.15)
+    tracker = Tracker(cfg)
+
+    def cycle(t, *xy):
+        tracker.predict(t)
+        tracker.update(dets(np.array(xy).reshape(-1, 2)), t, LIDAR)
+        tracker.prune(t)
+        return tracker.lifecycle(t)
+
+    assert cycle(0.0, [0, 0]) == {1: "tentative"}
+    assert cycle(0.1, [0, 0], [20, 0]) == {1: "tentative", 2: "tentative"}
+    assert cycle(0.2, [0, 0]) == {1: "confirmed", 2: "tentative"}  # third hit; track 2 missed once
+    assert cycle(0.3, [0, 0]) == {1: "confirmed"}  # track 2 missed for 0.2 s > 0.15 s
+    assert cycle(0.5) == {1: "coasting"}
+    assert len(tracker.tracks(0.5)) == 1
+    assert cycle(0.8) == {1: "coasting"}  # 0.5 s since the last update
+    assert cycle(0.81) == {}
+
+
+def test_tentative_track_survives_until_the_next_frame_of_a_slow_source():
+    tracker = Tracker(TrackerConfig(tentative_max_coast_s=0.25))
+    for k in range(5):  # the RSU (5 Hz) sees it, the LiDAR (10 Hz) never does
+        t = 0.1 * k
+        tracker.predict(t)
+        tracker.update(ObjectArray.empty(), t, LIDAR)
+        if k % 2 == 0:
+            tracker.update(dets([50.0 + 0.1 * k, 0.0]), t, RSU)
+        tracker.prune(t)
+    out = tracker.tracks(0.4)
+    assert len(out) == 1 and out.sources[0] == RSU
+
+
+def test_classes_never_mix_but_unknown_matches_anything():
+    tracker = confirmed_tracker()  # class 1 (car)
+    tracker.predict(0.3)
+    tracker.update(dets([0.2, 0.0], cls=5), 0.3, LIDAR)  # a pedestrian on the car: new track
+    assert len(tracker) == 2
+    tracker.predict(0.4)
+    tracker.update(dets([[0.0, 0.0]], cls=0), 0.4, RSU)  # unknown class updates the nearest track
+    assert len(tracker) == 2
+    unknown = Tracker(TrackerConfig(confirm_hits=2))
+    unknown.step(dets([0, 0], cls=0), 0.0)
+    out = unknown.step(dets([0, 0], cls=3), 0.1)
+    assert len(out) == 1 and out.cls[0] == 3  # an UNKNOWN track adopts the class it is matched with
+
+
+def test_sources_bitmask_forgets_sources_older_than_max_coast():
+    tracker = confirmed_tracker(max_coast_s=0.3)
+    for k in range(3, 10):
+        t = 0.1 * k
+        tracker.predict(t)
+        tracker.update(dets([0.0, 0.0]), t, RSU)
+        tracker.prune(t)
+        expected = LIDAR | RSU if t - 0.2 <= 0.3 + 1e-9 else RSU
+        assert tracker.tracks(t).sources.tolist() == [expected], t
+
+
+def test_tracks_predicts_a_copy_and_time_never_goes_back():
+    tracker = confirmed_tracker()
+    tracker._table.x[0, 2:] = [10.0, 0.0]
+    before = tracker.snapshot()
+    ahead = tracker.tracks(0.7)
+    assert ahead.xy[0, 0] == pytest.approx(tracker._table.x[0, 0] + 5.0)
+    np.testing.assert_array_equal(tracker._table.x, before.table.x)
+    with pytest.raises(ValueError, match="OosmTracker"):
+        tracker.predict(0.1)
+    with pytest.raises(ValueError, match="source"):
+        tracker.update(dets([0, 0]), 0.3, 256)
+
+
+def test_snapshot_restore_is_a_deep_copy():
+    tracker = confirmed_tracker()
+    snap = tracker.snapshot()
+    expected = tracker.tracks(0.2)
+    for _ in range(2):
+        tracker.step(dets([[1.0, 1.0], [9.0, 9.0]]), 0.5)
+        tracker.restore(snap)
+        got = tracker.tracks(0.2)
+        np.testing.assert_array_equal(got.xy, expected.xy)
+        np.testing.assert_array_equal(got.cov_xy, expected.cov_xy)
+        assert got.ids.tolist() == expected.ids.tolist() and tracker._next_id == 2
+
+
+def turning_run(motion, seed=7):
+    """A car on a 20 m circle at 10 m/s (0.5 rad/s), 10 Hz noisy positions; errors after 3 s."""
+    rng = np.random.default_rng(seed)
+    tracker = Tracker(TrackerConfig(motion=motion, accel_std_mps2=1.0, yaw_accel_std_radps2=0.3))
+    now_err, ahead_err = [], []
+    for k in range(100):
+        t = 0.1 * k
+        ang = 0.5 * t
+        truth = np.array([20 * np.sin(ang), 20 - 20 * np.cos(ang)])
+        d = dets(truth + rng.normal(0, 0.3, 2), std=0.3).with_(yaw=np.array([ang]))
+        out = tracker.step(d, t)
+        if t >= 3.0:
+            ahead = 0.5 * (t + 0.5)
+            now_err.append(np.linalg.norm(out.xy[0] - truth))
+            ahead_err.append(np.linalg.norm(tracker.tracks(t + 0.5).xy[0] - [20 * np.sin(ahead), 20 - 20 * np.cos(ahead)]))
+    return np.sqrt(np.mean(np.square(now_err))), np.sqrt(np.mean(np.square(ahead_err)))
+
+
+def test_ctrv_tracks_a_turning_target_better_than_cv():
+    cv_now, cv_ahead = turning_run("cv")
+    ctrv_now, ctrv_ahead = turning_run("ctrv")
+    ca_now, _ = turning_run("ca")
+    assert ctrv_now < cv_now and ctrv_ahead < 0.5 * cv_ahead
+    assert ctrv_now < 0.3 and ca_now < 0.5
+
+
+def test_config_rejects_unknown_options():
+    for bad in ({"motion": "bicycle"}, {"gate": "iou"}, {"cost": "euclid"}):
+        with pytest.raises(ValueError):
+            TrackerConfig(**bad)
+
+
+# --- out-of-sequence measurements -------------------------------------------------------------------
+
+
+def two_car_batches(seed=11):
+    """LiDAR lists at 10 Hz (time, arrival) and RSU lists at 5 Hz arriving 0.12-0.35 s late."""
+    rng = np.random.default_rng(seed)
+    batches = []
+    for k in range(40):
+        t = round(0.1 * k, 10)
+        truth = np.array([[-30 + 12 * t, -2.0], [5.0, 10 - 8 * t]])
+        if k % 2 == 0:
+            batches.append((t, t + rng.uniform(0.12, 0.35), dets(truth + rng.normal(0, 0.6, (2, 2)), std=0.6), RSU))
+        lidar = truth[truth[:, 0] > -15] if t < 2.5 else truth  # the first car appears late for the LiDAR
+        batches.append((t, t + 0.05, dets(lidar + rng.normal(0, 0.2, lidar.shape), std=0.2), LIDAR))
+    return batches
+
+
+def in_order(batches, cfg):
+    tracker = Tracker(cfg)
+    for t, _, d, src in sorted(batches, key=lambda b: b[0]):
+        if tracker.time_s is not None and t > tracker.time_s:
+            tracker.prune(tracker.time_s)
+        tracker.predict(t)
+        tracker.update(d, t, src)
+    return tracker
+
+
+def test_oosm_out_of_order_equals_in_order_filtering():
+    cfg = TrackerConfig(motion="ca", gate="mahalanobis", gate_chi2=16.0)
+    batches = sorted(two_car_batches(), key=lambda b: b[1])  # arrival order
+    oosm = OosmTracker(Tracker(cfg), window_s=0.5)
+    for n, (t, arrival, d, src) in enumerate(batches, 1):
+        oosm.update(d, t, src)
+        if n % 7 == 0 or n == len(batches):
+            ref = in_order(batches[:n], cfg)
+            got, want = oosm.tracks(arrival), ref.tracks(arrival)
+            assert got.ids.tolist() == want.ids.tolist()
+            np.testing.assert_allclose(got.xy, want.xy, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(got.vxy, want.vxy, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(got.cov_xy, want.cov_xy, rtol=0, atol=1e-9)
+            assert got.sources.tolist() == want.sources.tolist()
+    assert oosm.refilter_runs > 0 and oosm.dropped_batches == 0
+    assert len(oosm.tracks(4.0)) == 2
+
+
+def test_late_measurement_corrects_the_track_and_too_late_is_dropped():
+    def run(late):
+        oosm = OosmTracker(Tracker(TrackerConfig(accel_std_mps2=3.0)), window_s=0.5)
+        for k in range(11):  # 10 m/s east until 1.0 s, then the LiDAR loses it
+            oosm.update(dets([10.0 * 0.1 * k, 0.0], std=0.2), 0.1 * k, LIDAR)
+        for t in (1.1, 1.2, 1.3):
+            oosm.update(ObjectArray.empty(), t, LIDAR)
+        if late is not None:  # it braked: the RSU saw it at 11 m at 1.2 s, the list arrives at 1.3 s
+            oosm.update(dets([11.0, 0.0], std=0.1), late, RSU)
+        return oosm
+
+    truth_x = 11.0
+    blind, corrected = run(None), run(1.2)
+    err_blind = abs(blind.tracks(1.2).xy[0, 0] - truth_x)
+    err_corrected = abs(corrected.tracks(1.2).xy[0, 0] - truth_x)
+    assert err_corrected < 0.3 * err_blind and corrected.refilter_runs == 1
+    assert corrected.tracks(1.3).vxy[0, 0] < blind.tracks(1.3).vxy[0, 0] - 1.0  # and it slowed the track
+    assert corrected.tracks(1.3).sources.tolist() == [LIDAR | RSU]
+    dropped = run(0.7)  # older than 1.3 - 0.5 s
+    assert dropped.dropped_batches == 1 and dropped.dropped_measurements == 1
+    np.testing.assert_array_equal(dropped.tracks(1.3).xy, blind.tracks(1.3).xy)

@@ -1,0 +1,305 @@
+"""Batched Kalman filters over N tracks, with explicit time steps.
+
+Every track i has a state x_i (n,) and covariance P_i (n, n); a batch is x (N, n),
+P (N, n, n). The measurement is always the BEV position z = H x + v, v ~ N(0, R),
+with H = [I_2 0] (the first two state entries of every model are x, y in metres).
+
+Motion models (each gives the transition f, its Jacobian F and the process noise Q
+over dt seconds; dt may be negative, which predicts backwards):
+
+- ``ConstantVelocity`` (CV): x = [x, y, vx, vy]. Process noise: white-noise
+  acceleration, piecewise constant over dt, per axis Q = sigma_a^2 g g^T, g = [dt^2/2, dt].
+- ``ConstantAcceleration`` (CA): x = [x, y, vx, vy, ax, ay]. Process noise: white-noise
+  jerk, per axis Q = sigma_j^2 g g^T, g = [dt^3/6, dt^2/2, dt].
+- ``Ctrv`` (constant turn rate and velocity, an EKF): x = [x, y, v, psi, omega]
+  (speed m/s along heading psi rad, turn rate omega rad/s). Process noise on v-dot
+  (sigma_a) and omega-dot (sigma_alpha), piecewise constant over dt:
+  Q = G diag(sigma_a^2, sigma_alpha^2) G^T with
+  G = [[dt^2/2 cos psi, 0], [dt^2/2 sin psi, 0], [dt, 0], [0, dt^2/2], [0, dt]].
+
+Filter equations (all batched):
+  predict  x' = f(x), P' = F P F^T + Q                  (F = df/dx at the prior x)
+  update   y = z - H x, S = H P H^T + R, K = P H^T S^-1, x+ = x + K y,
+           P+ = (I - K H) P (I - K H)^T + K R K^T      (Joseph form, as filterpy)
+  gating   d2 = y^T S^-1 y, chi-square with 2 degrees of freedom.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from .frames import wrap_angle
+
+POSITION_DIM = 2
+CHI2_2DOF_99 = 9.21  # chi-square 99 % quantile, 2 degrees of freedom
+
+
+@dataclass(frozen=True)
+class StatePrior:
+    """Prior standard deviations of what a single position measurement leaves unknown."""
+
+    speed_std_mps: float = 10.0
+    accel_std_mps2: float = 3.0
+    yaw_std_rad: float = 0.5
+    yaw_rate_std_radps: float = 0.5
+
+
+@dataclass(frozen=True)
+class Measured:
+    """Detections as filter inputs: xy (K, 2) m, cov_xy (K, 2, 2) m^2, vxy (K, 2) m/s,
+    axy (K, 2) m/s^2, yaw (K,) rad, yaw_rate (K,) rad/s."""
+
+    xy: np.ndarray
+    cov_xy: np.ndarray
+    vxy: np.ndarray
+    axy: np.ndarray
+    yaw: np.ndarray
+    yaw_rate: np.ndarray
+
+
+class MotionModel(Protocol):
+    """What the batched filter needs from a motion model."""
+
+    dim_x: int
+
+    def transition(self, x: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """x' = f(x) (N, n) and F = df/dx, (n, n) shared or (N, n, n) per track."""
+
+    def process_noise(self, x: np.ndarray, dt_s: float) -> np.ndarray:
+        """Q, (n, n) shared or (N, n, n) per track, evaluated at the prior x (N, n)."""
+
+    def initial(self, m: Measured, prior: StatePrior) -> tuple[np.ndarray, np.ndarray]:
+        """x (K, n) and P (K, n, n) of new tracks from K detections."""
+
+    def velocity(self, x: np.ndarray) -> np.ndarray:
+        """Velocity (N, 2) m/s in the map frame."""
+
+    def acceleration(self, x: np.ndarray) -> np.ndarray:
+        """Acceleration (N, 2) m/s^2 in the map frame."""
+
+    def yaw_rate(self, x: np.ndarray) -> np.ndarray:
+        """Turn rate (N,) rad/s."""
+
+
+def _per_axis(block: np.ndarray) -> np.ndarray:
+    """kron(block, I_2): state ordered [x, y, d/dt x, d/dt y, ...], the same 1-D block on both axes."""
+    k = len(block)
+    out = np.zeros((POSITION_DIM * k, POSITION_DIM * k))
+    out[0::2, 0::2] = block
+    out[1::2, 1::2] = block
+    return out
+
+
+def _diag_prior(m: Measured, variances: list[float]) -> np.ndarray:
+    """P (K, n, n): the measured position covariance, then a diagonal of prior variances."""
+    k, n = len(m.xy), POSITION_DIM + len(variances)
+    p = np.zeros((k, n, n))
+    p[:, :2, :2] = m.cov_xy
+    idx = np.arange(POSITION_DIM, n)
+    p[:, idx, idx] = variances
+    return p
+
+
+@dataclass(frozen=True)
+class ConstantVelocity:
+    """CV model, x = [x, y, vx, vy]; sigma_a = ``accel_std_mps2`` (white-noise acceleration)."""
+
+    accel_std_mps2: float = 3.0
+    dim_x: int = 4
+
+    def transition(self, x: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        f = _per_axis(np.array([[1.0, dt_s], [0.0, 1.0]]))  # p' = p + v dt, v' = v
+        return x @ f.T, f
+
+    def process_noise(self, x: np.ndarray, dt_s: float) -> np.ndarray:
+        g = np.array([dt_s**2 / 2, dt_s])  # effect of a constant acceleration over dt
+        return self.accel_std_mps2**2 * _per_axis(np.outer(g, g))
+
+    def initial(self, m: Measured, prior: StatePrior) -> tuple[np.ndarray, np.ndarray]:
+        return np.column_stack([m.xy, m.vxy]), _diag_prior(m, [prior.speed_std_mps**2] * 2)
+
+    def velocity(self, x: np.ndarray) -> np.ndarray:
+        return x[:, 2:4]
+
+    def acceleration(self, x: np.ndarray) -> np.ndarray:
+        return np.zeros((len(x), 2))
+
+    def yaw_rate(self, x: np.ndarray) -> np.ndarray:
+        return np.zeros(len(x))
+
+
+@dataclass(frozen=True)
+class ConstantAcceleration:
+    """CA model, x = [x, y, vx, vy, ax, ay]; sigma_j = ``jerk_std_mps3`` (white-noise jerk)."""
+
+    jerk_std_mps3: float = 5.0
+    dim_x: int = 6
+
+    def transition(self, x: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        # p' = p + v dt + a dt^2 / 2, v' = v + a dt, a' = a
+        f = _per_axis(np.array([[1.0, dt_s, dt_s**2 / 2], [0.0, 1.0, dt_s], [0.0, 0.0, 1.0]]))
+        return x @ f.T, f
+
+    def process_noise(self, x: np.ndarray, dt_s: float) -> np.ndarray:
+        g = np.array([dt_s**3 / 6, dt_s**2 / 2, dt_s])  # effect of a constant jerk over dt
+        return self.jerk_std_mps3**2 * _per_axis(np.outer(g, g))
+
+    def initial(self, m: Measured, prior: StatePrior) -> tuple[np.ndarray, np.ndarray]:
+        var = [prior.speed_std_mps**2] * 2 + [prior.accel_std_mps2**2] * 2
+        return np.column_stack([m.xy, m.vxy, m.axy]), _diag_prior(m, var)
+
+    def velocity(self, x: np.ndarray) -> np.ndarray:
+        return x[:, 2:4]
+
+    def acceleration(self, x: np.ndarray) -> np.ndarray:
+        return x[:, 4:6]
+
+    def yaw_rate(self, x: np.ndarray) -> np.ndarray:
+        return np.zeros(len(x))
+
+
+def sinc_derivative(u: np.ndarray) -> np.ndarray:
+    """d/du (sin u / u); Taylor series -u/3 + u^3/30 near 0, where the closed form cancels."""
+    u = np.asarray(u, dtype=float)
+    small = np.abs(u) < 1e-3
+    safe = np.where(small, 1.0, u)
+    exact = (safe * np.cos(safe) - np.sin(safe)) / safe**2
+    return np.where(small, -u / 3 + u**3 / 30, exact)
+
+
+@dataclass(frozen=True)
+class Ctrv:
+    """CTRV model (EKF), x = [x, y, v, psi, omega].
+
+    Chord form of the turn, exact for any omega and smooth through omega = 0: with
+    u = omega dt / 2 and s(u) = sin(u) / u,
+      x' = x + v dt s(u) cos(psi + u),  y' = y + v dt s(u) sin(psi + u),
+      v' = v, psi' = psi + omega dt (wrapped), omega' = omega,
+    which equals the textbook x' = x + v/omega (sin(psi + omega dt) - sin psi) for omega != 0
+    and the straight line x' = x + v dt cos psi for omega = 0.
+    """
+
+    accel_std_mps2: float = 3.0  # sigma_a, white noise on v-dot
+    yaw_accel_std_radps2: float = 1.0  # sigma_alpha, white noise on omega-dot
+    dim_x: int = 5
+
+    def transition(self, x: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        v, psi, omega = x[:, 2], x[:, 3], x[:, 4]
+        u = 0.5 * omega * dt_s
+        s, ds = np.sinc(u / np.pi), sinc_derivative(u)  # np.sinc(t) = sin(pi t) / (pi t)
+        chord = v * dt_s * s
+        c, sn = np.cos(psi + u), np.sin(psi + u)
+        x_new = x.copy()
+        x_new[:, 0] += chord * c
+        x_new[:, 1] += chord * sn
+        x_new[:, 3] = wrap_angle(psi + omega * dt_s)
+        f = np.broadcast_to(np.eye(5), (len(x), 5, 5)).copy()
+        f[:, 0, 2], f[:, 1, 2] = dt_s * s * c, dt_s * s * sn  # d/dv
+        f[:, 0, 3], f[:, 1, 3] = -chord * sn, chord * c  # d/dpsi
+        f[:, 0, 4] = v * dt_s**2 / 2 * (ds * c - s * sn)  # d/domega, du/domega = dt / 2
+        f[:, 1, 4] = v * dt_s**2 / 2 * (ds * sn + s * c)
+        f[:, 3, 4] = dt_s
+        return x_new, f
+
+    def process_noise(self, x: np.ndarray, dt_s: float) -> np.ndarray:
+        g = np.zeros((len(x), 5, 2))
+        g[:, 0, 0] = dt_s**2 / 2 * np.cos(x[:, 3])
+        g[:, 1, 0] = dt_s**2 / 2 * np.sin(x[:, 3])
+        g[:, 2, 0], g[:, 3, 1], g[:, 4, 1] = dt_s, dt_s**2 / 2, dt_s
+        g[:, :, 0] *= self.accel_std_mps2
+        g[:, :, 1] *= self.yaw_accel_std_radps2
+        return g @ g.transpose(0, 2, 1)  # Q = G diag(sigma^2) G^T
+
+    def initial(self, m: Measured, prior: StatePrior) -> tuple[np.ndarray, np.ndarray]:
+        speed = np.hypot(m.vxy[:, 0], m.vxy[:, 1])
+        # heading from the velocity when it says something, else from the box
+        psi = np.where(speed > 0.5, np.arctan2(m.vxy[:, 1], m.vxy[:, 0]), m.yaw)
+        x = np.column_stack([m.xy, speed, wrap_angle(psi), m.yaw_rate])
+        var = [prior.speed_std_mps**2, prior.yaw_std_rad**2, prior.yaw_rate_std_radps**2]
+        return x, _diag_prior(m, var)
+
+    def velocity(self, x: np.ndarray) -> np.ndarray:
+        return x[:, 2:3] * np.column_stack([np.cos(x[:, 3]), np.sin(x[:, 3])])
+
+    def acceleration(self, x: np.ndarray) -> np.ndarray:
+        # centripetal: a = v omega, perpendicular to the heading
+        return (x[:, 2] * x[:, 4])[:, None] * np.column_stack([-np.sin(x[:, 3]), np.cos(x[:, 3])])
+
+    def yaw_rate(self, x: np.ndarray) -> np.ndarray:
+        return x[:, 4].copy()
+
+
+def predict(x: np.ndarray, p: np.ndarray, model: MotionModel, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Prior x (N, n), P (N, n, n) -> predicted x, P after dt_s seconds (new arrays)."""
+    q = model.process_noise(x, dt_s)  # Q at the prior state
+    x_new, f = model.transition(x, dt_s)
+    # P' = F P F^T + Q
+    return x_new, f @ p @ np.swapaxes(f, -1, -2) + q
+
+
+def inv2(s: np.ndarray) -> np.ndarray:
+    """Inverse of 2 x 2 matrices (..., 2, 2) in closed form: [[d, -b], [-c, a]] / (a d - b c)."""
+    a, b, c, d = s[..., 0, 0], s[..., 0, 1], s[..., 1, 0], s[..., 1, 1]
+    out = np.empty_like(s)
+    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = d, -b, -c, a
+    out /= (a * d - b * c)[..., None, None]
+    return out
+
+
+def innovation_cov(p: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """S (K, 2, 2) = H P H^T + R of K tracks P (K, n, n) paired with K measurements R (K, 2, 2)."""
+    return p[:, :2, :2] + r
+
+
+def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Paired update of K tracks with K position measurements (Joseph form).
+
+    x (K, n), P (K, n, n), z (K, 2) m, R (K, 2, 2) m^2 -> posterior x (K, n), P (K, n, n)
+    and the innovation covariance S (K, 2, 2). Inputs are not modified.
+    """
+    s = innovation_cov(p, r)  # S = H P H^T + R
+    k = p[:, :, :2] @ inv2(s)  # K = P H^T S^-1, (K, n, 2)
+    y = z - x[:, :2]  # y = z - H x
+    x_post = x + (k @ y[:, :, None])[:, :, 0]  # x+ = x + K y
+    i_kh = np.eye(x.shape[1])[None].repeat(len(x), axis=0)
+    i_kh[:, :, :2] -= k  # I - K H, H = [I_2 0]
+    # P+ = (I - K H) P (I - K H)^T + K R K^T, symmetric and positive for any gain
+    p_post = i_kh @ p @ i_kh.transpose(0, 2, 1) + k @ r @ k.transpose(0, 2, 1)
+    return x_post, p_post, s
+
+
+def _quadratic_form(y0, y1, a, b, c, d):
+    """y^T S^-1 y for S = [[a, b], [c, d]] (any broadcastable shapes): (d y0^2 - (b + c) y0 y1 + a y1^2) / det S."""
+    return (d * y0 * y0 - (b + c) * y0 * y1 + a * y1 * y1) / (a * d - b * c)
+
+
+def mahalanobis_sq(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distance d2 (N, M) of every track to every measurement.
+
+    x (N, n), P (N, n, n), z (M, 2), R (M, 2, 2); d2_ij = y^T S^-1 y with
+    y = z_j - H x_i and S_ij = H P_i H^T + R_j (closed-form 2 x 2 inverse).
+    """
+    pp, rr = p[:, None, :2, :2], r[None, :, :, :]
+    s = pp + rr  # S_ij = H P_i H^T + R_j, (N, M, 2, 2)
+    y0, y1 = z[None, :, 0] - x[:, None, 0], z[None, :, 1] - x[:, None, 1]
+    return _quadratic_form(y0, y1, s[..., 0, 0], s[..., 0, 1], s[..., 1, 0], s[..., 1, 1])
+
+
+def mahalanobis_sq_pairs(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """d2 (K,) = y^T S^-1 y of K tracks x (K, n), P (K, n, n) paired with K measurements z (K, 2), R (K, 2, 2)."""
+    s = innovation_cov(p, r)  # S = H P H^T + R
+    return _quadratic_form(z[:, 0] - x[:, 0], z[:, 1] - x[:, 1], s[:, 0, 0], s[:, 0, 1], s[:, 1, 0], s[:, 1, 1])
+
+
+def make_model(name: str, accel_std_mps2: float, jerk_std_mps3: float, yaw_accel_std_radps2: float) -> MotionModel:
+    """Motion model by name: ``cv``, ``ca`` or ``ctrv``."""
+    if name == "cv":
+        return ConstantVelocity(accel_std_mps2)
+    if name == "ca":
+        return ConstantAcceleration(jerk_std_mps3)
+    if name == "ctrv":
+        return Ctrv(accel_std_mps2, yaw_accel_std_radps2)
+    raise ValueError(f"motion must be one of 'cv', 'ca', 'ctrv', got {name!r}")

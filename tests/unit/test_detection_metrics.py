@@ -1,0 +1,165 @@
+"""Centre-distance mAP (nuScenes convention), MOT metrics and NEES on hand-computed cases."""
+
+import math
+
+import numpy as np
+import pytest
+
+from evaluation.detection_metrics import (
+    _greedy_match, average_precision, bin_label, center_distance_ap, mot_metrics, nees,
+)
+from fusion.objects import ObjectArray
+
+
+def objs(xy, confidence=None) -> ObjectArray:
+    """Cars at centres xy (N, 2) m in base_link with the given confidences."""
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    n = len(xy)
+    return ObjectArray(
+        ids=np.arange(n, dtype=np.int64), cls=np.ones(n, dtype=np.int64), xy=xy, z=np.zeros(n),
+        lwh=np.tile([4.6, 1.85, 1.5], (n, 1)), yaw=np.zeros(n), vxy=np.zeros((n, 2)),
+        confidence=None if confidence is None else np.asarray(confidence, dtype=float),
+    )
+
+
+THRESHOLDS = ("AP@0.5", "AP@1", "AP@2", "AP@4")
+
+
+# --- centre-distance AP -------------------------------------------------------------------
+
+def test_perfect_predictions_score_one_in_every_bin():
+    truth = objs([[10.0, 0.0], [-25.0, 5.0], [50.0, 3.0], [0.0, 70.0]])
+    frames = [(truth, objs(truth.xy, [0.9, 0.8, 0.7, 0.6])) for _ in range(3)]
+    result = center_distance_ap(frames)
+    assert set(result) == {"0-40m", "40-80m", "overall"}
+    for label in result:
+        assert result[label]["mAP"] == pytest.approx(1.0)
+        assert all(result[label][k] == pytest.approx(1.0) for k in THRESHOLDS)
+    assert result["overall"]["num_truth"] == 12 and result["0-40m"]["num_truth"] == 6
+
+
+def test_predictions_all_far_score_zero():
+    truth = objs([[10.0, 0.0], [20.0, 0.0]])
+    frames = [(truth, objs(truth.xy + [0.0, 5.0], [0.9, 0.8]))]
+    assert center_distance_ap(frames)["overall"]["mAP"] == 0.0
+
+
+def test_half_of_the_truth_found_with_full_precision():
+    # recall 0.5 at precision 1: p(r) = 1 for r <= 0.5 and 0 beyond; AP = mean over
+    # r = 0.11..1.00 of max(p - 0.1, 0) / 0.9 = 40 * 0.9 / 90 / 0.9 = 4/9
+    truth = objs([[10.0, 0.0], [20.0, 0.0]])
+    result = center_distance_ap([(truth, objs([[10.0, 0.0]], [0.9]))])
+    assert result["overall"]["mAP"] == pytest.approx(4.0 / 9.0)
+
+
+def test_offset_between_thresholds_counts_only_at_the_wider_ones():
+    truth = objs([[10.0, 0.0]])
+    result = center_distance_ap([(truth, objs([[10.75, 0.0]], [0.9]))])["overall"]
+    assert result["AP@0.5"] == 0.0
+    assert result["AP@1"] == result["AP@2"] == result["AP@4"] == pytest.approx(1.0)
+    assert result["mAP"] == pytest.approx(0.75)
+
+
+def test_match_is_strictly_inside_the_threshold():
+    truth = objs([[10.0, 0.0]])
+    assert center_distance_ap([(truth, objs([[11.0, 0.0]], [0.9]))])["overall"]["AP@1"] == 0.0
+
+
+def test_confident_false_positive_ranked_first():
+    # ranked: FP, TP, TP over 2 truths -> (r, p) = (0, 0), (0.5, 0.5), (1, 2/3), interpolated
+    # linearly. r = 0.11..0.50: p - 0.1 = (i - 10) / 100, sum 8.2; r = 0.51..1.00:
+    # p - 0.1 = 0.4 + j / 300, j = 1..50, sum 24.25; AP = (8.2 + 24.25) / 90 / 0.9
+    truth = objs([[10.0, 0.0], [20.0, 0.0]])
+    preds = objs([[50.0, 50.0], [10.0, 0.0], [20.0, 0.0]], [0.9, 0.8, 0.7])
+    assert center_distance_ap([(truth, preds)])["overall"]["mAP"] == pytest.approx(32.45 / 81.0)
+
+
+def test_each_truth_is_matched_once_in_confidence_order():
+    dist = np.array([[0.0], [0.0]])
+    assert _greedy_match(dist, np.array([1, 0]), 1.0).tolist() == [False, True]
+    # the most confident prediction takes its nearest truth, the next one the remaining one
+    dist = np.array([[0.3, 0.5], [0.2, 0.9]])
+    assert _greedy_match(dist, np.array([0, 1]), 1.0).tolist() == [True, True]
+    assert _greedy_match(dist, np.array([0, 1]), 0.6).tolist() == [True, False]
+
+
+def test_ranking_spans_frames():
+    # the same objects split over two frames give the same AP as in one frame
+    truth = objs([[10.0, 0.0], [20.0, 0.0]])
+    preds = objs([[50.0, 50.0], [10.0, 0.0], [20.0, 0.0]], [0.9, 0.8, 0.7])
+    one = center_distance_ap([(truth, preds)])["overall"]["mAP"]
+    split = center_distance_ap([(truth.take([0]), preds.take([0, 1])), (truth.take([1]), preds.take([2]))])
+    assert split["overall"]["mAP"] == pytest.approx(one)
+
+
+def test_range_bins_filter_truth_and_predictions_by_their_own_distance():
+    truth = objs([[30.0, 0.0], [0.0, -60.0]])
+    result = center_distance_ap([(truth, objs([[0.0, -60.0]], [0.9]))])
+    assert result["0-40m"]["mAP"] == 0.0 and result["0-40m"]["num_predictions"] == 0
+    assert result["40-80m"]["mAP"] == pytest.approx(1.0)
+    assert result["overall"]["mAP"] == pytest.approx(4.0 / 9.0)
+    empty = center_distance_ap([(truth, objs([[0.0, -60.0]], [0.9]))], range_bins_m=[(100.0, 200.0)])
+    assert empty == {"100-200m": {"num_truth": 0, "num_predictions": 0, "AP@0.5": None, "AP@1": None,
+                                  "AP@2": None, "AP@4": None, "mAP": None}}
+
+
+def test_bin_labels_and_degenerate_inputs():
+    assert bin_label(0.0, math.inf) == "overall" and bin_label(40.0, 80.0) == "40-80m"
+    assert center_distance_ap([])["overall"]["mAP"] is None
+    assert average_precision(np.zeros(0), np.zeros(0, dtype=bool), 3) == 0.0
+    no_preds = center_distance_ap([(objs([[5.0, 0.0]]), ObjectArray.empty())])
+    assert no_preds["overall"]["mAP"] == 0.0
+
+
+# --- MOT metrics --------------------------------------------------------------------------
+
+def _mot_frames():
+    a, b = [0.0, 0.0], [10.0, 0.0]
+    return [
+        ([1, 2], [a, b], [10, 20], [[0.1, 0.0], [10.0, 0.1]]),  # both tracked
+        ([1, 2], [a, b], [10, 30], [[0.1, 0.0], [10.0, 0.1]]),  # truth 2 switches 20 -> 30
+        ([1, 2], [a, b], [10], [[0.1, 0.0]]),  # truth 2 missed
+        ([1], [a], [10, 40], [[0.1, 0.0], [50.0, 50.0]]),  # 40 is a false positive
+    ]
+
+
+def test_mot_metrics_hand_computed():
+    r = mot_metrics(_mot_frames(), max_distance_m=2.0)
+    # 7 truth objects, 1 miss + 1 FP + 1 switch: MOTA = 1 - 3/7
+    assert r["mota"] == pytest.approx(4.0 / 7.0)
+    # identity matching 1<->10 (4 frames), 2<->20 or 30 (1 frame): IDTP 5 over 7 + 7 detections
+    assert r["idf1"] == pytest.approx(10.0 / 14.0)
+    assert (r["id_switches"], r["num_frames"], r["misses"], r["false_positives"], r["num_truth"]) == (1, 4, 1, 1, 7)
+    assert r["motp_m"] == pytest.approx(0.1)
+
+
+def test_mot_gate_and_empty_frames():
+    far = [([1], [[0.0, 0.0]], [5], [[2.5, 0.0]])]
+    r = mot_metrics(far + [([], np.zeros((0, 2)), [], np.zeros((0, 2)))], max_distance_m=2.0)
+    assert (r["misses"], r["false_positives"], r["num_frames"]) == (1, 1, 2)
+    assert r["mota"] == pytest.approx(-1.0) and r["motp_m"] is None
+    assert mot_metrics(far, max_distance_m=3.0)["mota"] == pytest.approx(1.0)
+
+
+# --- NEES ---------------------------------------------------------------------------------
+
+def test_nees_exact_values():
+    r = nees(np.array([[1.0, 0.0], [2.0, 0.0]]), np.array([np.eye(2), np.diag([4.0, 1.0])]))
+    assert r["mean"] == pytest.approx(1.0) and r["fraction_inside"] == 1.0 and r["samples"] == 2
+    lo, hi = r["interval"]
+    assert lo == pytest.approx(0.0506356, rel=1e-5) and hi == pytest.approx(7.377759, rel=1e-5)
+    assert nees(np.zeros((0, 2)), np.zeros((0, 2, 2)))["mean"] is None
+
+
+def test_honest_covariance_passes_overconfident_fails():
+    rng = np.random.default_rng(3)
+    k = 4000
+    a = rng.normal(size=(k, 2, 2))
+    cov = a @ a.transpose(0, 2, 1) + 0.1 * np.eye(2)  # random SPD covariances
+    errors = np.einsum("kij,kj->ki", np.linalg.cholesky(cov), rng.normal(size=(k, 2)))  # e ~ N(0, P)
+    honest = nees(errors, cov)
+    assert honest["mean"] == pytest.approx(2.0, abs=0.15) and honest["consistent"]
+    assert honest["fraction_inside"] == pytest.approx(0.95, abs=0.02)
+    over = nees(errors, cov / 4.0)  # filter claims half the true standard deviation
+    assert over["mean"] == pytest.approx(8.0, rel=0.1) and not over["consistent"]
+    assert over["fraction_inside"] < 0.8
