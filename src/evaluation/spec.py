@@ -21,7 +21,7 @@ EVAL_EPOCH_NS = 1_767_225_600 * 10**9
 class RunSpec:
     scenario: str = "red-light-runner"
     profile: str = "lte-v2x"
-    fusion: str = "kf"
+    fusion: str = "iou-merge"
     compensation: str = "predict"
     seed: int = 0
     duration_s: float | None = None  # default: the scenario's

@@ -254,18 +254,21 @@ def innovation_cov(p: np.ndarray, r: np.ndarray) -> np.ndarray:
     return p[:, :2, :2] + r
 
 
-def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Paired update of K tracks with K position measurements (Joseph form).
+def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, first: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Paired update of K tracks with K measurements of two consecutive state entries (Joseph form).
 
-    x (K, n), P (K, n, n), z (K, 2) m, R (K, 2, 2) m^2 -> posterior x (K, n), P (K, n, n)
-    and the innovation covariance S (K, 2, 2). Inputs are not modified.
+    ``first`` = 0 measures the position (H = [I_2 0]); ``first`` = 2 measures the velocity
+    of the CV and CA models (H = [0 I_2 0]). x (K, n), P (K, n, n), z (K, 2), R (K, 2, 2)
+    -> posterior x (K, n), P (K, n, n) and the innovation covariance S (K, 2, 2).
+    Inputs are not modified.
     """
-    s = innovation_cov(p, r)  # S = H P H^T + R
-    k = p[:, :, :2] @ inv2(s)  # K = P H^T S^-1, (K, n, 2)
-    y = z - x[:, :2]  # y = z - H x
+    sel = slice(first, first + 2)
+    s = p[:, sel, sel] + r  # S = H P H^T + R
+    k = p[:, :, sel] @ inv2(s)  # K = P H^T S^-1, (K, n, 2)
+    y = z - x[:, sel]  # y = z - H x
     x_post = x + (k @ y[:, :, None])[:, :, 0]  # x+ = x + K y
     i_kh = np.eye(x.shape[1])[None].repeat(len(x), axis=0)
-    i_kh[:, :, :2] -= k  # I - K H, H = [I_2 0]
+    i_kh[:, :, sel] -= k  # I - K H
     # P+ = (I - K H) P (I - K H)^T + K R K^T, symmetric and positive for any gain
     p_post = i_kh @ p @ i_kh.transpose(0, 2, 1) + k @ r @ k.transpose(0, 2, 1)
     return x_post, p_post, s

@@ -71,6 +71,8 @@ class TrackerConfig:
     init_yaw_std_rad: float = 0.5  # CTRV prior std of the heading
     init_yaw_rate_std_radps: float = 0.5  # CTRV prior std of the turn rate
     tentative_max_coast_s: float = 0.3  # a tentative track survives misses this long (>= slowest source period)
+    velocity_std_mps: float | None = None  # std of measured velocities; None: detections carry none
+    shape_hold_s: float = 0.3  # a box shape from a precise source is kept this long against coarser ones
 
     def __post_init__(self) -> None:
         for name, allowed in (("gate", ("distance", "mahalanobis")), ("cost", ("distance", "mahalanobis", "iou"))):
@@ -90,7 +92,8 @@ class TrackerConfig:
 class TrackTable:
     """Columns of N tracks: filter state x (N, n), P (N, n, n); ids, cls (N,); z (N,) m,
     lwh (N, 3) m, yaw (N,) rad, confidence (N,) of the last detection; hits (N,);
-    born_s, updated_s (N,) s; seen_s (N, SOURCE_BITS) s, last update per source bit (-inf never)."""
+    born_s, updated_s (N,) s; seen_s (N, SOURCE_BITS) s, last update per source bit (-inf never);
+    shape_var (N,) m^2, shape_s (N,) s: position variance and time of the detection the box shape came from."""
 
     x: np.ndarray
     p: np.ndarray
@@ -104,12 +107,14 @@ class TrackTable:
     born_s: np.ndarray
     updated_s: np.ndarray
     seen_s: np.ndarray
+    shape_var: np.ndarray
+    shape_s: np.ndarray
 
     @classmethod
     def empty(cls, dim_x: int) -> TrackTable:
         z1 = np.zeros(0)
         return cls(np.zeros((0, dim_x)), np.zeros((0, dim_x, dim_x)), np.zeros(0, np.int64), np.zeros(0, np.int64),
-                   z1, np.zeros((0, 3)), z1, z1, np.zeros(0, np.int64), z1, z1, np.zeros((0, SOURCE_BITS)))
+                   z1, np.zeros((0, 3)), z1, z1, np.zeros(0, np.int64), z1, z1, np.zeros((0, SOURCE_BITS)), z1, z1)
 
     def __len__(self) -> int:
         return len(self.x)
@@ -366,14 +371,31 @@ class Tracker:
         ti, di = matches[:, 0], matches[:, 1]
         tab = self._table
         tab.x[ti], tab.p[ti], _ = kalman.update(tab.x[ti], tab.p[ti], dets.xy[di], dets.cov_xy[di])
+        v_std = self.config.velocity_std_mps
+        if v_std is not None and self.config.motion in ("cv", "ca"):
+            # sources that estimate velocity (tracking RSUs, CenterPoint) update it too: H = [0 I_2 0]
+            r_v = np.broadcast_to(np.eye(2) * v_std**2, (len(ti), 2, 2))
+            tab.x[ti], tab.p[ti], _ = kalman.update(tab.x[ti], tab.p[ti], dets.vxy[di], r_v, first=2)
         tab.cls[ti] = np.where(tab.cls[ti] == 0, dets.cls[di], tab.cls[ti])  # UNKNOWN adopts a class
-        tab.z[ti], tab.lwh[ti], tab.yaw[ti] = dets.z[di], dets.lwh[di], wrap_angle(dets.yaw[di])
+        self._take_shape(ti, dets, di, t_s)
         tab.confidence[ti] = dets.confidence[di]
         tab.hits[ti] += 1
         tab.updated_s[ti] = t_s
         seen = tab.seen_s[ti]
         seen[bits[di]] = t_s
         tab.seen_s[ti] = seen
+
+    def _take_shape(self, ti: np.ndarray, dets: ObjectArray, di: np.ndarray, t_s: float) -> None:
+        """Box size, height and heading come from the most precise recent detection: a
+        detection replaces the track's shape when its position variance is no larger, or
+        when the shape is older than ``shape_hold_s`` (a coarse RSU box never overwrites the
+        fresh LiDAR box of the same cycle)."""
+        tab = self._table
+        var = np.trace(dets.cov_xy[di], axis1=1, axis2=2)
+        take = (var <= tab.shape_var[ti] * 1.01) | (t_s - tab.shape_s[ti] > self.config.shape_hold_s)
+        t, d = ti[take], di[take]
+        tab.z[t], tab.lwh[t], tab.yaw[t] = dets.z[d], dets.lwh[d], wrap_angle(dets.yaw[d])
+        tab.shape_var[t], tab.shape_s[t] = var[take], t_s
 
     def _spawn(self, dets: ObjectArray, index: np.ndarray, bits: np.ndarray, t_s: float) -> None:
         """New tentative tracks from the detections dets[index]."""
@@ -388,5 +410,6 @@ class Tracker:
         born = np.full(n, t_s)
         new = TrackTable(x, p, ids, dets.cls[index].astype(np.int64), dets.z[index].astype(float),
                          dets.lwh[index].astype(float), wrap_angle(m.yaw), dets.confidence[index].astype(float),
-                         np.ones(n, np.int64), born, born.copy(), np.where(bits[index], t_s, -np.inf))
+                         np.ones(n, np.int64), born, born.copy(), np.where(bits[index], t_s, -np.inf),
+                         np.trace(dets.cov_xy[index], axis1=1, axis2=2), born.copy())
         self._table = self._table.append(new)

@@ -27,7 +27,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="seed of the LiDAR and localisation noise (default 0)")
     p.add_argument("--start-at-ns", type=int, help="scenario time zero in Unix ns (true clock); default: now")
     p.add_argument("--duration", dest="duration_s", type=float, help="seconds to run (default: scenario duration)")
-    p.add_argument("--fusion", choices=FUSION_METHODS, help="fusion method (default kf)")
+    p.add_argument("--fusion", choices=FUSION_METHODS, help="fusion method (default iou-merge)")
     p.add_argument("--compensation", choices=COMPENSATIONS,
                    help="RSU delay compensation (default predict); oosm needs --fusion kf")
     p.add_argument("--deadline-ms", type=float, help="end-to-end deadline per cycle from LiDAR capture (default 100)")

@@ -19,7 +19,7 @@ class ObuConfig(BaseModel):
     seed: int = Field(0, ge=0)
     start_at_ns: int | None = Field(None, description="scenario time zero (true clock); default: start-up time")
     duration_s: float | None = Field(None, gt=0)
-    fusion: str = "kf"
+    fusion: str = "iou-merge"
     compensation: str = "predict"
     iou_threshold: float = Field(0.1, gt=0, le=1)
     max_rsu_age_s: float = Field(1.0, gt=0, le=30)

@@ -93,7 +93,7 @@ class KalmanFusion:
     """Tracking fusion in ``map``: predict, update with own LiDAR, then with each fresh RSU frame."""
 
     def __init__(self, compensation: str, use_own: bool = True, use_rsu: bool = True,
-                 tracker: TrackerConfig = TrackerConfig()):
+                 tracker: TrackerConfig = TrackerConfig(accel_std_mps2=1.0)):
         self.compensation, self.use_own, self.use_rsu = compensation, use_own, use_rsu
         self.tracker = OosmTracker(Tracker(tracker)) if compensation == "oosm" else Tracker(tracker)
         self._ref_ns: int | None = None

@@ -29,7 +29,7 @@ MAX_RSUS = 64  # distinct RSU ids tracked; more are rejected (a flood of ids mus
 @dataclass(frozen=True)
 class ObuPipelineConfig:
     vehicle_id: str = "ego"
-    fusion: str = "kf"
+    fusion: str = "iou-merge"
     compensation: str = "predict"
     iou_threshold: float = 0.1  # seed 000 merger: an RSU object this overlapping an own one is a duplicate
     max_rsu_age_s: float = 1.0  # older RSU frames are not fused

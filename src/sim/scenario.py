@@ -189,6 +189,9 @@ class LocalizationConfig(_Frozen):
     x_std_m: NonNeg = 0.05
     y_std_m: NonNeg = 0.05
     yaw_std_rad: NonNeg = 0.005
+    # Localisation errors drift slowly (a first-order Gauss-Markov process), they are not
+    # white: 0 gives independent errors per sample.
+    correlation_time_s: NonNeg = 5.0
 
 
 class Scenario(_Frozen):

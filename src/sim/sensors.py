@@ -161,14 +161,32 @@ class RsuCamera:
 
 
 class Localization:
-    """Ego pose measurement: true pose + independent Gaussian noise on x, y, yaw."""
+    """Ego pose measurement: true pose + a slowly drifting Gaussian error on x, y, yaw.
+
+    The error is a first-order Gauss-Markov process with stationary std sigma and
+    correlation time tau: e_k = a e_{k-1} + sqrt(1 - a^2) sigma w_k, a = exp(-dt / tau).
+    """
 
     def __init__(self, cfg: LocalizationConfig, rng: np.random.Generator):
         self.cfg = cfg
         self.rng = rng
+        self._sigma = np.array([cfg.x_std_m, cfg.y_std_m, cfg.yaw_std_rad])
+        self._error: np.ndarray | None = None
+        self._t_s: float | None = None
+
+    def _next_error(self, t_s: float) -> np.ndarray:
+        w = self.rng.normal(0.0, 1.0, 3) * self._sigma
+        tau = self.cfg.correlation_time_s
+        if self._error is None or tau <= 0:
+            self._error = w
+        else:
+            a = float(np.exp(-abs(t_s - self._t_s) / tau))
+            self._error = a * self._error + np.sqrt(1.0 - a * a) * w
+        self._t_s = t_s
+        return self._error
 
     def measure(self, world: World, t_s: float) -> Pose2D:
         """Noisy ego pose in map at t_s (s); velocity passed through unchanged."""
-        c, true = self.cfg, world.ego_at(t_s)
-        dx, dy, dyaw = self.rng.normal(0.0, 1.0, 3) * [c.x_std_m, c.y_std_m, c.yaw_std_rad]
+        true = world.ego_at(t_s)
+        dx, dy, dyaw = self._next_error(t_s)
         return Pose2D(x=true.x + dx, y=true.y + dy, yaw=float(wrap_angle(true.yaw + dyaw)), vx=true.vx, vy=true.vy)

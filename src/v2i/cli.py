@@ -22,7 +22,7 @@ def _run_options(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--scenario", default="red-light-runner", help="bundled scenario name or YAML path (default %(default)s)")
     p.add_argument("--profile", default="lte-v2x", help="link profile: bundled name or YAML path (default %(default)s)")
-    p.add_argument("--fusion", default="kf", choices=FUSION_METHODS, help="fusion method (default %(default)s)")
+    p.add_argument("--fusion", default="iou-merge", choices=FUSION_METHODS, help="fusion method (default %(default)s)")
     p.add_argument("--compensation", default="predict", choices=COMPENSATIONS,
                    help="RSU delay compensation (default %(default)s); track-predict makes the RSU predict "
                         "and upsample, oosm (kf only) re-filters late RSU data at its own time")

@@ -312,12 +312,17 @@ def test_frame_times():
     np.testing.assert_allclose(t, [0.05, 0.25, 0.45, 0.65, 0.85])
 
 
-def test_localization_noise_is_small_and_unbiased():
+def test_localization_noise_is_small_unbiased_and_slowly_drifting():
     world = World(load_scenario(RLR))
     loc = Localization(world.scenario.localization, np.random.default_rng(2))
-    poses = np.array([[p.x, p.y, p.yaw] for p in (loc.measure(world, 1.0) for _ in range(2000))])
+    # samples a few correlation times apart are nearly independent: stationary mean and std
+    poses = np.array([[p.x, p.y, p.yaw] for p in (loc.measure(world, 1.0 + 20.0 * k) for k in range(2000))])
     np.testing.assert_allclose(poses.mean(axis=0), [5.25, -12.35, np.pi / 2], atol=0.01)
     np.testing.assert_allclose(poses.std(axis=0), [0.05, 0.05, 0.005], rtol=0.1)
+    # 10 Hz samples drift: consecutive errors are strongly correlated (a = exp(-0.1 / 5) = 0.98)
+    loc = Localization(world.scenario.localization, np.random.default_rng(3))
+    x = np.array([loc.measure(world, 0.1 * k).x for k in range(5000)]) - 5.25
+    assert np.corrcoef(x[:-1], x[1:])[0, 1] > 0.95
 
 
 def test_many_actors_are_fast_enough():
