@@ -11,7 +11,7 @@ from rsu_service.config import RsuConfig
 from sim.clock import SystemClock
 from sim.world import World
 
-from .metrics import deadline_miss_ratio, offset_error_ms, score_target
+from .metrics import deadline_miss_ratio, detection_scores, offset_error_ms, score_target
 
 # Offline runs start at a fixed epoch (2026-01-01T00:00:00Z) so that reports are reproducible.
 EVAL_EPOCH_NS = 1_767_225_600 * 10**9
@@ -71,6 +71,7 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
         "target": fused.as_dict(),
         "vehicle_only": own.as_dict(),
         "clock_offset_error_ms": offset_error_ms(record.offset_samples, truth_clock.offset_at),
+        **detection_scores(world, record.outputs, record.start_ns),
     }
 
 
@@ -83,7 +84,7 @@ def summary(report: dict) -> str:
         f"{report['scenario']} | profile {report['profile']} | fusion {report['fusion']} "
         f"({report['compensation']}) | seed {report['seed']} "
         f"| {report['duration_s']:.1f} s, {report['cycles']} cycles ({report['driver']})",
-        f"  red-light runner first seen at {_m(fd)} with V2I vs {_m(vd)} vehicle-only{gain}",
+        f"  target ({report['scenario']}) first seen at {_m(fd)} with V2I vs {_m(vd)} vehicle-only{gain}",
         f"  target: mean BEV IoU {_f(t['mean_bev_iou'])}, RMSE {_m(t['rmse_m'])} over {t['detected_cycles']} cycles",
         f"  output deadline misses {report['output_deadline_miss_ratio']:.1%}; RSU lists received {report['rsu_messages_received']}",
         f"  clock offset error p50 {_f(c['p50'])} ms, p95 {_f(c['p95'])} ms, max {_f(c['max'])} ms",
