@@ -103,9 +103,9 @@ def robustness_tables(hw: RunSpec) -> list[Table]:
     for fusion, comp in methods:
         spec = replace(hw, fusion=fusion, compensation=comp)
         for low, high in DELAY_BINS_MS:
-            delay.rows.append(Row(f"{fusion} | {low}-{high} ms", spec, fixed_delay_profile(low, high)))
+            delay.rows.append(Row(f"{fusion}, {low}-{high} ms", spec, fixed_delay_profile(low, high)))
         for p in DROPOUTS:
-            drop.rows.append(Row(f"{fusion} | dropout {p:.0%}", spec, dropout_profile(base_profile, p)))
+            drop.rows.append(Row(f"{fusion}, dropout {p:.0%}", spec, dropout_profile(base_profile, p)))
     return [delay, drop]
 
 
