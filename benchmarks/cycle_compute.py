@@ -152,7 +152,7 @@ class FilterpyTracker:
         col = lambda key, shape: np.array([m[key] for m in self.meta]).reshape(shape)
         return TrackTable(x, p, col("id", n), col("cls", n), np.zeros(n), col("lwh", (n, 3)), col("yaw", n),
                           np.ones(n), col("hits", n), np.zeros(n), col("updated_s", n),
-                          np.zeros((n, SOURCE_BITS)))
+                          np.zeros((n, SOURCE_BITS)), np.zeros(n), np.zeros(n))
 
 
 def run_filterpy(cycles: list[Cycle], config: TrackerConfig) -> tuple[np.ndarray, FilterpyTracker]:
