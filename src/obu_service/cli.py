@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
-from schemas.config import ConfigError, load_config
-from schemas.runtime import stop_on_signals
+from schemas.runtime import run_service
 
 from .config import ObuConfig
 from .pipeline import COMPENSATIONS, FUSION_METHODS
@@ -35,15 +33,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    fields = ("vehicle_id", "listen", "connect", "scenario", "seed", "start_at_ns", "duration_s", "fusion", "compensation",
-              "deadline_ms", "sync_rate_hz")
-    try:
-        config = load_config(ObuConfig, args.config, {f: getattr(args, f) for f in fields})
+    def make_node(config: ObuConfig):
         from .node import ObuNode
 
-        node = ObuNode(config)
-    except (ConfigError, ValueError, FileNotFoundError) as exc:
-        print(f"v2i obu: {exc}", file=sys.stderr)
-        return 2
-    node.run(stop_on_signals())
-    return 0
+        return ObuNode(config)
+
+    return run_service("obu", ObuConfig, args, make_node)

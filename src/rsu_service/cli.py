@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
-from schemas.config import ConfigError, load_config
-from schemas.runtime import stop_on_signals
+from schemas.runtime import run_service
 
 from .config import RsuConfig
 
@@ -35,15 +33,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    fields = ("rsu_id", "listen", "connect", "scenario", "seed", "start_at_ns", "duration_s",
-              "clock_offset_ms", "clock_drift_ppm", "clock_step_ms", "clock_step_at_s", "predict_ahead")
-    try:
-        config = load_config(RsuConfig, args.config, {f: getattr(args, f) for f in fields})
+    def make_node(config: RsuConfig):
         from .node import RsuNode
 
-        node = RsuNode(config)
-    except (ConfigError, ValueError, FileNotFoundError) as exc:
-        print(f"v2i rsu: {exc}", file=sys.stderr)
-        return 2
-    node.run(stop_on_signals())
-    return 0
+        return RsuNode(config)
+
+    return run_service("rsu", RsuConfig, args, make_node)

@@ -32,3 +32,21 @@ def announce(event: str, service: str, **fields) -> None:
 def log(service: str, message: str) -> None:
     """A human-readable line on stderr, prefixed with the service name."""
     print(f"[{service}] {message}", file=sys.stderr, flush=True)
+
+
+def run_service(name: str, model, args, make_node) -> int:
+    """``v2i <name>``: config from ``--config`` overridden by every CLI flag named like a
+    config field, a node from ``make_node(config)``, run until SIGINT/SIGTERM.
+
+    Returns 2 with the reason on stderr when the configuration cannot be used.
+    """
+    from .config import ConfigError, load_config
+
+    overrides = {f: getattr(args, f) for f in model.model_fields if hasattr(args, f)}
+    try:
+        node = make_node(load_config(model, args.config, overrides))
+    except (ConfigError, ValueError, FileNotFoundError) as exc:
+        print(f"v2i {name}: {exc}", file=sys.stderr)
+        return 2
+    node.run(stop_on_signals())
+    return 0
