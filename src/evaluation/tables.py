@@ -50,12 +50,16 @@ def _get(*path: str) -> Callable[[dict], float | None]:
 
 
 def fixed_delay_profile(low_ms: float, high_ms: float, loss: float = 0.0) -> LinkProfile:
-    """Downlink delay uniform in [low, high) ms and Bernoulli loss; a fast, lossless uplink."""
-    down = DirectionProfile.model_validate(
+    """Delay uniform in [low, high) ms and Bernoulli loss, the same both ways.
+
+    Symmetric on purpose: OTVIC's delay bins delay the RSU data with clocks already
+    related (GPS time); a one-way delay here would also bias the OBU's NTP-style offset
+    estimate by half the asymmetry, which is a different experiment (clock sync).
+    """
+    leg = DirectionProfile.model_validate(
         {"delay_ms": low_ms, "jitter": {"distribution": "uniform", "low_ms": 0.0, "high_ms": high_ms - low_ms},
          "loss_probability": loss})
-    up = DirectionProfile.model_validate({"delay_ms": 5.0, "jitter": {"distribution": "none"}, "loss_probability": 0.0})
-    return LinkProfile(name=f"delay-{low_ms:g}-{high_ms:g}ms-loss-{loss:g}", uplink=up, downlink=down)
+    return LinkProfile(name=f"delay-{low_ms:g}-{high_ms:g}ms-loss-{loss:g}", uplink=leg, downlink=leg)
 
 
 def dropout_profile(base: LinkProfile, dropout: float) -> LinkProfile:
