@@ -82,9 +82,8 @@ def scenario(cycles: int, seed: int) -> list[Cycle]:
     return out
 
 
-def run_batched(cycles: list[Cycle], config: TrackerConfig) -> tuple[np.ndarray, Tracker]:
-    """Per-cycle wall time (s) of predict, 5 updates and prune with the batched tracker."""
-    tracker = Tracker(config)
+def run_cycles(tracker, cycles: list[Cycle]) -> np.ndarray:
+    """Per-cycle wall time (s) of predict, 5 updates and prune with either tracker."""
     times = np.empty(len(cycles))
     for k, c in enumerate(cycles):
         t0 = time.perf_counter()
@@ -94,7 +93,7 @@ def run_batched(cycles: list[Cycle], config: TrackerConfig) -> tuple[np.ndarray,
             tracker.update(rsu, c.t_s, RSU)
         tracker.prune(c.t_s)
         times[k] = time.perf_counter() - t0
-    return times, tracker
+    return times
 
 
 class FilterpyTracker:
@@ -155,20 +154,6 @@ class FilterpyTracker:
                           np.zeros((n, SOURCE_BITS)), np.zeros(n), np.zeros(n))
 
 
-def run_filterpy(cycles: list[Cycle], config: TrackerConfig) -> tuple[np.ndarray, FilterpyTracker]:
-    tracker = FilterpyTracker(config)
-    times = np.empty(len(cycles))
-    for k, c in enumerate(cycles):
-        t0 = time.perf_counter()
-        tracker.predict(c.t_s)
-        tracker.update(c.lidar, c.t_s, LIDAR)
-        for rsu in c.rsus:
-            tracker.update(rsu, c.t_s, RSU)
-        tracker.prune(c.t_s)
-        times[k] = time.perf_counter() - t0
-    return times, tracker
-
-
 def stats_ms(times_s: np.ndarray) -> dict:
     ms = times_s * 1e3
     return {"p50": float(np.percentile(ms, 50)), "p99": float(np.percentile(ms, 99)),
@@ -199,8 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     # the collector's traversals (gc stays enabled for everything the trackers allocate)
     gc.collect()
     gc.freeze()
-    batched_s, batched = run_batched(cycles, config)
-    filterpy_s, reference = run_filterpy(cycles, config)
+    batched, reference = Tracker(config), FilterpyTracker(config)
+    batched_s, filterpy_s = run_cycles(batched, cycles), run_cycles(reference, cycles)
     b, f = stats_ms(batched_s[args.warmup:]), stats_ms(filterpy_s[args.warmup:])
     dets = np.mean([len(c.lidar) + sum(len(r) for r in c.rsus) for c in cycles])
     report = {

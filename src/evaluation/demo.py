@@ -153,19 +153,19 @@ class Demo:
         self._link_down = False
 
     def _report(self, start_ns: int) -> dict:
-        outputs, offsets = [], []
+        outputs, offsets, rsu_msgs = [], [], 0
         for kind, data, _ in self._received:
             try:
                 if kind == "objects":
                     outputs.append(decode(data, FusedObjectList))
-                else:
-                    metrics = decode(data, ObuMetrics)
-                    offsets += [(metrics.t_ns, r.clock_offset_ns) for r in metrics.rsus if r.clock_offset_ns is not None]
+                    continue
+                metrics = decode(data, ObuMetrics)
             except CodecError as exc:
                 log("demo", f"undecodable {kind} message: {exc}")
+                continue
+            offsets += [(metrics.t_ns, r.clock_offset_ns) for r in metrics.rsus if r.clock_offset_ns is not None]
+            rsu_msgs = max([rsu_msgs, *(r.messages_accepted for r in metrics.rsus)])
         cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
-        rsu_msgs = max((r.messages_accepted for k, d, _ in self._received if k == "metrics"
-                        for r in decode(d, ObuMetrics).rsus), default=0)
         record = RunRecord(start_ns, self.duration_s, [int(t) for t in cycles], outputs, offsets, rsu_msgs)
         report = build_report(self.spec, self.world, record, driver="demo")
         if self.outage:

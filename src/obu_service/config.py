@@ -2,23 +2,17 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
+from schemas.config import ServiceConfig
 from schemas.keys import check_id
 
 from .pipeline import COMPENSATIONS, FUSION_METHODS, ObuPipelineConfig
 
 
-class ObuConfig(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
+class ObuConfig(ServiceConfig):
     vehicle_id: str = "ego"
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7448"])
-    connect: list[str] = Field(default_factory=list)
-    scenario: str = "red-light-runner"
-    seed: int = Field(0, ge=0)
-    start_at_ns: int | None = Field(None, description="scenario time zero (true clock); default: start-up time")
-    duration_s: float | None = Field(None, gt=0)
     fusion: str = "iou-merge"
     compensation: str = "predict"
     iou_threshold: float = Field(0.1, gt=0, le=1)

@@ -2,22 +2,16 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
+from schemas.config import ServiceConfig
 from schemas.keys import check_id
 from sim.clock import Clock, ClockStep, DriftingClock
 
 
-class RsuConfig(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
+class RsuConfig(ServiceConfig):
     rsu_id: str = "rsu1"
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
-    connect: list[str] = Field(default_factory=list)
-    scenario: str = "red-light-runner"
-    seed: int = Field(0, ge=0)
-    start_at_ns: int | None = Field(None, description="scenario time zero (true clock); default: start-up time")
-    duration_s: float | None = Field(None, gt=0, description="default: the scenario's duration")
     clock_offset_ms: float = Field(0.0, ge=-86_400_000, le=86_400_000)
     clock_drift_ppm: float = Field(0.0, ge=-1000, le=1000)
     clock_step_ms: float = Field(0.0, ge=-86_400_000, le=86_400_000)

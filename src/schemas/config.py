@@ -12,13 +12,29 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 M = TypeVar("M", bound=BaseModel)
 
 
 class ConfigError(ValueError):
     """A configuration or data file that cannot be used; the message names the bad field."""
+
+
+class ServiceConfig(BaseModel):
+    """Fields every simulated service shares: where it connects and which run it belongs to.
+
+    Services that must agree on the simulated world (RSU, OBU) share scenario, seed and
+    start time; each subclass adds its own id, listen endpoints and settings.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    connect: list[str] = Field(default_factory=list)
+    scenario: str = "red-light-runner"
+    seed: int = Field(0, ge=0)
+    start_at_ns: int | None = Field(None, description="scenario time zero (true clock); default: start-up time")
+    duration_s: float | None = Field(None, gt=0, description="default: the scenario's duration")
 
 
 def validation_problems(exc: ValidationError) -> str:
