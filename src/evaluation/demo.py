@@ -13,14 +13,16 @@ import queue
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 from obu_service.source import SimulatedVehicle
 from schemas import keys
 from schemas.codec import CodecError, decode
-from schemas.messages import FusedObjectList, ObuMetrics
+from schemas.messages import FusedObjectList, ObuMetrics, PredictionList
 from schemas.runtime import log
 from schemas.transport import free_tcp_endpoint, open_session
 from sim.scenario import load_scenario
@@ -87,13 +89,23 @@ class Demo:
         self.children: dict[str, Child] = {}
         self._received: list[tuple[str, bytes, int]] = []
         self._link_down = False
+        self._tmp = tempfile.TemporaryDirectory(prefix="v2i-demo-")
+        self.link_config = self._write_link_config(Path(self._tmp.name))
+
+    def _write_link_config(self, folder: Path) -> Path:
+        """LinkConfig YAML with the RSU position (for distance-dependent channels); no CLI flag has it."""
+        rsu = self.world.scenario.rsu.position
+        path = folder / "link.yaml"
+        path.write_text(json.dumps({"rsu_position": [rsu.x, rsu.y]}))  # JSON is YAML
+        return path
 
     def run(self) -> dict:
         start_ns = time.time_ns() + round(self.startup_s * 1e9)
         monitor = open_session(connect=[self.obu_ep])
         vid = self.spec.obu_config().vehicle_id
         subs = [monitor.declare_subscriber(keys.obu_objects(vid), lambda s: self._keep("objects", s)),
-                monitor.declare_subscriber(keys.obu_metrics(vid), lambda s: self._keep("metrics", s))]
+                monitor.declare_subscriber(keys.obu_metrics(vid), lambda s: self._keep("metrics", s)),
+                monitor.declare_subscriber(keys.obu_planning(vid), lambda s: self._keep("planning", s))]
         try:
             for name in ("rsu", "obu", "link"):
                 self.children[name] = Child(name, self._argv(name, start_ns))
@@ -107,6 +119,7 @@ class Demo:
             for sub in subs:
                 sub.undeclare()
             monitor.close()
+            self._tmp.cleanup()
         return self._report(start_ns)
 
     def _argv(self, name: str, start_ns: int) -> list[str]:
@@ -115,13 +128,15 @@ class Demo:
                   "--duration", str(self.duration_s)]
         if name == "rsu":
             ahead = ["--predict-ahead"] if s.rsu_config().predict_ahead else []
+            step = [] if s.rsu_clock_step_at_s is None else ["--clock-step-ms", str(s.rsu_clock_step_ms),
+                                                              "--clock-step-at-s", str(s.rsu_clock_step_at_s)]
             return base + ["--listen", self.rsu_ep, *common, "--clock-offset-ms", str(s.rsu_clock_offset_ms),
-                           "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *ahead]
+                           "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead]
         if name == "obu":
             return base + ["--listen", self.obu_ep, *common, "--fusion", s.fusion, "--compensation", s.compensation,
-                           "--deadline-ms", str(s.deadline_ms)]
-        return base + ["--rsu-connect", self.rsu_ep, "--vehicle-connect", self.obu_ep, "--profile", s.profile,
-                       "--seed", str(s.seed)]
+                           "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms)]
+        return base + ["--config", str(self.link_config), "--rsu-connect", self.rsu_ep, "--vehicle-connect",
+                       self.obu_ep, "--profile", s.profile, "--seed", str(s.seed)]
 
     def _keep(self, kind: str, sample) -> None:
         self._received.append((kind, sample.payload.to_bytes(), time.time_ns()))
@@ -153,23 +168,27 @@ class Demo:
         self._link_down = False
 
     def _report(self, start_ns: int) -> dict:
-        outputs, offsets, rsu_msgs = [], [], 0
+        cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
+        record = RunRecord(start_ns, self.duration_s, [int(t) for t in cycles])
+        last = None
         for kind, data, _ in self._received:
             try:
                 if kind == "objects":
-                    outputs.append(decode(data, FusedObjectList))
-                    continue
-                metrics = decode(data, ObuMetrics)
+                    record.outputs.append(decode(data, FusedObjectList))
+                elif kind == "planning":
+                    record.planning.append(decode(data, PredictionList))
+                else:
+                    last = decode(data, ObuMetrics)
+                    record.offset_samples += [(last.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm)
+                                              for r in last.rsus if r.clock_offset_ns is not None]
             except CodecError as exc:
                 log("demo", f"undecodable {kind} message: {exc}")
-                continue
-            offsets += [(metrics.t_ns, r.clock_offset_ns) for r in metrics.rsus if r.clock_offset_ns is not None]
-            rsu_msgs = max([rsu_msgs, *(r.messages_accepted for r in metrics.rsus)])
-        cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
-        record = RunRecord(start_ns, self.duration_s, [int(t) for t in cycles], outputs, offsets, rsu_msgs)
+        if last is not None:
+            record.rsu_messages = max((r.messages_accepted for r in last.rsus), default=0)
+            record.covered_cycles, record.rsu_deadline_misses = last.covered_cycles, last.rsu_deadline_misses
         report = build_report(self.spec, self.world, record, driver="demo")
         if self.outage:
-            report["link_outage"] = outage_summary(outputs, start_ns, self.outage)
+            report["link_outage"] = outage_summary(record.outputs, start_ns, self.outage)
         return report
 
 

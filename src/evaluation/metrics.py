@@ -12,7 +12,9 @@ from fusion.frames import map_to_base
 from fusion.geometry import bev_boxes, bev_iou_matrix
 from fusion.objects import ObjectArray
 from fusion.wire import objects_from_states
-from schemas.messages import FusedObjectList
+from schemas.messages import FusedObjectList, PredictionList
+
+from obu_service.planning import path_array
 
 from .detection_metrics import center_distance_ap, mot_metrics
 
@@ -91,15 +93,85 @@ def deadline_miss_ratio(cycle_times_ns: Sequence[int], outputs: Sequence[FusedOb
     return sum(1 for t in cycle_times_ns if t not in on_time) / len(cycle_times_ns)
 
 
-def offset_error_ms(samples: Sequence[tuple[int, int]], true_offset_ns: Callable[[int], int]) -> dict:
-    """p50 / p95 / max of |estimated - true| clock offset (ms) over (t_ns, estimate_ns) samples."""
-    if not samples:
-        return {"p50": None, "p95": None, "max": None, "samples": 0}
-    err = np.array([abs(est - true_offset_ns(t)) for t, est in samples]) * 1e-6
-    return {
-        "p50": round(float(np.percentile(err, 50)), 4), "p95": round(float(np.percentile(err, 95)), 4),
-        "max": round(float(err.max()), 4), "samples": len(samples),
+CLOCK_WARMUP_S = 5.0  # clock errors are scored after the estimator's first 5 s
+STEP_SETTLE_S = 3.0  # ... and outside the 3 s after an injected RSU clock step
+STEP_RECOVERED_MS = 1.0  # a step is recovered once the error stays below 1 ms
+
+
+def _percentiles(err_ms: np.ndarray, *names: str) -> dict:
+    stats = {"p50": 50, "p95": 95}
+    out = {n: round(float(np.percentile(err_ms, stats[n])), 4) if len(err_ms) else None for n in names if n in stats}
+    if "max" in names:
+        out["max"] = round(float(err_ms.max()), 4) if len(err_ms) else None
+    return out | {"samples": int(len(err_ms))}
+
+
+def clock_errors(samples: Sequence[tuple[int, int, int, float]], truth, start_ns: int, step_ns: int | None) -> dict:
+    """Offset errors |estimate - truth| (ms) of the filter and of the naive single exchange,
+    drift error (ppm) and step recovery time, from (t_ns, theta_ns, naive theta_ns, drift ppm)
+    samples scored against ``truth`` (a DriftingClock: offset_at(t), drift_ppm).
+
+    Scored samples: t >= start + CLOCK_WARMUP_S and, with a step, not within STEP_SETTLE_S after it.
+    """
+    rows = np.array([(t, est, naive, drift) for t, est, naive, drift in samples], dtype=float).reshape(-1, 4)
+    true_ns = np.array([truth.offset_at(int(t)) for t in rows[:, 0]], dtype=float)
+    err_ms, naive_ms = np.abs(rows[:, 1] - true_ns) * 1e-6, np.abs(rows[:, 2] - true_ns) * 1e-6
+    scored = rows[:, 0] >= start_ns + CLOCK_WARMUP_S * 1e9
+    if step_ns is not None:
+        scored &= ~((rows[:, 0] >= step_ns) & (rows[:, 0] < step_ns + STEP_SETTLE_S * 1e9))
+    drift_err = np.abs(rows[scored, 3] - truth.drift_ppm)
+    report = {
+        "clock_offset_error_ms": _percentiles(err_ms[scored], "p50", "p95", "max"),
+        "clock_offset_error_naive_ms": _percentiles(naive_ms[scored], "p50", "p95", "max"),
+        "clock_drift_error_ppm": round(float(np.median(drift_err)), 3) if len(drift_err) else None,
     }
+    if step_ns is not None:
+        report["clock_step_recovery_s"] = _recovery_s(rows[:, 0], err_ms, step_ns)
+    return report
+
+
+def _recovery_s(t_ns: np.ndarray, err_ms: np.ndarray, step_ns: int) -> float | None:
+    """Seconds from the step until the error is below STEP_RECOVERED_MS for good; None if never."""
+    after = t_ns >= step_ns
+    bad = np.flatnonzero(after & (err_ms >= STEP_RECOVERED_MS))
+    if not after.any():
+        return None
+    if not len(bad):
+        return 0.0
+    if bad[-1] == len(t_ns) - 1:
+        return None
+    return round((t_ns[bad[-1] + 1] - step_ns) * 1e-9, 3)
+
+
+def displacement_error_m(world, handed: Sequence[PredictionList], start_ns: int) -> float | None:
+    """Seed 003 eq. 1: mean |predicted - true location| over the points of the predicted paths
+    handed to the planner (each RSU list once), for objects matched to a true actor at t0
+    (centre-distance assignment, gate MATCH_GATE_M); points after the scenario's end are
+    not scored. None when no path was handed over."""
+    errors = []
+    seen = set()
+    end_s = world.scenario.duration_s
+    for pred in handed:
+        key = (pred.header.rsu_id, pred.header.seq)
+        if key in seen:
+            continue
+        seen.add(key)
+        t0_s = (pred.header.valid_time_ns - start_ns) * 1e-9
+        objs = objects_from_states(pred.objects)
+        truth = world.actors_at(t0_s)
+        if not len(objs) or not len(truth):
+            continue
+        matches = assign(center_distance_cost(objs.xy, truth.xy), MATCH_GATE_M).matches  # (M, 2) object, actor
+        if not len(matches):
+            continue
+        paths = path_array(pred)[matches[:, 0]]  # (M, K + 1, 3)
+        for j in range(1, paths.shape[1]):
+            t_s = t0_s + j * pred.step_ns * 1e-9
+            if t_s > end_s:
+                break
+            true_xy = world.actors_at(t_s).xy[matches[:, 1]]  # actor order is fixed by the world
+            errors += np.linalg.norm(paths[:, j, :2] - true_xy, axis=1).tolist()
+    return round(float(np.mean(errors)), 4) if errors else None
 
 
 def cycle_frames(world, outputs: Sequence[FusedObjectList], start_ns: int, max_range_m: float = MAX_RANGE_M):

@@ -16,9 +16,10 @@ from link_emulator.profile import LinkProfile, load_profile
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import OwnFrame, SimulatedVehicle
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, answer_time_request
+from rsu_service.prediction import make_predictor
 from rsu_service.source import Frame, SimulatedCamera
 from schemas.codec import CodecError, decode, encode
-from schemas.messages import ObjectList, TimeReply, TimeRequest
+from schemas.messages import ObjectList, PredictionList, TimeReply, TimeRequest
 from sim.clock import SimClock
 from sim.scenario import load_scenario
 from sim.world import World
@@ -62,10 +63,11 @@ class OfflineRun:
         self.vehicle = SimulatedVehicle(self.world, spec.seed, start_ns)
         self.rsu_config = spec.rsu_config()
         self.rsu = RsuPipeline(RsuPipelineConfig(rsu_id=self.world.scenario.rsu.id,
-                                                 predict_ahead=self.rsu_config.predict_ahead))
+                                                 predict_ahead=self.rsu_config.predict_ahead),
+                               make_predictor(self.rsu_config.predictor, spec.scenario))
         self.obu_config = spec.obu_config()
         self.obu = ObuPipeline(self.obu_config.pipeline_config())
-        self.record = RunRecord(start_ns, self.duration_s, [], [], [])
+        self.record = RunRecord(start_ns, self.duration_s, [])
 
     def execute(self) -> RunRecord:
         for t in self.camera.capture_times_ns(self.duration_s):
@@ -78,6 +80,8 @@ class OfflineRun:
         for t in range(self.start_ns, end_ns, round(1e9 / self.obu_config.sync_rate_hz)):
             self.queue.at(t, self._obu_sync)
         self.queue.run()
+        self.record.covered_cycles = self.obu.covered_cycles
+        self.record.rsu_deadline_misses = self.obu.rsu_deadline_misses
         return self.record
 
     # --- RSU side ----------------------------------------------------------------------
@@ -89,6 +93,7 @@ class OfflineRun:
         msg = self.rsu.on_frame(frame.detections, self.rsu_clock.local_from_true(frame.capture_true_ns),
                                 self.rsu_clock.now_ns())
         self._send(self.link.downlink, encode(msg), self._obu_receive)
+        self._send(self.link.downlink, encode(self.rsu.predictions(self.rsu_clock.now_ns())), self._obu_predictions)
         if self.rsu.config.predict_ahead:
             self.queue.at(self.clock.t_ns + self.camera.upsample_offset_ns, self._rsu_upsample)
 
@@ -114,6 +119,13 @@ class OfflineRun:
             self.record.rsu_messages += 1
         except CodecError as exc:
             self.obu.reject(exc.reason)
+        self._obu_fuse_if_ready()
+
+    def _obu_predictions(self, data: bytes) -> None:
+        try:
+            self.obu.on_predictions(decode(data, PredictionList), self.clock.t_ns)
+        except CodecError as exc:
+            self.obu.reject(exc.reason)
 
     def _obu_sync(self) -> None:
         self._send(self.link.uplink, encode(self.obu.make_time_request(self.clock.t_ns)), self._rsu_time_query)
@@ -127,8 +139,17 @@ class OfflineRun:
         self.queue.at(frame.capture_ns + round(self.obu_config.fuse_delay_ms * 1e6), self._obu_fuse, frame)
 
     def _obu_fuse(self, frame: OwnFrame) -> None:
-        self.obu.on_detections(frame.detections, frame.capture_ns)
-        self.record.outputs.append(self.obu.fuse(self.clock.t_ns))
-        est = self.obu.clock_offset(self.rsu.config.rsu_id)
+        """Own objects are ready: plan the cycle; fuse now, on the awaited frame or at fuse_by."""
+        fuse_by_ns = self.obu.on_detections(frame.detections, frame.capture_ns)
+        self.queue.at(fuse_by_ns, self._obu_fuse_if_ready)
+        self._obu_fuse_if_ready()
+
+    def _obu_fuse_if_ready(self) -> None:
+        if not self.obu.ready(self.clock.t_ns):
+            return
+        self.record.add_output(self.obu.fuse(self.clock.t_ns), self.obu.last_planning)
+        rsu_id = self.rsu.config.rsu_id
+        est, naive = self.obu.clock_offset(rsu_id, self.clock.t_ns), self.obu.naive_clock_offset(rsu_id)
         if est is not None:
-            self.record.offset_samples.append((self.clock.t_ns, est.offset_ns))
+            self.record.offset_samples.append((self.clock.t_ns, est.offset_at_ns(self.clock.t_ns), naive.offset_ns,
+                                               est.drift_ppm))

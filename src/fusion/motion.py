@@ -25,3 +25,15 @@ def predict_ca(objs: ObjectArray, dt_s) -> ObjectArray:
         vxy=objs.vxy + objs.axy * dt,
         age_s=objs.age_s + np.maximum(dt[:, 0], 0.0),
     )
+
+
+def trajectories_cv(objs: ObjectArray, horizon_s: float, step_s: float) -> np.ndarray:
+    """(N, K, 3) [x, y, yaw] at t + k step_s, k = 1..K, K = round(horizon / step), at constant velocity.
+
+    The heading is the velocity's direction, or the object's yaw when it stands (< 0.5 m/s).
+    """
+    k = np.arange(1, round(horizon_s / step_s) + 1) * step_s  # (K,)
+    xy = objs.xy[:, None, :] + objs.vxy[:, None, :] * k[None, :, None]  # (N, K, 2)
+    moving = np.linalg.norm(objs.vxy, axis=1) >= 0.5
+    yaw = np.where(moving, np.arctan2(objs.vxy[:, 1], objs.vxy[:, 0]), objs.yaw)  # (N,)
+    return np.concatenate([xy, np.broadcast_to(yaw[:, None, None], (len(objs), len(k), 1))], axis=2)

@@ -7,7 +7,7 @@ import argparse
 from schemas.runtime import run_service
 
 from .config import ObuConfig
-from .pipeline import COMPENSATIONS, FUSION_METHODS
+from .pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES
 
 
 def configure_parser(p: argparse.ArgumentParser) -> None:
@@ -25,11 +25,15 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="seed of the LiDAR and localisation noise (default 0)")
     p.add_argument("--start-at-ns", type=int, help="scenario time zero in Unix ns (true clock); default: now")
     p.add_argument("--duration", dest="duration_s", type=float, help="seconds to run (default: scenario duration)")
-    p.add_argument("--fusion", choices=FUSION_METHODS, help="fusion method (default iou-merge)")
+    p.add_argument("--fusion", choices=FUSION_METHODS, help="fusion method (default kf)")
+    p.add_argument("--fusion-mode", choices=FUSION_MODES,
+                   help="intra | inter | planning | vehicle-only, or adaptive: the most accurate feasible mode "
+                        "per cycle given the measured latency and the deadline (default adaptive)")
     p.add_argument("--compensation", choices=COMPENSATIONS,
                    help="RSU delay compensation (default predict); oosm needs --fusion kf")
     p.add_argument("--deadline-ms", type=float, help="end-to-end deadline per cycle from LiDAR capture (default 100)")
-    p.add_argument("--sync-rate-hz", type=float, help="time-sync exchanges per second (default 2)")
+    p.add_argument("--output-interval-ms", type=float, help="longest allowed gap between two outputs (default 150)")
+    p.add_argument("--sync-rate-hz", type=float, help="time-sync exchanges per second (default 10)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -7,19 +7,22 @@ from pydantic import Field, field_validator, model_validator
 from schemas.config import ServiceConfig
 from schemas.keys import check_id
 
-from .pipeline import COMPENSATIONS, FUSION_METHODS, ObuPipelineConfig
+from .pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES, ObuPipelineConfig
 
 
 class ObuConfig(ServiceConfig):
     vehicle_id: str = "ego"
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7448"])
-    fusion: str = "iou-merge"
+    fusion: str = "kf"
     compensation: str = "predict"
+    fusion_mode: str = Field("adaptive", description="adaptive | intra | inter | planning | vehicle-only (seed 003)")
     iou_threshold: float = Field(0.1, gt=0, le=1)
-    max_rsu_age_s: float = Field(1.0, gt=0, le=30)
-    deadline_ms: float = Field(100.0, gt=0, le=10_000)
+    inter_max_age_s: float = Field(0.6, gt=0, le=30, description="inter-frame fusion uses RSU data up to this old")
+    planning_max_age_s: float = Field(5.0, gt=0, le=60, description="planning fusion uses RSU paths up to this old")
+    deadline_ms: float = Field(100.0, gt=0, le=10_000, description="end-to-end: own LiDAR capture -> fused output")
+    output_interval_ms: float = Field(150.0, gt=0, le=10_000, description="longest allowed gap between two outputs")
     fuse_delay_ms: float = Field(50.0, ge=0, le=10_000, description="own perception latency: LiDAR capture -> fusion")
-    sync_rate_hz: float = Field(2.0, gt=0, le=100)
+    sync_rate_hz: float = Field(10.0, gt=0, le=100)
     time_query_timeout_s: float = Field(2.0, gt=0, le=60)
 
     @field_validator("vehicle_id")
@@ -32,6 +35,13 @@ class ObuConfig(ServiceConfig):
     def _valid_fusion(cls, v: str) -> str:
         if v not in FUSION_METHODS:
             raise ValueError(f"must be one of {FUSION_METHODS}")
+        return v
+
+    @field_validator("fusion_mode")
+    @classmethod
+    def _valid_mode(cls, v: str) -> str:
+        if v not in FUSION_MODES:
+            raise ValueError(f"must be one of {FUSION_MODES}")
         return v
 
     @field_validator("compensation")
@@ -50,6 +60,7 @@ class ObuConfig(ServiceConfig):
     def pipeline_config(self) -> ObuPipelineConfig:
         return ObuPipelineConfig(
             vehicle_id=self.vehicle_id, fusion=self.fusion, compensation=self.compensation,
-            iou_threshold=self.iou_threshold,
-            max_rsu_age_s=self.max_rsu_age_s, deadline_ms=self.deadline_ms,
+            fusion_mode=self.fusion_mode, iou_threshold=self.iou_threshold, inter_max_age_s=self.inter_max_age_s,
+            planning_max_age_s=self.planning_max_age_s, deadline_ms=self.deadline_ms,
+            output_interval_ms=self.output_interval_ms,
         )

@@ -12,10 +12,11 @@ import queue
 import threading
 
 import numpy as np
+import zenoh
 
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
-from schemas.messages import EgoPose, ObjectList, TimeReply
+from schemas.messages import EgoPose, ObjectList, PredictionList, TimeReply
 from schemas.runtime import announce, log
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
@@ -44,9 +45,14 @@ class ObuNode:
         vid = self.config.vehicle_id
         entities = []
         try:
-            self._pub = {name: session.declare_publisher(key) for name, key in
-                         (("objects", keys.obu_objects(vid)), ("metrics", keys.obu_metrics(vid)), ("pose", keys.obu_pose(vid)))}
-            entities = [*self._pub.values(), session.declare_subscriber(keys.RSU_OBJECTS_ALL, self._on_rsu_sample)]
+            # the planner-facing outputs must not be dropped under load: block, real-time, unbatched
+            critical = dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME,
+                            express=True)
+            self._pub = {name: session.declare_publisher(key, **(critical if name in ("objects", "planning") else {}))
+                         for name, key in (("objects", keys.obu_objects(vid)), ("metrics", keys.obu_metrics(vid)),
+                                           ("pose", keys.obu_pose(vid)), ("planning", keys.obu_planning(vid)))}
+            entities = [*self._pub.values(), session.declare_subscriber(keys.RSU_OBJECTS_ALL, self._on_rsu_sample),
+                        session.declare_subscriber(keys.RSU_PREDICTIONS_ALL, self._on_predictions_sample)]
             self._session = session
             self._schedule()
             announce("ready", "obu", vehicle_id=vid, listen=self.config.listen)
@@ -61,6 +67,9 @@ class ObuNode:
     # --- Zenoh callbacks: stamp and enqueue only ---------------------------------------
     def _on_rsu_sample(self, sample) -> None:
         self._inbox.put(("rsu", sample.payload.to_bytes(), self.clock.now_ns()))
+
+    def _on_predictions_sample(self, sample) -> None:
+        self._inbox.put(("predictions", sample.payload.to_bytes(), self.clock.now_ns()))
 
     def _on_time_reply(self, reply) -> None:
         if reply.ok is not None:
@@ -96,11 +105,14 @@ class ObuNode:
         try:
             if kind == "rsu":
                 self.pipeline.on_rsu_message(decode(data, ObjectList), receive_ns)
+            elif kind == "predictions":
+                self.pipeline.on_predictions(decode(data, PredictionList), receive_ns)
             else:
                 self.pipeline.on_time_reply(decode(data, TimeReply), receive_ns)
         except CodecError as exc:
             self.pipeline.reject(exc.reason)
             log("obu", f"rejected {kind} message: {exc}")
+        self._publish_if_ready()
 
     def _do_capture(self, due_ns: int, _) -> None:
         frame = self.vehicle.capture(due_ns)
@@ -112,9 +124,26 @@ class ObuNode:
         heapq.heappush(self._events, (fuse_ns, 0, "fuse", frame))
 
     def _do_fuse(self, _due_ns: int, frame: OwnFrame) -> None:
-        self.pipeline.on_detections(frame.detections, frame.capture_ns)
-        out = self.pipeline.fuse(self.clock.now_ns())
+        """Own objects are ready: plan the cycle, then fuse now, on the awaited frame or at fuse_by."""
+        if self.pipeline.pending:  # a cycle still waiting when the next starts: publish it first
+            self._publish(self.clock.now_ns())
+        fuse_by_ns = self.pipeline.on_detections(frame.detections, frame.capture_ns)
+        heapq.heappush(self._events, (fuse_by_ns, 0, "deadline", None))
+        self._publish_if_ready()
+
+    def _do_deadline(self, _due_ns: int, _) -> None:
+        self._publish_if_ready()
+
+    def _publish_if_ready(self) -> None:
+        now_ns = self.clock.now_ns()
+        if self.pipeline.ready(now_ns):
+            self._publish(now_ns)
+
+    def _publish(self, now_ns: int) -> None:
+        out = self.pipeline.fuse(now_ns)
         self._pub["objects"].put(encode(out))
+        if self.pipeline.last_planning is not None:
+            self._pub["planning"].put(encode(self.pipeline.last_planning))
         self._pub["metrics"].put(encode(self.pipeline.metrics(self.clock.now_ns())))
 
     def _do_sync(self, _due_ns: int, _) -> None:

@@ -1,7 +1,15 @@
-"""OBU pipeline (pure): clock sync, RSU buffering, delay compensation, fusion, deadlines.
+"""OBU pipeline (pure): clock sync, RSU buffering, fusion modes, delay compensation, deadlines.
 
 Driven by calls, never by a clock or Zenoh: the live node and the offline runner feed
 the same object. All times are OBU-clock nanoseconds unless named ``*_rsu_ns``.
+
+A cycle: ``on_detections`` (own LiDAR objects of capture time t_c) plans the cycle's mode
+and its fusion deadline ``fuse_by_ns``; the driver calls ``fuse`` as soon as ``ready``
+says so (at once, or when the awaited RSU frame arrives, or at ``fuse_by_ns``):
+
+  fuse_by = min(t_c + D, last publish + output interval bound) - compute margin
+
+so the output is on time whatever the link does (seed 003's E2E and output-interval bounds).
 """
 
 from __future__ import annotations
@@ -11,34 +19,47 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.frames import Pose2D
+from fusion.frames import Pose2D, map_to_base
+from fusion.merger import iou_merge
 from fusion.objects import ObjectArray
 from fusion.pose_history import PoseHistory
 from fusion.wire import objects_from_states, states_from_objects
-from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObuMetrics, RsuLinkStatus, TimeReply, TimeRequest
+from schemas.messages import (SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObuMetrics, PredictionList,
+                              RsuLinkStatus, TimeReply, TimeRequest)
 
-from .clock_sync import ClockSync, SyncSample
+from .clock_sync import ClockSync, OffsetEstimate, SyncSample
+from .fusion_mode import FUSION_MODES, MODES, Feasible, ModePolicy
+from .link_monitor import LinkMonitor
 from .methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, make_fusion
+from .planning import objects_at, retimed
 
-__all__ = ["COMPENSATIONS", "FUSION_METHODS", "ObuPipeline", "ObuPipelineConfig"]
+__all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "ObuPipeline", "ObuPipelineConfig"]
 
 RSU_ID_BASE = 1_000_000  # output ids of RSU objects: RSU_ID_BASE * (rsu index + 1) + RSU track id
 MAX_RSUS = 64  # distinct RSU ids tracked; more are rejected (a flood of ids must not grow memory)
+DEFAULT_RSU_PERIOD_NS = 200_000_000  # until two RSU captures have been seen (5 Hz camera)
 
 
 @dataclass(frozen=True)
 class ObuPipelineConfig:
     vehicle_id: str = "ego"
-    fusion: str = "iou-merge"
+    fusion: str = "kf"
     compensation: str = "predict"
+    fusion_mode: str = "adaptive"
     iou_threshold: float = 0.1  # seed 000 merger: an RSU object this overlapping an own one is a duplicate
-    max_rsu_age_s: float = 1.0  # older RSU frames are not fused
+    inter_max_age_s: float = 0.6  # seed 003: inter-frame fusion tolerates RSU data this old
+    planning_max_age_s: float = 5.0  # seed 003: the RSU's paths are usable this long after t0
     deadline_ms: float = 100.0  # end-to-end: own LiDAR capture -> publish
-    sync_window: int = 16
+    output_interval_ms: float = 150.0  # bound on the time between two consecutive outputs
+    compute_margin_ms: float = 10.0  # fusion compute + publish must fit between fuse_by and the deadline
+    intra_min_probability: float = 0.9  # adaptive waits for the intra frame only if it arrives this surely
+    hysteresis_cycles: int = 3
+    coverage_timeout_s: float = 10.0  # an RSU heard this recently is "in coverage" for the miss ratio
     frames_kept: int = 8
 
     def __post_init__(self) -> None:
         make_fusion(self.fusion, self.compensation, self.iou_threshold)  # validates the pair
+        ModePolicy(self.fusion_mode, self.hysteresis_cycles)  # validates the mode
 
 
 @dataclass
@@ -56,9 +77,23 @@ class _Received:
 class _RsuState:
     index: int
     sync: ClockSync
+    monitor: LinkMonitor
     frames: deque = field(default_factory=deque)
+    predictions: PredictionList | None = None
     accepted: int = 0
+    last_receive_ns: int | None = None
     last_age_ms: float | None = None
+
+
+@dataclass
+class _Cycle:
+    """The cycle being fused: own objects, the planned mode and its deadline."""
+
+    capture_ns: int
+    own: ObjectArray
+    mode: str
+    fuse_by_ns: int
+    intra_slots: dict[str, int]  # RSU id -> expected capture (OBU ns) of the frame intra waits for
 
 
 class ObuPipeline:
@@ -66,12 +101,18 @@ class ObuPipeline:
         self.config = config
         self.poses = PoseHistory(horizon_s=10.0)
         self.rejected: Counter[str] = Counter()
+        self.modes: Counter[str] = Counter({m: 0 for m in MODES})
         self.cycles = 0
         self.deadline_misses = 0
+        self.rsu_deadline_misses = 0
+        self.covered_cycles = 0
         self.last_mode = "vehicle-only"
+        self.last_planning: PredictionList | None = None  # planner-facing output of the last cycle
+        self._policy = ModePolicy(config.fusion_mode, config.hysteresis_cycles)
         self._fusion = make_fusion(config.fusion, config.compensation, config.iou_threshold)
         self._rsus: dict[str, _RsuState] = {}
-        self._own: tuple[int, ObjectArray] | None = None
+        self._cycle: _Cycle | None = None
+        self._last_publish_ns: int | None = None
         self._pending_sync: dict[int, int] = {}  # request seq -> t1_ns
         self._sync_seq = 0
         self._out_seq = 0
@@ -94,16 +135,23 @@ class ObuPipeline:
         if state is not None and not state.sync.add(SyncSample(t1, reply.t2_ns, reply.t3_ns, t4_ns)):
             self.rejected["time_reply_inconsistent"] += 1
 
-    def clock_offset(self, rsu_id: str):
-        """Current offset estimate (theta = rsu - obu) of one RSU, or None."""
+    def clock_offset(self, rsu_id: str, t_ns: int | None = None) -> OffsetEstimate | None:
+        """Offset estimate (theta = rsu - obu) of one RSU, at OBU time ``t_ns`` if given."""
         state = self._rsus.get(rsu_id)
-        return None if state is None else state.sync.estimate()
+        if state is None:
+            return None
+        return state.sync.estimate() if t_ns is None else state.sync.estimate_at(t_ns)
+
+    def naive_clock_offset(self, rsu_id: str) -> OffsetEstimate | None:
+        """The latest single exchange's offset, as an unfiltered NTP client would use it."""
+        state = self._rsus.get(rsu_id)
+        return None if state is None else state.sync.naive()
 
     # --- inputs ----------------------------------------------------------------------
     def on_pose(self, t_ns: int, pose: Pose2D) -> None:
         self.poses.add(t_ns, pose)
 
-    def on_rsu_message(self, msg: ObjectList, receive_ns: int) -> None:  # noqa: ARG002 (kept for link stats)
+    def on_rsu_message(self, msg: ObjectList, receive_ns: int) -> None:
         state = self._rsu(msg.header.rsu_id)
         if state is None:
             return
@@ -111,15 +159,55 @@ class ObuPipeline:
             self.rejected["duplicate"] += 1
             return
         objects = objects_from_states(msg.objects)
-        objects = objects.with_(ids=RSU_ID_BASE * (state.index + 1) + objects.ids, sources=np.full(len(objects), SOURCE_RSU))
+        objects = objects.with_(ids=self._rsu_ids(state, objects.ids), sources=np.full(len(objects), SOURCE_RSU))
         state.frames.append(_Received(msg.header.capture_time_ns, msg.header.valid_time_ns, msg.header.seq, objects))
         state.accepted += 1
+        state.last_receive_ns = receive_ns
+        est = state.sync.estimate_at(receive_ns)
+        if est is not None:
+            state.monitor.on_message(msg.header.seq, est.to_obu_ns(msg.header.capture_time_ns),
+                                     est.to_obu_ns(msg.header.publish_time_ns), receive_ns)
         while len(state.frames) > self.config.frames_kept:
             state.frames.popleft()
 
-    def on_detections(self, dets: ObjectArray, capture_ns: int) -> None:
-        """Own LiDAR objects (base_link at capture_ns); each call starts a cycle."""
-        self._own = (capture_ns, dets.with_(sources=np.full(len(dets), SOURCE_VEHICLE)))
+    def on_predictions(self, msg: PredictionList, receive_ns: int) -> None:
+        """The RSU's long-horizon paths (planning fusion); the newest t0 is kept."""
+        state = self._rsu(msg.header.rsu_id)
+        if state is None:
+            return
+        if state.predictions is None or msg.header.valid_time_ns > state.predictions.header.valid_time_ns:
+            state.predictions = msg
+            state.last_receive_ns = receive_ns
+
+    def on_detections(self, dets: ObjectArray, capture_ns: int) -> int:
+        """Own LiDAR objects (base_link at capture_ns) start a cycle; returns its fuse_by_ns."""
+        if self._cycle is not None:
+            self.rejected["cycle_overrun"] += 1  # the previous cycle was never fused
+        own = dets.with_(sources=np.full(len(dets), SOURCE_VEHICLE))
+        fuse_by_ns = capture_ns + round((self.config.deadline_ms - self.config.compute_margin_ms) * 1e6)
+        if self._last_publish_ns is not None:
+            interval_ns = round((self.config.output_interval_ms - self.config.compute_margin_ms) * 1e6)
+            fuse_by_ns = min(fuse_by_ns, max(self._last_publish_ns + interval_ns, capture_ns))
+        slots = self._intra_slots(capture_ns, fuse_by_ns)
+        feasible = Feasible(intra=bool(slots), inter=bool(self._inter_frames(capture_ns)[0]),
+                            planning=bool(self._planning_inputs(capture_ns)))
+        mode = self._policy.select(feasible)
+        self._cycle = _Cycle(capture_ns, own, mode, fuse_by_ns, slots if mode == "intra" else {})
+        return fuse_by_ns
+
+    @property
+    def pending(self) -> bool:
+        """A cycle has started and is not fused yet."""
+        return self._cycle is not None
+
+    def ready(self, now_ns: int) -> bool:
+        """Whether to fuse the pending cycle now: nothing to wait for, or its deadline is here."""
+        cycle = self._cycle
+        if cycle is None:
+            return False
+        if cycle.mode != "intra" or not cycle.intra_slots or now_ns >= cycle.fuse_by_ns:
+            return True
+        return bool(self._intra_frames(cycle)[0])
 
     def reject(self, reason: str) -> None:
         """Count an input the shell could not decode (codec error reason)."""
@@ -127,67 +215,183 @@ class ObuPipeline:
 
     # --- the cycle -------------------------------------------------------------------
     def fuse(self, now_ns: int) -> FusedObjectList:
-        """Fuse the current cycle's own objects with usable RSU data; publish time = now_ns."""
-        if self._own is None:
-            raise RuntimeError("fuse() before any on_detections()")
-        cycle_ns, own = self._own
-        ego = self.poses.at(cycle_ns) or Pose2D(0.0, 0.0, 0.0)
-        newest, fresh = self._usable_frames(cycle_ns)
-        fused = self._fusion.fuse(cycle_ns, ego, own.with_(ids=np.arange(1, len(own) + 1)), newest, fresh)
-        self.last_mode = "inter" if (newest or fresh) and self.config.fusion != "vehicle-only" else "vehicle-only"
-        self.cycles += 1
-        self.deadline_misses += int(now_ns > cycle_ns + int(self.config.deadline_ms * 1e6))
+        """Fuse the pending cycle with the RSU data its mode can use; publish time = now_ns."""
+        cycle = self._cycle
+        if cycle is None:
+            raise RuntimeError("fuse() without a pending cycle (call on_detections first)")
+        self._cycle = None
+        t_c = cycle.capture_ns
+        ego = self.poses.at(t_c) or Pose2D(0.0, 0.0, 0.0)
+        intra = self._intra_frames(cycle)
+        inter = self._inter_frames(t_c)
+        planning = self._planning_inputs(t_c)
+        mode = self._policy.resolve(cycle.mode, Feasible(bool(intra[0]), bool(inter[0]), bool(planning)))
+        if self.config.fusion == "vehicle-only":
+            mode = "vehicle-only"
+        own = cycle.own.with_(ids=np.arange(1, len(cycle.own) + 1))
+        newest, fresh = {"intra": intra, "inter": inter}.get(mode, ([], []))
+        fused = self._fusion.fuse(t_c, ego, own, newest, fresh)
+        self._consume(fresh, t_c)
+        for state in self._rsus.values():
+            ages = [(t_c - f.valid_ns) * 1e-6 for f in newest if f.rsu_index == state.index]
+            state.monitor.on_fusion(t_c, ages[0] if ages else None)
+        self.last_planning = None
+        if mode == "planning":
+            fused = self._with_planning(fused, planning, t_c, ego, now_ns)
+        self._account(t_c, mode, now_ns)
         self._out_seq += 1
         return FusedObjectList(
-            vehicle_id=self.config.vehicle_id, seq=self._out_seq, cycle_time_ns=cycle_ns, publish_time_ns=now_ns,
-            fusion=self.config.fusion, mode=self.last_mode, ego_x=ego.x, ego_y=ego.y, ego_yaw=ego.yaw,
+            vehicle_id=self.config.vehicle_id, seq=self._out_seq, cycle_time_ns=t_c, publish_time_ns=now_ns,
+            fusion=self.config.fusion, mode=mode, ego_x=ego.x, ego_y=ego.y, ego_yaw=ego.yaw,
             objects=states_from_objects(fused, fused=True),
         )
 
-    def _usable_frames(self, cycle_ns: int) -> tuple[list[RsuFrame], list[RsuFrame]]:
-        """(newest usable frame of each RSU, frames not yet consumed by tracking), in OBU time.
+    def _account(self, t_c: int, mode: str, now_ns: int) -> None:
+        """Mode share, output deadline (E2E and interval) and RSU deadline counters."""
+        self.cycles += 1
+        self.last_mode = mode
+        self.modes[mode] += 1
+        late = now_ns > t_c + round(self.config.deadline_ms * 1e6)
+        gap = self._last_publish_ns is not None and now_ns - self._last_publish_ns > self.config.output_interval_ms * 1e6
+        self.deadline_misses += int(late or gap)
+        self._last_publish_ns = now_ns
+        timeout_ns = self.config.coverage_timeout_s * 1e9
+        if any(s.last_receive_ns is not None and t_c - s.last_receive_ns <= timeout_ns for s in self._rsus.values()):
+            self.covered_cycles += 1
+            self.rsu_deadline_misses += int(mode == "vehicle-only")
 
-        A frame is usable once the RSU clock is related to ours and while its age at the
-        cycle, |cycle - valid|, is within max_rsu_age_s.
-        """
+    # --- which RSU data each mode can use ----------------------------------------------
+    def _placed(self, state: _RsuState, t_ns: int) -> list[tuple[_Received, RsuFrame]]:
+        """The RSU's frames in OBU time (by valid time), each linked to the one before; [] before sync."""
+        est = state.sync.estimate_at(t_ns)
+        if est is None:
+            return []
+        placed, previous = [], None
+        for raw in sorted(state.frames, key=lambda f: f.valid_rsu_ns):  # t_obu = t_rsu - theta(t)
+            previous = RsuFrame(state.index, raw.seq, est.to_obu_ns(raw.capture_rsu_ns), est.to_obu_ns(raw.valid_rsu_ns),
+                                raw.objects, previous)
+            placed.append((raw, previous))
+        return placed
+
+    def _inter_frames(self, t_c: int) -> tuple[list[RsuFrame], list[RsuFrame]]:
+        """(newest frame of each RSU, frames not yet consumed) within inter_max_age_s of the cycle."""
         newest, fresh = [], []
+        limit_ns = self.config.inter_max_age_s * 1e9
         for state in self._rsus.values():
-            est = state.sync.estimate()
-            if est is None or not state.frames:
+            placed = self._placed(state, t_c)
+            if not placed:
                 continue
-            frames = sorted(state.frames, key=lambda f: f.valid_rsu_ns)
-            placed, previous = [], None
-            for raw in frames:  # t_obu = t_rsu - theta
-                previous = RsuFrame(state.index, raw.seq, raw.capture_rsu_ns - est.offset_ns,
-                                    raw.valid_rsu_ns - est.offset_ns, raw.objects, previous)
-                placed.append((raw, previous))
-            age_s = (cycle_ns - placed[-1][1].valid_ns) * 1e-9
-            state.last_age_ms = age_s * 1e3
-            limit_ns = self.config.max_rsu_age_s * 1e9
-            if abs(age_s) <= self.config.max_rsu_age_s:
+            state.last_age_ms = (t_c - placed[-1][1].valid_ns) * 1e-6
+            if abs(t_c - placed[-1][1].valid_ns) <= limit_ns:
                 newest.append(placed[-1][1])
-            for raw, frame in placed:
-                if not raw.used and abs(cycle_ns - frame.valid_ns) <= limit_ns and frame.valid_ns <= cycle_ns:
-                    raw.used = True
-                    fresh.append(frame)
+            fresh += [f for raw, f in placed if not raw.used and f.valid_ns <= t_c and t_c - f.valid_ns <= limit_ns]
         return newest, fresh
+
+    def _intra_frames(self, cycle: _Cycle) -> tuple[list[RsuFrame], list[RsuFrame]]:
+        """(frames of the cycle's sensing slot, those of them not yet fed to the tracker), once
+        every awaited one has arrived; ([], []) before."""
+        frames, fresh = [], []
+        for rsu_id, slot_ns in cycle.intra_slots.items():
+            state = self._rsus[rsu_id]
+            period_ns = self._rsu_period_ns(state)
+            match = [(raw, f) for raw, f in self._placed(state, cycle.capture_ns)
+                     if abs(f.capture_ns - slot_ns) < period_ns / 2]
+            if not match:
+                return [], []
+            raw, frame = max(match, key=lambda m: m[1].valid_ns)
+            frames.append(frame)
+            fresh += [] if raw.used else [frame]
+        return frames, fresh
+
+    def _intra_slots(self, t_c: int, fuse_by_ns: int) -> dict[str, int]:
+        """RSU id -> capture (OBU ns) of its frame for this cycle's slot, for the RSUs whose
+        frame is already here or will be by fuse_by with probability >= intra_min_probability
+        (every RSU heard from, in the fixed ``intra`` mode).
+
+        The slot's frame is the newest RSU capture at or before t_c. When it has not arrived
+        yet its capture is predicted from the last one: c* = c_last + n T,
+        n = floor((t_c - c_last) / T), T the RSU's frame period.
+        """
+        slots = {}
+        for rsu_id, state in self._rsus.items():
+            captures = [f.capture_ns for _, f in self._placed(state, t_c) if f.capture_ns <= t_c]
+            if not captures:
+                continue
+            period_ns = self._rsu_period_ns(state)
+            last_ns = max(captures)
+            slot_ns = last_ns + ((t_c - last_ns) // period_ns) * period_ns
+            if slot_ns - last_ns > period_ns and self.config.fusion_mode != "intra":
+                continue  # frames are already missing: the link is not delivering, do not wait on it
+            p_on_time = 1.0 if slot_ns == last_ns else state.monitor.arrival_probability((fuse_by_ns - slot_ns) * 1e-6)
+            if p_on_time >= self.config.intra_min_probability or self.config.fusion_mode == "intra":
+                slots[rsu_id] = slot_ns
+        return slots
+
+    @staticmethod
+    def _rsu_period_ns(state: _RsuState) -> int:
+        """Median interval between the RSU's distinct captures (RSU clock; drift is negligible here)."""
+        captures = np.unique([f.capture_rsu_ns for f in state.frames])
+        return int(np.median(np.diff(captures))) if len(captures) >= 2 else DEFAULT_RSU_PERIOD_NS
+
+    def _consume(self, fused: list[RsuFrame], t_c: int) -> None:
+        """Mark frames fed to the tracker as used (each is a measurement once). In the fixed
+        intra mode every frame of this slot or before is used up: intra never fuses late data."""
+        done = {(f.rsu_index, f.seq) for f in fused}
+        for state in self._rsus.values():
+            for raw, frame in self._placed(state, t_c):
+                late = self.config.fusion_mode == "intra" and frame.capture_ns <= t_c
+                raw.used = raw.used or late or (state.index, raw.seq) in done
+
+    def _planning_inputs(self, t_c: int) -> list[tuple[PredictionList, int]]:
+        """(paths, t0 in OBU ns) of each RSU whose newest paths still cover the cycle."""
+        out = []
+        for state in self._rsus.values():
+            pred, est = state.predictions, state.sync.estimate_at(t_c)
+            if pred is None or est is None:
+                continue
+            t0_ns = est.to_obu_ns(pred.header.valid_time_ns)
+            if 0 <= t_c - t0_ns <= min(self.config.planning_max_age_s * 1e9, pred.horizon_ns):
+                out.append((pred, t0_ns))
+        return out
+
+    def _with_planning(self, fused: ObjectArray, inputs, t_c: int, ego: Pose2D, now_ns: int) -> ObjectArray:
+        """Own result plus the RSU's predicted objects at the cycle time; the newest paths
+        (re-timed to the OBU clock) become the planner-facing output."""
+        rsu = []
+        for pred, t0_ns in inputs:
+            state = self._rsus[pred.header.rsu_id]
+            objs = objects_at(pred, (t_c - t0_ns) * 1e-9)
+            rsu.append(map_to_base(objs.with_(ids=self._rsu_ids(state, objs.ids),
+                                              sources=np.full(len(objs), SOURCE_RSU)), ego))
+        pred, t0_ns = max(inputs, key=lambda item: item[1])
+        self.last_planning = retimed(pred, t0_ns, now_ns)
+        return iou_merge(fused, ObjectArray.concat(rsu), self.config.iou_threshold)
+
+    @staticmethod
+    def _rsu_ids(state: _RsuState, ids: np.ndarray) -> np.ndarray:
+        return RSU_ID_BASE * (state.index + 1) + ids
 
     # --- reporting -------------------------------------------------------------------
     def metrics(self, now_ns: int) -> ObuMetrics:
         return ObuMetrics(
             vehicle_id=self.config.vehicle_id, t_ns=now_ns, cycles=self.cycles,
-            output_deadline_misses=self.deadline_misses, mode=self.last_mode,
-            rsus=tuple(self._rsu_status(rsu_id, s) for rsu_id, s in self._rsus.items()),
+            output_deadline_misses=self.deadline_misses, rsu_deadline_misses=self.rsu_deadline_misses,
+            covered_cycles=self.covered_cycles, mode=self.last_mode, mode_counts=dict(self.modes),
+            rsus=tuple(self._rsu_status(rsu_id, s, now_ns) for rsu_id, s in self._rsus.items()),
             rejected=dict(self.rejected),
         )
 
-    def _rsu_status(self, rsu_id: str, state: _RsuState) -> RsuLinkStatus:
-        est = state.sync.estimate()
+    def _rsu_status(self, rsu_id: str, state: _RsuState, now_ns: int) -> RsuLinkStatus:
+        est, naive = state.sync.estimate_at(now_ns), state.sync.naive()
+        link = state.monitor.summary(now_ns)
         return RsuLinkStatus(
-            rsu_id=rsu_id, clock_offset_ns=None if est is None else est.offset_ns,
+            rsu_id=rsu_id, clock_offset_ns=None if est is None else est.offset_at_ns(now_ns),
             clock_uncertainty_ns=None if est is None else est.uncertainty_ns,
+            clock_drift_ppm=None if est is None else est.drift_ppm,
+            clock_offset_naive_ns=None if naive is None else naive.offset_ns,
             sync_samples=0 if est is None else est.samples, messages_accepted=state.accepted,
-            last_data_age_ms=state.last_age_ms,
+            last_data_age_ms=state.last_age_ms, delay_p50_ms=link["delay_p50_ms"], delay_p95_ms=link["delay_p95_ms"],
+            jitter_ms=link["jitter_ms"], loss_ratio=link["loss_ratio"],
         )
 
     def _rsu(self, rsu_id: str) -> _RsuState | None:
@@ -195,5 +399,5 @@ class ObuPipeline:
             if len(self._rsus) >= MAX_RSUS:
                 self.rejected["too_many_rsus"] += 1
                 return None
-            self._rsus[rsu_id] = _RsuState(index=len(self._rsus), sync=ClockSync(self.config.sync_window))
+            self._rsus[rsu_id] = _RsuState(index=len(self._rsus), sync=ClockSync(), monitor=LinkMonitor())
         return self._rsus[rsu_id]

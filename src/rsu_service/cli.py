@@ -27,6 +27,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clock-drift-ppm", type=float, help="RSU clock drift, ppm")
     p.add_argument("--clock-step-ms", type=float, help="RSU clock step size, ms (with --clock-step-at-s)")
     p.add_argument("--clock-step-at-s", type=float, help="scenario time of the RSU clock step, s")
+    p.add_argument("--predictor", choices=("auto", "lane", "cv"),
+                   help="5 s paths on v2x/rsu/{id}/predictions: lane-following on the scenario's Lanelet2 map, "
+                        "constant velocity, or auto (lane when a map exists; default)")
     p.add_argument("--predict-ahead", action="store_true", default=None,
                    help="track-predict compensation: publish tracks predicted to the publish time, "
                         "and once more half a frame later (5 Hz camera -> 10 Hz lists)")

@@ -16,6 +16,7 @@ from sim.world import World
 
 from .config import RsuConfig
 from .pipeline import RsuPipeline, RsuPipelineConfig, answer_time_request
+from .prediction import make_predictor
 from .source import SimulatedCamera
 
 
@@ -31,7 +32,8 @@ class RsuNode:
         self.clock = config.clock(self.true_clock, self.start_ns)
         self.source = SimulatedCamera(self.world, config.seed, self.start_ns)
         self.pipeline = RsuPipeline(RsuPipelineConfig(rsu_id=config.rsu_id, sensor="camera/simulated",
-                                                      predict_ahead=config.predict_ahead))
+                                                      predict_ahead=config.predict_ahead),
+                                    make_predictor(config.predictor, config.scenario))
         self.rejected: Counter[str] = Counter()
         self.published = 0
         self._lock = threading.Lock()
@@ -41,7 +43,8 @@ class RsuNode:
         entities = []
         try:
             publisher = session.declare_publisher(keys.rsu_objects(self.config.rsu_id))
-            entities = [publisher, session.declare_queryable(keys.rsu_time(self.config.rsu_id), self._on_time_query),
+            self._predictions = session.declare_publisher(keys.rsu_predictions(self.config.rsu_id))
+            entities = [publisher, self._predictions, session.declare_queryable(keys.rsu_time(self.config.rsu_id), self._on_time_query),
                         session.liveliness().declare_token(keys.rsu_alive(self.config.rsu_id))]
             announce("ready", "rsu", rsu_id=self.config.rsu_id, listen=self.config.listen)
             self._publish_frames(publisher, stop)
@@ -62,6 +65,7 @@ class RsuNode:
                 frame.detections, self.clock.local_from_true(frame.capture_true_ns), self.clock.now_ns()
             )
             publisher.put(encode(msg))
+            self._predictions.put(encode(self.pipeline.predictions(self.clock.now_ns())))
             self.published += 1
             if self.config.predict_ahead and self._sleep_until(frame.ready_true_ns + self.source.upsample_offset_ns, stop):
                 publisher.put(encode(self.pipeline.upsampled(self.clock.now_ns())))

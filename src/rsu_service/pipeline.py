@@ -10,13 +10,19 @@ objects were predicted, so the vehicle measures the rest of the delay itself.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from fusion.motion import predict_ca
+import numpy as np
+
+from fusion.motion import predict_ca, trajectories_cv
 from fusion.objects import ObjectArray
 from fusion.tracking import Tracker, TrackerConfig
 from fusion.wire import states_from_objects
-from schemas.messages import ObjectList, ObjectListHeader, TimeReply, TimeRequest
+from schemas.messages import ObjectList, ObjectListHeader, PredictedPath, PredictionList, TimeReply, TimeRequest
+
+# (objects (N), horizon_s, step_s) -> (N, K, 3) [x, y, yaw] at t0 + k step, k = 1..K
+TrajectoryPredictor = Callable[[ObjectArray, float, float], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -25,16 +31,20 @@ class RsuPipelineConfig:
     sensor: str = "camera"
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     predict_ahead: bool = False  # track-predict: publish tracks predicted to the publish time
+    horizon_s: float = 5.0  # long-horizon trajectories for planning fusion (seed 003: ~5 s)
+    path_step_s: float = 0.1
 
 
 class RsuPipeline:
     """Tracks camera detections (map frame) and publishes confirmed tracks with velocity."""
 
-    def __init__(self, config: RsuPipelineConfig = RsuPipelineConfig()):
+    def __init__(self, config: RsuPipelineConfig = RsuPipelineConfig(), predictor: TrajectoryPredictor = trajectories_cv):
         self.config = config
+        self.predictor = predictor
         self._tracker = Tracker(config.tracker)
         self._t_ref_ns: int | None = None
         self._seq = 0
+        self._prediction_seq = 0  # predictions are numbered apart, so list seq gaps still mean loss
         self._last: tuple[int, ObjectArray] | None = None  # (capture_ns, confirmed tracks)
 
     def on_frame(self, dets: ObjectArray, capture_ns: int, publish_ns: int) -> ObjectList:
@@ -52,6 +62,21 @@ class RsuPipeline:
             return None
         capture_ns, tracks = self._last
         return self._message(capture_ns, tracks, max(publish_ns - capture_ns, 0), publish_ns)
+
+    def predictions(self, publish_ns: int) -> PredictionList | None:
+        """The last frame's tracks with their predicted paths over ``horizon_s`` (t0 = capture)."""
+        if self._last is None:
+            return None
+        capture_ns, tracks = self._last
+        paths = self.predictor(tracks, self.config.horizon_s, self.config.path_step_s)  # (N, K, 3)
+        header = ObjectListHeader(rsu_id=self.config.rsu_id, seq=self._prediction_seq, capture_time_ns=capture_ns,
+                                  publish_time_ns=max(publish_ns, capture_ns), sensor=self.config.sensor)
+        self._prediction_seq += 1
+        return PredictionList(
+            header=header, step_ns=round(self.config.path_step_s * 1e9), objects=states_from_objects(tracks),
+            paths=tuple(PredictedPath(id=int(i), x=p[:, 0].tolist(), y=p[:, 1].tolist(), yaw=p[:, 2].tolist())
+                        for i, p in zip(tracks.ids, paths)),
+        )
 
     def _message(self, capture_ns: int, tracks: ObjectArray, ahead_ns: int, publish_ns: int) -> ObjectList:
         # p(t + dt) = p + v dt + a dt^2 / 2 over the prediction horizon

@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from . import quantize as q
-from .messages import MAX_OBJECTS, SCHEMA_VERSION, FusedObjectList, Message, ObjectList
+from .messages import MAX_OBJECTS, SCHEMA_VERSION, FusedObjectList, Message, ObjectList, PredictionList
 
 MAX_MESSAGE_BYTES = 1 << 20
 # Largest msgpack array/map accepted. The unpacker pre-allocates a container from its
@@ -124,6 +124,7 @@ FUSED_OBJECT_COLUMNS: tuple[Column, ...] = (*OBJECT_COLUMNS, _col("sources", "u1
 COLUMNAR: dict[str, tuple[Column, ...]] = {
     ObjectList.TYPE: OBJECT_COLUMNS,
     FusedObjectList.TYPE: FUSED_OBJECT_COLUMNS,
+    PredictionList.TYPE: OBJECT_COLUMNS,
 }
 
 _short = reprlib.Repr()

@@ -67,6 +67,11 @@ def obu_metrics(vehicle_id: str) -> str:
     return _obu(vehicle_id, "metrics")
 
 
+def obu_planning(vehicle_id: str) -> str:
+    """Planner-facing output of a vehicle's OBU: RSU paths handed over in planning fusion."""
+    return _obu(vehicle_id, "planning")
+
+
 def obu_pose(vehicle_id: str) -> str:
     """Ego pose of a vehicle in the map frame."""
     return _obu(vehicle_id, "pose")

@@ -131,6 +131,53 @@ class ObjectList(Message):
     objects: Annotated[tuple[ObjectState, ...], Field(max_length=MAX_OBJECTS)] = ()
 
 
+MAX_PATH_POINTS = 128  # 12.8 s at 0.1 s steps
+
+
+class PredictedPath(Message):
+    """Predicted centre positions (map) of one object at t0 + k * step, k = 1..K."""
+
+    TYPE: ClassVar[str] = "predicted_path"
+    id: Annotated[int, Field(ge=0, lt=2**32)]
+    x: Annotated[tuple[Position, ...], Field(max_length=MAX_PATH_POINTS)] = ()
+    y: Annotated[tuple[Position, ...], Field(max_length=MAX_PATH_POINTS)] = ()
+    yaw: Annotated[tuple[Yaw, ...], Field(max_length=MAX_PATH_POINTS)] = ()
+
+    @model_validator(mode="after")
+    def _same_lengths(self) -> "PredictedPath":
+        if not len(self.x) == len(self.y) == len(self.yaw):
+            raise ValueError(f"x, y and yaw must have one entry per step, got {len(self.x)}, {len(self.y)}, {len(self.yaw)}")
+        return self
+
+
+class PredictionList(Message):
+    """RSU -> vehicles on ``v2x/rsu/{rsu_id}/predictions``: long-horizon trajectories.
+
+    ``objects`` are the tracks at ``header.valid_time_ns`` (t0, map frame) and
+    ``paths[i]`` the predicted positions of ``objects[i]`` at t0 + k * step_ns, k = 1..K
+    (the planning-fusion input of seed 003).
+    """
+
+    TYPE: ClassVar[str] = "prediction_list"
+    header: ObjectListHeader
+    step_ns: Annotated[int, Field(ge=1_000_000, le=10_000_000_000)] = 100_000_000
+    objects: Annotated[tuple[ObjectState, ...], Field(max_length=MAX_OBJECTS)] = ()
+    paths: Annotated[tuple[PredictedPath, ...], Field(max_length=MAX_OBJECTS)] = ()
+
+    @model_validator(mode="after")
+    def _one_path_per_object(self) -> "PredictionList":
+        if len(self.paths) != len(self.objects):
+            raise ValueError(f"{len(self.objects)} objects but {len(self.paths)} paths")
+        for i, (obj, path) in enumerate(zip(self.objects, self.paths)):
+            if obj.id != path.id:
+                raise ValueError(f"paths.{i}.id {path.id} differs from objects.{i}.id {obj.id}")
+        return self
+
+    @property
+    def horizon_ns(self) -> int:
+        return self.step_ns * max((len(p.x) for p in self.paths), default=0)
+
+
 class FusedObjectList(Message):
     """OBU output on ``v2x/obu/{vehicle_id}/objects``; positions in ``base_link``.
 
@@ -199,9 +246,15 @@ class RsuLinkStatus(Message):
     rsu_id: NodeId
     clock_offset_ns: Int64 | None = None  # theta = rsu_clock - obu_clock
     clock_uncertainty_ns: Int64 | None = None
+    clock_drift_ppm: Annotated[float | None, Field(allow_inf_nan=False)] = None
+    clock_offset_naive_ns: Int64 | None = None  # the latest single exchange, for comparison
     sync_samples: Count = 0
     messages_accepted: Count = 0
     last_data_age_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None
+    delay_p50_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None  # one-way, RSU publish -> OBU
+    delay_p95_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None
+    jitter_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None
+    loss_ratio: Annotated[float | None, Field(ge=0.0, le=1.0, allow_inf_nan=False)] = None
 
 
 class ObuMetrics(Message):
@@ -211,8 +264,11 @@ class ObuMetrics(Message):
     vehicle_id: NodeId
     t_ns: TimeNs
     cycles: Count = 0
-    output_deadline_misses: Count = 0
+    output_deadline_misses: Count = 0  # published after capture + deadline, or after the interval bound
+    rsu_deadline_misses: Count = 0  # covered cycles fused without RSU data (seed 003's metric)
+    covered_cycles: Count = 0  # cycles with an RSU heard recently
     mode: Annotated[str, Field(max_length=32)] = ""
+    mode_counts: dict[Annotated[str, Field(max_length=32)], Count] = Field(default_factory=dict, max_length=8)
     rsus: Annotated[tuple[RsuLinkStatus, ...], Field(max_length=64)] = ()
     rejected: dict[Annotated[str, Field(max_length=64)], Count] = Field(
         default_factory=dict, max_length=64

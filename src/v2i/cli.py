@@ -18,11 +18,15 @@ SUBCOMMANDS = {
 
 
 def _run_options(p: argparse.ArgumentParser) -> None:
-    from obu_service.pipeline import COMPENSATIONS, FUSION_METHODS
+    from obu_service.pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES
 
     p.add_argument("--scenario", default="red-light-runner", help="bundled scenario name or YAML path (default %(default)s)")
     p.add_argument("--profile", default="lte-v2x", help="link profile: bundled name or YAML path (default %(default)s)")
-    p.add_argument("--fusion", default="iou-merge", choices=FUSION_METHODS, help="fusion method (default %(default)s)")
+    p.add_argument("--fusion", default="kf", choices=FUSION_METHODS, help="fusion method (default %(default)s)")
+    p.add_argument("--fusion-mode", default="adaptive", choices=FUSION_MODES,
+                   help="which RSU data a cycle fuses (seed 003): intra waits for the frame of the cycle's slot, "
+                        "inter uses the newest buffered one, planning hands the RSU's 5 s paths to the planner; "
+                        "adaptive picks the most accurate feasible one per cycle (default %(default)s)")
     p.add_argument("--compensation", default="predict", choices=COMPENSATIONS,
                    help="RSU delay compensation (default %(default)s); track-predict makes the RSU predict "
                         "and upsample, oosm (kf only) re-filters late RSU data at its own time")
@@ -30,6 +34,8 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, help="seconds of scenario to run (default: the scenario's duration)")
     p.add_argument("--rsu-clock-offset-ms", type=float, default=0.0, help="injected RSU clock offset, ms")
     p.add_argument("--rsu-clock-drift-ppm", type=float, default=0.0, help="injected RSU clock drift, ppm")
+    p.add_argument("--rsu-clock-step-ms", type=float, default=0.0, help="injected RSU clock step, ms (see --rsu-clock-step-at-s)")
+    p.add_argument("--rsu-clock-step-at-s", type=float, help="scenario time of the RSU clock step, s")
     p.add_argument("--deadline-ms", type=float, default=100.0, help="OBU end-to-end deadline per cycle (default %(default)s)")
     p.add_argument("--json", metavar="PATH", help="write the metrics JSON to PATH ('-' for stdout)")
 
@@ -39,8 +45,9 @@ def _spec(args: argparse.Namespace):
 
     return RunSpec(
         scenario=args.scenario, profile=args.profile, fusion=args.fusion, compensation=args.compensation,
-        seed=args.seed, duration_s=args.duration,
+        fusion_mode=args.fusion_mode, seed=args.seed, duration_s=args.duration,
         rsu_clock_offset_ms=args.rsu_clock_offset_ms, rsu_clock_drift_ppm=args.rsu_clock_drift_ppm,
+        rsu_clock_step_ms=args.rsu_clock_step_ms, rsu_clock_step_at_s=args.rsu_clock_step_at_s,
         deadline_ms=args.deadline_ms,
     )
 

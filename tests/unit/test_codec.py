@@ -28,6 +28,8 @@ from schemas import (
     ObjectClass,
     ObjectList,
     ObjectListHeader,
+    PredictedPath,
+    PredictionList,
     ObjectState,
     ObuMetrics,
     RsuLinkStatus,
@@ -150,8 +152,25 @@ obu_metrics = st.builds(
     rsus=st.lists(link_statuses, max_size=3).map(tuple),
     rejected=st.dictionaries(st.text(max_size=64), counts, max_size=4),
 )
-messages = st.one_of(object_lists(), fused_object_lists(), time_requests, time_replies(), ego_poses, obu_metrics)
-MODELS = [ObjectList, FusedObjectList, TimeRequest, TimeReply, EgoPose, ObuMetrics]
+
+
+@st.composite
+def prediction_lists(draw) -> PredictionList:
+    base = draw(object_lists())
+    steps = draw(st.integers(0, 6))
+    paths = tuple(
+        PredictedPath(id=o.id, x=draw(st.lists(floats(-1e6, 1e6), min_size=steps, max_size=steps)),
+                      y=draw(st.lists(floats(-1e6, 1e6), min_size=steps, max_size=steps)),
+                      yaw=draw(st.lists(floats(-100, 100), min_size=steps, max_size=steps)))
+        for o in base.objects
+    )
+    return PredictionList(header=base.header, step_ns=draw(st.integers(1_000_000, 10_000_000_000)),
+                          objects=base.objects, paths=paths)
+
+
+messages = st.one_of(object_lists(), fused_object_lists(), time_requests, time_replies(), ego_poses, obu_metrics,
+                     prediction_lists())
+MODELS = [ObjectList, FusedObjectList, TimeRequest, TimeReply, EgoPose, ObuMetrics, PredictionList]
 
 # ---------------------------------------------------------------- helpers
 
@@ -489,3 +508,16 @@ def test_importing_schemas_does_not_import_zenoh() -> None:
     code = "import sys, schemas; assert 'zenoh' not in sys.modules, 'zenoh imported'"
     env = os.environ | {"PYTHONPATH": str(src)}
     subprocess.run([sys.executable, "-c", code], check=True, env=env)
+
+
+def test_prediction_list_needs_one_matching_path_per_object() -> None:
+    path = PredictedPath(id=0, x=(1.0, 2.0), y=(0.0, 0.0), yaw=(0.0, 0.0))
+    ok = PredictionList(header=header(), objects=(car(0),), paths=(path,))
+    assert decode(encode(ok), PredictionList) == ok
+    assert ok.horizon_ns == 2 * ok.step_ns
+    with pytest.raises(ValueError, match="paths"):
+        PredictionList(header=header(), objects=(car(0),), paths=())
+    with pytest.raises(ValueError, match="differs"):
+        PredictionList(header=header(), objects=(car(1),), paths=(path,))
+    with pytest.raises(ValueError, match="one entry per step"):
+        PredictedPath(id=0, x=(1.0,), y=(), yaw=())
