@@ -19,6 +19,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from obu_service.fusion_mode import MODES
 from obu_service.source import SimulatedVehicle
 from schemas import keys
 from schemas.codec import CodecError, decode
@@ -29,6 +30,9 @@ from sim.scenario import load_scenario
 from sim.world import World
 
 from .spec import RunRecord, RunSpec, build_report
+
+
+TRACKING_MODES = ("intra", "inter")  # the modes that feed RSU data to the tracker
 
 
 class DemoError(RuntimeError):
@@ -193,15 +197,16 @@ class Demo:
 
 
 def outage_summary(outputs: list[FusedObjectList], start_ns: int, outage: LinkOutage) -> dict:
-    """Cycles and modes during the outage, and how soon fusion resumed after it."""
+    """Cycles and modes during the outage, and how soon tracking fusion (intra or inter)
+    resumed after it."""
     t = lambda m: (m.cycle_time_ns - start_ns) * 1e-9  # noqa: E731
     end_s = outage.at_s + outage.down_s
     during = [m for m in outputs if outage.at_s <= t(m) < end_s]
-    fused_after = [t(m) for m in outputs if t(m) >= end_s and m.mode != "vehicle-only"]
+    fused_after = [t(m) for m in outputs if t(m) >= end_s and m.mode in TRACKING_MODES]
     return {
         "kill_at_s": outage.at_s, "down_s": outage.down_s, "cycles_published_during": len(during),
         "cycles_expected_during": round(outage.down_s * 10),
-        "vehicle_only_share_during": round(sum(m.mode == "vehicle-only" for m in during) / max(len(during), 1), 4),
+        "mode_share_during": {mode.replace("-", "_"): round(sum(m.mode == mode for m in during) / max(len(during), 1), 4)
+                              for mode in MODES},
         "fused_again_after_s": round(fused_after[0] - end_s, 3) if fused_after else None,
     }
-
