@@ -66,7 +66,7 @@ class OfflineRun:
                                                  predict_ahead=self.rsu_config.predict_ahead),
                                make_predictor(self.rsu_config.predictor, spec.scenario))
         self.obu_config = spec.obu_config()
-        self.obu = ObuPipeline(self.obu_config.pipeline_config())
+        self.obu = ObuPipeline(self.obu_config.pipeline_config(), self.obu_config.lanes())
         self.record = RunRecord(start_ns, self.duration_s, [])
 
     def execute(self) -> RunRecord:

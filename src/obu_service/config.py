@@ -57,6 +57,20 @@ class ObuConfig(ServiceConfig):
             raise ValueError("compensation 'oosm' re-runs a filter: use it with fusion 'kf'")
         return self
 
+    @model_validator(mode="after")
+    def _lane_needs_a_map(self) -> "ObuConfig":
+        from sim.maps import scenario_map
+
+        if self.compensation == "lane" and scenario_map(self.scenario) is None:
+            raise ValueError(f"compensation 'lane' needs a Lanelet2 map of scenario {self.scenario!r}")
+        return self
+
+    def lanes(self):
+        """The scenario's lane predictor when the ``lane`` compensation needs it, else None."""
+        from sim.maps import lane_predictor
+
+        return lane_predictor(self.scenario) if self.compensation == "lane" else None
+
     def pipeline_config(self) -> ObuPipelineConfig:
         return ObuPipelineConfig(
             vehicle_id=self.vehicle_id, fusion=self.fusion, compensation=self.compensation,

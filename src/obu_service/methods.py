@@ -18,12 +18,14 @@ returns the fused objects in base_link at the cycle time.
 Compensation of RSU objects (``--compensation``): ``none`` uses them where they were;
 ``predict`` extrapolates them to the cycle time at constant acceleration (OTVIC);
 ``track-predict`` uses the RSU's own prediction to its publish time (seed 000
-Algorithm 1) and extrapolates only the delay measured on the vehicle; ``oosm`` (kf only)
-feeds them to the filter at their own time.
+Algorithm 1) and extrapolates only the delay measured on the vehicle; ``lane`` moves them
+along their lanes of the scenario's Lanelet2 map (Frenet, constant speed; seed 000's
+lanelet-based predictor); ``oosm`` (kf only) feeds them to the filter at their own time.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,7 +41,8 @@ from fusion.tracking import Tracker, TrackerConfig
 from schemas.messages import SOURCE_RSU
 
 FUSION_METHODS = ("kf", "iou-merge", "nms", "tclf", "rsu-only", "vehicle-only", "kf-vehicle", "kf-rsu")
-COMPENSATIONS = ("predict", "none", "track-predict", "oosm")
+COMPENSATIONS = ("predict", "none", "track-predict", "lane", "oosm")
+Motion = Callable[[ObjectArray, float], ObjectArray]  # (objects, dt_s) -> objects dt_s later
 RSU_SPEED_STD_MPS = 1.0  # velocity uncertainty of an RSU object, inflating R by (dt sigma_v)^2
 # RSU objects are track estimates that already integrate the RSU's past lists, so the
 # newest one supersedes the older ones the OBU filter remembers. Scaling their covariance
@@ -61,18 +64,18 @@ class RsuFrame:
     previous: "RsuFrame | None" = None  # the frame before, for two-frame velocity (TCLF)
 
 
-def compensate(frame: RsuFrame, t_ns: int, mode: str) -> ObjectArray:
-    """RSU objects (map) moved to ``t_ns`` as the compensation mode says."""
+def compensate(frame: RsuFrame, t_ns: int, mode: str, motion: Motion = predict_ca) -> ObjectArray:
+    """RSU objects (map) moved to ``t_ns`` by ``motion`` (none: left where they were)."""
     if mode == "none":
         return frame.objects
-    return predict_ca(frame.objects, (t_ns - frame.valid_ns) * 1e-9)
+    return motion(frame.objects, (t_ns - frame.valid_ns) * 1e-9)
 
 
 class StatelessFusion:
     """The late-fusion baselines: each cycle from scratch with the newest RSU frames."""
 
-    def __init__(self, method: str, compensation: str, iou_threshold: float):
-        self.method, self.compensation, self.iou_threshold = method, compensation, iou_threshold
+    def __init__(self, method: str, compensation: str, iou_threshold: float, motion: Motion = predict_ca):
+        self.method, self.compensation, self.iou_threshold, self.motion = method, compensation, iou_threshold, motion
 
     def fuse(self, cycle_ns: int, ego: Pose2D, own: ObjectArray, newest: list[RsuFrame], fresh: list[RsuFrame]) -> ObjectArray:
         if self.method == "vehicle-only":
@@ -88,7 +91,7 @@ class StatelessFusion:
 
     def _rsu_at(self, frame: RsuFrame, cycle_ns: int) -> ObjectArray:
         if self.method != "tclf":
-            return compensate(frame, cycle_ns, self.compensation)
+            return compensate(frame, cycle_ns, self.compensation, self.motion)
         prev = frame.previous
         frame_dt_s = (frame.valid_ns - prev.valid_ns) * 1e-9 if prev else 0.0
         return tclf_compensate(prev.objects if prev else None, frame.objects, frame_dt_s,
@@ -99,8 +102,8 @@ class KalmanFusion:
     """Tracking fusion in ``map``: predict, update with own LiDAR, then with each fresh RSU frame."""
 
     def __init__(self, compensation: str, use_own: bool = True, use_rsu: bool = True,
-                 tracker: TrackerConfig = TrackerConfig(accel_std_mps2=1.0)):
-        self.compensation, self.use_own, self.use_rsu = compensation, use_own, use_rsu
+                 tracker: TrackerConfig = TrackerConfig(accel_std_mps2=1.0), motion: Motion = predict_ca):
+        self.compensation, self.use_own, self.use_rsu, self.motion = compensation, use_own, use_rsu, motion
         self.tracker = OosmTracker(Tracker(tracker)) if compensation == "oosm" else Tracker(tracker)
         self._ref_ns: int | None = None
 
@@ -119,7 +122,7 @@ class KalmanFusion:
     def _as_measurement(self, frame: RsuFrame, cycle_ns: int) -> ObjectArray:
         # R = s C + (dt sigma_v)^2 I: the prediction over dt adds the velocity's uncertainty
         dt_s = (cycle_ns - frame.valid_ns) * 1e-9 if self.compensation != "none" else 0.0
-        objs = compensate(frame, cycle_ns, self.compensation)
+        objs = compensate(frame, cycle_ns, self.compensation, self.motion)
         return objs.with_(cov_xy=RSU_COV_SCALE * objs.cov_xy + np.eye(2) * (dt_s * RSU_SPEED_STD_MPS) ** 2)
 
     def _update(self, dets: ObjectArray, t_s: float, sources: np.ndarray) -> None:
@@ -140,14 +143,25 @@ class KalmanFusion:
         return (t_ns - self._ref_ns) * 1e-9
 
 
-def make_fusion(method: str, compensation: str, iou_threshold: float = 0.1):
-    """The fusion object for a method and compensation (validated)."""
+def check_fusion(method: str, compensation: str) -> None:
+    """ValueError unless ``method`` and ``compensation`` are known and go together."""
     if method not in FUSION_METHODS:
         raise ValueError(f"fusion must be one of {FUSION_METHODS}, got {method!r}")
     if compensation not in COMPENSATIONS:
         raise ValueError(f"compensation must be one of {COMPENSATIONS}, got {compensation!r}")
     if compensation == "oosm" and not method.startswith("kf"):
         raise ValueError("compensation 'oosm' needs a filter to re-run: use it with --fusion kf")
+
+
+def make_fusion(method: str, compensation: str, iou_threshold: float = 0.1, lanes=None):
+    """The fusion object for a method and compensation (validated); ``lanes`` (a
+    ``fusion.lane_prediction.LanePredictor``) is needed by the ``lane`` compensation."""
+    check_fusion(method, compensation)
+    motion = predict_ca
+    if compensation == "lane":
+        if lanes is None:
+            raise ValueError("compensation 'lane' needs the scenario's Lanelet2 map")
+        motion = lanes.predict_objects
     if method.startswith("kf"):
-        return KalmanFusion(compensation, use_own=method != "kf-rsu", use_rsu=method != "kf-vehicle")
-    return StatelessFusion(method, compensation, iou_threshold)
+        return KalmanFusion(compensation, use_own=method != "kf-rsu", use_rsu=method != "kf-vehicle", motion=motion)
+    return StatelessFusion(method, compensation, iou_threshold, motion)

@@ -36,7 +36,7 @@ class ObuNode:
         self.world = World(load_scenario(config.scenario))
         self.duration_s = config.duration_s or self.world.scenario.duration_s
         self.vehicle = SimulatedVehicle(self.world, config.seed, self.start_ns)
-        self.pipeline = ObuPipeline(config.pipeline_config())
+        self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
         self._inbox: queue.Queue = queue.Queue()
         self._events: list = []
 

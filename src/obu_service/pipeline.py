@@ -30,7 +30,7 @@ from schemas.messages import (SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, Objec
 from .clock_sync import ClockSync, OffsetEstimate, SyncSample
 from .fusion_mode import FUSION_MODES, MODES, Feasible, ModePolicy
 from .link_monitor import LinkMonitor
-from .methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, make_fusion
+from .methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_fusion, make_fusion
 from .planning import objects_at, retimed
 
 __all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "ObuPipeline", "ObuPipelineConfig"]
@@ -58,7 +58,7 @@ class ObuPipelineConfig:
     frames_kept: int = 8
 
     def __post_init__(self) -> None:
-        make_fusion(self.fusion, self.compensation, self.iou_threshold)  # validates the pair
+        check_fusion(self.fusion, self.compensation)
         ModePolicy(self.fusion_mode, self.hysteresis_cycles)  # validates the mode
 
 
@@ -97,7 +97,8 @@ class _Cycle:
 
 
 class ObuPipeline:
-    def __init__(self, config: ObuPipelineConfig = ObuPipelineConfig()):
+    def __init__(self, config: ObuPipelineConfig = ObuPipelineConfig(), lanes=None):
+        """``lanes``: the scenario's ``LanePredictor``, needed by the ``lane`` compensation."""
         self.config = config
         self.poses = PoseHistory(horizon_s=10.0)
         self.rejected: Counter[str] = Counter()
@@ -109,7 +110,7 @@ class ObuPipeline:
         self.last_mode = "vehicle-only"
         self.last_planning: PredictionList | None = None  # planner-facing output of the last cycle
         self._policy = ModePolicy(config.fusion_mode, config.hysteresis_cycles)
-        self._fusion = make_fusion(config.fusion, config.compensation, config.iou_threshold)
+        self._fusion = make_fusion(config.fusion, config.compensation, config.iou_threshold, lanes)
         self._rsus: dict[str, _RsuState] = {}
         self._cycle: _Cycle | None = None
         self._last_publish_ns: int | None = None

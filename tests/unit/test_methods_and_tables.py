@@ -55,3 +55,40 @@ def test_table_statistics_and_markdown():
     assert (s["mean"], s["std"], s["n"]) == (2.0, 1.0, 2)
     md = to_markdown([{"title": "T", "source": "S", "columns": ["mAP"], "rows": [{"label": "kf", "mAP": s}]}], [1, 2])
     assert "| kf | 2.000 +- 1.000 (n=2) |" in md
+
+
+def test_lane_compensation_needs_a_map_and_follows_the_lane(tmp_path):
+    from obu_service.methods import RsuFrame, compensate
+    from rsu_service.prediction import make_predictor
+    from sim.maps import lane_predictor
+
+    with pytest.raises(ValueError, match="Lanelet2"):
+        make_fusion("kf", "lane")
+    scenario = tmp_path / "custom.yaml"  # a scenario file with no map beside it
+    with pytest.raises(ValueError, match="Lanelet2 map"):
+        ObuConfig(compensation="lane", scenario=str(scenario))
+    with pytest.raises(ValueError, match="Lanelet2 map"):
+        make_predictor("lane", str(scenario))
+    lanes = lane_predictor("red-light-runner")
+    make_fusion("kf", "lane", lanes=lanes)
+    # an eastbound car in the inner lane moves along it: same as constant velocity on a straight lane
+    car = ObjectArray(ids=np.array([7]), cls=np.array([1]), xy=np.array([[-40.0, -1.75]]), z=np.zeros(1),
+                      lwh=np.array([[4.5, 1.8, 1.5]]), yaw=np.zeros(1), vxy=np.array([[13.9, 0.0]]),
+                      cov_xy=np.eye(2)[None] * 0.01)
+    frame = RsuFrame(0, 0, T0, T0, car)
+    moved = compensate(frame, T0 + 500_000_000, "lane", lanes.predict_objects)
+    assert moved.xy[0] == pytest.approx([-40.0 + 13.9 * 0.5, -1.75], abs=1e-6)
+
+
+def test_rsu_predictions_carry_one_path_per_track():
+    rsu = RsuPipeline(RsuPipelineConfig(horizon_s=2.0, path_step_s=0.5))
+    assert rsu.predictions(T0) is None
+    det = ObjectArray(ids=np.array([-1]), cls=np.array([1]), xy=np.array([[0.0, 0.0]]), z=np.zeros(1),
+                      lwh=np.array([[4.5, 1.8, 1.5]]), yaw=np.zeros(1), vxy=np.zeros((1, 2)),
+                      cov_xy=np.eye(2)[None] * 0.01)
+    for k in range(4):
+        rsu.on_frame(det, T0 + k * 200_000_000, T0 + k * 200_000_000 + 100_000_000)
+    pred = rsu.predictions(T0 + 700_000_000)
+    assert len(pred.paths) == len(pred.objects) >= 1
+    assert len(pred.paths[0].x) == 4 and pred.step_ns == 500_000_000 and pred.horizon_ns == 2_000_000_000
+    assert pred.header.capture_time_ns == T0 + 600_000_000

@@ -27,3 +27,23 @@ def map_path(scenario: str) -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"no Lanelet2 map for scenario {scenario!r}; bundled: {bundled_maps()}")
     return path
+
+
+def scenario_map(scenario: str) -> Path | None:
+    """The Lanelet2 map of a scenario: the bundled one for a bundled name, else ``<file>.osm``
+    next to a scenario YAML file; None when there is none."""
+    if scenario in bundled_maps():
+        return map_path(scenario)
+    beside = Path(scenario).with_suffix(".osm")
+    return beside if beside.is_file() else None
+
+
+def lane_predictor(scenario: str):
+    """A ``fusion.lane_prediction.LanePredictor`` on the scenario's map; ValueError without one."""
+    from fusion.lane_prediction import LanePredictor
+
+    path = scenario_map(scenario)
+    if path is None:
+        raise ValueError(f"no Lanelet2 map for scenario {scenario!r}: none bundled "
+                         f"({', '.join(bundled_maps())}) and no {Path(scenario).with_suffix('.osm')} beside it")
+    return LanePredictor.from_osm(path, MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG)
