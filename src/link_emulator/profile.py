@@ -1,21 +1,49 @@
-"""Link profiles: per-direction delay, jitter and loss, declared as YAML data.
+"""Link profiles: what each direction of a link does to a message, declared as YAML data.
 
-A message's one-way delay is ``D = max(0, delay_ms + J)`` with ``J`` drawn from the
-direction's jitter distribution, independently per message; it is lost with probability
-``loss_probability`` (Bernoulli, independent per message). All times are milliseconds.
+Per direction (all optional except ``delay_ms``; a new profile needs no code):
+
+- delay ``D = max(0, delay_ms + J [+ spike] [+ trace delay])`` ms, ``J`` from ``jitter``
+  (none, normal, uniform, exponential, lognormal, pareto, empirical), optionally correlated
+  from message to message (``correlation``, see ``channel.py`` for the AR(1) equation);
+- loss: Bernoulli with ``loss_probability``, or Gilbert-Elliott bursts with the same mean
+  rate and ``mean_burst_len``; times the packet delivery ratio at the message's distance
+  (``pdr_curve``), nothing beyond ``range_m``; scheduled or random ``outage`` windows;
+- ``bandwidth_kbps`` (serialization ``8 size / rate`` and a FIFO send queue), ``fifo``
+  delivery order, ``duplicate_probability``, and ``replay`` of a measured delay trace.
+
+All times are milliseconds unless a name says otherwise.
 """
 
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 from pathlib import Path
-from typing import Annotated, Literal, NamedTuple
+from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
-from scipy.stats import norm
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from schemas.config import ConfigError, bundled_names, load_bundled_or_file
+
+from .distributions import (  # re-exported: the jitter models are part of a profile
+    DelaySummary,
+    EmpiricalJitter,
+    ExponentialJitter,
+    Jitter,
+    LognormalJitter,
+    NoJitter,
+    NormalJitter,
+    ParetoJitter,
+    UniformJitter,
+)
+from .trace import load_trace
+
+__all__ = [
+    "DelaySummary", "DirectionProfile", "EmpiricalJitter", "ExponentialJitter", "Jitter", "LinkProfile",
+    "LognormalJitter", "NoJitter", "NormalJitter", "OutageSpec", "ParetoJitter", "ProfileError", "SpikeSpec",
+    "TraceReplay", "UniformJitter", "bundled_profiles", "load_profile",
+]
 
 _PROFILE_DIR = "profiles"  # data folder inside the link_emulator package
 _STRICT = ConfigDict(frozen=True, extra="forbid")
@@ -25,135 +53,132 @@ class ProfileError(ConfigError):
     """A link profile that cannot be found or read; the message names the bad field."""
 
 
-class DelaySummary(NamedTuple):
-    """Declared one-way delay of a direction, after clipping at 0 (milliseconds)."""
-
-    median_ms: float
-    mean_ms: float
-
-
-class NoJitter(BaseModel):
-    """J = 0: the delay is exactly the base delay."""
+class SpikeSpec(BaseModel):
+    """With ``probability`` per message, an extra delay drawn from ``extra`` (ms) is added."""
 
     model_config = _STRICT
-    distribution: Literal["none"] = "none"
-
-    def draw_ms(self, rng: np.random.Generator) -> float:
-        """One jitter sample in ms (always 0)."""
-        return 0.0
-
-    def summary_ms(self, base_ms: float) -> DelaySummary:
-        """Median and mean of max(0, base_ms + J) in ms."""
-        return DelaySummary(base_ms, base_ms)
+    probability: float = Field(ge=0.0, le=1.0)
+    extra: Jitter
 
 
-class NormalJitter(BaseModel):
-    """J ~ N(mean_ms, std_ms^2); the resulting delay is clipped at 0."""
+class OutageSpec(BaseModel):
+    """Windows during which the link is down, measured from the channel's first message.
 
-    model_config = _STRICT
-    distribution: Literal["normal"]
-    mean_ms: float = 0.0
-    std_ms: float = Field(ge=0.0)
-
-    def draw_ms(self, rng: np.random.Generator) -> float:
-        """One jitter sample in ms."""
-        return float(rng.normal(self.mean_ms, self.std_ms))
-
-    def summary_ms(self, base_ms: float) -> DelaySummary:
-        """Median and mean of max(0, X), X ~ N(mu, s^2), mu = base_ms + mean_ms (ms)."""
-        mu, s = base_ms + self.mean_ms, self.std_ms
-        if s == 0.0:
-            return DelaySummary(max(0.0, mu), max(0.0, mu))
-        # E[max(0, X)] = mu * Phi(mu / s) + s * phi(mu / s)  (mean of a normal clipped at 0)
-        z = mu / s
-        return DelaySummary(max(0.0, mu), float(mu * norm.cdf(z) + s * norm.pdf(z)))
-
-
-class UniformJitter(BaseModel):
-    """J ~ U(low_ms, high_ms); the resulting delay is clipped at 0."""
-
-    model_config = _STRICT
-    distribution: Literal["uniform"]
-    low_ms: float
-    high_ms: float
-
-    @field_validator("high_ms")
-    @classmethod
-    def _high_not_below_low(cls, high_ms: float, info: ValidationInfo) -> float:
-        low_ms = info.data.get("low_ms")
-        if low_ms is not None and high_ms < low_ms:
-            raise ValueError(f"must be >= low_ms ({low_ms})")
-        return high_ms
-
-    def draw_ms(self, rng: np.random.Generator) -> float:
-        """One jitter sample in ms."""
-        return float(rng.uniform(self.low_ms, self.high_ms))
-
-    def summary_ms(self, base_ms: float) -> DelaySummary:
-        """Median and mean of max(0, X), X ~ U(a, b), a = base + low, b = base + high (ms)."""
-        a, b = base_ms + self.low_ms, base_ms + self.high_ms
-        median_ms = max(0.0, 0.5 * (a + b))
-        if a >= 0.0:
-            return DelaySummary(median_ms, 0.5 * (a + b))
-        if b <= 0.0:
-            return DelaySummary(0.0, 0.0)
-        # E[max(0, X)] = integral_0^b x dx / (b - a) = b^2 / (2 (b - a))
-        return DelaySummary(median_ms, b * b / (2.0 * (b - a)))
-
-
-class ExponentialJitter(BaseModel):
-    """J ~ Exp(mean scale_ms): non-negative, models MAC back-off and queueing."""
-
-    model_config = _STRICT
-    distribution: Literal["exponential"]
-    scale_ms: float = Field(gt=0.0)
-
-    def draw_ms(self, rng: np.random.Generator) -> float:
-        """One jitter sample in ms."""
-        return float(rng.exponential(self.scale_ms))
-
-    def summary_ms(self, base_ms: float) -> DelaySummary:
-        """Median base + scale ln 2 and mean base + scale (ms); J >= 0 so no clipping."""
-        return DelaySummary(base_ms + self.scale_ms * math.log(2.0), base_ms + self.scale_ms)
-
-
-class LognormalJitter(BaseModel):
-    """J = median_ms * exp(sigma * Z), Z ~ N(0, 1): heavy right tail (occasional spikes).
-
-    ``sigma`` is the dimensionless standard deviation of ln J.
+    ``windows_s``: scheduled ``[start_s, end_s]`` pairs. ``mean_interval_s`` and
+    ``duration_s``: a random on/off process, up time ~ Exp(mean_interval_s) and outage
+    duration ~ U(duration_s[0], duration_s[1]); its long-run down fraction is
+    E[down] / (mean_interval_s + E[down]). ``mode``: ``drop`` loses what is sent while down;
+    ``hold`` buffers it and sends it when the link is back (e.g. a handover with forwarding).
     """
 
     model_config = _STRICT
-    distribution: Literal["lognormal"]
-    median_ms: float = Field(gt=0.0)
-    sigma: float = Field(ge=0.0)
+    mode: Literal["drop", "hold"] = "drop"
+    windows_s: list[tuple[float, float]] = Field(default_factory=list)
+    mean_interval_s: float | None = Field(default=None, gt=0.0)
+    duration_s: tuple[float, float] | None = None
 
-    def draw_ms(self, rng: np.random.Generator) -> float:
-        """One jitter sample in ms."""
-        return float(rng.lognormal(math.log(self.median_ms), self.sigma))
+    @field_validator("windows_s")
+    @classmethod
+    def _windows_ordered(cls, windows: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        for start_s, end_s in windows:
+            if not 0.0 <= start_s < end_s:
+                raise ValueError(f"each window needs 0 <= start_s < end_s, got [{start_s}, {end_s}]")
+        return sorted(windows)
 
-    def summary_ms(self, base_ms: float) -> DelaySummary:
-        """Median base + median_ms, mean base + median_ms exp(sigma^2 / 2) (ms); J > 0."""
-        return DelaySummary(base_ms + self.median_ms, base_ms + self.median_ms * math.exp(0.5 * self.sigma**2))
+    @field_validator("duration_s")
+    @classmethod
+    def _duration_range(cls, duration: tuple[float, float] | None) -> tuple[float, float] | None:
+        if duration is not None and not 0.0 < duration[0] <= duration[1]:
+            raise ValueError(f"needs 0 < low <= high, got {list(duration)}")
+        return duration
+
+    @model_validator(mode="after")
+    def _random_needs_both(self) -> OutageSpec:
+        if (self.mean_interval_s is None) != (self.duration_s is None):
+            raise ValueError("mean_interval_s and duration_s go together (a random outage process)")
+        return self
+
+    def random_down_fraction(self) -> float:
+        """Long-run fraction of time the random process is down (0 without one)."""
+        if self.duration_s is None or self.mean_interval_s is None:
+            return 0.0
+        mean_down_s = 0.5 * (self.duration_s[0] + self.duration_s[1])
+        return mean_down_s / (self.mean_interval_s + mean_down_s)
 
 
-Jitter = Annotated[
-    NoJitter | NormalJitter | UniformJitter | ExponentialJitter | LognormalJitter,
-    Field(discriminator="distribution"),
-]
+class TraceReplay(BaseModel):
+    """Replay a CICV5G-format trace in time, looped from a seeded phase.
+
+    A message sent ``t`` ms after the channel's first one takes the trace slot
+    ``floor((t + phase) / P) mod n_slots`` (``P`` the trace's send period): its delay is added
+    to ``delay_ms``; a lost slot (a gap in the trace) loses the message.
+    """
+
+    model_config = _STRICT
+    trace: str = Field(min_length=1, description="bundled trace name (see trace.bundled_traces) or a file path "
+                                                 "(relative to the working directory); .gz is decompressed")
+
+    @field_validator("trace")
+    @classmethod
+    def _trace_is_readable(cls, trace: str) -> str:
+        load_trace(trace)  # TraceError (a ValueError) names the file and the line
+        return trace
 
 
 class DirectionProfile(BaseModel):
-    """One direction of the link: base delay (ms) + jitter (ms), clipped at 0, and loss."""
+    """One direction of the link; see the module docstring for the model."""
 
     model_config = _STRICT
     delay_ms: float = Field(ge=0.0, description="base one-way delay in ms")
     jitter: Jitter = Field(default_factory=NoJitter, description="added to delay_ms per message")
-    loss_probability: float = Field(default=0.0, ge=0.0, le=1.0, description="Bernoulli loss per message")
+    correlation: float = Field(default=0.0, ge=0.0, lt=1.0, description="lag-1 correlation of the jitter's normal score")
+    spikes: SpikeSpec | None = None
+    loss_probability: float = Field(default=0.0, ge=0.0, le=1.0, description="mean loss rate per message")
+    mean_burst_len: float | None = Field(
+        default=None, ge=1.0,
+        description="Gilbert-Elliott mean loss-burst length in messages (omit: Bernoulli); "
+                    "values below Bernoulli's 1 / (1 - loss_probability) act as Bernoulli")
+    pdr_curve: list[tuple[float, float]] | None = Field(
+        default=None, min_length=1,
+        description="[distance_m, pdr] points, linearly interpolated, held at the ends; the delivery ratio at a "
+                    "known distance is pdr(d) * (1 - loss_probability)")
+    range_m: float | None = Field(
+        default=None, gt=0.0,
+        description="beyond this distance everything is lost (seed 000, Saravanan et al.: the RSU reaches 80 m)")
+    outage: OutageSpec | None = None
+    bandwidth_kbps: float | None = Field(default=None, gt=0.0, description="send rate in kbit/s (1000 bit/s)")
+    queue_limit_ms: float | None = Field(default=None, ge=0.0, description="longest wait in the send queue; tail drop")
+    fifo: bool = Field(default=False, description="never deliver a message before an earlier one")
+    duplicate_probability: float = Field(default=0.0, ge=0.0, le=1.0)
+    replay: TraceReplay | None = None
+
+    @field_validator("pdr_curve")
+    @classmethod
+    def _curve_is_valid(cls, curve: list[tuple[float, float]] | None) -> list[tuple[float, float]] | None:
+        if curve is None:
+            return None
+        distances = [d for d, _ in curve]
+        if distances[0] < 0.0 or any(b <= a for a, b in pairwise(distances)):
+            raise ValueError("distances must be >= 0 and strictly increasing")
+        if any(not 0.0 <= p <= 1.0 for _, p in curve):
+            raise ValueError("each pdr must be in [0, 1]")
+        return curve
+
+    @model_validator(mode="after")
+    def _queue_limit_needs_bandwidth(self) -> DirectionProfile:
+        if self.queue_limit_ms is not None and self.bandwidth_kbps is None:
+            raise ValueError("queue_limit_ms needs bandwidth_kbps (there is no queue without a rate)")
+        return self
 
     def declared_delay_ms(self) -> DelaySummary:
-        """Median and mean of the declared one-way delay (ms) of delivered messages."""
+        """Median and mean of max(0, delay_ms + J) in ms: the jitter alone (no spikes, trace, queue)."""
         return self.jitter.summary_ms(self.delay_ms)
+
+    def pdr_at(self, distance_m: np.ndarray | float) -> np.ndarray:
+        """Delivery ratio at ``distance_m``: the curve (1 without one), 0 beyond ``range_m``."""
+        d = np.asarray(distance_m, dtype=float)
+        pdr = np.ones_like(d) if self.pdr_curve is None else np.interp(d, *zip(*self.pdr_curve))
+        return np.where(d > (self.range_m if self.range_m is not None else math.inf), 0.0, pdr)
 
 
 class LinkProfile(BaseModel):

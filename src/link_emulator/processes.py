@@ -1,0 +1,167 @@
+"""Stateful random processes of a channel, vectorised over a batch of messages.
+
+Each takes its per-message variates as arguments (drawn by the channel) and carries its
+state from batch to batch, so a batch of n messages gives exactly what n calls of one
+message give. Pure: no clock, no global randomness.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.signal import lfilter
+
+from .profile import OutageSpec
+from .trace import DelayTrace
+
+NS_PER_S = 1_000_000_000
+NS_PER_MS = 1_000_000
+
+
+class GaussianAR1:
+    """Correlated standard normal scores: z_k = rho z_{k-1} + sqrt(1 - rho^2) e_k, e_k ~ N(0, 1).
+
+    With z_0 ~ N(0, 1) every z_k is N(0, 1) with lag-j correlation rho^j, so a jitter
+    g(z_k) keeps its declared marginal distribution exactly (a Gaussian copula). netem's
+    ``next = rho * previous + (1 - rho) * fresh`` on the delay itself would instead shrink
+    the variance and change the distribution's shape; we do not use it.
+    """
+
+    def __init__(self, rho: float, z0: float) -> None:
+        self.rho = rho
+        self.z = z0
+
+    def step(self, e: np.ndarray) -> np.ndarray:
+        """Scores for innovations ``e`` (shape (n,)); the last becomes the state."""
+        if self.rho == 0.0 or e.size == 0:
+            z = e
+        elif e.size == 1:  # the live per-message path; same arithmetic as lfilter below
+            z = np.array([self.rho * self.z + math.sqrt(1.0 - self.rho * self.rho) * float(e[0])])
+        else:
+            # y[k] = c e[k] + rho y[k-1] with y[-1] = z: lfilter([c], [1, -rho]) with zi = rho z
+            c = math.sqrt(1.0 - self.rho * self.rho)
+            z, _ = lfilter([c], [1.0, -self.rho], e, zi=[self.rho * self.z])
+        if z.size:
+            self.z = float(z[-1])
+        return z
+
+
+class GilbertElliott:
+    """Two-state loss chain per message (simple Gilbert): Good delivers, Bad loses.
+
+    P(G -> B) = p, P(B -> G) = r. Stationary loss rate L = p / (p + r), mean burst
+    (run of Bad) length B = 1 / r; so from (L, B): r = 1 / B, p = L r / (1 - L).
+    Bernoulli loss is the special case r = 1 - L, p = L (B = 1 / (1 - L)), the shortest
+    mean burst a rate L can have with p + r <= 1; shorter requested bursts are raised to it.
+
+    One uniform u per message drives the step: u < p -> Bad; u >= 1 - r -> Good; else
+    stay. Since p <= 1 - r, from Good this is Bad w.p. p and from Bad it is Good w.p. r,
+    and no u swaps the states, so a batch is the last "set" event before each message.
+    """
+
+    def __init__(self, loss_probability: float, mean_burst_len: float | None, bad0: bool) -> None:
+        loss = loss_probability
+        if loss >= 1.0:
+            self.p, self.r = 1.0, 0.0
+        elif loss <= 0.0:
+            self.p, self.r = 0.0, 1.0
+        else:
+            burst = max(mean_burst_len or 0.0, 1.0 / (1.0 - loss))
+            self.r = 1.0 / burst
+            self.p = min(1.0 - self.r, loss * self.r / (1.0 - loss))
+        self.bad = bad0 and loss > 0.0
+
+    @property
+    def mean_burst_len(self) -> float:
+        """Effective mean loss-burst length in messages (inf when everything is lost)."""
+        return math.inf if self.r == 0.0 else 1.0 / self.r
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        """Bad (lost) flags, shape (n,), for uniforms ``u``; the last becomes the state."""
+        if u.size == 1:  # the live per-message path; the same rule as below
+            x = float(u[0])
+            self.bad = True if x < self.p else False if x >= 1.0 - self.r else self.bad
+            return np.array([self.bad])
+        event = np.where(u < self.p, 1, np.where(u >= 1.0 - self.r, 0, -1))  # 1 Bad, 0 Good, -1 stay
+        positions = np.where(event >= 0, np.arange(u.size), -1)
+        last = np.maximum.accumulate(positions) if u.size else positions
+        bad = np.where(last >= 0, event[np.maximum(last, 0)] == 1, self.bad)
+        if u.size:
+            self.bad = bool(bad[-1])
+        return bad
+
+
+class OutageTimeline:
+    """Down windows in ns after the channel's origin: scheduled ones and a random on/off process.
+
+    The random windows are drawn lazily, in chunks, from their own generator, so how far
+    the timeline has been extended never changes the per-message stream.
+    """
+
+    CHUNK = 256
+
+    def __init__(self, spec: OutageSpec, rng: np.random.Generator) -> None:
+        self.spec = spec
+        self._rng = rng
+        self._fixed = _merge([(a * NS_PER_S, b * NS_PER_S) for a, b in spec.windows_s])
+        self._random_starts = np.empty(0)
+        self._random_ends = np.empty(0)
+        self._random_until_ns = 0.0  # end of the last generated window
+
+    def down_until(self, rel_ns: np.ndarray) -> np.ndarray:
+        """End (rel. ns) of the down window containing each time, NaN where the link is up."""
+        until = _lookup(self._fixed[0], self._fixed[1], rel_ns) if self._fixed[0].size else None
+        if self.spec.mean_interval_s is not None and rel_ns.size:
+            self._extend_to(float(np.max(rel_ns)))
+            random_until = _lookup(self._random_starts, self._random_ends, rel_ns)
+            until = random_until if until is None else np.fmax(until, random_until)
+        return np.full(rel_ns.shape, np.nan) if until is None else until
+
+    def _extend_to(self, rel_ns: float) -> None:
+        """Draw random windows until the timeline covers ``rel_ns``."""
+        low_s, high_s = self.spec.duration_s
+        while self._random_until_ns <= rel_ns:
+            up_ns = self._rng.exponential(self.spec.mean_interval_s, self.CHUNK) * NS_PER_S
+            down_ns = self._rng.uniform(low_s, high_s, self.CHUNK) * NS_PER_S
+            ends = self._random_until_ns + np.cumsum(up_ns + down_ns)
+            self._random_starts = np.concatenate((self._random_starts, ends - down_ns))
+            self._random_ends = np.concatenate((self._random_ends, ends))
+            self._random_until_ns = float(ends[-1])
+
+
+def _merge(windows: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted windows with overlaps merged, as (starts, ends) arrays."""
+    merged: list[list[float]] = []
+    for start, end in sorted(windows):
+        if merged and start <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], end)
+        else:
+            merged.append([start, end])
+    return np.array([w[0] for w in merged]), np.array([w[1] for w in merged])
+
+
+def _lookup(starts: np.ndarray, ends: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """End of the window [start, end) containing each t (windows sorted, disjoint), else NaN."""
+    if starts.size == 0:
+        return np.full(t.shape, np.nan)
+    index = np.searchsorted(starts, t, side="right") - 1
+    inside = (index >= 0) & (t < ends[np.maximum(index, 0)])
+    return np.where(inside, ends[np.maximum(index, 0)], np.nan)
+
+
+class TraceClock:
+    """Looped time replay of a trace: the slot a message sent ``rel_ms`` after the origin takes.
+
+    slot = floor((rel_ms + phase_ms) / P) mod n_slots, P the trace's send period.
+    """
+
+    def __init__(self, trace: DelayTrace, phase_ms: float) -> None:
+        self.period_ms = trace.period_ms
+        self.slots_ms = trace.slot_delay_ms
+        self.phase_ms = phase_ms
+
+    def delay_ms(self, rel_ms: np.ndarray) -> np.ndarray:
+        """The trace delay (ms) for each send time, NaN for a lost slot."""
+        index = np.floor((rel_ms + self.phase_ms) / self.period_ms).astype(np.int64) % self.slots_ms.size
+        return self.slots_ms[index]

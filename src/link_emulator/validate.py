@@ -1,0 +1,313 @@
+"""Validation of a link profile: what the channel model achieves beside what the profile declares.
+
+``validate_direction`` pushes N messages (sent every ``interval_ms``, ``size_bytes`` each)
+through a seeded ``Channel`` and summarises delivered delays and losses; ``declared``
+derives the same numbers from the profile:
+
+- delay (mean, p50, p95, p99 of max(0, delay_ms + J) + serialization 8 size / rate):
+  analytic from the jitter's quantile function; for a trace replay, the trace's own
+  delays; with spikes, or a trace plus jitter, a Monte Carlo of the declared distribution.
+  Queueing, fifo hold and outage hold are emergent effects, not part of the declaration.
+- loss ratio, analytic for independent mechanisms:
+  1 - (1 - down fraction)(1 - loss_probability) PDR(d) (1 - trace loss).
+- mean loss-burst length (messages): analytic for a single mechanism (Bernoulli:
+  1 / (1 - L); Gilbert-Elliott: its B; a trace sent once per slot: its gap runs), else a
+  Monte Carlo of the declared loss processes drawn by an independent algorithm (geometric
+  run lengths and separately drawn outage windows, not the channel's code). Time-based
+  losses (outages, trace gaps) give bursts that depend on ``interval_ms``.
+
+Pure: no I/O; the CLI in ``cli.py`` prints the result.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.stats import ks_2samp
+
+from .channel import NS_PER_MS, Channel
+from .processes import GilbertElliott
+from .profile import DirectionProfile
+from .trace import load_trace, mean_run_length
+
+QUANTILES = {"p50_ms": 0.50, "p95_ms": 0.95, "p99_ms": 0.99}
+MONTE_CARLO_SAMPLES = 2_000_000
+CHUNK = 100_000  # messages per transmit_batch call (bounds memory; results do not depend on it)
+T0_NS = 1_700_000_000 * 10**9
+LOSS_RTOL = 0.10  # acceptance: achieved loss within 10 % of declared
+P50_ATOL_MS = 1.0  # acceptance: achieved p50 within 1 ms of declared
+TRACE_P99_ATOL_MS = 3.0  # acceptance for trace replays: p99 within 3 ms of the trace's
+
+
+@dataclass(frozen=True)
+class Summary:
+    """Delay statistics of delivered messages (ms) and loss statistics (ratio, messages)."""
+
+    mean_ms: float | None
+    p50_ms: float | None
+    p95_ms: float | None
+    p99_ms: float | None
+    loss_ratio: float
+    mean_burst_len: float
+
+    def as_dict(self) -> dict[str, float | None]:
+        """JSON-safe: non-finite values become None."""
+        return {k: (v if v is not None and math.isfinite(v) else None) for k, v in asdict(self).items()}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How the validation traffic is sent."""
+
+    samples: int = 100_000
+    seed: int = 0
+    interval_ms: float = 100.0
+    size_bytes: int = 1000
+    distance_m: float | None = None
+
+
+def summarise(delays_ms: np.ndarray, lost: np.ndarray) -> Summary:
+    """Summary of delivered delays (ms, shape (k,)) and per-message loss flags (shape (n,))."""
+    stats = {k: float(np.quantile(delays_ms, q)) if delays_ms.size else None for k, q in QUANTILES.items()}
+    mean_ms = float(delays_ms.mean()) if delays_ms.size else None
+    return Summary(mean_ms, **stats, loss_ratio=float(np.mean(lost)), mean_burst_len=mean_run_length(lost))
+
+
+def achieved(direction: DirectionProfile, settings: Settings, direction_name: str = "downlink") -> tuple[np.ndarray, np.ndarray]:
+    """Delays (ms) of delivered messages and loss flags of ``settings.samples`` messages.
+
+    The channel's generator is the one ``LinkModel(profile, seed)`` gives that direction, so
+    the run is exactly what the live relay or the evaluator would draw for this traffic.
+    """
+    uplink_seq, downlink_seq = np.random.SeedSequence(settings.seed).spawn(2)
+    channel = Channel(direction, np.random.default_rng(uplink_seq if direction_name == "uplink" else downlink_seq))
+    interval_ns = round(settings.interval_ms * NS_PER_MS)
+    delays, lost = [], []
+    for start in range(0, settings.samples, CHUNK):
+        send_ns = T0_NS + interval_ns * np.arange(start, min(start + CHUNK, settings.samples), dtype=np.int64)
+        out = channel.transmit_batch(send_ns, settings.size_bytes, settings.distance_m)
+        delays.append((out.deliver_ns[~out.lost] - send_ns[~out.lost]) / NS_PER_MS)
+        lost.append(out.lost)
+    return np.concatenate(delays), np.concatenate(lost)
+
+
+# ---- declared values -----------------------------------------------------------------------
+
+
+def serialization_ms(direction: DirectionProfile, size_bytes: int) -> float:
+    """s = 8 size / R: bits / (kbit/s) = ms; 0 without a rate."""
+    return 0.0 if direction.bandwidth_kbps is None else 8.0 * size_bytes / direction.bandwidth_kbps
+
+
+def declared_delay(direction: DirectionProfile, settings: Settings) -> tuple[dict[str, float], str]:
+    """Declared mean and quantiles of the delivered delay (ms), and how they were obtained."""
+    s_ms = serialization_ms(direction, settings.size_bytes)
+    plain = direction.spikes is None and direction.replay is None
+    if plain:
+        jitter, base = direction.jitter, direction.delay_ms
+        stats = {k: jitter.quantile_ms(base, q) + s_ms for k, q in QUANTILES.items()}
+        return {"mean_ms": jitter.mean_clipped_ms(base) + s_ms, **stats}, "analytic"
+    if direction.replay is not None and direction.spikes is None and direction.jitter.distribution == "none":
+        values = direction.delay_ms + trace_delays_ms(direction) + s_ms
+        method = "trace"
+    else:
+        values = _monte_carlo_delays_ms(direction, np.random.default_rng([settings.seed, 1])) + s_ms
+        method = "monte-carlo"
+    stats = {k: float(np.quantile(values, q)) for k, q in QUANTILES.items()}
+    return {"mean_ms": float(values.mean()), **stats}, method
+
+
+def trace_delays_ms(direction: DirectionProfile) -> np.ndarray:
+    """The replayed trace's delays of received messages (ms)."""
+    return load_trace(direction.replay.trace).delay_ms
+
+
+def _monte_carlo_delays_ms(direction: DirectionProfile, rng: np.random.Generator) -> np.ndarray:
+    """MONTE_CARLO_SAMPLES i.i.d. draws of max(0, delay_ms + J + spike + trace) (ms)."""
+    n = MONTE_CARLO_SAMPLES
+    delay_ms = direction.delay_ms + direction.jitter.from_normal(rng.standard_normal(n))
+    if direction.spikes is not None:
+        spiking = rng.random(n) < direction.spikes.probability
+        delay_ms = delay_ms + np.where(spiking, direction.spikes.extra.from_normal(rng.standard_normal(n)), 0.0)
+    if direction.replay is not None:
+        delay_ms = delay_ms + rng.choice(trace_delays_ms(direction), n)
+    return np.maximum(delay_ms, 0.0)
+
+
+def down_fraction(direction: DirectionProfile, settings: Settings) -> float:
+    """Declared fraction of messages sent while a ``drop`` outage is on."""
+    spec = direction.outage
+    if spec is None or spec.mode != "drop":
+        return 0.0
+    span_s = settings.samples * settings.interval_ms / 1000.0
+    scheduled_s = sum(max(0.0, min(end, span_s) - start) for start, end in _union(spec.windows_s))
+    random_f = spec.random_down_fraction()
+    # independent scheduled and random windows: P(up) = P(up scheduled) P(up random)
+    return 1.0 - (1.0 - scheduled_s / span_s) * (1.0 - random_f)
+
+
+def _union(windows: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    merged: list[list[float]] = []
+    for start, end in sorted(windows):
+        if merged and start <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], end)
+        else:
+            merged.append([start, end])
+    return [(a, b) for a, b in merged]
+
+
+def declared_loss(direction: DirectionProfile, settings: Settings) -> tuple[float, float, str]:
+    """Declared loss ratio, mean burst length (messages) and how the burst length was obtained."""
+    factors = _loss_factors(direction, settings)
+    loss = 1.0 - math.prod(1.0 - f for f in factors.values())
+    active = {k for k, f in factors.items() if f > 0.0}
+    if not active:
+        return 0.0, 0.0, "analytic"
+    if loss >= 1.0:
+        return 1.0, math.inf, "analytic"
+    ge = GilbertElliott(direction.loss_probability, direction.mean_burst_len, False)
+    bursty_chain = direction.loss_probability > 0.0 and ge.mean_burst_len > 1.0 / (1.0 - direction.loss_probability) + 1e-12
+    if active <= {"chain", "distance"} and not bursty_chain:
+        return loss, 1.0 / (1.0 - loss), "analytic"  # independent Bernoulli losses: geometric runs
+    if active == {"chain"}:
+        return loss, ge.mean_burst_len, "analytic"
+    if active == {"trace"} and abs(settings.interval_ms - load_trace(direction.replay.trace).period_ms) < 1e-9:
+        return loss, load_trace(direction.replay.trace).mean_burst_len, "trace"  # one message per slot
+    flags = _monte_carlo_loss_flags(direction, settings, np.random.default_rng([settings.seed, 2]))
+    return loss, mean_run_length(flags), "monte-carlo"
+
+
+def _loss_factors(direction: DirectionProfile, settings: Settings) -> dict[str, float]:
+    """Loss probability of each independent mechanism."""
+    pdr = 1.0 if settings.distance_m is None else float(direction.pdr_at(settings.distance_m))
+    trace_loss = 0.0 if direction.replay is None else load_trace(direction.replay.trace).loss_ratio
+    return {
+        "outage": down_fraction(direction, settings),
+        "chain": direction.loss_probability,
+        "distance": 1.0 - pdr,
+        "trace": trace_loss,
+    }
+
+
+def _monte_carlo_loss_flags(direction: DirectionProfile, settings: Settings, rng: np.random.Generator) -> np.ndarray:
+    """Loss flags of the declared processes over MONTE_CARLO_SAMPLES messages, drawn independently."""
+    n = max(settings.samples, MONTE_CARLO_SAMPLES)
+    t_s = np.arange(n) * settings.interval_ms / 1000.0
+    lost = _gilbert_runs(direction.loss_probability, direction.mean_burst_len, n, rng)
+    if settings.distance_m is not None:
+        lost |= rng.random(n) >= float(direction.pdr_at(settings.distance_m))
+    if direction.outage is not None and direction.outage.mode == "drop":
+        lost |= _in_windows(t_s, _outage_windows_s(direction, float(t_s[-1]), rng))
+    if direction.replay is not None:
+        trace = load_trace(direction.replay.trace)
+        slots = trace.slot_delay_ms
+        phase_ms = rng.uniform(0.0, slots.size * trace.period_ms)
+        lost |= np.isnan(slots[np.floor((t_s * 1000.0 + phase_ms) / trace.period_ms).astype(np.int64) % slots.size])
+    return lost
+
+
+def _gilbert_runs(loss: float, burst_len: float | None, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Gilbert chain flags built from alternating geometric runs: Bad ~ Geom(r), Good ~ Geom(p)."""
+    ge = GilbertElliott(loss, burst_len, False)
+    if ge.p == 0.0:
+        return np.zeros(n, dtype=bool)
+    if ge.r == 0.0:
+        return np.ones(n, dtype=bool)
+    pairs = int(n * ge.p * 1.2) + 16  # expected Good+Bad run pairs in n messages: n p r / (p + r) <= n p
+    good, bad = rng.geometric(ge.p, pairs), rng.geometric(ge.r, pairs)
+    start_bad = rng.random() < loss
+    runs = np.column_stack((bad, good) if start_bad else (good, bad)).reshape(-1)
+    states = np.tile([start_bad, not start_bad], pairs)
+    flags = np.repeat(states, runs)
+    while flags.size < n:  # rare: not enough runs drawn
+        flags = np.concatenate((flags, _gilbert_runs(loss, burst_len, n - flags.size, rng)))
+    return flags[:n]
+
+
+def _outage_windows_s(direction: DirectionProfile, horizon_s: float, rng: np.random.Generator) -> list[tuple[float, float]]:
+    """Scheduled windows plus an independently drawn on/off process up to ``horizon_s``."""
+    spec = direction.outage
+    windows = list(spec.windows_s)
+    if spec.mean_interval_s is not None:
+        t_s = 0.0
+        while t_s <= horizon_s:
+            start_s = t_s + rng.exponential(spec.mean_interval_s)
+            t_s = start_s + rng.uniform(*spec.duration_s)
+            windows.append((start_s, t_s))
+    return _union(windows)
+
+
+def _in_windows(t_s: np.ndarray, windows: list[tuple[float, float]]) -> np.ndarray:
+    if not windows:
+        return np.zeros(t_s.shape, dtype=bool)
+    starts, ends = (np.array(x) for x in zip(*windows))
+    index = np.searchsorted(starts, t_s, side="right") - 1
+    return (index >= 0) & (t_s < ends[np.maximum(index, 0)])
+
+
+def declared(direction: DirectionProfile, settings: Settings) -> tuple[Summary, dict[str, str]]:
+    """The profile's declared Summary and, per quantity, how it was obtained."""
+    delay, delay_method = declared_delay(direction, settings)
+    loss, burst, burst_method = declared_loss(direction, settings)
+    methods = {"delay": delay_method, "loss_ratio": "analytic", "mean_burst_len": burst_method}
+    return Summary(**delay, loss_ratio=loss, mean_burst_len=burst), methods
+
+
+# ---- the report ----------------------------------------------------------------------------
+
+
+def reference_delays_ms(direction: DirectionProfile, settings: Settings) -> np.ndarray | None:
+    """The measured delays a trace-based direction should reproduce (ms), else None."""
+    s_ms = serialization_ms(direction, settings.size_bytes)
+    if direction.replay is not None:
+        return direction.delay_ms + trace_delays_ms(direction) + s_ms
+    jitter = direction.jitter
+    if jitter.distribution == "empirical" and jitter.trace is not None and direction.spikes is None:
+        return np.maximum(0.0, direction.delay_ms + load_trace(jitter.trace).delay_ms) + s_ms
+    return None
+
+
+def checks(declared_s: Summary, achieved_s: Summary, trace: bool) -> dict[str, bool]:
+    """The acceptance criteria, each True when met."""
+    out = {
+        "loss_ratio_within_10pct": abs(achieved_s.loss_ratio - declared_s.loss_ratio)
+        <= LOSS_RTOL * declared_s.loss_ratio + 1e-12,
+        "p50_within_1ms": _close(achieved_s.p50_ms, declared_s.p50_ms, P50_ATOL_MS),
+    }
+    if trace:
+        out["p99_within_3ms_of_trace"] = _close(achieved_s.p99_ms, declared_s.p99_ms, TRACE_P99_ATOL_MS)
+    return out
+
+
+def _close(a: float | None, b: float | None, atol: float) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return abs(a - b) <= atol
+
+
+def validate_direction(name: str, direction_name: str, direction: DirectionProfile, settings: Settings) -> dict:
+    """The validation report of one direction (JSON-ready)."""
+    delays_ms, lost = achieved(direction, settings, direction_name)
+    achieved_s = summarise(delays_ms, lost)
+    declared_s, methods = declared(direction, settings)
+    report = {
+        "profile": name,
+        "direction": direction_name,
+        "samples": settings.samples,
+        "seed": settings.seed,
+        "interval_ms": settings.interval_ms,
+        "size_bytes": settings.size_bytes,
+        "distance_m": settings.distance_m,
+        "declared": declared_s.as_dict(),
+        "declared_method": methods,
+        "achieved": achieved_s.as_dict(),
+    }
+    reference = reference_delays_ms(direction, settings)
+    if reference is not None:
+        report["ks_statistic"] = float(ks_2samp(delays_ms, reference).statistic) if delays_ms.size else None
+    report["checks"] = checks(declared_s, achieved_s, trace=direction.replay is not None)
+    report["pass"] = all(report["checks"].values())
+    return report
+
