@@ -11,6 +11,8 @@ import heapq
 import itertools
 from collections.abc import Callable
 
+import numpy as np
+
 from link_emulator.channel import LinkModel
 from link_emulator.profile import LinkProfile, load_profile
 from obu_service.pipeline import ObuPipeline
@@ -108,9 +110,14 @@ class OfflineRun:
 
     # --- link --------------------------------------------------------------------------
     def _send(self, channel, data: bytes, deliver: Callable) -> None:
-        arrival_ns = channel.transmit(self.clock.t_ns, len(data))
-        if arrival_ns is not None:
+        """Through the channel model at the current vehicle-RSU distance; duplicates arrive twice."""
+        for arrival_ns in channel.transmit_all(self.clock.t_ns, len(data), distance_m=self._rsu_distance_m()):
             self.queue.at(arrival_ns, deliver, data)
+
+    def _rsu_distance_m(self) -> float:
+        ego = self.world.ego_at((self.clock.t_ns - self.start_ns) * 1e-9)
+        rsu = self.world.scenario.rsu.position
+        return float(np.hypot(ego.x - rsu.x, ego.y - rsu.y))
 
     # --- OBU side ----------------------------------------------------------------------
     def _obu_receive(self, data: bytes) -> None:
