@@ -323,20 +323,3 @@ def test_localization_noise_is_small_unbiased_and_slowly_drifting():
     loc = Localization(world.scenario.localization, np.random.default_rng(3))
     x = np.array([loc.measure(world, 0.1 * k).x for k in range(5000)]) - 5.25
     assert np.corrcoef(x[:-1], x[1:])[0, 1] > 0.95
-
-
-def test_many_actors_are_fast_enough():
-    import time
-
-    data = _rlr_dict()
-    data["actors"] += [
-        _car(f"extra{i}", [[300.0 - 4 * i, 1.75 + 3.5 * (i % 2)], [-200.0, 1.75 + 3.5 * (i % 2)]], speed=[[0, 5.0 + i % 7]])
-        for i in range(100)
-    ]
-    world = World(Scenario.model_validate(copy.deepcopy(data)))
-    lidar = Lidar(world.scenario.lidar, np.random.default_rng(0))
-    start = time.perf_counter()
-    for t in np.arange(0.0, 2.0, 0.1):
-        world.actors_at(t)
-        lidar.detect(world, t)
-    assert (time.perf_counter() - start) / 20 < 0.05  # s per frame, generous
