@@ -38,6 +38,7 @@ __all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "ObuPipeline", "Ob
 RSU_ID_BASE = 1_000_000  # output ids of RSU objects: RSU_ID_BASE * (rsu index + 1) + RSU track id
 MAX_RSUS = 64  # distinct RSU ids tracked; more are rejected (a flood of ids must not grow memory)
 DEFAULT_RSU_PERIOD_NS = 200_000_000  # until two RSU captures have been seen (5 Hz camera)
+MAX_FUTURE_NS = 1_000_000_000  # RSU data stamped later than this after its arrival is refused
 
 
 @dataclass(frozen=True)
@@ -159,6 +160,8 @@ class ObuPipeline:
         if any(f.seq == msg.header.seq for f in state.frames):
             self.rejected["duplicate"] += 1
             return
+        if self._from_the_future(state, msg.header.capture_time_ns, receive_ns):
+            return
         objects = objects_from_states(msg.objects)
         objects = objects.with_(ids=self._rsu_ids(state, objects.ids), sources=np.full(len(objects), SOURCE_RSU))
         state.frames.append(_Received(msg.header.capture_time_ns, msg.header.valid_time_ns, msg.header.seq, objects))
@@ -174,11 +177,20 @@ class ObuPipeline:
     def on_predictions(self, msg: PredictionList, receive_ns: int) -> None:
         """The RSU's long-horizon paths (planning fusion); the newest t0 is kept."""
         state = self._rsu(msg.header.rsu_id)
-        if state is None:
+        if state is None or self._from_the_future(state, msg.header.capture_time_ns, receive_ns):
             return
         if state.predictions is None or msg.header.valid_time_ns > state.predictions.header.valid_time_ns:
             state.predictions = msg
             state.last_receive_ns = receive_ns
+
+    def _from_the_future(self, state: _RsuState, capture_rsu_ns: int, receive_ns: int) -> bool:
+        """Count and refuse data captured more than MAX_FUTURE_NS after it was received (in
+        OBU time): a broken or hostile RSU clock, which would otherwise shadow later data."""
+        est = state.sync.estimate_at(receive_ns)
+        if est is None or est.to_obu_ns(capture_rsu_ns) - receive_ns <= MAX_FUTURE_NS:
+            return False
+        self.rejected["future_timestamp"] += 1
+        return True
 
     def on_detections(self, dets: ObjectArray, capture_ns: int) -> int:
         """Own LiDAR objects (base_link at capture_ns) start a cycle; returns its fuse_by_ns."""

@@ -177,3 +177,14 @@ def test_planning_hands_over_the_rsu_paths_when_tracking_data_is_too_old():
     assert p.last_planning is not None and p.last_planning.header.capture_time_ns == cycle - 2_000_000_000
     p.on_detections(objs([[8.0, 5.0]]), cycle + 6_000_000_000)  # past the 5 s the paths are good for
     assert p.fuse(cycle + 6_050_000_000).mode == "vehicle-only" and p.last_planning is None
+
+
+def test_data_stamped_in_the_future_is_refused_and_does_not_shadow_later_data():
+    p = synced_pipeline()
+    now = T0 + 10_000_000_000
+    p.on_predictions(predictions(now + 3_600_000_000_000, [0.0, 0.0], [1.0, 0.0]), now)  # an hour ahead
+    p.on_rsu_message(rsu_list(now + 5_000_000_000, [0.0, 0.0], [0.0, 0.0], seq=9), now)
+    assert p.rejected["future_timestamp"] == 2
+    p.on_predictions(predictions(now - 100 * MS, [0.0, 0.0], [1.0, 0.0]), now)
+    p.on_detections(objs([[8.0, 5.0]]), now)
+    assert p.fuse(now + 50 * MS).mode == "planning"  # the honest paths were kept
