@@ -14,6 +14,7 @@ from collections.abc import Callable
 import numpy as np
 
 from link_emulator.channel import LinkModel
+from link_emulator.control import apply_control
 from link_emulator.profile import LinkProfile, load_profile
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import OwnFrame, SimulatedVehicle
@@ -26,6 +27,7 @@ from sim.clock import SimClock
 from sim.scenario import load_scenario
 from sim.world import World
 
+from .chaos import SERVICES, ChaosTimeline
 from .spec import EVAL_EPOCH_NS, RunRecord, RunSpec
 
 RSU_REPLY_NS = 50_000  # RSU time between receiving a time query and answering it
@@ -52,8 +54,11 @@ class EventQueue:
 class OfflineRun:
     """One scenario run; ``execute()`` returns the RunRecord scored by build_report."""
 
-    def __init__(self, spec: RunSpec, start_ns: int = EVAL_EPOCH_NS, link_profile: LinkProfile | None = None):
+    def __init__(self, spec: RunSpec, start_ns: int = EVAL_EPOCH_NS, link_profile: LinkProfile | None = None,
+                 chaos: ChaosTimeline | None = None):
+        """``chaos``: timed faults; its RSU clock step must already be in ``spec`` (``with_chaos``)."""
         self.spec = spec
+        self.chaos = chaos
         self.world = World(load_scenario(spec.scenario))
         self.duration_s = spec.duration_s or self.world.scenario.duration_s
         self.start_ns = start_ns
@@ -64,14 +69,38 @@ class OfflineRun:
         self.camera = SimulatedCamera(self.world, spec.seed, start_ns)
         self.vehicle = SimulatedVehicle(self.world, spec.seed, start_ns)
         self.rsu_config = spec.rsu_config()
-        self.rsu = RsuPipeline(RsuPipelineConfig(rsu_id=self.world.scenario.rsu.id,
-                                                 predict_ahead=self.rsu_config.predict_ahead),
-                               make_predictor(self.rsu_config.predictor, spec.scenario))
+        self.rsu = self._new_rsu()
         self.obu_config = spec.obu_config()
         self.obu = ObuPipeline(self.obu_config.pipeline_config(), self.obu_config.lanes())
         self.record = RunRecord(start_ns, self.duration_s, [])
+        self._down = {name: self._windows_ns(name) for name in SERVICES}
+
+    def _new_rsu(self) -> RsuPipeline:
+        """A freshly started RSU (a restart loses its tracks and restarts its sequence numbers)."""
+        return RsuPipeline(RsuPipelineConfig(rsu_id=self.world.scenario.rsu.id, predict_ahead=self.rsu_config.predict_ahead),
+                           make_predictor(self.rsu_config.predictor, self.spec.scenario))
+
+    def _windows_ns(self, service: str) -> list[tuple[int, int]]:
+        if self.chaos is None:
+            return []
+        return [(self.start_ns + round(a * 1e9), self.start_ns + round(b * 1e9))
+                for a, b in self.chaos.down_windows(service, self.duration_s + 1.0)]
+
+    def _up(self, service: str, t_ns: int | None = None) -> bool:
+        t_ns = self.clock.t_ns if t_ns is None else t_ns
+        return not any(a <= t_ns < b for a, b in self._down[service])
+
+    def _schedule_chaos(self) -> None:
+        for event in self.chaos.sorted_events() if self.chaos else ():
+            at_ns = self.start_ns + round(event.at_s * 1e9)
+            control = event.link_control("eval")
+            if control is not None:
+                self.queue.at(at_ns, lambda c=control: apply_control(self.link, c, self.clock.t_ns))
+            elif event.restart == "rsu":
+                self.queue.at(at_ns, lambda: setattr(self, "rsu", self._new_rsu()))
 
     def execute(self) -> RunRecord:
+        self._schedule_chaos()
         for t in self.camera.capture_times_ns(self.duration_s):
             self.queue.at(t, self._rsu_capture)
         cycles = self.vehicle.cycle_times_ns(self.duration_s)
@@ -88,10 +117,14 @@ class OfflineRun:
 
     # --- RSU side ----------------------------------------------------------------------
     def _rsu_capture(self) -> None:
+        if not self._up("rsu"):
+            return
         frame = self.camera.capture(self.clock.t_ns)
         self.queue.at(frame.ready_true_ns, self._rsu_publish, frame)
 
     def _rsu_publish(self, frame: Frame) -> None:
+        if not self._up("rsu"):
+            return
         msg = self.rsu.on_frame(frame.detections, self.rsu_clock.local_from_true(frame.capture_true_ns),
                                 self.rsu_clock.now_ns())
         self._send(self.link.downlink, encode(msg), self._obu_receive)
@@ -100,9 +133,13 @@ class OfflineRun:
             self.queue.at(self.clock.t_ns + self.camera.upsample_offset_ns, self._rsu_upsample)
 
     def _rsu_upsample(self) -> None:
+        if not self._up("rsu"):
+            return
         self._send(self.link.downlink, encode(self.rsu.upsampled(self.rsu_clock.now_ns())), self._obu_receive)
 
     def _rsu_time_query(self, data: bytes) -> None:
+        if not self._up("rsu"):
+            return
         request = decode(data, TimeRequest)
         t2 = self.rsu_clock.now_ns()
         reply = answer_time_request(request, self.rsu.config.rsu_id, t2, t2 + RSU_REPLY_NS)
@@ -111,8 +148,15 @@ class OfflineRun:
     # --- link --------------------------------------------------------------------------
     def _send(self, channel, data: bytes, deliver: Callable) -> None:
         """Through the channel model at the current vehicle-RSU distance; duplicates arrive twice."""
+        if not self._up("link"):
+            return
         for arrival_ns in channel.transmit_all(self.clock.t_ns, len(data), distance_m=self._rsu_distance_m()):
-            self.queue.at(arrival_ns, deliver, data)
+            self.queue.at(arrival_ns, self._arrive, deliver, data)
+
+    def _arrive(self, deliver: Callable, data: bytes) -> None:
+        """A message in flight is lost when the emulator relaying it was killed meanwhile."""
+        if self._up("link"):
+            deliver(data)
 
     def _rsu_distance_m(self) -> float:
         ego = self.world.ego_at((self.clock.t_ns - self.start_ns) * 1e-9)

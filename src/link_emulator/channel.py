@@ -43,6 +43,11 @@ from .trace import load_trace
 
 __all__ = ["NS_PER_MS", "Channel", "Deliveries", "Impairment", "LinkModel"]
 
+# Tail-drop limit of the send queue under a runtime bandwidth cap when the profile sets none
+# (like netem's default packet limit): without one, a cap below the offered load would delay
+# everything after it by the whole backlog, long after the cap is lifted.
+IMPAIRMENT_QUEUE_LIMIT_MS = 500.0
+
 NONE_NS = -1  # "no delivery" in Deliveries arrays
 _INT64_MIN = np.iinfo(np.int64).min
 # per-message variates: normals (jitter innovation, spike size, duplicate's jitter),
@@ -246,6 +251,8 @@ class Channel:
         # s = 8 size / R: bits / (kbit/s) = ms, so ns = 8e6 size / R_kbps
         tx_ns = np.rint(np.where(np.isinf(rate_kbps), 0.0, 8e6 * size / rate_kbps)).astype(np.int64)
         limit_ms = self.direction.queue_limit_ms
+        if limit_ms is None and not no_override:
+            limit_ms = IMPAIRMENT_QUEUE_LIMIT_MS  # a runtime rate cap must not build an unbounded backlog
         limit_ns = None if limit_ms is None else round(limit_ms * NS_PER_MS)
         depart, dup_depart, drop, self._free_ns = _lindley(
             avail_ns.tolist(), tx_ns.tolist(), sent.tolist(), dup.tolist(), limit_ns, self._free_ns

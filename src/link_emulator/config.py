@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
 
 # <protocol>/<address>[?<metadata>][#<config>], e.g. tcp/127.0.0.1:7447 or udp/[::1]:7447
 Endpoint = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+/\S+$")]
@@ -15,6 +15,8 @@ class LinkConfig(BaseModel):
 
     ``rsu_connect`` and ``vehicle_connect`` are Zenoh endpoints (e.g. ``tcp/10.0.0.1:7447``)
     of the two sides; the emulator opens one session per side and is their only path.
+    ``rsu_position`` (map frame, m) lets the channel model depend on the vehicle-RSU
+    distance, the vehicle's position coming from its published ego pose.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -25,3 +27,6 @@ class LinkConfig(BaseModel):
     profile: str = Field(default="lte-v2x", min_length=1, description="bundled profile name or YAML path")
     seed: int = Field(default=0, ge=0, description="seed of the channel draws")
     stats_period_s: float = Field(default=1.0, gt=0.0, description="period of the stats publication in s")
+    rsu_position: tuple[FiniteFloat, FiniteFloat] | None = Field(
+        default=None, description="RSU antenna [x, y] in the map frame (m); None: distance unknown"
+    )

@@ -4,18 +4,20 @@ One session is connected to the RSU side only, one to the vehicle side only; the
 their only path. Downlink: RSU object lists and predictions are re-published on the
 vehicle side after a downlink delay (or dropped). Time queries from the vehicle are
 forwarded to the RSU after an uplink delay; each reply returns after a downlink delay.
+Ego poses heard on the vehicle side, with the configured RSU position, give the channel
+model the vehicle-RSU distance (unknown until both are known).
 
 Zenoh callbacks only stamp the receive time and enqueue. One scheduler thread (the one
 calling ``run``) owns the channel models, the counters and the pending queries, and fires
-every action from a heap of ``(due_ns, seq, action)`` when it falls due.
+every action from a heap of ``(due_ns, seq, action)`` when it falls due (``scheduler``).
 """
 
 from __future__ import annotations
 
-import heapq
 import itertools
 import json
 import logging
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -23,69 +25,40 @@ from typing import Any
 
 import zenoh
 
+from schemas.codec import CodecError, decode
 from schemas.keys import RSU_OBJECTS_ALL, RSU_PREDICTIONS_ALL, RSU_TIME_ALL, link_stats
+from schemas.messages import EgoPose
 from schemas.transport import open_session
 from sim.clock import Clock
 
 from .channel import NS_PER_MS, LinkModel
 from .config import LinkConfig
 from .profile import load_profile
+from .scheduler import Action, EventScheduler
 
 log = logging.getLogger(__name__)
 
 DOWNLINK_KEYS = (RSU_OBJECTS_ALL, RSU_PREDICTIONS_ALL)
 FORWARD_TIMEOUT_S = 5.0  # how long a forwarded time query waits for RSU replies
-MAX_WAIT_S = 0.05  # longest scheduler sleep, i.e. the latency of noticing ``stop``
-
-Action = Callable[[int], None]  # called with the firing time in ns
+OBU_POSE_ALL = "v2x/obu/*/pose"  # ego poses of every vehicle, see schemas.keys.obu_pose
 
 
-class EventScheduler:
-    """A heap of ``(due_ns, seq, action)``: any thread pushes, one thread fires in due order."""
+@dataclass(frozen=True)
+class Delivery:
+    """One relayed message, reported to an observer right after it was sent on.
 
-    def __init__(self, clock: Clock, max_wait_s: float = MAX_WAIT_S) -> None:
-        self._clock = clock
-        self._max_wait_s = max_wait_s
-        self._heap: list[tuple[int, int, Action]] = []
-        self._seq = itertools.count()
-        self._cond = threading.Condition()
+    ``due_ns - receive_ns`` is the drawn link delay; ``fired_ns - due_ns`` the relay's lateness.
+    """
 
-    def push(self, due_ns: int, action: Action) -> None:
-        """Schedule ``action(fired_ns)`` at ``due_ns`` (clock ns); thread-safe."""
-        with self._cond:
-            heapq.heappush(self._heap, (due_ns, next(self._seq), action))
-            if self._heap[0][2] is action:
-                self._cond.notify()
+    direction: str  # "downlink" or "uplink"
+    key: str
+    payload: bytes | None
+    receive_ns: int
+    due_ns: int
+    fired_ns: int
 
-    def run(self, stop: threading.Event) -> None:
-        """Fire due actions until ``stop`` is set; an action's exception is logged, not fatal."""
-        while not stop.is_set():
-            action = self._pop_due()
-            if action is None:
-                continue
-            try:
-                action(self._clock.now_ns())
-            except Exception:
-                log.exception("link relay action failed")
 
-    def clear(self) -> int:
-        """Forget every pending action; returns how many there were."""
-        with self._cond:
-            pending = len(self._heap)
-            self._heap.clear()
-            return pending
-
-    def _pop_due(self) -> Action | None:
-        """The head action if it is due, else None after sleeping until it is (at most max_wait_s)."""
-        with self._cond:
-            if not self._heap:
-                self._cond.wait(self._max_wait_s)
-                return None
-            wait_s = (self._heap[0][0] - self._clock.now_ns()) / 1e9
-            if wait_s > 0.0:
-                self._cond.wait(min(wait_s, self._max_wait_s))
-                return None
-            return heapq.heappop(self._heap)[2]
+DeliveryObserver = Callable[[Delivery], None]
 
 
 @dataclass
@@ -136,6 +109,28 @@ class ForwardedQuery:
     rsu_get_done: bool = False  # the RSU-side get has finished (no more replies)
 
 
+@dataclass
+class VehiclePosition:
+    """The latest ego pose heard on the vehicle side and the RSU distance it implies.
+
+    A relay emulates one vehicle's link: with several vehicles on the vehicle side, the
+    latest pose of any of them is taken.
+    """
+
+    received: int = 0
+    rejected: int = 0  # poses that failed to decode, ignored
+    xy_m: tuple[float, float] | None = None  # map frame
+
+    def distance_m(self, rsu_xy_m: tuple[float, float] | None) -> float | None:
+        """Vehicle-RSU distance in m, or None while either position is unknown."""
+        if rsu_xy_m is None or self.xy_m is None:
+            return None
+        return math.hypot(self.xy_m[0] - rsu_xy_m[0], self.xy_m[1] - rsu_xy_m[1])
+
+    def as_dict(self, rsu_xy_m: tuple[float, float] | None) -> dict[str, Any]:
+        return {"received": self.received, "rejected": self.rejected, "distance_m": self.distance_m(rsu_xy_m)}
+
+
 @dataclass(frozen=True)
 class RsuReply:
     """One RSU reply, copied out of the Zenoh callback."""
@@ -153,7 +148,7 @@ class LinkRelay:
     scheduler thread; ``ready`` is set once both sessions are open and declared.
     """
 
-    def __init__(self, config: LinkConfig, clock: Clock) -> None:
+    def __init__(self, config: LinkConfig, clock: Clock, observer: DeliveryObserver | None = None) -> None:
         self.config = config
         self.profile = load_profile(config.profile)
         self.ready = threading.Event()
@@ -163,9 +158,11 @@ class LinkRelay:
         self._uplink = DirectionStats()
         self._downlink = DirectionStats()
         self._lateness_ms = RunningStats()
+        self._position = VehiclePosition()
         self._queries: dict[int, ForwardedQuery] = {}
         self._query_ids = itertools.count()
         self._declared: list[Any] = []  # subscribers and queryables to undeclare
+        self._observer = observer  # benchmarks and tests: sees every delivery, in the scheduler thread
         self._rsu: zenoh.Session | None = None
         self._vehicle: zenoh.Session | None = None
 
@@ -179,6 +176,7 @@ class LinkRelay:
             for key in DOWNLINK_KEYS:
                 self._declared.append(self._rsu.declare_subscriber(key, self._on_rsu_sample))
             self._declared.append(self._vehicle.declare_queryable(RSU_TIME_ALL, self._on_vehicle_query))
+            self._declared.append(self._vehicle.declare_subscriber(OBU_POSE_ALL, self._on_pose_sample))
         except BaseException:
             self._close()
             raise
@@ -224,6 +222,7 @@ class LinkRelay:
             "uplink": self._uplink.as_dict(),
             "downlink": self._downlink.as_dict(),
             "lateness_ms": self._lateness_ms.as_dict(),
+            "pose": self._position.as_dict(self.config.rsu_position),
             "open_queries": len(self._queries),
         }
 
@@ -239,11 +238,37 @@ class LinkRelay:
 
         return publish
 
-    def _record_delivery(self, stats: DirectionStats, receive_ns: int, due_ns: int, fired_ns: int) -> None:
+    def _record_delivery(self, delivery: Delivery) -> None:
         """Count one delivered message: delay = fired - received, lateness = fired - due (ms)."""
+        stats = self._downlink if delivery.direction == "downlink" else self._uplink
         stats.delivered += 1
-        stats.delay_ms.add((fired_ns - receive_ns) / NS_PER_MS)
-        self._lateness_ms.add((fired_ns - due_ns) / NS_PER_MS)
+        stats.delay_ms.add((delivery.fired_ns - delivery.receive_ns) / NS_PER_MS)
+        self._lateness_ms.add((delivery.fired_ns - delivery.due_ns) / NS_PER_MS)
+        if self._observer is not None:
+            self._observer(delivery)
+
+    # ---- vehicle position: ego poses for distance-dependent channels ----------------------
+
+    def _on_pose_sample(self, sample: zenoh.Sample) -> None:
+        """Zenoh callback (vehicle side): enqueue; decoding is the scheduler thread's job."""
+        payload = sample.payload.to_bytes()
+        self._scheduler.push(self._clock.now_ns(), lambda _: self._pose_arrival(payload))
+
+    def _pose_arrival(self, payload: bytes) -> None:
+        """Keep the vehicle's position from an ego pose; an undecodable pose is counted and ignored."""
+        try:
+            pose = decode(payload, EgoPose)
+        except CodecError as exc:
+            self._position.rejected += 1
+            if self._position.rejected == 1:  # a broken publisher would flood the log at 10 Hz
+                log.warning("ignored an undecodable ego pose (%s); further ones are only counted", exc)
+            return
+        self._position.received += 1
+        self._position.xy_m = (pose.x, pose.y)
+
+    def _distance_m(self) -> float | None:
+        """Vehicle-RSU distance (m) for the channel model; None while unknown."""
+        return self._position.distance_m(self.config.rsu_position)
 
     # ---- downlink: object lists and predictions -----------------------------------------
 
@@ -256,14 +281,14 @@ class LinkRelay:
     def _sample_arrival(self, key: str, payload: bytes, encoding: zenoh.Encoding, receive_ns: int) -> None:
         """Draw the downlink fate of one sample; schedule its delivery unless lost."""
         self._downlink.received += 1
-        due_ns = self._model.downlink.transmit(receive_ns, len(payload))
+        due_ns = self._model.downlink.transmit(receive_ns, len(payload), distance_m=self._distance_m())
         if due_ns is None:
             self._downlink.dropped += 1
             return
 
         def deliver(fired_ns: int) -> None:
             self._vehicle.put(key, payload, encoding=encoding)
-            self._record_delivery(self._downlink, receive_ns, due_ns, fired_ns)
+            self._record_delivery(Delivery("downlink", key, payload, receive_ns, due_ns, fired_ns))
 
         self._scheduler.push(due_ns, deliver)
 
@@ -278,7 +303,7 @@ class LinkRelay:
         """Draw the uplink fate of a query; a lost query is dropped unanswered."""
         self._uplink.received += 1
         payload = query.payload.to_bytes() if query.payload is not None else None
-        due_ns = self._model.uplink.transmit(receive_ns, len(payload or b""))
+        due_ns = self._model.uplink.transmit(receive_ns, len(payload or b""), distance_m=self._distance_m())
         if due_ns is None:
             self._uplink.dropped += 1
             query.drop()
@@ -288,7 +313,6 @@ class LinkRelay:
         selector, encoding = str(query.selector), query.encoding
 
         def forward(fired_ns: int) -> None:
-            self._record_delivery(self._uplink, receive_ns, due_ns, fired_ns)
             handler = zenoh.handlers.Callback(
                 lambda reply: self._on_rsu_reply(query_id, reply), lambda: self._on_rsu_get_done(query_id)
             )
@@ -300,6 +324,7 @@ class LinkRelay:
                 timeout=FORWARD_TIMEOUT_S,
                 consolidation=zenoh.ConsolidationMode.NONE,
             )
+            self._record_delivery(Delivery("uplink", selector, payload, receive_ns, due_ns, fired_ns))
 
         self._scheduler.push(due_ns, forward)
 
@@ -323,7 +348,7 @@ class LinkRelay:
         if forwarded is None:
             return
         self._downlink.received += 1
-        due_ns = self._model.downlink.transmit(receive_ns, len(reply.payload))
+        due_ns = self._model.downlink.transmit(receive_ns, len(reply.payload), distance_m=self._distance_m())
         if due_ns is None:
             self._downlink.dropped += 1
             return
@@ -332,7 +357,7 @@ class LinkRelay:
         def deliver(fired_ns: int) -> None:
             try:
                 self._send_reply(forwarded.query, reply)
-                self._record_delivery(self._downlink, receive_ns, due_ns, fired_ns)
+                self._record_delivery(Delivery("downlink", reply.key or "", reply.payload, receive_ns, due_ns, fired_ns))
             finally:
                 forwarded.pending_replies -= 1
                 self._finish_if_complete(query_id)

@@ -7,7 +7,7 @@ took them (``*_time_ns``). Positions are metres in the frame named by ``frame_id
 from __future__ import annotations
 
 import math
-from typing import Annotated, ClassVar
+from typing import Annotated, ClassVar, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
@@ -273,3 +273,39 @@ class ObuMetrics(Message):
     rejected: dict[Annotated[str, Field(max_length=64)], Count] = Field(
         default_factory=dict, max_length=64
     )
+
+
+class LinkControl(Message):
+    """Runtime control of a link emulator on ``v2x/link/{link_id}/control`` (chaos tooling).
+
+    Exactly one action: ``profile`` switches to a bundled profile (names only: a remote
+    peer must not make the emulator read files), ``clear`` removes every impairment, or an
+    impairment of ``duration_s`` from its receipt: ``outage``, ``extra_delay_ms``,
+    ``loss_probability`` and/or ``bandwidth_kbps`` on ``direction``.
+    """
+
+    TYPE: ClassVar[str] = "link_control"
+    link_id: NodeId
+    seq: Seq = 0
+    profile: Annotated[str | None, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")] = None
+    clear: bool = False
+    duration_s: Annotated[float | None, Field(gt=0.0, le=86_400.0, allow_inf_nan=False)] = None
+    direction: Literal["uplink", "downlink", "both"] = "both"
+    outage: bool = False
+    extra_delay_ms: Annotated[float, Field(ge=0.0, le=600_000.0, allow_inf_nan=False)] = 0.0
+    loss_probability: Annotated[float | None, Field(ge=0.0, le=1.0, allow_inf_nan=False)] = None
+    bandwidth_kbps: Annotated[float | None, Field(gt=0.0, le=1e7, allow_inf_nan=False)] = None
+
+    @property
+    def impairs(self) -> bool:
+        return self.outage or self.extra_delay_ms > 0 or self.loss_probability is not None or self.bandwidth_kbps is not None
+
+    @model_validator(mode="after")
+    def _one_action(self) -> "LinkControl":
+        actions = [self.profile is not None, self.clear, self.impairs]
+        if sum(actions) != 1:
+            raise ValueError("exactly one action: profile, clear, or an impairment (outage / extra_delay_ms / "
+                             "loss_probability / bandwidth_kbps)")
+        if self.impairs and self.duration_s is None:
+            raise ValueError("an impairment needs duration_s")
+        return self

@@ -81,8 +81,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
     _check_inputs(args)
     if args.table:
         return cmd_tables(args)
-    run = OfflineRun(_spec(args))
-    _emit(build_report(run.spec, run.world, run.execute(), driver="eval"), args.json)
+    chaos = None
+    if args.chaos:
+        from evaluation.chaos import load_chaos
+
+        chaos = load_chaos(args.chaos)
+    from evaluation.chaos import with_chaos
+
+    run = OfflineRun(with_chaos(_spec(args), chaos), chaos=chaos)
+    report = build_report(run.spec, run.world, run.execute(), driver="eval")
+    if chaos:
+        report["chaos"] = chaos.name
+    _emit(report, args.json)
     return 0
 
 
@@ -144,6 +154,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seeds", type=int, default=5, help="with --table: seeds --seed .. --seed+N-1 (default %(default)s)")
     ev.add_argument("--report", metavar="DIR", help="with --table: write tables.md, tables.json and PNG plots here")
     ev.add_argument("--workers", type=int, default=2, help="with --table: parallel runs (default %(default)s)")
+    ev.add_argument("--chaos", metavar="FILE", help="chaos timeline YAML: timed link faults, service kills and "
+                    "restarts, an RSU clock step (see evaluation/chaos.py)")
     ev.set_defaults(func=cmd_eval)
     demo = parsers["demo"]
     demo.add_argument("--startup", type=float, default=4.0, help="seconds given to the services to start (default %(default)s)")

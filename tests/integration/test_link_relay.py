@@ -20,7 +20,9 @@ import zenoh
 
 from link_emulator.config import LinkConfig
 from link_emulator.relay import LinkRelay
-from schemas.keys import link_stats, rsu_objects, rsu_time
+from schemas.codec import encode
+from schemas.keys import link_stats, obu_pose, rsu_objects, rsu_time
+from schemas.messages import EgoPose
 from schemas.transport import free_tcp_endpoint, open_session
 from sim.clock import SystemClock
 
@@ -79,7 +81,9 @@ def sides() -> Iterator[Sides]:
 
 
 @contextmanager
-def running_relay(sides: Sides, profile: str) -> Iterator[LinkRelay]:
+def running_relay(
+    sides: Sides, profile: str, rsu_position: tuple[float, float] | None = None
+) -> Iterator[LinkRelay]:
     """A LinkRelay running in a thread for the duration of the block; always stopped."""
     config = LinkConfig(
         link_id=LINK_ID,
@@ -88,6 +92,7 @@ def running_relay(sides: Sides, profile: str) -> Iterator[LinkRelay]:
         profile=profile,
         seed=1,
         stats_period_s=0.2,
+        rsu_position=rsu_position,
     )
     relay = LinkRelay(config, SystemClock())
     stop = threading.Event()
@@ -226,3 +231,37 @@ def _put_until_relay_received(sides: Sides, profile: str, timeout_s: float = 8.0
         if _poll_stats(sides, profile, lambda s: s["downlink"]["received"] >= 1, 0.3) is not None:
             return put
     pytest.fail("the relay never received an RSU sample")
+
+
+def _put_pose_until_heard(sides: Sides, profile: str, x_m: float, y_m: float, distance_m: float) -> dict:
+    """Publish the vehicle's pose (and an undecodable one) until the relay's stats show its distance."""
+    pose = encode(EgoPose(vehicle_id="ego", t_ns=time.time_ns(), x=x_m, y=y_m))
+
+    def heard(stats: dict) -> bool:
+        return stats["pose"]["distance_m"] == pytest.approx(distance_m) and stats["pose"]["rejected"] >= 1
+
+    deadline = time.monotonic() + 8.0
+    while time.monotonic() < deadline:
+        sides.vehicle.put(obu_pose("ego"), b"not a pose")
+        sides.vehicle.put(obu_pose("ego"), pose)
+        stats = _poll_stats(sides, profile, heard, 0.3)
+        if stats is not None:
+            return stats
+    pytest.fail(f"the relay never placed the vehicle {distance_m} m from the RSU")
+
+
+def test_vehicle_pose_sets_the_distance_of_the_channel(sides: Sides, tmp_path: Path) -> None:
+    # Everything beyond 100 m is lost; the RSU stands 1 km east of the map origin.
+    profile = _write_profile(tmp_path / "ranged.yaml", "{delay_ms: 0}", "{delay_ms: 0, range_m: 100.0}")
+    with running_relay(sides, profile, rsu_position=(1000.0, 0.0)):
+        _wait_until_objects_flow(sides)  # no pose yet: the distance is unknown, nothing is lost for it
+        stats = _put_pose_until_heard(sides, "ranged", 0.0, 0.0, distance_m=1000.0)
+        dropped = stats["downlink"]["dropped"]
+        for i in range(5):
+            sides.rsu.put(rsu_objects(RSU_ID), b"out-of-range-%d" % i)
+        assert _wait_for_payload(sides.objects, b"out-of-range-4", 0.5) is None
+        stats = _put_pose_until_heard(sides, "ranged", 990.0, 0.0, distance_m=10.0)
+        assert stats["downlink"]["dropped"] == dropped + 5
+        assert stats["pose"]["received"] >= 2
+        sides.rsu.put(rsu_objects(RSU_ID), b"in-range")
+        assert _wait_for_payload(sides.objects, b"in-range", 2.0) is not None

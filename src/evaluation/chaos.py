@@ -1,0 +1,182 @@
+"""Chaos timelines: timed faults for a live demo (``v2i chaos run``) or an offline run
+(``v2i eval --chaos``). Pure: a YAML file becomes a validated, time-ordered list of events.
+
+    name: tunnel
+    events:
+      - {at_s: 8, outage: {duration_s: 10}}                        # link down both ways
+      - {at_s: 2, profile: dsrc}                                   # switch the link profile
+      - {at_s: 4, delay_spike: {duration_s: 2, extra_ms: 300, direction: downlink}}
+      - {at_s: 5, loss_burst: {duration_s: 1, loss_probability: 0.5}}
+      - {at_s: 6, bandwidth_cap: {duration_s: 3, kbps: 64}}
+      - {at_s: 15, rsu_clock_step: {step_ms: 500}}                 # at most one per timeline
+      - {at_s: 20, kill: link}                                     # SIGKILL the service ...
+      - {at_s: 23, restart: link}                                  # ... and start it again
+
+Times are scenario seconds. Link events become ``LinkControl`` messages, applied by the
+same ``link_emulator.control.apply_control`` live and offline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from schemas.config import ConfigError
+from schemas.messages import LinkControl
+
+from .spec import RunSpec
+
+SERVICES = ("link", "rsu")  # what a timeline may kill and restart (the OBU is the system under test)
+Direction = Literal["uplink", "downlink", "both"]
+_STRICT = ConfigDict(frozen=True, extra="forbid")
+
+
+class ChaosError(ConfigError):
+    """A chaos timeline that cannot be read; the message names the file and the bad field."""
+
+
+class Outage(BaseModel):
+    model_config = _STRICT
+    duration_s: float = Field(gt=0)
+    direction: Direction = "both"
+
+
+class DelaySpike(BaseModel):
+    model_config = _STRICT
+    duration_s: float = Field(gt=0)
+    extra_ms: float = Field(gt=0, le=600_000)
+    direction: Direction = "both"
+
+
+class LossBurst(BaseModel):
+    model_config = _STRICT
+    duration_s: float = Field(gt=0)
+    loss_probability: float = Field(ge=0, le=1)
+    direction: Direction = "both"
+
+
+class BandwidthCap(BaseModel):
+    model_config = _STRICT
+    duration_s: float = Field(gt=0)
+    kbps: float = Field(gt=0)
+    direction: Direction = "both"
+
+
+class ClockStep(BaseModel):
+    model_config = _STRICT
+    step_ms: float = Field(ge=-86_400_000, le=86_400_000)
+
+
+class ChaosEvent(BaseModel):
+    """One fault at ``at_s``: exactly one of the action fields."""
+
+    model_config = _STRICT
+    at_s: float = Field(ge=0)
+    profile: str | None = None
+    outage: Outage | None = None
+    delay_spike: DelaySpike | None = None
+    loss_burst: LossBurst | None = None
+    bandwidth_cap: BandwidthCap | None = None
+    rsu_clock_step: ClockStep | None = None
+    kill: Literal["link", "rsu"] | None = None
+    restart: Literal["link", "rsu"] | None = None
+
+    @model_validator(mode="after")
+    def _one_action(self) -> "ChaosEvent":
+        actions = [n for n in ChaosEvent.model_fields if n != "at_s" and getattr(self, n) is not None]
+        if len(actions) != 1:
+            raise ValueError(f"an event has exactly one action, got {actions or 'none'}")
+        return self
+
+    def link_control(self, link_id: str) -> LinkControl | None:
+        """The LinkControl message of a link event; None for service and clock events."""
+        if self.profile is not None:
+            return LinkControl(link_id=link_id, profile=self.profile)
+        if self.outage:
+            return LinkControl(link_id=link_id, duration_s=self.outage.duration_s, direction=self.outage.direction,
+                               outage=True)
+        if self.delay_spike:
+            d = self.delay_spike
+            return LinkControl(link_id=link_id, duration_s=d.duration_s, direction=d.direction, extra_delay_ms=d.extra_ms)
+        if self.loss_burst:
+            b = self.loss_burst
+            return LinkControl(link_id=link_id, duration_s=b.duration_s, direction=b.direction,
+                               loss_probability=b.loss_probability)
+        if self.bandwidth_cap:
+            c = self.bandwidth_cap
+            return LinkControl(link_id=link_id, duration_s=c.duration_s, direction=c.direction, bandwidth_kbps=c.kbps)
+        return None
+
+
+class ChaosTimeline(BaseModel):
+    model_config = _STRICT
+    name: str = Field(min_length=1)
+    description: str = ""
+    events: list[ChaosEvent] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "ChaosTimeline":
+        if sum(e.rsu_clock_step is not None for e in self.events) > 1:
+            raise ValueError("at most one rsu_clock_step per timeline")
+        down: set[str] = set()
+        for e in self.sorted_events():
+            if e.kill:
+                if e.kill in down:
+                    raise ValueError(f"kill {e.kill} at {e.at_s} s: it is already down")
+                down.add(e.kill)
+            if e.restart:
+                if e.restart not in down:
+                    raise ValueError(f"restart {e.restart} at {e.at_s} s: it was not killed before")
+                down.discard(e.restart)
+        return self
+
+    def sorted_events(self) -> list[ChaosEvent]:
+        """Events by time; simultaneous ones in file order."""
+        return sorted(self.events, key=lambda e: e.at_s)
+
+    def clock_step(self) -> tuple[float, float] | None:
+        """(at_s, step_ms) of the RSU clock step, if the timeline has one."""
+        steps = [(e.at_s, e.rsu_clock_step.step_ms) for e in self.events if e.rsu_clock_step]
+        return steps[0] if steps else None
+
+    def down_windows(self, service: str, end_s: float) -> list[tuple[float, float]]:
+        """[(kill_s, restart_s)] of a service; a service never restarted is down until ``end_s``."""
+        windows, since = [], None
+        for e in self.sorted_events():
+            if e.kill == service:
+                since = e.at_s
+            elif e.restart == service and since is not None:
+                windows.append((since, e.at_s))
+                since = None
+        return windows + ([(since, end_s)] if since is not None else [])
+
+
+def load_chaos(path: str | Path) -> ChaosTimeline:
+    """A validated timeline from a YAML file; ChaosError naming the file and field otherwise."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ChaosError(f"cannot read chaos timeline {path}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ChaosError(f"chaos timeline {path} is not valid YAML: {exc}") from None
+    try:
+        return ChaosTimeline.model_validate(data)
+    except ValidationError as exc:
+        first = exc.errors(include_url=False)[0]
+        where = ".".join(str(p) for p in first["loc"]) or "<file>"
+        raise ChaosError(f"chaos timeline {path}: {where}: {first['msg']}") from None
+
+
+def with_chaos(spec: RunSpec, chaos: ChaosTimeline | None) -> RunSpec:
+    """``spec`` with the timeline's RSU clock step (the RSU's clock is injected truth, set at start)."""
+    step = chaos.clock_step() if chaos else None
+    if step is None:
+        return spec
+    if spec.rsu_clock_step_at_s is not None:
+        raise ChaosError("the chaos timeline has an rsu_clock_step and --rsu-clock-step-at-s is set too: use one")
+    return replace(spec, rsu_clock_step_at_s=step[0], rsu_clock_step_ms=step[1])

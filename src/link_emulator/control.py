@@ -1,0 +1,32 @@
+"""Runtime control of a link model (pure): what a LinkControl message does at a given time."""
+
+from __future__ import annotations
+
+from schemas.messages import LinkControl
+
+from .channel import LinkModel
+from .profile import bundled_profiles, load_profile
+
+
+def apply_control(model: LinkModel, control: LinkControl, now_ns: int) -> str:
+    """Apply ``control`` to ``model`` as of ``now_ns``; returns a one-line description.
+
+    Raises ValueError for a profile that is not bundled (nothing is changed then).
+    """
+    if control.profile is not None:
+        if control.profile not in bundled_profiles():
+            raise ValueError(f"unknown profile {control.profile!r}; bundled: {', '.join(bundled_profiles())}")
+        model.switch_profile(load_profile(control.profile))
+        return f"profile switched to {control.profile}"
+    if control.clear:
+        model.clear_impairments()
+        return "impairments cleared"
+    end_ns = now_ns + round(control.duration_s * 1e9)
+    model.add_impairment(now_ns, end_ns, control.direction, outage=control.outage,
+                         extra_delay_ms=control.extra_delay_ms, loss_probability=control.loss_probability,
+                         bandwidth_kbps=control.bandwidth_kbps)
+    effects = (["outage"] if control.outage else []) + \
+        ([f"+{control.extra_delay_ms:g} ms"] if control.extra_delay_ms else []) + \
+        ([f"loss {control.loss_probability:g}"] if control.loss_probability is not None else []) + \
+        ([f"{control.bandwidth_kbps:g} kbit/s"] if control.bandwidth_kbps is not None else [])
+    return f"{', '.join(effects)} on {control.direction} for {control.duration_s:g} s"

@@ -1,0 +1,172 @@
+"""RSU, link emulator and OBU on three "hosts": network namespaces joined by veth pairs.
+
+The same topology as ``deploy/netns/run.sh``, with namespace names unique to this run:
+
+    rsu 10.10.1.1 <-veth-> 10.10.1.2 link 10.10.2.1 <-veth-> 10.10.2.2 obu
+
+Nothing routes between the two subnets and loopback is down in the RSU and link
+namespaces, so the services can only meet through the link emulator on real (virtual)
+interfaces. A watcher inside the OBU namespace, a local consumer on the vehicle "host",
+waits for fused lists holding RSU objects: only there is loopback up, because traffic to a
+namespace's own address (the OBU's 10.10.2.2) goes through its ``lo``. Needs root and
+iproute2; skipped, with the reason, elsewhere.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import astuple, dataclass
+from pathlib import Path
+
+import pytest
+
+from evaluation.demo import Child
+from sim.scenario import load_scenario
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
+
+RSU_ADDR, LINK_RSU_ADDR, LINK_OBU_ADDR, OBU_ADDR = "10.10.1.1", "10.10.1.2", "10.10.2.1", "10.10.2.2"
+RSU_PORT, OBU_PORT = 7447, 7448
+RSU_EP, OBU_EP = f"tcp/{RSU_ADDR}:{RSU_PORT}", f"tcp/{OBU_ADDR}:{OBU_PORT}"
+WATCHER = Path(__file__).resolve().parents[2] / "deploy" / "netns" / "watch_fused.py"
+SCENARIO = "red-light-runner"
+STARTUP_S = 5.0  # scenario time zero this far ahead: three interpreters start on two cores
+RUN_S = 20.0  # scenario seconds the services would run; they are stopped as soon as the check passes
+MIN_RSU_LISTS = 3
+WATCH_TIMEOUT_S = 15.0
+
+
+@dataclass(frozen=True)
+class Topology:
+    """Namespace names of this run."""
+
+    rsu: str
+    link: str
+    obu: str
+
+
+def _ip(*args: str) -> None:
+    """Run ``ip ARGS``; RuntimeError naming the command and its stderr on failure."""
+    result = subprocess.run(["ip", *args], check=False, capture_output=True, text=True, timeout=10)
+    if result.returncode != 0:
+        raise RuntimeError(f"ip {' '.join(args)}: {result.stderr.strip()}")
+
+
+def _netns_unavailable() -> str | None:
+    """Why network namespaces cannot be used here, or None when they can."""
+    if not sys.platform.startswith("linux"):
+        return "network namespaces are Linux-only"
+    if os.geteuid() != 0:
+        return "creating network namespaces needs root"
+    if shutil.which("ip") is None:
+        return "iproute2's `ip` is not installed"
+    probe = f"v2it-probe-{secrets.token_hex(3)}"
+    try:
+        _ip("netns", "add", probe)
+    except RuntimeError as exc:
+        return f"`ip netns add` fails here: {exc}"
+    _ip("netns", "del", probe)
+    return None
+
+
+def _join(a_if: str, a_ns: str, a_addr: str, b_if: str, b_ns: str, b_addr: str) -> None:
+    """A veth pair between two namespaces, one /24 address on each end, both up."""
+    _ip("link", "add", a_if, "type", "veth", "peer", "name", b_if)
+    for ifname, ns, addr in ((a_if, a_ns, a_addr), (b_if, b_ns, b_addr)):
+        _ip("link", "set", ifname, "netns", ns)
+        _ip("-n", ns, "addr", "add", f"{addr}/24", "dev", ifname)
+        _ip("-n", ns, "link", "set", ifname, "up")
+
+
+@pytest.fixture
+def topology() -> Iterator[Topology]:
+    """Three fresh namespaces joined rsu <-> link <-> obu; deleted afterwards, whatever happens."""
+    reason = _netns_unavailable()
+    if reason is not None:
+        pytest.skip(reason)
+    token = secrets.token_hex(3)
+    topo = Topology(f"v2it-{token}-rsu", f"v2it-{token}-link", f"v2it-{token}-obu")
+    veths = (f"v{token}a", f"v{token}b", f"v{token}c", f"v{token}d")  # <= 15 characters
+    created: list[str] = []
+    try:
+        for ns in astuple(topo):
+            _ip("netns", "add", ns)
+            created.append(ns)
+        _join(veths[0], topo.rsu, RSU_ADDR, veths[1], topo.link, LINK_RSU_ADDR)
+        _join(veths[2], topo.link, LINK_OBU_ADDR, veths[3], topo.obu, OBU_ADDR)
+        _ip("-n", topo.obu, "link", "set", "lo", "up")  # for the watcher only, see the module docstring
+        yield topo
+    finally:
+        for ns in created:
+            subprocess.run(["ip", "netns", "del", ns], check=False, capture_output=True, timeout=10)
+        for ifname in veths[::2]:  # a pair left in the root namespace by an aborted set-up
+            subprocess.run(["ip", "link", "del", ifname], check=False, capture_output=True, timeout=10)
+
+
+def _in(ns: str, *argv: str) -> list[str]:
+    """``argv`` run by this interpreter inside namespace ``ns`` (ip execs it: same pid)."""
+    return ["ip", "netns", "exec", ns, sys.executable, *argv]
+
+
+def _can_connect(ns: str, addr: str, port: int) -> bool:
+    """Whether a TCP connection from namespace ``ns`` to ``addr:port`` succeeds."""
+    code = f"import socket; socket.create_connection(({addr!r}, {port}), timeout=1.0).close()"
+    return subprocess.run(_in(ns, "-c", code), check=False, capture_output=True, timeout=10).returncode == 0
+
+
+def _link_config(folder: Path) -> Path:
+    """LinkConfig YAML with the scenario's RSU position (JSON is YAML)."""
+    position = load_scenario(SCENARIO).rsu.position
+    path = folder / "link.yaml"
+    path.write_text(json.dumps({"rsu_position": [position.x, position.y]}))
+    return path
+
+
+def _start_services(topo: Topology, link_config: Path, children: dict[str, Child]) -> None:
+    """RSU, OBU and link emulator in their namespaces with a common scenario start time."""
+    start_ns = time.time_ns() + round(STARTUP_S * 1e9)
+    common = ["--scenario", SCENARIO, "--seed", "0", "--start-at-ns", str(start_ns), "--duration", str(RUN_S)]
+    children["rsu"] = Child("rsu", _in(topo.rsu, "-m", "v2i", "rsu", "--listen", RSU_EP, *common))
+    children["obu"] = Child("obu", _in(topo.obu, "-m", "v2i", "obu", "--listen", OBU_EP, *common))
+    children["link"] = Child("link", _in(topo.link, "-m", "v2i", "link", "--config", str(link_config),
+                                         "--rsu-connect", RSU_EP, "--vehicle-connect", OBU_EP, "--profile", "lte-v2x"))
+    deadline = time.monotonic() + STARTUP_S + 5.0
+    for child in children.values():
+        child.wait_ready(deadline)
+
+
+def _watch_fused(topo: Topology) -> tuple[int, list[dict]]:
+    """Exit status and JSON lines of the fused-output watcher run inside the OBU namespace."""
+    argv = _in(topo.obu, str(WATCHER), "--connect", OBU_EP, "--min-rsu-lists", str(MIN_RSU_LISTS), "--timeout-s", str(STARTUP_S + WATCH_TIMEOUT_S))
+    watcher = subprocess.Popen(argv, stdout=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        out, _ = watcher.communicate(timeout=STARTUP_S + WATCH_TIMEOUT_S + 10.0)
+    finally:
+        if watcher.poll() is None:
+            watcher.kill()
+            watcher.wait()
+    return watcher.returncode, [json.loads(line) for line in out.splitlines() if line.strip()]
+
+
+def test_fused_output_crosses_three_namespaces(topology: Topology, tmp_path: Path) -> None:
+    children: dict[str, Child] = {}
+    try:
+        _start_services(topology, _link_config(tmp_path), children)
+        # The OBU is reachable from the link's namespace, and not from the RSU's: no bypass.
+        assert _can_connect(topology.link, OBU_ADDR, OBU_PORT)
+        assert not _can_connect(topology.rsu, OBU_ADDR, OBU_PORT)
+        code, lines = _watch_fused(topology)
+        done = lines[-1] if lines else {}
+        assert code == 0 and done.get("lists_with_rsu_objects", 0) >= MIN_RSU_LISTS, f"watcher said {lines}"
+        for name, child in children.items():
+            assert child.proc.poll() is None, f"{name} exited with {child.proc.returncode}"
+    finally:
+        for child in children.values():
+            child.stop()
