@@ -25,6 +25,7 @@ class RunSpec:
     fusion: str = "kf"
     compensation: str = "predict"
     fusion_mode: str = "adaptive"
+    inter_max_age_s: float = 0.6  # inter-frame fusion uses RSU data up to this old (seed 003)
     seed: int = 0
     duration_s: float | None = None  # default: the scenario's
     rsu_clock_offset_ms: float = 0.0
@@ -43,7 +44,8 @@ class RunSpec:
     def obu_config(self, **fields) -> ObuConfig:
         """The OBU service configuration this run implies."""
         return ObuConfig(fusion=self.fusion, compensation=self.compensation, fusion_mode=self.fusion_mode,
-                         deadline_ms=self.deadline_ms, seed=self.seed, scenario=self.scenario, **fields)
+                         inter_max_age_s=self.inter_max_age_s, deadline_ms=self.deadline_ms, seed=self.seed,
+                         scenario=self.scenario, **fields)
 
 
 @dataclass
