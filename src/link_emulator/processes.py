@@ -104,7 +104,7 @@ class OutageTimeline:
     def __init__(self, spec: OutageSpec, rng: np.random.Generator) -> None:
         self.spec = spec
         self._rng = rng
-        self._fixed = _merge([(a * NS_PER_S, b * NS_PER_S) for a, b in spec.windows_s])
+        self._fixed = merge_windows([(a * NS_PER_S, b * NS_PER_S) for a, b in spec.windows_s])
         self._random_starts = np.empty(0)
         self._random_ends = np.empty(0)
         self._random_until_ns = 0.0  # end of the last generated window
@@ -130,7 +130,7 @@ class OutageTimeline:
             self._random_until_ns = float(ends[-1])
 
 
-def _merge(windows: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+def merge_windows(windows: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
     """Sorted windows with overlaps merged, as (starts, ends) arrays."""
     merged: list[list[float]] = []
     for start, end in sorted(windows):

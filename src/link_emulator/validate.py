@@ -28,7 +28,7 @@ import numpy as np
 from scipy.stats import ks_2samp
 
 from .channel import NS_PER_MS, Channel
-from .processes import GilbertElliott
+from .processes import GilbertElliott, merge_windows
 from .profile import DirectionProfile
 from .trace import load_trace, mean_run_length
 
@@ -142,20 +142,10 @@ def down_fraction(direction: DirectionProfile, settings: Settings) -> float:
     if spec is None or spec.mode != "drop":
         return 0.0
     span_s = settings.samples * settings.interval_ms / 1000.0
-    scheduled_s = sum(max(0.0, min(end, span_s) - start) for start, end in _union(spec.windows_s))
+    scheduled_s = sum(max(0.0, min(end, span_s) - start) for start, end in _union(list(spec.windows_s)))
     random_f = spec.random_down_fraction()
     # independent scheduled and random windows: P(up) = P(up scheduled) P(up random)
     return 1.0 - (1.0 - scheduled_s / span_s) * (1.0 - random_f)
-
-
-def _union(windows: list[tuple[float, float]]) -> list[tuple[float, float]]:
-    merged: list[list[float]] = []
-    for start, end in sorted(windows):
-        if merged and start <= merged[-1][1]:
-            merged[-1][1] = max(merged[-1][1], end)
-        else:
-            merged.append([start, end])
-    return [(a, b) for a, b in merged]
 
 
 def declared_loss(direction: DirectionProfile, settings: Settings) -> tuple[float, float, str]:
@@ -237,6 +227,11 @@ def _outage_windows_s(direction: DirectionProfile, horizon_s: float, rng: np.ran
             t_s = start_s + rng.uniform(*spec.duration_s)
             windows.append((start_s, t_s))
     return _union(windows)
+
+
+def _union(windows: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Overlapping windows merged, sorted."""
+    return list(zip(*merge_windows(windows))) if windows else []
 
 
 def _in_windows(t_s: np.ndarray, windows: list[tuple[float, float]]) -> np.ndarray:

@@ -2,20 +2,23 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, field_validator, model_validator
 
 from schemas.config import ServiceConfig
 from schemas.keys import check_id
 
+from .methods import check_fusion
 from .pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES, ObuPipelineConfig
 
 
 class ObuConfig(ServiceConfig):
     vehicle_id: str = "ego"
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7448"])
-    fusion: str = "kf"
-    compensation: str = "predict"
-    fusion_mode: str = Field("adaptive", description="adaptive | intra | inter | planning | vehicle-only (seed 003)")
+    fusion: Literal[FUSION_METHODS] = "kf"
+    compensation: Literal[COMPENSATIONS] = "predict"
+    fusion_mode: Literal[FUSION_MODES] = Field("adaptive", description="which RSU data a cycle fuses (seed 003)")
     iou_threshold: float = Field(0.1, gt=0, le=1)
     inter_max_age_s: float = Field(0.6, gt=0, le=30, description="inter-frame fusion uses RSU data up to this old")
     planning_max_age_s: float = Field(5.0, gt=0, le=60, description="planning fusion uses RSU paths up to this old")
@@ -30,31 +33,9 @@ class ObuConfig(ServiceConfig):
     def _valid_id(cls, v: str) -> str:
         return check_id(v)
 
-    @field_validator("fusion")
-    @classmethod
-    def _valid_fusion(cls, v: str) -> str:
-        if v not in FUSION_METHODS:
-            raise ValueError(f"must be one of {FUSION_METHODS}")
-        return v
-
-    @field_validator("fusion_mode")
-    @classmethod
-    def _valid_mode(cls, v: str) -> str:
-        if v not in FUSION_MODES:
-            raise ValueError(f"must be one of {FUSION_MODES}")
-        return v
-
-    @field_validator("compensation")
-    @classmethod
-    def _valid_compensation(cls, v: str) -> str:
-        if v not in COMPENSATIONS:
-            raise ValueError(f"must be one of {COMPENSATIONS}")
-        return v
-
     @model_validator(mode="after")
-    def _oosm_needs_kf(self) -> "ObuConfig":
-        if self.compensation == "oosm" and not self.fusion.startswith("kf"):
-            raise ValueError("compensation 'oosm' re-runs a filter: use it with fusion 'kf'")
+    def _method_fits_compensation(self) -> "ObuConfig":
+        check_fusion(self.fusion, self.compensation)
         return self
 
     @model_validator(mode="after")
