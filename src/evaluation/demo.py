@@ -4,10 +4,17 @@ The orchestrator picks free ports, starts RSU, OBU and link emulator with a comm
 scenario start time a few seconds ahead, watches the OBU's output through its own
 Zenoh session, and scores it with the same code as the offline runner. Ctrl-C or any
 child that dies stops everything; only the processes started here are ended, by pid.
+
+A chaos timeline (``v2i chaos run``, ``evaluation.chaos``) is played at scenario time:
+link events go as ``LinkControl`` messages to the emulator's control endpoint (a free port
+given to it as ``--control-listen``), ``kill`` / ``restart`` SIGKILL a child and start it
+again with the same argv; the RSU clock step is in the RSU's start flags. ``--kill-link-at``
+is a generated timeline (kill, restart).
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import queue
 import signal
@@ -22,17 +29,22 @@ from pathlib import Path
 from obu_service.fusion_mode import MODES
 from obu_service.source import SimulatedVehicle
 from schemas import keys
-from schemas.codec import CodecError, decode
-from schemas.messages import FusedObjectList, ObuMetrics, PredictionList
+from schemas.codec import CodecError, decode, encode
+from schemas.messages import FusedObjectList, LinkControl, ObuMetrics, PredictionList
 from schemas.runtime import log
 from schemas.transport import free_tcp_endpoint, open_session
 from sim.scenario import load_scenario
 from sim.world import World
 
+from .chaos import ChaosEvent, ChaosTimeline
 from .spec import RunRecord, RunSpec, build_report
 
-
 TRACKING_MODES = ("intra", "inter")  # the modes that feed RSU data to the tracker
+LINK_ID = "link1"
+RESTART_READY_S = 10.0  # a restarted child must be ready within this
+CONTROL_MATCH_S = 3.0  # how long a link control waits for the emulator's control subscriber
+POLL_S = 0.02  # supervisor period: chaos events fire within this of their time
+MODE_RUNS_SHOWN = 6  # mode changes printed per chaos event
 
 
 class DemoError(RuntimeError):
@@ -46,6 +58,11 @@ class LinkOutage:
     at_s: float
     down_s: float
 
+    def timeline(self) -> ChaosTimeline:
+        """The same fault as a chaos timeline: kill the link, restart it ``down_s`` later."""
+        return ChaosTimeline(name="kill-link", events=[ChaosEvent(at_s=self.at_s, kill="link"),
+                                                       ChaosEvent(at_s=self.at_s + self.down_s, restart="link")])
+
 
 class Child:
     """One service process; its stdout lines are read by a thread into a queue."""
@@ -53,6 +70,7 @@ class Child:
     def __init__(self, name: str, argv: list[str]):
         self.name, self.argv = name, argv
         self.lines: queue.Queue[str] = queue.Queue()
+        self.ready = False
         self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, text=True, start_new_session=True)
         threading.Thread(target=self._read, daemon=True).start()
 
@@ -60,15 +78,21 @@ class Child:
         for line in self.proc.stdout:
             self.lines.put(line)
 
-    def wait_ready(self, deadline: float) -> None:
-        while time.monotonic() < deadline:
+    def poll_ready(self, timeout_s: float = 0.0) -> bool:
+        """True once the child printed its ready line; waits at most ``timeout_s`` for a line."""
+        while not self.ready:
             if self.proc.poll() is not None:
                 raise DemoError(f"{self.name} exited with code {self.proc.returncode} before it was ready")
             try:
-                line = self.lines.get(timeout=0.05)
+                line = self.lines.get(timeout=timeout_s) if timeout_s > 0 else self.lines.get_nowait()
             except queue.Empty:
-                continue
-            if json.loads(line).get("event") == "ready":
+                return False
+            self.ready = json.loads(line).get("event") == "ready"
+        return True
+
+    def wait_ready(self, deadline: float) -> None:
+        while time.monotonic() < deadline:
+            if self.poll_ready(timeout_s=0.05):
                 return
         raise DemoError(f"{self.name} was not ready in time (raise --startup)")
 
@@ -82,17 +106,89 @@ class Child:
                 self.proc.wait()
 
 
+class ControlChannel:
+    """The demo's Zenoh session to the link emulator's control endpoint.
+
+    Re-opened after the emulator restarts (a session's own reconnection backs off for
+    seconds). Sends never block the supervisor for more than ``CONTROL_MATCH_S``; what the
+    emulator did with each message comes back in its stats (``control.recent``), kept here.
+    """
+
+    def __init__(self, endpoint: str, link_id: str):
+        self.endpoint, self.link_id = endpoint, link_id
+        self.outcomes: dict[int, dict] = {}  # seq -> the emulator's outcome ({"result"} or {"rejected", "error"})
+        self._seq = itertools.count(1)
+        self._session = self._publisher = self._subscriber = None
+
+    def open(self, timeout_s: float = CONTROL_MATCH_S) -> bool:
+        """(Re-)connect; True once the emulator's control subscriber is matched."""
+        self.close()
+        self._session = open_session(connect=[self.endpoint])
+        self._subscriber = self._session.declare_subscriber(keys.link_stats(self.link_id), self._on_stats)
+        self._publisher = self._session.declare_publisher(keys.link_control(self.link_id))
+        deadline = time.monotonic() + timeout_s
+        while not self._publisher.matching_status.matching:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+        return True
+
+    def send(self, control: LinkControl) -> int | None:
+        """Put ``control`` with a fresh seq; the seq, or None when the emulator is unreachable."""
+        matched = self._publisher is not None and self._publisher.matching_status.matching
+        if not matched and not self.open():
+            return None
+        seq = next(self._seq)
+        self._publisher.put(encode(control.model_copy(update={"seq": seq})))
+        return seq
+
+    def _on_stats(self, sample) -> None:
+        try:
+            recent = json.loads(sample.payload.to_bytes())["control"]["recent"]
+        except (ValueError, KeyError, TypeError):
+            return
+        for outcome in recent:
+            if isinstance(outcome.get("seq"), int):
+                self.outcomes[outcome["seq"]] = outcome
+
+    def close(self) -> None:
+        for declared in (self._publisher, self._subscriber):
+            if declared is not None:
+                declared.undeclare()
+        if self._session is not None:
+            self._session.close()
+        self._session = self._publisher = self._subscriber = None
+
+
+@dataclass
+class PlayedEvent:
+    """A chaos event as played: when it fired (scenario s) and, for a link event, its control seq."""
+
+    event: ChaosEvent
+    fired_s: float
+    seq: int | None = None
+
+
 class Demo:
-    def __init__(self, spec: RunSpec, startup_s: float = 4.0, outage: LinkOutage | None = None):
+    def __init__(self, spec: RunSpec, startup_s: float = 4.0, outage: LinkOutage | None = None,
+                 chaos: ChaosTimeline | None = None):
+        """``chaos``: a timeline to play; its RSU clock step must already be in ``spec`` (``with_chaos``).
+        ``outage`` (``--kill-link-at``) is played as its generated timeline; not with ``chaos``."""
+        if outage is not None and chaos is not None:
+            raise ValueError("a link outage and a chaos timeline together: put the kill and restart in the timeline")
         self.spec = spec
         self.world = World(load_scenario(spec.scenario))
         self.duration_s = spec.duration_s or self.world.scenario.duration_s
         self.startup_s = startup_s
         self.outage = outage
-        self.rsu_ep, self.obu_ep = free_tcp_endpoint(), free_tcp_endpoint()
+        self.chaos = outage.timeline() if outage else chaos
+        self.rsu_ep, self.obu_ep, self.control_ep = free_tcp_endpoint(), free_tcp_endpoint(), free_tcp_endpoint()
         self.children: dict[str, Child] = {}
+        self.played: list[PlayedEvent] = []
         self._received: list[tuple[str, bytes, int]] = []
-        self._link_down = False
+        self._down: set[str] = set()  # services killed on purpose and not yet restarted
+        self._restarting: dict[str, float] = {}  # service -> monotonic deadline of its ready line
+        self._control = ControlChannel(self.control_ep, LINK_ID)
         self._tmp = tempfile.TemporaryDirectory(prefix="v2i-demo-")
         self.link_config = self._write_link_config(Path(self._tmp.name))
 
@@ -105,26 +201,38 @@ class Demo:
 
     def run(self) -> dict:
         start_ns = time.time_ns() + round(self.startup_s * 1e9)
-        monitor = open_session(connect=[self.obu_ep])
-        vid = self.spec.obu_config().vehicle_id
-        subs = [monitor.declare_subscriber(keys.obu_objects(vid), lambda s: self._keep("objects", s)),
-                monitor.declare_subscriber(keys.obu_metrics(vid), lambda s: self._keep("metrics", s)),
-                monitor.declare_subscriber(keys.obu_planning(vid), lambda s: self._keep("planning", s))]
+        monitor, subs = None, []
         try:
             for name in ("rsu", "obu", "link"):
                 self.children[name] = Child(name, self._argv(name, start_ns))
             deadline = time.monotonic() + (start_ns - time.time_ns()) * 1e-9
             for child in self.children.values():
                 child.wait_ready(deadline)
+            # Connect once the OBU listens: a session whose first attempt fails retries only after 1, 2, 4 s.
+            monitor = open_session(connect=[self.obu_ep])
+            vid = self.spec.obu_config().vehicle_id
+            subs = [monitor.declare_subscriber(keys.obu_objects(vid), lambda s: self._keep("objects", s)),
+                    monitor.declare_subscriber(keys.obu_metrics(vid), lambda s: self._keep("metrics", s)),
+                    monitor.declare_subscriber(keys.obu_planning(vid), lambda s: self._keep("planning", s))]
+            if not list(monitor.info.peers_zid()):
+                raise DemoError(f"cannot connect to the OBU at {self.obu_ep}")
+            if self._has_link_controls():
+                log("demo", f"link control endpoint {self.control_ep} (v2i link set --connect {self.control_ep})")
+                self._control.open()
             self._supervise(start_ns)
         finally:
             for child in self.children.values():
                 child.stop()
+            self._control.close()
             for sub in subs:
                 sub.undeclare()
-            monitor.close()
+            if monitor is not None:
+                monitor.close()
             self._tmp.cleanup()
         return self._report(start_ns)
+
+    def _has_link_controls(self) -> bool:
+        return self.chaos is not None and any(e.link_control(LINK_ID) is not None for e in self.chaos.events)
 
     def _argv(self, name: str, start_ns: int) -> list[str]:
         s, base = self.spec, [sys.executable, "-m", "v2i", name]
@@ -139,37 +247,72 @@ class Demo:
         if name == "obu":
             return base + ["--listen", self.obu_ep, *common, "--fusion", s.fusion, "--compensation", s.compensation,
                            "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms)]
-        return base + ["--config", str(self.link_config), "--rsu-connect", self.rsu_ep, "--vehicle-connect",
-                       self.obu_ep, "--profile", s.profile, "--seed", str(s.seed)]
+        return base + ["--config", str(self.link_config), "--link-id", LINK_ID, "--rsu-connect", self.rsu_ep,
+                       "--vehicle-connect", self.obu_ep, "--control-listen", self.control_ep,
+                       "--profile", s.profile, "--seed", str(s.seed)]
 
     def _keep(self, kind: str, sample) -> None:
         self._received.append((kind, sample.payload.to_bytes(), time.time_ns()))
 
     def _supervise(self, start_ns: int) -> None:
-        """Watch the children until the run ends; play the link outage if one is asked for."""
+        """Watch the children until the run ends, playing the chaos timeline at scenario time."""
         end_ns = start_ns + round((self.duration_s + 0.5) * 1e9)
-        chaos = []
-        if self.outage:
-            kill_ns = start_ns + round(self.outage.at_s * 1e9)
-            chaos = [(kill_ns, self._kill_link), (kill_ns + round(self.outage.down_s * 1e9), self._restart_link)]
-        while time.time_ns() < end_ns:
-            for name, child in self.children.items():
-                if child.proc.poll() is not None and not (name == "link" and self._link_down):
-                    raise DemoError(f"{name} exited with code {child.proc.returncode} during the run")
-            while chaos and time.time_ns() >= chaos[0][0]:
-                chaos.pop(0)[1](start_ns)
-            time.sleep(0.02)
+        plan = [(start_ns + round(e.at_s * 1e9), e) for e in (self.chaos.sorted_events() if self.chaos else [])]
+        while (now_ns := time.time_ns()) < end_ns:
+            self._check_children()
+            while plan and now_ns >= plan[0][0]:
+                self._play(plan.pop(0)[1], start_ns)
+            next_ns = min(plan[0][0] if plan else end_ns, end_ns)
+            time.sleep(min(POLL_S, max(next_ns - time.time_ns(), 0) * 1e-9))
 
-    def _kill_link(self, _start_ns: int) -> None:
-        log("demo", f"chaos: killing the link emulator (pid {self.children['link'].proc.pid})")
-        self._link_down = True
-        self.children["link"].stop(signal.SIGKILL)
+    def _check_children(self) -> None:
+        """A child that died while meant to be up ends the demo; restarted ones must become ready."""
+        for name, child in self.children.items():
+            if name in self._down:
+                continue
+            if name in self._restarting:
+                if child.poll_ready():
+                    del self._restarting[name]
+                    log("demo", f"chaos: {name} is back (pid {child.proc.pid})")
+                    if name == "link" and self._has_link_controls():
+                        self._control.open()
+                elif time.monotonic() > self._restarting[name]:
+                    raise DemoError(f"{name} was not ready {RESTART_READY_S:g} s after its restart")
+            elif child.proc.poll() is not None:
+                raise DemoError(f"{name} exited with code {child.proc.returncode} during the run")
 
-    def _restart_link(self, start_ns: int) -> None:
-        log("demo", "chaos: restarting the link emulator")
-        self.children["link"] = Child("link", self._argv("link", start_ns))
-        self.children["link"].wait_ready(time.monotonic() + 10.0)
-        self._link_down = False
+    def _play(self, event: ChaosEvent, start_ns: int) -> None:
+        """Fire one chaos event now and remember when."""
+        played = PlayedEvent(event, round((time.time_ns() - start_ns) * 1e-9, 3))
+        control = event.link_control(LINK_ID)
+        if control is not None:
+            link_up = "link" not in self._down and "link" not in self._restarting
+            played.seq = self._control.send(control) if link_up else None
+            if played.seq is None:
+                why = f"unreachable at {self.control_ep}" if link_up else "down"
+                log("demo", f"chaos: {describe(event)} not sent: the link emulator is {why}")
+            else:
+                log("demo", f"chaos: {describe(event)} sent to the link emulator")
+        elif event.kill:
+            self._kill(event.kill)
+        elif event.restart:
+            self._restart(event.restart, start_ns)
+        else:
+            log("demo", f"chaos: {describe(event)} (set at the RSU's start)")
+        self.played.append(played)
+
+    def _kill(self, name: str) -> None:
+        log("demo", f"chaos: killing {name} (pid {self.children[name].proc.pid})")
+        self._down.add(name)
+        self._restarting.pop(name, None)
+        self.children[name].stop(signal.SIGKILL)
+
+    def _restart(self, name: str, start_ns: int) -> None:
+        """Start ``name`` again with its argv; the supervisor checks that it becomes ready."""
+        log("demo", f"chaos: restarting {name}")
+        self.children[name] = Child(name, self._argv(name, start_ns))
+        self._restarting[name] = time.monotonic() + RESTART_READY_S
+        self._down.discard(name)
 
     def _report(self, start_ns: int) -> dict:
         cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
@@ -192,21 +335,112 @@ class Demo:
             record.covered_cycles, record.rsu_deadline_misses = last.covered_cycles, last.rsu_deadline_misses
         report = build_report(self.spec, self.world, record, driver="demo")
         if self.outage:
-            report["link_outage"] = outage_summary(record.outputs, start_ns, self.outage)
+            report["link_outage"] = outage_summary(record.outputs, start_ns, self.outage, record.cycle_times_ns)
+        elif self.chaos:
+            report["chaos"] = self.chaos.name
+            report["chaos_events"] = chaos_summary(self.played, self.chaos, record, self._control.outcomes)
         return report
 
 
-def outage_summary(outputs: list[FusedObjectList], start_ns: int, outage: LinkOutage) -> dict:
-    """Cycles and modes during the outage, and how soon tracking fusion (intra or inter)
-    resumed after it."""
-    t = lambda m: (m.cycle_time_ns - start_ns) * 1e-9  # noqa: E731
-    end_s = outage.at_s + outage.down_s
-    during = [m for m in outputs if outage.at_s <= t(m) < end_s]
-    fused_after = [t(m) for m in outputs if t(m) >= end_s and m.mode in TRACKING_MODES]
+def window_summary(outputs: list[FusedObjectList], cycle_times_ns: list[int], start_ns: int,
+                   from_s: float, to_s: float) -> dict:
+    """Cycles and modes in scenario seconds ``[from_s, to_s)`` (shares, and the sequence of
+    modes as ``mode_runs``), and how soon after ``to_s`` tracking fusion (intra or inter)
+    resumed (None: not before the run ended)."""
+
+    def t(t_ns: int) -> float:
+        return (t_ns - start_ns) * 1e-9
+
+    during = [m for m in outputs if from_s <= t(m.cycle_time_ns) < to_s]
+    fused_after = [t(m.cycle_time_ns) for m in outputs if t(m.cycle_time_ns) >= to_s and m.mode in TRACKING_MODES]
     return {
-        "kill_at_s": outage.at_s, "down_s": outage.down_s, "cycles_published_during": len(during),
-        "cycles_expected_during": round(outage.down_s * 10),
+        "cycles_published_during": len(during),
+        "cycles_expected_during": sum(from_s <= t(c) < to_s for c in cycle_times_ns),
         "mode_share_during": {mode.replace("-", "_"): round(sum(m.mode == mode for m in during) / max(len(during), 1), 4)
                               for mode in MODES},
-        "fused_again_after_s": round(fused_after[0] - end_s, 3) if fused_after else None,
+        "mode_runs_during": mode_runs([(t(m.cycle_time_ns), m.mode) for m in during]),
+        "fused_again_after_s": round(fused_after[0] - to_s, 3) if fused_after else None,
     }
+
+
+def mode_runs(cycles: list[tuple[float, str]]) -> list[list]:
+    """``[[from_s, mode], ...]``: where the fusion mode changed, in cycle order (the fallback sequence)."""
+    runs: list[list] = []
+    for t_s, mode in sorted(cycles):
+        if not runs or runs[-1][1] != mode:
+            runs.append([round(t_s, 3), mode])
+    return runs
+
+
+def outage_summary(outputs: list[FusedObjectList], start_ns: int, outage: LinkOutage,
+                   cycle_times_ns: list[int]) -> dict:
+    """``window_summary`` of a link kill (``--kill-link-at``)."""
+    return {"kill_at_s": outage.at_s, "down_s": outage.down_s,
+            **window_summary(outputs, cycle_times_ns, start_ns, outage.at_s, outage.at_s + outage.down_s)}
+
+
+def describe(event: ChaosEvent) -> str:
+    """One line naming a chaos event's action."""
+    if event.profile is not None:
+        return f"profile {event.profile}"
+    if event.kill or event.restart:
+        return f"kill {event.kill}" if event.kill else f"restart {event.restart}"
+    if event.rsu_clock_step:
+        return f"RSU clock step {event.rsu_clock_step.step_ms:g} ms"
+    name, fault = next((n, getattr(event, n)) for n in ("outage", "delay_spike", "loss_burst", "bandwidth_cap")
+                       if getattr(event, n) is not None)
+    details = {"delay_spike": lambda f: f" +{f.extra_ms:g} ms", "loss_burst": lambda f: f" loss {f.loss_probability:g}",
+               "bandwidth_cap": lambda f: f" {f.kbps:g} kbit/s"}.get(name, lambda f: "")(fault)
+    return f"{name}{details} on {fault.direction} for {fault.duration_s:g} s"
+
+
+def event_window_s(event: ChaosEvent, timeline: ChaosTimeline, end_s: float) -> tuple[float, float] | None:
+    """The scenario seconds a fault lasts: an impairment's duration, a kill until its restart;
+    None for instantaneous events (profile switch, clock step, restart)."""
+    fault = event.outage or event.delay_spike or event.loss_burst or event.bandwidth_cap
+    if fault is not None:
+        return event.at_s, event.at_s + fault.duration_s
+    if event.kill:
+        return next(w for w in timeline.down_windows(event.kill, end_s) if w[0] == event.at_s)
+    return None
+
+
+def chaos_summary(played: list[PlayedEvent], timeline: ChaosTimeline, record: RunRecord,
+                  outcomes: dict[int, dict]) -> list[dict]:
+    """Per played event: what and when; the emulator's outcome for a link control; and for a
+    fault with a duration, ``window_summary`` over it."""
+    rows = []
+    for p in played:
+        row: dict = {"at_s": p.event.at_s, "fired_s": p.fired_s, "event": describe(p.event)}
+        if p.event.link_control(LINK_ID) is not None:
+            outcome = outcomes.get(p.seq) if p.seq is not None else None
+            row["link_control"] = ("not sent (emulator down or unreachable)" if p.seq is None else
+                                   "not confirmed" if outcome is None else
+                                   outcome.get("result") or f"rejected ({outcome['rejected']}): {outcome['error']}")
+        window = event_window_s(p.event, timeline, record.duration_s + 1.0)
+        if window is not None:
+            row["until_s"] = window[1]
+            row.update(window_summary(record.outputs, list(record.cycle_times_ns), record.start_ns, *window))
+        rows.append(row)
+    return rows
+
+
+def format_chaos(report: dict) -> str:
+    """Human lines for the chaos part of a report (empty without one)."""
+    if "chaos_events" not in report:
+        return ""
+    lines = [f"chaos timeline {report['chaos']}:"]
+    for row in report["chaos_events"]:
+        line = f"  {row['at_s']:6.1f} s  {row['event']}"
+        if "link_control" in row:
+            line += f" -> {row['link_control']}"
+        if "until_s" in row:
+            runs = row["mode_runs_during"]
+            modes = " > ".join(f"{mode} {t_s:g} s" for t_s, mode in runs[:MODE_RUNS_SHOWN])
+            more = f" > ... ({len(runs) - MODE_RUNS_SHOWN} more changes)" if len(runs) > MODE_RUNS_SHOWN else ""
+            again = row["fused_again_after_s"]
+            line += (f"\n           until {row['until_s']:g} s: {row['cycles_published_during']}/"
+                     f"{row['cycles_expected_during']} cycles published, modes {modes or 'none'}{more}; "
+                     f"tracking fusion again {'never' if again is None else f'{again:.2f} s after'}")
+        lines.append(line)
+    return "\n".join(lines)

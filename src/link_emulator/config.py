@@ -17,6 +17,10 @@ class LinkConfig(BaseModel):
     of the two sides; the emulator opens one session per side and is their only path.
     ``rsu_position`` (map frame, m) lets the channel model depend on the vehicle-RSU
     distance, the vehicle's position coming from its published ego pose.
+    ``control_listen``: endpoints the vehicle-side session also listens on, for controllers
+    (``v2i link set``, ``v2i chaos run``) that put ``LinkControl`` on ``v2x/link/{link_id}/control``
+    and read the stats there; Zenoh peers do not forward, so a controller must reach the
+    emulator directly.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -24,6 +28,9 @@ class LinkConfig(BaseModel):
     link_id: str = Field(default="link1", pattern=r"^[A-Za-z0-9_-]{1,64}$", description="names v2x/link/{link_id}/*")
     rsu_connect: list[Endpoint] = Field(min_length=1, description="Zenoh endpoints of the RSU side")
     vehicle_connect: list[Endpoint] = Field(min_length=1, description="Zenoh endpoints of the vehicle side")
+    control_listen: list[Endpoint] = Field(
+        default_factory=list, description="extra Zenoh endpoints to listen on for link controllers"
+    )
     profile: str = Field(default="lte-v2x", min_length=1, description="bundled profile name or YAML path")
     seed: int = Field(default=0, ge=0, description="seed of the channel draws")
     stats_period_s: float = Field(default=1.0, gt=0.0, description="period of the stats publication in s")

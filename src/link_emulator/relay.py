@@ -7,6 +7,11 @@ forwarded to the RSU after an uplink delay; each reply returns after a downlink 
 Ego poses heard on the vehicle side, with the configured RSU position, give the channel
 model the vehicle-RSU distance (unknown until both are known).
 
+Runtime control: ``LinkControl`` messages on ``v2x/link/{link_id}/control`` (heard on both
+sessions; the vehicle-side one also listens on ``control_listen`` for controllers) switch the
+profile or add an impairment window (``control.apply_control``). Bad ones are counted by
+reason in the stats and logged once per reason.
+
 Zenoh callbacks only stamp the receive time and enqueue. One scheduler thread (the one
 calling ``run``) owns the channel models, the counters and the pending queries, and fires
 every action from a heap of ``(due_ns, seq, action)`` when it falls due (``scheduler``).
@@ -19,6 +24,7 @@ import json
 import logging
 import math
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -26,14 +32,21 @@ from typing import Any
 import zenoh
 
 from schemas.codec import CodecError, decode
-from schemas.keys import RSU_OBJECTS_ALL, RSU_PREDICTIONS_ALL, RSU_TIME_ALL, link_stats
-from schemas.messages import EgoPose
+from schemas.keys import (
+    RSU_OBJECTS_ALL,
+    RSU_PREDICTIONS_ALL,
+    RSU_TIME_ALL,
+    link_control,
+    link_stats,
+)
+from schemas.messages import EgoPose, LinkControl
 from schemas.transport import open_session
 from sim.clock import Clock
 
 from .channel import NS_PER_MS, LinkModel
 from .config import LinkConfig
-from .profile import load_profile
+from .control import apply_control
+from .profile import LinkProfile, load_profile
 from .scheduler import Action, EventScheduler
 
 log = logging.getLogger(__name__)
@@ -41,6 +54,7 @@ log = logging.getLogger(__name__)
 DOWNLINK_KEYS = (RSU_OBJECTS_ALL, RSU_PREDICTIONS_ALL)
 FORWARD_TIMEOUT_S = 5.0  # how long a forwarded time query waits for RSU replies
 OBU_POSE_ALL = "v2x/obu/*/pose"  # ego poses of every vehicle, see schemas.keys.obu_pose
+RECENT_CONTROLS = 16  # control outcomes repeated in every stats message
 
 
 @dataclass(frozen=True)
@@ -131,6 +145,34 @@ class VehiclePosition:
         return {"received": self.received, "rejected": self.rejected, "distance_m": self.distance_m(rsu_xy_m)}
 
 
+@dataclass
+class ControlStats:
+    """LinkControl messages: how many were applied, rejections by reason, and the latest outcomes.
+
+    ``recent`` holds the last ``RECENT_CONTROLS`` outcomes with the message's ``seq`` so that a
+    controller can tell that its own message was handled (``v2i link set``, ``v2i chaos run``):
+    ``{"seq", "result"}`` when applied, ``{"seq", "rejected", "error"}`` when not (seq None when
+    the message could not be decoded).
+    """
+
+    applied: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=RECENT_CONTROLS))
+
+    def apply(self, seq: int, result: str) -> None:
+        self.applied += 1
+        self.recent.append({"seq": seq, "result": result})
+
+    def reject(self, reason: str, seq: int | None, error: str) -> bool:
+        """Count a rejection; True when it is the first one for ``reason`` (log it then)."""
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        self.recent.append({"seq": seq, "rejected": reason, "error": error})
+        return self.rejected[reason] == 1
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"applied": self.applied, "rejected": dict(self.rejected), "recent": list(self.recent)}
+
+
 @dataclass(frozen=True)
 class RsuReply:
     """One RSU reply, copied out of the Zenoh callback."""
@@ -150,15 +192,15 @@ class LinkRelay:
 
     def __init__(self, config: LinkConfig, clock: Clock, observer: DeliveryObserver | None = None) -> None:
         self.config = config
-        self.profile = load_profile(config.profile)
         self.ready = threading.Event()
         self._clock = clock
-        self._model = LinkModel(self.profile, config.seed)
+        self._model = LinkModel(load_profile(config.profile), config.seed)
         self._scheduler = EventScheduler(clock)
         self._uplink = DirectionStats()
         self._downlink = DirectionStats()
         self._lateness_ms = RunningStats()
         self._position = VehiclePosition()
+        self._control = ControlStats()
         self._queries: dict[int, ForwardedQuery] = {}
         self._query_ids = itertools.count()
         self._declared: list[Any] = []  # subscribers and queryables to undeclare
@@ -166,15 +208,23 @@ class LinkRelay:
         self._rsu: zenoh.Session | None = None
         self._vehicle: zenoh.Session | None = None
 
+    @property
+    def profile(self) -> LinkProfile:
+        """The profile in force (a control message may have switched it)."""
+        return self._model.profile
+
     # ---- life cycle -------------------------------------------------------------------
 
     def open(self) -> None:
         """Open both sessions and declare the subscribers and the time queryable."""
         try:
             self._rsu = open_session(connect=self.config.rsu_connect)
-            self._vehicle = open_session(connect=self.config.vehicle_connect)
+            self._vehicle = open_session(listen=self.config.control_listen, connect=self.config.vehicle_connect)
             for key in DOWNLINK_KEYS:
                 self._declared.append(self._rsu.declare_subscriber(key, self._on_rsu_sample))
+            for session in (self._rsu, self._vehicle):
+                self._declared.append(session.declare_subscriber(link_control(self.config.link_id),
+                                                                 self._on_control_sample))
             self._declared.append(self._vehicle.declare_queryable(RSU_TIME_ALL, self._on_vehicle_query))
             self._declared.append(self._vehicle.declare_subscriber(OBU_POSE_ALL, self._on_pose_sample))
         except BaseException:
@@ -224,6 +274,7 @@ class LinkRelay:
             "lateness_ms": self._lateness_ms.as_dict(),
             "pose": self._position.as_dict(self.config.rsu_position),
             "open_queries": len(self._queries),
+            "control": self._control.as_dict(),
         }
 
     def _stats_action(self, period_ns: int) -> Action:
@@ -246,6 +297,37 @@ class LinkRelay:
         self._lateness_ms.add((delivery.fired_ns - delivery.due_ns) / NS_PER_MS)
         if self._observer is not None:
             self._observer(delivery)
+
+    # ---- runtime control ---------------------------------------------------------------
+
+    def _on_control_sample(self, sample: zenoh.Sample) -> None:
+        """Zenoh callback (either side): stamp and enqueue; decoding and applying are the scheduler's."""
+        receive_ns = self._clock.now_ns()
+        payload = sample.payload.to_bytes()
+        self._scheduler.push(receive_ns, lambda _: self._control_arrival(payload, receive_ns))
+
+    def _control_arrival(self, payload: bytes, receive_ns: int) -> None:
+        """Apply one LinkControl as of its receipt; a bad one is counted and logged once per reason."""
+        try:
+            control = decode(payload, LinkControl)
+        except CodecError as exc:
+            self._reject_control(f"codec_{exc.reason}", None, str(exc))
+            return
+        if control.link_id != self.config.link_id:
+            self._reject_control("wrong_link_id", control.seq,
+                                 f"link_id {control.link_id!r}, this emulator is {self.config.link_id!r}")
+            return
+        try:
+            result = apply_control(self._model, control, receive_ns)
+        except ValueError as exc:
+            self._reject_control("unknown_profile" if control.profile is not None else "invalid", control.seq, str(exc))
+            return
+        self._control.apply(control.seq, result)
+        log.info("link control (seq %d): %s", control.seq, result)
+
+    def _reject_control(self, reason: str, seq: int | None, error: str) -> None:
+        if self._control.reject(reason, seq, error):
+            log.warning("rejected a link control message (%s: %s); further ones are only counted", reason, error)
 
     # ---- vehicle position: ego poses for distance-dependent channels ----------------------
 

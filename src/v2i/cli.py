@@ -11,6 +11,7 @@ from pathlib import Path
 SUBCOMMANDS = {
     "demo": "run RSU, link emulator and OBU as processes on loopback Zenoh and score the result",
     "eval": "run the same pipelines offline with a simulated clock and link (deterministic)",
+    "chaos": "play a chaos timeline (link faults, service kills, an RSU clock step) during a live demo",
     "rsu": "run the roadside unit service",
     "obu": "run the on-board unit service",
     "link": "run the link emulator between RSU and vehicle",
@@ -111,28 +112,51 @@ def cmd_tables(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from evaluation.demo import Demo, DemoError, LinkOutage
+    from evaluation.demo import Demo, LinkOutage
 
     _check_inputs(args)
     outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
-    demo = Demo(_spec(args), startup_s=args.startup, outage=outage)
+    return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage), args.json, "v2i demo")
+
+
+def cmd_chaos_run(args: argparse.Namespace) -> int:
+    from evaluation.chaos import load_chaos, with_chaos
+    from evaluation.demo import Demo
+    from link_emulator.profile import bundled_profiles
+
+    _check_inputs(args)
+    chaos = load_chaos(args.timeline)
+    unknown = [e.profile for e in chaos.events if e.profile is not None and e.profile not in bundled_profiles()]
+    if unknown:
+        raise ValueError(f"chaos timeline {args.timeline}: profile {unknown[0]!r} is not bundled (the emulator "
+                         f"switches to bundled profiles only): {', '.join(bundled_profiles())}")
+    return _run_demo(Demo(with_chaos(_spec(args), chaos), startup_s=args.startup, chaos=chaos), args.json,
+                     "v2i chaos run")
+
+
+def _run_demo(demo, json_path: str | None, prog: str) -> int:
+    """Run a live demo and emit its report; 1 when it failed, 130 when interrupted."""
+    from evaluation.demo import DemoError, format_chaos
+
     _interrupt_on(signal.SIGINT, signal.SIGTERM)
     try:
         report = demo.run()
     except DemoError as exc:
-        print(f"v2i demo: {exc}", file=sys.stderr)
+        print(f"{prog}: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print("v2i demo: interrupted; all services stopped", file=sys.stderr)
+        print(f"{prog}: interrupted; all services stopped", file=sys.stderr)
         return 130
-    _emit(report, args.json)
+    _emit(report, json_path)
+    if chaos := format_chaos(report):
+        print(chaos, file=sys.stderr if json_path == "-" else sys.stdout)
     return 0
 
 
 def _interrupt_on(*signals: int) -> None:
     """Turn these signals into KeyboardInterrupt, even where a parent shell ignored them."""
 
-    def _raise(signum, frame):  # noqa: ARG001
+    def _raise(signum, frame):
         raise KeyboardInterrupt
 
     for sig in signals:
@@ -162,6 +186,18 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--kill-link-at", type=float, metavar="S", help="chaos: kill the link emulator S seconds into the run")
     demo.add_argument("--link-down-s", type=float, default=3.0, help="chaos: restart it this many seconds later (default %(default)s)")
     demo.set_defaults(func=cmd_demo)
+    chaos_sub = parsers["chaos"].add_subparsers(dest="chaos_command", required=True, metavar="{run}")
+    text = "play a chaos timeline YAML during a live demo and report each fault's effect"
+    chaos_run = chaos_sub.add_parser("run", help=text, description=text + (
+        ". Link events (profile, outage, delay_spike, loss_burst, bandwidth_cap) go to the link emulator "
+        "as control messages at their scenario time; kill / restart act on the link or RSU process; the "
+        "rsu_clock_step is set at the RSU's start. Timeline format: evaluation/chaos.py, examples/chaos/. "
+        "The same timeline runs offline with v2i eval --chaos FILE."))
+    chaos_run.add_argument("timeline", metavar="FILE", help="chaos timeline YAML, e.g. examples/chaos/outage-10s.yaml")
+    _run_options(chaos_run)
+    chaos_run.add_argument("--startup", type=float, default=4.0,
+                           help="seconds given to the services to start (default %(default)s)")
+    chaos_run.set_defaults(func=cmd_chaos_run)
     for name, module in (("rsu", "rsu_service.cli"), ("obu", "obu_service.cli"), ("link", "link_emulator.cli")):
         mod = __import__(module, fromlist=["configure_parser", "run"])
         mod.configure_parser(parsers[name])

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import queue
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -18,11 +20,12 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from link_emulator.cli import ControlError, send_control
 from link_emulator.config import LinkConfig
 from link_emulator.relay import LinkRelay
 from schemas.codec import encode
 from schemas.keys import link_stats, obu_pose, rsu_objects, rsu_time
-from schemas.messages import EgoPose
+from schemas.messages import EgoPose, LinkControl
 from schemas.transport import free_tcp_endpoint, open_session
 from sim.clock import SystemClock
 
@@ -82,13 +85,14 @@ def sides() -> Iterator[Sides]:
 
 @contextmanager
 def running_relay(
-    sides: Sides, profile: str, rsu_position: tuple[float, float] | None = None
+    sides: Sides, profile: str, rsu_position: tuple[float, float] | None = None, control_listen: list[str] = ()
 ) -> Iterator[LinkRelay]:
     """A LinkRelay running in a thread for the duration of the block; always stopped."""
     config = LinkConfig(
         link_id=LINK_ID,
         rsu_connect=[sides.rsu_endpoint],
         vehicle_connect=[sides.vehicle_endpoint],
+        control_listen=list(control_listen),
         profile=profile,
         seed=1,
         stats_period_s=0.2,
@@ -265,3 +269,35 @@ def test_vehicle_pose_sets_the_distance_of_the_channel(sides: Sides, tmp_path: P
         assert stats["pose"]["received"] >= 2
         sides.rsu.put(rsu_objects(RSU_ID), b"in-range")
         assert _wait_for_payload(sides.objects, b"in-range", 2.0) is not None
+
+
+def _link_set(control_ep: str, *options: str) -> subprocess.CompletedProcess:
+    """``v2i link set`` against the test relay, as a process (stopped by its timeout at worst)."""
+    argv = [sys.executable, "-m", "v2i", "link", "set", "--connect", control_ep, "--link-id", LINK_ID, *options]
+    return subprocess.run(argv, check=False, capture_output=True, text=True, timeout=30)
+
+
+def test_link_set_cuts_and_restores_the_live_link(sides: Sides) -> None:
+    control_ep = free_tcp_endpoint()
+    with running_relay(sides, "ideal", control_listen=[control_ep]):
+        _wait_until_objects_flow(sides)
+        done = _link_set(control_ep, "--outage", "30")
+        assert done.returncode == 0, done.stderr
+        assert "outage on both for 30 s" in done.stdout
+        for i in range(5):
+            sides.rsu.put(rsu_objects(RSU_ID), b"cut-%d" % i)
+        assert _wait_for_payload(sides.objects, b"cut-4", 0.5) is None
+        with pytest.raises(ControlError, match="rejected it \\(unknown_profile\\)"):
+            send_control([control_ep], LinkControl(link_id=LINK_ID, seq=1, profile="no-such-profile"), 5.0)
+        done = _link_set(control_ep, "--clear")
+        assert done.returncode == 0, done.stderr
+        assert "impairments cleared" in done.stdout
+        _wait_until_objects_flow(sides)
+        stats = _poll_stats(sides, "ideal", lambda s: s["control"]["applied"] == 2, 2.0)
+        assert stats is not None and stats["control"]["rejected"] == {"unknown_profile": 1}
+
+
+def test_link_set_without_an_emulator_fails_clearly() -> None:
+    done = _link_set(free_tcp_endpoint(), "--outage", "1", "--timeout", "0.5")
+    assert done.returncode == 1
+    assert "no link emulator 'linktest' reachable" in done.stderr
