@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 from importlib.resources import files
 
 import numpy as np
