@@ -111,6 +111,20 @@ class ChaosEvent(BaseModel):
             return LinkControl(link_id=link_id, duration_s=c.duration_s, direction=c.direction, bandwidth_kbps=c.kbps)
         return None
 
+    def describe(self) -> str:
+        """One line naming the event's action."""
+        if self.profile is not None:
+            return f"profile {self.profile}"
+        if self.kill or self.restart:
+            return f"kill {self.kill}" if self.kill else f"restart {self.restart}"
+        if self.rsu_clock_step:
+            return f"RSU clock step {self.rsu_clock_step.step_ms:g} ms"
+        name, fault = next((n, getattr(self, n)) for n in ("outage", "delay_spike", "loss_burst", "bandwidth_cap")
+                           if getattr(self, n) is not None)
+        details = {"delay_spike": lambda f: f" +{f.extra_ms:g} ms", "loss_burst": lambda f: f" loss {f.loss_probability:g}",
+                   "bandwidth_cap": lambda f: f" {f.kbps:g} kbit/s"}.get(name, lambda f: "")(fault)
+        return f"{name}{details} on {fault.direction} for {fault.duration_s:g} s"
+
 
 class ChaosTimeline(BaseModel):
     model_config = _STRICT
@@ -142,6 +156,16 @@ class ChaosTimeline(BaseModel):
         """(at_s, step_ms) of the RSU clock step, if the timeline has one."""
         steps = [(e.at_s, e.rsu_clock_step.step_ms) for e in self.events if e.rsu_clock_step]
         return steps[0] if steps else None
+
+    def fault_window_s(self, event: ChaosEvent, end_s: float) -> tuple[float, float] | None:
+        """The scenario seconds a fault of this timeline lasts: an impairment's duration, a kill
+        until its restart (or ``end_s``); None for instantaneous events (switch, step, restart)."""
+        fault = event.outage or event.delay_spike or event.loss_burst or event.bandwidth_cap
+        if fault is not None:
+            return event.at_s, event.at_s + fault.duration_s
+        if event.kill:
+            return next(w for w in self.down_windows(event.kill, end_s) if w[0] == event.at_s)
+        return None
 
     def down_windows(self, service: str, end_s: float) -> list[tuple[float, float]]:
         """[(kill_s, restart_s)] of a service; a service never restarted is down until ``end_s``."""

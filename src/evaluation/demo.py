@@ -26,7 +26,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from obu_service.fusion_mode import MODES
+from obu_service.fusion_mode import TRACKING_MODES
 from obu_service.source import SimulatedVehicle
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
@@ -37,9 +37,9 @@ from sim.scenario import load_scenario
 from sim.world import World
 
 from .chaos import ChaosEvent, ChaosTimeline
+from .metrics import mode_share
 from .spec import RunRecord, RunSpec, build_report
 
-TRACKING_MODES = ("intra", "inter")  # the modes that feed RSU data to the tracker
 LINK_ID = "link1"
 RESTART_READY_S = 10.0  # a restarted child must be ready within this
 CONTROL_MATCH_S = 3.0  # how long a link control waits for the emulator's control subscriber
@@ -290,15 +290,15 @@ class Demo:
             played.seq = self._control.send(control) if link_up else None
             if played.seq is None:
                 why = f"unreachable at {self.control_ep}" if link_up else "down"
-                log("demo", f"chaos: {describe(event)} not sent: the link emulator is {why}")
+                log("demo", f"chaos: {event.describe()} not sent: the link emulator is {why}")
             else:
-                log("demo", f"chaos: {describe(event)} sent to the link emulator")
+                log("demo", f"chaos: {event.describe()} sent to the link emulator")
         elif event.kill:
             self._kill(event.kill)
         elif event.restart:
             self._restart(event.restart, start_ns)
         else:
-            log("demo", f"chaos: {describe(event)} (set at the RSU's start)")
+            log("demo", f"chaos: {event.describe()} (set at the RSU's start)")
         self.played.append(played)
 
     def _kill(self, name: str) -> None:
@@ -356,8 +356,7 @@ def window_summary(outputs: list[FusedObjectList], cycle_times_ns: list[int], st
     return {
         "cycles_published_during": len(during),
         "cycles_expected_during": sum(from_s <= t(c) < to_s for c in cycle_times_ns),
-        "mode_share_during": {mode.replace("-", "_"): round(sum(m.mode == mode for m in during) / max(len(during), 1), 4)
-                              for mode in MODES},
+        "mode_share_during": mode_share([m.mode for m in during]),
         "mode_runs_during": mode_runs([(t(m.cycle_time_ns), m.mode) for m in during]),
         "fused_again_after_s": round(fused_after[0] - to_s, 3) if fused_after else None,
     }
@@ -379,45 +378,19 @@ def outage_summary(outputs: list[FusedObjectList], start_ns: int, outage: LinkOu
             **window_summary(outputs, cycle_times_ns, start_ns, outage.at_s, outage.at_s + outage.down_s)}
 
 
-def describe(event: ChaosEvent) -> str:
-    """One line naming a chaos event's action."""
-    if event.profile is not None:
-        return f"profile {event.profile}"
-    if event.kill or event.restart:
-        return f"kill {event.kill}" if event.kill else f"restart {event.restart}"
-    if event.rsu_clock_step:
-        return f"RSU clock step {event.rsu_clock_step.step_ms:g} ms"
-    name, fault = next((n, getattr(event, n)) for n in ("outage", "delay_spike", "loss_burst", "bandwidth_cap")
-                       if getattr(event, n) is not None)
-    details = {"delay_spike": lambda f: f" +{f.extra_ms:g} ms", "loss_burst": lambda f: f" loss {f.loss_probability:g}",
-               "bandwidth_cap": lambda f: f" {f.kbps:g} kbit/s"}.get(name, lambda f: "")(fault)
-    return f"{name}{details} on {fault.direction} for {fault.duration_s:g} s"
-
-
-def event_window_s(event: ChaosEvent, timeline: ChaosTimeline, end_s: float) -> tuple[float, float] | None:
-    """The scenario seconds a fault lasts: an impairment's duration, a kill until its restart;
-    None for instantaneous events (profile switch, clock step, restart)."""
-    fault = event.outage or event.delay_spike or event.loss_burst or event.bandwidth_cap
-    if fault is not None:
-        return event.at_s, event.at_s + fault.duration_s
-    if event.kill:
-        return next(w for w in timeline.down_windows(event.kill, end_s) if w[0] == event.at_s)
-    return None
-
-
 def chaos_summary(played: list[PlayedEvent], timeline: ChaosTimeline, record: RunRecord,
                   outcomes: dict[int, dict]) -> list[dict]:
     """Per played event: what and when; the emulator's outcome for a link control; and for a
     fault with a duration, ``window_summary`` over it."""
     rows = []
     for p in played:
-        row: dict = {"at_s": p.event.at_s, "fired_s": p.fired_s, "event": describe(p.event)}
+        row: dict = {"at_s": p.event.at_s, "fired_s": p.fired_s, "event": p.event.describe()}
         if p.event.link_control(LINK_ID) is not None:
             outcome = outcomes.get(p.seq) if p.seq is not None else None
             row["link_control"] = ("not sent (emulator down or unreachable)" if p.seq is None else
                                    "not confirmed" if outcome is None else
                                    outcome.get("result") or f"rejected ({outcome['rejected']}): {outcome['error']}")
-        window = event_window_s(p.event, timeline, record.duration_s + 1.0)
+        window = timeline.fault_window_s(p.event, record.duration_s + 1.0)
         if window is not None:
             row["until_s"] = window[1]
             row.update(window_summary(record.outputs, list(record.cycle_times_ns), record.start_ns, *window))

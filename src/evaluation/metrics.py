@@ -14,6 +14,7 @@ from fusion.objects import ObjectArray
 from fusion.wire import objects_from_states
 from schemas.messages import FusedObjectList, PredictionList
 
+from obu_service.fusion_mode import MODES
 from obu_service.planning import path_array
 
 from .detection_metrics import center_distance_ap, mot_metrics
@@ -93,17 +94,23 @@ def deadline_miss_ratio(cycle_times_ns: Sequence[int], outputs: Sequence[FusedOb
     return sum(1 for t in cycle_times_ns if t not in on_time) / len(cycle_times_ns)
 
 
+def mode_share(modes: Sequence[str]) -> dict[str, float]:
+    """Share of cycles per fusion mode, keyed ``intra``, ``inter``, ``planning``, ``vehicle_only``."""
+    return {m.replace("-", "_"): round(sum(x == m for x in modes) / max(len(modes), 1), 4) for m in MODES}
+
+
 CLOCK_WARMUP_S = 5.0  # clock errors are scored after the estimator's first 5 s
 STEP_SETTLE_S = 3.0  # ... and outside the 3 s after an injected RSU clock step
 STEP_RECOVERED_MS = 1.0  # a step is recovered once the error stays below 1 ms
 
 
-def _percentiles(err_ms: np.ndarray, *names: str) -> dict:
-    stats = {"p50": 50, "p95": 95}
-    out = {n: round(float(np.percentile(err_ms, stats[n])), 4) if len(err_ms) else None for n in names if n in stats}
-    if "max" in names:
-        out["max"] = round(float(err_ms.max()), 4) if len(err_ms) else None
-    return out | {"samples": int(len(err_ms))}
+def _error_stats(err_ms: np.ndarray) -> dict:
+    """p50 / p95 / max (None without samples) and the sample count."""
+    if not len(err_ms):
+        return {"p50": None, "p95": None, "max": None, "samples": 0}
+    p50, p95 = np.percentile(err_ms, [50, 95])
+    return {"p50": round(float(p50), 4), "p95": round(float(p95), 4), "max": round(float(err_ms.max()), 4),
+            "samples": int(len(err_ms))}
 
 
 def clock_errors(samples: Sequence[tuple[int, int, int, float]], truth, start_ns: int, step_ns: int | None) -> dict:
@@ -121,8 +128,8 @@ def clock_errors(samples: Sequence[tuple[int, int, int, float]], truth, start_ns
         scored &= ~((rows[:, 0] >= step_ns) & (rows[:, 0] < step_ns + STEP_SETTLE_S * 1e9))
     drift_err = np.abs(rows[scored, 3] - truth.drift_ppm)
     report = {
-        "clock_offset_error_ms": _percentiles(err_ms[scored], "p50", "p95", "max"),
-        "clock_offset_error_naive_ms": _percentiles(naive_ms[scored], "p50", "p95", "max"),
+        "clock_offset_error_ms": _error_stats(err_ms[scored]),
+        "clock_offset_error_naive_ms": _error_stats(naive_ms[scored]),
         "clock_drift_error_ppm": round(float(np.median(drift_err)), 3) if len(drift_err) else None,
     }
     if step_ns is not None:

@@ -202,5 +202,5 @@ class OfflineRun:
         rsu_id = self.rsu.config.rsu_id
         est, naive = self.obu.clock_offset(rsu_id, self.clock.t_ns), self.obu.naive_clock_offset(rsu_id)
         if est is not None:
-            self.record.offset_samples.append((self.clock.t_ns, est.offset_at_ns(self.clock.t_ns), naive.offset_ns,
+            self.record.offset_samples.append((self.clock.t_ns, est.offset_ns, naive.offset_ns,
                                                est.drift_ppm))

@@ -7,12 +7,12 @@ from dataclasses import asdict, dataclass, field
 
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, PredictionList
 from obu_service.config import ObuConfig
-from obu_service.fusion_mode import MODES
 from rsu_service.config import RsuConfig
 from sim.clock import SystemClock
 from sim.world import World
 
-from .metrics import clock_errors, deadline_miss_ratio, detection_scores, displacement_error_m, score_target
+from .metrics import (clock_errors, deadline_miss_ratio, detection_scores, displacement_error_m, mode_share,
+                      score_target)
 
 # Offline runs start at a fixed epoch (2026-01-01T00:00:00Z) so that reports are reproducible.
 EVAL_EPOCH_NS = 1_767_225_600 * 10**9
@@ -74,7 +74,6 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
     truth_clock = spec.rsu_config().clock(SystemClock(), record.start_ns)
     fused = score_target(world, record.outputs, record.start_ns)
     own = score_target(world, record.outputs, record.start_ns, sources_mask=SOURCE_VEHICLE)
-    modes = [m.mode for m in record.outputs]
     step_ns = None if spec.rsu_clock_step_at_s is None else record.start_ns + round(spec.rsu_clock_step_at_s * 1e9)
     return {
         "driver": driver,
@@ -84,7 +83,7 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
         "outputs": len(record.outputs),
         "output_deadline_miss_ratio": round(deadline_miss_ratio(record.cycle_times_ns, record.outputs, spec.deadline_ms), 4),
         "rsu_deadline_miss_ratio": round(record.rsu_deadline_misses / max(record.covered_cycles, 1), 4),
-        "mode_share": {m.replace("-", "_"): round(modes.count(m) / max(len(modes), 1), 4) for m in MODES},
+        "mode_share": mode_share([m.mode for m in record.outputs]),
         "displacement_error_m": displacement_error_m(world, record.planning, record.start_ns),
         "planning_handoffs": len(record.planning),
         "rsu_messages_received": record.rsu_messages,

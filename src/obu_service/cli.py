@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from schemas.runtime import run_service
+from schemas.runtime import add_service_options, run_service
 
 from .config import ObuConfig
 from .pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES
@@ -16,15 +16,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
         "lists, moves them into its own frame and time, fuses them with its own LiDAR objects and "
         "publishes the fused list on v2x/obu/{id}/objects every 10 Hz cycle, RSU data or not."
     )
-    p.add_argument("--config", metavar="FILE", help="YAML file with ObuConfig fields (CLI flags override it)")
+    add_service_options(p, "ObuConfig", "tcp/0.0.0.0:7448", "LiDAR and localisation noise")
     p.add_argument("--vehicle-id", help="vehicle id used in key expressions (default ego)")
-    p.add_argument("--listen", action="append", metavar="EP", help="Zenoh endpoint to listen on (repeatable)")
     p.add_argument("--connect", action="append", metavar="EP",
                    help="Zenoh endpoint to connect to, e.g. the RSU's when no link emulator is used (repeatable)")
-    p.add_argument("--scenario", help="bundled scenario name or YAML path (default red-light-runner)")
-    p.add_argument("--seed", type=int, help="seed of the LiDAR and localisation noise (default 0)")
-    p.add_argument("--start-at-ns", type=int, help="scenario time zero in Unix ns (true clock); default: now")
-    p.add_argument("--duration", dest="duration_s", type=float, help="seconds to run (default: scenario duration)")
     p.add_argument("--fusion", choices=FUSION_METHODS, help="fusion method (default kf)")
     p.add_argument("--fusion-mode", choices=FUSION_MODES,
                    help="intra | inter | planning | vehicle-only, or adaptive: the most accurate feasible mode "

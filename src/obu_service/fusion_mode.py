@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 MODES = ("intra", "inter", "planning", "vehicle-only")  # most to least accurate
+TRACKING_MODES = ("intra", "inter")  # the modes that feed RSU data to the tracker
 FUSION_MODES = ("adaptive", *MODES)
 
 

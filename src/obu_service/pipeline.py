@@ -398,7 +398,7 @@ class ObuPipeline:
         est, naive = state.sync.estimate_at(now_ns), state.sync.naive()
         link = state.monitor.summary(now_ns)
         return RsuLinkStatus(
-            rsu_id=rsu_id, clock_offset_ns=None if est is None else est.offset_at_ns(now_ns),
+            rsu_id=rsu_id, clock_offset_ns=None if est is None else est.offset_ns,
             clock_uncertainty_ns=None if est is None else est.uncertainty_ns,
             clock_drift_ppm=None if est is None else est.drift_ppm,
             clock_offset_naive_ns=None if naive is None else naive.offset_ns,

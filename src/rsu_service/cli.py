@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from schemas.runtime import run_service
+from schemas.runtime import add_service_options, run_service
 
-from .config import RsuConfig
+from .config import PREDICTORS, RsuConfig
 
 
 def configure_parser(p: argparse.ArgumentParser) -> None:
@@ -15,19 +15,14 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
         "timestamped object lists on v2x/rsu/{id}/objects; answers NTP-style time queries on "
         "v2x/rsu/{id}/time. Its clock can be offset, drifting and stepped on purpose."
     )
-    p.add_argument("--config", metavar="FILE", help="YAML file with RsuConfig fields (CLI flags override it)")
+    add_service_options(p, "RsuConfig", "tcp/0.0.0.0:7447", "camera noise")
     p.add_argument("--rsu-id", help="RSU id used in key expressions (default rsu1)")
-    p.add_argument("--listen", action="append", metavar="EP", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
     p.add_argument("--connect", action="append", metavar="EP", help="Zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--scenario", help="bundled scenario name or YAML path (default red-light-runner)")
-    p.add_argument("--seed", type=int, help="seed of the camera noise (default 0)")
-    p.add_argument("--start-at-ns", type=int, help="scenario time zero in Unix ns (true clock); default: now")
-    p.add_argument("--duration", dest="duration_s", type=float, help="seconds to run (default: scenario duration)")
     p.add_argument("--clock-offset-ms", type=float, help="RSU clock offset from true time, ms")
     p.add_argument("--clock-drift-ppm", type=float, help="RSU clock drift, ppm")
     p.add_argument("--clock-step-ms", type=float, help="RSU clock step size, ms (with --clock-step-at-s)")
     p.add_argument("--clock-step-at-s", type=float, help="scenario time of the RSU clock step, s")
-    p.add_argument("--predictor", choices=("auto", "lane", "cv"),
+    p.add_argument("--predictor", choices=PREDICTORS,
                    help="5 s paths on v2x/rsu/{id}/predictions: lane-following on the scenario's Lanelet2 map, "
                         "constant velocity, or auto (lane when a map exists; default)")
     p.add_argument("--predict-ahead", action="store_true", default=None,

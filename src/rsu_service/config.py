@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, field_validator
 
 from schemas.config import ServiceConfig
 from schemas.keys import check_id
 from sim.clock import Clock, ClockStep, DriftingClock
+
+PREDICTORS = ("auto", "lane", "cv")  # long-horizon path predictors, see rsu_service.prediction
 
 
 class RsuConfig(ServiceConfig):
@@ -16,7 +20,7 @@ class RsuConfig(ServiceConfig):
     clock_drift_ppm: float = Field(0.0, ge=-1000, le=1000)
     clock_step_ms: float = Field(0.0, ge=-86_400_000, le=86_400_000)
     clock_step_at_s: float | None = Field(None, ge=0, description="scenario time of the clock step")
-    predictor: str = Field("auto", description="long-horizon paths: lane (Lanelet2 map), cv, or auto "
+    predictor: Literal[PREDICTORS] = Field("auto", description="long-horizon paths: lane (Lanelet2 map), cv, or auto "
                                                "(lane when the scenario has a map)")
     predict_ahead: bool = Field(False, description="track-predict: publish tracks predicted to the publish "
                                                    "time and upsample 5 Hz to 10 Hz (seed 000 Algorithm 1)")
@@ -25,15 +29,6 @@ class RsuConfig(ServiceConfig):
     @classmethod
     def _valid_id(cls, v: str) -> str:
         return check_id(v)
-
-    @field_validator("predictor")
-    @classmethod
-    def _valid_predictor(cls, v: str) -> str:
-        from .prediction import PREDICTORS
-
-        if v not in PREDICTORS:
-            raise ValueError(f"must be one of {PREDICTORS}")
-        return v
 
     def clock(self, base: Clock, start_ns: int) -> DriftingClock:
         """The RSU's own clock over the true ``base`` clock: offset, drifting, maybe stepping."""

@@ -6,9 +6,8 @@ from __future__ import annotations
 from fusion.motion import trajectories_cv
 from sim.maps import lane_predictor, scenario_map
 
+from .config import PREDICTORS
 from .pipeline import TrajectoryPredictor
-
-PREDICTORS = ("auto", "lane", "cv")
 
 
 def make_predictor(kind: str, scenario: str) -> TrajectoryPredictor:

@@ -34,6 +34,17 @@ def log(service: str, message: str) -> None:
     print(f"[{service}] {message}", file=sys.stderr, flush=True)
 
 
+def add_service_options(p, config_name: str, listen_example: str, seed_of: str) -> None:
+    """The options every service shares with ``ServiceConfig`` (flag names = field names)."""
+    p.add_argument("--config", metavar="FILE", help=f"YAML file with {config_name} fields (CLI flags override it)")
+    p.add_argument("--listen", action="append", metavar="EP",
+                   help=f"Zenoh endpoint to listen on, e.g. {listen_example} (repeatable)")
+    p.add_argument("--scenario", help="bundled scenario name or YAML path (default red-light-runner)")
+    p.add_argument("--seed", type=int, help=f"seed of the {seed_of} (default 0)")
+    p.add_argument("--start-at-ns", type=int, help="scenario time zero in Unix ns (true clock); default: now")
+    p.add_argument("--duration", dest="duration_s", type=float, help="seconds to run (default: scenario duration)")
+
+
 def run_service(name: str, model, args, make_node) -> int:
     """``v2i <name>``: config from ``--config`` overridden by every CLI flag named like a
     config field, a node from ``make_node(config)``, run until SIGINT/SIGTERM.
