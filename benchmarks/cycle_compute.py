@@ -1,7 +1,9 @@
 """OBU cycle compute: association + Kalman filtering of 200 objects seen by own LiDAR and 4 RSUs.
 
-Per 10 Hz cycle: predict, update with the own LiDAR list, update with each RSU's list,
-prune (no waiting, no I/O; detection lists are generated before timing). The batched
+Per 10 Hz cycle: predict, update with the own LiDAR list, update with each RSU's list of
+track estimates, prune (no waiting, no I/O; detection lists are generated before timing).
+As in the OBU, detections carry velocities with covariances (position and velocity
+updates), and an RSU estimate replaces a track only that RSU source has seen. The batched
 ``fusion.tracking.Tracker`` is timed against a per-track filterpy loop (one
 ``filterpy.kalman.KalmanFilter`` per track) doing the same association and life cycle on
 the same lists; both must end with the same tracks.
@@ -20,16 +22,17 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from fusion import kalman
 from fusion.objects import ObjectArray
 from fusion.tracking import (
     SOURCE_BITS,
     Tracker,
     TrackerConfig,
     TrackTable,
+    filter_inputs,
     associate,
     source_mask_bits,
 )
+from schemas.messages import UNKNOWN_VELOCITY_VAR
 
 N_OBJECTS = 200
 AREA_M = 200.0
@@ -51,18 +54,20 @@ class Cycle:
     rsus: tuple[ObjectArray, ...]
 
 
-def sense(rng: np.random.Generator, xy, vxy, cls, centre, range_m: float, std_m: float, p_detect: float,
-          clutter: int) -> ObjectArray:
-    """Noisy detections of the objects within range_m of centre, plus clutter (random classes) in that range."""
+def sense(rng: np.random.Generator, xy, vxy, cls, centre, range_m: float, std_m: float, v_std_mps: float,
+          p_detect: float, clutter: int) -> ObjectArray:
+    """Noisy detections of the objects within range_m of centre, with velocities of std v_std_mps,
+    plus clutter (random classes, no velocity) in that range."""
     idx = np.flatnonzero((np.hypot(*(xy - centre).T) < range_m) & (rng.random(len(xy)) < p_detect))
     cxy = centre + rng.uniform(-range_m, range_m, (clutter, 2)) / np.sqrt(2)
     det_xy = np.vstack([xy[idx] + rng.normal(0, std_m, (len(idx), 2)), cxy])
     det_cls = np.concatenate([cls[idx], rng.integers(1, 8, clutter)])
     n = len(det_xy)
+    cov_v = np.concatenate([np.full(len(idx), v_std_mps**2), np.full(clutter, UNKNOWN_VELOCITY_VAR)])
     return ObjectArray(
         ids=np.full(n, -1), cls=det_cls, xy=det_xy, z=np.full(n, 0.8), lwh=LWH[det_cls - 1],
-        yaw=np.zeros(n), vxy=np.vstack([vxy[idx], np.zeros((clutter, 2))]),
-        cov_xy=np.tile(np.eye(2) * std_m**2, (n, 1, 1)),
+        yaw=np.zeros(n), vxy=np.vstack([vxy[idx] + rng.normal(0, v_std_mps, (len(idx), 2)), np.zeros((clutter, 2))]),
+        cov_xy=np.tile(np.eye(2) * std_m**2, (n, 1, 1)), cov_vxy=cov_v[:, None, None] * np.eye(2),
     )
 
 
@@ -76,8 +81,8 @@ def scenario(cycles: int, seed: int) -> list[Cycle]:
     for k in range(cycles):
         vxy += rng.normal(0, 0.3, vxy.shape)
         xy = (xy + vxy * CYCLE_S + AREA_M / 2) % AREA_M - AREA_M / 2
-        lidar = sense(rng, xy, vxy, cls, np.zeros(2), LIDAR_RANGE_M, 0.15, 0.95, 1)
-        rsus = tuple(sense(rng, xy, vxy, cls, c, RSU_RANGE_M, 0.5, 0.9, 2) for c in RSU_XY)
+        lidar = sense(rng, xy, vxy, cls, np.zeros(2), LIDAR_RANGE_M, 0.15, 0.3, 0.95, 1)
+        rsus = tuple(sense(rng, xy, vxy, cls, c, RSU_RANGE_M, 0.5, 0.8, 0.9, 2) for c in RSU_XY)
         out.append(Cycle(round(k * CYCLE_S, 9), lidar, rsus))
     return out
 
@@ -90,7 +95,7 @@ def run_cycles(tracker, cycles: list[Cycle]) -> np.ndarray:
         tracker.predict(c.t_s)
         tracker.update(c.lidar, c.t_s, LIDAR)
         for rsu in c.rsus:
-            tracker.update(rsu, c.t_s, RSU)
+            tracker.update(rsu, c.t_s, RSU, estimates=True)
         tracker.prune(c.t_s)
         times[k] = time.perf_counter() - t0
     return times
@@ -113,19 +118,26 @@ class FilterpyTracker:
                 kf.predict(F=f, Q=q)
         self.t_s = t_s
 
-    def update(self, dets: ObjectArray, t_s: float, source_mask: int) -> None:
+    def update(self, dets: ObjectArray, t_s: float, source_mask: int, estimates: bool = False) -> None:
         bits = source_mask_bits(dets.sources | source_mask)
         result = associate(self.config, self.table(), dets)
+        x0, p0 = self.model.initial(filter_inputs(dets, np.arange(len(dets))), self.prior)
+        known = dets.velocity_known()
         for ti, di in result.matches:
-            self.kfs[ti].update(dets.xy[di], R=dets.cov_xy[di])
-            m = self.meta[ti]
+            kf, m = self.kfs[ti], self.meta[ti]
+            recent = t_s - m["seen_s"] <= self.config.max_coast_s
+            if estimates and not (recent & ~bits[di]).any():  # only this source saw it: take the estimate
+                kf.x, kf.P = x0[di][:, None], p0[di]
+            else:
+                kf.update(dets.xy[di], R=dets.cov_xy[di])
+                if known[di]:
+                    kf.update(dets.vxy[di], R=dets.cov_vxy[di], H=np.roll(kf.H, 2, axis=1))
             m.update(lwh=dets.lwh[di], yaw=dets.yaw[di], hits=m["hits"] + 1, updated_s=t_s)
             m["seen_s"][bits[di]] = t_s
         self.spawn(dets.take(result.unmatched_b), bits[result.unmatched_b], t_s)
 
     def spawn(self, dets: ObjectArray, bits: np.ndarray, t_s: float) -> None:
-        x0, p0 = self.model.initial(kalman.Measured(dets.xy, dets.cov_xy, dets.vxy, dets.axy, dets.yaw,
-                                                     dets.yaw_rate), self.prior)
+        x0, p0 = self.model.initial(filter_inputs(dets, np.arange(len(dets))), self.prior)
         for i in range(len(dets)):
             kf = KalmanFilter(dim_x=self.model.dim_x, dim_z=2)
             kf.x, kf.P = x0[i][:, None], p0[i]
@@ -151,7 +163,7 @@ class FilterpyTracker:
         col = lambda key, shape: np.array([m[key] for m in self.meta]).reshape(shape)
         return TrackTable(x, p, col("id", n), col("cls", n), np.zeros(n), col("lwh", (n, 3)), col("yaw", n),
                           np.ones(n), col("hits", n), np.zeros(n), col("updated_s", n),
-                          np.zeros((n, SOURCE_BITS)), np.zeros(n), np.zeros(n))
+                          col("seen_s", (n, SOURCE_BITS)), np.zeros(n), np.zeros(n))
 
 
 def stats_ms(times_s: np.ndarray) -> dict:

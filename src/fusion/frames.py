@@ -54,6 +54,7 @@ def _transform(objs: ObjectArray, rot: np.ndarray, xy: np.ndarray, dyaw: float, 
         vxy=objs.vxy @ rot.T - vel_offset,
         axy=objs.axy @ rot.T,
         cov_xy=rot @ objs.cov_xy @ rot.T,
+        cov_vxy=rot @ objs.cov_vxy @ rot.T,
     )
 
 

@@ -50,7 +50,8 @@ class StatePrior:
 @dataclass(frozen=True)
 class Measured:
     """Detections as filter inputs: xy (K, 2) m, cov_xy (K, 2, 2) m^2, vxy (K, 2) m/s,
-    axy (K, 2) m/s^2, yaw (K,) rad, yaw_rate (K,) rad/s."""
+    axy (K, 2) m/s^2, yaw (K,) rad, yaw_rate (K,) rad/s; cov_vxy (K, 2, 2) m^2/s^2 the
+    velocity covariance (None: no velocity measured)."""
 
     xy: np.ndarray
     cov_xy: np.ndarray
@@ -58,6 +59,16 @@ class Measured:
     axy: np.ndarray
     yaw: np.ndarray
     yaw_rate: np.ndarray
+    cov_vxy: np.ndarray | None = None
+
+    def velocity_prior(self, speed_std_mps: float) -> np.ndarray:
+        """(K, 2, 2) initial velocity covariance: the measured one where it is tighter than
+        the prior speed_std^2 I (by trace), else the prior."""
+        prior = np.broadcast_to(np.eye(2) * speed_std_mps**2, (len(self.xy), 2, 2))
+        if self.cov_vxy is None:
+            return prior.copy()
+        tighter = np.trace(self.cov_vxy, axis1=1, axis2=2) < 2 * speed_std_mps**2
+        return np.where(tighter[:, None, None], self.cov_vxy, prior)
 
 
 class MotionModel(Protocol):
@@ -83,6 +94,9 @@ class MotionModel(Protocol):
     def yaw_rate(self, x: np.ndarray) -> np.ndarray:
         """Turn rate (N,) rad/s."""
 
+    def velocity_cov(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Covariance (N, 2, 2) m^2/s^2 of the map-frame velocity."""
+
 
 def _per_axis(block: np.ndarray) -> np.ndarray:
     """kron(block, I_2): state ordered [x, y, d/dt x, d/dt y, ...], the same 1-D block on both axes."""
@@ -103,6 +117,14 @@ def _diag_prior(m: Measured, variances: list[float]) -> np.ndarray:
     return p
 
 
+def _linear_prior(m: Measured, prior: StatePrior, variances: list[float]) -> np.ndarray:
+    """P of the CV / CA state [x, y, vx, vy, ...]: measured position and velocity
+    covariances (prior speed std where no velocity was measured), then prior variances."""
+    p = _diag_prior(m, [0.0, 0.0] + variances)
+    p[:, 2:4, 2:4] = m.velocity_prior(prior.speed_std_mps)
+    return p
+
+
 @dataclass(frozen=True)
 class ConstantVelocity:
     """CV model, x = [x, y, vx, vy]; sigma_a = ``accel_std_mps2`` (white-noise acceleration)."""
@@ -119,10 +141,13 @@ class ConstantVelocity:
         return self.accel_std_mps2**2 * _per_axis(np.outer(g, g))
 
     def initial(self, m: Measured, prior: StatePrior) -> tuple[np.ndarray, np.ndarray]:
-        return np.column_stack([m.xy, m.vxy]), _diag_prior(m, [prior.speed_std_mps**2] * 2)
+        return np.column_stack([m.xy, m.vxy]), _linear_prior(m, prior, [])
 
     def velocity(self, x: np.ndarray) -> np.ndarray:
         return x[:, 2:4]
+
+    def velocity_cov(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
+        return p[:, 2:4, 2:4].copy()
 
     def acceleration(self, x: np.ndarray) -> np.ndarray:
         return np.zeros((len(x), 2))
@@ -148,11 +173,13 @@ class ConstantAcceleration:
         return self.jerk_std_mps3**2 * _per_axis(np.outer(g, g))
 
     def initial(self, m: Measured, prior: StatePrior) -> tuple[np.ndarray, np.ndarray]:
-        var = [prior.speed_std_mps**2] * 2 + [prior.accel_std_mps2**2] * 2
-        return np.column_stack([m.xy, m.vxy, m.axy]), _diag_prior(m, var)
+        return np.column_stack([m.xy, m.vxy, m.axy]), _linear_prior(m, prior, [prior.accel_std_mps2**2] * 2)
 
     def velocity(self, x: np.ndarray) -> np.ndarray:
         return x[:, 2:4]
+
+    def velocity_cov(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
+        return p[:, 2:4, 2:4].copy()
 
     def acceleration(self, x: np.ndarray) -> np.ndarray:
         return x[:, 4:6]
@@ -223,6 +250,12 @@ class Ctrv:
 
     def velocity(self, x: np.ndarray) -> np.ndarray:
         return x[:, 2:3] * np.column_stack([np.cos(x[:, 3]), np.sin(x[:, 3])])
+
+    def velocity_cov(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
+        # v_xy = v [cos psi, sin psi]: J = d v_xy / d(v, psi) = [[c, -v s], [s, v c]], C = J P J^T
+        c, s, v = np.cos(x[:, 3]), np.sin(x[:, 3]), x[:, 2]
+        j = np.stack([np.stack([c, -v * s], -1), np.stack([s, v * c], -1)], -2)
+        return j @ p[:, 2:4, 2:4] @ j.transpose(0, 2, 1)
 
     def acceleration(self, x: np.ndarray) -> np.ndarray:
         # centripetal: a = v omega, perpendicular to the heading

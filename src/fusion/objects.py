@@ -9,6 +9,8 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
+from schemas.messages import UNKNOWN_VELOCITY_VAR  # per-axis velocity variance meaning "no velocity"
+
 
 def _col(n: int, width: int | None = None, dtype=np.float64) -> np.ndarray:
     return np.zeros((n,) if width is None else (n, width), dtype=dtype)
@@ -20,8 +22,9 @@ class ObjectArray:
 
     ids (N,) int64, cls (N,) int64 (``ObjectClass`` codes), xy (N, 2) m, z (N,) m,
     lwh (N, 3) m, yaw (N,) rad, vxy (N, 2) m/s, axy (N, 2) m/s^2, yaw_rate (N,) rad/s,
-    cov_xy (N, 2, 2) m^2 position covariance, confidence (N,) in [0, 1], age_s (N,) s,
-    sources (N,) int64 bitmask (1 vehicle, 2 RSU).
+    cov_xy (N, 2, 2) m^2 position covariance, cov_vxy (N, 2, 2) m^2/s^2 velocity covariance
+    (``UNKNOWN_VELOCITY_VAR`` on the diagonal: no velocity measured), confidence (N,) in
+    [0, 1], age_s (N,) s, sources (N,) int64 bitmask (1 vehicle, 2 RSU).
     """
 
     ids: np.ndarray
@@ -35,6 +38,7 @@ class ObjectArray:
     yaw_rate: np.ndarray = field(default=None)  # type: ignore[assignment]
     cov_xy: np.ndarray = field(default=None)  # type: ignore[assignment]
     confidence: np.ndarray = field(default=None)  # type: ignore[assignment]
+    cov_vxy: np.ndarray = field(default=None)  # type: ignore[assignment]
     age_s: np.ndarray = field(default=None)  # type: ignore[assignment]
     sources: np.ndarray = field(default=None)  # type: ignore[assignment]
 
@@ -45,6 +49,7 @@ class ObjectArray:
             "yaw_rate": _col(n),
             "cov_xy": np.tile(np.eye(2), (n, 1, 1)),
             "confidence": np.ones(n),
+            "cov_vxy": np.tile(np.eye(2) * UNKNOWN_VELOCITY_VAR, (n, 1, 1)),
             "age_s": _col(n),
             "sources": _col(n, dtype=np.int64),
         }
@@ -58,6 +63,10 @@ class ObjectArray:
 
     def __len__(self) -> int:
         return len(self.ids)
+
+    def velocity_known(self) -> np.ndarray:
+        """(N,) True where the velocity was measured or estimated (variance below unknown)."""
+        return np.trace(self.cov_vxy, axis1=1, axis2=2) < UNKNOWN_VELOCITY_VAR
 
     @classmethod
     def empty(cls) -> "ObjectArray":

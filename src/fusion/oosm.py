@@ -30,6 +30,7 @@ class _Batch:
     t_s: float
     dets: ObjectArray
     source_mask: int
+    estimates: bool  # the batch holds another tracker's estimates (see Tracker.update)
     before: TrackerSnapshot  # the filter just before this batch was applied
 
 
@@ -51,17 +52,18 @@ class OosmTracker:
         """Time of the newest applied batch (None before the first)."""
         return self._history[-1].t_s if self._history else self.tracker.time_s
 
-    def update(self, dets: ObjectArray, t_s: float, source_mask: int = 0) -> None:
-        """Apply a batch at its own time t_s (seconds, the tracker's time origin), re-filtering if late."""
+    def update(self, dets: ObjectArray, t_s: float, source_mask: int = 0, estimates: bool = False) -> None:
+        """Apply a batch at its own time t_s (seconds, the tracker's time origin), re-filtering if
+        late; ``estimates`` as in ``Tracker.update``."""
         pos = bisect.bisect_right([b.t_s for b in self._history], t_s)
         if self._too_old(t_s, pos):
             self.dropped_batches += 1
             self.dropped_measurements += len(dets)
             return
         if pos == len(self._history):
-            self._history.append(self._apply(t_s, dets, source_mask))
+            self._history.append(self._apply(t_s, dets, source_mask, estimates))
         else:
-            self._refilter(pos, t_s, dets, source_mask)
+            self._refilter(pos, t_s, dets, source_mask, estimates)
         self._trim()
 
     def tracks(self, t_s: float) -> ObjectArray:
@@ -74,22 +76,22 @@ class OosmTracker:
         base_s = self._history[pos].before.t_s if pos < len(self._history) else self.tracker.time_s
         return (newest is not None and t_s < newest - self.window_s) or (base_s is not None and t_s < base_s)
 
-    def _apply(self, t_s: float, dets: ObjectArray, source_mask: int) -> _Batch:
+    def _apply(self, t_s: float, dets: ObjectArray, source_mask: int, estimates: bool) -> _Batch:
         before = self.tracker.snapshot()
         t0 = self.tracker.time_s
         if t0 is not None and t_s > t0:
             self.tracker.prune(t0)  # the cycle at t0 is complete
         self.tracker.predict(t_s)
-        self.tracker.update(dets, t_s, source_mask)
-        return _Batch(t_s, dets, source_mask, before)
+        self.tracker.update(dets, t_s, source_mask, estimates)
+        return _Batch(t_s, dets, source_mask, estimates, before)
 
-    def _refilter(self, pos: int, t_s: float, dets: ObjectArray, source_mask: int) -> None:
+    def _refilter(self, pos: int, t_s: float, dets: ObjectArray, source_mask: int, estimates: bool) -> None:
         later = self._history[pos:]
         self.tracker.restore(later[0].before)
         del self._history[pos:]
-        self._history.append(self._apply(t_s, dets, source_mask))
+        self._history.append(self._apply(t_s, dets, source_mask, estimates))
         for batch in later:
-            self._history.append(self._apply(batch.t_s, batch.dets, batch.source_mask))
+            self._history.append(self._apply(batch.t_s, batch.dets, batch.source_mask, batch.estimates))
         self.refilter_runs += 1
 
     def _trim(self) -> None:

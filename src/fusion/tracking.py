@@ -9,7 +9,8 @@ Motion (``TrackerConfig.motion``): ``cv`` [x, y, vx, vy], ``ca`` [x, y, vx, vy, 
 ``ctrv`` [x, y, v, psi, omega] (EKF); process noise sigmas ``accel_std_mps2`` (CV, CTRV v-dot),
 ``jerk_std_mps3`` (CA), ``yaw_accel_std_radps2`` (CTRV omega-dot). New tracks start at the
 detection (position covariance from the detection, velocity / acceleration / yaw / yaw rate
-from the detection with the ``init_*`` prior standard deviations).
+from the detection with the ``init_*`` prior standard deviations; CV / CA take the
+detection's velocity covariance where it is tighter than the speed prior).
 
 Association per ``update``: a pair (track, detection) is allowed when the classes are
 compatible (equal, or either is UNKNOWN = 0) and the pair passes the gate:
@@ -17,7 +18,9 @@ compatible (equal, or either is UNKNOWN = 0) and the pair passes the gate:
 d2 = y^T S^-1 y <= ``gate_chi2`` (9.21: 99 % for 2 dof). Among allowed pairs a
 minimum-cost one-to-one assignment (scipy ``linear_sum_assignment``) with cost
 ``distance`` (m), ``mahalanobis`` (d2) or ``iou`` (1 - BEV IoU of the predicted box and the
-detected box). Matched tracks get a Kalman update; unmatched detections spawn tracks.
+detected box). Matched tracks get a Kalman update of the position and, for CV / CA with
+``velocity_updates``, of the velocity where the detection measured one (``cov_vxy`` below
+``UNKNOWN_VELOCITY_VAR``, R = cov_vxy); unmatched detections spawn tracks.
 
 Life cycle (``tracks`` returns confirmed and coasting tracks):
 - tentative: spawned by an unmatched detection with one hit; every update adds a hit
@@ -71,7 +74,7 @@ class TrackerConfig:
     init_yaw_std_rad: float = 0.5  # CTRV prior std of the heading
     init_yaw_rate_std_radps: float = 0.5  # CTRV prior std of the turn rate
     tentative_max_coast_s: float = 0.3  # a tentative track survives misses this long (>= slowest source period)
-    velocity_std_mps: float | None = None  # std of measured velocities; None: detections carry none
+    velocity_updates: bool = True  # cv / ca: measured velocities (cov_vxy below unknown) update the state too
     shape_hold_s: float = 0.3  # a box shape from a precise source is kept this long against coarser ones
 
     def __post_init__(self) -> None:
@@ -306,13 +309,25 @@ class Tracker:
             self._table.x, self._table.p = kalman.predict(self._table.x, self._table.p, self.model, t_s - self._t_s)
         self._t_s = t_s
 
-    def update(self, dets: ObjectArray, t_s: float, source_mask: int = 0) -> None:
+    def update(self, dets: ObjectArray, t_s: float, source_mask: int = 0, estimates: bool = False) -> None:
         """Associate detections (map frame) with the tracks predicted to t_s, update the matched
-        tracks, spawn tracks from the unmatched detections. Several updates per cycle are allowed."""
+        tracks, spawn tracks from the unmatched detections. Several updates per cycle are allowed.
+
+        ``estimates``: the detections are another tracker's estimates (an RSU's tracks). A
+        matched track that no other source updated within ``max_coast_s`` takes the estimate
+        as its state: the newest estimate already holds everything that source said before,
+        and filtering it in would count that again. Other matched tracks get the Kalman update.
+        """
         self.predict(t_s)
         bits = source_mask_bits(np.asarray(dets.sources) | int(source_mask))
         result = associate(self.config, self._table, dets)
-        self._correct(result.matches, dets, bits, t_s)
+        ti, di = result.matches[:, 0], result.matches[:, 1]
+        if estimates:
+            alone = self._seen_only_by(ti, bits[di], t_s)
+            self._supersede(ti[alone], dets, di[alone])
+            ti, di = ti[~alone], di[~alone]
+        self._correct(ti, di, dets)
+        self._record(result.matches[:, 0], result.matches[:, 1], dets, bits, t_s)
         self._spawn(dets, result.unmatched_b, bits, t_s)
 
     def prune(self, t_s: float) -> None:
@@ -328,8 +343,8 @@ class Tracker:
         """Confirmed and coasting tracks at t_s (map frame), predicted on a copy: the filter is not changed
         (a t_s before the filter time extrapolates backwards with the motion model).
 
-        ids, cls, z, lwh, yaw, confidence from the last detection; xy, vxy, axy, yaw_rate and
-        cov_xy (position block of P) from the filter; age_s since birth; sources (see module doc).
+        ids, cls, z, lwh, yaw, confidence from the last detection; xy, vxy, axy, yaw_rate,
+        cov_xy (position block of P) and cov_vxy (velocity covariance) from the filter; age_s since birth; sources (see module doc).
         """
         tab = self._table
         keep = (tab.hits >= self.config.confirm_hits) & (t_s - tab.updated_s <= self.config.max_coast_s)
@@ -341,7 +356,8 @@ class Tracker:
         return ObjectArray(
             ids=tab.ids, cls=tab.cls, xy=x[:, :2].copy(), z=tab.z, lwh=tab.lwh, yaw=tab.yaw,
             vxy=np.array(self.model.velocity(x)), axy=self.model.acceleration(x), yaw_rate=self.model.yaw_rate(x),
-            cov_xy=p[:, :2, :2].copy(), confidence=tab.confidence, age_s=t_s - tab.born_s,
+            cov_xy=p[:, :2, :2].copy(), cov_vxy=self.model.velocity_cov(x, p), confidence=tab.confidence,
+            age_s=t_s - tab.born_s,
             sources=(recent * _BIT_VALUES[None, :]).sum(axis=1).astype(np.int64),
         )
 
@@ -365,17 +381,30 @@ class Tracker:
         if self._t_s is not None and t_s < self._t_s:
             raise ValueError(f"t_s={t_s} precedes the filter time {self._t_s}; use fusion.oosm.OosmTracker")
 
-    def _correct(self, matches: np.ndarray, dets: ObjectArray, bits: np.ndarray, t_s: float) -> None:
-        if not len(matches):
-            return
-        ti, di = matches[:, 0], matches[:, 1]
+    def _seen_only_by(self, ti: np.ndarray, bits: np.ndarray, t_s: float) -> np.ndarray:
+        """(K,) True where tracks ti were updated within max_coast_s by no source outside bits (K, SOURCE_BITS)."""
+        recent = (t_s - self._table.seen_s[ti]) <= self.config.max_coast_s
+        return ~(recent & ~bits).any(axis=1)
+
+    def _supersede(self, ti: np.ndarray, dets: ObjectArray, di: np.ndarray) -> None:
+        """Tracks ti take the estimates dets[di] as their state, as a new track would."""
+        if len(ti):
+            self._table.x[ti], self._table.p[ti] = self.model.initial(filter_inputs(dets, di), self._prior)
+
+    def _correct(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray) -> None:
+        """Kalman update of tracks ti with detections di (position, then measured velocity)."""
         tab = self._table
         tab.x[ti], tab.p[ti], _ = kalman.update(tab.x[ti], tab.p[ti], dets.xy[di], dets.cov_xy[di])
-        v_std = self.config.velocity_std_mps
-        if v_std is not None and self.config.motion in ("cv", "ca"):
-            # sources that estimate velocity (tracking RSUs, CenterPoint) update it too: H = [0 I_2 0]
-            r_v = np.broadcast_to(np.eye(2) * v_std**2, (len(ti), 2, 2))
-            tab.x[ti], tab.p[ti], _ = kalman.update(tab.x[ti], tab.p[ti], dets.vxy[di], r_v, first=2)
+        if self.config.velocity_updates and self.config.motion in ("cv", "ca"):
+            # sources that estimate velocity (tracking RSUs, CenterPoint) update it too:
+            # H = [0 I_2 0], R = the detection's velocity covariance
+            known = dets.velocity_known()[di]
+            vt, v = ti[known], di[known]
+            tab.x[vt], tab.p[vt], _ = kalman.update(tab.x[vt], tab.p[vt], dets.vxy[v], dets.cov_vxy[v], first=2)
+
+    def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, bits: np.ndarray, t_s: float) -> None:
+        """Bookkeeping of matched tracks ti: class, shape, confidence, hits and update times."""
+        tab = self._table
         tab.cls[ti] = np.where(tab.cls[ti] == 0, dets.cls[di], tab.cls[ti])  # UNKNOWN adopts a class
         self._take_shape(ti, dets, di, t_s)
         tab.confidence[ti] = dets.confidence[di]
@@ -402,8 +431,7 @@ class Tracker:
         n = len(index)
         if not n:
             return
-        m = kalman.Measured(dets.xy[index], dets.cov_xy[index], dets.vxy[index], dets.axy[index], dets.yaw[index],
-                            dets.yaw_rate[index])
+        m = filter_inputs(dets, index)
         x, p = self.model.initial(m, self._prior)
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
@@ -413,3 +441,9 @@ class Tracker:
                          np.ones(n, np.int64), born, born.copy(), np.where(bits[index], t_s, -np.inf),
                          np.trace(dets.cov_xy[index], axis1=1, axis2=2), born.copy())
         self._table = self._table.append(new)
+
+
+def filter_inputs(dets: ObjectArray, index: np.ndarray) -> kalman.Measured:
+    """Filter inputs of the detections dets[index]."""
+    return kalman.Measured(dets.xy[index], dets.cov_xy[index], dets.vxy[index], dets.axy[index], dets.yaw[index],
+                           dets.yaw_rate[index], dets.cov_vxy[index])

@@ -11,7 +11,11 @@ returns the fused objects in base_link at the cycle time.
 - ``tclf``: DAIR-V2X time-compensated late fusion (two-frame RSU velocity).
 - ``kf``: a Kalman-filter tracker in ``map`` updated with own LiDAR, then with each RSU
   frame once (seed 001); with ``oosm`` compensation RSU frames are out-of-sequence
-  measurements at their capture time and the filter is re-run from there.
+  measurements at their capture time and the filter is re-run from there. RSU objects
+  are the RSU tracker's estimates (position and velocity with covariances): a track only
+  the RSU has seen takes the newest one as its state, since it already holds what the
+  older ones said; a track the LiDAR also sees fuses it in a Kalman update
+  (``Tracker.update(..., estimates=True)``).
   ``kf-vehicle`` and ``kf-rsu`` are the same tracker fed by one source only (seed 001's
   "LiDAR only KF" and "camera only KF" ablations).
 
@@ -43,13 +47,6 @@ from schemas.messages import SOURCE_RSU
 FUSION_METHODS = ("kf", "iou-merge", "nms", "tclf", "rsu-only", "vehicle-only", "kf-vehicle", "kf-rsu")
 COMPENSATIONS = ("predict", "none", "track-predict", "lane", "oosm")
 Motion = Callable[[ObjectArray, float], ObjectArray]  # (objects, dt_s) -> objects dt_s later
-RSU_SPEED_STD_MPS = 1.0  # velocity uncertainty of an RSU object, inflating R by (dt sigma_v)^2
-# RSU objects are track estimates that already integrate the RSU's past lists, so the
-# newest one supersedes the older ones the OBU filter remembers. Scaling their covariance
-# down lets it dominate that memory (a scale of 1 treats them as independent measurements
-# and the filter lags the RSU). 0.2 measured best on red-light-runner seeds 1, 2 and 5
-# among {0.05, 0.2, 1}; see the closing note of the KF issue for the held-out seeds.
-RSU_COV_SCALE = 0.2
 
 
 @dataclass(frozen=True)
@@ -116,22 +113,22 @@ class KalmanFusion:
         for frame in sorted(fresh, key=lambda f: f.valid_ns) if self.use_rsu else ():
             # oosm: a measurement at its own time, re-filtered into the past; else moved to the cycle
             at_ns = frame.valid_ns if self.compensation == "oosm" else cycle_ns
-            self._update(self._as_measurement(frame, at_ns), self._t(at_ns), frame.objects.sources)
+            self._update(self._as_measurement(frame, at_ns), self._t(at_ns), frame.objects.sources, estimates=True)
         return map_to_base(self._tracks(t_s), ego)
 
     def _as_measurement(self, frame: RsuFrame, cycle_ns: int) -> ObjectArray:
-        # R = s C + (dt sigma_v)^2 I: the prediction over dt adds the velocity's uncertainty
+        # R = C + dt^2 C_v: moving the estimate by v dt adds the velocity's uncertainty
         dt_s = (cycle_ns - frame.valid_ns) * 1e-9 if self.compensation != "none" else 0.0
         objs = compensate(frame, cycle_ns, self.compensation, self.motion)
-        return objs.with_(cov_xy=RSU_COV_SCALE * objs.cov_xy + np.eye(2) * (dt_s * RSU_SPEED_STD_MPS) ** 2)
+        return objs.with_(cov_xy=objs.cov_xy + dt_s**2 * objs.cov_vxy)
 
-    def _update(self, dets: ObjectArray, t_s: float, sources: np.ndarray) -> None:
+    def _update(self, dets: ObjectArray, t_s: float, sources: np.ndarray, estimates: bool = False) -> None:
         mask = int(np.bitwise_or.reduce(sources)) if len(sources) else SOURCE_RSU
         if isinstance(self.tracker, OosmTracker):
-            self.tracker.update(dets, t_s, mask)
+            self.tracker.update(dets, t_s, mask, estimates)
         else:
             self.tracker.predict(t_s)
-            self.tracker.update(dets, t_s, mask)
+            self.tracker.update(dets, t_s, mask, estimates)
 
     def _tracks(self, t_s: float) -> ObjectArray:
         if isinstance(self.tracker, OosmTracker):

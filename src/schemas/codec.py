@@ -115,6 +115,9 @@ OBJECT_COLUMNS: tuple[Column, ...] = (
     _col("cov_xx", "<u4", q.COV_M2),
     _col("cov_xy", "<i4", q.COV_M2),
     _col("cov_yy", "<u4", q.COV_M2),
+    _col("cov_vxx", "<u4", q.COV_M2),
+    _col("cov_vxy", "<i4", q.COV_M2),
+    _col("cov_vyy", "<u4", q.COV_M2),
     _col("confidence", "u1", q.CONFIDENCE),
     _col("age_s", "<u4", q.AGE_S),
 )

@@ -14,12 +14,14 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validat
 from . import quantize as q
 from .classes import ObjectClass
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: velocity covariance cov_vxx, cov_vxy, cov_vyy on objects
 MAX_OBJECTS = 1024
 
 # Plausible wall-clock range: 2000-01-01 .. 2100-01-01. Anything outside is a broken clock.
 MIN_TIME_NS = 946_684_800 * 10**9
 MAX_TIME_NS = 4_102_444_800 * 10**9
+
+UNKNOWN_VELOCITY_VAR = 1e4  # m^2/s^2 (100 m/s std): no velocity measured; equals the Variance maximum
 
 SOURCE_VEHICLE = 1
 SOURCE_RSU = 2
@@ -88,6 +90,10 @@ class ObjectState(Message):
     cov_xx: Variance = 1.0
     cov_xy: Covariance = 0.0
     cov_yy: Variance = 1.0
+    # velocity covariance (m^2/s^2); the default, the largest variance, means "not measured"
+    cov_vxx: Variance = UNKNOWN_VELOCITY_VAR
+    cov_vxy: Covariance = 0.0
+    cov_vyy: Variance = UNKNOWN_VELOCITY_VAR
     confidence: Confidence = 1.0
     age_s: AgeS = 0.0
 

@@ -86,6 +86,7 @@ class Lidar:
         out = ObjectArray(
             ids=np.full(n, -1, dtype=np.int64), cls=truth.cls, xy=xy, z=z, lwh=lwh, yaw=yaw, vxy=vxy,
             cov_xy=np.tile(np.eye(2) * c.position_noise_std_m**2, (n, 1, 1)), confidence=confidence,
+            cov_vxy=np.tile(np.eye(2) * c.velocity_noise_std_mps**2, (n, 1, 1)),
             sources=np.full(n, SOURCE_VEHICLE, dtype=np.int64),
         )
         return out.take(keep)

@@ -521,3 +521,15 @@ def test_prediction_list_needs_one_matching_path_per_object() -> None:
         PredictionList(header=header(), objects=(car(1),), paths=(path,))
     with pytest.raises(ValueError, match="one entry per step"):
         PredictedPath(id=0, x=(1.0,), y=(), yaw=())
+
+
+def test_velocity_covariance_round_trips_and_defaults_to_unknown() -> None:
+    from fusion.wire import objects_from_states, states_from_objects
+
+    plain = objects_from_states(decode(encode(ObjectList(header=header(), objects=(car(1),))), ObjectList).objects)
+    assert not plain.velocity_known()[0]  # a sender that states no velocity covariance
+    tracked = plain.with_(cov_vxy=np.array([[[0.25, -0.05], [-0.05, 0.16]]]))
+    msg = ObjectList(header=header(), objects=states_from_objects(tracked))
+    back = objects_from_states(decode(encode(msg), ObjectList).objects)
+    np.testing.assert_allclose(back.cov_vxy, tracked.cov_vxy, atol=1e-12)
+    assert back.velocity_known()[0]

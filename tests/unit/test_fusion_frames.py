@@ -24,11 +24,16 @@ def test_map_to_base_known_example():
 def test_map_base_round_trip_preserves_everything():
     rng = np.random.default_rng(0)
     ego = Pose2D(*rng.normal(size=2), rng.uniform(-np.pi, np.pi))
-    objs = one(3.0, -4.0, yaw=0.3, vx=1.0, vy=2.0).with_(cov_xy=np.array([[[2.0, 0.5], [0.5, 1.0]]]))
-    back = base_to_map(map_to_base(objs, ego), ego)
+    objs = one(3.0, -4.0, yaw=0.3, vx=1.0, vy=2.0).with_(cov_xy=np.array([[[2.0, 0.5], [0.5, 1.0]]]),
+                                                          cov_vxy=np.array([[[0.3, -0.1], [-0.1, 0.2]]]))
+    base = map_to_base(objs, ego)
+    rot = np.array([[np.cos(ego.yaw), np.sin(ego.yaw)], [-np.sin(ego.yaw), np.cos(ego.yaw)]])  # R(yaw)^T
+    np.testing.assert_allclose(base.cov_vxy[0], rot @ objs.cov_vxy[0] @ rot.T, atol=1e-12)
+    back = base_to_map(base, ego)
     np.testing.assert_allclose(back.xy, objs.xy, atol=1e-12)
     np.testing.assert_allclose(back.vxy, objs.vxy, atol=1e-12)
     np.testing.assert_allclose(back.cov_xy, objs.cov_xy, atol=1e-12)
+    np.testing.assert_allclose(back.cov_vxy, objs.cov_vxy, atol=1e-12)
     assert back.yaw[0] == pytest.approx(0.3)
 
 

@@ -186,3 +186,41 @@ def test_make_model_rejects_unknown_names():
     assert isinstance(kalman.make_model("ca", 1, 2, 3), ConstantAcceleration)
     with pytest.raises(ValueError, match="motion"):
         kalman.make_model("bicycle", 1, 2, 3)
+
+
+@pytest.mark.parametrize("model", [ConstantVelocity(2.0), ConstantAcceleration(4.0)], ids=["cv", "ca"])
+def test_velocity_update_equals_filterpy_with_velocity_selector(model):
+    rng = np.random.default_rng(5)
+    x, p = start(model, rng)
+    z, r = rng.normal(0, 5, (N_TRACKS, 2)), random_spd(rng, N_TRACKS)
+    x_post, p_post, _ = kalman.update(x, p, z, r, first=2)
+    for i in range(N_TRACKS):
+        kf = filterpy_kf(model, x[i], p[i])
+        kf.H = np.roll(kf.H, 2, axis=1)  # H = [0 I_2 0]
+        kf.update(z[i], R=r[i])
+        np.testing.assert_allclose(x_post[i], kf.x[:, 0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(p_post[i], kf.P, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("model", [ConstantVelocity(), ConstantAcceleration(), Ctrv()], ids=["cv", "ca", "ctrv"])
+def test_velocity_covariance_is_the_linearised_covariance_of_the_velocity(model):
+    rng = np.random.default_rng(6)
+    x, p = start(model, rng)
+    x[:, :] += rng.normal(0, 0.1, x.shape)
+    eps = 1e-6
+    for i in range(N_TRACKS):  # C = J P J^T with J = d velocity / d x by central differences
+        j = np.column_stack([(model.velocity((x[i] + eps * e)[None]) - model.velocity((x[i] - eps * e)[None]))[0]
+                             / (2 * eps) for e in np.eye(model.dim_x)])
+        np.testing.assert_allclose(model.velocity_cov(x[i:i + 1], p[i:i + 1])[0], j @ p[i] @ j.T, rtol=1e-6, atol=1e-9)
+
+
+def test_new_tracks_take_a_measured_velocity_covariance_tighter_than_the_prior():
+    rng = np.random.default_rng(7)
+    tight, loose = np.eye(2) * 0.09, np.eye(2) * 1e4
+    m = Measured(xy=np.zeros((2, 2)), cov_xy=random_spd(rng, 2), vxy=np.ones((2, 2)), axy=np.zeros((2, 2)),
+                 yaw=np.zeros(2), yaw_rate=np.zeros(2), cov_vxy=np.stack([tight, loose]))
+    for model in (ConstantVelocity(), ConstantAcceleration()):
+        _, p = model.initial(m, StatePrior(speed_std_mps=10.0))
+        np.testing.assert_array_equal(p[0, 2:4, 2:4], tight)
+        np.testing.assert_array_equal(p[1, 2:4, 2:4], np.eye(2) * 100.0)
+        np.testing.assert_array_equal(p[:, :2, :2], m.cov_xy)

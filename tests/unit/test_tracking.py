@@ -78,6 +78,55 @@ def test_two_updates_per_cycle_fuse_lidar_then_rsu():
     assert {int(s) for s in tracker.tracks(0.4).sources} == {LIDAR | RSU, RSU}
 
 
+def with_velocity(d, vxy, std):
+    return d.with_(vxy=np.tile(vxy, (len(d), 1)), cov_vxy=np.tile(np.eye(2) * std**2, (len(d), 1, 1)))
+
+
+def test_rsu_estimate_replaces_an_rsu_only_track_and_fuses_into_a_lidar_track():
+    tracker = Tracker(TrackerConfig())
+    for t in (0.0, 0.1, 0.2):  # the LiDAR's track at the origin; one only the RSU sees, 40 m east
+        tracker.update(dets([0.0, 0.0], std=0.2), t, LIDAR)
+        tracker.update(with_velocity(dets([40.0 + 10 * t, 0.0], std=0.5), [10.0, 0.0], 0.5), t, RSU, estimates=True)
+        tracker.prune(t)
+    tracker.update(dets([0.0, 0.0], std=0.2), 0.3, LIDAR)
+    before = tracker.tracks(0.3)
+    estimate = with_velocity(dets([[0.6, 0.0], [43.4, 0.3]], std=0.4), [9.0, 0.5], 0.3)
+    estimate = estimate.with_(vxy=np.array([[0.0, 0.0], [9.0, 0.5]]))
+    tracker.update(estimate, 0.3, RSU, estimates=True)
+    after = tracker.tracks(0.3)
+    lidar, rsu_only = np.argmin(after.xy[:, 0]), np.argmax(after.xy[:, 0])
+    # the RSU-only track is the newest estimate, state and covariance, not a blend with the old one
+    np.testing.assert_allclose(after.xy[rsu_only], [43.4, 0.3], atol=1e-12)
+    np.testing.assert_allclose(after.vxy[rsu_only], [9.0, 0.5], atol=1e-12)
+    np.testing.assert_allclose(after.cov_xy[rsu_only], np.eye(2) * 0.16, atol=1e-12)
+    np.testing.assert_allclose(after.cov_vxy[rsu_only], np.eye(2) * 0.09, atol=1e-12)
+    # the LiDAR's track is Kalman-updated: it moves toward the estimate, but not onto it
+    x_before = before.xy[np.argmin(before.xy[:, 0]), 0]
+    assert x_before < after.xy[lidar, 0] < 0.6 - 0.3
+    assert after.cov_xy[lidar, 0, 0] < before.cov_xy[np.argmin(before.xy[:, 0]), 0, 0]
+    assert after.sources[lidar] == LIDAR | RSU and after.sources[rsu_only] == RSU
+
+
+def test_measured_velocity_updates_the_track_and_an_unknown_one_does_not():
+    def track_after(d):
+        tracker = confirmed_tracker()  # at rest: velocity ~ 0
+        tracker.update(d, 0.3, LIDAR)
+        return tracker.tracks(0.3)
+
+    measured = track_after(with_velocity(dets([0.0, 0.0], std=0.2), [5.0, 0.0], 0.3))
+    unknown = track_after(dets([0.0, 0.0], std=0.2).with_(vxy=np.array([[5.0, 0.0]])))  # no cov_vxy stated
+    assert measured.vxy[0, 0] > 4.0 and measured.cov_vxy[0, 0, 0] < 0.3**2
+    assert abs(unknown.vxy[0, 0]) < 0.5
+
+    def spawned_moving(**cfg):  # a detection says 5 m/s, but the positions never move
+        tracker = Tracker(TrackerConfig(**cfg))
+        for t in (0.0, 0.1, 0.2, 0.3):
+            tracker.update(with_velocity(dets([0.0, 0.0], std=0.2), [5.0, 0.0], 0.3), t, LIDAR)
+        return tracker.tracks(0.3).vxy[0, 0]
+
+    assert spawned_moving() > 4.5 > spawned_moving(velocity_updates=False) + 0.5  # off: only the spawn took it
+
+
 def test_mahalanobis_gate_rejects_an_outlier_the_distance_gate_accepts():
     for gate, expected_tracks in (("distance", 1), ("mahalanobis", 2)):
         tracker = confirmed_tracker(gate=gate)
@@ -241,24 +290,25 @@ def two_car_batches(seed=11):
     return batches
 
 
-def in_order(batches, cfg):
+def in_order(batches, cfg, estimates=False):
     tracker = Tracker(cfg)
     for t, _, d, src in sorted(batches, key=lambda b: b[0]):
         if tracker.time_s is not None and t > tracker.time_s:
             tracker.prune(tracker.time_s)
         tracker.predict(t)
-        tracker.update(d, t, src)
+        tracker.update(d, t, src, estimates and src == RSU)
     return tracker
 
 
-def test_oosm_out_of_order_equals_in_order_filtering():
+@pytest.mark.parametrize("estimates", [False, True], ids=["measurements", "rsu-estimates"])
+def test_oosm_out_of_order_equals_in_order_filtering(estimates):
     cfg = TrackerConfig(motion="ca", gate="mahalanobis", gate_chi2=16.0)
     batches = sorted(two_car_batches(), key=lambda b: b[1])  # arrival order
     oosm = OosmTracker(Tracker(cfg), window_s=0.5)
     for n, (t, arrival, d, src) in enumerate(batches, 1):
-        oosm.update(d, t, src)
+        oosm.update(d, t, src, estimates and src == RSU)
         if n % 7 == 0 or n == len(batches):
-            ref = in_order(batches[:n], cfg)
+            ref = in_order(batches[:n], cfg, estimates)
             got, want = oosm.tracks(arrival), ref.tracks(arrival)
             assert got.ids.tolist() == want.ids.tolist()
             np.testing.assert_allclose(got.xy, want.xy, rtol=0, atol=1e-9)
