@@ -64,11 +64,12 @@ class Measured:
     def velocity_prior(self, speed_std_mps: float) -> np.ndarray:
         """(K, 2, 2) initial velocity covariance: the measured one where it is tighter than
         the prior speed_std^2 I (by trace), else the prior."""
-        prior = np.broadcast_to(np.eye(2) * speed_std_mps**2, (len(self.xy), 2, 2))
+        prior = np.eye(2) * speed_std_mps**2
         if self.cov_vxy is None:
-            return prior.copy()
-        tighter = np.trace(self.cov_vxy, axis1=1, axis2=2) < 2 * speed_std_mps**2
-        return np.where(tighter[:, None, None], self.cov_vxy, prior)
+            return np.tile(prior, (len(self.xy), 1, 1))
+        out = self.cov_vxy.copy()
+        out[out[:, 0, 0] + out[:, 1, 1] >= 2 * speed_std_mps**2] = prior
+        return out
 
 
 class MotionModel(Protocol):
@@ -300,10 +301,11 @@ def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, first: in
     k = p[:, :, sel] @ inv2(s)  # K = P H^T S^-1, (K, n, 2)
     y = z - x[:, sel]  # y = z - H x
     x_post = x + (k @ y[:, :, None])[:, :, 0]  # x+ = x + K y
-    i_kh = np.eye(x.shape[1])[None].repeat(len(x), axis=0)
-    i_kh[:, :, sel] -= k  # I - K H
-    # P+ = (I - K H) P (I - K H)^T + K R K^T, symmetric and positive for any gain
-    p_post = i_kh @ p @ i_kh.transpose(0, 2, 1) + k @ r @ k.transpose(0, 2, 1)
+    # Joseph form P+ = (I - K H) P (I - K H)^T + K R K^T (symmetric and positive for any gain),
+    # expanded so that only (n, 2) products remain: with A = (I - K H) P = P - K (H P),
+    # A (I - K H)^T = A - (A H^T) K^T, so P+ = A + (K R - A H^T) K^T
+    a = p - k @ p[:, sel, :]
+    p_post = a + (k @ r - a[:, :, sel]) @ k.transpose(0, 2, 1)
     return x_post, p_post, s
 
 

@@ -66,7 +66,7 @@ class ObjectArray:
 
     def velocity_known(self) -> np.ndarray:
         """(N,) True where the velocity was measured or estimated (variance below unknown)."""
-        return np.trace(self.cov_vxy, axis1=1, axis2=2) < UNKNOWN_VELOCITY_VAR
+        return self.cov_vxy[:, 0, 0] + self.cov_vxy[:, 1, 1] < UNKNOWN_VELOCITY_VAR
 
     @classmethod
     def empty(cls) -> "ObjectArray":

@@ -37,7 +37,7 @@ Ids are unique within a Tracker instance, starting at 1.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -123,13 +123,17 @@ class TrackTable:
         return len(self.x)
 
     def take(self, index) -> TrackTable:
-        return TrackTable(*(getattr(self, f.name)[index] for f in fields(self)))
+        return TrackTable(*(column[index] for column in self.columns()))
 
     def copy(self) -> TrackTable:
-        return TrackTable(*(getattr(self, f.name).copy() for f in fields(self)))
+        return TrackTable(*(column.copy() for column in self.columns()))
 
     def append(self, other: TrackTable) -> TrackTable:
-        return TrackTable(*(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)))
+        return TrackTable(*(np.concatenate([a, b]) for a, b in zip(self.columns(), other.columns())))
+
+    def columns(self):
+        """The column arrays in field order (the instance dict holds exactly the fields, in order)."""
+        return vars(self).values()
 
 
 @dataclass(frozen=True)
@@ -322,13 +326,15 @@ class Tracker:
         bits = source_mask_bits(np.asarray(dets.sources) | int(source_mask))
         result = associate(self.config, self._table, dets)
         ti, di = result.matches[:, 0], result.matches[:, 1]
-        if estimates:
-            alone = self._seen_only_by(ti, bits[di], t_s)
-            self._supersede(ti[alone], dets, di[alone])
-            ti, di = ti[~alone], di[~alone]
-        self._correct(ti, di, dets)
-        self._record(result.matches[:, 0], result.matches[:, 1], dets, bits, t_s)
-        self._spawn(dets, result.unmatched_b, bits, t_s)
+        alone = self._seen_only_by(ti, bits[di], t_s) if estimates else np.zeros(len(ti), bool)
+        # one initialisation, from the detection alone, for the tracks an estimate replaces and the new tracks
+        start = np.concatenate([di[alone], result.unmatched_b])
+        x0, p0 = self.model.initial(filter_inputs(dets, start), self._prior)
+        k = int(alone.sum())
+        self._table.x[ti[alone]], self._table.p[ti[alone]] = x0[:k], p0[:k]
+        self._correct(ti[~alone], di[~alone], dets)
+        self._record(ti, di, dets, bits, t_s)
+        self._spawn(dets, result.unmatched_b, bits, t_s, x0[k:], p0[k:])
 
     def prune(self, t_s: float) -> None:
         """Delete stale tracks (last update older than max_coast_s) and missed tentative tracks."""
@@ -386,21 +392,19 @@ class Tracker:
         recent = (t_s - self._table.seen_s[ti]) <= self.config.max_coast_s
         return ~(recent & ~bits).any(axis=1)
 
-    def _supersede(self, ti: np.ndarray, dets: ObjectArray, di: np.ndarray) -> None:
-        """Tracks ti take the estimates dets[di] as their state, as a new track would."""
-        if len(ti):
-            self._table.x[ti], self._table.p[ti] = self.model.initial(filter_inputs(dets, di), self._prior)
-
     def _correct(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray) -> None:
         """Kalman update of tracks ti with detections di (position, then measured velocity)."""
         tab = self._table
+        if not len(ti):
+            return
         tab.x[ti], tab.p[ti], _ = kalman.update(tab.x[ti], tab.p[ti], dets.xy[di], dets.cov_xy[di])
         if self.config.velocity_updates and self.config.motion in ("cv", "ca"):
             # sources that estimate velocity (tracking RSUs, CenterPoint) update it too:
             # H = [0 I_2 0], R = the detection's velocity covariance
             known = dets.velocity_known()[di]
             vt, v = ti[known], di[known]
-            tab.x[vt], tab.p[vt], _ = kalman.update(tab.x[vt], tab.p[vt], dets.vxy[v], dets.cov_vxy[v], first=2)
+            if len(vt):
+                tab.x[vt], tab.p[vt], _ = kalman.update(tab.x[vt], tab.p[vt], dets.vxy[v], dets.cov_vxy[v], first=2)
 
     def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, bits: np.ndarray, t_s: float) -> None:
         """Bookkeeping of matched tracks ti: class, shape, confidence, hits and update times."""
@@ -420,26 +424,25 @@ class Tracker:
         when the shape is older than ``shape_hold_s`` (a coarse RSU box never overwrites the
         fresh LiDAR box of the same cycle)."""
         tab = self._table
-        var = np.trace(dets.cov_xy[di], axis1=1, axis2=2)
+        var = _trace2(dets.cov_xy[di])
         take = (var <= tab.shape_var[ti] * 1.01) | (t_s - tab.shape_s[ti] > self.config.shape_hold_s)
         t, d = ti[take], di[take]
         tab.z[t], tab.lwh[t], tab.yaw[t] = dets.z[d], dets.lwh[d], wrap_angle(dets.yaw[d])
         tab.shape_var[t], tab.shape_s[t] = var[take], t_s
 
-    def _spawn(self, dets: ObjectArray, index: np.ndarray, bits: np.ndarray, t_s: float) -> None:
-        """New tentative tracks from the detections dets[index]."""
+    def _spawn(self, dets: ObjectArray, index: np.ndarray, bits: np.ndarray, t_s: float, x: np.ndarray,
+               p: np.ndarray) -> None:
+        """New tentative tracks from the detections dets[index], initial state x (n, dim), P (n, dim, dim)."""
         n = len(index)
         if not n:
             return
-        m = filter_inputs(dets, index)
-        x, p = self.model.initial(m, self._prior)
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
         born = np.full(n, t_s)
         new = TrackTable(x, p, ids, dets.cls[index].astype(np.int64), dets.z[index].astype(float),
-                         dets.lwh[index].astype(float), wrap_angle(m.yaw), dets.confidence[index].astype(float),
+                         dets.lwh[index].astype(float), wrap_angle(dets.yaw[index]), dets.confidence[index].astype(float),
                          np.ones(n, np.int64), born, born.copy(), np.where(bits[index], t_s, -np.inf),
-                         np.trace(dets.cov_xy[index], axis1=1, axis2=2), born.copy())
+                         _trace2(dets.cov_xy[index]), born.copy())
         self._table = self._table.append(new)
 
 
