@@ -17,7 +17,7 @@ from schemas.messages import FusedObjectList, PredictionList
 from obu_service.fusion_mode import MODES
 from obu_service.planning import path_array
 
-from .detection_metrics import center_distance_ap, mot_metrics
+from .detection_metrics import center_distance_ap, mot_metrics, nees
 
 MAX_RANGE_M = 80.0  # detection metrics cover actors within this distance of the ego
 MATCH_GATE_M = 4.0  # an output object within 4 m of a true actor (nuScenes' widest threshold) is its detection
@@ -25,20 +25,25 @@ MATCH_GATE_M = 4.0  # an output object within 4 m of a true actor (nuScenes' wid
 
 @dataclass(frozen=True)
 class TargetScore:
-    """How one actor appears in a stream of outputs: mean BEV IoU and RMSE over the
-    cycles where it is detected, and the ego-target distance at its first detection."""
+    """How one actor appears in a stream of outputs: mean BEV IoU, RMSE and the NEES of the
+    stated position covariance (``detection_metrics.nees``: mean, and the share inside the
+    95 % chi-square interval) over the cycles where it is detected, and the ego-target
+    distance at its first detection."""
 
     detected_cycles: int
     mean_bev_iou: float | None
     rmse_m: float | None
     first_detection_distance_m: float | None
     first_detection_time_s: float | None
+    nees_mean: float | None = None
+    nees_fraction_inside: float | None = None
 
     def as_dict(self) -> dict:
         return {
             "mean_bev_iou": _round(self.mean_bev_iou), "rmse_m": _round(self.rmse_m),
             "first_detection_distance_m": _round(self.first_detection_distance_m),
             "first_detection_time_s": _round(self.first_detection_time_s), "detected_cycles": self.detected_cycles,
+            "nees_mean": _round(self.nees_mean), "nees_fraction_inside": _round(self.nees_fraction_inside),
         }
 
 
@@ -60,7 +65,7 @@ def match_target(truth: ObjectArray, output: ObjectArray, target_id: int) -> int
 def score_target(world, outputs: Sequence[FusedObjectList], start_ns: int, sources_mask: int | None = None) -> TargetScore:
     """Score ``world.target_id`` in the outputs; with ``sources_mask`` only objects whose
     sources intersect it count (SOURCE_VEHICLE gives the vehicle-only view)."""
-    ious, sq_errors, first = [], [], None
+    ious, errors, covs, first = [], [], [], None
     for msg in sorted(outputs, key=lambda m: m.cycle_time_ns):
         t_s = (msg.cycle_time_ns - start_ns) * 1e-9
         ego = world.ego_at(t_s)
@@ -73,15 +78,18 @@ def score_target(world, outputs: Sequence[FusedObjectList], start_ns: int, sourc
             continue
         i = int(np.flatnonzero(truth.ids == world.target_id)[0])
         ious.append(bev_iou_matrix(bev_boxes(truth.take([i])), bev_boxes(out.take([k])))[0, 0])
-        sq_errors.append(float(np.sum((truth.xy[i] - out.xy[k]) ** 2)))
+        errors.append(out.xy[k] - truth.xy[i])
+        covs.append(out.cov_xy[k])
         if first is None:
             first = (float(np.linalg.norm(truth.xy[i])), t_s)
+    consistency = nees(np.array(errors), np.array(covs))
     return TargetScore(
         detected_cycles=len(ious),
         mean_bev_iou=float(np.mean(ious)) if ious else None,
-        rmse_m=float(np.sqrt(np.mean(sq_errors))) if sq_errors else None,
+        rmse_m=float(np.sqrt(np.mean(np.sum(np.square(errors), axis=1)))) if errors else None,
         first_detection_distance_m=first[0] if first else None,
         first_detection_time_s=first[1] if first else None,
+        nees_mean=consistency["mean"], nees_fraction_inside=consistency["fraction_inside"],
     )
 
 

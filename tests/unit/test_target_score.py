@@ -1,0 +1,53 @@
+"""score_target: the target's NEES tells an honest stated covariance from an overconfident one."""
+
+import numpy as np
+
+from evaluation.metrics import score_target
+from fusion.frames import Pose2D
+from fusion.objects import ObjectArray
+from fusion.wire import states_from_objects
+from schemas.messages import FusedObjectList
+
+T0 = 1_767_225_600 * 10**9
+CYCLES = 400
+
+
+def car(xy, cov=None, ids=(7,)):
+    xy = np.atleast_2d(xy)
+    n = len(xy)
+    return ObjectArray(ids=np.array(ids), cls=np.ones(n, int), xy=xy, z=np.full(n, 0.75),
+                       lwh=np.tile([4.5, 1.8, 1.5], (n, 1)), yaw=np.zeros(n), vxy=np.zeros((n, 2)),
+                       cov_xy=np.eye(2)[None] if cov is None else cov[None])
+
+
+class World:
+    """The ego at the origin, facing +x; the target (id 7) drives along x at 10 m/s."""
+
+    target_id = 7
+
+    def ego_at(self, t_s):
+        return Pose2D(0.0, 0.0, 0.0)
+
+    def actors_at(self, t_s):
+        return car([10.0 + 10.0 * t_s, 2.0])
+
+
+def outputs(true_cov, stated_cov, seed=0):
+    rng, world, out = np.random.default_rng(seed), World(), []
+    for k in range(CYCLES):
+        t_ns = T0 + k * 100_000_000
+        truth = world.actors_at(k * 0.1).xy[0]
+        est = car(truth + rng.multivariate_normal([0.0, 0.0], true_cov), stated_cov).with_(sources=np.array([1]))
+        out.append(FusedObjectList(vehicle_id="car", seq=k, cycle_time_ns=t_ns, publish_time_ns=t_ns,
+                                   objects=states_from_objects(est, fused=True)))
+    return out
+
+
+def test_target_nees_is_two_for_an_honest_covariance_and_larger_for_an_overconfident_one():
+    cov = np.array([[0.09, 0.02], [0.02, 0.04]])
+    honest = score_target(World(), outputs(cov, cov), T0)
+    overconfident = score_target(World(), outputs(cov, cov / 4), T0)
+    assert honest.detected_cycles == CYCLES
+    assert 1.6 < honest.nees_mean < 2.4 and 0.9 < honest.nees_fraction_inside <= 1.0
+    assert overconfident.nees_mean > 6.0 and overconfident.nees_fraction_inside < 0.7
+    assert honest.rmse_m == overconfident.rmse_m  # same errors, only the stated covariance differs
