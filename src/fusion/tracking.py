@@ -350,7 +350,8 @@ class Tracker:
         (a t_s before the filter time extrapolates backwards with the motion model).
 
         ids, cls, z, lwh, yaw, confidence from the last detection; xy, vxy, axy, yaw_rate,
-        cov_xy (position block of P) and cov_vxy (velocity covariance) from the filter; age_s since birth; sources (see module doc).
+        cov_xy (position block of P) and cov_vxy (velocity covariance) from the filter; age_s
+        since birth; sources (see module doc).
         """
         tab = self._table
         keep = (tab.hits >= self.config.confirm_hits) & (t_s - tab.updated_s <= self.config.max_coast_s)
