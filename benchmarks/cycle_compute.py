@@ -131,7 +131,8 @@ class FilterpyTracker:
             else:
                 kf.update(dets.xy[di], R=dets.cov_xy[di])
                 if known[di]:
-                    kf.update(dets.vxy[di][:, None], R=dets.cov_vxy[di], H=np.roll(kf.H, 2, axis=1))  # column z: filterpy reshapes z only without H
+                    # z as a column: filterpy reshapes z only when H is not given
+                    kf.update(dets.vxy[di][:, None], R=dets.cov_vxy[di], H=np.roll(kf.H, 2, axis=1))
             m.update(lwh=dets.lwh[di], yaw=dets.yaw[di], hits=m["hits"] + 1, updated_s=t_s)
             m["seen_s"][bits[di]] = t_s
         self.spawn(dets.take(result.unmatched_b), bits[result.unmatched_b], t_s)

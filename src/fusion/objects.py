@@ -65,7 +65,8 @@ class ObjectArray:
         return len(self.ids)
 
     def velocity_known(self) -> np.ndarray:
-        """(N,) True where the velocity was measured or estimated (variance below unknown)."""
+        """(N,) True where the velocity was measured or estimated: trace of cov_vxy below
+        ``UNKNOWN_VELOCITY_VAR`` (an unknown velocity has that variance on each axis)."""
         return self.cov_vxy[:, 0, 0] + self.cov_vxy[:, 1, 1] < UNKNOWN_VELOCITY_VAR
 
     @classmethod

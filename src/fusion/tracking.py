@@ -441,7 +441,8 @@ class Tracker:
         self._next_id += n
         born = np.full(n, t_s)
         new = TrackTable(x, p, ids, dets.cls[index].astype(np.int64), dets.z[index].astype(float),
-                         dets.lwh[index].astype(float), wrap_angle(dets.yaw[index]), dets.confidence[index].astype(float),
+                         dets.lwh[index].astype(float), wrap_angle(dets.yaw[index]),
+                         dets.confidence[index].astype(float),
                          np.ones(n, np.int64), born, born.copy(), np.where(bits[index], t_s, -np.inf),
                          _trace2(dets.cov_xy[index]), born.copy())
         self._table = self._table.append(new)

@@ -31,7 +31,8 @@ def objects_from_states(states: Sequence[ObjectState]) -> ObjectArray:
         lwh=np.column_stack([col["length"], col["width"], col["height"]]), yaw=col["yaw"],
         vxy=np.column_stack([col["vx"], col["vy"]]), axy=np.column_stack([col["ax"], col["ay"]]),
         yaw_rate=col["yaw_rate"], cov_xy=_sym2(col["cov_xx"], col["cov_xy"], col["cov_yy"]),
-        cov_vxy=_sym2(col["cov_vxx"], col["cov_vxy"], col["cov_vyy"]), confidence=col["confidence"], age_s=col["age_s"], sources=sources,
+        cov_vxy=_sym2(col["cov_vxx"], col["cov_vxy"], col["cov_vyy"]), confidence=col["confidence"],
+        age_s=col["age_s"], sources=sources,
     )
 
 
