@@ -18,7 +18,7 @@ from link_emulator.control import apply_control
 from link_emulator.profile import LinkProfile, load_profile
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import OwnFrame, SimulatedVehicle
-from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, answer_time_request
+from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from rsu_service.prediction import make_predictor
 from rsu_service.source import Frame, SimulatedCamera
 from schemas.codec import CodecError, decode, encode
@@ -125,17 +125,21 @@ class OfflineRun:
     def _rsu_publish(self, frame: Frame) -> None:
         if not self._up("rsu"):
             return
-        msg = self.rsu.on_frame(frame.detections, self.rsu_clock.local_from_true(frame.capture_true_ns),
-                                self.rsu_clock.now_ns())
+        capture = Stamp(self.rsu_clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
+        msg = self.rsu.on_frame(frame.detections, capture, self._rsu_now())
         self._send(self.link.downlink, encode(msg), self._obu_receive)
-        self._send(self.link.downlink, encode(self.rsu.predictions(self.rsu_clock.now_ns())), self._obu_predictions)
+        self._send(self.link.downlink, encode(self.rsu.predictions(self._rsu_now())), self._obu_predictions)
         if self.rsu.config.predict_ahead:
             self.queue.at(self.clock.t_ns + self.camera.upsample_offset_ns, self._rsu_upsample)
 
     def _rsu_upsample(self) -> None:
         if not self._up("rsu"):
             return
-        self._send(self.link.downlink, encode(self.rsu.upsampled(self.rsu_clock.now_ns())), self._obu_receive)
+        self._send(self.link.downlink, encode(self.rsu.upsampled(self._rsu_now())), self._obu_receive)
+
+    def _rsu_now(self) -> Stamp:
+        """Now on the RSU's wall clock (offset, drift, steps) and its monotonic clock (the true one)."""
+        return Stamp(self.rsu_clock.now_ns(), self.clock.t_ns)
 
     def _rsu_time_query(self, data: bytes) -> None:
         if not self._up("rsu"):

@@ -15,7 +15,7 @@ from sim.scenario import load_scenario
 from sim.world import World
 
 from .config import RsuConfig
-from .pipeline import RsuPipeline, RsuPipelineConfig, answer_time_request
+from .pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from .prediction import make_predictor
 from .source import SimulatedCamera
 
@@ -36,6 +36,7 @@ class RsuNode:
                                     make_predictor(config.predictor, config.scenario))
         self.rejected: Counter[str] = Counter()
         self.published = 0
+        self.skipped = 0  # frames not published because their time had passed (restart, stall)
         self._lock = threading.Lock()
 
     def run(self, stop: threading.Event) -> None:
@@ -52,25 +53,37 @@ class RsuNode:
             for entity in entities:
                 entity.undeclare()
             session.close()
-            log("rsu", f"stopped: {self.published} object lists published, rejected {dict(self.rejected)}")
+            log("rsu", f"stopped: {self.published} object lists published, {self.skipped} past frames skipped, "
+                       f"rejected {dict(self.rejected)}")
 
     def _publish_frames(self, publisher, stop: threading.Event) -> None:
+        """Capture, process and publish each frame at its time. Only what is current is
+        published: a frame whose capture time is more than a frame period past (a restart
+        mid-run, a stall) is skipped and counted, never sent late in a burst."""
+        period_ns = round(1e9 / self.world.scenario.rsu.rate_hz)
         for capture_ns in self.source.capture_times_ns(self.duration_s):
             if not self._sleep_until(capture_ns, stop):
                 return
+            if self.true_clock.now_ns() - capture_ns > period_ns:
+                self.skipped += 1
+                continue
             frame = self.source.capture(int(capture_ns))
             if not self._sleep_until(frame.ready_true_ns, stop):
                 return
-            msg = self.pipeline.on_frame(
-                frame.detections, self.clock.local_from_true(frame.capture_true_ns), self.clock.now_ns()
-            )
-            publisher.put(encode(msg))
-            self._predictions.put(encode(self.pipeline.predictions(self.clock.now_ns())))
+            capture = Stamp(self.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
+            publisher.put(encode(self.pipeline.on_frame(frame.detections, capture, self._now())))
+            self._predictions.put(encode(self.pipeline.predictions(self._now())))
             self.published += 1
             if self.config.predict_ahead and self._sleep_until(frame.ready_true_ns + self.source.upsample_offset_ns, stop):
-                publisher.put(encode(self.pipeline.upsampled(self.clock.now_ns())))
+                publisher.put(encode(self.pipeline.upsampled(self._now())))
                 self.published += 1
         self._sleep_until(self.start_ns + round((self.duration_s + 1.0) * 1e9), stop)
+
+    def _now(self) -> Stamp:
+        """Now on the RSU's wall clock and on its monotonic clock (the simulation's true
+        clock stands in for CLOCK_MONOTONIC: it never steps)."""
+        true_ns = self.true_clock.now_ns()
+        return Stamp(self.clock.local_from_true(true_ns), true_ns)
 
     def _sleep_until(self, true_ns: int, stop: threading.Event) -> bool:
         """Wait for a true-clock time; False when stopped first."""

@@ -1,6 +1,12 @@
 """RSU pipeline (pure): detections -> tracks -> timestamped object list.
 
-Driven by calls with RSU-clock times; the node (live) and the offline runner feed it.
+Driven by calls with RSU times; the node (live) and the offline runner feed it. Each
+instant is a :class:`Stamp` read on two RSU clocks: the wall clock stamped on the wire
+(``wall_ns``: offset, drifting, and stepped by NTP/PTP corrections or a GNSS re-lock, either
+way) and a monotonic clock that never steps (``mono_ns``, CLOCK_MONOTONIC). The tracker and
+every prediction horizon run on the monotonic clock, so a wall-clock step never moves the
+filter backwards; headers carry the wall stamps. A plain ``int`` is a reading of a clock
+that does not step (both at once).
 With ``predict_ahead`` (the track-predict compensation, seed 000 Algorithm 1) the RSU
 publishes its tracks predicted to the publish time instead of the capture time, and
 ``upsampled(at_ns)`` gives the same tracks predicted further, so that a 5 Hz camera
@@ -26,6 +32,19 @@ TrajectoryPredictor = Callable[[ObjectArray, float, float], np.ndarray]
 
 
 @dataclass(frozen=True)
+class Stamp:
+    """One instant on the RSU's two clocks: ``wall_ns`` (Unix ns, may step), ``mono_ns`` (never steps)."""
+
+    wall_ns: int
+    mono_ns: int
+
+    @classmethod
+    def of(cls, t: "Stamp | int") -> "Stamp":
+        """A Stamp as is; an int as the reading of a clock that never steps."""
+        return t if isinstance(t, Stamp) else cls(int(t), int(t))
+
+
+@dataclass(frozen=True)
 class RsuPipelineConfig:
     rsu_id: str = "rsu1"
     sensor: str = "camera"
@@ -42,35 +61,36 @@ class RsuPipeline:
         self.config = config
         self.predictor = predictor
         self._tracker = Tracker(config.tracker)
-        self._t_ref_ns: int | None = None
+        self._t_ref_ns: int | None = None  # monotonic origin of the tracker's time
         self._seq = 0
         self._prediction_seq = 0  # predictions are numbered apart, so list seq gaps still mean loss
-        self._last: tuple[int, ObjectArray] | None = None  # (capture_ns, confirmed tracks)
+        self._last: tuple[Stamp, ObjectArray] | None = None  # (capture, confirmed tracks)
 
-    def on_frame(self, dets: ObjectArray, capture_ns: int, publish_ns: int) -> ObjectList:
-        """One processed camera frame: capture and publish times in the RSU clock (ns)."""
+    def on_frame(self, dets: ObjectArray, capture: Stamp | int, publish: Stamp | int) -> ObjectList:
+        """One processed camera frame (detections in map) captured at ``capture``, published at ``publish``."""
+        capture, publish = Stamp.of(capture), Stamp.of(publish)
         if self._t_ref_ns is None:
-            self._t_ref_ns = capture_ns
-        tracks = self._tracker.step(dets, (capture_ns - self._t_ref_ns) * 1e-9)
-        self._last = (capture_ns, tracks)
-        ahead_ns = max(publish_ns - capture_ns, 0) if self.config.predict_ahead else 0
-        return self._message(capture_ns, tracks, ahead_ns, publish_ns)
+            self._t_ref_ns = capture.mono_ns
+        tracks = self._tracker.step(dets, (capture.mono_ns - self._t_ref_ns) * 1e-9)
+        self._last = (capture, tracks)
+        ahead_ns = max(publish.mono_ns - capture.mono_ns, 0) if self.config.predict_ahead else 0
+        return self._message(capture, tracks, ahead_ns, publish)
 
-    def upsampled(self, publish_ns: int) -> ObjectList | None:
-        """The last frame's tracks predicted to ``publish_ns`` (Algorithm 1's second pose)."""
+    def upsampled(self, publish: Stamp | int) -> ObjectList | None:
+        """The last frame's tracks predicted to ``publish`` (Algorithm 1's second pose)."""
         if self._last is None or not self.config.predict_ahead:
             return None
-        capture_ns, tracks = self._last
-        return self._message(capture_ns, tracks, max(publish_ns - capture_ns, 0), publish_ns)
+        capture, tracks = self._last
+        publish = Stamp.of(publish)
+        return self._message(capture, tracks, max(publish.mono_ns - capture.mono_ns, 0), publish)
 
-    def predictions(self, publish_ns: int) -> PredictionList | None:
+    def predictions(self, publish: Stamp | int) -> PredictionList | None:
         """The last frame's tracks with their predicted paths over ``horizon_s`` (t0 = capture)."""
         if self._last is None:
             return None
-        capture_ns, tracks = self._last
+        capture, tracks = self._last
         paths = self.predictor(tracks, self.config.horizon_s, self.config.path_step_s)  # (N, K, 3)
-        header = ObjectListHeader(rsu_id=self.config.rsu_id, seq=self._prediction_seq, capture_time_ns=capture_ns,
-                                  publish_time_ns=max(publish_ns, capture_ns), sensor=self.config.sensor)
+        header = self._header(self._prediction_seq, capture, 0, Stamp.of(publish))
         self._prediction_seq += 1
         return PredictionList(
             header=header, step_ns=round(self.config.path_step_s * 1e9), objects=states_from_objects(tracks),
@@ -78,15 +98,18 @@ class RsuPipeline:
                         for i, p in zip(tracks.ids, paths)),
         )
 
-    def _message(self, capture_ns: int, tracks: ObjectArray, ahead_ns: int, publish_ns: int) -> ObjectList:
+    def _message(self, capture: Stamp, tracks: ObjectArray, ahead_ns: int, publish: Stamp) -> ObjectList:
         # p(t + dt) = p + v dt + a dt^2 / 2 over the prediction horizon
         objs = predict_ca(tracks, ahead_ns * 1e-9) if ahead_ns else tracks
-        header = ObjectListHeader(
-            rsu_id=self.config.rsu_id, seq=self._seq, capture_time_ns=capture_ns, prediction_ns=ahead_ns,
-            publish_time_ns=max(publish_ns, capture_ns), sensor=self.config.sensor,
-        )
+        header = self._header(self._seq, capture, ahead_ns, publish)
         self._seq += 1
         return ObjectList(header=header, objects=states_from_objects(objs))
+
+    def _header(self, seq: int, capture: Stamp, ahead_ns: int, publish: Stamp) -> ObjectListHeader:
+        # a wall-clock step between capture and publish must not stamp a publish before its capture
+        return ObjectListHeader(rsu_id=self.config.rsu_id, seq=seq, capture_time_ns=capture.wall_ns,
+                                prediction_ns=ahead_ns, publish_time_ns=max(publish.wall_ns, capture.wall_ns),
+                                sensor=self.config.sensor)
 
 
 def answer_time_request(request: TimeRequest, rsu_id: str, t2_ns: int, t3_ns: int) -> TimeReply:
