@@ -22,10 +22,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from schemas.config import ConfigError
+from schemas.config import ConfigError, read_yaml, validate
 from schemas.messages import LinkControl
 
 from .spec import RunSpec
@@ -181,19 +180,7 @@ class ChaosTimeline(BaseModel):
 
 def load_chaos(path: str | Path) -> ChaosTimeline:
     """A validated timeline from a YAML file; ChaosError naming the file and field otherwise."""
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ChaosError(f"cannot read chaos timeline {path}: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise ChaosError(f"chaos timeline {path} is not valid YAML: {exc}") from None
-    try:
-        return ChaosTimeline.model_validate(data)
-    except ValidationError as exc:
-        first = exc.errors(include_url=False)[0]
-        where = ".".join(str(p) for p in first["loc"]) or "<file>"
-        raise ChaosError(f"chaos timeline {path}: {where}: {first['msg']}") from None
+    return validate(ChaosTimeline, read_yaml(path, "chaos timeline", ChaosError), f"chaos timeline {path}", ChaosError)
 
 
 def with_chaos(spec: RunSpec, chaos: ChaosTimeline | None) -> RunSpec:

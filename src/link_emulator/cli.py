@@ -24,7 +24,7 @@ import zenoh
 from pydantic import ValidationError
 
 from schemas.codec import encode
-from schemas.config import ConfigError, load_config
+from schemas.config import ConfigError, load_config, one_line_error
 from schemas.keys import check_id, link_control, link_stats
 from schemas.messages import LinkControl
 from schemas.transport import open_session
@@ -325,7 +325,7 @@ def run_validate(args: argparse.Namespace) -> int:
         if args.size_bytes < 0 or not args.interval_ms > 0.0:
             raise ValueError("--size-bytes must be >= 0 and --interval-ms > 0")
     except (ConfigError, ValueError) as exc:
-        print(f"link validate: {exc}", file=sys.stderr)
+        print(f"link validate: {one_line_error(exc)}", file=sys.stderr)
         return 2
     settings = Settings(args.samples, args.seed, args.interval_ms, args.size_bytes, args.distance_m)
     report = validate_direction(name, args.direction, direction, settings)

@@ -40,10 +40,15 @@ class ObuConfig(ServiceConfig):
 
     @model_validator(mode="after")
     def _lane_needs_a_map(self) -> "ObuConfig":
-        from sim.maps import scenario_map
+        from pathlib import Path
+
+        from sim.maps import bundled_maps, scenario_map
 
         if self.compensation == "lane" and scenario_map(self.scenario) is None:
-            raise ValueError(f"compensation 'lane' needs a Lanelet2 map of scenario {self.scenario!r}")
+            raise ValueError(
+                f"compensation 'lane' needs a Lanelet2 map of scenario {self.scenario!r}, and "
+                f"{Path(self.scenario).with_suffix('.osm')} does not exist (a <scenario>.osm beside the scenario "
+                f"YAML is picked up automatically; bundled scenarios with maps: {', '.join(bundled_maps())})")
         return self
 
     def lanes(self):

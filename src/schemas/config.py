@@ -37,13 +37,97 @@ class ServiceConfig(BaseModel):
     duration_s: float | None = Field(None, gt=0, description="default: the scenario's duration")
 
 
-def validation_problems(exc: ValidationError) -> str:
-    """``field.path: message; ...`` of a pydantic error."""
-    return "; ".join(f"{'.'.join(str(p) for p in e['loc']) or '<root>'}: {e['msg']}" for e in exc.errors())
+class DuplicateKeyError(yaml.constructor.ConstructorError):
+    """A mapping key given twice in one YAML mapping; ``problem_mark`` is the second one."""
+
+
+class UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that rejects a mapping key given twice, at any depth.
+
+    Plain PyYAML keeps the last of two equal keys, so a second ``rsu:`` silently replaces the
+    first. Merge keys (``<<: *anchor``) still override as YAML specifies.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        first: dict[Any, yaml.Node] = {}  # key -> the node of its first occurrence
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                earlier = first.setdefault(key, key_node)
+            except TypeError:
+                continue  # an unhashable key: the base constructor rejects it with its own message
+            if earlier is not key_node:
+                raise DuplicateKeyError(
+                    None, None, f"duplicate key {key!r} (first at line {earlier.start_mark.line + 1})",
+                    key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _yaml_problem(file: str, exc: yaml.YAMLError) -> str:
+    """``file:line: problem`` of a PyYAML error (lines 1-based; context, if any, in brackets)."""
+    if not isinstance(exc, yaml.MarkedYAMLError) or exc.problem_mark is None:
+        return f"{file}: invalid YAML: {_one_line(exc)}"
+    mark = exc.problem_mark
+    if isinstance(exc, DuplicateKeyError):
+        return f"{file}:{mark.line + 1}: {exc.problem}"
+    context = ""
+    if exc.context:
+        where = f" at line {exc.context_mark.line + 1}" if exc.context_mark is not None else ""
+        context = f" ({_one_line(exc.context)}{where})"
+    return f"{file}:{mark.line + 1}:{mark.column + 1}: invalid YAML: {_one_line(exc.problem)}{context}"
+
+
+def parse_yaml(text: str, file: str, error: type[ConfigError] = ConfigError) -> Any:
+    """YAML ``text`` read from ``file`` as Python data; ``error("file:line: problem")`` when it is
+    malformed or repeats a key (``UniqueKeyLoader``)."""
+    try:
+        return yaml.load(text, Loader=UniqueKeyLoader)  # noqa: S506 (a SafeLoader subclass)
+    except yaml.YAMLError as exc:
+        raise error(_yaml_problem(file, exc)) from None
+
+
+def read_yaml(path: str | Path, kind: str, error: type[ConfigError] = ConfigError) -> Any:
+    """The YAML file at ``path`` as Python data; ``error`` naming ``kind``, the file and the line
+    when it cannot be read or parsed."""
+    return parse_yaml(_read(Path(path), f"{kind} {path}", error), str(path), error)
+
+
+def _problem(e: dict, names: dict[str, str]) -> str:
+    loc = [names.get(str(e["loc"][0]), e["loc"][0]), *e["loc"][1:]] if e["loc"] else []
+    where = ".".join(str(p) for p in loc)
+    message = str(e["ctx"]["error"]) if e["type"] == "value_error" and "error" in e.get("ctx", {}) else e["msg"]
+    return _one_line(f"{where}: {message}" if where else message)
+
+
+def validation_problems(exc: ValidationError, most: int = 3, names: dict[str, str] | None = None) -> str:
+    """``field.path: message; ...`` of a pydantic error on one line: the first ``most`` problems,
+    then a count; top-level field names replaced by ``names`` where it has them."""
+    errors = exc.errors(include_url=False)
+    more = f"; and {len(errors) - most} more" if len(errors) > most else ""
+    return "; ".join(_problem(e, names or {}) for e in errors[:most]) + more
+
+
+def one_line_error(exc: Exception, names: dict[str, str] | None = None) -> str:
+    """A user-facing line for an error of bad input: pydantic errors as ``field: message``
+    (top-level fields renamed by ``names``, e.g. to their CLI flags), OS errors as
+    ``reason: file``, anything else as its message with line breaks folded."""
+    if isinstance(exc, ValidationError):
+        return validation_problems(exc, names=names)
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{exc.strerror}: {exc.filename}" if exc.filename else exc.strerror
+    return _one_line(exc)
 
 
 def validate(model: type[M], data: Any, source: str, error: type[ConfigError] = ConfigError) -> M:
     """``data`` (a mapping) as ``model``; ``error`` naming ``source`` and the bad field otherwise."""
+    if data is None:
+        raise error(f"{source} is empty")
     if not isinstance(data, dict):
         raise error(f"{source} must be a mapping, got {type(data).__name__}")
     try:
@@ -52,31 +136,27 @@ def validate(model: type[M], data: Any, source: str, error: type[ConfigError] = 
         raise error(f"invalid {source}: {validation_problems(exc)}") from None
 
 
-def _parse_yaml(text: str, source: str, error: type[ConfigError]) -> Any:
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise error(f"{source} is not valid YAML: {exc}") from exc
-
-
 def _read(path: Path, source: str, error: type[ConfigError]) -> str:
     try:
         return path.read_text(encoding="utf-8")
     except OSError as exc:
-        raise error(f"cannot read {source}: {exc}") from exc
+        raise error(f"cannot read {source}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise error(f"cannot read {source}: not UTF-8 text (byte {exc.start})") from None
 
 
 def load_config(model: type[M], path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> M:
     """YAML file (optional) updated by non-None ``overrides``, validated by ``model``."""
     data: dict[str, Any] = {}
+    source = model.__name__
     if path is not None:
-        source = f"config {path}"
-        loaded = _parse_yaml(_read(Path(path), source, ConfigError), source, ConfigError)
+        loaded = read_yaml(path, "config", ConfigError)
         if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigError(f"{source} must be a mapping, got {type(loaded).__name__}")
+            raise ConfigError(f"config {path} must be a mapping, got {type(loaded).__name__}")
         data.update(loaded or {})
+        source = f"{model.__name__} (config {path} and command line)"
     data.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    return validate(model, data, model.__name__)
+    return validate(model, data, source)
 
 
 def bundled_names(package: str, folder: str) -> list[str]:
@@ -96,10 +176,11 @@ def load_bundled_or_file(
     names = bundled_names(package, folder)
     if str(name_or_path) in names:
         source = f"bundled {kind} {str(name_or_path)!r}"
-        text = (resources.files(package) / folder / f"{name_or_path}.yaml").read_text(encoding="utf-8")
+        path = resources.files(package) / folder / f"{name_or_path}.yaml"
+        data = parse_yaml(path.read_text(encoding="utf-8"), str(path), error)
     elif Path(name_or_path).is_file():
         source = f"{kind} {name_or_path}"
-        text = _read(Path(name_or_path), source, error)
+        data = read_yaml(name_or_path, kind, error)
     else:
         raise error(f"unknown {kind} {str(name_or_path)!r}: neither a bundled one ({', '.join(names)}) nor an existing file")
-    return validate(model, _parse_yaml(text, source, error), source, error)
+    return validate(model, data, source, error)

@@ -7,6 +7,7 @@ once its Zenoh session is open and declared, and stops cleanly on SIGINT or SIGT
 from __future__ import annotations
 
 import json
+import re
 import signal
 import sys
 import threading
@@ -49,15 +50,32 @@ def run_service(name: str, model, args, make_node) -> int:
     """``v2i <name>``: config from ``--config`` overridden by every CLI flag named like a
     config field, a node from ``make_node(config)``, run until SIGINT/SIGTERM.
 
-    Returns 2 with the reason on stderr when the configuration cannot be used.
+    Returns 2 with the reason on one stderr line when the configuration cannot be used or
+    Zenoh refuses its endpoints.
     """
-    from .config import ConfigError, load_config
+    import zenoh
+
+    from .config import ConfigError, load_config, one_line_error
 
     overrides = {f: getattr(args, f) for f in model.model_fields if hasattr(args, f)}
     try:
-        node = make_node(load_config(model, args.config, overrides))
-    except (ConfigError, ValueError, FileNotFoundError) as exc:
-        print(f"v2i {name}: {exc}", file=sys.stderr)
+        config = load_config(model, args.config, overrides)
+        node = make_node(config)
+    except (ConfigError, ValueError, OSError) as exc:
+        print(f"v2i {name}: {one_line_error(exc)}", file=sys.stderr)
         return 2
-    node.run(stop_on_signals())
+    try:
+        node.run(stop_on_signals())
+    except zenoh.ZError as exc:
+        listen, connect = getattr(config, "listen", []), config.connect
+        where = f"listen {', '.join(listen) or '-'}; connect {', '.join(connect) or '-'}"
+        print(f"v2i {name}: Zenoh: {zenoh_problem(exc)} ({where})", file=sys.stderr)
+        return 2
     return 0
+
+
+def zenoh_problem(exc: Exception) -> str:
+    """The message of a Zenoh error without its Rust source locations and JSON5 wrapping."""
+    text = str(exc)
+    inner = re.search(r'msg: "(.*?)", location', text)
+    return re.sub(r" at \S+\.rs:\d+\.?", "", inner.group(1) if inner else text).strip()

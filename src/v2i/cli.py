@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 from pathlib import Path
@@ -64,15 +65,62 @@ def _emit(report: dict, json_path: str | None) -> None:
         Path(json_path).write_text(json.dumps(report, indent=2) + "\n")
 
 
+# RunSpec-backed config fields -> the flags that set them, so that errors name what the user typed
+_FLAG_OF_FIELD = {
+    "seed": "--seed", "deadline_ms": "--deadline-ms", "fusion": "--fusion", "compensation": "--compensation",
+    "fusion_mode": "--fusion-mode", "scenario": "--scenario", "clock_offset_ms": "--rsu-clock-offset-ms",
+    "clock_drift_ppm": "--rsu-clock-drift-ppm", "clock_step_ms": "--rsu-clock-step-ms",
+    "clock_step_at_s": "--rsu-clock-step-at-s",
+}
+# flags (argparse dests) that must be finite and > 0, or finite and >= 0, when given
+_POSITIVE_FLAGS = ("duration", "startup", "link_down_s", "seeds", "workers")
+_NON_NEGATIVE_FLAGS = ("kill_link_at",)
+
+
 def _check_inputs(args: argparse.Namespace) -> None:
-    """Fail early, with the reason, on a scenario or profile that cannot be loaded."""
+    """Fail early, with the reason, on a run that cannot be done: a scenario or profile that cannot
+    be loaded, a bad flag value, RSU/OBU configs that do not validate, an output path that cannot be
+    written (before a run of many seconds, not after it)."""
     from link_emulator.profile import load_profile
     from sim.scenario import load_scenario
 
     load_scenario(args.scenario)
     load_profile(args.profile)
-    if args.duration is not None and args.duration <= 0:
-        raise ValueError("--duration must be positive")
+    _check_numbers(args)
+    spec = _spec(args)
+    spec.rsu_config()  # pydantic ValidationError: summarised by main with the flags' names
+    spec.obu_config()
+    if args.json not in (None, "-"):
+        _check_writable(Path(args.json), "--json")
+    if getattr(args, "report", None):
+        _check_folder(Path(args.report), "--report")
+
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    """ValueError naming the first flag of ``_POSITIVE_FLAGS`` / ``_NON_NEGATIVE_FLAGS`` out of range."""
+    for dest in _POSITIVE_FLAGS + _NON_NEGATIVE_FLAGS:
+        value = getattr(args, dest, None)
+        if value is None:
+            continue
+        positive = dest in _POSITIVE_FLAGS
+        if not math.isfinite(value) or value < 0 or (positive and value == 0):
+            what = "a finite number > 0" if positive else "a finite number >= 0"
+            raise ValueError(f"--{dest.replace('_', '-')} must be {what}, got {value:g}")
+
+
+def _check_writable(path: Path, flag: str) -> None:
+    """ValueError unless ``path`` names a file that can be created or replaced."""
+    if path.is_dir():
+        raise ValueError(f"{flag} {path} is a directory, not a file")
+    if not path.parent.is_dir():
+        raise ValueError(f"{flag} {path}: folder {path.parent} does not exist")
+
+
+def _check_folder(path: Path, flag: str) -> None:
+    """ValueError unless ``path`` is a folder or can be made one (its nearest existing ancestor is one)."""
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    if not existing.is_dir():
+        raise ValueError(f"{flag} {path}: {existing} is a file, not a folder")
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -164,7 +212,7 @@ def _interrupt_on(*signals: int) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _OneLineParser(
         prog="v2i",
         description="Cooperative perception between a roadside unit and a vehicle over an emulated V2X link.",
     )
@@ -205,10 +253,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """ArgumentParser whose usage errors are one line on stderr (exit 2), not usage + message."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run a ``v2i`` command; bad input of any kind is one line on stderr and exit code 2."""
+    from pydantic import ValidationError
+
+    from schemas.config import one_line_error
+
     args = build_parser().parse_args(argv)
+    prog = f"v2i {args.command}" + (f" {args.chaos_command}" if args.command == "chaos" else "")
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"v2i {args.command}: {exc}", file=sys.stderr)
-        return 2
+    except ValidationError as exc:  # a ValueError: before it
+        print(f"{prog}: {one_line_error(exc, _FLAG_OF_FIELD)}", file=sys.stderr)
+    except (ValueError, OSError) as exc:
+        print(f"{prog}: {one_line_error(exc)}", file=sys.stderr)
+    return 2
