@@ -1,13 +1,16 @@
-"""Conversion between wire object models and ``ObjectArray``."""
+"""Conversion between wire object models and ``ObjectArray``, and fitting objects to the wire."""
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
 
 import numpy as np
 
+from schemas import messages as m
 from schemas.messages import FusedObject, ObjectState
 
+from .frames import wrap_angle
 from .objects import ObjectArray
 
 _SCALARS = ("id", "cls", "x", "y", "z", "length", "width", "height", "yaw", "vx", "vy", "ax", "ay",
@@ -60,3 +63,61 @@ def states_from_objects(objs: ObjectArray, fused: bool = False) -> tuple[ObjectS
             kw["sources"] = int(objs.sources[i])
         out.append(model(**kw))
     return tuple(out)
+
+
+def fit_to_wire(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS) -> tuple[ObjectArray, Counter[str]]:
+    """The objects as the wire can carry them, never raising, and what it took (counts by reason).
+
+    A row with a non-finite value is dropped (``not_finite``), one whose position lies outside
+    the wire's range too (``out_of_range``: no clipped position is a true one); the rest are
+    clipped to the wire's ranges (``clipped``: speeds, accelerations, yaw rates, variances,
+    sizes, heights, confidence, age; yaw wrapped; ids modulo 2^32); beyond ``max_objects`` the
+    objects farthest from the frame's origin (in base_link: the ego) are dropped (``truncated``).
+    """
+    n = len(objs)
+    finite = np.ones(n, bool)
+    for column in _values(objs):
+        finite &= np.isfinite(_rows(column)).all(axis=1)
+    inside = finite & (np.abs(np.where(finite[:, None], objs.xy, 0.0)) <= m.POSITION_MAX_M).all(axis=1)
+    counts = Counter(not_finite=int((~finite).sum()), out_of_range=int((finite & ~inside).sum()))
+    objs = objs.take(inside)
+    if len(objs) > max_objects:
+        counts["truncated"] = len(objs) - max_objects
+        nearest = np.argsort(np.hypot(objs.xy[:, 0], objs.xy[:, 1]), kind="stable")[:max_objects]
+        objs = objs.take(np.sort(nearest))
+    clipped = _clipped(objs)
+    changed = objs.ids != clipped.ids
+    for before, after in zip(_values(objs), _values(clipped)):
+        changed |= _rows(before != after).any(axis=1)
+    counts["clipped"] = int(changed.sum())
+    return clipped, +counts
+
+
+def _rows(a: np.ndarray) -> np.ndarray:
+    """(N, k): each row's values flattened (also for N = 0)."""
+    return a.reshape(len(a), int(np.prod(a.shape[1:], dtype=int)))
+
+
+def _values(objs: ObjectArray) -> list[np.ndarray]:
+    """The real-valued columns of the objects."""
+    return [objs.xy, objs.z, objs.lwh, objs.yaw, objs.vxy, objs.axy, objs.yaw_rate, objs.cov_xy, objs.cov_vxy,
+            objs.confidence, objs.age_s]
+
+
+def _clipped(objs: ObjectArray) -> ObjectArray:
+    """Every value clipped into its wire range (ranges from ``schemas.messages``), yaw wrapped."""
+
+    def cov(c: np.ndarray) -> np.ndarray:
+        out = np.clip(c, -m.VARIANCE_MAX, m.VARIANCE_MAX)
+        out[:, [0, 1], [0, 1]] = np.clip(c[:, [0, 1], [0, 1]], 0.0, m.VARIANCE_MAX)
+        return out
+
+    return objs.with_(
+        ids=np.mod(objs.ids, 2**32), z=np.clip(objs.z, -m.HEIGHT_MAX_M, m.HEIGHT_MAX_M),
+        lwh=np.clip(objs.lwh, 0.0, m.SIZE_MAX_M), yaw=wrap_angle(objs.yaw),
+        vxy=np.clip(objs.vxy, -m.SPEED_MAX_MPS, m.SPEED_MAX_MPS),
+        axy=np.clip(objs.axy, -m.ACCEL_MAX_MPS2, m.ACCEL_MAX_MPS2),
+        yaw_rate=np.clip(objs.yaw_rate, -m.YAW_RATE_MAX, m.YAW_RATE_MAX), cov_xy=cov(objs.cov_xy),
+        cov_vxy=cov(objs.cov_vxy), confidence=np.clip(objs.confidence, 0.0, 1.0),
+        age_s=np.clip(objs.age_s, 0.0, m.AGE_MAX_S),
+    )

@@ -26,7 +26,34 @@ class ObuConfig(ServiceConfig):
     output_interval_ms: float = Field(150.0, gt=0, le=10_000, description="longest allowed gap between two outputs")
     fuse_delay_ms: float = Field(50.0, ge=0, le=10_000, description="own perception latency: LiDAR capture -> fusion")
     sync_rate_hz: float = Field(10.0, gt=0, le=100)
-    time_query_timeout_s: float = Field(2.0, gt=0, le=60)
+    time_query_timeout_s: float = Field(60.0, gt=0, le=600, description="replies later than this are lost "
+                                        "(a buffering cellular link can deliver tens of seconds late)")
+    # admission of RSU input (obu_service.pipeline module docstring)
+    known_rsus: dict[str, tuple[float, float]] | None = Field(
+        None, description="the site's registered RSUs: id -> map position (m); always admitted, the "
+                          "objects bounded by site_radius_m around them (default: the scenario's RSU)")
+    accept_unknown_rsus: bool = Field(True, description="admit RSU ids outside known_rsus (bounded)")
+    max_unknown_rsus: int = Field(16, ge=0, le=64)
+    rsu_expiry_s: float = Field(30.0, gt=0, le=3600, description="an RSU not heard this long is forgotten")
+    site_radius_m: float = Field(2000.0, gt=0, le=100_000, description="RSU objects farther from their RSU "
+                                 "(or, for an unknown one, from the ego) are dropped")
+    max_objects_per_list: int = Field(256, ge=1, le=1024)
+    max_rsu_objects_per_cycle: int = Field(1024, ge=1, le=100_000)
+    max_prediction_s: float = Field(1.0, ge=0, le=10, description="an RSU list predicted further ahead is refused")
+    future_tolerance_ms: float = Field(20.0, ge=0, le=10_000, description="RSU data may be stamped this much "
+                                       "(plus the clock uncertainty) after its arrival")
+    # the node's intake (schemas.intake)
+    max_message_bytes: int = Field(262_144, ge=1024, le=1 << 20, description="larger payloads are refused unread")
+    source_rate_hz: float = Field(50.0, gt=0, le=10_000, description="messages per second accepted per key")
+    source_burst: int = Field(25, ge=1, le=10_000)
+    inbox_capacity: int = Field(512, ge=8, le=100_000, description="queued messages, all keys together")
+
+    @field_validator("known_rsus")
+    @classmethod
+    def _valid_rsu_ids(cls, v: dict[str, tuple[float, float]] | None) -> dict[str, tuple[float, float]] | None:
+        for rsu_id in v or {}:
+            check_id(rsu_id)
+        return v
 
     @field_validator("vehicle_id")
     @classmethod
@@ -57,10 +84,23 @@ class ObuConfig(ServiceConfig):
 
         return lane_predictor(self.scenario) if self.compensation == "lane" else None
 
+    def registered_rsus(self) -> dict[str, tuple[float, float]]:
+        """known_rsus, or the scenario's RSU when none are configured."""
+        if self.known_rsus is not None:
+            return dict(self.known_rsus)
+        from sim.scenario import load_scenario
+
+        rsu = load_scenario(self.scenario).rsu
+        return {rsu.id: (rsu.position.x, rsu.position.y)}
+
     def pipeline_config(self) -> ObuPipelineConfig:
         return ObuPipelineConfig(
             vehicle_id=self.vehicle_id, fusion=self.fusion, compensation=self.compensation,
             fusion_mode=self.fusion_mode, iou_threshold=self.iou_threshold, inter_max_age_s=self.inter_max_age_s,
             planning_max_age_s=self.planning_max_age_s, deadline_ms=self.deadline_ms,
-            output_interval_ms=self.output_interval_ms,
+            output_interval_ms=self.output_interval_ms, known_rsus=self.registered_rsus(),
+            accept_unknown_rsus=self.accept_unknown_rsus, max_unknown_rsus=self.max_unknown_rsus,
+            rsu_expiry_s=self.rsu_expiry_s, site_radius_m=self.site_radius_m,
+            max_objects_per_list=self.max_objects_per_list, max_rsu_objects_per_cycle=self.max_rsu_objects_per_cycle,
+            max_prediction_s=self.max_prediction_s, future_tolerance_ms=self.future_tolerance_ms,
         )

@@ -1,23 +1,26 @@
 """OBU node: the Zenoh shell around the OBU pipeline.
 
-Zenoh callbacks only stamp the receive time and enqueue; the loop in ``run`` owns the
-pipeline, wakes at each cycle's capture and fusion times and at each time-sync
-exchange, and publishes every cycle whether or not RSU data arrived.
+Zenoh callbacks only stamp the receive time and put the payload into a bounded,
+rate-limited ``Intake`` (registered RSUs served first); the loop in ``run`` owns the
+pipeline, wakes at each cycle's capture and fusion times and at each time-sync exchange,
+and publishes every cycle whether or not RSU data arrived. A list is decoded in stages:
+envelope and header first, and its objects only if the pipeline admits the header.
 """
 
 from __future__ import annotations
 
 import heapq
-import queue
 import threading
+from collections import Counter
 
 import numpy as np
 import zenoh
 
 from schemas import keys
-from schemas.codec import CodecError, decode, encode
+from schemas.codec import CodecError, decode, encode, from_body, header_of, object_count, open_body
+from schemas.intake import Intake, Item
 from schemas.messages import EgoPose, ObjectList, PredictionList, TimeReply
-from schemas.runtime import announce, log
+from schemas.runtime import ThrottledLog, announce, log
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
@@ -37,7 +40,12 @@ class ObuNode:
         self.duration_s = config.duration_s or self.world.scenario.duration_s
         self.vehicle = SimulatedVehicle(self.world, config.seed, self.start_ns)
         self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
-        self._inbox: queue.Queue = queue.Queue()
+        known = set(self.pipeline.config.known_rsus)
+        self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
+                              config.source_burst, preferred=lambda key: _rsu_of(key) in known)
+        self._log = ThrottledLog("obu")
+        self._logged: Counter[str] = Counter()  # refusals already handed to the log
+        self._details: dict[str, str] = {}  # first codec error message per reason
         self._events: list = []
 
     def run(self, stop: threading.Event) -> None:
@@ -62,18 +70,19 @@ class ObuNode:
                 entity.undeclare()
             session.close()
             p = self.pipeline
+            self._log.flush(force=True)
             log("obu", f"stopped: {p.cycles} cycles, {p.deadline_misses} deadline misses, rejected {dict(p.rejected)}")
 
     # --- Zenoh callbacks: stamp and enqueue only ---------------------------------------
     def _on_rsu_sample(self, sample) -> None:
-        self._inbox.put(("rsu", sample.payload.to_bytes(), self.clock.now_ns()))
+        self._intake.put("rsu", str(sample.key_expr), sample.payload.to_bytes(), self.clock.now_ns())
 
     def _on_predictions_sample(self, sample) -> None:
-        self._inbox.put(("predictions", sample.payload.to_bytes(), self.clock.now_ns()))
+        self._intake.put("predictions", str(sample.key_expr), sample.payload.to_bytes(), self.clock.now_ns())
 
     def _on_time_reply(self, reply) -> None:
         if reply.ok is not None:
-            self._inbox.put(("time", reply.ok.payload.to_bytes(), self.clock.now_ns()))
+            self._intake.put("time", str(reply.ok.key_expr), reply.ok.payload.to_bytes(), self.clock.now_ns())
 
     # --- the loop ------------------------------------------------------------------------
     def _schedule(self) -> None:
@@ -91,27 +100,31 @@ class ObuNode:
             due_ns, _, kind, arg = self._events[0]
             timeout_s = (due_ns - self.clock.now_ns()) * 1e-9
             if timeout_s > 0:
-                try:
-                    self._handle_input(*self._inbox.get(timeout=min(timeout_s, 0.2)))
-                except queue.Empty:
-                    pass
+                item = self._intake.get(min(timeout_s, 0.2))
+                if item is not None:
+                    self._handle_input(item)
                 continue
             heapq.heappop(self._events)
             if kind == "end":
                 return
             getattr(self, f"_do_{kind}")(due_ns, arg)
 
-    def _handle_input(self, kind: str, data: bytes, receive_ns: int) -> None:
+    def _handle_input(self, item: Item) -> None:
+        max_bytes = self.config.max_message_bytes
         try:
-            if kind == "rsu":
-                self.pipeline.on_rsu_message(decode(data, ObjectList), receive_ns)
-            elif kind == "predictions":
-                self.pipeline.on_predictions(decode(data, PredictionList), receive_ns)
+            if item.kind == "time":
+                self.pipeline.on_time_reply(decode(item.payload, TimeReply, max_bytes), item.receive_ns)
             else:
-                self.pipeline.on_time_reply(decode(data, TimeReply), receive_ns)
+                lists = item.kind == "rsu"
+                model = ObjectList if lists else PredictionList
+                body = open_body(item.payload, model, max_bytes)
+                screen = self.pipeline.screen_list if lists else self.pipeline.screen_paths
+                if screen(header_of(body), object_count(body), item.receive_ns):
+                    accept = self.pipeline.on_rsu_message if lists else self.pipeline.on_predictions
+                    accept(from_body(body, model), item.receive_ns)
         except CodecError as exc:
             self.pipeline.reject(exc.reason)
-            log("obu", f"rejected {kind} message: {exc}")
+            self._details.setdefault(exc.reason, f"{item.kind} on {item.source}: {exc}")
         self._publish_if_ready()
 
     def _do_capture(self, due_ns: int, _) -> None:
@@ -144,9 +157,27 @@ class ObuNode:
         self._pub["objects"].put(encode(out))
         if self.pipeline.last_planning is not None:
             self._pub["planning"].put(encode(self.pipeline.last_planning))
+        self._count_refusals()
         self._pub["metrics"].put(encode(self.pipeline.metrics(self.clock.now_ns())))
+
+    def _count_refusals(self) -> None:
+        """The intake's refusals into the pipeline's counters; the new ones to the throttled log."""
+        for reason, n in self._intake.take_counts().items():
+            self.pipeline.reject(reason, n)
+        for reason, n in (self.pipeline.rejected - self._logged).items():
+            self._log.refused(reason, self._details.get(reason, f"{n} input(s)"), n)
+        self._logged = Counter(self.pipeline.rejected)
+        self._log.flush()
 
     def _do_sync(self, _due_ns: int, _) -> None:
         request = self.pipeline.make_time_request(self.clock.now_ns())
         self._session.get(keys.RSU_TIME_ALL, self._on_time_reply, payload=encode(request),
                           timeout=self.config.time_query_timeout_s)
+
+
+def _rsu_of(key: str) -> str | None:
+    """The RSU id in an RSU key expression, None for any other key."""
+    try:
+        return keys.rsu_id_from_key(key)
+    except ValueError:
+        return None

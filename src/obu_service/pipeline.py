@@ -10,11 +10,28 @@ says so (at once, or when the awaited RSU frame arrives, or at ``fuse_by_ns``):
   fuse_by = min(t_c + D, last publish + output interval bound) - compute margin
 
 so the output is on time whatever the link does (seed 003's E2E and output-interval bounds).
+
+Whatever passes admission can never crash fusion, and fusion always publishes:
+
+- admission (``screen_list`` / ``screen_paths``, from the header alone, before any object is
+  decoded): the RSU gets a slot in the ``RsuTable`` (known ids first, unknown ones bounded and
+  expiring); at most ``max_objects_per_list`` objects; ``prediction_ns`` at most
+  ``max_prediction_s``; not a duplicate of a (seq, capture) seen recently; and, once the RSU's
+  clock is known, valid no later than its arrival (plus the clock uncertainty and
+  ``future_tolerance_ms``) and no older than the oldest data a mode can use (``inter_max_age_s``
+  for lists, ``planning_max_age_s`` for paths): a replay is a duplicate or stale;
+- objects farther than ``site_radius_m`` from their RSU (or, for an RSU of unknown position,
+  from the ego) are dropped; a cycle fuses at most ``max_rsu_objects_per_cycle`` RSU objects
+  (known RSUs and newer frames first);
+- the output is fitted to the wire (``fusion.wire.fit_to_wire``: clip, drop, truncate, each
+  counted in ``output_dropped``), never raising.
+Every refusal is counted by reason in ``rejected``.
 """
 
 from __future__ import annotations
 
-from collections import Counter, deque
+from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,22 +40,23 @@ from fusion.frames import Pose2D, map_to_base
 from fusion.merger import iou_merge
 from fusion.objects import ObjectArray
 from fusion.pose_history import PoseHistory
-from fusion.wire import objects_from_states, states_from_objects
-from schemas.messages import (SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObuMetrics, PredictionList,
-                              RsuLinkStatus, TimeReply, TimeRequest)
+from fusion.wire import fit_to_wire, objects_from_states, states_from_objects
+from schemas.messages import (MAX_OBJECTS, SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObjectListHeader,
+                              ObuMetrics, PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
 
-from .clock_sync import ClockSync, OffsetEstimate, SyncSample
+from .clock_sync import OffsetEstimate
 from .fusion_mode import FUSION_MODES, MODES, Feasible, ModePolicy
-from .link_monitor import LinkMonitor
 from .methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_fusion, make_fusion
 from .planning import objects_at, retimed
+from .rsu_table import RsuState, RsuTable
+from .time_requests import TimeRequests
 
 __all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "ObuPipeline", "ObuPipelineConfig"]
 
-RSU_ID_BASE = 1_000_000  # output ids of RSU objects: RSU_ID_BASE * (rsu index + 1) + RSU track id
-MAX_RSUS = 64  # distinct RSU ids tracked; more are rejected (a flood of ids must not grow memory)
+RSU_ID_BASE = 1_000_000  # output ids of RSU objects: RSU_ID_BASE * (rsu index + 1) + RSU track id mod base
+MAX_RSUS = 64  # RSU slots (known + unknown): the metrics message lists each one
 DEFAULT_RSU_PERIOD_NS = 200_000_000  # until two RSU captures have been seen (5 Hz camera)
-MAX_FUTURE_NS = 1_000_000_000  # RSU data stamped later than this after its arrival is refused
+MIN_SLOT_TOLERANCE_NS = 1_000_000  # intra: captures this close to the cycle's count as its slot, at least
 
 
 @dataclass(frozen=True)
@@ -57,10 +75,24 @@ class ObuPipelineConfig:
     hysteresis_cycles: int = 3
     coverage_timeout_s: float = 10.0  # an RSU heard this recently is "in coverage" for the miss ratio
     frames_kept: int = 8
+    # admission (see the module docstring)
+    known_rsus: Mapping[str, tuple[float, float]] = field(default_factory=dict)  # id -> map position (m)
+    accept_unknown_rsus: bool = True
+    max_unknown_rsus: int = 16
+    rsu_expiry_s: float = 30.0  # an RSU not heard this long is forgotten
+    site_radius_m: float = 2000.0
+    max_objects_per_list: int = 256
+    max_rsu_objects_per_cycle: int = 1024
+    max_prediction_s: float = 1.0  # header prediction_ns above this is refused
+    future_tolerance_ms: float = 20.0  # beyond the clock uncertainty
 
     def __post_init__(self) -> None:
         check_fusion(self.fusion, self.compensation)
         ModePolicy(self.fusion_mode, self.hysteresis_cycles)  # validates the mode
+        slots = len(self.known_rsus) + (self.max_unknown_rsus if self.accept_unknown_rsus else 0)
+        if slots > MAX_RSUS:
+            raise ValueError(f"known_rsus ({len(self.known_rsus)}) + max_unknown_rsus ({self.max_unknown_rsus}) "
+                             f"exceed {MAX_RSUS} RSU slots")
 
 
 @dataclass
@@ -71,19 +103,8 @@ class _Received:
     valid_rsu_ns: int
     seq: int
     objects: ObjectArray  # map frame
+    receive_ns: int
     used: bool = False  # consumed by a tracking fusion (each list is a measurement once)
-
-
-@dataclass
-class _RsuState:
-    index: int
-    sync: ClockSync
-    monitor: LinkMonitor
-    frames: deque = field(default_factory=deque)
-    predictions: PredictionList | None = None
-    accepted: int = 0
-    last_receive_ns: int | None = None
-    last_age_ms: float | None = None
 
 
 @dataclass
@@ -103,6 +124,7 @@ class ObuPipeline:
         self.config = config
         self.poses = PoseHistory(horizon_s=10.0)
         self.rejected: Counter[str] = Counter()
+        self.output_dropped: Counter[str] = Counter()  # output objects clipped or dropped to fit the wire
         self.modes: Counter[str] = Counter({m: 0 for m in MODES})
         self.cycles = 0
         self.deadline_misses = 0
@@ -112,30 +134,31 @@ class ObuPipeline:
         self.last_planning: PredictionList | None = None  # planner-facing output of the last cycle
         self._policy = ModePolicy(config.fusion_mode, config.hysteresis_cycles)
         self._fusion = make_fusion(config.fusion, config.compensation, config.iou_threshold, lanes)
-        self._rsus: dict[str, _RsuState] = {}
+        self._rsus = RsuTable(config.known_rsus, config.max_unknown_rsus, round(config.rsu_expiry_s * 1e9),
+                              config.accept_unknown_rsus)
+        self._requests = TimeRequests(config.vehicle_id)
         self._cycle: _Cycle | None = None
         self._last_publish_ns: int | None = None
-        self._pending_sync: dict[int, int] = {}  # request seq -> t1_ns
-        self._sync_seq = 0
         self._out_seq = 0
 
     # --- clock synchronisation -------------------------------------------------------
     def make_time_request(self, t1_ns: int) -> TimeRequest:
         """A request to send now (t1 = OBU send time); replies are matched by seq."""
-        self._sync_seq += 1
-        self._pending_sync[self._sync_seq] = t1_ns
-        for seq in [s for s, t in self._pending_sync.items() if t1_ns - t > 10_000_000_000]:
-            del self._pending_sync[seq]
-        return TimeRequest(obu_id=self.config.vehicle_id, seq=self._sync_seq, t1_ns=t1_ns)
+        return self._requests.make(t1_ns)
 
     def on_time_reply(self, reply: TimeReply, t4_ns: int) -> None:
-        t1 = self._pending_sync.get(reply.seq)
-        if t1 is None or t1 != reply.t1_ns:
-            self.rejected["time_reply_unmatched"] += 1
-            return
-        state = self._rsu(reply.rsu_id)
-        if state is not None and not state.sync.add(SyncSample(t1, reply.t2_ns, reply.t3_ns, t4_ns)):
+        sample = self._requests.match(reply, t4_ns)
+        state = self._rsus.admit(reply.rsu_id, t4_ns) if not isinstance(sample, str) else sample
+        if isinstance(state, str):
+            self.rejected[state] += 1
+        elif not state.sync.add(sample):
             self.rejected["time_reply_inconsistent"] += 1
+        elif state.sync.steps_detected > state.steps_seen:
+            # the RSU clock stepped: what it stamped before is placed by the old clock, drop it
+            state.steps_seen = state.sync.steps_detected
+            self.rejected["stale_after_clock_step"] += len(state.frames) + (state.predictions is not None)
+            state.frames.clear()
+            state.predictions = None
 
     def clock_offset(self, rsu_id: str, t_ns: int | None = None) -> OffsetEstimate | None:
         """Offset estimate (theta = rsu - obu) of one RSU, at OBU time ``t_ns`` if given."""
@@ -149,53 +172,98 @@ class ObuPipeline:
         state = self._rsus.get(rsu_id)
         return None if state is None else state.sync.naive()
 
+    # --- admission -------------------------------------------------------------------
+    def screen_list(self, header: ObjectListHeader, n_objects: int, receive_ns: int) -> bool:
+        """Whether an object list with this header may be decoded and fused (counted if not)."""
+        return self._screen(header, n_objects, receive_ns, paths=False) is not None
+
+    def screen_paths(self, header: ObjectListHeader, n_objects: int, receive_ns: int) -> bool:
+        """Whether a prediction list with this header may be decoded and used (counted if not)."""
+        return self._screen(header, n_objects, receive_ns, paths=True) is not None
+
+    def _screen(self, header: ObjectListHeader, n_objects: int, receive_ns: int, paths: bool) -> RsuState | None:
+        """The RSU's state if the message passes admission (module docstring), else None, counted."""
+        cfg = self.config
+        reason = ("prediction_too_long" if header.prediction_ns > cfg.max_prediction_s * 1e9 else
+                  "too_many_objects" if n_objects > cfg.max_objects_per_list else None)
+        state = self._rsus.admit(header.rsu_id, receive_ns) if reason is None else reason
+        if isinstance(state, str):
+            self.rejected[state] += 1
+            return None
+        seen = state.predictions_seen if paths else state.lists_seen
+        reason = "duplicate" if (header.seq, header.capture_time_ns) in seen else self._timing(state, header, receive_ns, paths)
+        if reason is not None:
+            self.rejected[reason] += 1
+            return None
+        return state
+
+    def _timing(self, state: RsuState, header: ObjectListHeader, receive_ns: int, paths: bool) -> str | None:
+        """``future_timestamp``, ``stale`` or None, once the RSU's clock is known (a stale list
+        still tells the link monitor its delay)."""
+        est = state.sync.estimate_at(receive_ns)
+        if est is None:
+            return None
+        valid_ns = est.to_obu_ns(header.valid_time_ns)
+        if valid_ns - receive_ns > est.uncertainty_ns + self.config.future_tolerance_ms * 1e6:
+            return "future_timestamp"
+        max_age_s = self.config.planning_max_age_s if paths else self.config.inter_max_age_s
+        if receive_ns - valid_ns <= max_age_s * 1e9 + est.uncertainty_ns:
+            return None
+        if not paths:
+            state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns),
+                                     est.to_obu_ns(header.publish_time_ns), receive_ns)
+        return "stale"
+
+    def _on_site(self, state: RsuState, objects: ObjectArray, receive_ns: int) -> ObjectArray:
+        """The objects within site_radius_m of their RSU (of the ego for an RSU of unknown position)."""
+        centre = self._rsus.position(state.rsu_id)
+        if centre is None:
+            ego = self.poses.at(receive_ns)
+            centre = None if ego is None else (ego.x, ego.y)
+        if centre is None or not len(objects):
+            return objects
+        inside = np.hypot(objects.xy[:, 0] - centre[0], objects.xy[:, 1] - centre[1]) <= self.config.site_radius_m
+        self.rejected["object_outside_site"] += int((~inside).sum())
+        return objects.take(inside)
+
     # --- inputs ----------------------------------------------------------------------
     def on_pose(self, t_ns: int, pose: Pose2D) -> None:
         self.poses.add(t_ns, pose)
 
     def on_rsu_message(self, msg: ObjectList, receive_ns: int) -> None:
-        state = self._rsu(msg.header.rsu_id)
+        header = msg.header
+        state = self._screen(header, len(msg.objects), receive_ns, paths=False)
         if state is None:
             return
-        if any(f.seq == msg.header.seq for f in state.frames):
-            self.rejected["duplicate"] += 1
-            return
-        if self._from_the_future(state, msg.header.capture_time_ns, receive_ns):
-            return
-        objects = objects_from_states(msg.objects)
+        state.lists_seen.add((header.seq, header.capture_time_ns))
+        objects = self._on_site(state, objects_from_states(msg.objects), receive_ns)
         objects = objects.with_(ids=self._rsu_ids(state, objects.ids), sources=np.full(len(objects), SOURCE_RSU))
-        state.frames.append(_Received(msg.header.capture_time_ns, msg.header.valid_time_ns, msg.header.seq, objects))
+        state.frames.append(_Received(header.capture_time_ns, header.valid_time_ns, header.seq, objects, receive_ns))
         state.accepted += 1
         state.last_receive_ns = receive_ns
         est = state.sync.estimate_at(receive_ns)
         if est is not None:
-            state.monitor.on_message(msg.header.seq, est.to_obu_ns(msg.header.capture_time_ns),
-                                     est.to_obu_ns(msg.header.publish_time_ns), receive_ns)
+            state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns),
+                                     est.to_obu_ns(header.publish_time_ns), receive_ns)
         while len(state.frames) > self.config.frames_kept:
             state.frames.popleft()
 
     def on_predictions(self, msg: PredictionList, receive_ns: int) -> None:
         """The RSU's long-horizon paths (planning fusion); the newest t0 is kept."""
-        state = self._rsu(msg.header.rsu_id)
-        if state is None or self._from_the_future(state, msg.header.capture_time_ns, receive_ns):
+        header = msg.header
+        state = self._screen(header, max(len(msg.objects), len(msg.paths)), receive_ns, paths=True)
+        if state is None:
             return
-        if state.predictions is None or msg.header.valid_time_ns > state.predictions.header.valid_time_ns:
+        state.predictions_seen.add((header.seq, header.capture_time_ns))
+        if state.predictions is None or header.valid_time_ns > state.predictions.header.valid_time_ns:
             state.predictions = msg
             state.last_receive_ns = receive_ns
-
-    def _from_the_future(self, state: _RsuState, capture_rsu_ns: int, receive_ns: int) -> bool:
-        """Count and refuse data captured more than MAX_FUTURE_NS after it was received (in
-        OBU time): a broken or hostile RSU clock, which would otherwise shadow later data."""
-        est = state.sync.estimate_at(receive_ns)
-        if est is None or est.to_obu_ns(capture_rsu_ns) - receive_ns <= MAX_FUTURE_NS:
-            return False
-        self.rejected["future_timestamp"] += 1
-        return True
 
     def on_detections(self, dets: ObjectArray, capture_ns: int) -> int:
         """Own LiDAR objects (base_link at capture_ns) start a cycle; returns its fuse_by_ns."""
         if self._cycle is not None:
             self.rejected["cycle_overrun"] += 1  # the previous cycle was never fused
+        self._rsus.expire(capture_ns)
         own = dets.with_(sources=np.full(len(dets), SOURCE_VEHICLE))
         fuse_by_ns = capture_ns + round((self.config.deadline_ms - self.config.compute_margin_ms) * 1e6)
         if self._last_publish_ns is not None:
@@ -222,9 +290,9 @@ class ObuPipeline:
             return True
         return bool(self._intra_frames(cycle)[0])
 
-    def reject(self, reason: str) -> None:
-        """Count an input the shell could not decode (codec error reason)."""
-        self.rejected[reason] += 1
+    def reject(self, reason: str, count: int = 1) -> None:
+        """Count inputs the shell refused (a codec error's reason, an intake refusal)."""
+        self.rejected[reason] += count
 
     # --- the cycle -------------------------------------------------------------------
     def fuse(self, now_ns: int) -> FusedObjectList:
@@ -242,10 +310,10 @@ class ObuPipeline:
         if self.config.fusion == "vehicle-only":
             mode = "vehicle-only"
         own = cycle.own.with_(ids=np.arange(1, len(cycle.own) + 1))
-        newest, fresh = {"intra": intra, "inter": inter}.get(mode, ([], []))
+        newest, fresh = (self._within_budget(frames) for frames in {"intra": intra, "inter": inter}.get(mode, ([], [])))
         fused = self._fusion.fuse(t_c, ego, own, newest, fresh)
         self._consume(fresh, t_c)
-        for state in self._rsus.values():
+        for state in self._rsus:
             ages = [(t_c - f.valid_ns) * 1e-6 for f in newest if f.rsu_index == state.index]
             state.monitor.on_fusion(t_c, ages[0] if ages else None)
         self.last_planning = None
@@ -253,11 +321,26 @@ class ObuPipeline:
             fused = self._with_planning(fused, planning, t_c, ego, now_ns)
         self._account(t_c, mode, now_ns)
         self._out_seq += 1
+        fused, dropped = fit_to_wire(fused, MAX_OBJECTS)
+        self.output_dropped.update(dropped)
         return FusedObjectList(
             vehicle_id=self.config.vehicle_id, seq=self._out_seq, cycle_time_ns=t_c, publish_time_ns=now_ns,
             fusion=self.config.fusion, mode=mode, ego_x=ego.x, ego_y=ego.y, ego_yaw=ego.yaw,
             objects=states_from_objects(fused, fused=True),
         )
+
+    def _within_budget(self, frames: list[RsuFrame]) -> list[RsuFrame]:
+        """The frames a cycle may fuse: at most max_rsu_objects_per_cycle objects in all, known
+        RSUs first, then newer frames (the rest counted as ``rsu_objects_over_budget``)."""
+        known = {s.index for s in self._rsus if s.known}
+        kept, total = [], 0
+        for frame in sorted(frames, key=lambda f: (f.rsu_index not in known, -f.valid_ns)):
+            if total + len(frame.objects) > self.config.max_rsu_objects_per_cycle:
+                self.rejected["rsu_objects_over_budget"] += len(frame.objects)
+                continue
+            total += len(frame.objects)
+            kept.append(frame)
+        return sorted(kept, key=lambda f: f.valid_ns) if len(kept) < len(frames) else frames
 
     def _account(self, t_c: int, mode: str, now_ns: int) -> None:
         """Mode share, output deadline (E2E and interval) and RSU deadline counters."""
@@ -269,20 +352,26 @@ class ObuPipeline:
         self.deadline_misses += int(late or gap)
         self._last_publish_ns = now_ns
         timeout_ns = self.config.coverage_timeout_s * 1e9
-        if any(s.last_receive_ns is not None and t_c - s.last_receive_ns <= timeout_ns for s in self._rsus.values()):
+        if any(s.last_receive_ns is not None and t_c - s.last_receive_ns <= timeout_ns for s in self._rsus):
             self.covered_cycles += 1
             self.rsu_deadline_misses += int(mode == "vehicle-only")
 
     # --- which RSU data each mode can use ----------------------------------------------
-    def _placed(self, state: _RsuState, t_ns: int) -> list[tuple[_Received, RsuFrame]]:
-        """The RSU's frames in OBU time (by valid time), each linked to the one before; [] before sync."""
+    def _placed(self, state: RsuState, t_ns: int) -> list[tuple[_Received, RsuFrame]]:
+        """The RSU's frames in OBU time (by valid time), each linked to the one before; [] before
+        sync. A frame valid later than its own arrival (beyond the clock uncertainty and the
+        future tolerance) is left out: it was admitted before the clock was known."""
         est = state.sync.estimate_at(t_ns)
         if est is None:
             return []
+        tolerance_ns = est.uncertainty_ns + self.config.future_tolerance_ms * 1e6
         placed, previous = [], None
         for raw in sorted(state.frames, key=lambda f: f.valid_rsu_ns):  # t_obu = t_rsu - theta(t)
-            previous = RsuFrame(state.index, raw.seq, est.to_obu_ns(raw.capture_rsu_ns), est.to_obu_ns(raw.valid_rsu_ns),
-                                raw.objects, previous)
+            valid_ns = est.to_obu_ns(raw.valid_rsu_ns)
+            if valid_ns - raw.receive_ns > tolerance_ns:
+                continue
+            previous = RsuFrame(state.index, raw.seq, est.to_obu_ns(raw.capture_rsu_ns), valid_ns, raw.objects,
+                                previous)
             placed.append((raw, previous))
         return placed
 
@@ -290,7 +379,7 @@ class ObuPipeline:
         """(newest frame of each RSU, frames not yet consumed) within inter_max_age_s of the cycle."""
         newest, fresh = [], []
         limit_ns = self.config.inter_max_age_s * 1e9
-        for state in self._rsus.values():
+        for state in self._rsus:
             placed = self._placed(state, t_c)
             if not placed:
                 continue
@@ -305,7 +394,9 @@ class ObuPipeline:
         every awaited one has arrived; ([], []) before."""
         frames, fresh = [], []
         for rsu_id, slot_ns in cycle.intra_slots.items():
-            state = self._rsus[rsu_id]
+            state = self._rsus.get(rsu_id)
+            if state is None:  # expired meanwhile
+                return [], []
             period_ns = self._rsu_period_ns(state)
             match = [(raw, f) for raw, f in self._placed(state, cycle.capture_ns)
                      if abs(f.capture_ns - slot_ns) < period_ns / 2]
@@ -321,36 +412,43 @@ class ObuPipeline:
         frame is already here or will be by fuse_by with probability >= intra_min_probability
         (every RSU heard from, in the fixed ``intra`` mode).
 
-        The slot's frame is the newest RSU capture at or before t_c. When it has not arrived
-        yet its capture is predicted from the last one: c* = c_last + n T,
-        n = floor((t_c - c_last) / T), T the RSU's frame period.
+        The slot's frame is the newest RSU capture at or before t_c + u, u the stated clock
+        uncertainty (at least MIN_SLOT_TOLERANCE_NS, at most half a period): a capture at the
+        cycle's own instant belongs to its slot whatever the sign of the clock error. When it has
+        not arrived yet its capture is predicted from the last one: c* = c_last + n T,
+        n = floor((t_c + u - c_last) / T), T the RSU's frame period.
         """
         slots = {}
-        for rsu_id, state in self._rsus.items():
-            captures = [f.capture_ns for _, f in self._placed(state, t_c) if f.capture_ns <= t_c]
-            if not captures:
+        for state in self._rsus:
+            est = state.sync.estimate_at(t_c)
+            if est is None:
                 continue
             period_ns = self._rsu_period_ns(state)
+            reach_ns = t_c + min(max(est.uncertainty_ns, MIN_SLOT_TOLERANCE_NS), period_ns // 2)
+            captures = [f.capture_ns for _, f in self._placed(state, t_c) if f.capture_ns <= reach_ns]
+            if not captures:
+                continue
             last_ns = max(captures)
-            slot_ns = last_ns + ((t_c - last_ns) // period_ns) * period_ns
+            slot_ns = last_ns + ((reach_ns - last_ns) // period_ns) * period_ns
             if slot_ns - last_ns > period_ns and self.config.fusion_mode != "intra":
                 continue  # frames are already missing: the link is not delivering, do not wait on it
             p_on_time = 1.0 if slot_ns == last_ns else state.monitor.arrival_probability((fuse_by_ns - slot_ns) * 1e-6)
             if p_on_time >= self.config.intra_min_probability or self.config.fusion_mode == "intra":
-                slots[rsu_id] = slot_ns
+                slots[state.rsu_id] = slot_ns
         return slots
 
     @staticmethod
-    def _rsu_period_ns(state: _RsuState) -> int:
-        """Median interval between the RSU's distinct captures (RSU clock; drift is negligible here)."""
+    def _rsu_period_ns(state: RsuState) -> int:
+        """Median interval between the RSU's distinct captures (RSU clock; drift is negligible
+        here), at least 1 ms."""
         captures = np.unique([f.capture_rsu_ns for f in state.frames])
-        return int(np.median(np.diff(captures))) if len(captures) >= 2 else DEFAULT_RSU_PERIOD_NS
+        return max(int(np.median(np.diff(captures))), 1_000_000) if len(captures) >= 2 else DEFAULT_RSU_PERIOD_NS
 
     def _consume(self, fused: list[RsuFrame], t_c: int) -> None:
         """Mark frames fed to the tracker as used (each is a measurement once). In the fixed
         intra mode every frame of this slot or before is used up: intra never fuses late data."""
         done = {(f.rsu_index, f.seq) for f in fused}
-        for state in self._rsus.values():
+        for state in self._rsus:
             for raw, frame in self._placed(state, t_c):
                 late = self.config.fusion_mode == "intra" and frame.capture_ns <= t_c
                 raw.used = raw.used or late or (state.index, raw.seq) in done
@@ -358,7 +456,7 @@ class ObuPipeline:
     def _planning_inputs(self, t_c: int) -> list[tuple[PredictionList, int]]:
         """(paths, t0 in OBU ns) of each RSU whose newest paths still cover the cycle."""
         out = []
-        for state in self._rsus.values():
+        for state in self._rsus:
             pred, est = state.predictions, state.sync.estimate_at(t_c)
             if pred is None or est is None:
                 continue
@@ -372,8 +470,8 @@ class ObuPipeline:
         (re-timed to the OBU clock) become the planner-facing output."""
         rsu = []
         for pred, t0_ns in inputs:
-            state = self._rsus[pred.header.rsu_id]
-            objs = objects_at(pred, (t_c - t0_ns) * 1e-9)
+            state = self._rsus.get(pred.header.rsu_id)
+            objs = self._on_site(state, objects_at(pred, (t_c - t0_ns) * 1e-9), t_c)
             rsu.append(map_to_base(objs.with_(ids=self._rsu_ids(state, objs.ids),
                                               sources=np.full(len(objs), SOURCE_RSU)), ego))
         pred, t0_ns = max(inputs, key=lambda item: item[1])
@@ -381,8 +479,8 @@ class ObuPipeline:
         return iou_merge(fused, ObjectArray.concat(rsu), self.config.iou_threshold)
 
     @staticmethod
-    def _rsu_ids(state: _RsuState, ids: np.ndarray) -> np.ndarray:
-        return RSU_ID_BASE * (state.index + 1) + ids
+    def _rsu_ids(state: RsuState, ids: np.ndarray) -> np.ndarray:
+        return RSU_ID_BASE * (state.index + 1) + np.mod(ids, RSU_ID_BASE)
 
     # --- reporting -------------------------------------------------------------------
     def metrics(self, now_ns: int) -> ObuMetrics:
@@ -390,15 +488,16 @@ class ObuPipeline:
             vehicle_id=self.config.vehicle_id, t_ns=now_ns, cycles=self.cycles,
             output_deadline_misses=self.deadline_misses, rsu_deadline_misses=self.rsu_deadline_misses,
             covered_cycles=self.covered_cycles, mode=self.last_mode, mode_counts=dict(self.modes),
-            rsus=tuple(self._rsu_status(rsu_id, s, now_ns) for rsu_id, s in self._rsus.items()),
-            rejected=dict(self.rejected),
+            rsus=tuple(self._rsu_status(s, now_ns) for s in self._rsus), rejected=dict(self.rejected),
+            output_dropped=dict(self.output_dropped),
         )
 
-    def _rsu_status(self, rsu_id: str, state: _RsuState, now_ns: int) -> RsuLinkStatus:
+    @staticmethod
+    def _rsu_status(state: RsuState, now_ns: int) -> RsuLinkStatus:
         est, naive = state.sync.estimate_at(now_ns), state.sync.naive()
         link = state.monitor.summary(now_ns)
         return RsuLinkStatus(
-            rsu_id=rsu_id, clock_offset_ns=None if est is None else est.offset_ns,
+            rsu_id=state.rsu_id, clock_offset_ns=None if est is None else est.offset_ns,
             clock_uncertainty_ns=None if est is None else est.uncertainty_ns,
             clock_drift_ppm=None if est is None else est.drift_ppm,
             clock_offset_naive_ns=None if naive is None else naive.offset_ns,
@@ -406,11 +505,3 @@ class ObuPipeline:
             last_data_age_ms=state.last_age_ms, delay_p50_ms=link["delay_p50_ms"], delay_p95_ms=link["delay_p95_ms"],
             jitter_ms=link["jitter_ms"], loss_ratio=link["loss_ratio"],
         )
-
-    def _rsu(self, rsu_id: str) -> _RsuState | None:
-        if rsu_id not in self._rsus:
-            if len(self._rsus) >= MAX_RSUS:
-                self.rejected["too_many_rsus"] += 1
-                return None
-            self._rsus[rsu_id] = _RsuState(index=len(self._rsus), sync=ClockSync(), monitor=LinkMonitor())
-        return self._rsus[rsu_id]

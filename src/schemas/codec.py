@@ -27,7 +27,8 @@ import numpy as np
 from pydantic import ValidationError
 
 from . import quantize as q
-from .messages import MAX_OBJECTS, SCHEMA_VERSION, FusedObjectList, Message, ObjectList, PredictionList
+from .messages import (MAX_OBJECTS, SCHEMA_VERSION, FusedObjectList, Message, ObjectList, ObjectListHeader,
+                       PredictionList)
 
 MAX_MESSAGE_BYTES = 1 << 20
 # Largest msgpack array/map accepted. The unpacker pre-allocates a container from its
@@ -304,12 +305,13 @@ def _describe(exc: ValidationError, type_name: str, limit: int = 3) -> InvalidMe
     return InvalidMessage(f"invalid {type_name}: " + "; ".join(parts) + more, first)
 
 
-def decode(data: bytes, model: type[M], max_bytes: int = MAX_MESSAGE_BYTES) -> M:
-    """Validated ``model`` instance from wire bytes.
+def open_body(data: bytes, model: type[Message], max_bytes: int = MAX_MESSAGE_BYTES) -> dict[str, Any]:
+    """The body map of wire bytes, checked up to (not including) any per-object work.
 
-    Checks, in order: size (before unpacking), msgpack well-formedness, envelope
-    shape, schema version, type tag, then every model rule via ``model_validate``.
-    Any failure raises a :class:`CodecError` subclass.
+    Checks, in order: size (before unpacking), msgpack well-formedness, envelope shape,
+    envelope schema version, type tag, and the schema version a body or header states.
+    A receiver can look at the header (``header_of``) and the object count
+    (``object_count``) before paying for ``from_body``.
     """
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise TypeError(f"decode() takes bytes, got {type(data).__name__}")
@@ -317,6 +319,34 @@ def decode(data: bytes, model: type[M], max_bytes: int = MAX_MESSAGE_BYTES) -> M
     if size > max_bytes:
         raise MessageTooLarge(f"{model.TYPE} payload is {size} bytes, limit is {max_bytes}")
     body = _open_envelope(_unpack(data, size, max_bytes), model)
+    header = body.get("header")
+    for holder in (body, header if isinstance(header, dict) else {}):
+        stated = holder.get("schema_version", SCHEMA_VERSION)
+        if type(stated) is int and stated != SCHEMA_VERSION:
+            raise SchemaVersionError(f"{model.TYPE} states schema version {stated}, this build speaks "
+                                     f"version {SCHEMA_VERSION}")
+    return body
+
+
+def header_of(body: dict[str, Any]) -> ObjectListHeader:
+    """The validated header of an opened object or prediction list body (cheap: no objects)."""
+    try:
+        return ObjectListHeader.model_validate(body.get("header"))
+    except ValidationError as exc:
+        err = _describe(exc, ObjectListHeader.TYPE)
+        raise InvalidMessage(f"header: {err}", f"header.{err.field}") from None
+
+
+def object_count(body: dict[str, Any]) -> int:
+    """Objects (and, for predictions, paths) an opened body declares, before any is decoded."""
+    objects, paths = body.get("objects"), body.get("paths")
+    n = objects.get("n") if isinstance(objects, dict) else None
+    count = n if type(n) is int and n >= 0 else 0
+    return max(count, len(paths)) if isinstance(paths, list) else count
+
+
+def from_body(body: dict[str, Any], model: type[M]) -> M:
+    """The validated ``model`` instance of an opened body (every model rule)."""
     columns = COLUMNAR.get(model.TYPE)
     if columns is not None and "objects" in body:
         body = {**body, "objects": unpack_columns(body["objects"], columns)}
@@ -326,3 +356,11 @@ def decode(data: bytes, model: type[M], max_bytes: int = MAX_MESSAGE_BYTES) -> M
         raise _describe(exc, model.TYPE) from None
     except RecursionError:
         raise MalformedMessage(f"{model.TYPE} body is nested too deeply") from None
+
+
+def decode(data: bytes, model: type[M], max_bytes: int = MAX_MESSAGE_BYTES) -> M:
+    """Validated ``model`` instance from wire bytes: ``open_body`` then ``from_body``.
+
+    Any failure raises a :class:`CodecError` subclass.
+    """
+    return from_body(open_body(data, model, max_bytes), model)

@@ -14,7 +14,9 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validat
 from . import quantize as q
 from .classes import ObjectClass
 
-SCHEMA_VERSION = 2  # 2: velocity covariance cov_vxx, cov_vxy, cov_vyy on objects
+# 2: velocity covariance cov_vxx, cov_vxy, cov_vyy on objects
+# 3: header schema_version checked; RsuMetrics; ObuMetrics.output_dropped
+SCHEMA_VERSION = 3
 MAX_OBJECTS = 1024
 
 # Plausible wall-clock range: 2000-01-01 .. 2100-01-01. Anything outside is a broken clock.
@@ -44,22 +46,33 @@ def _yaw(v: float) -> float:
     return (k - 3600 if k >= 1800 else k) * q.YAW_RAD
 
 
-Position = Annotated[float, Field(ge=-1e6, le=1e6, allow_inf_nan=False), _grid(q.POSITION_M)]
-Height = Annotated[float, Field(ge=-1e4, le=1e4, allow_inf_nan=False), _grid(q.POSITION_M)]
-Size = Annotated[float, Field(ge=0.0, le=100.0, allow_inf_nan=False), _grid(q.SIZE_M)]
-Speed = Annotated[float, Field(ge=-200.0, le=200.0, allow_inf_nan=False), _grid(q.SPEED_MPS)]
-Accel = Annotated[float, Field(ge=-100.0, le=100.0, allow_inf_nan=False), _grid(q.ACCEL_MPS2)]
-Yaw = Annotated[float, Field(ge=-100.0, le=100.0, allow_inf_nan=False), AfterValidator(_yaw)]
+# Value ranges of the wire (|value| <= bound, or [0, bound] where negative is meaningless).
+POSITION_MAX_M = 1e6
+HEIGHT_MAX_M = 1e4
+SIZE_MAX_M = 100.0
+SPEED_MAX_MPS = 200.0
+ACCEL_MAX_MPS2 = 100.0
 # 30 rad/s rounded up to the grid: the quantised value of any accepted input must itself be
 # accepted, or a decoded message would fail re-validation (30.0 quantises to 30.00046).
 YAW_RATE_MAX = math.ceil(30.0 / q.YAW_RATE_RADPS) * q.YAW_RATE_RADPS
+VARIANCE_MAX = 1e4  # m^2 or m^2/s^2; also the covariance bound
+AGE_MAX_S = 1e6
+
+Position = Annotated[float, Field(ge=-POSITION_MAX_M, le=POSITION_MAX_M, allow_inf_nan=False), _grid(q.POSITION_M)]
+Height = Annotated[float, Field(ge=-HEIGHT_MAX_M, le=HEIGHT_MAX_M, allow_inf_nan=False), _grid(q.POSITION_M)]
+Size = Annotated[float, Field(ge=0.0, le=SIZE_MAX_M, allow_inf_nan=False), _grid(q.SIZE_M)]
+Speed = Annotated[float, Field(ge=-SPEED_MAX_MPS, le=SPEED_MAX_MPS, allow_inf_nan=False), _grid(q.SPEED_MPS)]
+Accel = Annotated[float, Field(ge=-ACCEL_MAX_MPS2, le=ACCEL_MAX_MPS2, allow_inf_nan=False), _grid(q.ACCEL_MPS2)]
+Yaw = Annotated[float, Field(ge=-100.0, le=100.0, allow_inf_nan=False), AfterValidator(_yaw)]
 YawRate = Annotated[
     float, Field(ge=-YAW_RATE_MAX, le=YAW_RATE_MAX, allow_inf_nan=False), _grid(q.YAW_RATE_RADPS)
 ]
-Variance = Annotated[float, Field(ge=0.0, le=1e4, allow_inf_nan=False), _grid(q.COV_M2)]
-Covariance = Annotated[float, Field(ge=-1e4, le=1e4, allow_inf_nan=False), _grid(q.COV_M2)]
+Variance = Annotated[float, Field(ge=0.0, le=VARIANCE_MAX, allow_inf_nan=False), _grid(q.COV_M2)]
+Covariance = Annotated[float, Field(ge=-VARIANCE_MAX, le=VARIANCE_MAX, allow_inf_nan=False), _grid(q.COV_M2)]
 Confidence = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False), _grid(q.CONFIDENCE)]
-AgeS = Annotated[float, Field(ge=0.0, le=1e6, allow_inf_nan=False), _grid(q.AGE_S)]
+AgeS = Annotated[float, Field(ge=0.0, le=AGE_MAX_S, allow_inf_nan=False), _grid(q.AGE_S)]
+# A message's own schema_version field must be this build's (a different one is read differently).
+SchemaVersion = Annotated[int, Field(ge=SCHEMA_VERSION, le=SCHEMA_VERSION)]
 
 
 class Message(BaseModel):
@@ -107,7 +120,7 @@ class FusedObject(ObjectState):
 
 class ObjectListHeader(Message):
     TYPE: ClassVar[str] = "object_list_header"
-    schema_version: Count = SCHEMA_VERSION
+    schema_version: SchemaVersion = SCHEMA_VERSION
     rsu_id: NodeId
     seq: Seq
     capture_time_ns: TimeNs
@@ -192,7 +205,7 @@ class FusedObjectList(Message):
     """
 
     TYPE: ClassVar[str] = "fused_object_list"
-    schema_version: Count = SCHEMA_VERSION
+    schema_version: SchemaVersion = SCHEMA_VERSION
     vehicle_id: NodeId
     seq: Seq
     cycle_time_ns: TimeNs
@@ -279,6 +292,20 @@ class ObuMetrics(Message):
     rejected: dict[Annotated[str, Field(max_length=64)], Count] = Field(
         default_factory=dict, max_length=64
     )
+    # output objects dropped (or clipped) to fit the wire, by reason
+    output_dropped: dict[Annotated[str, Field(max_length=64)], Count] = Field(default_factory=dict, max_length=16)
+
+
+class RsuMetrics(Message):
+    """Periodic RSU health on ``v2x/rsu/{rsu_id}/metrics``."""
+
+    TYPE: ClassVar[str] = "rsu_metrics"
+    rsu_id: NodeId
+    t_ns: TimeNs
+    published: Count = 0  # object lists
+    skipped: Count = 0  # frames not published because their time had passed (restart, stall)
+    time_replies: Count = 0
+    rejected: dict[Annotated[str, Field(max_length=64)], Count] = Field(default_factory=dict, max_length=64)
 
 
 class LinkControl(Message):

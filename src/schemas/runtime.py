@@ -11,6 +11,7 @@ import re
 import signal
 import sys
 import threading
+import time
 
 
 def stop_on_signals() -> threading.Event:
@@ -33,6 +34,39 @@ def announce(event: str, service: str, **fields) -> None:
 def log(service: str, message: str) -> None:
     """A human-readable line on stderr, prefixed with the service name."""
     print(f"[{service}] {message}", file=sys.stderr, flush=True)
+
+
+class ThrottledLog:
+    """Logs refusals without flooding: the first of each reason at once, with its detail; after
+    that one summary line per ``interval_s`` (the counts since the previous line), so a hostile
+    peer cannot fill a disk. The counters in a service's metrics carry the detail."""
+
+    def __init__(self, service: str, interval_s: float = 10.0, clock_s=time.monotonic):
+        self.service, self.interval_s, self._clock_s = service, interval_s, clock_s
+        self._seen: set[str] = set()
+        self._pending: dict[str, int] = {}
+        self._last_s = clock_s()
+
+    def refused(self, reason: str, detail: str, count: int = 1) -> None:
+        """Note ``count`` refusals for ``reason``; ``detail`` is logged only for the first one."""
+        if reason not in self._seen:
+            self._seen.add(reason)
+            log(self.service, f"refused ({reason}): {detail}; further refusals are summarised "
+                              f"every {self.interval_s:g} s")
+            count -= 1
+        if count > 0:
+            self._pending[reason] = self._pending.get(reason, 0) + count
+        self.flush()
+
+    def flush(self, force: bool = False) -> None:
+        """The summary line, if one is due (or ``force``) and anything was refused since the last."""
+        now_s = self._clock_s()
+        if self._pending and (force or now_s - self._last_s >= self.interval_s):
+            counts = ", ".join(f"{r} {n}" for r, n in sorted(self._pending.items()))
+            log(self.service, f"refused in the last {now_s - self._last_s:.0f} s: {counts}")
+            self._pending.clear()
+        if force or now_s - self._last_s >= self.interval_s:
+            self._last_s = now_s
 
 
 def add_service_options(p, config_name: str, listen_example: str, seed_of: str) -> None:

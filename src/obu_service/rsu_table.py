@@ -1,0 +1,124 @@
+"""The RSUs an OBU hears (pure): known and unknown ids, expiry, and per-RSU duplicate windows.
+
+Memory and trust are bounded by rules, not by the order in which ids are heard:
+
+- known ids (the site's registry, with their map positions) always get a slot;
+- unknown ids get at most ``max_unknown`` slots (none when ``accept_unknown`` is off); when
+  they are full a new one takes the slot of the least recently heard unknown RSU that is not
+  *established* (clock synchronised and with data accepted), or is refused;
+- an RSU not heard for ``expiry_ns`` is forgotten (its slot and index are free again).
+
+So a flood of fake ids can neither lock a registered RSU out nor hold the table for good.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict, deque
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+
+from schemas.messages import PredictionList
+
+from .clock_sync import ClockSync
+from .link_monitor import LinkMonitor
+
+RECENT_KEYS = 512  # (seq, capture) keys remembered per RSU and stream for duplicate detection
+
+
+class RecentKeys:
+    """The last ``capacity`` keys seen, for O(1) duplicate checks with bounded memory."""
+
+    def __init__(self, capacity: int = RECENT_KEYS):
+        self._keys: OrderedDict[tuple, None] = OrderedDict()
+        self._capacity = capacity
+
+    def __contains__(self, key: tuple) -> bool:
+        return key in self._keys
+
+    def add(self, key: tuple) -> None:
+        self._keys[key] = None
+        while len(self._keys) > self._capacity:
+            self._keys.popitem(last=False)
+
+
+@dataclass
+class RsuState:
+    """What the OBU keeps of one RSU. Times are OBU-clock ns."""
+
+    rsu_id: str
+    index: int  # small integer naming this RSU in fused output ids and frames
+    known: bool
+    heard_ns: int  # last message of any kind (expiry)
+    sync: ClockSync = field(default_factory=ClockSync)
+    monitor: LinkMonitor = field(default_factory=LinkMonitor)
+    frames: deque = field(default_factory=deque)  # received lists, oldest first
+    predictions: PredictionList | None = None
+    lists_seen: RecentKeys = field(default_factory=RecentKeys)
+    predictions_seen: RecentKeys = field(default_factory=RecentKeys)
+    accepted: int = 0
+    last_receive_ns: int | None = None  # last list or paths accepted (coverage)
+    last_age_ms: float | None = None
+    steps_seen: int = 0  # RSU clock steps already acted on
+
+    @property
+    def established(self) -> bool:
+        """Clock synchronised and data accepted: a working RSU, not just a name heard."""
+        return self.accepted > 0 and self.sync.estimate() is not None
+
+
+class RsuTable:
+    """RSU states by id; see the module docstring for who gets a slot and for how long."""
+
+    def __init__(self, known: Mapping[str, tuple[float, float]] | None = None, max_unknown: int = 16,
+                 expiry_ns: int = 30_000_000_000, accept_unknown: bool = True):
+        self.known = dict(known or {})
+        self.max_unknown = max_unknown if accept_unknown else 0
+        self.expiry_ns = expiry_ns
+        self._states: dict[str, RsuState] = {}
+
+    def __iter__(self) -> Iterator[RsuState]:
+        return iter(list(self._states.values()))
+
+    def __len__(self) -> int:
+        return len(self._states)
+
+    def get(self, rsu_id: str) -> RsuState | None:
+        return self._states.get(rsu_id)
+
+    def position(self, rsu_id: str) -> tuple[float, float] | None:
+        """Map position (m) of a known RSU; None for an unknown one."""
+        return self.known.get(rsu_id)
+
+    def admit(self, rsu_id: str, now_ns: int) -> RsuState | str:
+        """The state of ``rsu_id`` (created if there is room), marked heard at ``now_ns``;
+        or the rejection reason: ``unknown_rsu`` (unknown ids refused) or ``too_many_rsus``."""
+        state = self._states.get(rsu_id)
+        if state is None:
+            state = self._create(rsu_id, now_ns)
+            if isinstance(state, str):
+                return state
+        state.heard_ns = max(state.heard_ns, now_ns)
+        return state
+
+    def expire(self, now_ns: int) -> list[str]:
+        """Forget the RSUs not heard for ``expiry_ns``; their ids."""
+        gone = [s.rsu_id for s in self._states.values() if now_ns - s.heard_ns > self.expiry_ns]
+        for rsu_id in gone:
+            del self._states[rsu_id]
+        return gone
+
+    def _create(self, rsu_id: str, now_ns: int) -> RsuState | str:
+        known = rsu_id in self.known
+        if not known:
+            if self.max_unknown == 0:
+                return "unknown_rsu"
+            unknown = [s for s in self._states.values() if not s.known]
+            if len(unknown) >= self.max_unknown:
+                spare = [s for s in unknown if not s.established]
+                if not spare:
+                    return "too_many_rsus"
+                del self._states[min(spare, key=lambda s: s.heard_ns).rsu_id]
+        used = {s.index for s in self._states.values()}
+        index = next(i for i in range(len(used) + 1) if i not in used)
+        self._states[rsu_id] = RsuState(rsu_id, index, known, now_ns)
+        return self._states[rsu_id]

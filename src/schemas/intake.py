@@ -1,0 +1,133 @@
+"""Bounded, rate-limited hand-over of received payloads from Zenoh callbacks to a service loop.
+
+Zenoh callbacks (any thread) ``put``; the one loop that owns a service's state ``get``s.
+``put`` never blocks and does O(1) work before anything is decoded, so a flood costs the
+flooder, not the service:
+
+- a payload over ``max_bytes`` is refused unread (``too_large``);
+- each source (the key expression it arrived on) has a token bucket: ``rate_hz`` sustained,
+  ``burst`` at once; over it, ``rate_limited``. At most ``max_sources`` buckets are kept
+  (the least recently used one is forgotten);
+- the queue holds at most ``capacity`` items and ``max_queued_bytes``; beyond, the oldest
+  item of the source with the most queued items is dropped (``queue_full``): the flooder
+  loses its backlog, the others keep theirs.
+
+``get`` serves sources round-robin, *preferred* sources (e.g. the site's registered RSUs)
+before the others, so a flood on other keys cannot delay them. Every refusal is counted by
+reason (``take_counts``).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter, OrderedDict, deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Item:
+    kind: str  # what the loop should do with it, e.g. "rsu", "predictions", "time"
+    source: str  # key expression it arrived on
+    payload: bytes
+    receive_ns: int
+
+
+@dataclass
+class _Bucket:
+    tokens: float
+    last_ns: int
+
+
+class Intake:
+    def __init__(self, capacity: int = 512, max_bytes: int = 1 << 20, rate_hz: float = 50.0, burst: int = 25,
+                 max_sources: int = 1024, max_queued_bytes: int = 32 << 20,
+                 preferred: Callable[[str], bool] = lambda source: False,
+                 clock_ns: Callable[[], int] = time.monotonic_ns):
+        self.capacity, self.max_bytes, self.max_queued_bytes = capacity, max_bytes, max_queued_bytes
+        self.rate_hz, self.burst, self.max_sources = rate_hz, burst, max_sources
+        self._preferred, self._clock_ns = preferred, clock_ns
+        self._cond = threading.Condition()
+        self._queues: dict[str, deque[Item]] = {}
+        self._rings: tuple[OrderedDict[str, None], OrderedDict[str, None]] = (OrderedDict(), OrderedDict())
+        self._buckets: OrderedDict[str, _Bucket] = OrderedDict()
+        self._counts: Counter[str] = Counter()
+        self._items = self._bytes = 0
+
+    def __len__(self) -> int:
+        return self._items
+
+    def put(self, kind: str, source: str, payload: bytes, receive_ns: int) -> bool:
+        """Queue one payload; False (and counted) when it is refused."""
+        if len(payload) > self.max_bytes:
+            return self._refuse("too_large")
+        with self._cond:
+            if not self._take_token(source):
+                self._counts["rate_limited"] += 1
+                return False
+            queue = self._queues.setdefault(source, deque())
+            queue.append(Item(kind, source, payload, receive_ns))
+            self._items, self._bytes = self._items + 1, self._bytes + len(payload)
+            self._rings[0 if self._preferred(source) else 1][source] = None
+            while self._items > self.capacity or self._bytes > self.max_queued_bytes:
+                self._drop_oldest_of_largest()
+            self._cond.notify()
+        return True
+
+    def get(self, timeout_s: float) -> Item | None:
+        """The next item (preferred sources first, round-robin), or None after ``timeout_s``."""
+        with self._cond:
+            if not self._items:
+                self._cond.wait(max(timeout_s, 0.0))
+            ring = next((r for r in self._rings if r), None)
+            if ring is None:
+                return None
+            source = next(iter(ring))
+            return self._pop(source, ring)
+
+    def take_counts(self) -> Counter[str]:
+        """Refusals by reason since the last call."""
+        with self._cond:
+            counts, self._counts = self._counts, Counter()
+        return counts
+
+    # --- internals (under the lock) ---------------------------------------------------------
+    def _refuse(self, reason: str) -> bool:
+        with self._cond:
+            self._counts[reason] += 1
+        return False
+
+    def _take_token(self, source: str) -> bool:
+        """Token bucket: tokens += rate dt (at most burst); one token per message."""
+        now_ns = self._clock_ns()
+        bucket = self._buckets.get(source)
+        if bucket is None:
+            bucket = self._buckets[source] = _Bucket(float(self.burst), now_ns)
+            if len(self._buckets) > self.max_sources:
+                self._buckets.popitem(last=False)
+        self._buckets.move_to_end(source)
+        bucket.tokens = min(float(self.burst), bucket.tokens + (now_ns - bucket.last_ns) * 1e-9 * self.rate_hz)
+        bucket.last_ns = now_ns
+        if bucket.tokens < 1.0:
+            return False
+        bucket.tokens -= 1.0
+        return True
+
+    def _pop(self, source: str, ring: OrderedDict[str, None]) -> Item:
+        """The oldest item of ``source``; the source goes to the back of its ring (round-robin)."""
+        queue = self._queues[source]
+        item = queue.popleft()
+        self._items, self._bytes = self._items - 1, self._bytes - len(item.payload)
+        del ring[source]
+        if queue:
+            ring[source] = None
+        else:
+            del self._queues[source]
+        return item
+
+    def _drop_oldest_of_largest(self) -> None:
+        source = max(self._queues, key=lambda s: (not self._preferred(s), len(self._queues[s])))
+        ring = self._rings[0] if source in self._rings[0] else self._rings[1]
+        self._pop(source, ring)
+        self._counts["queue_full"] += 1

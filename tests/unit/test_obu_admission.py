@@ -1,0 +1,246 @@
+"""Hostile or broken RSU input against the OBU pipeline: admitted input never crashes fusion,
+refused input is counted by reason, and a flood of names never locks a real RSU out."""
+
+import numpy as np
+import pytest
+
+from fusion.frames import Pose2D
+from fusion.objects import ObjectArray
+from fusion.wire import fit_to_wire, states_from_objects
+from obu_service.pipeline import ObuPipeline, ObuPipelineConfig
+from obu_service.rsu_table import RsuTable
+from obu_service.time_requests import TimeRequests
+from rsu_service.pipeline import answer_time_request
+from schemas.codec import SchemaVersionError, decode, encode
+from schemas.messages import (MAX_OBJECTS, SCHEMA_VERSION, FusedObjectList, ObjectList, ObjectListHeader,
+                              PredictedPath, PredictionList, TimeReply)
+
+T0 = 1_767_225_600 * 10**9
+THETA = 350_000_000  # rsu clock - obu clock
+MS = 1_000_000
+RSU_XY = (0.0, -20.0)
+
+
+def objs(xy) -> ObjectArray:
+    xy = np.atleast_2d(np.asarray(xy, float))
+    n = len(xy)
+    return ObjectArray(ids=np.arange(1, n + 1), cls=np.ones(n, int), xy=xy, z=np.full(n, 0.75),
+                       lwh=np.tile([4.5, 1.8, 1.5], (n, 1)), yaw=np.zeros(n), vxy=np.zeros((n, 2)))
+
+
+def pipeline(**cfg) -> ObuPipeline:
+    """Synced with rsu1 (known, at RSU_XY) at T0; the ego at the origin facing east."""
+    config = {"fusion": "iou-merge", "known_rsus": {"rsu1": RSU_XY}, **cfg}
+    p = ObuPipeline(ObuPipelineConfig(**config))
+    sync(p, "rsu1", T0)
+    p.on_pose(T0, Pose2D(0.0, 0.0, 0.0))
+    return p
+
+
+def sync(p: ObuPipeline, rsu_id: str, t_ns: int) -> None:
+    req = p.make_time_request(t_ns)
+    p.on_time_reply(answer_time_request(req, rsu_id, t_ns + 5 * MS + THETA, t_ns + 5 * MS + THETA), t_ns + 10 * MS)
+
+
+def header(capture_obu_ns: int, seq: int = 0, rsu_id: str = "rsu1", **fields) -> ObjectListHeader:
+    return ObjectListHeader(rsu_id=rsu_id, seq=seq, capture_time_ns=capture_obu_ns + THETA,
+                            publish_time_ns=capture_obu_ns + THETA + 50 * MS, **fields)
+
+
+def rsu_list(capture_obu_ns: int, xy, seq: int = 0, rsu_id: str = "rsu1", **fields) -> ObjectList:
+    return ObjectList(header=header(capture_obu_ns, seq, rsu_id, **fields), objects=states_from_objects(objs(xy)))
+
+
+def cycle(p: ObuPipeline, t_ns: int, own_xy=((10.0, 0.0),)) -> FusedObjectList:
+    p.on_pose(t_ns, Pose2D(0.0, 0.0, 0.0))
+    p.on_detections(objs(own_xy), t_ns)
+    out = p.fuse(t_ns + 60 * MS)
+    assert decode(encode(out), FusedObjectList) == out  # whatever is published encodes
+    return out
+
+
+# --- item 2: admitted input never crashes fusion ---------------------------------------------------
+
+@pytest.mark.parametrize("fusion", ["iou-merge", "kf", "nms", "tclf", "rsu-only"])
+def test_an_object_a_million_metres_away_is_dropped_not_fatal(fusion):
+    p = pipeline(fusion=fusion)
+    t = T0 + 1_000 * MS
+    p.on_rsu_message(rsu_list(t - 150 * MS, [[-1e6, 0.0], [5.0, -20.0]]), t - 20 * MS)
+    out = cycle(p, t)
+    assert p.rejected["object_outside_site"] == 1
+    assert any(o.y == pytest.approx(-20.0, abs=1.0) for o in out.objects)  # the real one is fused
+
+
+def test_unknown_rsu_objects_are_bounded_around_the_ego_and_output_is_total():
+    """No position known for the RSU: the site radius is taken around the ego; and even an
+    object the site check could not see (no pose yet) cannot break the output."""
+    p = ObuPipeline(ObuPipelineConfig(fusion="rsu-only"))  # no known RSUs, no pose yet
+    sync(p, "stranger", T0)
+    t = T0 + 1_000 * MS
+    p.on_rsu_message(rsu_list(t - 150 * MS, [[-1e6, 0.0], [1e6, 1e6]], rsu_id="stranger"), t - 20 * MS)
+    p.on_pose(t, Pose2D(5e5, 0.0, np.pi))  # base_link x of the objects: up to 1.5e6 m
+    p.on_detections(objs([[10.0, 0.0]]), t)
+    out = p.fuse(t + 60 * MS)
+    assert decode(encode(out), FusedObjectList) == out
+    assert p.output_dropped["out_of_range"] >= 1
+
+
+def test_more_objects_than_the_output_holds_are_truncated_nearest_first():
+    p = pipeline(fusion="iou-merge", max_objects_per_list=1024, site_radius_m=1e5)
+    t = T0 + 1_000 * MS
+    far = np.column_stack([np.arange(1024) * 10.0 + 30.0, np.full(1024, -60.0)])  # (1024, 2)
+    p.on_rsu_message(rsu_list(t - 150 * MS, far), t - 20 * MS)
+    out = cycle(p, t, own_xy=[[10.0 + 6.0 * k, 30.0] for k in range(50)])
+    assert len(out.objects) == MAX_OBJECTS
+    assert p.output_dropped["truncated"] == 1024 + 50 - MAX_OBJECTS
+    assert max(np.hypot(o.x, o.y) for o in out.objects) < 10.0 * 1024  # the farthest went
+
+
+def test_fit_to_wire_clips_drops_and_never_raises():
+    o = objs([[0.0, 0.0], [2e6, 0.0], [np.nan, 1.0], [3.0, 3.0]])
+    o = o.with_(vxy=np.array([[300.0, -300.0], [0, 0], [0, 0], [1.0, 1.0]]), yaw=np.array([50.0, 0, 0, 0]),
+                lwh=np.array([[200.0, 1, 1], [1, 1, 1], [1, 1, 1], [1, 1, 1]]), ids=np.array([-1, 2, 3, 2**33]))
+    fitted, counts = fit_to_wire(o)
+    assert counts == {"not_finite": 1, "out_of_range": 1, "clipped": 2}
+    states = states_from_objects(fitted, fused=True)
+    assert [s.vx for s in states] == [200.0, 1.0] and states[0].length == 100.0
+    assert states[0].id == 2**32 - 1 and states[1].id == 0
+
+
+# --- item 8: freshness, duplicates, versions ----------------------------------------------------------
+
+def test_future_stamped_and_over_predicted_lists_are_refused():
+    p = pipeline()
+    t = T0 + 1_000 * MS
+    p.on_rsu_message(rsu_list(t + 900 * MS, [[5.0, -20.0]]), t)  # stamped 0.9 s after it arrived
+    p.on_rsu_message(rsu_list(t - 100 * MS, [[5.0, -20.0]], seq=1, prediction_ns=10_000 * MS), t)
+    assert p.rejected["future_timestamp"] == 1 and p.rejected["prediction_too_long"] == 1
+    assert cycle(p, t + 10 * MS).mode == "vehicle-only"
+
+
+def test_future_stamped_paths_cannot_drive_the_obu_into_planning():
+    p = pipeline()
+    t = T0 + 1_000 * MS
+    paths = PredictionList(header=header(t + 900 * MS), objects=states_from_objects(objs([[5.0, -20.0]])),
+                           paths=(PredictedPath(id=1, x=[5.0] * 50, y=[-20.0] * 50, yaw=[0.0] * 50),))
+    p.on_predictions(paths, t)
+    assert p.rejected["future_timestamp"] == 1
+    assert cycle(p, t + 10 * MS).mode == "vehicle-only"
+
+
+def test_replays_are_duplicates_or_stale_and_a_restarted_rsu_is_accepted():
+    p = pipeline()
+    t = T0 + 1_000 * MS
+    genuine = rsu_list(t - 150 * MS, [[5.0, -20.0]], seq=7)
+    p.on_rsu_message(genuine, t - 30 * MS)
+    p.on_rsu_message(genuine, t)  # replayed at once
+    p.on_rsu_message(genuine, t + 5_000 * MS)  # replayed 5 s later
+    p.on_rsu_message(rsu_list(t - 150 * MS, [[5.0, -20.0]], seq=8), t + 5_000 * MS)  # unseen, 5 s old
+    assert p.rejected["duplicate"] == 2 and p.rejected["stale"] == 1
+    restarted = rsu_list(t + 5_000 * MS - 150 * MS, [[5.0, -20.0]], seq=0)  # seq starts again
+    p.on_rsu_message(restarted, t + 5_000 * MS - 20 * MS)
+    assert p.rejected["duplicate"] == 2 and cycle(p, t + 5_000 * MS).mode in ("intra", "inter")
+
+
+def test_a_header_of_another_schema_version_is_refused_as_such():
+    msg = rsu_list(T0, [[1.0, 2.0]])
+    wire = encode(msg).replace(b"\xaeschema_version\x03", b"\xaeschema_version\x04")
+    assert wire != encode(msg) and SCHEMA_VERSION == 3
+    with pytest.raises(SchemaVersionError, match="schema version 4"):
+        decode(wire, ObjectList)
+
+
+def test_lists_with_too_many_objects_are_refused_before_decoding():
+    p = pipeline(max_objects_per_list=4)
+    assert not p.screen_list(header(T0 + 500 * MS), 5, T0 + 600 * MS)
+    assert p.screen_list(header(T0 + 500 * MS), 4, T0 + 600 * MS)
+    assert p.rejected == {"too_many_objects": 1}
+
+
+# --- item 4: the RSU table -----------------------------------------------------------------------------
+
+def test_a_flood_of_fake_ids_never_locks_out_a_registered_rsu():
+    p = ObuPipeline(ObuPipelineConfig(fusion="iou-merge", known_rsus={"rsu1": RSU_XY}, max_unknown_rsus=8))
+    t = T0 + 1_000 * MS
+    for k in range(64):
+        p.on_rsu_message(rsu_list(t - 150 * MS, [[5.0, -20.0]], rsu_id=f"fake{k}"), t)
+    assert p.rejected["too_many_rsus"] == 0  # non-established strangers take each other's slots
+    sync(p, "rsu1", t)
+    p.on_rsu_message(rsu_list(t - 150 * MS, [[5.0, -20.0]]), t + 20 * MS)
+    assert {s.rsu_id for s in p.metrics(t).rsus} >= {"rsu1"} and len(p.metrics(t).rsus) == 9
+    assert cycle(p, t + 30 * MS).mode in ("intra", "inter")
+
+
+def test_unknown_rsus_expire_and_established_ones_keep_their_slot():
+    table = RsuTable({"rsu1": RSU_XY}, max_unknown=2, expiry_ns=10_000 * MS)
+    a, b = table.admit("a", T0), table.admit("b", T0)
+    a.accepted = 1
+    a.sync.add(_sample(T0))  # a is established: synced, data accepted
+    assert table.admit("c", T0 + 1 * MS).rsu_id == "c"  # evicts b, the stranger
+    assert table.get("b") is None and table.get("a") is a
+    c = table.get("c")
+    c.accepted = 1
+    c.sync.add(_sample(T0))
+    assert table.admit("d", T0 + 2 * MS) == "too_many_rsus"  # both unknown slots established
+    assert table.admit("rsu1", T0 + 3 * MS).known  # known ids are always admitted
+    assert sorted(table.expire(T0 + 10_002 * MS)) == ["a", "c"]  # rsu1 heard at T0 + 3 ms stays
+    assert table.admit("d", T0 + 10_002 * MS).index == 0  # freed indices are reused
+    assert RsuTable(accept_unknown=False).admit("x", T0) == "unknown_rsu"
+
+
+def _sample(t_ns):
+    from obu_service.clock_sync import SyncSample
+
+    return SyncSample(t_ns, t_ns + 5 * MS, t_ns + 5 * MS, t_ns + 10 * MS)
+
+
+def test_too_many_rsu_slots_is_a_config_error():
+    with pytest.raises(ValueError, match="RSU slots"):
+        ObuPipelineConfig(known_rsus={f"r{k}": (0.0, 0.0) for k in range(60)}, max_unknown_rsus=8)
+
+
+# --- time replies ------------------------------------------------------------------------------------------
+
+def test_each_rsu_answers_a_request_once_and_late_replies_still_match():
+    requests = TimeRequests("ego")
+    req = requests.make(T0)
+    for k in range(1, 300):  # 30 s of requests at 10 Hz
+        requests.make(T0 + k * 100 * MS)
+    reply = answer_time_request(req, "rsu1", T0 + 5 * MS, T0 + 6 * MS)
+    assert requests.match(reply, T0 + 30_000 * MS).t4_ns == T0 + 30_000 * MS  # 30 s late, still matched
+    assert requests.match(reply, T0 + 30_001 * MS) == "time_reply_duplicate"
+    forged = reply.model_copy(update={"t2_ns": T0 + 250 * MS, "t3_ns": T0 + 251 * MS})
+    assert requests.match(forged, T0 + 30_002 * MS) == "time_reply_conflict"
+    other = answer_time_request(req, "rsu2", T0 + 5 * MS, T0 + 6 * MS)
+    assert requests.match(other, T0 + 30_003 * MS).t1_ns == T0  # another RSU may answer it too
+    stray = TimeReply(rsu_id="rsu1", seq=10_000, t1_ns=T0, t2_ns=T0, t3_ns=T0)
+    assert requests.match(stray, T0) == "time_reply_unmatched"
+    assert len(TimeRequests("ego", capacity=8).make(T0).model_dump()) and len(requests) == 300
+
+
+def test_frames_stamped_before_a_detected_clock_step_are_dropped(monkeypatch):
+    p = pipeline()
+    t = T0 + 1_000 * MS
+    p.on_rsu_message(rsu_list(t - 150 * MS, [[5.0, -20.0]]), t - 20 * MS)
+    state = p._rsus.get("rsu1")
+    monkeypatch.setattr(type(state.sync), "steps_detected", property(lambda self: 1))  # the filter saw a step
+    sync(p, "rsu1", t)
+    assert not state.frames and p.rejected["stale_after_clock_step"] == 1
+
+
+# --- item 10: the intra slot does not depend on the sign of a sub-ms clock error ----------------------
+
+@pytest.mark.parametrize("error_us", [-400, -50, 0, 50, 400])
+def test_a_capture_at_the_cycle_instant_is_its_slot_whatever_the_clock_error(error_us):
+    """RSU (5 Hz) and LiDAR (10 Hz) capture in phase; the OBU's idea of the RSU clock is off by
+    error_us. The frame captured at the cycle's instant is the slot's, for either sign."""
+    p = pipeline(fusion_mode="intra")
+    t, e = T0 + 1_000 * MS, error_us * 1_000
+    for k, capture in enumerate((t - 400 * MS, t - 200 * MS)):
+        p.on_rsu_message(rsu_list(capture + e, [[5.0, -20.0]], seq=k), capture + 150 * MS)
+    p.on_pose(t, Pose2D(0.0, 0.0, 0.0))
+    p.on_detections(objs([[10.0, 0.0]]), t)
+    assert p._cycle.intra_slots == {"rsu1": t + e}  # waits for the frame captured at its own instant
+    assert not p.ready(t + 60 * MS)
+    p.on_rsu_message(rsu_list(t + e, [[5.0, -20.0]], seq=2), t + 70 * MS)
+    assert p.ready(t + 70 * MS) and p.fuse(t + 70 * MS).mode == "intra"
