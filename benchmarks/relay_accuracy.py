@@ -158,7 +158,8 @@ def run(rate_hz: float, duration_s: float, profile: str, payload_bytes: int) -> 
     results_rx, results_tx = ctx.Pipe(duplex=False)
     with Ends() as ends:
         config = LinkConfig(link_id="bench", rsu_connect=[ends.rsu_endpoint],
-                            vehicle_connect=[ends.vehicle_endpoint], profile=profile, seed=0)
+                            vehicle_connect=[ends.vehicle_endpoint], profile=profile, seed=0,
+                            source_rate_hz=max(10 * rate_hz, 1000.0), source_burst=max(int(rate_hz), 200))
         relay = ctx.Process(target=_relay_process, args=(config.model_dump_json(), stop_mp, results_tx))
         relay.start()
         try:

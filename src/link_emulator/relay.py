@@ -15,6 +15,12 @@ reason in the stats and logged once per reason.
 Zenoh callbacks only stamp the receive time and enqueue. One scheduler thread (the one
 calling ``run``) owns the channel models, the counters and the pending queries, and fires
 every action from a heap of ``(due_ns, seq, action)`` when it falls due (``scheduler``).
+
+Peers on either side cannot make the emulator hold without bound: a callback passes a
+``Gate`` first (payload size, a token bucket per key, a cap on arrivals not yet drawn),
+messages in flight are capped per direction in number and bytes (beyond, dropped as a full
+radio buffer would), and so are the vehicle's open time queries. Every refusal is counted by
+reason in the stats (``refused``).
 """
 
 from __future__ import annotations
@@ -46,6 +52,7 @@ from sim.clock import Clock
 from .channel import NS_PER_MS, LinkModel
 from .config import LinkConfig
 from .control import apply_control
+from .gate import Gate, InFlight
 from .profile import LinkProfile, load_profile
 from .scheduler import Action, EventScheduler
 
@@ -201,6 +208,8 @@ class LinkRelay:
         self._lateness_ms = RunningStats()
         self._position = VehiclePosition()
         self._control = ControlStats()
+        self._gate = Gate(config, clock)
+        self._in_flight = {"uplink": InFlight(), "downlink": InFlight()}
         self._queries: dict[int, ForwardedQuery] = {}
         self._query_ids = itertools.count()
         self._declared: list[Any] = []  # subscribers and queryables to undeclare
@@ -274,6 +283,8 @@ class LinkRelay:
             "lateness_ms": self._lateness_ms.as_dict(),
             "pose": self._position.as_dict(self.config.rsu_position),
             "open_queries": len(self._queries),
+            "in_flight": {d: {"messages": f.messages, "bytes": f.bytes} for d, f in self._in_flight.items()},
+            "refused": self._gate.snapshot(),
             "control": self._control.as_dict(),
         }
 
@@ -303,11 +314,14 @@ class LinkRelay:
     def _on_control_sample(self, sample: zenoh.Sample) -> None:
         """Zenoh callback (either side): stamp and enqueue; decoding and applying are the scheduler's."""
         receive_ns = self._clock.now_ns()
+        if not self._gate.admit(str(sample.key_expr), len(sample.payload)):
+            return
         payload = sample.payload.to_bytes()
         self._scheduler.push(receive_ns, lambda _: self._control_arrival(payload, receive_ns))
 
     def _control_arrival(self, payload: bytes, receive_ns: int) -> None:
         """Apply one LinkControl as of its receipt; a bad one is counted and logged once per reason."""
+        self._gate.done()
         try:
             control = decode(payload, LinkControl)
         except CodecError as exc:
@@ -333,11 +347,14 @@ class LinkRelay:
 
     def _on_pose_sample(self, sample: zenoh.Sample) -> None:
         """Zenoh callback (vehicle side): enqueue; decoding is the scheduler thread's job."""
+        if not self._gate.admit(str(sample.key_expr), len(sample.payload)):
+            return
         payload = sample.payload.to_bytes()
         self._scheduler.push(self._clock.now_ns(), lambda _: self._pose_arrival(payload))
 
     def _pose_arrival(self, payload: bytes) -> None:
         """Keep the vehicle's position from an ego pose; an undecodable pose is counted and ignored."""
+        self._gate.done()
         try:
             pose = decode(payload, EgoPose)
         except CodecError as exc:
@@ -357,18 +374,26 @@ class LinkRelay:
     def _on_rsu_sample(self, sample: zenoh.Sample) -> None:
         """Zenoh callback (RSU side): stamp and enqueue."""
         receive_ns = self._clock.now_ns()
-        key, payload, encoding = str(sample.key_expr), sample.payload.to_bytes(), sample.encoding
+        key = str(sample.key_expr)
+        if not self._gate.admit(key, len(sample.payload)):
+            return
+        payload, encoding = sample.payload.to_bytes(), sample.encoding
         self._scheduler.push(receive_ns, lambda _: self._sample_arrival(key, payload, encoding, receive_ns))
 
     def _sample_arrival(self, key: str, payload: bytes, encoding: zenoh.Encoding, receive_ns: int) -> None:
         """Draw the downlink fate of one sample; schedule its delivery unless lost."""
+        self._gate.done()
         self._downlink.received += 1
         due_ns = self._model.downlink.transmit(receive_ns, len(payload), distance_m=self._distance_m())
         if due_ns is None:
             self._downlink.dropped += 1
             return
+        if not self._in_flight["downlink"].reserve(len(payload), self.config):
+            self._gate.count("in_flight_full")
+            return
 
         def deliver(fired_ns: int) -> None:
+            self._in_flight["downlink"].release(len(payload))
             self._vehicle.put(key, payload, encoding=encoding)
             self._record_delivery(Delivery("downlink", key, payload, receive_ns, due_ns, fired_ns))
 
@@ -379,10 +404,14 @@ class LinkRelay:
     def _on_vehicle_query(self, query: zenoh.Query) -> None:
         """Zenoh callback (vehicle side): stamp and enqueue; the query is kept for the reply."""
         receive_ns = self._clock.now_ns()
+        if not self._gate.admit(str(query.key_expr), len(query.payload) if query.payload is not None else 0):
+            query.drop()
+            return
         self._scheduler.push(receive_ns, lambda _: self._query_arrival(query, receive_ns))
 
     def _query_arrival(self, query: zenoh.Query, receive_ns: int) -> None:
         """Draw the uplink fate of a query; a lost query is dropped unanswered."""
+        self._gate.done()
         self._uplink.received += 1
         payload = query.payload.to_bytes() if query.payload is not None else None
         due_ns = self._model.uplink.transmit(receive_ns, len(payload or b""), distance_m=self._distance_m())
@@ -390,11 +419,17 @@ class LinkRelay:
             self._uplink.dropped += 1
             query.drop()
             return
+        if len(self._queries) >= self.config.max_open_queries or not self._in_flight["uplink"].reserve(
+                len(payload or b""), self.config):
+            self._gate.count("too_many_open_queries")
+            query.drop()
+            return
         query_id = next(self._query_ids)
         self._queries[query_id] = ForwardedQuery(query)
         selector, encoding = str(query.selector), query.encoding
 
         def forward(fired_ns: int) -> None:
+            self._in_flight["uplink"].release(len(payload or b""))
             handler = zenoh.handlers.Callback(
                 lambda reply: self._on_rsu_reply(query_id, reply), lambda: self._on_rsu_get_done(query_id)
             )
@@ -413,9 +448,11 @@ class LinkRelay:
     def _on_rsu_reply(self, query_id: int, reply: zenoh.Reply) -> None:
         """Zenoh callback (RSU side): copy the reply out, stamp and enqueue."""
         receive_ns = self._clock.now_ns()
+        body = reply.ok if reply.ok is not None else reply.err
+        if not self._gate.admit(str(reply.ok.key_expr) if reply.ok is not None else "reply_err", len(body.payload)):
+            return
         if reply.ok is not None:
-            sample = reply.ok
-            copied = RsuReply(True, str(sample.key_expr), sample.payload.to_bytes(), sample.encoding)
+            copied = RsuReply(True, str(reply.ok.key_expr), reply.ok.payload.to_bytes(), reply.ok.encoding)
         else:
             copied = RsuReply(False, None, reply.err.payload.to_bytes(), reply.err.encoding)
         self._scheduler.push(receive_ns, lambda _: self._reply_arrival(query_id, copied, receive_ns))
@@ -426,6 +463,7 @@ class LinkRelay:
 
     def _reply_arrival(self, query_id: int, reply: RsuReply, receive_ns: int) -> None:
         """Draw the downlink fate of one reply; schedule it back to the vehicle unless lost."""
+        self._gate.done()
         forwarded = self._queries.get(query_id)
         if forwarded is None:
             return
@@ -434,9 +472,13 @@ class LinkRelay:
         if due_ns is None:
             self._downlink.dropped += 1
             return
+        if not self._in_flight["downlink"].reserve(len(reply.payload), self.config):
+            self._gate.count("in_flight_full")
+            return
         forwarded.pending_replies += 1
 
         def deliver(fired_ns: int) -> None:
+            self._in_flight["downlink"].release(len(reply.payload))
             try:
                 self._send_reply(forwarded.query, reply)
                 self._record_delivery(Delivery("downlink", reply.key or "", reply.payload, receive_ns, due_ns, fired_ns))

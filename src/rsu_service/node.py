@@ -1,4 +1,11 @@
-"""RSU node: the Zenoh shell around the RSU pipeline and its perception source."""
+"""RSU node: the Zenoh shell around the RSU pipeline and its perception source.
+
+Time queries are answered in the Zenoh callback (t2 and t3 must be stamped tightly), so
+that callback is the RSU's attack surface: a query over ``max_query_bytes`` is refused
+unread and queries beyond ``query_rate_hz`` (a token bucket over all queriers) are refused
+before any decoding; each refusal is counted by reason in ``v2x/rsu/{id}/metrics`` and
+logged in a throttled summary.
+"""
 
 from __future__ import annotations
 
@@ -6,9 +13,10 @@ import threading
 from collections import Counter
 
 from schemas import keys
-from schemas.codec import CodecError, MalformedMessage, decode, encode
-from schemas.messages import TimeRequest
-from schemas.runtime import announce, log
+from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
+from schemas.intake import TokenBucket
+from schemas.messages import RsuMetrics, TimeRequest
+from schemas.runtime import ThrottledLog, announce, log
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
@@ -37,22 +45,31 @@ class RsuNode:
         self.rejected: Counter[str] = Counter()
         self.published = 0
         self.skipped = 0  # frames not published because their time had passed (restart, stall)
-        self._lock = threading.Lock()
+        self.time_replies = 0
+        self._lock = threading.Lock()  # rejected, time_replies and the bucket: the query callback's
+        self._queries = TokenBucket(config.query_rate_hz, config.query_burst, self.true_clock.now_ns())
+        self._log = ThrottledLog("rsu")
+        self._logged: Counter[str] = Counter()
+        self._details: dict[str, str] = {}
 
     def run(self, stop: threading.Event) -> None:
         session = open_session(self.config.listen, self.config.connect)
         entities = []
         try:
-            publisher = session.declare_publisher(keys.rsu_objects(self.config.rsu_id))
-            self._predictions = session.declare_publisher(keys.rsu_predictions(self.config.rsu_id))
-            entities = [publisher, self._predictions, session.declare_queryable(keys.rsu_time(self.config.rsu_id), self._on_time_query),
-                        session.liveliness().declare_token(keys.rsu_alive(self.config.rsu_id))]
+            rsu_id = self.config.rsu_id
+            publisher = session.declare_publisher(keys.rsu_objects(rsu_id))
+            self._predictions = session.declare_publisher(keys.rsu_predictions(rsu_id))
+            self._metrics = session.declare_publisher(keys.rsu_metrics(rsu_id))
+            entities = [publisher, self._predictions, self._metrics,
+                        session.declare_queryable(keys.rsu_time(rsu_id), self._on_time_query),
+                        session.liveliness().declare_token(keys.rsu_alive(rsu_id))]
             announce("ready", "rsu", rsu_id=self.config.rsu_id, listen=self.config.listen)
             self._publish_frames(publisher, stop)
         finally:
             for entity in entities:
                 entity.undeclare()
             session.close()
+            self._log.flush(force=True)
             log("rsu", f"stopped: {self.published} object lists published, {self.skipped} past frames skipped, "
                        f"rejected {dict(self.rejected)}")
 
@@ -77,6 +94,7 @@ class RsuNode:
             if self.config.predict_ahead and self._sleep_until(frame.ready_true_ns + self.source.upsample_offset_ns, stop):
                 publisher.put(encode(self.pipeline.upsampled(self._now())))
                 self.published += 1
+            self._report()
         self._sleep_until(self.start_ns + round((self.duration_s + 1.0) * 1e9), stop)
 
     def _now(self) -> Stamp:
@@ -94,17 +112,45 @@ class RsuNode:
             stop.wait(remaining_s)
         return False
 
+    def _report(self) -> None:
+        """Publish the metrics; hand the refusals since the last report to the throttled log."""
+        with self._lock:
+            rejected, replies = Counter(self.rejected), self.time_replies
+        for reason, n in (rejected - self._logged).items():
+            self._log.refused(reason, self._details.get(reason, f"{n} time quer(ies)"), n)
+        self._logged = rejected
+        self._log.flush()
+        self._metrics.put(encode(RsuMetrics(rsu_id=self.config.rsu_id, t_ns=self.clock.now_ns(),
+                                            published=self.published, skipped=self.skipped,
+                                            time_replies=replies, rejected=dict(rejected))))
+
     def _on_time_query(self, query) -> None:
         # Answered in the callback: it reads only the clock and must stamp t2/t3 tightly.
         t2_ns = self.clock.now_ns()
         try:
+            with self._lock:
+                if not self._queries.take(self.true_clock.now_ns()):
+                    raise _Refused("rate_limited")
             payload = query.payload
             if payload is None:
                 raise MalformedMessage("time query without payload")
+            if len(payload) > self.config.max_query_bytes:
+                raise MessageTooLarge(f"time query of {len(payload)} bytes, limit {self.config.max_query_bytes}")
             request = decode(payload.to_bytes(), TimeRequest)
-        except CodecError as exc:
+        except (CodecError, _Refused) as exc:
             with self._lock:
                 self.rejected[exc.reason] += 1
+                self._details.setdefault(exc.reason, f"time query on {query.key_expr}: {exc}")
             return
         reply = answer_time_request(request, self.config.rsu_id, t2_ns, self.clock.now_ns())
         query.reply(keys.rsu_time(self.config.rsu_id), encode(reply))
+        with self._lock:
+            self.time_replies += 1
+
+
+class _Refused(Exception):
+    """A time query refused before it was read; ``reason`` is a counter label."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason

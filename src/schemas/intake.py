@@ -34,10 +34,22 @@ class Item:
     receive_ns: int
 
 
-@dataclass
-class _Bucket:
-    tokens: float
-    last_ns: int
+class TokenBucket:
+    """``rate_hz`` events per second sustained, ``burst`` at once: tokens += rate dt (at most
+    burst), one token per event. Not thread-safe: callers hold their own lock."""
+
+    def __init__(self, rate_hz: float, burst: int, now_ns: int):
+        self.rate_hz, self.burst = rate_hz, float(burst)
+        self._tokens, self._last_ns = float(burst), now_ns
+
+    def take(self, now_ns: int) -> bool:
+        """True (and a token spent) if an event may pass at ``now_ns``."""
+        self._tokens = min(self.burst, self._tokens + max(now_ns - self._last_ns, 0) * 1e-9 * self.rate_hz)
+        self._last_ns = now_ns
+        if self._tokens < 1.0:
+            return False
+        self._tokens -= 1.0
+        return True
 
 
 class Intake:
@@ -51,7 +63,7 @@ class Intake:
         self._cond = threading.Condition()
         self._queues: dict[str, deque[Item]] = {}
         self._rings: tuple[OrderedDict[str, None], OrderedDict[str, None]] = (OrderedDict(), OrderedDict())
-        self._buckets: OrderedDict[str, _Bucket] = OrderedDict()
+        self._buckets: OrderedDict[str, TokenBucket] = OrderedDict()
         self._counts: Counter[str] = Counter()
         self._items = self._bytes = 0
 
@@ -99,20 +111,15 @@ class Intake:
         return False
 
     def _take_token(self, source: str) -> bool:
-        """Token bucket: tokens += rate dt (at most burst); one token per message."""
+        """One token of the source's bucket (created full; the least recently used one forgotten)."""
         now_ns = self._clock_ns()
         bucket = self._buckets.get(source)
         if bucket is None:
-            bucket = self._buckets[source] = _Bucket(float(self.burst), now_ns)
+            bucket = self._buckets[source] = TokenBucket(self.rate_hz, self.burst, now_ns)
             if len(self._buckets) > self.max_sources:
                 self._buckets.popitem(last=False)
         self._buckets.move_to_end(source)
-        bucket.tokens = min(float(self.burst), bucket.tokens + (now_ns - bucket.last_ns) * 1e-9 * self.rate_hz)
-        bucket.last_ns = now_ns
-        if bucket.tokens < 1.0:
-            return False
-        bucket.tokens -= 1.0
-        return True
+        return bucket.take(now_ns)
 
     def _pop(self, source: str, ring: OrderedDict[str, None]) -> Item:
         """The oldest item of ``source``; the source goes to the back of its ring (round-robin)."""

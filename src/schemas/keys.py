@@ -10,7 +10,7 @@ import re
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
-RSU_TOPICS = ("objects", "predictions", "time", "alive")
+RSU_TOPICS = ("objects", "predictions", "time", "alive", "metrics")
 
 RSU_OBJECTS_ALL = "v2x/rsu/*/objects"
 RSU_PREDICTIONS_ALL = "v2x/rsu/*/predictions"
@@ -55,6 +55,11 @@ def rsu_time(rsu_id: str) -> str:
 def rsu_alive(rsu_id: str) -> str:
     """Liveliness token of an RSU."""
     return _rsu(rsu_id, "alive")
+
+
+def rsu_metrics(rsu_id: str) -> str:
+    """Periodic RSU health metrics (published, skipped, refused inputs)."""
+    return _rsu(rsu_id, "metrics")
 
 
 def obu_objects(vehicle_id: str) -> str:
