@@ -171,8 +171,9 @@ class ObuNode:
 
     def _do_sync(self, _due_ns: int, _) -> None:
         request = self.pipeline.make_time_request(self.clock.now_ns())
+        # every reply, unmerged: two replies on one RSU's key are a conflict the pipeline must see
         self._session.get(keys.RSU_TIME_ALL, self._on_time_reply, payload=encode(request),
-                          timeout=self.config.time_query_timeout_s)
+                          timeout=self.config.time_query_timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
 
 
 def _rsu_of(key: str) -> str | None:

@@ -147,18 +147,26 @@ class ObuPipeline:
         return self._requests.make(t1_ns)
 
     def on_time_reply(self, reply: TimeReply, t4_ns: int) -> None:
-        sample = self._requests.match(reply, t4_ns)
-        state = self._rsus.admit(reply.rsu_id, t4_ns) if not isinstance(sample, str) else sample
-        if isinstance(state, str):
-            self.rejected[state] += 1
-        elif not state.sync.add(sample):
-            self.rejected["time_reply_inconsistent"] += 1
-        elif state.sync.steps_detected > state.steps_seen:
-            # the RSU clock stepped: what it stamped before is placed by the old clock, drop it
-            state.steps_seen = state.sync.steps_detected
-            self.rejected["stale_after_clock_step"] += len(state.frames) + (state.predictions is not None)
-            state.frames.clear()
-            state.predictions = None
+        """A reply is held briefly (``TimeRequests``: a conflicting second reply voids both)."""
+        refused = self._requests.match(reply, t4_ns)
+        if refused is not None:
+            self.rejected[refused] += 1
+        self._sync(t4_ns)
+
+    def _sync(self, now_ns: int) -> None:
+        """Feed the replies whose hold has passed to their RSU's clock filter."""
+        for rsu_id, sample in self._requests.ripe(now_ns):
+            state = self._rsus.admit(rsu_id, sample.t4_ns)
+            if isinstance(state, str):
+                self.rejected[state] += 1
+            elif not state.sync.add(sample):
+                self.rejected["time_reply_inconsistent"] += 1
+            elif state.sync.steps_detected > state.steps_seen:
+                # the RSU clock stepped: what it stamped before is placed by the old clock, drop it
+                state.steps_seen = state.sync.steps_detected
+                self.rejected["stale_after_clock_step"] += len(state.frames) + (state.predictions is not None)
+                state.frames.clear()
+                state.predictions = None
 
     def clock_offset(self, rsu_id: str, t_ns: int | None = None) -> OffsetEstimate | None:
         """Offset estimate (theta = rsu - obu) of one RSU, at OBU time ``t_ns`` if given."""
@@ -183,6 +191,7 @@ class ObuPipeline:
 
     def _screen(self, header: ObjectListHeader, n_objects: int, receive_ns: int, paths: bool) -> RsuState | None:
         """The RSU's state if the message passes admission (module docstring), else None, counted."""
+        self._sync(receive_ns)
         cfg = self.config
         reason = ("prediction_too_long" if header.prediction_ns > cfg.max_prediction_s * 1e9 else
                   "too_many_objects" if n_objects > cfg.max_objects_per_list else None)
@@ -263,6 +272,7 @@ class ObuPipeline:
         """Own LiDAR objects (base_link at capture_ns) start a cycle; returns its fuse_by_ns."""
         if self._cycle is not None:
             self.rejected["cycle_overrun"] += 1  # the previous cycle was never fused
+        self._sync(capture_ns)
         self._rsus.expire(capture_ns)
         own = dets.with_(sources=np.full(len(dets), SOURCE_VEHICLE))
         fuse_by_ns = capture_ns + round((self.config.deadline_ms - self.config.compute_margin_ms) * 1e6)

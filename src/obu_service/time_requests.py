@@ -1,17 +1,20 @@
 """The OBU's outstanding NTP-style time requests and the replies they got (pure).
 
 A request goes to every RSU (``v2x/rsu/*/time``), so each RSU may answer it once. A reply
-is matched by ``seq`` and the echoed ``t1``; a repeated identical reply is a duplicate, a
-different second reply from the same RSU id a conflict (one of the two is forged): the second
-is refused and counted by the caller (should the forged one have come first, the clock
-filter's outlier test is what keeps it out of the estimate). Requests stay matchable
-for ``keep_ns`` (replies over a buffering cellular link can take tens of seconds) and at
-most ``capacity`` are kept.
+is matched by ``seq`` and the echoed ``t1``. It is then *held* for ``hold_ns`` before it
+reaches the clock filter (``ripe``): a second, different reply from the same RSU id for the
+same request within that time is a conflict (one of the two is forged, and which is unknown),
+so both are discarded; a repeated identical reply is a duplicate. A forger that answers first
+therefore cannot push its reply in ahead of the genuine one; one that answers later than
+``hold_ns`` after the genuine reply is refused as a conflict; a forger the genuine RSU never
+contradicts in time is left to the clock filter's outlier test. Requests stay matchable for
+``keep_ns`` (replies over a buffering cellular link can take tens of seconds), at most
+``capacity`` are kept.
 """
 
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 from schemas.messages import TimeReply, TimeRequest
@@ -20,15 +23,25 @@ from .clock_sync import SyncSample
 
 
 @dataclass
+class _Reply:
+    t2_ns: int
+    t3_ns: int
+    t4_ns: int
+    conflicted: bool = False
+
+
+@dataclass
 class _Pending:
     t1_ns: int
-    replies: dict[str, tuple[int, int]] = field(default_factory=dict)  # rsu id -> (t2, t3)
+    replies: dict[str, _Reply] = field(default_factory=dict)  # rsu id -> its reply
 
 
 class TimeRequests:
-    def __init__(self, obu_id: str, keep_ns: int = 60_000_000_000, capacity: int = 1024):
-        self.obu_id, self.keep_ns, self.capacity = obu_id, keep_ns, capacity
+    def __init__(self, obu_id: str, keep_ns: int = 60_000_000_000, capacity: int = 1024,
+                 hold_ns: int = 150_000_000):
+        self.obu_id, self.keep_ns, self.capacity, self.hold_ns = obu_id, keep_ns, capacity, hold_ns
         self._pending: OrderedDict[int, _Pending] = OrderedDict()
+        self._held: deque[tuple[int, int, str]] = deque()  # (t4, seq, rsu id) in arrival order
         self._seq = 0
 
     def __len__(self) -> int:
@@ -43,14 +56,29 @@ class TimeRequests:
             self._pending.popitem(last=False)
         return TimeRequest(obu_id=self.obu_id, seq=self._seq, t1_ns=t1_ns)
 
-    def match(self, reply: TimeReply, t4_ns: int) -> SyncSample | str:
-        """The exchange a reply completes, or why it is refused: ``time_reply_unmatched``
-        (no such request), ``time_reply_duplicate`` or ``time_reply_conflict``."""
+    def match(self, reply: TimeReply, t4_ns: int) -> str | None:
+        """Hold a reply for ``ripe``; or why it is refused: ``time_reply_unmatched`` (no such
+        request), ``time_reply_duplicate``, ``time_reply_conflict`` (both replies are dropped)."""
         pending = self._pending.get(reply.seq)
         if pending is None or pending.t1_ns != reply.t1_ns:
             return "time_reply_unmatched"
         before = pending.replies.get(reply.rsu_id)
         if before is not None:
-            return "time_reply_duplicate" if before == (reply.t2_ns, reply.t3_ns) else "time_reply_conflict"
-        pending.replies[reply.rsu_id] = (reply.t2_ns, reply.t3_ns)
-        return SyncSample(pending.t1_ns, reply.t2_ns, reply.t3_ns, t4_ns)
+            if (before.t2_ns, before.t3_ns) == (reply.t2_ns, reply.t3_ns):
+                return "time_reply_duplicate"
+            before.conflicted = True
+            return "time_reply_conflict"
+        pending.replies[reply.rsu_id] = _Reply(reply.t2_ns, reply.t3_ns, t4_ns)
+        self._held.append((t4_ns, reply.seq, reply.rsu_id))
+        return None
+
+    def ripe(self, now_ns: int) -> list[tuple[str, SyncSample]]:
+        """(rsu id, exchange) of the held replies older than hold_ns that no conflict voided."""
+        out = []
+        while self._held and now_ns - self._held[0][0] >= self.hold_ns:
+            _, seq, rsu_id = self._held.popleft()
+            pending = self._pending.get(seq)
+            reply = None if pending is None else pending.replies[rsu_id]
+            if reply is not None and not reply.conflicted:
+                out.append((rsu_id, SyncSample(pending.t1_ns, reply.t2_ns, reply.t3_ns, reply.t4_ns)))
+        return out

@@ -38,6 +38,7 @@ def pipeline(**cfg) -> ObuPipeline:
 
 
 def sync(p: ObuPipeline, rsu_id: str, t_ns: int) -> None:
+    """One exchange at t_ns; the pipeline holds the reply 150 ms before its clock filter sees it."""
     req = p.make_time_request(t_ns)
     p.on_time_reply(answer_time_request(req, rsu_id, t_ns + 5 * MS + THETA, t_ns + 5 * MS + THETA), t_ns + 10 * MS)
 
@@ -166,9 +167,9 @@ def test_a_flood_of_fake_ids_never_locks_out_a_registered_rsu():
         p.on_rsu_message(rsu_list(t - 150 * MS, [[5.0, -20.0]], rsu_id=f"fake{k}"), t)
     assert p.rejected["too_many_rsus"] == 0  # non-established strangers take each other's slots
     sync(p, "rsu1", t)
-    p.on_rsu_message(rsu_list(t - 150 * MS, [[5.0, -20.0]]), t + 20 * MS)
+    p.on_rsu_message(rsu_list(t + 100 * MS, [[5.0, -20.0]]), t + 200 * MS)
     assert {s.rsu_id for s in p.metrics(t).rsus} >= {"rsu1"} and len(p.metrics(t).rsus) == 9
-    assert cycle(p, t + 30 * MS).mode in ("intra", "inter")
+    assert cycle(p, t + 210 * MS).mode in ("intra", "inter")
 
 
 def test_unknown_rsus_expire_and_established_ones_keep_their_slot():
@@ -202,20 +203,52 @@ def test_too_many_rsu_slots_is_a_config_error():
 # --- time replies ------------------------------------------------------------------------------------------
 
 def test_each_rsu_answers_a_request_once_and_late_replies_still_match():
-    requests = TimeRequests("ego")
+    requests = TimeRequests("ego", hold_ns=150 * MS)
     req = requests.make(T0)
     for k in range(1, 300):  # 30 s of requests at 10 Hz
         requests.make(T0 + k * 100 * MS)
     reply = answer_time_request(req, "rsu1", T0 + 5 * MS, T0 + 6 * MS)
-    assert requests.match(reply, T0 + 30_000 * MS).t4_ns == T0 + 30_000 * MS  # 30 s late, still matched
-    assert requests.match(reply, T0 + 30_001 * MS) == "time_reply_duplicate"
-    forged = reply.model_copy(update={"t2_ns": T0 + 250 * MS, "t3_ns": T0 + 251 * MS})
-    assert requests.match(forged, T0 + 30_002 * MS) == "time_reply_conflict"
+    late_ns = T0 + 30_000 * MS
+    assert requests.match(reply, late_ns) is None  # 30 s late, still matched
+    assert requests.ripe(late_ns + 149 * MS) == []  # held
+    [(rsu_id, sample)] = requests.ripe(late_ns + 150 * MS)
+    assert rsu_id == "rsu1" and (sample.t1_ns, sample.t2_ns, sample.t4_ns) == (T0, T0 + 5 * MS, late_ns)
+    assert requests.match(reply, late_ns + 200 * MS) == "time_reply_duplicate"
     other = answer_time_request(req, "rsu2", T0 + 5 * MS, T0 + 6 * MS)
-    assert requests.match(other, T0 + 30_003 * MS).t1_ns == T0  # another RSU may answer it too
+    assert requests.match(other, late_ns) is None  # another RSU may answer the same request
     stray = TimeReply(rsu_id="rsu1", seq=10_000, t1_ns=T0, t2_ns=T0, t3_ns=T0)
-    assert requests.match(stray, T0) == "time_reply_unmatched"
-    assert len(TimeRequests("ego", capacity=8).make(T0).model_dump()) and len(requests) == 300
+    assert requests.match(stray, T0) == "time_reply_unmatched" and len(requests) == 300
+    assert len(TimeRequests("ego", capacity=8).make(T0).model_dump()) and len(TimeRequests("ego")) == 0
+
+
+@pytest.mark.parametrize("forged_first", [True, False])
+def test_a_forged_reply_and_the_genuine_one_void_each_other(forged_first):
+    """Whichever comes first, two different replies from one RSU id to one request are both
+    dropped; only a reply nobody contradicted within the hold reaches the clock filter."""
+    requests = TimeRequests("ego", hold_ns=150 * MS)
+    req = requests.make(T0)
+    genuine = answer_time_request(req, "rsu1", T0 + 5 * MS + THETA, T0 + 6 * MS + THETA)
+    forged = genuine.model_copy(update={"t2_ns": genuine.t2_ns - 245 * MS, "t3_ns": genuine.t3_ns - 245 * MS})
+    first, second = (forged, genuine) if forged_first else (genuine, forged)
+    assert requests.match(first, T0 + 2 * MS) is None
+    assert requests.match(second, T0 + 40 * MS) == "time_reply_conflict"
+    assert requests.ripe(T0 + 1_000 * MS) == []
+    clean = requests.make(T0 + 100 * MS)
+    requests.match(answer_time_request(clean, "rsu1", T0 + 105 * MS, T0 + 106 * MS), T0 + 110 * MS)
+    assert [s.t1_ns for _, s in requests.ripe(T0 + 1_000 * MS)] == [T0 + 100 * MS]
+
+
+def test_pipeline_counts_conflicts_and_keeps_its_clock():
+    p = pipeline()
+    t = T0 + 1_000 * MS
+    req = p.make_time_request(t)
+    genuine = answer_time_request(req, "rsu1", t + 5 * MS + THETA, t + 5 * MS + THETA)
+    p.on_time_reply(genuine.model_copy(update={"t2_ns": genuine.t2_ns + 245 * MS, "t3_ns": genuine.t3_ns + 245 * MS}),
+                    t + 2 * MS)
+    p.on_time_reply(genuine, t + 10 * MS)
+    p.on_detections(objs([[10.0, 0.0]]), t + 500 * MS)
+    assert p.rejected["time_reply_conflict"] == 1
+    assert abs(p.clock_offset("rsu1", t).offset_ns - THETA) < 1 * MS
 
 
 def test_frames_stamped_before_a_detected_clock_step_are_dropped(monkeypatch):
@@ -225,6 +258,7 @@ def test_frames_stamped_before_a_detected_clock_step_are_dropped(monkeypatch):
     state = p._rsus.get("rsu1")
     monkeypatch.setattr(type(state.sync), "steps_detected", property(lambda self: 1))  # the filter saw a step
     sync(p, "rsu1", t)
+    p.on_detections(objs([[10.0, 0.0]]), t + 200 * MS)  # the reply has reached the filter
     assert not state.frames and p.rejected["stale_after_clock_step"] == 1
 
 
