@@ -12,10 +12,12 @@ A message of ``size`` bytes sent at ``t`` (ns) in one direction, in send order:
 2. send queue, when there is a rate R (``bandwidth_kbps``): serialization
    ``s = 8 size / R`` and Lindley's recursion ``depart_k = max(a_k, depart_{k-1}) + s_k``;
    a message that would wait longer than ``queue_limit_ms`` is dropped (tail drop);
-3. loss: the Gilbert-Elliott / Bernoulli chain, a lost trace slot, and, when the distance
-   d is known, a Bernoulli loss with probability ``1 - PDR(d)`` (0 beyond ``range_m``);
+3. loss: the Gilbert-Elliott / Bernoulli chain, a lost trace slot at ``depart``, and, when
+   the distance d is known, a Bernoulli loss with probability ``1 - PDR(d)`` (0 beyond ``range_m``);
 4. delay: ``deliver = depart + max(0, delay_ms + g(z_k) + spike + trace + extra)``, with
-   ``z_k`` the AR(1) score of ``processes.GaussianAR1`` and ``g`` the jitter transform;
+   ``z_k`` the AR(1) score of ``processes.GaussianAR1``, ``g`` the jitter transform and
+   ``trace`` the order-keeping replay delay of ``processes.TraceClock`` at ``depart`` (exact
+   integer ns: without jitter or spikes a replay never reorders);
 5. a delivered message is duplicated with ``duplicate_probability``: the copy is queued
    right after it and gets a fresh, uncorrelated jitter draw;
 6. ``fifo``: ``deliver_k = max(deliver_k, deliver_j for every earlier delivered j)``.
@@ -121,7 +123,7 @@ class Channel:
         self._trace = None
         if direction.replay is not None:
             trace = load_trace(direction.replay.trace)
-            self._trace = TraceClock(trace, self._u_phase * trace.slot_delay_ms.size * trace.period_ms)
+            self._trace = TraceClock(trace, int(self._u_phase * trace.loop_ms * NS_PER_MS))
         self._origin_ns: int | None = None
 
     def add_impairment(self, impairment: Impairment) -> None:
@@ -166,20 +168,21 @@ class Channel:
             return Deliveries(send.copy(), send.copy())
         if self._origin_ns is None:
             self._origin_ns = int(send[0])
-        rel_ns = (send - self._origin_ns).astype(float)
+        rel_ns = send - self._origin_ns
         fx = effects(self._impairments, send) if self._impairments else None
-        avail_ns, dropped = self._availability(send, rel_ns, fx)
-        prop_ms, trace_lost = self._delay_ms(normal, uniform, rel_ns, fx)
-        lost = dropped | trace_lost | self._loss(uniform, distance_m, fx)
+        avail_ns, dropped = self._availability(send, rel_ns.astype(float), fx)
+        lost = dropped | self._loss(uniform, distance_m, fx)
         dup = ~lost & (uniform[:, _U_DUP] < self.direction.duplicate_probability)
         depart_ns, dup_depart_ns, queue_drop = self._queue(avail_ns, size, ~dropped, dup, fx)
-        lost |= queue_drop
-        deliver = np.where(lost, NONE_NS, depart_ns + np.rint(prop_ms * NS_PER_MS).astype(np.int64))
+        trace_ns, trace_lost = self._replay(depart_ns)
+        prop_ns = self._delay_ns(normal, uniform, trace_ns, fx)
+        lost |= queue_drop | trace_lost
+        deliver = np.where(lost, NONE_NS, depart_ns + prop_ns)
         copy = np.full(send.shape, NONE_NS, dtype=np.int64)
         if dup.any():
-            dup &= ~queue_drop
-            copy_ms = self._copy_delay_ms(normal[:, _Z_DUP], rel_ns, fx)
-            copy = np.where(dup, dup_depart_ns + np.rint(copy_ms * NS_PER_MS).astype(np.int64), NONE_NS)
+            dup &= ~(queue_drop | trace_lost)
+            copy_ns = self._copy_delay_ns(normal[:, _Z_DUP], trace_ns, fx)
+            copy = np.where(dup, dup_depart_ns + copy_ns, NONE_NS)
         return self._in_order(deliver, copy)
 
     # ---- stages -------------------------------------------------------------------------
@@ -196,33 +199,32 @@ class Channel:
         release = self._origin_ns + np.ceil(np.where(down, until_ns, 0.0)).astype(np.int64)
         return np.where(down, release, send), dropped
 
-    def _delay_ms(
-        self, normal: np.ndarray, uniform: np.ndarray, rel_ns: np.ndarray, fx: Effects | None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Propagation delay (ms, >= 0) of each message and whether its trace slot is lost."""
+    def _replay(self, depart_ns: np.ndarray) -> tuple[np.ndarray | int, np.ndarray | bool]:
+        """Trace delay (int64 ns) and trace loss of messages entering the network at ``depart_ns``.
+
+        Looked up at the departure, not the send time: departures are non-decreasing (FIFO
+        queue, outage hold), so the order-keeping replay keeps the send order.
+        """
+        if self._trace is None:
+            return 0, False
+        return self._trace.delay_ns(depart_ns - self._origin_ns)
+
+    def _delay_ns(
+        self, normal: np.ndarray, uniform: np.ndarray, trace_ns: np.ndarray | int, fx: Effects | None
+    ) -> np.ndarray:
+        """Propagation delay (int64 ns, >= 0) of each message: max(0, delay_ms + g(z) + spike + extra + trace)."""
         d = self.direction
         z = self._ar.step(normal[:, _Z_JITTER])
         delay_ms = d.delay_ms + d.jitter.from_normal(z)
         if d.spikes is not None:
             spike_ms = d.spikes.extra.from_normal(normal[:, _Z_SPIKE])
             delay_ms = delay_ms + np.where(uniform[:, _U_SPIKE] < d.spikes.probability, spike_ms, 0.0)
-        delay_ms = delay_ms + self._common_ms(rel_ns, fx)
-        trace_lost = np.isnan(delay_ms)
-        return np.maximum(np.where(trace_lost, 0.0, delay_ms), 0.0), trace_lost
+        return _clipped_sum_ns(delay_ms + _extra_ms(fx), trace_ns)
 
-    def _common_ms(self, rel_ns: np.ndarray, fx: Effects | None) -> np.ndarray | float:
-        """Delay shared by a message and its copy: trace slot (NaN when lost) + impairment extra."""
-        extra_ms = fx.extra_delay_ms if fx is not None else 0.0
-        if self._trace is None:
-            return extra_ms
-        return extra_ms + self._trace.delay_ms(rel_ns / NS_PER_MS)
-
-    def _copy_delay_ms(self, z_dup: np.ndarray, rel_ns: np.ndarray, fx: Effects | None) -> np.ndarray:
-        """A duplicate's delay: base + an independent jitter draw + the shared parts (ms, >= 0)."""
+    def _copy_delay_ns(self, z_dup: np.ndarray, trace_ns: np.ndarray | int, fx: Effects | None) -> np.ndarray:
+        """A duplicate's delay (int64 ns, >= 0): base + an independent jitter draw + the shared extra and trace."""
         d = self.direction
-        common = self._common_ms(rel_ns, fx)
-        common = np.where(np.isnan(common), 0.0, common)  # a lost trace slot already lost the original
-        return np.maximum(d.delay_ms + d.jitter.from_normal(z_dup) + common, 0.0)
+        return _clipped_sum_ns(d.delay_ms + d.jitter.from_normal(z_dup) + _extra_ms(fx), trace_ns)
 
     def _loss(self, uniform: np.ndarray, distance_m: np.ndarray | float | None, fx: Effects | None) -> np.ndarray:
         """Lost on the air: the loss chain (or an impairment's Bernoulli) and distance PDR."""
@@ -280,6 +282,22 @@ class Channel:
                 t_ns = self._last_ns if self.direction.fifo else t_ns
             out.append(np.array([t_ns], dtype=np.int64))
         return Deliveries(*out)
+
+
+def _extra_ms(fx: Effects | None) -> np.ndarray | float:
+    """Impairment extra delay (ms) of each message, shared by a message and its copy."""
+    return fx.extra_delay_ms if fx is not None else 0.0
+
+
+def _clipped_sum_ns(other_ms: np.ndarray, trace_ns: np.ndarray | int) -> np.ndarray:
+    """max(0, other + trace) in int64 ns, the trace's part kept exact: trace + max(rint(other), -trace).
+
+    ``other_ms`` (n,) in ms; ``trace_ns`` (n,) int64, or 0 without a trace. Exact integer trace
+    delays keep a replay's equal arrival times equal (no 1 ns reordering from rounding).
+    """
+    if isinstance(trace_ns, int):  # no trace: the same arithmetic, fewer steps on the live path
+        return np.rint(np.maximum(other_ms, 0.0) * NS_PER_MS).astype(np.int64)
+    return trace_ns + np.maximum(np.rint(other_ms * NS_PER_MS).astype(np.int64), -trace_ns)
 
 
 def _lindley(

@@ -33,7 +33,7 @@ from sim.clock import SystemClock
 from .config import LinkConfig
 from .profile import DirectionProfile, TraceReplay, bundled_profiles, load_profile
 from .relay import LinkRelay
-from .validate import Settings, validate_direction
+from .validate import P50_Z, Settings, validate_direction
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -357,6 +357,10 @@ def format_report(report: dict) -> str:
     for key in ("mean_ms", "p50_ms", "p95_ms", "p99_ms", "loss_ratio", "mean_burst_len"):
         how = method["delay"] if key.endswith("_ms") else method[key]
         lines.append(f"{key:16}{_fmt(report['declared'][key]):>12}{_fmt(report['achieved'][key]):>12}  {how}")
+    low, high = report["p50_range_ms"]
+    lines.append(f"p50 accepted in [{_fmt(low)}, {_fmt(high)}] ms: {P50_Z:g} standard errors of a median "
+                 f"of {report['effective_samples']:.0f} independent draws")
+    lines.append(f"overtaken by a later-sent message: {100.0 * report['overtaken_ratio']:.4f} % of deliveries")
     if "ks_statistic" in report:
         lines.append(f"KS statistic (achieved vs trace delays): {_fmt(report['ks_statistic'])}")
     checks = ", ".join(f"{name} {'ok' if ok else 'FAILED'}" for name, ok in report["checks"].items())

@@ -151,17 +151,57 @@ def _lookup(starts: np.ndarray, ends: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 class TraceClock:
-    """Looped time replay of a trace: the slot a message sent ``rel_ms`` after the origin takes.
+    """Looped, order-keeping replay of a trace on its own (irregular) send times.
 
-    slot = floor((rel_ms + phase_ms) / P) mod n_slots, P the trace's send period.
+    Rows i = 0..n-1 of the trace (received messages): send time p_i (ns after row 0), delay
+    d_i, arrival a_i = p_i + d_i; the trace loops every L ns, row n being row 0 of the next
+    loop (p_n = L, d_n = d_0). A message sent at ``x = (t + phase) mod L`` falls in the row i
+    with p_i <= x < p_{i+1}. Inside the gap's lost part (x >= p_{i+1} - m_i P, see
+    ``DelayTrace.own_slot_ms``) it is lost. Otherwise it takes the delay of the nearer row in
+    time, d_i before the midpoint c_i = (p_i + p_{i+1}) / 2 and d_{i+1} after it, except that
+    a fall of the delay (d_{i+1} < d_i) becomes a FIFO drain centred on c_i: during
+    ``d_i - d_{i+1}`` ns everything arrives at once, at h_i = c_i + (d_i + d_{i+1}) / 2:
+
+        A(x) = min(x + d_i, h_i)       for x < c_i
+        A(x) = max(x + d_{i+1}, h_i)   for x >= c_i
+
+    (for a rise, h_i lies between the two branches and A simply steps up at c_i). Hence,
+    for a trace that never reorders (a_i <= a_{i+1}, i.e. d_i - d_{i+1} <= p_{i+1} - p_i,
+    every CICV5G run):
+
+    - sent at a trace send time p_i, a message gets the trace's delay d_i exactly
+      (a_i <= h_i <= a_{i+1});
+    - every delay lies between the two neighbouring rows' (no inflation), and each row's
+      delay holds for the half-intervals on both sides of it (less half a drain): nearest-row
+      in time, so the time share of each value, and the quantiles, stay the trace's;
+    - A never decreases (each branch is non-decreasing, A(c_i-) <= h_i <= A(c_i) and
+      A(p_{i+1}-) = a_{i+1}), also across the loop seam (``DelayTrace.loop_ms`` makes
+      L >= a_{n-1} - a_0): a later-sent message is never delivered before an earlier one.
+
+    h_i is clamped to [a_i, max(a_i, a_{i+1})]: a no-op above except for ns rounding; for a
+    trace that reorders, rows keep their delays and the replay reorders where the trace did.
+    Times are integer ns, so equal arrival times stay exactly equal.
     """
 
-    def __init__(self, trace: DelayTrace, phase_ms: float) -> None:
-        self.period_ms = trace.period_ms
-        self.slots_ms = trace.slot_delay_ms
-        self.phase_ms = phase_ms
+    def __init__(self, trace: DelayTrace, phase_ns: int) -> None:
+        self.loop_ns = round(trace.loop_ms * NS_PER_MS)
+        self.send_ns = np.rint((trace.pub_time_ms - trace.pub_time_ms[0]) * NS_PER_MS).astype(np.int64)  # p_i
+        self.row_delay_ns = np.rint(trace.delay_ms * NS_PER_MS).astype(np.int64)  # d_i, shape (n,)
+        self.next_delay_ns = np.roll(self.row_delay_ns, -1)  # d_{i+1}
+        next_send_ns = np.append(self.send_ns[1:], self.loop_ns)  # p_{i+1}
+        self.lost_from_ns = next_send_ns - np.rint(trace.lost_after * trace.period_ms * NS_PER_MS).astype(np.int64)
+        self.mid_ns = (self.send_ns + next_send_ns) // 2  # c_i
+        arrive_ns = self.send_ns + self.row_delay_ns  # a_i
+        next_arrive_ns = next_send_ns + self.next_delay_ns  # a_{i+1}
+        held_ns = self.mid_ns + (self.row_delay_ns + self.next_delay_ns) // 2  # h_i
+        self.held_ns = np.minimum(np.maximum(held_ns, arrive_ns), np.maximum(arrive_ns, next_arrive_ns))
+        self.phase_ns = int(phase_ns) % self.loop_ns
 
-    def delay_ms(self, rel_ms: np.ndarray) -> np.ndarray:
-        """The trace delay (ms) for each send time, NaN for a lost slot."""
-        index = np.floor((rel_ms + self.phase_ms) / self.period_ms).astype(np.int64) % self.slots_ms.size
-        return self.slots_ms[index]
+    def delay_ns(self, rel_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Trace delay (int64 ns) of messages sent ``rel_ns`` (int, shape (n,)) after the origin, and lost flags."""
+        x = (np.asarray(rel_ns, dtype=np.int64) + self.phase_ns) % self.loop_ns
+        row = np.searchsorted(self.send_ns, x, side="right") - 1  # p_row <= x < p_{row+1}
+        held = self.held_ns[row]
+        arrive = np.where(x < self.mid_ns[row], np.minimum(x + self.row_delay_ns[row], held),
+                          np.maximum(x + self.next_delay_ns[row], held))  # A(x)
+        return arrive - x, x >= self.lost_from_ns[row]

@@ -107,11 +107,12 @@ class OutageSpec(BaseModel):
 
 
 class TraceReplay(BaseModel):
-    """Replay a CICV5G-format trace in time, looped from a seeded phase.
+    """Replay a CICV5G-format trace in time, on its own send times, looped from a seeded phase.
 
-    A message sent ``t`` ms after the channel's first one takes the trace slot
-    ``floor((t + phase) / P) mod n_slots`` (``P`` the trace's send period): its delay is added
-    to ``delay_ms``; a lost slot (a gap in the trace) loses the message.
+    A message entering the network ``t`` ms after the channel's first one takes the delay of
+    the nearer trace row in time, with falls drained in FIFO order, so the replay keeps the
+    trace's order and never leaves its neighbouring rows' delays (``processes.TraceClock``);
+    the delay is added to ``delay_ms``. A send time inside a gap of the trace loses the message.
     """
 
     model_config = _STRICT

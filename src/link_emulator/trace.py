@@ -5,9 +5,15 @@ Format (whitespace-separated text, one header line, one row per received message
     pub_time(ms) sub_time(ms) delay(ms) utmX(m) utmY(m) ... cellid(db) sinr(db) rsrp(db)
 
 ``pub_time`` and ``sub_time`` are ms since the Unix epoch on the sender's clock and
-``delay = sub_time - pub_time``. Messages were sent periodically; a missing row (a gap in
-``pub_time`` longer than the period) is a lost message. The period is the median send
+``delay = sub_time - pub_time``. Messages were sent about periodically; a missing row (a gap
+in ``pub_time`` longer than the period) is a lost message. The period is the median send
 interval ``P``; a gap of ``dt`` hides ``round(dt / P) - 1`` lost messages.
+
+Replayed in a loop (``processes.TraceClock``), the trace keeps its own irregular send times:
+row i owns the send times ``[p_i, p_{i+1})``, ``dt_i = p_{i+1} - p_i``. Each of the ``m_i``
+messages lost in its gap takes one period of it, at its end; the row keeps the first
+``dt_i - m_i P`` (at least ``P / 2``, since ``dt_i / P >= m_i + 1/2``). The loop closes one
+interval after the last row (see ``DelayTrace.loop_ms``).
 
 Bundled traces live in ``link_emulator/traces/`` (see the README there for licence and
 citation) and are named by their path below it, e.g. ``cicv5g/urban_n78_v20_run01.txt.gz``.
@@ -45,27 +51,49 @@ class DelayTrace:
         return float(np.median(np.diff(self.pub_time_ms)))
 
     @cached_property
-    def slot_delay_ms(self) -> np.ndarray:
-        """The trace on its send grid, shape (n + lost,): a delay per slot, NaN for a lost one.
+    def loop_ms(self) -> float:
+        """Length L of one replay loop (ms): the trace's send span plus one period, or more.
 
-        After received message i come ``max(0, round(dt_i / P) - 1)`` lost slots,
-        ``dt_i = pub_{i+1} - pub_i``.
+        Row 0 of the next loop is sent at ``p_0 + L`` and arrives at ``a_0 + L`` (``a = p + delay``);
+        ``L = max(p_{n-1} - p_0 + P, a_{n-1} - a_0)`` so that the loop seam never reorders.
         """
-        lost_after = np.maximum(np.rint(np.diff(self.pub_time_ms) / self.period_ms) - 1, 0).astype(np.int64)
-        slots = np.full(self.delay_ms.size + int(lost_after.sum()), np.nan)
-        # index of received message i on the grid: i + number of lost slots before it
-        slots[np.arange(self.delay_ms.size) + np.concatenate(([0], np.cumsum(lost_after)))] = self.delay_ms
-        return slots
+        sent_span_ms = float(self.pub_time_ms[-1] - self.pub_time_ms[0])
+        arrival_span_ms = sent_span_ms + float(self.delay_ms[-1] - self.delay_ms[0])
+        return max(sent_span_ms + self.period_ms, arrival_span_ms)
+
+    @cached_property
+    def interval_ms(self) -> np.ndarray:
+        """dt_i = p_{i+1} - p_i (ms), shape (n,); the last one closes the loop (to ``p_0 + L``)."""
+        return np.diff(self.pub_time_ms, append=self.pub_time_ms[0] + self.loop_ms)
+
+    @cached_property
+    def lost_after(self) -> np.ndarray:
+        """m_i = max(0, round(dt_i / P) - 1): messages lost in the gap after row i, int, shape (n,)."""
+        return np.maximum(np.rint(self.interval_ms / self.period_ms) - 1, 0).astype(np.int64)
+
+    @cached_property
+    def own_slot_ms(self) -> np.ndarray:
+        """Length of row i's own send slot, dt_i - m_i P (ms, >= P / 2), shape (n,); the rest of dt_i is lost."""
+        return self.interval_ms - self.lost_after * self.period_ms
 
     @property
     def loss_ratio(self) -> float:
-        """Lost slots / all slots."""
-        return float(np.mean(np.isnan(self.slot_delay_ms)))
+        """Lost share of the loop's send time, sum(m_i) P / L: the loss of a sender not in step with the trace.
+
+        Close to the lost share of send slots, sum(m) / (n + sum(m)), when the mean slot is about P.
+        """
+        return float(self.lost_after.sum() * self.period_ms / self.loop_ms)
 
     @property
     def mean_burst_len(self) -> float:
-        """Mean length (in slots) of runs of consecutive lost slots; 0 when none is lost."""
-        return mean_run_length(np.isnan(self.slot_delay_ms))
+        """Mean gap (run of lost slots) length in slots, sum(m_i) / #{m_i > 0}; 0 when none is lost."""
+        gaps = self.lost_after[self.lost_after > 0]
+        return float(gaps.mean()) if gaps.size else 0.0
+
+    @property
+    def overtaken_ratio(self) -> float:
+        """Share of the trace's rows received after a later-sent row (0 for a trace that never reorders)."""
+        return overtaken_ratio(self.pub_time_ms + self.delay_ms)
 
 
 def mean_run_length(flags: np.ndarray) -> float:
@@ -76,6 +104,18 @@ def mean_run_length(flags: np.ndarray) -> float:
     # a run starts where flags[k] and not flags[k - 1]
     starts = np.count_nonzero(flags[1:] & ~flags[:-1]) + int(flags[0])
     return float(np.count_nonzero(flags) / starts)
+
+
+def overtaken_ratio(arrival: np.ndarray) -> float:
+    """Share of messages, given in send order with arrival times (shape (n,)), that a later-sent one overtook.
+
+    Message k is overtaken when min_{j > k} arrival_j < arrival_k (ties are not overtaking).
+    """
+    arrival = np.asarray(arrival)
+    if arrival.size < 2:
+        return 0.0
+    later_min = np.minimum.accumulate(arrival[::-1])[::-1][1:]  # min over j > k, for k < n - 1
+    return float(np.count_nonzero(later_min < arrival[:-1]) / arrival.size)
 
 
 def parse_cicv5g(text: str, source: str) -> DelayTrace:

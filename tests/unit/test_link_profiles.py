@@ -153,9 +153,12 @@ def test_trace_gaps_become_lost_slots() -> None:
     pubs = [0, 50, 100, 200, 250, 400, 450]  # gaps of 100 ms (1 lost) and 150 ms (2 lost)
     trace = parse_cicv5g("\n".join([HEADER] + [_row(p, 10) for p in pubs]), "test")
     assert trace.period_ms == 50.0
-    assert np.isnan(trace.slot_delay_ms).tolist() == [False, False, False, True, False, False, True, True, False, False]
-    assert trace.loss_ratio == pytest.approx(0.3)
+    assert trace.loop_ms == 500.0  # the loop closes one period after the last row
+    assert trace.lost_after.tolist() == [0, 0, 1, 0, 2, 0, 0]
+    assert trace.own_slot_ms.tolist() == [50.0] * 7
+    assert trace.loss_ratio == pytest.approx(0.3)  # 3 lost periods of a 500 ms loop
     assert trace.mean_burst_len == pytest.approx(1.5)
+    assert trace.overtaken_ratio == 0.0
 
 
 def test_mean_run_length() -> None:
