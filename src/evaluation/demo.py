@@ -2,8 +2,11 @@
 
 The orchestrator picks free ports, starts RSU, OBU and link emulator with a common
 scenario start time a few seconds ahead, watches the OBU's output through its own
-Zenoh session, and scores it with the same code as the offline runner. Ctrl-C or any
-child that dies stops everything; only the processes started here are ended, by pid.
+Zenoh session, and scores it with the same code as the offline runner (``RunRecord``):
+the Zenoh callbacks only put the payload in a bounded queue (counting what a full queue
+drops), a worker thread decodes and scores each message as it arrives, and no message is
+kept, so the orchestrator's memory does not grow with the run. Ctrl-C or any child that
+dies stops everything; only the processes started here are ended, by pid.
 
 A chaos timeline (``v2i chaos run``, ``evaluation.chaos``) is played at scenario time:
 link events go as ``LinkControl`` messages to the emulator's control endpoint (a free port
@@ -23,8 +26,11 @@ import sys
 import tempfile
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from obu_service.fusion_mode import TRACKING_MODES
 from obu_service.source import SimulatedVehicle
@@ -44,6 +50,7 @@ LINK_ID = "link1"
 RESTART_READY_S = 10.0  # a restarted child must be ready within this
 CONTROL_MATCH_S = 3.0  # how long a link control waits for the emulator's control subscriber
 POLL_S = 0.02  # supervisor period: chaos events fire within this of their time
+INBOX_MESSAGES = 1000  # received messages waiting to be scored (~35 s of objects, metrics and planning)
 MODE_RUNS_SHOWN = 6  # mode changes printed per chaos event
 
 
@@ -185,7 +192,11 @@ class Demo:
         self.rsu_ep, self.obu_ep, self.control_ep = free_tcp_endpoint(), free_tcp_endpoint(), free_tcp_endpoint()
         self.children: dict[str, Child] = {}
         self.played: list[PlayedEvent] = []
-        self._received: list[tuple[str, bytes, int]] = []
+        self.record: RunRecord | None = None  # scored as messages arrive, from run()
+        self.dropped: Counter = Counter()  # messages a full inbox refused, by kind
+        self._inbox: queue.Queue = queue.Queue(maxsize=INBOX_MESSAGES)
+        self._drop_lock = threading.Lock()
+        self._scoring_error: Exception | None = None
         self._down: set[str] = set()  # services killed on purpose and not yet restarted
         self._restarting: dict[str, float] = {}  # service -> monotonic deadline of its ready line
         self._control = ControlChannel(self.control_ep, LINK_ID)
@@ -201,6 +212,10 @@ class Demo:
 
     def run(self) -> dict:
         start_ns = time.time_ns() + round(self.startup_s * 1e9)
+        cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
+        self.record = RunRecord(self.world, start_ns, self.duration_s, cycles)
+        scorer = threading.Thread(target=self._score_inbox, name="demo-scorer", daemon=True)
+        scorer.start()
         monitor, subs = None, []
         try:
             for name in ("rsu", "obu", "link"):
@@ -229,7 +244,11 @@ class Demo:
             if monitor is not None:
                 monitor.close()
             self._tmp.cleanup()
-        return self._report(start_ns)
+            self._inbox.put(None)  # after the last message: the scorer drains the queue and ends
+            scorer.join()
+        if self._scoring_error is not None:
+            raise DemoError(f"scoring the OBU output failed: {self._scoring_error!r}") from self._scoring_error
+        return self._report()
 
     def _has_link_controls(self) -> bool:
         return self.chaos is not None and any(e.link_control(LINK_ID) is not None for e in self.chaos.events)
@@ -252,7 +271,32 @@ class Demo:
                        "--profile", s.profile, "--seed", str(s.seed)]
 
     def _keep(self, kind: str, sample) -> None:
-        self._received.append((kind, sample.payload.to_bytes(), time.time_ns()))
+        """Zenoh callback: enqueue the payload for the scorer; a full inbox drops it (counted)."""
+        try:
+            self._inbox.put_nowait((kind, sample.payload.to_bytes()))
+        except queue.Full:
+            with self._drop_lock:
+                self.dropped[kind] += 1
+
+    def _score_inbox(self) -> None:
+        """Scorer thread: decode and score each message in arrival order until the None that ends the run."""
+        while (item := self._inbox.get()) is not None:
+            if self._scoring_error is not None:
+                continue  # keep draining so that the callbacks never block; run() raises it
+            try:
+                self._score(*item)
+            except CodecError as exc:
+                log("demo", f"undecodable {item[0]} message: {exc}")
+            except Exception as exc:  # noqa: BLE001 - re-raised by run() as a DemoError
+                self._scoring_error = exc
+
+    def _score(self, kind: str, data: bytes) -> None:
+        if kind == "objects":
+            self.record.add_output(decode(data, FusedObjectList))
+        elif kind == "planning":
+            self.record.add_planning(decode(data, PredictionList))
+        else:
+            self.record.add_obu_metrics(decode(data, ObuMetrics))
 
     def _supervise(self, start_ns: int) -> None:
         """Watch the children until the run ends, playing the chaos timeline at scenario time."""
@@ -314,51 +358,36 @@ class Demo:
         self._restarting[name] = time.monotonic() + RESTART_READY_S
         self._down.discard(name)
 
-    def _report(self, start_ns: int) -> dict:
-        cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
-        record = RunRecord(start_ns, self.duration_s, [int(t) for t in cycles])
-        last = None
-        for kind, data, _ in self._received:
-            try:
-                if kind == "objects":
-                    record.outputs.append(decode(data, FusedObjectList))
-                elif kind == "planning":
-                    record.planning.append(decode(data, PredictionList))
-                else:
-                    last = decode(data, ObuMetrics)
-                    record.offset_samples += [(last.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm)
-                                              for r in last.rsus if r.clock_offset_ns is not None]
-            except CodecError as exc:
-                log("demo", f"undecodable {kind} message: {exc}")
-        if last is not None:
-            record.rsu_messages = max((r.messages_accepted for r in last.rsus), default=0)
-            record.covered_cycles, record.rsu_deadline_misses = last.covered_cycles, last.rsu_deadline_misses
+    def _report(self) -> dict:
+        record = self.record
         report = build_report(self.spec, self.world, record, driver="demo")
+        report["monitor_messages_dropped"] = dict(self.dropped)
+        if sum(self.dropped.values()):
+            log("demo", f"the scorer fell behind: dropped {dict(self.dropped)} (scores miss them)")
         if self.outage:
-            report["link_outage"] = outage_summary(record.outputs, start_ns, self.outage, record.cycle_times_ns)
+            report["link_outage"] = outage_summary(record, self.outage)
         elif self.chaos:
             report["chaos"] = self.chaos.name
             report["chaos_events"] = chaos_summary(self.played, self.chaos, record, self._control.outcomes)
         return report
 
 
-def window_summary(outputs: list[FusedObjectList], cycle_times_ns: list[int], start_ns: int,
-                   from_s: float, to_s: float) -> dict:
+def window_summary(record: RunRecord, from_s: float, to_s: float) -> dict:
     """Cycles and modes in scenario seconds ``[from_s, to_s)`` (shares, and the sequence of
     modes as ``mode_runs``), and how soon after ``to_s`` tracking fusion (intra or inter)
-    resumed (None: not before the run ended)."""
-
-    def t(t_ns: int) -> float:
-        return (t_ns - start_ns) * 1e-9
-
-    during = [m for m in outputs if from_s <= t(m.cycle_time_ns) < to_s]
-    fused_after = [t(m.cycle_time_ns) for m in outputs if t(m.cycle_time_ns) >= to_s and m.mode in TRACKING_MODES]
+    resumed (None: not before the run ended); from the record's per-output cycle log."""
+    t_s = (np.array(record.cycles.cycle_ns, dtype=np.int64) - record.start_ns) * 1e-9  # (M,) arrival order
+    modes = record.cycles.modes()
+    during = np.flatnonzero((t_s >= from_s) & (t_s < to_s))
+    tracking = np.array([m in TRACKING_MODES for m in modes], dtype=bool).reshape(-1)
+    fused_after = np.flatnonzero((t_s >= to_s) & tracking)
+    expected_s = (record.cycle_times_ns - record.start_ns) * 1e-9
     return {
         "cycles_published_during": len(during),
-        "cycles_expected_during": sum(from_s <= t(c) < to_s for c in cycle_times_ns),
-        "mode_share_during": mode_share([m.mode for m in during]),
-        "mode_runs_during": mode_runs([(t(m.cycle_time_ns), m.mode) for m in during]),
-        "fused_again_after_s": round(fused_after[0] - to_s, 3) if fused_after else None,
+        "cycles_expected_during": int(np.count_nonzero((expected_s >= from_s) & (expected_s < to_s))),
+        "mode_share_during": mode_share([modes[i] for i in during]),
+        "mode_runs_during": mode_runs([(float(t_s[i]), modes[i]) for i in during]),
+        "fused_again_after_s": round(float(t_s[fused_after[0]]) - to_s, 3) if len(fused_after) else None,
     }
 
 
@@ -371,11 +400,10 @@ def mode_runs(cycles: list[tuple[float, str]]) -> list[list]:
     return runs
 
 
-def outage_summary(outputs: list[FusedObjectList], start_ns: int, outage: LinkOutage,
-                   cycle_times_ns: list[int]) -> dict:
+def outage_summary(record: RunRecord, outage: LinkOutage) -> dict:
     """``window_summary`` of a link kill (``--kill-link-at``)."""
     return {"kill_at_s": outage.at_s, "down_s": outage.down_s,
-            **window_summary(outputs, cycle_times_ns, start_ns, outage.at_s, outage.at_s + outage.down_s)}
+            **window_summary(record, outage.at_s, outage.at_s + outage.down_s)}
 
 
 def chaos_summary(played: list[PlayedEvent], timeline: ChaosTimeline, record: RunRecord,
@@ -393,7 +421,7 @@ def chaos_summary(played: list[PlayedEvent], timeline: ChaosTimeline, record: Ru
         window = timeline.fault_window_s(p.event, record.duration_s + 1.0)
         if window is not None:
             row["until_s"] = window[1]
-            row.update(window_summary(record.outputs, list(record.cycle_times_ns), record.start_ns, *window))
+            row.update(window_summary(record, *window))
         rows.append(row)
     return rows
 

@@ -2,8 +2,11 @@
 
 - ``center_distance_ap``: nuScenes-style average precision with a centre-distance match
   criterion, as OTVIC (seed 002 Sec. V-B) reports it: thresholds {0.5, 1, 2, 4} m, range bins
-  0-40 m / 40-80 m / overall.
-- ``mot_metrics``: CLEAR-MOT (MOTA) and identity (IDF1) metrics through ``motmetrics``.
+  0-40 m / 40-80 m / overall. ``CenterDistanceAp`` computes the same frame by frame, keeping
+  10 bytes per prediction (its confidence and true-positive flags), not the frames.
+- ``mot_metrics``: CLEAR-MOT (MOTA) and identity (IDF1) metrics through ``motmetrics`` (the
+  reference). ``MotTally`` computes the same frame by frame, keeping counts per id and id pair
+  instead of motmetrics' table of every event.
 - ``nees``: normalised estimation error squared of a filter's position estimates, against
   the chi-square(2) distribution its covariance claims.
 
@@ -13,9 +16,12 @@ All positions are bird's-eye-view centres in one frame (base_link: ego at the or
 from __future__ import annotations
 
 import math
+from array import array
+from collections import Counter
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 from scipy.stats import chi2
 
@@ -150,6 +156,67 @@ def center_distance_ap(frames: Sequence[Frame], thresholds_m: Sequence[float] = 
     return {bin_label(lo, hi): _bin_ap(_bin_frames(frames, lo, hi), thresholds_m) for lo, hi in range_bins_m}
 
 
+class CenterDistanceAp:
+    """``center_distance_ap`` computed frame by frame (same numbers: tests prove it).
+
+    A frame's greedy matching needs only the order of its own predictions, and that order is
+    the global confidence ranking restricted to the frame (descending confidence, the later
+    prediction first on a tie), so true-positive flags are final when a frame arrives. Kept
+    per prediction: its confidence (float64) and one flag word (uint16 for 3 bins x 4
+    thresholds): bit ``b * (1 + T)`` = inside bin b, bit ``b * (1 + T) + 1 + t`` = true
+    positive at threshold t in bin b. AP itself needs all of them (global ranking).
+    """
+
+    def __init__(self, thresholds_m: Sequence[float] = DEFAULT_THRESHOLDS_M,
+                 range_bins_m: Sequence[tuple[float, float]] = DEFAULT_RANGE_BINS_M):
+        self.thresholds_m, self.range_bins_m = tuple(thresholds_m), tuple(range_bins_m)
+        bits = len(self.range_bins_m) * (1 + len(self.thresholds_m))
+        if bits > 64:
+            raise ValueError(f"{bits} flag bits per prediction: at most 64 (bins x (1 + thresholds))")
+        self._confidence = array("d")
+        self._flags = array(next(code for code, width in (("B", 8), ("H", 16), ("I", 32), ("Q", 64)) if bits <= width))
+        self._num_truth = [0] * len(self.range_bins_m)
+
+    def add_frame(self, truth_xy: np.ndarray, pred_xy: np.ndarray, confidence: np.ndarray) -> None:
+        """One frame: truth centres (G, 2), prediction centres (P, 2) m, confidences (P,)."""
+        truth_xy, pred_xy = np.reshape(truth_xy, (-1, 2)), np.reshape(pred_xy, (-1, 2))
+        confidence = np.asarray(confidence, dtype=float)
+        rank = np.empty(len(confidence), dtype=np.int64)
+        rank[_confidence_order(confidence)] = np.arange(len(confidence))
+        flags = np.zeros(len(confidence), dtype=np.uint64)
+        stride = 1 + len(self.thresholds_m)
+        for b, (lo, hi) in enumerate(self.range_bins_m):
+            keep_t, keep_p = _in_range(truth_xy, lo, hi), _in_range(pred_xy, lo, hi)
+            self._num_truth[b] += int(keep_t.sum())
+            t, p = truth_xy[keep_t], pred_xy[keep_p]
+            dist = cdist(p, t) if len(p) and len(t) else np.zeros((len(p), len(t)))
+            word = np.full(len(p), 1 << (b * stride), dtype=np.uint64)
+            for k, th in enumerate(self.thresholds_m):
+                word |= _greedy_match(dist, rank[keep_p], th).astype(np.uint64) << np.uint64(b * stride + 1 + k)
+            flags[keep_p] |= word
+        self._confidence.extend(confidence.tolist())
+        self._flags.extend(flags.tolist())
+
+    def result(self) -> dict:
+        """As ``center_distance_ap`` returns: {bin label: {"num_truth", "num_predictions", "AP@<th>", "mAP"}}."""
+        confidence = np.array(self._confidence, dtype=float)
+        flags = np.array(self._flags, dtype=np.uint64)
+        stride = 1 + len(self.thresholds_m)
+        out = {}
+        for b, (lo, hi) in enumerate(self.range_bins_m):
+            inside = ((flags >> np.uint64(b * stride)) & np.uint64(1)) == 1
+            conf, words, num_truth = confidence[inside], flags[inside], self._num_truth[b]
+            result: dict = {"num_truth": num_truth, "num_predictions": len(conf)}
+            aps = []
+            for k, th in enumerate(self.thresholds_m):
+                tp = ((words >> np.uint64(b * stride + 1 + k)) & np.uint64(1)) == 1
+                aps.append(average_precision(conf, tp, num_truth) if num_truth else None)
+                result[f"AP@{th:g}"] = aps[-1]
+            result["mAP"] = float(np.mean(aps)) if num_truth else None
+            out[bin_label(lo, hi)] = result
+        return out
+
+
 # --- MOT metrics --------------------------------------------------------------------------
 
 MotFrame = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # truth ids, truth xy, hyp ids, hyp xy
@@ -199,6 +266,96 @@ def mot_metrics(frames_with_ids: Sequence[MotFrame], max_distance_m: float = 2.0
     }
 
 
+def _lsa_nan(dist: np.ndarray) -> list[tuple[int, int]]:
+    """motmetrics' scipy assignment (``lap.lsa_solve_scipy``): NaN pairs cost a constant too
+    large to be chosen, l = 2 r c + 1 with r = min(N, M) and c = max |finite cost| + 1, so
+    that scipy returns the same pairs (ties included); pairs on NaN are dropped."""
+    valid = np.isfinite(dist)
+    if not valid.any():
+        return []
+    large = 2 * min(dist.shape) * (np.abs(dist[valid]).max() + 1) + 1
+    rows, cols = linear_sum_assignment(np.where(valid, dist, large))
+    return [(int(i), int(j)) for i, j in zip(rows, cols) if valid[i, j]]
+
+
+class MotTally:
+    """``mot_metrics`` frame by frame, with motmetrics' MOTAccumulator algorithm (max_switch_time
+    inf) and its metrics: per frame (1) a truth keeps the hypothesis it last matched if that
+    one is present and within the gate, (2) the rest are assigned by minimum total distance
+    (``_lsa_nan``), a truth assigned a hypothesis other than its last is an identity switch,
+    (3) unassigned truths are misses, unassigned hypotheses false positives.
+    IDF1 needs only frame counts per truth id, per hypothesis id and per (truth, hypothesis)
+    pair within the gate: IDTP is the largest total pair count of a one-to-one id matching.
+    Memory: those counts and the last match per truth id, none per frame.
+    """
+
+    def __init__(self, max_distance_m: float = 2.0):
+        self.max_distance_m = max_distance_m
+        self._last: dict[int, int] = {}  # truth id -> hypothesis id it last matched (motmetrics' ``m``)
+        self._pairs: Counter = Counter()  # (truth id, hyp id) -> frames within the gate
+        self.frames = self.matches = self.switches = self.misses = self.false_positives = 0
+        self.num_truth = self.num_predictions = 0
+        self._distance_sum_m = 0.0
+
+    def add_frame(self, truth_ids, truth_xy, hyp_ids, hyp_xy) -> None:
+        """Truth ids (N,), truth xy (N, 2) m, hypothesis ids (M,), hypothesis xy (M, 2) m."""
+        oids, hids = [int(i) for i in np.ravel(truth_ids)], [int(h) for h in np.ravel(hyp_ids)]
+        dist = _distance_matrix(truth_xy, hyp_xy, self.max_distance_m)
+        self.frames += 1
+        self.num_truth, self.num_predictions = self.num_truth + len(oids), self.num_predictions + len(hids)
+        for i, j in zip(*np.nonzero(np.isfinite(dist))):
+            self._pairs[oids[i], hids[j]] += 1
+        pairs = self._match(oids, hids, dist) if oids and hids else []
+        self.misses += len(oids) - len(pairs)
+        self.false_positives += len(hids) - len(pairs)
+
+    def _match(self, oids: list[int], hids: list[int], dist: np.ndarray) -> list[tuple[int, int]]:
+        """Steps (1) and (2): matched (truth index, hyp index) pairs; counts matches and switches."""
+        pairs, free_h = [], np.ones(len(hids), dtype=bool)
+        for i, o in enumerate(oids):
+            if o not in self._last:
+                continue
+            j = next((j for j, h in enumerate(hids) if free_h[j] and h == self._last[o]), None)
+            if j is not None and np.isfinite(dist[i, j]):
+                pairs.append((i, j))
+                free_h[j] = False
+        self.matches += len(pairs)
+        rest = dist.copy()
+        rest[[i for i, _ in pairs], :] = np.nan
+        rest[:, ~free_h] = np.nan
+        for i, j in _lsa_nan(rest):
+            o, h = oids[i], hids[j]
+            if o in self._last and self._last[o] != h:
+                self.switches += 1
+            else:
+                self.matches += 1
+            self._last[o] = h
+            pairs.append((i, j))
+        self._distance_sum_m += float(sum(dist[i, j] for i, j in pairs))
+        return pairs
+
+    def result(self) -> dict:
+        """The keys of ``mot_metrics``."""
+        ids_o = sorted({o for o, _ in self._pairs})
+        ids_h = sorted({h for _, h in self._pairs})
+        counts = np.zeros((len(ids_o), len(ids_h)))
+        row, col = {o: r for r, o in enumerate(ids_o)}, {h: c for c, h in enumerate(ids_h)}
+        for (o, h), n in self._pairs.items():
+            counts[row[o], col[h]] = n
+        r, c = linear_sum_assignment(counts, maximize=True)
+        idtp = int(counts[r, c].sum())
+        detections, errors = self.matches + self.switches, self.misses + self.switches + self.false_positives
+        both = self.num_truth + self.num_predictions
+        # MOTA = 1 - (misses + FP + switches) / truths; IDF1 = 2 IDTP / (truths + hypotheses)
+        return {
+            "mota": 1.0 - errors / self.num_truth if self.num_truth else None,
+            "idf1": 2 * idtp / both if both else None,
+            "motp_m": self._distance_sum_m / detections if detections else None,
+            "id_switches": self.switches, "num_frames": self.frames, "misses": self.misses,
+            "false_positives": self.false_positives, "num_truth": self.num_truth,
+        }
+
+
 # --- NEES ---------------------------------------------------------------------------------
 
 def nees(errors: np.ndarray, covariances: np.ndarray, confidence: float = 0.95) -> dict:
@@ -211,12 +368,25 @@ def nees(errors: np.ndarray, covariances: np.ndarray, confidence: float = 0.95) 
     ``mean_interval``: the same interval for the mean (Bar-Shalom's ANEES test:
     K * mean(eps) ~ chi2(2K) for independent samples), ``consistent`` = mean inside it.
     """
+    return nees_summary(nees_values(errors, covariances), confidence)
+
+
+def nees_values(errors: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """(K,) eps_k = e_k^T P_k^-1 e_k of errors (K, 2) m and covariances (K, 2, 2) m^2; one
+    sample at a time gives the same bits as a batch (tested)."""
     e = np.asarray(errors, dtype=float).reshape(-1, 2)
     if not len(e):
+        return np.zeros(0)
+    p = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
+    return np.einsum("ki,ki->k", e, np.linalg.solve(p, e[:, :, None])[:, :, 0])  # e^T P^-1 e
+
+
+def nees_summary(eps: np.ndarray, confidence: float = 0.95) -> dict:
+    """``nees`` from the eps values (K,) of ``nees_values``."""
+    eps = np.asarray(eps, dtype=float)
+    if not len(eps):
         return {"mean": None, "fraction_inside": None, "interval": None, "mean_interval": None,
                 "consistent": None, "samples": 0}
-    p = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
-    eps = np.einsum("ki,ki->k", e, np.linalg.solve(p, e[:, :, None])[:, :, 0])  # e^T P^-1 e
     tail = (1.0 - confidence) / 2.0
     lo, hi = chi2.ppf([tail, 1.0 - tail], df=2)
     k = len(eps)

@@ -1,8 +1,16 @@
-"""Scoring of fused outputs against ground truth (pure; shared by ``eval`` and ``demo``)."""
+"""Scoring of fused outputs against ground truth (pure; shared by ``eval`` and ``demo``).
+
+Each output is scored as it arrives (``RunRecord`` in ``spec`` drives the tallies here):
+the run keeps counts and compact per-cycle numbers, never the outputs. The functions
+``score_target``, ``detection_scores`` and ``displacement_error_m`` score a list of
+outputs through the same tallies.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from array import array
+from collections import OrderedDict
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,10 +25,12 @@ from schemas.messages import FusedObjectList, PredictionList
 from obu_service.fusion_mode import MODES
 from obu_service.planning import path_array
 
-from .detection_metrics import center_distance_ap, mot_metrics, nees
+from .detection_metrics import CenterDistanceAp, MotTally, nees_summary, nees_values
 
 MAX_RANGE_M = 80.0  # detection metrics cover actors within this distance of the ego
 MATCH_GATE_M = 4.0  # an output object within 4 m of a true actor (nuScenes' widest threshold) is its detection
+RANGE_BINS_M = ((0.0, 40.0), (40.0, MAX_RANGE_M), (0.0, np.inf))  # detection AP bins (OTVIC)
+RECENT_HANDOFFS = 256  # RSU lists remembered to score each handed-over list once
 
 
 @dataclass(frozen=True)
@@ -62,44 +72,103 @@ def match_target(truth: ObjectArray, output: ObjectArray, target_id: int) -> int
     return int(rows[0, 1]) if len(rows) else None
 
 
-def score_target(world, outputs: Sequence[FusedObjectList], start_ns: int, sources_mask: int | None = None) -> TargetScore:
+@dataclass(frozen=True)
+class CycleFrame:
+    """One output and the truth at its cycle time, both in the true base_link of that cycle
+    (ObjectArrays, m); ``t_s`` = cycle time - run start (s)."""
+
+    cycle_ns: int
+    t_s: float
+    truth: ObjectArray
+    out: ObjectArray
+
+    @classmethod
+    def of(cls, world, msg: FusedObjectList, start_ns: int) -> CycleFrame:
+        t_s = (msg.cycle_time_ns - start_ns) * 1e-9
+        truth = map_to_base(world.actors_at(t_s), world.ego_at(t_s))
+        return cls(msg.cycle_time_ns, t_s, truth, objects_from_states(msg.objects))
+
+
+class TargetTally:
+    """``world.target_id`` in a stream of outputs. Per cycle where it is detected: cycle time,
+    BEV IoU, squared error, NEES eps and ego distance (48 bytes); scored in cycle order."""
+
+    def __init__(self, target_id: int, sources_mask: int | None = None):
+        self.target_id, self.sources_mask = target_id, sources_mask
+        self._cycle_ns, self._cols = array("q"), {k: array("d") for k in ("t_s", "iou", "sq_err", "eps", "dist")}
+
+    def add(self, frame: CycleFrame) -> None:
+        truth, out = frame.truth, frame.out
+        if self.sources_mask is not None:
+            out = out.take((out.sources & self.sources_mask) != 0)
+        k = match_target(truth, out, self.target_id)
+        if k is None:
+            return
+        i = int(np.flatnonzero(truth.ids == self.target_id)[0])
+        err = out.xy[k] - truth.xy[i]
+        values = {"t_s": frame.t_s, "iou": bev_iou_matrix(bev_boxes(truth.take([i])), bev_boxes(out.take([k])))[0, 0],
+                  "sq_err": np.sum(np.square(err)), "eps": nees_values(err[None], out.cov_xy[k][None])[0],
+                  "dist": np.linalg.norm(truth.xy[i])}
+        self._cycle_ns.append(frame.cycle_ns)
+        for name, value in values.items():
+            self._cols[name].append(float(value))
+
+    def score(self) -> TargetScore:
+        """Mean IoU, RMSE = sqrt(mean |e|^2), NEES over the detected cycles; the first one's distance and time."""
+        order = np.argsort(np.array(self._cycle_ns, dtype=np.int64), kind="stable")
+        col = {k: np.array(v, dtype=float)[order] for k, v in self._cols.items()}
+        consistency = nees_summary(col["eps"])
+        detected = len(order)
+        return TargetScore(
+            detected_cycles=detected,
+            mean_bev_iou=float(np.mean(col["iou"])) if detected else None,
+            rmse_m=float(np.sqrt(np.mean(col["sq_err"]))) if detected else None,
+            first_detection_distance_m=float(col["dist"][0]) if detected else None,
+            first_detection_time_s=float(col["t_s"][0]) if detected else None,
+            nees_mean=consistency["mean"], nees_fraction_inside=consistency["fraction_inside"],
+        )
+
+
+def score_target(world, outputs: Iterable[FusedObjectList], start_ns: int, sources_mask: int | None = None) -> TargetScore:
     """Score ``world.target_id`` in the outputs; with ``sources_mask`` only objects whose
     sources intersect it count (SOURCE_VEHICLE gives the vehicle-only view)."""
-    ious, errors, covs, first = [], [], [], None
-    for msg in sorted(outputs, key=lambda m: m.cycle_time_ns):
-        t_s = (msg.cycle_time_ns - start_ns) * 1e-9
-        ego = world.ego_at(t_s)
-        truth = map_to_base(world.actors_at(t_s), ego)  # true base_link at the cycle time
-        out = objects_from_states(msg.objects)
-        if sources_mask is not None:
-            out = out.take((out.sources & sources_mask) != 0)
-        k = match_target(truth, out, world.target_id)
-        if k is None:
-            continue
-        i = int(np.flatnonzero(truth.ids == world.target_id)[0])
-        ious.append(bev_iou_matrix(bev_boxes(truth.take([i])), bev_boxes(out.take([k])))[0, 0])
-        errors.append(out.xy[k] - truth.xy[i])
-        covs.append(out.cov_xy[k])
-        if first is None:
-            first = (float(np.linalg.norm(truth.xy[i])), t_s)
-    consistency = nees(np.array(errors), np.array(covs))
-    return TargetScore(
-        detected_cycles=len(ious),
-        mean_bev_iou=float(np.mean(ious)) if ious else None,
-        rmse_m=float(np.sqrt(np.mean(np.sum(np.square(errors), axis=1)))) if errors else None,
-        first_detection_distance_m=first[0] if first else None,
-        first_detection_time_s=first[1] if first else None,
-        nees_mean=consistency["mean"], nees_fraction_inside=consistency["fraction_inside"],
-    )
+    tally = TargetTally(world.target_id, sources_mask)
+    for msg in outputs:
+        tally.add(CycleFrame.of(world, msg, start_ns))
+    return tally.score()
 
 
-def deadline_miss_ratio(cycle_times_ns: Sequence[int], outputs: Sequence[FusedObjectList], deadline_ms: float) -> float:
-    """Share of expected cycles with no output published by cycle time + deadline."""
+class CycleLog:
+    """Per output, in arrival order: cycle time, publish time (ns) and fusion mode (17 bytes)."""
+
+    def __init__(self):
+        self.cycle_ns, self.publish_ns, self._mode = array("q"), array("q"), array("b")
+        self._names: list[str] = []  # mode code -> name, in order of first appearance
+
+    def add(self, msg: FusedObjectList) -> None:
+        if msg.mode not in self._names:
+            self._names.append(msg.mode)
+        self.cycle_ns.append(msg.cycle_time_ns)
+        self.publish_ns.append(msg.publish_time_ns)
+        self._mode.append(self._names.index(msg.mode))
+
+    def __len__(self) -> int:
+        return len(self.cycle_ns)
+
+    def modes(self) -> list[str]:
+        return [self._names[c] for c in self._mode]
+
+
+def deadline_miss_ratio(cycle_times_ns: Sequence[int], output_cycle_ns: Sequence[int], output_publish_ns: Sequence[int],
+                        deadline_ms: float) -> float:
+    """Share of expected cycles with no output published by cycle time + deadline; outputs as
+    parallel (M,) arrays of their cycle and publish times (ns)."""
     if not len(cycle_times_ns):
         return 0.0
     limit_ns = int(deadline_ms * 1e6)
-    on_time = {m.cycle_time_ns for m in outputs if m.publish_time_ns <= m.cycle_time_ns + limit_ns}
-    return sum(1 for t in cycle_times_ns if t not in on_time) / len(cycle_times_ns)
+    cycle_ns, publish_ns = np.array(output_cycle_ns, dtype=np.int64), np.array(output_publish_ns, dtype=np.int64)
+    on_time = cycle_ns[publish_ns <= cycle_ns + limit_ns]
+    return int(np.count_nonzero(~np.isin(np.array(cycle_times_ns, dtype=np.int64), on_time))) / len(cycle_times_ns)
 
 
 def mode_share(modes: Sequence[str]) -> dict[str, float]:
@@ -121,14 +190,15 @@ def _error_stats(err_ms: np.ndarray) -> dict:
             "samples": int(len(err_ms))}
 
 
-def clock_errors(samples: Sequence[tuple[int, int, int, float]], truth, start_ns: int, step_ns: int | None) -> dict:
+def clock_errors(samples, truth, start_ns: int, step_ns: int | None) -> dict:
     """Offset errors |estimate - truth| (ms) of the filter and of the naive single exchange,
     drift error (ppm) and step recovery time, from (t_ns, theta_ns, naive theta_ns, drift ppm)
-    samples scored against ``truth`` (a DriftingClock: offset_at(t), drift_ppm).
+    samples ((K, 4) array-like, as float64) scored against ``truth`` (a DriftingClock:
+    offset_at(t), drift_ppm).
 
     Scored samples: t >= start + CLOCK_WARMUP_S and, with a step, not within STEP_SETTLE_S after it.
     """
-    rows = np.array([(t, est, naive, drift) for t, est, naive, drift in samples], dtype=float).reshape(-1, 4)
+    rows = np.asarray(samples, dtype=float).reshape(-1, 4)
     true_ns = np.array([truth.offset_at(int(t)) for t in rows[:, 0]], dtype=float)
     err_ms, naive_ms = np.abs(rows[:, 1] - true_ns) * 1e-6, np.abs(rows[:, 2] - true_ns) * 1e-6
     scored = rows[:, 0] >= start_ns + CLOCK_WARMUP_S * 1e9
@@ -158,53 +228,82 @@ def _recovery_s(t_ns: np.ndarray, err_ms: np.ndarray, step_ns: int) -> float | N
     return round((t_ns[bad[-1] + 1] - step_ns) * 1e-9, 3)
 
 
-def displacement_error_m(world, handed: Sequence[PredictionList], start_ns: int) -> float | None:
-    """Seed 003 eq. 1: mean |predicted - true location| over the points of the predicted paths
-    handed to the planner (each RSU list once), for objects matched to a true actor at t0
-    (centre-distance assignment, gate MATCH_GATE_M); points after the scenario's end are
-    not scored. None when no path was handed over."""
-    errors = []
-    seen = set()
-    end_s = world.scenario.duration_s
-    for pred in handed:
+class DisplacementTally:
+    """Seed 003 eq. 1 over the RSU paths handed to the planner, each RSU list once: mean
+    |predicted - true location| over their points, for objects matched to a true actor at t0
+    (centre-distance assignment, gate MATCH_GATE_M); points after the scenario's end are not
+    scored. Keeps a sum, a count and the last RECENT_HANDOFFS (rsu id, seq) keys (a list is
+    handed over in consecutive cycles until a newer one arrives)."""
+
+    def __init__(self, world, start_ns: int):
+        self.world, self.start_ns = world, start_ns
+        self._recent: OrderedDict = OrderedDict()
+        self._sum_m, self._points = 0.0, 0
+
+    def add(self, pred: PredictionList) -> None:
         key = (pred.header.rsu_id, pred.header.seq)
-        if key in seen:
-            continue
-        seen.add(key)
-        t0_s = (pred.header.valid_time_ns - start_ns) * 1e-9
-        objs = objects_from_states(pred.objects)
-        truth = world.actors_at(t0_s)
+        if key in self._recent:
+            return
+        self._recent[key] = None
+        if len(self._recent) > RECENT_HANDOFFS:
+            self._recent.popitem(last=False)
+        errors = self._errors_m(pred)
+        self._sum_m += float(np.sum(errors))
+        self._points += len(errors)
+
+    def _errors_m(self, pred: PredictionList) -> np.ndarray:
+        """(K,) distances (m) between the matched objects' path points and the true positions."""
+        t0_s = (pred.header.valid_time_ns - self.start_ns) * 1e-9
+        objs, truth = objects_from_states(pred.objects), self.world.actors_at(t0_s)
         if not len(objs) or not len(truth):
-            continue
+            return np.zeros(0)
         matches = assign(center_distance_cost(objs.xy, truth.xy), MATCH_GATE_M).matches  # (M, 2) object, actor
         if not len(matches):
-            continue
+            return np.zeros(0)
         paths = path_array(pred)[matches[:, 0]]  # (M, K + 1, 3)
+        errors = []
         for j in range(1, paths.shape[1]):
             t_s = t0_s + j * pred.step_ns * 1e-9
-            if t_s > end_s:
+            if t_s > self.world.scenario.duration_s:
                 break
-            true_xy = world.actors_at(t_s).xy[matches[:, 1]]  # actor order is fixed by the world
-            errors += np.linalg.norm(paths[:, j, :2] - true_xy, axis=1).tolist()
-    return round(float(np.mean(errors)), 4) if errors else None
+            true_xy = self.world.actors_at(t_s).xy[matches[:, 1]]  # actor order is fixed by the world
+            errors.append(np.linalg.norm(paths[:, j, :2] - true_xy, axis=1))
+        return np.concatenate(errors) if errors else np.zeros(0)
+
+    def value(self) -> float | None:
+        """The mean error (m, 4 decimals); None when no path was handed over."""
+        return round(self._sum_m / self._points, 4) if self._points else None
 
 
-def cycle_frames(world, outputs: Sequence[FusedObjectList], start_ns: int, max_range_m: float = MAX_RANGE_M):
-    """(truth, output) ObjectArray pairs per output, both in the true base_link of its cycle,
-    restricted to ``max_range_m`` of the ego (the region the detection metrics cover)."""
-    frames = []
+def displacement_error_m(world, handed: Iterable[PredictionList], start_ns: int) -> float | None:
+    """``DisplacementTally`` of the paths handed to the planner, in order."""
+    tally = DisplacementTally(world, start_ns)
+    for pred in handed:
+        tally.add(pred)
+    return tally.value()
+
+
+class DetectionTally:
+    """Centre-distance mAP (0-40 m, 40-80 m, overall = 0-80 m) and MOTA / IDF1 of all actors
+    within MAX_RANGE_M of the ego, output by output."""
+
+    def __init__(self):
+        self.ap, self.mot = CenterDistanceAp(range_bins_m=RANGE_BINS_M), MotTally()
+
+    def add(self, frame: CycleFrame) -> None:
+        truth = frame.truth.take(np.linalg.norm(frame.truth.xy, axis=1) <= MAX_RANGE_M)
+        out = frame.out.take(np.linalg.norm(frame.out.xy, axis=1) <= MAX_RANGE_M)
+        self.ap.add_frame(truth.xy, out.xy, out.confidence)
+        self.mot.add_frame(truth.ids, truth.xy, out.ids, out.xy)
+
+    def scores(self) -> dict:
+        mot = self.mot.result()
+        return {"detection": self.ap.result(), "tracking": {k: mot[k] for k in ("mota", "idf1", "id_switches")}}
+
+
+def detection_scores(world, outputs: Iterable[FusedObjectList], start_ns: int) -> dict:
+    """``DetectionTally`` of the outputs, in order."""
+    tally = DetectionTally()
     for msg in outputs:
-        t_s = (msg.cycle_time_ns - start_ns) * 1e-9
-        truth = map_to_base(world.actors_at(t_s), world.ego_at(t_s))
-        out = objects_from_states(msg.objects)
-        frames.append((truth.take(np.linalg.norm(truth.xy, axis=1) <= max_range_m),
-                       out.take(np.linalg.norm(out.xy, axis=1) <= max_range_m)))
-    return frames
-
-
-def detection_scores(world, outputs: Sequence[FusedObjectList], start_ns: int) -> dict:
-    """Centre-distance mAP (0-40 m, 40-80 m, overall = 0-80 m) and MOTA / IDF1 of all actors."""
-    frames = cycle_frames(world, outputs, start_ns)
-    ap = center_distance_ap(frames, range_bins_m=((0.0, 40.0), (40.0, MAX_RANGE_M), (0.0, np.inf)))
-    mot = mot_metrics([(t.ids, t.xy, o.ids, o.xy) for t, o in frames])
-    return {"detection": ap, "tracking": {k: mot[k] for k in ("mota", "idf1", "id_switches")}}
+        tally.add(CycleFrame.of(world, msg, start_ns))
+    return tally.scores()

@@ -72,7 +72,7 @@ class OfflineRun:
         self.rsu = self._new_rsu()
         self.obu_config = spec.obu_config()
         self.obu = ObuPipeline(self.obu_config.pipeline_config(), self.obu_config.lanes())
-        self.record = RunRecord(start_ns, self.duration_s, [])
+        self.record = RunRecord(self.world, start_ns, self.duration_s)
         self._down = {name: self._windows_ns(name) for name in SERVICES}
 
     def _new_rsu(self) -> RsuPipeline:
@@ -104,7 +104,7 @@ class OfflineRun:
         for t in self.camera.capture_times_ns(self.duration_s):
             self.queue.at(t, self._rsu_capture)
         cycles = self.vehicle.cycle_times_ns(self.duration_s)
-        self.record.cycle_times_ns = [int(t) for t in cycles]
+        self.record.cycle_times_ns = cycles
         for t in cycles:
             self.queue.at(t, self._obu_capture)
         end_ns = self.start_ns + round(self.duration_s * 1e9)
@@ -206,5 +206,4 @@ class OfflineRun:
         rsu_id = self.rsu.config.rsu_id
         est, naive = self.obu.clock_offset(rsu_id, self.clock.t_ns), self.obu.naive_clock_offset(rsu_id)
         if est is not None:
-            self.record.offset_samples.append((self.clock.t_ns, est.offset_ns, naive.offset_ns,
-                                               est.drift_ppm))
+            self.record.add_offset_sample(self.clock.t_ns, est.offset_ns, naive.offset_ns, est.drift_ppm)

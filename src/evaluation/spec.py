@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+from array import array
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
-from schemas.messages import SOURCE_VEHICLE, FusedObjectList, PredictionList
+import numpy as np
+
+from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObuMetrics, PredictionList
 from obu_service.config import ObuConfig
 from rsu_service.config import RsuConfig
 from sim.clock import SystemClock
 from sim.world import World
 
-from .metrics import (clock_errors, deadline_miss_ratio, detection_scores, displacement_error_m, mode_share,
-                      score_target)
+from .metrics import (CycleFrame, CycleLog, DetectionTally, DisplacementTally, TargetTally, clock_errors,
+                      deadline_miss_ratio, mode_share)
 
 # Offline runs start at a fixed epoch (2026-01-01T00:00:00Z) so that reports are reproducible.
 EVAL_EPOCH_NS = 1_767_225_600 * 10**9
@@ -48,49 +51,87 @@ class RunSpec:
                          scenario=self.scenario, **fields)
 
 
-@dataclass
 class RunRecord:
-    """What a run produced, whichever driver ran it (times in the OBU = true clock)."""
+    """What a run produced, whichever driver ran it, scored as each output arrives (times in
+    the OBU = true clock). ``v2i eval`` and ``v2i demo`` feed it; ``build_report`` reads it.
 
-    start_ns: int
-    duration_s: float
-    cycle_times_ns: Sequence[int]
-    outputs: list[FusedObjectList] = field(default_factory=list)
-    # (t_ns, estimated theta_ns, naive theta_ns, estimated drift ppm)
-    offset_samples: list[tuple[int, int, int, float]] = field(default_factory=list)
-    planning: list[PredictionList] = field(default_factory=list)  # paths handed to the planner (OBU clock)
-    rsu_messages: int = 0
-    covered_cycles: int = 0  # the OBU's own count: cycles with an RSU heard recently
-    rsu_deadline_misses: int = 0
+    Nothing grows with the run but compact per-cycle numbers: per output 17 bytes
+    (``CycleLog``) and 10 bytes per predicted object in range (``CenterDistanceAp``), 48
+    bytes per cycle the target is detected (twice: fused and vehicle-only), 32 bytes per
+    clock-offset sample; plus counts per track id for IDF1.
+    """
 
-    def add_output(self, output: FusedObjectList, planning: PredictionList | None) -> None:
-        self.outputs.append(output)
+    def __init__(self, world: World, start_ns: int, duration_s: float, cycle_times_ns: Sequence[int] = ()):
+        self.world, self.start_ns, self.duration_s = world, start_ns, duration_s
+        self.cycle_times_ns = np.asarray(cycle_times_ns, dtype=np.int64)  # expected cycles (K,) ns
+        self.cycles = CycleLog()
+        self.target = TargetTally(world.target_id)
+        self.vehicle_target = TargetTally(world.target_id, sources_mask=SOURCE_VEHICLE)
+        self.detection = DetectionTally()
+        self.displacement = DisplacementTally(world, start_ns)
+        self.planning_handoffs = 0  # paths handed to the planner (OBU clock)
+        # clock-offset samples: t_ns, estimated theta_ns, naive theta_ns, estimated drift ppm
+        self._offsets = (array("q"), array("q"), array("q"), array("d"))
+        self.rsu_messages = 0
+        self.covered_cycles = 0  # the OBU's own count: cycles with an RSU heard recently
+        self.rsu_deadline_misses = 0
+
+    def add_output(self, output: FusedObjectList, planning: PredictionList | None = None) -> None:
+        """One published cycle (and the RSU paths it handed to the planner, if any)."""
+        self.cycles.add(output)
+        frame = CycleFrame.of(self.world, output, self.start_ns)
+        for tally in (self.target, self.vehicle_target, self.detection):
+            tally.add(frame)
         if planning is not None:
-            self.planning.append(planning)
+            self.add_planning(planning)
+
+    def add_planning(self, planning: PredictionList) -> None:
+        self.planning_handoffs += 1
+        self.displacement.add(planning)
+
+    def add_offset_sample(self, t_ns: int, theta_ns: int, naive_theta_ns: int, drift_ppm: float) -> None:
+        for column, value in zip(self._offsets, (t_ns, theta_ns, naive_theta_ns, drift_ppm)):
+            column.append(value)
+
+    def add_obu_metrics(self, metrics: ObuMetrics) -> None:
+        """The OBU's metrics message (the live driver): its clock-offset samples; its counts
+        replace the record's (the last message holds the run's totals)."""
+        for r in metrics.rsus:
+            if None not in (r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm):
+                self.add_offset_sample(metrics.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm)
+        self.rsu_messages = max((r.messages_accepted for r in metrics.rsus), default=0)
+        self.covered_cycles, self.rsu_deadline_misses = metrics.covered_cycles, metrics.rsu_deadline_misses
+
+    def offset_samples(self) -> np.ndarray:
+        """(K, 4) float64: t_ns, theta_ns, naive theta_ns, drift ppm."""
+        return np.column_stack([np.array(c, dtype=float) for c in self._offsets]).reshape(-1, 4)
 
 
 def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) -> dict:
-    """The metrics JSON: same keys from ``eval`` and ``demo``."""
+    """The metrics JSON: same keys from ``eval`` and ``demo``. ``world``: the one the record
+    scored its outputs against (a different one is an error: the scores would not be its)."""
+    if record.world is not world:
+        raise ValueError("build_report: the record was scored against another world")
     truth_clock = spec.rsu_config().clock(SystemClock(), record.start_ns)
-    fused = score_target(world, record.outputs, record.start_ns)
-    own = score_target(world, record.outputs, record.start_ns, sources_mask=SOURCE_VEHICLE)
     step_ns = None if spec.rsu_clock_step_at_s is None else record.start_ns + round(spec.rsu_clock_step_at_s * 1e9)
+    cycles = record.cycles
     return {
         "driver": driver,
         **{k: v for k, v in asdict(spec).items() if k not in ("duration_s",)},
         "duration_s": record.duration_s,
         "cycles": len(record.cycle_times_ns),
-        "outputs": len(record.outputs),
-        "output_deadline_miss_ratio": round(deadline_miss_ratio(record.cycle_times_ns, record.outputs, spec.deadline_ms), 4),
+        "outputs": len(cycles),
+        "output_deadline_miss_ratio": round(deadline_miss_ratio(record.cycle_times_ns, cycles.cycle_ns, cycles.publish_ns,
+                                                                spec.deadline_ms), 4),
         "rsu_deadline_miss_ratio": round(record.rsu_deadline_misses / max(record.covered_cycles, 1), 4),
-        "mode_share": mode_share([m.mode for m in record.outputs]),
-        "displacement_error_m": displacement_error_m(world, record.planning, record.start_ns),
-        "planning_handoffs": len(record.planning),
+        "mode_share": mode_share(cycles.modes()),
+        "displacement_error_m": record.displacement.value(),
+        "planning_handoffs": record.planning_handoffs,
         "rsu_messages_received": record.rsu_messages,
-        "target": fused.as_dict(),
-        "vehicle_only": own.as_dict(),
-        **clock_errors(record.offset_samples, truth_clock, record.start_ns, step_ns),
-        **detection_scores(world, record.outputs, record.start_ns),
+        "target": record.target.score().as_dict(),
+        "vehicle_only": record.vehicle_target.score().as_dict(),
+        **clock_errors(record.offset_samples(), truth_clock, record.start_ns, step_ns),
+        **record.detection.scores(),
     }
 
 
