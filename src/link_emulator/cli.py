@@ -42,6 +42,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--config", metavar="FILE", help="YAML file with LinkConfig fields; the options below override it"
     )
     parser.add_argument("--link-id", help="link name used in v2x/link/{link_id}/stats (default link1)")
+    parser.add_argument("--vehicle-id", help="the vehicle whose ego poses set the RSU distance (default: the first "
+                        "one heard; poses of others, and implausible jumps, are refused)")
     parser.add_argument(
         "--rsu-connect",
         metavar="EP",
@@ -299,6 +301,7 @@ def run(args: argparse.Namespace) -> int:
         "profile": args.profile,
         "seed": args.seed,
         "control_listen": args.control_listen,
+        "vehicle_id": args.vehicle_id,
     }
     try:
         config = load_config(LinkConfig, args.config, overrides)

@@ -37,11 +37,16 @@ class LinkConfig(BaseModel):
     rsu_position: tuple[FiniteFloat, FiniteFloat] | None = Field(
         default=None, description="RSU antenna [x, y] in the map frame (m); None: distance unknown"
     )
+    vehicle_id: str | None = Field(default=None, pattern=r"^[A-Za-z0-9_-]{1,64}$", description="the vehicle whose "
+                                   "ego poses set the distance (default: the first one heard)")
     # bounds on what peers can make the emulator hold (relay.Gate); refusals are counted in the stats
     max_message_bytes: int = Field(default=1 << 20, ge=1024, le=64 << 20, description="larger payloads are refused")
-    source_rate_hz: float = Field(default=1000.0, gt=0.0, description="messages per second accepted per key")
-    source_burst: int = Field(default=200, ge=1)
-    max_pending_arrivals: int = Field(default=4096, ge=16, description="received, not yet drawn through the channel")
+    source_rate_hz: float = Field(default=100.0, gt=0.0, description="messages per second accepted per key "
+                                  "(a V2X source sends at most tens)")
+    source_burst: int = Field(default=50, ge=1)
+    total_bytes_per_s: float = Field(default=16e6, gt=0.0, description="bytes per second accepted from all keys "
+                                     "together (more than any V2X radio carries)")
+    max_pending_arrivals: int = Field(default=512, ge=16, description="received, not yet drawn through the channel")
     max_in_flight: int = Field(default=100_000, ge=16, description="messages scheduled for delivery, per direction")
     max_in_flight_bytes: int = Field(default=64 << 20, ge=1 << 16, description="their bytes, per direction")
     max_open_queries: int = Field(default=1024, ge=1, description="vehicle time queries kept open")

@@ -19,13 +19,16 @@ from .config import LinkConfig
 
 class Gate:
     """What a Zenoh callback must pass before it may enqueue work (thread-safe): a payload of at
-    most ``max_bytes``, a token of its key's bucket (the least recently used of ``max_keys``
-    buckets is forgotten), and room among the ``max_pending`` arrivals not yet processed."""
+    most ``max_message_bytes``, a token of its key's bucket (the least recently used of
+    ``max_keys`` buckets is forgotten), its bytes from the bucket of all keys together
+    (``total_bytes_per_s``, one second's worth at once), and room among the
+    ``max_pending_arrivals`` not yet processed."""
 
     def __init__(self, config: LinkConfig, clock: Clock, max_keys: int = 1024) -> None:
         self._config, self._clock, self._max_keys = config, clock, max_keys
         self._lock = threading.Lock()
         self._buckets: OrderedDict[str, TokenBucket] = OrderedDict()
+        self._bytes = TokenBucket(config.total_bytes_per_s, round(config.total_bytes_per_s), clock.now_ns())
         self._pending = 0
         self.refused: Counter[str] = Counter()
 
@@ -41,6 +44,7 @@ class Gate:
             self._buckets.move_to_end(key)
             reason = ("too_large" if size > cfg.max_message_bytes else
                       "rate_limited" if not bucket.take(now_ns) else
+                      "bytes_limited" if not self._bytes.take(now_ns, size) else
                       "overflow" if self._pending >= cfg.max_pending_arrivals else None)
             if reason is not None:
                 self.refused[reason] += 1

@@ -24,9 +24,12 @@ class RsuConfig(ServiceConfig):
                                                "(lane when the scenario has a map)")
     predict_ahead: bool = Field(False, description="track-predict: publish tracks predicted to the publish "
                                                    "time and upsample 5 Hz to 10 Hz (seed 000 Algorithm 1)")
-    query_rate_hz: float = Field(200.0, gt=0, le=100_000, description="time queries answered per second, "
-                                 "all queriers together; more are refused")
-    query_burst: int = Field(50, ge=1, le=100_000)
+    query_rate_hz: float = Field(2000.0, gt=0, le=100_000, description="time queries read per second, all "
+                                 "queriers together; more are refused unread")
+    query_burst: int = Field(500, ge=1, le=100_000)
+    querier_rate_hz: float = Field(50.0, gt=0, le=100_000, description="time queries answered per second "
+                                   "and querier (obu_id), so a flood under one name does not starve the others")
+    querier_burst: int = Field(20, ge=1, le=100_000)
     max_query_bytes: int = Field(1024, ge=64, le=1 << 20, description="larger time queries are refused unread")
 
     @field_validator("rsu_id")

@@ -2,15 +2,17 @@
 
 Time queries are answered in the Zenoh callback (t2 and t3 must be stamped tightly), so
 that callback is the RSU's attack surface: a query over ``max_query_bytes`` is refused
-unread and queries beyond ``query_rate_hz`` (a token bucket over all queriers) are refused
-before any decoding; each refusal is counted by reason in ``v2x/rsu/{id}/metrics`` and
-logged in a throttled summary.
+unread, queries beyond ``query_rate_hz`` (a token bucket over all queriers) are refused
+before any decoding, and a querier (its ``obu_id``) beyond ``querier_rate_hz`` is refused
+after it (``querier_rate_limited``), so a flood under one name does not starve the others;
+each refusal is counted by reason in ``v2x/rsu/{id}/metrics`` and logged in a throttled
+summary.
 """
 
 from __future__ import annotations
 
 import threading
-from collections import Counter
+from collections import Counter, OrderedDict
 
 from schemas import keys
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
@@ -26,6 +28,9 @@ from .config import RsuConfig
 from .pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from .prediction import make_predictor
 from .source import SimulatedCamera
+
+
+MAX_QUERIERS = 1024  # querier buckets kept
 
 
 class RsuNode:
@@ -48,6 +53,7 @@ class RsuNode:
         self.time_replies = 0
         self._lock = threading.Lock()  # rejected, time_replies and the bucket: the query callback's
         self._queries = TokenBucket(config.query_rate_hz, config.query_burst, self.true_clock.now_ns())
+        self._queriers: OrderedDict[str, TokenBucket] = OrderedDict()  # obu_id -> bucket, least recent first
         self._log = ThrottledLog("rsu")
         self._logged: Counter[str] = Counter()
         self._details: dict[str, str] = {}
@@ -137,6 +143,9 @@ class RsuNode:
             if len(payload) > self.config.max_query_bytes:
                 raise MessageTooLarge(f"time query of {len(payload)} bytes, limit {self.config.max_query_bytes}")
             request = decode(payload.to_bytes(), TimeRequest)
+            with self._lock:
+                if not self._querier(request.obu_id).take(self.true_clock.now_ns()):
+                    raise _Refused("querier_rate_limited")
         except (CodecError, _Refused) as exc:
             with self._lock:
                 self.rejected[exc.reason] += 1
@@ -146,6 +155,18 @@ class RsuNode:
         query.reply(keys.rsu_time(self.config.rsu_id), encode(reply))
         with self._lock:
             self.time_replies += 1
+
+
+    def _querier(self, obu_id: str) -> TokenBucket:
+        """The querier's bucket (created full); at most MAX_QUERIERS are kept, least recent forgotten."""
+        bucket = self._queriers.get(obu_id)
+        if bucket is None:
+            bucket = self._queriers[obu_id] = TokenBucket(self.config.querier_rate_hz, self.config.querier_burst,
+                                                           self.true_clock.now_ns())
+            if len(self._queriers) > MAX_QUERIERS:
+                self._queriers.popitem(last=False)
+        self._queriers.move_to_end(obu_id)
+        return bucket
 
 
 class _Refused(Exception):

@@ -1,8 +1,8 @@
 """Bounded, rate-limited hand-over of received payloads from Zenoh callbacks to a service loop.
 
 Zenoh callbacks (any thread) ``put``; the one loop that owns a service's state ``get``s.
-``put`` never blocks and does O(1) work before anything is decoded, so a flood costs the
-flooder, not the service:
+``put`` never blocks and does O(1) work before anything is read or decoded (the payload is
+copied out of Zenoh only once admitted), so a flood costs the flooder, not the service:
 
 - a payload over ``max_bytes`` is refused unread (``too_large``);
 - each source (the key expression it arrived on) has a token bucket: ``rate_hz`` sustained,
@@ -35,20 +35,21 @@ class Item:
 
 
 class TokenBucket:
-    """``rate_hz`` events per second sustained, ``burst`` at once: tokens += rate dt (at most
-    burst), one token per event. Not thread-safe: callers hold their own lock."""
+    """``rate_hz`` tokens per second sustained, ``burst`` at once: tokens += rate dt (at most
+    burst), one token per event (or its cost, e.g. its bytes). Not thread-safe: callers hold
+    their own lock."""
 
     def __init__(self, rate_hz: float, burst: int, now_ns: int):
         self.rate_hz, self.burst = rate_hz, float(burst)
         self._tokens, self._last_ns = float(burst), now_ns
 
-    def take(self, now_ns: int) -> bool:
-        """True (and a token spent) if an event may pass at ``now_ns``."""
+    def take(self, now_ns: int, cost: float = 1.0) -> bool:
+        """True (and ``cost`` tokens spent) if an event of that cost may pass at ``now_ns``."""
         self._tokens = min(self.burst, self._tokens + max(now_ns - self._last_ns, 0) * 1e-9 * self.rate_hz)
         self._last_ns = now_ns
-        if self._tokens < 1.0:
+        if self._tokens < cost:
             return False
-        self._tokens -= 1.0
+        self._tokens -= cost
         return True
 
 
@@ -70,14 +71,17 @@ class Intake:
     def __len__(self) -> int:
         return self._items
 
-    def put(self, kind: str, source: str, payload: bytes, receive_ns: int) -> bool:
-        """Queue one payload; False (and counted) when it is refused."""
-        if len(payload) > self.max_bytes:
+    def put(self, kind: str, source: str, size: int, receive_ns: int, read: Callable[[], bytes]) -> bool:
+        """Queue one payload of ``size`` bytes, copied by ``read()`` only if admitted; False
+        (and counted) when it is refused."""
+        if size > self.max_bytes:
             return self._refuse("too_large")
         with self._cond:
             if not self._take_token(source):
                 self._counts["rate_limited"] += 1
                 return False
+        payload = read()
+        with self._cond:
             queue = self._queues.setdefault(source, deque())
             queue.append(Item(kind, source, payload, receive_ns))
             self._items, self._bytes = self._items + 1, self._bytes + len(payload)

@@ -16,6 +16,7 @@ SUBCOMMANDS = {
     "rsu": "run the roadside unit service",
     "obu": "run the on-board unit service",
     "link": "run the link emulator between RSU and vehicle",
+    "fuzz": "send hostile messages to a live service and report what it refused, crashes, late outputs and memory",
 }
 
 
@@ -73,7 +74,7 @@ _FLAG_OF_FIELD = {
     "clock_step_at_s": "--rsu-clock-step-at-s",
 }
 # flags (argparse dests) that must be finite and > 0, or finite and >= 0, when given
-_POSITIVE_FLAGS = ("duration", "startup", "link_down_s", "seeds", "workers")
+_POSITIVE_FLAGS = ("duration", "startup", "link_down_s", "seeds", "workers", "count", "rate")
 _NON_NEGATIVE_FLAGS = ("kill_link_at",)
 
 
@@ -182,6 +183,32 @@ def cmd_chaos_run(args: argparse.Namespace) -> int:
                      "v2i chaos run")
 
 
+def cmd_fuzz(args: argparse.Namespace) -> int:
+    from evaluation.demo import DemoError
+    from evaluation.fuzz import summary
+    from evaluation.fuzz_targets import TARGETS
+
+    _check_numbers(args)
+    if args.json not in (None, "-"):
+        _check_writable(Path(args.json), "--json")
+    run = TARGETS[args.target](args.count, seed=args.seed, rate_hz=args.rate, startup_s=args.startup)
+    _interrupt_on(signal.SIGINT, signal.SIGTERM)
+    try:
+        report = run.run()
+    except DemoError as exc:
+        print(f"v2i fuzz: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("v2i fuzz: interrupted; all services stopped", file=sys.stderr)
+        return 130
+    print(summary(report), file=sys.stderr if args.json == "-" else sys.stdout)
+    if args.json == "-":
+        print(json.dumps(report, indent=2))
+    elif args.json:
+        Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+    return 1 if report["crashes"] or report["outputs"]["late"] or report["outputs"]["missing"] else 0
+
+
 def _run_demo(demo, json_path: str | None, prog: str) -> int:
     """Run a live demo and emit its report; 1 when it failed, 130 when interrupted."""
     from evaluation.demo import DemoError, format_chaos
@@ -246,6 +273,19 @@ def build_parser() -> argparse.ArgumentParser:
     chaos_run.add_argument("--startup", type=float, default=4.0,
                            help="seconds given to the services to start (default %(default)s)")
     chaos_run.set_defaults(func=cmd_chaos_run)
+    fuzz = parsers["fuzz"]
+    fuzz.description += (". obu: an RSU and the OBU, the attacker publishing on the RSU keys (spoofed and fake "
+                         "ids, floods, replays) and forging time replies; rsu: hostile time queries; link: hostile "
+                         "lists, poses, controls and queries on both sides of the emulator. Exit code 1 when the "
+                         "target crashed or an output was late or missing.")
+    fuzz.add_argument("--target", required=True, choices=("obu", "rsu", "link"), help="the service to attack")
+    fuzz.add_argument("--count", type=int, default=10_000, help="hostile messages to send (default %(default)s)")
+    fuzz.add_argument("--rate", type=float, default=2000.0, help="messages per second (default %(default)s)")
+    fuzz.add_argument("--seed", type=int, default=0, help="seed of the hostile messages (default %(default)s)")
+    fuzz.add_argument("--startup", type=float, default=4.0,
+                      help="seconds given to the services to start (default %(default)s)")
+    fuzz.add_argument("--json", metavar="PATH", help="write the report JSON to PATH ('-' for stdout)")
+    fuzz.set_defaults(func=cmd_fuzz)
     for name, module in (("rsu", "rsu_service.cli"), ("obu", "obu_service.cli"), ("link", "link_emulator.cli")):
         mod = __import__(module, fromlist=["configure_parser", "run"])
         mod.configure_parser(parsers[name])

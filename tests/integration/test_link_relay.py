@@ -237,9 +237,11 @@ def _put_until_relay_received(sides: Sides, profile: str, timeout_s: float = 8.0
     pytest.fail("the relay never received an RSU sample")
 
 
-def _put_pose_until_heard(sides: Sides, profile: str, x_m: float, y_m: float, distance_m: float) -> dict:
-    """Publish the vehicle's pose (and an undecodable one) until the relay's stats show its distance."""
-    pose = encode(EgoPose(vehicle_id="ego", t_ns=time.time_ns(), x=x_m, y=y_m))
+def _put_pose_until_heard(sides: Sides, profile: str, x_m: float, y_m: float, distance_m: float,
+                          later_s: float = 0.0) -> dict:
+    """Publish the vehicle's pose stamped ``later_s`` ahead (and an undecodable one) until the
+    relay's stats show its distance."""
+    pose = encode(EgoPose(vehicle_id="ego", t_ns=time.time_ns() + round(later_s * 1e9), x=x_m, y=y_m))
 
     def heard(stats: dict) -> bool:
         return stats["pose"]["distance_m"] == pytest.approx(distance_m) and stats["pose"]["rejected"] >= 1
@@ -264,7 +266,9 @@ def test_vehicle_pose_sets_the_distance_of_the_channel(sides: Sides, tmp_path: P
         for i in range(5):
             sides.rsu.put(rsu_objects(RSU_ID), b"out-of-range-%d" % i)
         assert _wait_for_payload(sides.objects, b"out-of-range-4", 0.5) is None
-        stats = _put_pose_until_heard(sides, "ranged", 990.0, 0.0, distance_m=10.0)
+        # 990 m on: plausible for the relay only when stamped >= 9.9 s later (at most 100 m/s)
+        stats = _put_pose_until_heard(sides, "ranged", 990.0, 0.0, distance_m=10.0, later_s=11.0)
+        assert "implausible" not in stats["pose"]["refused"]
         assert stats["downlink"]["dropped"] == dropped + 5
         assert stats["pose"]["received"] >= 2
         sides.rsu.put(rsu_objects(RSU_ID), b"in-range")

@@ -1,0 +1,248 @@
+"""``v2i fuzz``: hostile traffic against one live service, and what it did to the service.
+
+The target runs as its own process, as in ``v2i demo`` (``evaluation.fuzz_targets``: ``obu``
+with an RSU connected directly, ``rsu`` alone, ``link`` between the fuzzer's own RSU and
+vehicle sessions). The fuzzer's Zenoh sessions sit where an attacker would. It waits until
+the target's normal output flows, then sends ``count`` hostile messages at ``rate_hz``: every
+kind of ``evaluation.hostile`` on every input the target has, plus floods (one payload again
+and again on one key), fake ids, replays of captured genuine lists and forged time replies
+(per target). It watches the normal output meanwhile and reports: messages sent by kind,
+refusals by reason (the target's own counters), crashes (the process exited), outputs late
+or missing in the fuzzing window, and the target's RSS before and after.
+"""
+
+from __future__ import annotations
+
+import itertools
+import sys
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from schemas.transport import free_tcp_endpoint, open_session
+
+from .demo import Child, DemoError
+from .hostile import KINDS, HostileInputs
+
+RSU_ID, VEHICLE_ID, LINK_ID = "rsu1", "ego", "link1"
+POOL_PER_KIND = 40  # distinct payloads per (kind, message type), sent round-robin
+MS = 1_000_000
+
+
+def rss_mb(pid: int) -> float | None:
+    """Resident set size of a process (MB), None once it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+class Crashed(RuntimeError):
+    """A service process exited while it was being fuzzed."""
+
+    def __init__(self, name: str, code: int):
+        super().__init__(f"{name} exited with code {code}")
+        self.name, self.code = name, code
+
+
+class FuzzRun(ABC):
+    """The common driver; a target subclass (``fuzz_targets``) says what to start, where its
+    inputs are (``deliver``), what its normal output is (``outputs``) and what it refused."""
+
+    name = "?"
+    input_types: tuple[str, ...] = ()
+
+    def __init__(self, count: int, seed: int = 0, rate_hz: float = 2000.0, startup_s: float = 4.0,
+                 settle_s: float = 3.0, deadline_ms: float = 100.0, progress=sys.stderr):
+        if count < 1 or not rate_hz > 0:
+            raise ValueError("--count must be >= 1 and --rate > 0")
+        self.count, self.rate_hz, self.startup_s, self.settle_s = count, rate_hz, startup_s, settle_s
+        self.deadline_ns = round(deadline_ms * MS)
+        self.rng = np.random.default_rng(seed)
+        self.hostile = HostileInputs(self.rng, RSU_ID, VEHICLE_ID, LINK_ID)
+        self.sent: Counter[str] = Counter()
+        self.lock = threading.Lock()  # the callbacks' state below
+        self.outputs: list[tuple[int, bool]] = []  # (time of the normal output, late)
+        self.children: dict[str, Child] = {}
+        self.progress = progress
+        self.eps: dict[str, str] = {}
+        self.stop = threading.Event()  # set when the run ends: the fuzzer's own threads end
+        self._sessions: list = []
+        self._declared: list = []
+        self._refused_at_start: Counter[str] = Counter()
+
+    # --- what a target provides ---------------------------------------------------------------
+    @abstractmethod
+    def argv(self, start_ns: int, duration_s: float) -> dict[str, list[str]]:
+        """Service name -> command line of each process to start; ``self.name`` is the target."""
+
+    @abstractmethod
+    def open(self) -> None:
+        """Open the fuzzer's sessions and declare what watches the target."""
+
+    @abstractmethod
+    def deliver(self, typ: str, payload: bytes) -> None:
+        """Send one payload of message type ``typ`` to one of the target's inputs."""
+
+    @abstractmethod
+    def refused(self) -> Counter[str]:
+        """The target's own refusal counters (cumulative), by reason."""
+
+    @abstractmethod
+    def expected_outputs(self, seconds: float) -> int:
+        """Normal outputs the target should produce in ``seconds``."""
+
+    def special_actions(self) -> list[tuple[str, object]]:
+        """(kind, send) beyond the pool kinds: floods, fake ids, replays."""
+        return []
+
+    def at_fuzz_start(self) -> None:
+        """Note what the report compares against at the end (called once warmed up)."""
+
+    def warmed_up(self) -> bool:
+        """Whether the target works normally, beyond producing output (e.g. the OBU's clock is synced)."""
+        return True
+
+    def extra(self) -> dict:
+        return {}
+
+    # --- the run ------------------------------------------------------------------------------
+    def run(self) -> dict:
+        duration_s = self.startup_s + 2.0 * self.count / self.rate_hz + 60.0
+        start_ns = time.time_ns() + round(self.startup_s * 1e9)
+        try:
+            for name, argv in self.argv(start_ns, duration_s).items():
+                self.children[name] = Child(name, argv)
+            for child in self.children.values():
+                child.wait_ready(time.monotonic() + self.startup_s + 10.0)
+            victim = self.children[self.name].proc.pid
+            self.open()
+            self._wait_for_output(start_ns)
+            self._refused_at_start = self.refused()
+            self.at_fuzz_start()
+            before = rss_mb(victim)
+            t0_ns = time.time_ns()
+            crash = None
+            try:
+                self._send_all()
+                t1_ns = time.time_ns()
+                self._sleep(self.settle_s)
+            except Crashed as exc:
+                crash, t1_ns = exc, time.time_ns()
+            return self._report(t0_ns, t1_ns, before, rss_mb(victim), crash)
+        finally:
+            self.stop.set()
+            for declared in self._declared:
+                declared.undeclare()
+            for session in self._sessions:
+                session.close()
+            for child in self.children.values():
+                child.stop()
+
+    def session(self, listen=(), connect=()):
+        session = open_session(listen, connect)
+        self._sessions.append(session)
+        return session
+
+    def declare(self, entity):
+        self._declared.append(entity)
+        return entity
+
+    def output(self, t_ns: int, late: bool) -> None:
+        """A normal output of the target at ``t_ns`` (late if it missed its deadline); any thread."""
+        with self.lock:
+            self.outputs.append((t_ns, late))
+
+    def _wait_for_output(self, start_ns: int, timeout_s: float = 20.0) -> None:
+        deadline = time.monotonic() + self.startup_s + timeout_s
+        while time.monotonic() < deadline:
+            self._check_alive()
+            with self.lock:
+                flowing = len(self.outputs) >= 5
+            if time.time_ns() > start_ns and flowing and self.warmed_up():
+                return
+            time.sleep(0.05)
+        raise DemoError(f"{self.name}: no normal output before the fuzzing was to start")
+
+    def _check_alive(self) -> None:
+        for child in self.children.values():
+            if child.proc.poll() is not None:
+                raise Crashed(child.name, child.proc.returncode)
+
+    def _sleep(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self._check_alive()
+            time.sleep(0.05)
+
+    def _send_all(self) -> None:
+        """``count`` hostile messages at ``rate_hz``; progress on stderr every 5 s."""
+        plan = self._plan()
+        t_start = last_note = time.monotonic()
+        for i in range(self.count):
+            kind, send = next(plan)
+            send()
+            self.sent[kind] += 1
+            if i % 64 == 0:
+                self._check_alive()
+                ahead_s = (i + 1) / self.rate_hz - (time.monotonic() - t_start)
+                if ahead_s > 0:
+                    time.sleep(ahead_s)
+                if time.monotonic() - last_note > 5.0:
+                    last_note = time.monotonic()
+                    print(f"v2i fuzz {self.name}: {i + 1}/{self.count} sent", file=self.progress, flush=True)
+
+    def _plan(self):
+        """An endless stream of (kind, send) over the target's inputs, shuffled each round."""
+        now = time.time_ns()
+        actions = []
+        for kind, typ in itertools.product(KINDS, self.input_types):
+            pool = itertools.cycle([self.hostile.make(kind, typ, now) for _ in range(POOL_PER_KIND)])
+            actions.append((f"{kind}:{typ}", lambda typ=typ, pool=pool: self.deliver(typ, next(pool))))
+        actions += self.special_actions()
+        for k in itertools.count():
+            if k % len(actions) == 0:
+                self.rng.shuffle(actions)
+            yield actions[k % len(actions)]
+
+    def _report(self, t0_ns: int, t1_ns: int, before: float | None, after: float | None, crash) -> dict:
+        window_s = (t1_ns - t0_ns) * 1e-9
+        with self.lock:
+            during = [late for t, late in self.outputs if t0_ns <= t < t1_ns]
+        expected = self.expected_outputs(window_s)
+        refused = self.refused() - self._refused_at_start
+        return {
+            "target": self.name, "sent": sum(self.sent.values()), "sent_by_kind": dict(sorted(self.sent.items())),
+            "rate_hz": round(sum(self.sent.values()) / max(window_s, 1e-9), 1), "fuzz_s": round(window_s, 2),
+            "rejected": dict(sorted(refused.items())), "rejected_total": sum(refused.values()),
+            "crashes": 0 if crash is None else 1, "crash": None if crash is None else str(crash),
+            "outputs": {"expected": expected, "received": len(during), "late": sum(during),
+                        "missing": max(expected - len(during), 0)},
+            "rss_mb": {"before": _r(before), "after": _r(after),
+                       "growth": None if before is None or after is None else _r(after - before)},
+            **self.extra(),
+        }
+
+
+def _r(v: float | None) -> float | None:
+    return None if v is None else round(v, 1)
+
+
+def summary(report: dict) -> str:
+    """Human lines of a fuzz report."""
+    o, r = report["outputs"], report["rss_mb"]
+    top = ", ".join(f"{k} {v}" for k, v in sorted(report["rejected"].items(), key=lambda kv: -kv[1])[:8])
+    return "\n".join([
+        f"v2i fuzz {report['target']}: {report['sent']} hostile messages in {report['fuzz_s']} s "
+        f"({report['rate_hz']}/s); crashes {report['crashes']}" + (f" ({report['crash']})" if report["crash"] else ""),
+        f"  outputs during fuzzing: {o['received']}/{o['expected']} expected, {o['late']} late, {o['missing']} missing",
+        f"  RSS {r['before']} -> {r['after']} MB (growth {r['growth']} MB)",
+        f"  refused {report['rejected_total']}: {top}",
+    ])
