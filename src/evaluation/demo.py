@@ -268,7 +268,7 @@ class Demo:
                            "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms)]
         return base + ["--config", str(self.link_config), "--link-id", LINK_ID, "--rsu-connect", self.rsu_ep,
                        "--vehicle-connect", self.obu_ep, "--control-listen", self.control_ep,
-                       "--profile", s.profile, "--seed", str(s.seed)]
+                       "--profile", s.profile, "--seed", str(s.seed), "--vehicle-id", s.obu_config().vehicle_id]
 
     def _keep(self, kind: str, sample) -> None:
         """Zenoh callback: enqueue the payload for the scorer; a full inbox drops it (counted)."""
