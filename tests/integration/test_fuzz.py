@@ -1,0 +1,25 @@
+"""``v2i fuzz`` against each live service: hostile traffic is refused and counted, the service
+survives and keeps its normal output on time (a short run; the full one is in the README)."""
+
+import pytest
+
+from evaluation.fuzz_targets import TARGETS
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
+
+
+@pytest.mark.parametrize("target", sorted(TARGETS))
+def test_a_service_survives_hostile_traffic_and_stays_on_time(target):
+    report = TARGETS[target](1500, seed=3, rate_hz=1000.0).run()
+    assert report["sent"] == 1500 and report["crashes"] == 0, report
+    assert report["outputs"]["late"] == 0 and report["outputs"]["missing"] == 0, report["outputs"]
+    assert report["rejected_total"] > 300, report["rejected"]
+    assert report["rss_mb"]["growth"] < 20.0, report["rss_mb"]
+    if target == "obu":
+        assert report["forged_time_replies"] > 0
+        assert report["clock"]["max_error_beyond_uncertainty_ms"] <= 0.0, report["clock"]
+    if target == "rsu":
+        assert report["probes"]["answered"] >= report["probes"]["sent"] - 2
+    if target == "link":
+        lists = report["genuine_lists"]
+        assert lists["accepted_by_obu"] >= lists["published"] - 2, lists

@@ -1,0 +1,105 @@
+"""Bounded, rate-limited hand-over from Zenoh callbacks to a service loop; the throttled log."""
+
+import threading
+
+import pytest
+
+from schemas.intake import Intake, TokenBucket
+from schemas.runtime import ThrottledLog
+
+S = 1_000_000_000
+
+
+class FakeClock:
+    def __init__(self):
+        self.t_ns = 0
+
+    def __call__(self) -> int:
+        return self.t_ns
+
+
+def put(intake: Intake, source: str, payload: bytes = b"x", kind: str = "rsu") -> bool:
+    return intake.put(kind, source, len(payload), 0, lambda: payload)
+
+
+def test_token_bucket_allows_the_burst_then_the_rate():
+    bucket = TokenBucket(rate_hz=10.0, burst=3, now_ns=0)
+    assert [bucket.take(0) for _ in range(4)] == [True, True, True, False]
+    assert not bucket.take(S // 20)  # half a token after 50 ms
+    assert bucket.take(S // 10) and not bucket.take(S // 10)
+    assert bucket.take(10 * S, cost=3.0) and not bucket.take(10 * S)  # refilled to the burst, no more
+    assert not TokenBucket(1.0, 100, 0).take(0, cost=101.0)
+
+
+def test_oversized_payloads_are_refused_unread():
+    intake = Intake(max_bytes=10)
+    read = []
+    assert not intake.put("rsu", "k", 11, 0, lambda: read.append(1) or b"")
+    assert read == [] and intake.take_counts() == {"too_large": 1} and len(intake) == 0
+
+
+def test_each_source_is_rate_limited_on_its_own():
+    clock = FakeClock()
+    intake = Intake(rate_hz=5.0, burst=2, clock_ns=clock)
+    assert [put(intake, "flood") for _ in range(5)] == [True, True, False, False, False]
+    assert put(intake, "genuine") and put(intake, "genuine")
+    clock.t_ns = S  # a second later: five more tokens, two of them usable (the burst)
+    assert [put(intake, "flood") for _ in range(3)] == [True, True, False]
+    assert intake.take_counts() == {"rate_limited": 4} and intake.take_counts() == {}
+
+
+def test_a_full_queue_drops_the_oldest_of_the_largest_queue():
+    intake = Intake(capacity=4, rate_hz=1e9, burst=1000)
+    put(intake, "genuine", b"g0")
+    for k in range(5):
+        put(intake, "flood", b"f%d" % k)
+    assert intake.take_counts() == {"queue_full": 2} and len(intake) == 4
+    got = [intake.get(0).payload for _ in range(4)]
+    assert sorted(got) == [b"f2", b"f3", b"f4", b"g0"]  # the flooder lost its two oldest, the genuine kept its one
+
+
+def test_byte_budget_is_enforced():
+    intake = Intake(capacity=100, max_queued_bytes=10, rate_hz=1e9, burst=1000)
+    for k in range(4):
+        put(intake, f"s{k}", b"12345")
+    assert len(intake) == 2 and intake.take_counts() == {"queue_full": 2}
+
+
+def test_sources_are_served_round_robin_preferred_first():
+    intake = Intake(rate_hz=1e9, burst=1000, preferred=lambda source: source == "rsu1")
+    for k in range(3):
+        put(intake, "flood", b"f%d" % k)
+    put(intake, "other", b"o0")
+    put(intake, "rsu1", b"r0")
+    put(intake, "rsu1", b"r1")
+    order = [intake.get(0).payload for _ in range(6)]
+    assert order == [b"r0", b"r1", b"f0", b"o0", b"f1", b"f2"]
+    assert intake.get(0) is None
+
+
+def test_a_waiting_loop_wakes_when_a_payload_arrives():
+    intake = Intake()
+    got = []
+    loop = threading.Thread(target=lambda: got.append(intake.get(5.0)))
+    loop.start()
+    put(intake, "k", b"hello")
+    loop.join(5.0)
+    assert got and got[0].payload == b"hello" and got[0].kind == "rsu"
+
+
+def test_throttled_log_reports_first_refusal_then_one_summary_per_interval(capsys):
+    clock = FakeClock()
+    log = ThrottledLog("obu", interval_s=10.0, clock_s=lambda: clock.t_ns / S)
+    log.refused("malformed", "payload is not msgpack", 1)
+    for _ in range(1000):
+        log.refused("malformed", "again")
+    log.refused("stale", "old list", 5)
+    assert capsys.readouterr().err.count("\n") == 2  # the first of each reason, nothing else yet
+    clock.t_ns = 10 * S
+    log.flush()
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == ["[obu] refused in the last 10 s: malformed 1000, stale 4"]
+    log.flush(force=True)
+    assert capsys.readouterr().err == ""  # nothing new to say
+    with pytest.raises(TypeError):
+        log.refused("x")  # the first refusal's detail is required
