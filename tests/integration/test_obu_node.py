@@ -66,3 +66,32 @@ def test_obu_rejects_garbage_keeps_publishing_and_syncs_with_a_direct_rsu():
         for t in threads:
             t.join(10.0)
     assert not any(t.is_alive() for t in threads)
+
+
+def test_a_restarted_rsu_publishes_only_what_is_current():
+    """An RSU started 12 s into its scenario (a restart mid-run) publishes at its frame rate from
+    now on; the 60 frames it 'missed' are skipped and counted, not sent in a burst."""
+    rsu_ep = free_tcp_endpoint()
+    rsu = RsuNode(RsuConfig(listen=[rsu_ep], start_at_ns=time.time_ns() - 12_000_000_000, duration_s=30.0))
+    stop = threading.Event()
+    thread = threading.Thread(target=rsu.run, args=(stop,))
+    probe = open_session(connect=[rsu_ep])
+    lists = queue.Queue()
+    sub = probe.declare_subscriber(keys.rsu_objects("rsu1"), lambda s: lists.put(time.monotonic()))
+    try:
+        thread.start()
+        first = wait_for(lists, lambda t: True, 10.0)
+        in_first_second = 1
+        while (left_s := first + 1.0 - time.monotonic()) > 0:  # count what arrives within 1 s of the first
+            try:
+                in_first_second += lists.get(timeout=left_s) < first + 1.0
+            except queue.Empty:
+                break
+        assert in_first_second <= 7, f"{in_first_second} lists in the first second (5 Hz camera)"
+        assert rsu.skipped >= 55 and time.monotonic() - first < 5.0
+    finally:
+        sub.undeclare()
+        probe.close()
+        stop.set()
+        thread.join(10.0)
+    assert not thread.is_alive()
