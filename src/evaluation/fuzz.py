@@ -60,16 +60,21 @@ class FuzzRun(ABC):
     input_types: tuple[str, ...] = ()
 
     def __init__(self, count: int, seed: int = 0, rate_hz: float = 2000.0, startup_s: float = 4.0,
-                 settle_s: float = 3.0, deadline_ms: float = 100.0, progress=sys.stderr):
+                 settle_s: float = 3.0, deadline_ms: float = 100.0, kinds: list[str] | None = None,
+                 progress=sys.stderr):
         if count < 1 or not rate_hz > 0:
             raise ValueError("--count must be >= 1 and --rate > 0")
+        unknown = sorted(set(kinds or ()) - set(KINDS) - {"special"})
+        if unknown:
+            raise ValueError(f"unknown hostile kind(s) {', '.join(unknown)}; kinds: {', '.join(KINDS)}, special")
+        self.kinds = list(kinds or [*KINDS, "special"])
         self.count, self.rate_hz, self.startup_s, self.settle_s = count, rate_hz, startup_s, settle_s
         self.deadline_ns = round(deadline_ms * MS)
         self.rng = np.random.default_rng(seed)
         self.hostile = HostileInputs(self.rng, RSU_ID, VEHICLE_ID, LINK_ID)
         self.sent: Counter[str] = Counter()
         self.lock = threading.Lock()  # the callbacks' state below
-        self.outputs: list[tuple[int, bool]] = []  # (time of the normal output, late)
+        self.outputs: list[tuple[int, bool, str | None]] = []  # (time of the normal output, late, its mode)
         self.children: dict[str, Child] = {}
         self.progress = progress
         self.eps: dict[str, str] = {}
@@ -155,10 +160,11 @@ class FuzzRun(ABC):
         self._declared.append(entity)
         return entity
 
-    def output(self, t_ns: int, late: bool) -> None:
-        """A normal output of the target at ``t_ns`` (late if it missed its deadline); any thread."""
+    def output(self, t_ns: int, late: bool, mode: str | None = None) -> None:
+        """A normal output of the target at ``t_ns`` (late if it missed its deadline; the OBU's
+        fusion mode); any thread."""
         with self.lock:
-            self.outputs.append((t_ns, late))
+            self.outputs.append((t_ns, late, mode))
 
     def _wait_for_output(self, start_ns: int, timeout_s: float = 20.0) -> None:
         deadline = time.monotonic() + self.startup_s + timeout_s
@@ -203,10 +209,10 @@ class FuzzRun(ABC):
         """An endless stream of (kind, send) over the target's inputs, shuffled each round."""
         now = time.time_ns()
         actions = []
-        for kind, typ in itertools.product(KINDS, self.input_types):
+        for kind, typ in itertools.product([k for k in self.kinds if k in KINDS], self.input_types):
             pool = itertools.cycle([self.hostile.make(kind, typ, now) for _ in range(POOL_PER_KIND)])
             actions.append((f"{kind}:{typ}", lambda typ=typ, pool=pool: self.deliver(typ, next(pool))))
-        actions += self.special_actions()
+        actions += self.special_actions() if "special" in self.kinds else []
         for k in itertools.count():
             if k % len(actions) == 0:
                 self.rng.shuffle(actions)
@@ -215,7 +221,8 @@ class FuzzRun(ABC):
     def _report(self, t0_ns: int, t1_ns: int, before: float | None, after: float | None, crash) -> dict:
         window_s = (t1_ns - t0_ns) * 1e-9
         with self.lock:
-            during = [late for t, late in self.outputs if t0_ns <= t < t1_ns]
+            during = [late for t, late, _ in self.outputs if t0_ns <= t < t1_ns]
+            modes = Counter(mode for t, _, mode in self.outputs if t0_ns <= t < t1_ns and mode is not None)
         expected = self.expected_outputs(window_s)
         refused = self.refused() - self._refused_at_start
         return {
@@ -224,7 +231,7 @@ class FuzzRun(ABC):
             "rejected": dict(sorted(refused.items())), "rejected_total": sum(refused.values()),
             "crashes": 0 if crash is None else 1, "crash": None if crash is None else str(crash),
             "outputs": {"expected": expected, "received": len(during), "late": sum(during),
-                        "missing": max(expected - len(during), 0)},
+                        "missing": max(expected - len(during), 0), **({"modes": dict(modes)} if modes else {})},
             "rss_mb": {"before": _r(before), "after": _r(after),
                        "growth": None if before is None or after is None else _r(after - before)},
             **self.extra(),
@@ -242,7 +249,8 @@ def summary(report: dict) -> str:
     return "\n".join([
         f"v2i fuzz {report['target']}: {report['sent']} hostile messages in {report['fuzz_s']} s "
         f"({report['rate_hz']}/s); crashes {report['crashes']}" + (f" ({report['crash']})" if report["crash"] else ""),
-        f"  outputs during fuzzing: {o['received']}/{o['expected']} expected, {o['late']} late, {o['missing']} missing",
+        f"  outputs during fuzzing: {o['received']}/{o['expected']} expected, {o['late']} late, {o['missing']} missing"
+        + (f"; modes {', '.join(f'{m} {n}' for m, n in sorted(o['modes'].items()))}" if "modes" in o else ""),
         f"  RSS {r['before']} -> {r['after']} MB (growth {r['growth']} MB)",
         f"  refused {report['rejected_total']}: {top}",
     ])

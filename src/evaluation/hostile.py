@@ -184,6 +184,14 @@ class HostileInputs:
             return self.rng.bytes(int(self.rng.integers(1 << 16, 3 << 20)))
         return encode(ObjectList(header=self._header(t_ns, sensor="s" * 128), objects=self._objects(1024)))
 
+    def large_malformed(self, type_name: str, t_ns: int) -> bytes:
+        """A 1024-object list (~65 kB) whose last column is one byte short: all the cost of a big
+        message, none of its validity."""
+        envelope = msgpack.unpackb(encode(ObjectList(header=self._header(t_ns), objects=self._objects(1024))),
+                                   raw=False)
+        envelope["d"]["objects"]["age_s"] = envelope["d"]["objects"]["age_s"][:-1]
+        return msgpack.packb(envelope, use_bin_type=True)
+
     def _unpacked(self, type_name: str, t_ns: int) -> dict:
         return msgpack.unpackb(self.valid(type_name, t_ns), raw=False)
 
@@ -200,4 +208,5 @@ KINDS: dict[str, Callable[[HostileInputs, str, int], bytes]] = {
     "extreme_values": HostileInputs.extreme_values,
     "absurd_times": HostileInputs.absurd_times,
     "oversized": HostileInputs.oversized,
+    "large_malformed": HostileInputs.large_malformed,
 }

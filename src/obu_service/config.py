@@ -47,6 +47,7 @@ class ObuConfig(ServiceConfig):
     source_rate_hz: float = Field(50.0, gt=0, le=10_000, description="messages per second accepted per key")
     source_burst: int = Field(25, ge=1, le=10_000)
     inbox_capacity: int = Field(512, ge=8, le=100_000, description="queued messages, all keys together")
+    inbox_max_bytes: int = Field(8 << 20, ge=1 << 20, le=1 << 30, description="their bytes")
     input_guard_ms: float = Field(15.0, ge=0, le=1000, description="no large input is started this close to "
                                   "the next timed step (the longest decode of an admitted message)")
 

@@ -45,7 +45,8 @@ class ObuNode:
         self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
         known = set(self.pipeline.config.known_rsus)
         self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
-                              config.source_burst, preferred=lambda key: _rsu_of(key) in known)
+                              config.source_burst, max_queued_bytes=config.inbox_max_bytes,
+                              preferred=lambda key: _rsu_of(key) in known)
         self._log = ThrottledLog("obu")
         self._logged: Counter[str] = Counter()  # refusals already handed to the log
         self._details: dict[str, str] = {}  # first codec error message per reason

@@ -191,7 +191,8 @@ def cmd_fuzz(args: argparse.Namespace) -> int:
     _check_numbers(args)
     if args.json not in (None, "-"):
         _check_writable(Path(args.json), "--json")
-    run = TARGETS[args.target](args.count, seed=args.seed, rate_hz=args.rate, startup_s=args.startup)
+    kinds = args.kinds.split(",") if args.kinds else None
+    run = TARGETS[args.target](args.count, seed=args.seed, rate_hz=args.rate, startup_s=args.startup, kinds=kinds)
     _interrupt_on(signal.SIGINT, signal.SIGTERM)
     try:
         report = run.run()
@@ -282,6 +283,10 @@ def build_parser() -> argparse.ArgumentParser:
     fuzz.add_argument("--count", type=int, default=10_000, help="hostile messages to send (default %(default)s)")
     fuzz.add_argument("--rate", type=float, default=2000.0, help="messages per second (default %(default)s)")
     fuzz.add_argument("--seed", type=int, default=0, help="seed of the hostile messages (default %(default)s)")
+    fuzz.add_argument("--kinds", metavar="K1,K2", help="only these kinds of hostile message (default: all): "
+                      "random_bytes, truncated, bit_flips, wrong_envelope, header_version, unknown_keys, "
+                      "wrong_shapes, non_finite, extreme_values, absurd_times, oversized, large_malformed, and "
+                      "special (the target's floods, fake ids, replays)")
     fuzz.add_argument("--startup", type=float, default=4.0,
                       help="seconds given to the services to start (default %(default)s)")
     fuzz.add_argument("--json", metavar="PATH", help="write the report JSON to PATH ('-' for stdout)")
