@@ -8,10 +8,10 @@ bounds (``LinkConfig``) instead of growing, and the gate counts every refusal by
 from __future__ import annotations
 
 import threading
-from collections import Counter, OrderedDict
+from collections import Counter
 from dataclasses import dataclass
 
-from schemas.intake import TokenBucket
+from schemas.intake import KeyedBuckets, TokenBucket
 from sim.clock import Clock
 
 from .config import LinkConfig
@@ -25,9 +25,9 @@ class Gate:
     ``max_pending_arrivals`` not yet processed."""
 
     def __init__(self, config: LinkConfig, clock: Clock, max_keys: int = 1024) -> None:
-        self._config, self._clock, self._max_keys = config, clock, max_keys
+        self._config, self._clock = config, clock
         self._lock = threading.Lock()
-        self._buckets: OrderedDict[str, TokenBucket] = OrderedDict()
+        self._buckets = KeyedBuckets(config.source_rate_hz, config.source_burst, max_keys)
         self._bytes = TokenBucket(config.total_bytes_per_s, round(config.total_bytes_per_s), clock.now_ns())
         self._pending = 0
         self.refused: Counter[str] = Counter()
@@ -36,14 +36,8 @@ class Gate:
         """Reserve an arrival slot for one message on ``key``; False (counted) when refused."""
         cfg, now_ns = self._config, self._clock.now_ns()
         with self._lock:
-            bucket = self._buckets.get(key)
-            if bucket is None:
-                bucket = self._buckets[key] = TokenBucket(cfg.source_rate_hz, cfg.source_burst, now_ns)
-                if len(self._buckets) > self._max_keys:
-                    self._buckets.popitem(last=False)
-            self._buckets.move_to_end(key)
             reason = ("too_large" if size > cfg.max_message_bytes else
-                      "rate_limited" if not bucket.take(now_ns) else
+                      "rate_limited" if not self._buckets.take(key, now_ns) else
                       "bytes_limited" if not self._bytes.take(now_ns, size) else
                       "overflow" if self._pending >= cfg.max_pending_arrivals else None)
             if reason is not None:

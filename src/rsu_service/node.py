@@ -12,11 +12,11 @@ summary.
 from __future__ import annotations
 
 import threading
-from collections import Counter, OrderedDict
+from collections import Counter
 
 from schemas import keys
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
-from schemas.intake import TokenBucket
+from schemas.intake import KeyedBuckets, TokenBucket
 from schemas.messages import RsuMetrics, TimeRequest
 from schemas.runtime import ThrottledLog, announce, log
 from schemas.transport import open_session
@@ -53,7 +53,7 @@ class RsuNode:
         self.time_replies = 0
         self._lock = threading.Lock()  # rejected, time_replies and the bucket: the query callback's
         self._queries = TokenBucket(config.query_rate_hz, config.query_burst, self.true_clock.now_ns())
-        self._queriers: OrderedDict[str, TokenBucket] = OrderedDict()  # obu_id -> bucket, least recent first
+        self._queriers = KeyedBuckets(config.querier_rate_hz, config.querier_burst, MAX_QUERIERS)  # by obu_id
         self._log = ThrottledLog("rsu")
         self._logged: Counter[str] = Counter()
         self._details: dict[str, str] = {}
@@ -144,7 +144,7 @@ class RsuNode:
                 raise MessageTooLarge(f"time query of {len(payload)} bytes, limit {self.config.max_query_bytes}")
             request = decode(payload.to_bytes(), TimeRequest)
             with self._lock:
-                if not self._querier(request.obu_id).take(self.true_clock.now_ns()):
+                if not self._queriers.take(request.obu_id, self.true_clock.now_ns()):
                     raise _Refused("querier_rate_limited")
         except (CodecError, _Refused) as exc:
             with self._lock:
@@ -155,18 +155,6 @@ class RsuNode:
         query.reply(keys.rsu_time(self.config.rsu_id), encode(reply))
         with self._lock:
             self.time_replies += 1
-
-
-    def _querier(self, obu_id: str) -> TokenBucket:
-        """The querier's bucket (created full); at most MAX_QUERIERS are kept, least recent forgotten."""
-        bucket = self._queriers.get(obu_id)
-        if bucket is None:
-            bucket = self._queriers[obu_id] = TokenBucket(self.config.querier_rate_hz, self.config.querier_burst,
-                                                           self.true_clock.now_ns())
-            if len(self._queriers) > MAX_QUERIERS:
-                self._queriers.popitem(last=False)
-        self._queriers.move_to_end(obu_id)
-        return bucket
 
 
 class _Refused(Exception):

@@ -53,18 +53,36 @@ class TokenBucket:
         return True
 
 
+class KeyedBuckets:
+    """A token bucket per key (created full); only the ``max_keys`` most recently used are kept,
+    so a flood of new keys costs memory for ``max_keys`` buckets at most. Not thread-safe."""
+
+    def __init__(self, rate_hz: float, burst: int, max_keys: int = 1024):
+        self.rate_hz, self.burst, self.max_keys = rate_hz, burst, max_keys
+        self._buckets: OrderedDict[str, TokenBucket] = OrderedDict()
+
+    def take(self, key: str, now_ns: int) -> bool:
+        """One token of ``key``'s bucket, if it has one."""
+        bucket = self._buckets.get(key)
+        if bucket is None:
+            bucket = self._buckets[key] = TokenBucket(self.rate_hz, self.burst, now_ns)
+            if len(self._buckets) > self.max_keys:
+                self._buckets.popitem(last=False)
+        self._buckets.move_to_end(key)
+        return bucket.take(now_ns)
+
+
 class Intake:
     def __init__(self, capacity: int = 512, max_bytes: int = 1 << 20, rate_hz: float = 50.0, burst: int = 25,
                  max_sources: int = 1024, max_queued_bytes: int = 32 << 20,
                  preferred: Callable[[str], bool] = lambda source: False,
                  clock_ns: Callable[[], int] = time.monotonic_ns):
         self.capacity, self.max_bytes, self.max_queued_bytes = capacity, max_bytes, max_queued_bytes
-        self.rate_hz, self.burst, self.max_sources = rate_hz, burst, max_sources
         self._preferred, self._clock_ns = preferred, clock_ns
         self._cond = threading.Condition()
         self._queues: dict[str, deque[Item]] = {}
         self._rings: tuple[OrderedDict[str, None], OrderedDict[str, None]] = (OrderedDict(), OrderedDict())
-        self._buckets: OrderedDict[str, TokenBucket] = OrderedDict()
+        self._buckets = KeyedBuckets(rate_hz, burst, max_sources)
         self._counts: Counter[str] = Counter()
         self._items = self._bytes = 0
 
@@ -77,7 +95,7 @@ class Intake:
         if size > self.max_bytes:
             return self._refuse("too_large")
         with self._cond:
-            if not self._take_token(source):
+            if not self._buckets.take(source, self._clock_ns()):
                 self._counts["rate_limited"] += 1
                 return False
         payload = read()
@@ -113,17 +131,6 @@ class Intake:
         with self._cond:
             self._counts[reason] += 1
         return False
-
-    def _take_token(self, source: str) -> bool:
-        """One token of the source's bucket (created full; the least recently used one forgotten)."""
-        now_ns = self._clock_ns()
-        bucket = self._buckets.get(source)
-        if bucket is None:
-            bucket = self._buckets[source] = TokenBucket(self.rate_hz, self.burst, now_ns)
-            if len(self._buckets) > self.max_sources:
-                self._buckets.popitem(last=False)
-        self._buckets.move_to_end(source)
-        return bucket.take(now_ns)
 
     def _pop(self, source: str, ring: OrderedDict[str, None]) -> Item:
         """The oldest item of ``source``; the source goes to the back of its ring (round-robin)."""

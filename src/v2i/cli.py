@@ -184,7 +184,6 @@ def cmd_chaos_run(args: argparse.Namespace) -> int:
 
 
 def cmd_fuzz(args: argparse.Namespace) -> int:
-    from evaluation.demo import DemoError
     from evaluation.fuzz import summary
     from evaluation.fuzz_targets import TARGETS
 
@@ -193,15 +192,9 @@ def cmd_fuzz(args: argparse.Namespace) -> int:
         _check_writable(Path(args.json), "--json")
     kinds = args.kinds.split(",") if args.kinds else None
     run = TARGETS[args.target](args.count, seed=args.seed, rate_hz=args.rate, startup_s=args.startup, kinds=kinds)
-    _interrupt_on(signal.SIGINT, signal.SIGTERM)
-    try:
-        report = run.run()
-    except DemoError as exc:
-        print(f"v2i fuzz: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("v2i fuzz: interrupted; all services stopped", file=sys.stderr)
-        return 130
+    report = _live(run.run, "v2i fuzz")
+    if isinstance(report, int):
+        return report
     print(summary(report), file=sys.stderr if args.json == "-" else sys.stdout)
     if args.json == "-":
         print(json.dumps(report, indent=2))
@@ -210,19 +203,29 @@ def cmd_fuzz(args: argparse.Namespace) -> int:
     return 1 if report["crashes"] or report["outputs"]["late"] or report["outputs"]["missing"] else 0
 
 
-def _run_demo(demo, json_path: str | None, prog: str) -> int:
-    """Run a live demo and emit its report; 1 when it failed, 130 when interrupted."""
-    from evaluation.demo import DemoError, format_chaos
+def _live(run, prog: str) -> dict | int:
+    """The report of a live run (services as processes), or its exit code: 1 when it failed,
+    130 when interrupted (SIGINT or SIGTERM); the run stops its services either way."""
+    from evaluation.demo import DemoError
 
     _interrupt_on(signal.SIGINT, signal.SIGTERM)
     try:
-        report = demo.run()
+        return run()
     except DemoError as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"{prog}: interrupted; all services stopped", file=sys.stderr)
         return 130
+
+
+def _run_demo(demo, json_path: str | None, prog: str) -> int:
+    """Run a live demo and emit its report; 1 when it failed, 130 when interrupted."""
+    from evaluation.demo import format_chaos
+
+    report = _live(demo.run, prog)
+    if isinstance(report, int):
+        return report
     _emit(report, json_path)
     if chaos := format_chaos(report):
         print(chaos, file=sys.stderr if json_path == "-" else sys.stdout)
