@@ -34,14 +34,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.frames import Pose2D, base_to_map, map_to_base
+from fusion.ego_map_tracker import EgoMapTracker
+from fusion.frames import Pose2D, add_pose_uncertainty, base_to_map, map_to_base
 from fusion.merger import iou_merge
 from fusion.motion import predict_ca
 from fusion.nms import nms_fuse
 from fusion.objects import ObjectArray
 from fusion.oosm import OosmTracker
 from fusion.tclf import tclf_compensate, tclf_fuse
-from fusion.tracking import Tracker, TrackerConfig
+from fusion.tracking import TrackerConfig
 from schemas.messages import SOURCE_RSU
 
 FUSION_METHODS = ("kf", "iou-merge", "nms", "tclf", "rsu-only", "vehicle-only", "kf-vehicle", "kf-rsu")
@@ -101,20 +102,25 @@ class KalmanFusion:
     def __init__(self, compensation: str, use_own: bool = True, use_rsu: bool = True,
                  tracker: TrackerConfig = TrackerConfig(accel_std_mps2=1.0), motion: Motion = predict_ca):
         self.compensation, self.use_own, self.use_rsu, self.motion = compensation, use_own, use_rsu, motion
-        self.tracker = OosmTracker(Tracker(tracker)) if compensation == "oosm" else Tracker(tracker)
+        self._ego_map = EgoMapTracker(tracker)  # a Tracker in the map of the drifting pose estimate
+        self.tracker = OosmTracker(self._ego_map) if compensation == "oosm" else self._ego_map
         self._ref_ns: int | None = None
 
     def fuse(self, cycle_ns: int, ego: Pose2D, own: ObjectArray, newest: list[RsuFrame], fresh: list[RsuFrame]) -> ObjectArray:
         if self._ref_ns is None:
             self._ref_ns = cycle_ns
         t_s = self._t(cycle_ns)
+        # the tracker lives in map as the estimated pose places it (fusion.frames): own objects
+        # enter it and tracks leave it without the pose covariance, RSU objects (true map) with it
+        self._ego_map.ego = ego
         if self.use_own:
-            self._update(base_to_map(own, ego), t_s, own.sources)
+            self._update(base_to_map(own, ego, pose_uncertainty=False), t_s, own.sources)
         for frame in sorted(fresh, key=lambda f: f.valid_ns) if self.use_rsu else ():
             # oosm: a measurement at its own time, re-filtered into the past; else moved to the cycle
             at_ns = frame.valid_ns if self.compensation == "oosm" else cycle_ns
-            self._update(self._as_measurement(frame, at_ns), self._t(at_ns), frame.objects.sources, estimates=True)
-        return map_to_base(self._tracks(t_s), ego)
+            rsu = add_pose_uncertainty(self._as_measurement(frame, at_ns), ego)
+            self._update(rsu, self._t(at_ns), frame.objects.sources, estimates=True)
+        return map_to_base(self._tracks(t_s), ego, pose_uncertainty=False)
 
     def _as_measurement(self, frame: RsuFrame, cycle_ns: int) -> ObjectArray:
         # R = C + dt^2 C_v: moving the estimate by v dt adds the velocity's uncertainty

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.frames import Pose2D, base_to_map_points, map_to_base, wrap_angle
+from fusion.frames import Pose2D, PoseUncertainty, base_to_map_points, map_to_base, wrap_angle
 from fusion.objects import ObjectArray
 from schemas.classes import ObjectClass
 
@@ -165,13 +165,16 @@ class Localization:
     """Ego pose measurement: true pose + a slowly drifting Gaussian error on x, y, yaw.
 
     The error is a first-order Gauss-Markov process with stationary std sigma and
-    correlation time tau: e_k = a e_{k-1} + sqrt(1 - a^2) sigma w_k, a = exp(-dt / tau).
+    correlation time tau: e_k = a e_{k-1} + sqrt(1 - a^2) sigma w_k, a = exp(-dt / tau)
+    (e_0 = sigma w_0, so every e_k has covariance diag(sigma^2)). Each measured pose states
+    these statistics (``uncertainty``), as a real localisation reports its covariance.
     """
 
     def __init__(self, cfg: LocalizationConfig, rng: np.random.Generator):
         self.cfg = cfg
         self.rng = rng
         self._sigma = np.array([cfg.x_std_m, cfg.y_std_m, cfg.yaw_std_rad])
+        self.uncertainty = PoseUncertainty.from_stds(cfg.x_std_m, cfg.y_std_m, cfg.yaw_std_rad, cfg.correlation_time_s)
         self._error: np.ndarray | None = None
         self._t_s: float | None = None
 
@@ -187,7 +190,8 @@ class Localization:
         return self._error
 
     def measure(self, world: World, t_s: float) -> Pose2D:
-        """Noisy ego pose in map at t_s (s); velocity passed through unchanged."""
+        """Noisy ego pose in map at t_s (s) with its stated uncertainty; velocity passed through unchanged."""
         true = world.ego_at(t_s)
         dx, dy, dyaw = self._next_error(t_s)
-        return Pose2D(x=true.x + dx, y=true.y + dy, yaw=float(wrap_angle(true.yaw + dyaw)), vx=true.vx, vy=true.vy)
+        return Pose2D(x=true.x + dx, y=true.y + dy, yaw=float(wrap_angle(true.yaw + dyaw)), vx=true.vx, vy=true.vy,
+                      uncertainty=self.uncertainty)
