@@ -61,6 +61,12 @@ class Measured:
     yaw_rate: np.ndarray
     cov_vxy: np.ndarray | None = None
 
+    def velocity_measured(self, speed_std_mps: float) -> np.ndarray:
+        """(K,) True where a velocity was measured more tightly than the prior speed_std^2 I (by trace)."""
+        if self.cov_vxy is None:
+            return np.zeros(len(self.xy), bool)
+        return self.cov_vxy[:, 0, 0] + self.cov_vxy[:, 1, 1] < 2 * speed_std_mps**2
+
     def velocity_prior(self, speed_std_mps: float) -> np.ndarray:
         """(K, 2, 2) initial velocity covariance: the measured one where it is tighter than
         the prior speed_std^2 I (by trace), else the prior."""
@@ -68,7 +74,7 @@ class Measured:
         if self.cov_vxy is None:
             return np.tile(prior, (len(self.xy), 1, 1))
         out = self.cov_vxy.copy()
-        out[out[:, 0, 0] + out[:, 1, 1] >= 2 * speed_std_mps**2] = prior
+        out[~self.velocity_measured(speed_std_mps)] = prior
         return out
 
 
@@ -264,6 +270,37 @@ class Ctrv:
 
     def yaw_rate(self, x: np.ndarray) -> np.ndarray:
         return x[:, 4].copy()
+
+
+def two_point(model: MotionModel, x0: np.ndarray, p0: np.ndarray, z: np.ndarray, r: np.ndarray,
+              dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Two-point initialisation of K tracks of a linear model with x = [p, v, rest] (CV, CA).
+
+    Each track was born dt_s (!= 0) seconds ago as x0 (K, n), P0 (K, n, n) from a position
+    without a measured velocity; z (K, 2), R (K, 2, 2) is its second position. Returns the
+    state x (K, n), P (K, n, n) at the second position's time with the velocity prior dropped
+    (flat): the limit of predict + update as the prior velocity variance goes to infinity.
+
+    Derivation: x2 = F x1 + w, w ~ N(0, Q); z = H x2 + n, n ~ N(0, R); p1 ~ N(z1, R1) and
+    the rest r1 as born; v1 unknown. H F x1 = F_pp p1 + F_pv v1 + F_pr r1 gives
+    v1 = F_pv^-1 (z - n - H w - F_pp p1 - F_pr r1), so with G = F[:, v] F_pv^-1:
+      x2 = G z + A x1 + B w - G n,   A = F - G H F (its velocity columns vanish), B = I - G H
+      x = G z + A x0,                P = A P0 A^T + G R G^T + B Q B^T
+    For CV (F_pv = dt I): p = z, v = (z - z1) / dt, P_pp = R, P_pv = R / dt,
+    P_vv = (R1 + R) / dt^2 + sigma_a^2 dt^2 / 4 (the last term: v2 is the end-point velocity,
+    (z - z1) / dt the mean one, which lags it by a dt / 2 under the white acceleration a).
+    """
+    if not isinstance(model, (ConstantVelocity, ConstantAcceleration)):
+        raise ValueError(f"two-point initialisation needs a linear model with a velocity state, got {model!r}")
+    _, f = model.transition(x0, dt_s)  # (n, n), shared by the batch
+    q = model.process_noise(x0, dt_s)
+    g = f[:, 2:4] @ np.linalg.inv(f[:2, 2:4])  # G = F[:, v] F_pv^-1, (n, 2)
+    a = f - g @ f[:2, :]  # A = F - G H F
+    b = np.eye(model.dim_x)
+    b[:, :2] -= g  # B = I - G H
+    x = z @ g.T + x0 @ a.T
+    p = a @ p0 @ a.T + g @ r @ g.T + b @ q @ b.T
+    return x, p
 
 
 def predict(x: np.ndarray, p: np.ndarray, model: MotionModel, dt_s: float) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,13 @@ Motion (``TrackerConfig.motion``): ``cv`` [x, y, vx, vy], ``ca`` [x, y, vx, vy, 
 ``jerk_std_mps3`` (CA), ``yaw_accel_std_radps2`` (CTRV omega-dot). New tracks start at the
 detection (position covariance from the detection, velocity / acceleration / yaw / yaw rate
 from the detection with the ``init_*`` prior standard deviations; CV / CA take the
-detection's velocity covariance where it is tighter than the speed prior).
+detection's velocity covariance where it is tighter than the speed prior). Two-point
+initialisation (CV / CA, ``two_point_init``): a track born without a measured velocity
+whose second hit is again a position only takes its velocity from the two positions,
+v = (z2 - z1) / dt with P_vv = (R1 + R2) / dt^2 (+ process noise; ``kalman.two_point``),
+instead of a Kalman update against the 0 m/s prior, which shrinks the velocity of a fast
+target toward 0 (at 80 m from a 5 Hz camera, R ~ 1.8 m^2: about half of it) and lets
+the young track fall behind it.
 
 Association per ``update``: a pair (track, detection) is allowed when the classes are
 compatible (equal, or either is UNKNOWN = 0) and the pair passes the gate:
@@ -24,9 +30,14 @@ detected box). Matched tracks get a Kalman update of the position and, for CV / 
 
 Life cycle (``tracks`` returns confirmed and coasting tracks):
 - tentative: spawned by an unmatched detection with one hit; every update adds a hit
-  (own LiDAR and an RSU in the same cycle give two); deleted by ``prune`` when its last
-  update is older than ``tentative_max_coast_s`` (0: at its first miss).
-- confirmed: hits >= ``confirm_hits`` and updated at the current time.
+  (own LiDAR and an RSU in the same cycle give two).
+- confirmed: hits >= ``confirm_hits``, or matched with or spawned by another tracker's
+  estimate (``update(..., estimates=True)``: an RSU object is the RSU's confirmed track),
+  and updated at the current time.
+- a track with fewer than ``confirm_hits`` hits (tentative, or confirmed by a single
+  estimate) is deleted by ``prune`` when its last update is older than
+  ``tentative_max_coast_s`` (0: at its first miss): an RSU object heard once lingers no
+  longer than a tentative track lives.
 - coasting: confirmed but not updated at the current time; predicted only.
 - deleted: by ``prune`` once its last update is older than ``max_coast_s``.
 
@@ -76,6 +87,7 @@ class TrackerConfig:
     tentative_max_coast_s: float = 0.3  # a tentative track survives misses this long (>= slowest source period)
     velocity_updates: bool = True  # cv / ca: measured velocities (cov_vxy below unknown) update the state too
     shape_hold_s: float = 0.3  # a box shape from a precise source is kept this long against coarser ones
+    two_point_init: bool = True  # cv / ca: a track born without a velocity takes it from its first two positions
 
     def __post_init__(self) -> None:
         for name, allowed in (("gate", ("distance", "mahalanobis")), ("cost", ("distance", "mahalanobis", "iou"))):
@@ -96,7 +108,9 @@ class TrackTable:
     """Columns of N tracks: filter state x (N, n), P (N, n, n); ids, cls (N,); z (N,) m,
     lwh (N, 3) m, yaw (N,) rad, confidence (N,) of the last detection; hits (N,);
     born_s, updated_s (N,) s; seen_s (N, SOURCE_BITS) s, last update per source bit (-inf never);
-    shape_var (N,) m^2, shape_s (N,) s: position variance and time of the detection the box shape came from."""
+    shape_var (N,) m^2, shape_s (N,) s: position variance and time of the detection the box shape came from;
+    confirmed (N,) bool (see the life cycle); birth_x (N, n), birth_p (N, n, n): the state the track was
+    born with; velocity_prior (N,) bool: born without a measured velocity (two-point initialisation)."""
 
     x: np.ndarray
     p: np.ndarray
@@ -112,12 +126,17 @@ class TrackTable:
     seen_s: np.ndarray
     shape_var: np.ndarray
     shape_s: np.ndarray
+    confirmed: np.ndarray
+    birth_x: np.ndarray
+    birth_p: np.ndarray
+    velocity_prior: np.ndarray
 
     @classmethod
     def empty(cls, dim_x: int) -> TrackTable:
-        z1 = np.zeros(0)
-        return cls(np.zeros((0, dim_x)), np.zeros((0, dim_x, dim_x)), np.zeros(0, np.int64), np.zeros(0, np.int64),
-                   z1, np.zeros((0, 3)), z1, z1, np.zeros(0, np.int64), z1, z1, np.zeros((0, SOURCE_BITS)), z1, z1)
+        z1, no = np.zeros(0), np.zeros(0, bool)
+        x, p = np.zeros((0, dim_x)), np.zeros((0, dim_x, dim_x))
+        return cls(x, p, np.zeros(0, np.int64), np.zeros(0, np.int64), z1, np.zeros((0, 3)), z1, z1,
+                   np.zeros(0, np.int64), z1, z1, np.zeros((0, SOURCE_BITS)), z1, z1, no, x.copy(), p.copy(), no.copy())
 
     def __len__(self) -> int:
         return len(self.x)
@@ -321,6 +340,7 @@ class Tracker:
         matched track that no other source updated within ``max_coast_s`` takes the estimate
         as its state: the newest estimate already holds everything that source said before,
         and filtering it in would count that again. Other matched tracks get the Kalman update.
+        Tracks matched with or spawned by an estimate are confirmed (another tracker confirmed it).
         """
         self.predict(t_s)
         bits = source_mask_bits(np.asarray(dets.sources) | int(source_mask))
@@ -329,12 +349,19 @@ class Tracker:
         alone = self._seen_only_by(ti, bits[di], t_s) if estimates else np.zeros(len(ti), bool)
         # one initialisation, from the detection alone, for the tracks an estimate replaces and the new tracks
         start = np.concatenate([di[alone], result.unmatched_b])
-        x0, p0 = self.model.initial(filter_inputs(dets, start), self._prior)
+        inputs = filter_inputs(dets, start)
+        x0, p0 = self.model.initial(inputs, self._prior)
         k = int(alone.sum())
         self._table.x[ti[alone]], self._table.p[ti[alone]] = x0[:k], p0[:k]
-        self._correct(ti[~alone], di[~alone], dets)
-        self._record(ti, di, dets, bits, t_s)
-        self._spawn(dets, result.unmatched_b, bits, t_s, x0[k:], p0[k:])
+        ti, di = ti[~alone], di[~alone]
+        pair = self._second_positions(ti, di, dets, t_s)
+        if pair.any():
+            self._two_point(ti[pair], di[pair], dets, t_s)
+            ti, di = ti[~pair], di[~pair]
+        self._correct(ti, di, dets)
+        self._record(result.matches[:, 0], result.matches[:, 1], dets, bits, t_s, estimates)
+        measured = inputs.velocity_measured(self._prior.speed_std_mps)[k:]
+        self._spawn(dets, result.unmatched_b, bits, t_s, x0[k:], p0[k:], estimates, ~measured)
 
     def prune(self, t_s: float) -> None:
         """Delete stale tracks (last update older than max_coast_s) and missed tentative tracks."""
@@ -354,7 +381,7 @@ class Tracker:
         since birth; sources (see module doc).
         """
         tab = self._table
-        keep = (tab.hits >= self.config.confirm_hits) & (t_s - tab.updated_s <= self.config.max_coast_s)
+        keep = tab.confirmed & (t_s - tab.updated_s <= self.config.max_coast_s)
         tab = tab.take(keep)
         x, p = tab.x, tab.p
         if self._t_s is not None and t_s != self._t_s and len(tab):
@@ -371,7 +398,7 @@ class Tracker:
     def lifecycle(self, t_s: float) -> dict[int, str]:
         """State of every live track at t_s by id: ``tentative``, ``confirmed`` or ``coasting``."""
         tab = self._table
-        confirmed = tab.hits >= self.config.confirm_hits
+        confirmed = tab.confirmed
         coasting = confirmed & (tab.updated_s < t_s)
         names = np.where(coasting, "coasting", np.where(confirmed, "confirmed", "tentative"))
         return {int(i): str(n) for i, n in zip(tab.ids, names)}
@@ -393,6 +420,24 @@ class Tracker:
         recent = (t_s - self._table.seen_s[ti]) <= self.config.max_coast_s
         return ~(recent & ~bits).any(axis=1)
 
+    def _second_positions(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, t_s: float) -> np.ndarray:
+        """(K,) True where the pair (track ti, detection di) is a two-point initialisation: the track
+        has one hit, was born without a measured velocity at an earlier time, and the detection
+        measures no velocity either (a measured one is fused by ``_correct``)."""
+        tab = self._table
+        first = tab.hits[ti] == 1
+        if not first.any() or not self.config.two_point_init or self.config.motion not in ("cv", "ca"):
+            return np.zeros(len(ti), bool)
+        return first & tab.velocity_prior[ti] & (tab.born_s[ti] < t_s) & ~dets.velocity_known()[di]
+
+    def _two_point(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, t_s: float) -> None:
+        """Tracks ti take their state from their birth and the second positions di (``kalman.two_point``)."""
+        tab = self._table
+        for born_s in np.unique(tab.born_s[ti]):
+            t, d = ti[tab.born_s[ti] == born_s], di[tab.born_s[ti] == born_s]
+            tab.x[t], tab.p[t] = kalman.two_point(self.model, tab.birth_x[t], tab.birth_p[t], dets.xy[d],
+                                                  dets.cov_xy[d], t_s - born_s)
+
     def _correct(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray) -> None:
         """Kalman update of tracks ti with detections di (position, then measured velocity)."""
         tab = self._table
@@ -407,13 +452,15 @@ class Tracker:
             if len(vt):
                 tab.x[vt], tab.p[vt], _ = kalman.update(tab.x[vt], tab.p[vt], dets.vxy[v], dets.cov_vxy[v], first=2)
 
-    def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, bits: np.ndarray, t_s: float) -> None:
-        """Bookkeeping of matched tracks ti: class, shape, confidence, hits and update times."""
+    def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, bits: np.ndarray, t_s: float,
+                estimates: bool) -> None:
+        """Bookkeeping of matched tracks ti: class, shape, confidence, hits, confirmation and update times."""
         tab = self._table
         tab.cls[ti] = np.where(tab.cls[ti] == 0, dets.cls[di], tab.cls[ti])  # UNKNOWN adopts a class
         self._take_shape(ti, dets, di, t_s)
         tab.confidence[ti] = dets.confidence[di]
         tab.hits[ti] += 1
+        tab.confirmed[ti] |= (tab.hits[ti] >= self.config.confirm_hits) | estimates
         tab.updated_s[ti] = t_s
         seen = tab.seen_s[ti]
         seen[bits[di]] = t_s
@@ -432,8 +479,9 @@ class Tracker:
         tab.shape_var[t], tab.shape_s[t] = var[take], t_s
 
     def _spawn(self, dets: ObjectArray, index: np.ndarray, bits: np.ndarray, t_s: float, x: np.ndarray,
-               p: np.ndarray) -> None:
-        """New tentative tracks from the detections dets[index], initial state x (n, dim), P (n, dim, dim)."""
+               p: np.ndarray, estimates: bool, velocity_prior: np.ndarray) -> None:
+        """New tracks from the detections dets[index], initial state x (n, dim), P (n, dim, dim): tentative,
+        or confirmed when they are another tracker's estimates; velocity_prior (n,) as in TrackTable."""
         n = len(index)
         if not n:
             return
@@ -444,7 +492,8 @@ class Tracker:
                          dets.lwh[index].astype(float), wrap_angle(dets.yaw[index]),
                          dets.confidence[index].astype(float),
                          np.ones(n, np.int64), born, born.copy(), np.where(bits[index], t_s, -np.inf),
-                         _trace2(dets.cov_xy[index]), born.copy())
+                         _trace2(dets.cov_xy[index]), born.copy(),
+                         np.full(n, estimates or self.config.confirm_hits <= 1), x, p, velocity_prior)
         self._table = self._table.append(new)
 
 

@@ -224,3 +224,57 @@ def test_new_tracks_take_a_measured_velocity_covariance_tighter_than_the_prior()
         np.testing.assert_array_equal(p[0, 2:4, 2:4], tight)
         np.testing.assert_array_equal(p[1, 2:4, 2:4], np.eye(2) * 100.0)
         np.testing.assert_array_equal(p[:, :2, :2], m.cov_xy)
+
+
+# --- two-point initialisation -------------------------------------------------------------------
+
+
+def filterpy_with_velocity_prior(model, x0, p0, z, r, dt_s, velocity_var):
+    """filterpy: born at x0, P0 with the velocity variance replaced by velocity_var, predict dt_s, update z."""
+    p = p0.copy()
+    p[2:4, :], p[:, 2:4] = 0.0, 0.0
+    p[2:4, 2:4] = np.eye(2) * velocity_var
+    kf = filterpy_kf(model, x0, p)
+    xs = x0[None]
+    kf.predict(F=model.transition(xs, dt_s)[1], Q=model.process_noise(xs, dt_s))
+    kf.update(z, R=r)
+    return kf.x[:, 0], kf.P
+
+
+@pytest.mark.parametrize("model", [ConstantVelocity(3.0), ConstantAcceleration(5.0)], ids=["cv", "ca"])
+def test_two_point_is_the_kalman_filter_with_a_flat_velocity_prior(model):
+    """filterpy's predict + update converge to the closed form as the prior velocity variance L grows (error ~ 1/L)."""
+    rng = np.random.default_rng(3)
+    x0, p0 = start(model, rng)
+    z, r, dt_s = x0[:, :2] + rng.normal(0, 3, (N_TRACKS, 2)), random_spd(rng, N_TRACKS), 0.2
+    x, p = kalman.two_point(model, x0, p0, z, r, dt_s)
+    for i in range(N_TRACKS):
+        errors = []
+        for velocity_var in (1e4, 1e6, 1e8):
+            xf, pf = filterpy_with_velocity_prior(model, x0[i], p0[i], z[i], r[i], dt_s, velocity_var)
+            errors.append(max(np.abs(xf - x[i]).max(), np.abs(pf - p[i]).max()))
+        assert errors[2] < 1e-3 and 30 < errors[0] / errors[1] < 300 and 30 < errors[1] / errors[2] < 300, errors
+        np.testing.assert_allclose(p[i], p[i].T, atol=1e-12)
+        assert np.all(np.linalg.eigvalsh(p[i]) > 0)
+
+
+def test_two_point_cv_closed_form():
+    """p = z2, v = (z2 - z1) / dt; P_pp = R2, P_pv = R2 / dt, P_vv = (R1 + R2) / dt^2 + sigma_a^2 dt^2 / 4."""
+    rng = np.random.default_rng(5)
+    model, dt_s = ConstantVelocity(2.0), 0.25
+    x0, p0 = start(model, rng)
+    z1, r1 = x0[:, :2], p0[:, :2, :2]
+    z2, r2 = z1 + rng.normal(0, 3, (N_TRACKS, 2)), random_spd(rng, N_TRACKS)
+    x, p = kalman.two_point(model, x0, p0, z2, r2, dt_s)
+    np.testing.assert_allclose(x[:, :2], z2, atol=1e-12)
+    np.testing.assert_allclose(x[:, 2:], (z2 - z1) / dt_s, atol=1e-12)
+    np.testing.assert_allclose(p[:, :2, :2], r2, atol=1e-12)
+    np.testing.assert_allclose(p[:, :2, 2:], r2 / dt_s, atol=1e-12)
+    np.testing.assert_allclose(p[:, 2:, 2:], (r1 + r2) / dt_s**2 + np.eye(2) * 2.0**2 * dt_s**2 / 4, atol=1e-9)
+
+
+def test_two_point_needs_a_linear_model_with_a_velocity_state():
+    rng = np.random.default_rng(0)
+    x0, p0 = start(Ctrv(), rng)
+    with pytest.raises(ValueError, match="linear"):
+        kalman.two_point(Ctrv(), x0, p0, x0[:, :2], p0[:, :2, :2], 0.1)

@@ -127,6 +127,105 @@ def test_measured_velocity_updates_the_track_and_an_unknown_one_does_not():
     assert spawned_moving() > 4.5 > spawned_moving(velocity_updates=False) + 0.5  # off: only the spawn took it
 
 
+# --- track start: two-point velocity, RSU estimates confirmed on their first list -------------------
+
+
+def test_second_position_initialises_the_velocity_from_two_points():
+    """Born at z1 without a velocity, second position z2 dt later: v = (z2 - z1) / dt and
+    P_vv = (R1 + R2) / dt^2 + sigma_a^2 dt^2 / 4, not a Kalman update against the 0 m/s prior."""
+    def second_hit(**cfg):
+        tracker = Tracker(TrackerConfig(confirm_hits=2, **cfg))
+        tracker.update(dets([-80.0, -1.0], std=1.3), 0.0, RSU)
+        tracker.update(dets([-77.0, -1.6], std=1.4), 0.2, RSU)
+        return tracker.tracks(0.2)
+
+    out = second_hit()
+    np.testing.assert_allclose(out.xy[0], [-77.0, -1.6], atol=1e-12)
+    np.testing.assert_allclose(out.vxy[0], [15.0, -3.0], atol=1e-9)
+    np.testing.assert_allclose(out.cov_vxy[0], np.eye(2) * ((1.3**2 + 1.4**2) / 0.04 + 9.0 * 0.04 / 4), atol=1e-9)
+    shrunk = second_hit(two_point_init=False).vxy[0, 0]
+    assert 0 < shrunk < 0.6 * 15.0  # the old start: a 15 m/s car at less than 9 m/s
+
+
+def test_two_point_only_for_tracks_and_detections_without_a_measured_velocity():
+    def second_hit(first, second):
+        tracker = Tracker(TrackerConfig())
+        tracker.update(first, 0.0, LIDAR)
+        tracker.update(second, 0.2, LIDAR)
+        return tracker.tracks(0.2).vxy[0, 0]
+
+    plain, moving = dets([0.0, 0.0]), with_velocity(dets([0.0, 0.0]), [2.0, 0.0], 0.3)
+    assert second_hit(plain, dets([3.0, 0.0])) == pytest.approx(15.0)
+    # a measured velocity at either hit is fused by the Kalman filter instead
+    assert 1.5 < second_hit(moving, dets([3.0, 0.0])) < 3.0
+    assert 1.5 < second_hit(plain, with_velocity(dets([3.0, 0.0]), [2.0, 0.0], 0.3)) < 3.0
+
+
+def far_fast_car_tracks(seed, **cfg):
+    """A car at 30 m/s, 150 m out, seen at 10 Hz with 1 m noise (the highway RSU camera): the ids
+    of the confirmed tracks over 1.5 s, and the last output."""
+    rng = np.random.default_rng(seed)
+    tracker, ids, out = Tracker(TrackerConfig(**cfg)), set(), None
+    for k in range(15):
+        t = 0.1 * k
+        out = tracker.step(dets(np.array([150.0 + 30.0 * t, 0.0]) + rng.normal(0, 1.0, 2), std=1.0), t)
+        ids |= set(out.ids.tolist())
+    return ids, out
+
+
+@pytest.mark.parametrize("gate", ["distance", "mahalanobis"])
+def test_far_fast_car_converges_without_a_second_track(gate):
+    seeds = range(40)
+    split_new = sum(len(far_fast_car_tracks(s, gate=gate)[0]) > 1 for s in seeds)
+    split_old = sum(len(far_fast_car_tracks(s, gate=gate, two_point_init=False)[0]) > 1 for s in seeds)
+    assert split_new <= 4 and split_old >= 2 * split_new, (split_new, split_old)
+    ids, out = far_fast_car_tracks(0, gate=gate)
+    assert len(ids) == 1 and out.vxy[0, 0] == pytest.approx(30.0, abs=3.0)
+
+
+def rsu_estimate(xy, vxy=(10.0, 0.0)):
+    return with_velocity(dets(xy, std=0.8), vxy, 1.0)
+
+
+def test_rsu_estimate_is_confirmed_on_its_first_list():
+    tracker = Tracker(TrackerConfig())
+    tracker.update(rsu_estimate([40.0, 0.0]), 0.0, RSU, estimates=True)
+    out = tracker.tracks(0.0)
+    assert len(out) == 1 and out.sources[0] == RSU and tracker.lifecycle(0.0) == {1: "confirmed"}
+    plain = Tracker(TrackerConfig())
+    plain.update(rsu_estimate([40.0, 0.0]), 0.0, RSU)  # a detection, not another tracker's track
+    assert len(plain.tracks(0.0)) == 0 and plain.lifecycle(0.0) == {1: "tentative"}
+    tentative = Tracker(TrackerConfig(confirm_hits=3))  # LiDAR's tentative track, matched by an estimate
+    tentative.update(dets([0.0, 0.0]), 0.0, LIDAR)
+    tentative.update(rsu_estimate([0.3, 0.0]), 0.0, RSU, estimates=True)
+    assert tentative.lifecycle(0.0) == {1: "confirmed"}
+
+
+@pytest.mark.parametrize("lists", [1, 3])
+def test_rsu_only_objects_are_deleted_when_they_were_before(lists):
+    """A ghost in `lists` RSU lists (5 Hz), then never again: as an estimate it shows from its
+    first list, and is deleted at the same cycle as when it had to be confirmed by a second list
+    (heard once: after tentative_max_coast_s = 0.3 s; more often: max_coast_s = 0.6 s after the last)."""
+    def lifetime(estimates):
+        tracker, shown, alive = Tracker(TrackerConfig()), [], []
+        for k in range(20):  # 10 Hz cycles
+            t = round(0.1 * k, 10)
+            tracker.predict(t)
+            if k % 2 == 0 and k // 2 < lists:
+                tracker.update(rsu_estimate([40.0 + t, 0.0]), t, RSU, estimates)
+            tracker.prune(t)
+            shown.append(len(tracker.tracks(t)))
+            alive.append(len(tracker))
+        return shown, alive
+
+    shown, alive = lifetime(True)
+    shown_before, alive_before = lifetime(False)
+    assert alive == alive_before and shown == alive  # the same life, all of it shown
+    assert sum(shown_before) == (0 if lists == 1 else sum(alive) - 2)  # before: from the second list on
+    last = max(k for k, n in enumerate(alive) if n)
+    assert last == (3 if lists == 1 else 2 * (lists - 1) + 6)
+
+
 def test_mahalanobis_gate_rejects_an_outlier_the_distance_gate_accepts():
     for gate, expected_tracks in (("distance", 1), ("mahalanobis", 2)):
         tracker = confirmed_tracker(gate=gate)
