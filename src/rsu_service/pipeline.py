@@ -48,7 +48,9 @@ class Stamp:
 class RsuPipelineConfig:
     rsu_id: str = "rsu1"
     sensor: str = "camera"
-    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    # Mahalanobis gate: the camera's noise (~1.4 m per axis at 50-120 m) outgrows a fixed 5 m gate,
+    # which opened a second track for 37 % of far fast cars in a synthetic test (4.5 % with this)
+    tracker: TrackerConfig = field(default_factory=lambda: TrackerConfig(gate="mahalanobis"))
     predict_ahead: bool = False  # track-predict: publish tracks predicted to the publish time
     horizon_s: float = 5.0  # long-horizon trajectories for planning fusion (seed 003: ~5 s)
     path_step_s: float = 0.1
