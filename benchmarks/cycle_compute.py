@@ -142,7 +142,7 @@ class FilterpyTracker:
                 self.two_point_inits += 1
             else:
                 kf.update(dets.xy[di], R=dets.cov_xy[di])
-                if known[di]:
+                if known[di] and not estimates:  # an estimate's velocity is its filter's: position only
                     # z as a column: filterpy reshapes z only when H is not given
                     kf.update(dets.vxy[di][:, None], R=dets.cov_vxy[di], H=np.roll(kf.H, 2, axis=1))
             m.update(lwh=dets.lwh[di], yaw=dets.yaw[di], hits=m["hits"] + 1, updated_s=t_s)

@@ -358,7 +358,7 @@ class Tracker:
         if pair.any():
             self._two_point(ti[pair], di[pair], dets, t_s)
             ti, di = ti[~pair], di[~pair]
-        self._correct(ti, di, dets)
+        self._correct(ti, di, dets, velocity=not estimates)
         self._record(result.matches[:, 0], result.matches[:, 1], dets, bits, t_s, estimates)
         measured = inputs.velocity_measured(self._prior.speed_std_mps)[k:]
         self._spawn(dets, result.unmatched_b, bits, t_s, x0[k:], p0[k:], estimates, ~measured)
@@ -438,13 +438,17 @@ class Tracker:
             tab.x[t], tab.p[t] = kalman.two_point(self.model, tab.birth_x[t], tab.birth_p[t], dets.xy[d],
                                                   dets.cov_xy[d], t_s - born_s)
 
-    def _correct(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray) -> None:
-        """Kalman update of tracks ti with detections di (position, then measured velocity)."""
+    def _correct(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, velocity: bool = True) -> None:
+        """Kalman update of tracks ti with detections di: position, then the measured velocity
+        unless ``velocity`` is off. It is off for another tracker's estimates fused into a track
+        other sources update too: an estimate's velocity is its filter's, built from the same
+        measurements list after list, so fusing it every list as if independent would count them
+        again and again (measured: NEES 4-5 on LiDAR+RSU tracks on highway-merge)."""
         tab = self._table
         if not len(ti):
             return
         tab.x[ti], tab.p[ti], _ = kalman.update(tab.x[ti], tab.p[ti], dets.xy[di], dets.cov_xy[di])
-        if self.config.velocity_updates and self.config.motion in ("cv", "ca"):
+        if velocity and self.config.velocity_updates and self.config.motion in ("cv", "ca"):
             # sources that estimate velocity (tracking RSUs, CenterPoint) update it too:
             # H = [0 I_2 0], R = the detection's velocity covariance
             known = dets.velocity_known()[di]

@@ -107,6 +107,26 @@ def test_rsu_estimate_replaces_an_rsu_only_track_and_fuses_into_a_lidar_track():
     assert after.sources[lidar] == LIDAR | RSU and after.sources[rsu_only] == RSU
 
 
+def test_an_estimate_fused_into_a_shared_track_gives_its_position_not_its_velocity():
+    """A LiDAR track, then an RSU estimate of it with a precise, different velocity: the track
+    takes a filterpy position update only (the estimate's velocity is correlated over lists)."""
+    from filterpy.kalman import KalmanFilter
+
+    tracker = Tracker(TrackerConfig())
+    for t in (0.0, 0.1, 0.2):
+        tracker.update(with_velocity(dets([2.0 * t, 0.0], std=0.2), [2.0, 0.0], 0.3), t, LIDAR)
+    tracker.predict(0.3)
+    x, p = tracker._table.x[0].copy(), tracker._table.p[0].copy()
+    estimate = with_velocity(dets([0.7, 0.1], std=0.4), [9.0, 1.0], 0.05)
+    tracker.update(estimate, 0.3, RSU, estimates=True)
+    kf = KalmanFilter(dim_x=4, dim_z=2)
+    kf.x, kf.P, kf.H = x[:, None], p, np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+    kf.update(np.array([0.7, 0.1]), R=estimate.cov_xy[0])
+    np.testing.assert_allclose(tracker._table.x[0], kf.x[:, 0], atol=1e-12)
+    np.testing.assert_allclose(tracker._table.p[0], kf.P, atol=1e-12)
+    assert tracker.tracks(0.3).vxy[0, 0] < 4.0  # the 9 m/s estimate would have pulled it near 9
+
+
 def test_measured_velocity_updates_the_track_and_an_unknown_one_does_not():
     def track_after(d):
         tracker = confirmed_tracker()  # at rest: velocity ~ 0
