@@ -11,45 +11,64 @@ Each exchange gives two one-way readings, each a true delay (>= 0) plus or minus
   x_down = t4 - t3 = down - theta(t4)        (RSU -> OBU)
 so theta(t) lies in [t3 - t4, t2 - t1]: a sample can never be further from the truth than
 that interval, whose width is its round trip. Queueing only ever adds delay, so the *lower
-envelope* of each reading is where the information is (Paxson 1998; Moon et al. 1999):
+envelope* of each reading is where the information is (clock_envelope):
 
-- drift: lower-tail least squares (see fit_drift): keep the lowest fraction q of each leg's
-  detrended readings (the least-queued samples), fit x_up ~ a_up + d t and -x_down ~ -a_down + d t
-  with one shared slope d, re-select with the new d, repeat; the fit is shrunk towards a prior
-  (0 +- 100 ppm at start, the pre-step drift after a step) by its standard error, so a short
-  window cannot produce a wild drift;
-- offset at t_ref: the readings of the last offset_horizon are detrended with d and the mean of
-  the lowest fraction q taken per leg:
+- consensus: genuine exchanges all bracket the true offset, so in the current clock segment only
+  the exchanges whose intervals contain the offset most of them allow are used (Marzullo's
+  intersection, clock_envelope.consensus); the others are counted in ``outliers_rejected``.
+  Without a clear majority (a third or more disagree) the bound also covers what the others
+  allow, and the fit does not count as converged;
+- drift: lower-tail least squares over the whole window (clock_envelope.fit_drift), one slope
+  shared by both legs and by every clock segment (an RSU clock step moves the phase, not the
+  rate, so the samples before a step keep informing the drift), shrunk towards 0 +- 100 ppm;
+- offset at t_ref (the newest t4): the readings of the current segment are detrended with the
+  drift and the mean of the lowest fraction q taken per leg:
     E_up   = lowmean_q(x_up - d (t1 - t_ref))   = theta(t_ref) + lowmean_q(up)
     E_down = lowmean_q(x_down + d (t4 - t_ref)) = lowmean_q(down) - theta(t_ref)
     theta(t_ref) = (E_up - E_down) / 2,  error = (lowmean_q(up) - lowmean_q(down)) / 2,
-  i.e. half the asymmetry of the *least* delays of the two legs, not of the average ones
-  (a lower-tail mean varies less than a single order statistic such as the minimum);
-- uncertainty: (E_up + E_down) / 2, half the round trip of that lower envelope, which bounds the
-  unknowable asymmetry since both legs are >= 0 (reported with every estimate);
-- spikes: a delayed sample sits above the lower tail and moves neither drift nor offset;
-- clock steps: queueing only ever adds delay, so a reading below the least (detrended) reading
-  of its leg in the window by more than ``step_threshold_ns`` cannot be explained by its round
-  trip (the newest ``step_span`` samples do not count towards that least reading: a post-step
-  sample that escaped detection must not lower the bar for the next ones). ``step_confirm``
-  such readings within ``step_span`` exchanges (held aside meanwhile, so they do not move the
-  estimate; dropped as outliers if unconfirmed) mean the RSU clock stepped (or the route got
-  shorter): the window restarts at the first of them, keeping the drift as prior (a step
-  changes the phase, not the rate). A step of +s lowers x_down by s, one of -s lowers x_up.
-  Steps below the threshold are absorbed as the offset window slides.
+  over each leg's last offset_horizon by that leg's own time (t1 up, t4 down: an exchange that
+  completes tens of seconds late counts where it was measured), further back when every recent
+  reading of a leg was buffered (clock_envelope.leg_envelope). The whole segment is used, not a
+  shorter horizon: the drift comes from the same readings, so their errors are correlated; for
+  n readings over T seconds with a least-squares slope, the offset of the last h seconds has
+  variance s^2 / n (T / h + 6 h / T - 3 h^2 / T^2), smallest at h = T. offset_horizon_ns only
+  guards against a drift that is not constant over long windows;
+- uncertainty, a bound on |estimate - truth| at OBU time t:
+    U(t) = (E_up + E_down) / 2 + k sd (a_up + a_down) / 2 + k sd |t - t_ref|
+  the first term is half the round trip of the lower envelope, which bounds the asymmetry since
+  both legs are >= 0; the others bound the drift error (k = bound_sigmas standard deviations)
+  acting on envelope readings of mean age a and on the extrapolation to t (U grows while no
+  exchange arrives). While a step is suspected but not confirmed, U also covers the step;
+- outliers and clock steps: queueing only ever adds delay, so against a converged fit (a clear
+  majority and step_armed_after settled samples in the current segment) a reading below the
+  least detrended reading of its leg by more than step_threshold_ns (plus k sd times the time
+  between the two readings) cannot be explained by its round trip. Each sample bounds the step
+  s the RSU clock would have made: after a step s, x_up rises and x_down falls by s, so with
+  a, b its readings above the least ones, s lies in [-b - thr, a + thr]. A sample whose
+  interval excludes 0 is a *suspect*: held aside (never averaged in) under the hypothesis S =
+  the intersection of the suspects' intervals. A suspect disjoint from S, or an ordinary sample
+  sent after the first suspect came back whose interval is disjoint from S (a genuine reply
+  that still agrees with the old clock, e.g. between forged replies), refutes the hypothesis:
+  its suspects are rejected and counted in ``outliers_rejected``, as are suspects left
+  unconfirmed for step_span exchanges. step_confirm mutually consistent suspects confirm a
+  step: a new clock segment starts with them (and with the samples since the first suspect
+  that agree with S). A late reply stamped before the step (it agrees with the previous
+  segment) joins the previous segment instead of suspecting a step back. Steps too small to
+  stand out this way are absorbed as the offset window slides.
 """
 
 from __future__ import annotations
 
-from collections import deque
-from dataclasses import dataclass
+from bisect import insort
+from dataclasses import dataclass, field
 
 import numpy as np
+
+from .clock_envelope import Leg, consensus, disputed_ns, fit_drift, leg_envelope
 
 NS_PER_S = 1_000_000_000
 PPM_NS_PER_S = 1_000.0  # 1 ppm = 1 us per s = 1000 ns per s
 MIN_RESID_NS = 50_000.0  # floor on the per-sample noise of a drift fit (no false certainty)
-MIN_DRIFT_SD_PPM = 2.0  # floor on the sd of the drift carried over a clock step
 
 
 @dataclass(frozen=True)
@@ -77,11 +96,12 @@ class OffsetEstimate:
     """theta(t) = offset_ns + drift_ppm * 1e-6 * (t - at_ns), t in OBU ns."""
 
     offset_ns: int  # theta = rsu_clock - obu_clock at OBU time at_ns
-    uncertainty_ns: int  # half the round trip of the lower envelope (bound on the asymmetry error)
+    uncertainty_ns: int  # bound on |offset_ns - truth| at at_ns (see the module doc)
     samples: int  # exchanges accepted so far
     drift_ppm: float = 0.0  # d theta / dt in parts per million (1 ppm = 1 us per s)
     at_ns: int = 0  # OBU time the offset refers to
     steps: int = 0  # RSU clock steps detected so far
+    drift_sd_ppm: float = 0.0  # standard deviation of drift_ppm
 
     def offset_at_ns(self, t_obu_ns: int) -> int:
         """theta(t) = theta0 + drift * (t - t0)."""
@@ -98,127 +118,43 @@ class OffsetEstimate:
 
 
 @dataclass(frozen=True)
-class _Envelope:
-    """The least detrended one-way readings of a window: x_up - theta_ref - drift (t1 - t_ref) and
-    x_down + theta_ref + drift (t4 - t_ref) (ns; drift in ns per s)."""
+class _Fit:
+    """The window's fit at t_ref (the newest t4); readings are relative to theta_ref (floats stay small)."""
 
     t_ref_ns: int
     theta_ref_ns: int
-    drift: float
-    min_up: float
-    min_down: float
+    theta_rel_ns: float  # theta(t_ref) - theta_ref
+    drift: float  # ns per s
+    drift_sd: float  # ns per s
+    bound_ns: float  # U(t_ref)
+    min_up: tuple[float, int]  # least settled detrended up reading of the current segment (ns) and its t1
+    min_down: tuple[float, int]  # the same for down, and its t4
+    armed: bool  # converged: enough settled samples in the current segment to judge new ones
+
+    def step_interval(self, s: SyncSample, threshold_ns: float, sigmas: float) -> tuple[float, float]:
+        """[low, high] of the clock steps that explain the sample (ns): x_up rises by a step, x_down falls.
+
+        Each end is widened by the threshold and by sigmas drift sd times the time between the
+        reading and the least one it is compared with (the detrending error)."""
+        r_up = (s.t2_ns - s.t1_ns - self.theta_ref_ns) - self.drift * (s.t1_ns - self.t_ref_ns) / NS_PER_S
+        r_down = (s.t4_ns - s.t3_ns + self.theta_ref_ns) + self.drift * (s.t4_ns - self.t_ref_ns) / NS_PER_S
+        slack_up = threshold_ns + sigmas * self.drift_sd * abs(s.t1_ns - self.min_up[1]) / NS_PER_S
+        slack_down = threshold_ns + sigmas * self.drift_sd * abs(s.t4_ns - self.min_down[1]) / NS_PER_S
+        return -(r_down - self.min_down[0]) - slack_down, (r_up - self.min_up[0]) + slack_up
 
 
-def lowest(values: np.ndarray, q: float) -> np.ndarray:
-    """Indices of the lowest max(1, ceil(q n)) entries of a (n,) array (the lower tail)."""
-    k = min(len(values), max(1, int(np.ceil(q * len(values)))))
-    return np.argpartition(values, k - 1)[:k]
+@dataclass
+class _Hypothesis:
+    """A suspected step: feasible sizes [low, high] (ns), its suspects and the ordinary samples since."""
 
+    low: float
+    high: float
+    first_t4_ns: int
+    suspects: list[tuple[int, SyncSample]] = field(default_factory=list)  # (arrival number, sample)
+    since: list[tuple[SyncSample, tuple[float, float]]] = field(default_factory=list)
 
-def bin_tail_means(bins: np.ndarray, t: np.ndarray, r: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray]:
-    """(mean t, mean of the lowest fraction q of r) per bin, shapes (m,), bins ascending.
-
-    Bins holding fewer than half the median count (half-filled bins at the window edges) are
-    left out: their lower tail is a weaker lower bound.
-    """
-    order = np.lexsort((r, bins))  # by bin, then by r: each bin's lower tail comes first
-    b, t_s, r_s = bins[order], t[order], r[order]
-    starts = np.flatnonzero(np.r_[True, b[1:] != b[:-1]])
-    ends = np.r_[starts[1:], len(b)]
-    counts = ends - starts
-    k = np.maximum(1, np.ceil(q * counts).astype(int))  # lower-tail size per bin
-    t_cum, r_cum = np.r_[0.0, np.cumsum(t_s)], np.r_[0.0, np.cumsum(r_s)]
-    keep = counts >= 0.5 * np.median(counts)
-    t_bin = (t_cum[ends] - t_cum[starts]) / counts
-    r_bin = (r_cum[starts + k] - r_cum[starts]) / k
-    return t_bin[keep], r_bin[keep]
-
-
-def shared_slope(t_a: np.ndarray, y_a: np.ndarray, t_b: np.ndarray, y_b: np.ndarray,
-                 min_resid: float) -> tuple[float, float] | None:
-    """Least-squares slope shared by two point groups with their own intercepts, and its std error.
-
-    d = sum_g sum_i (t_i - tbar_g)(y_i - ybar_g) / Sxx,  Sxx = sum_g sum_i (t_i - tbar_g)^2,
-    se = sqrt(s^2 / Sxx),  s^2 = RSS / (m - 3) floored at min_resid^2;
-    None unless each group has >= 3 points spread in t.
-    """
-    if min(len(t_a), len(t_b)) < 3:
-        return None
-    ta, tb = t_a - t_a.mean(), t_b - t_b.mean()
-    ya, yb = y_a - y_a.mean(), y_b - y_b.mean()
-    sxx = float(ta @ ta + tb @ tb)
-    if sxx <= 0.0:
-        return None
-    d = float(ta @ ya + tb @ yb) / sxx
-    rss = float(np.sum((ya - d * ta) ** 2) + np.sum((yb - d * tb) ** 2))
-    return d, float(np.sqrt(max(rss / (len(t_a) + len(t_b) - 3), min_resid**2) / sxx))
-
-
-def fit_drift(bins_up: np.ndarray, dt_up: np.ndarray, x_up: np.ndarray, bins_down: np.ndarray,
-              dt_down: np.ndarray, x_down: np.ndarray, q: float, prior: tuple[float, float],
-              min_resid: float, iters: int = 2) -> tuple[float, float]:
-    """(drift, sd) in ns per s of the lower envelopes of both legs, shrunk to a prior.
-
-    Per sub-window (bin) and leg, the lower-tail mean of the readings detrended with the current
-    drift d is the envelope at the bin's mean time; the envelopes of x_up (slope +d) and of
-    -x_down (slope +d) get one shared least-squares slope s (shared_slope, std error se from the
-    scatter of the bins, but never below the expected scatter tail_mean_sd / sqrt(samples per
-    bin), so that a few bins lying on a line by chance do not fake certainty). With the prior
-    N(d0, sd0^2), the Gaussian posterior is
-      d = d0 + w (s - d0),  w = sd0^2 / (sd0^2 + se^2),  sd = (1 / sd0^2 + 1 / se^2)^(-1/2)
-    so a short window leans on the prior (0 +- 100 ppm at start, the pre-step drift after a
-    step); the fit is repeated with the new d (detrending inside a bin hardly matters).
-    """
-    d0, sd0 = prior
-    d, sd = d0, sd0
-    for _ in range(iters):
-        tu, eu = bin_tail_means(bins_up, dt_up, x_up - d * dt_up, q)
-        td, ed = bin_tail_means(bins_down, dt_down, x_down + d * dt_down, q)
-        # a bin envelope scatters at least by the lower-tail-mean noise of its samples
-        per_bin = max(tail_mean_sd(x_up - d * dt_up, q), tail_mean_sd(x_down + d * dt_down, q)) / np.sqrt(
-            max(1.0, len(dt_up) / max(len(tu), 1)))
-        fit = shared_slope(tu, eu + d * tu, td, -(ed - d * td), max(min_resid, per_bin))
-        if fit is None:
-            return d0, sd0
-        s, se = fit
-        d, sd = d0 + sd0**2 / (sd0**2 + se**2) * (s - d0), float((1.0 / sd0**2 + 1.0 / se**2) ** -0.5)
-    return d, sd
-
-
-def tail_mean_sd(r: np.ndarray, q: float) -> float:
-    """Per-observation sd of the mean of the lowest fraction q of r (from its influence function):
-
-    L = (1/q) int_0^q Q(p) dp,  IF(x) = min(x - Q_q, 0) / q + const, so
-    var = E[(x - Q_q)^2 | tail] / q - (mean_tail - Q_q)^2.
-    """
-    tail = np.sort(r[lowest(r, q)])
-    dev = tail - tail[-1]  # tail[-1] ~ Q_q
-    return float(np.sqrt(max(np.mean(dev**2) / q - np.mean(dev) ** 2, 0.0)))
-
-
-def offset_horizon_s(sd_up: float, sd_down: float, rate_hz: float, drift_sd: float) -> float:
-    """Offset window length h (s) balancing noise against the lag error of an uncertain drift.
-
-    The offset of the last h seconds has variance (sd_up^2 + sd_down^2) / (4 rate h) (two lower-
-    tail means, halved) and, with drift error sd, a lag error sd h / 2 (its samples are h / 2 old
-    on average). d/dh [A / h + B h^2] = 0  =>  h = (A / 2B)^(1/3) = ((sd_up^2 + sd_down^2) / (2 rate sd^2))^(1/3).
-    """
-    if drift_sd <= 0.0 or rate_hz <= 0.0:
-        return float("inf")
-    return float(((sd_up**2 + sd_down**2) / (2.0 * rate_hz * drift_sd**2)) ** (1.0 / 3.0))
-
-
-def envelope_offset(dt_up: np.ndarray, x_up: np.ndarray, dt_down: np.ndarray, x_down: np.ndarray,
-                    drift: float, q: float) -> tuple[float, float]:
-    """(theta, envelope round trip) at dt = 0 from the detrended lower tails (see module doc).
-
-    dt_* are OBU times (s) relative to the reference time, x_* the one-way readings (ns), drift ns/s.
-    E = mean of the lowest fraction q (a lower-tail mean has less variance than one order statistic).
-    """
-    u, w = x_up - drift * dt_up, x_down + drift * dt_down
-    e_up = float(u[lowest(u, q)].mean())  # theta(t_ref) + lower-tail mean of up
-    e_down = float(w[lowest(w, q)].mean())  # lower-tail mean of down - theta(t_ref)
-    return 0.5 * (e_up - e_down), e_up + e_down
+    def overlaps(self, interval: tuple[float, float]) -> bool:
+        return interval[0] <= self.high and self.low <= interval[1]
 
 
 class ClockSync:
@@ -227,70 +163,92 @@ class ClockSync:
     window: at most this many samples are kept (memory bound; 10 Hz x 60 s = 600);
     horizon_ns: samples older than this (by t4, relative to the newest) are dropped; the drift
     is fitted over the whole window, the offset from the samples of the last offset_horizon_ns;
-    quantile: the lower-tail fraction taken as the envelope of each leg.
+    quantile: the lower-tail fraction taken as the envelope of each leg; bound_sigmas: drift
+    standard deviations the uncertainty allows for. Samples may arrive in any order.
     """
 
     def __init__(self, window: int = 600, *, horizon_ns: int = 60 * NS_PER_S,
-                 offset_horizon_ns: int = 30 * NS_PER_S, min_offset_horizon_ns: int = 2 * NS_PER_S,
-                 bin_ns: int = 2 * NS_PER_S, quantile: float = 0.1, drift_prior_ppm: float = 100.0,
-                 max_drift_ppm: float = 500.0, step_threshold_ns: int = 2_000_000, step_confirm: int = 3,
-                 step_span: int = 10, step_armed_after: int = 10):
-        self.horizon_ns, self.offset_horizon_ns, self.quantile = horizon_ns, offset_horizon_ns, quantile
-        self.min_offset_horizon_ns, self.bin_ns = min_offset_horizon_ns, bin_ns
-        self.max_drift = max_drift_ppm * PPM_NS_PER_S
-        self.step_threshold_ns, self.step_confirm, self.step_armed_after = step_threshold_ns, step_confirm, step_armed_after
-        self.step_span = step_span
-        self._samples: deque[SyncSample] = deque(maxlen=window)
-        self._suspects: list[tuple[int, SyncSample]] = []  # (arrival number, sample) held aside
+                 offset_horizon_ns: int = 30 * NS_PER_S, bin_ns: int = 2 * NS_PER_S, quantile: float = 0.1,
+                 drift_prior_ppm: float = 100.0, max_drift_ppm: float = 500.0, step_threshold_ns: int = 2_000_000,
+                 step_confirm: int = 3, step_span: int = 10, step_armed_after: int = 30, bound_sigmas: float = 3.0):
+        self.max_samples, self.horizon_ns, self.offset_horizon_ns = window, horizon_ns, offset_horizon_ns
+        self.bin_ns, self.quantile = bin_ns, quantile
+        self.max_drift, self.bound_sigmas = max_drift_ppm * PPM_NS_PER_S, bound_sigmas
+        self.step_threshold_ns, self.step_confirm, self.step_span = step_threshold_ns, step_confirm, step_span
+        self.step_armed_after = step_armed_after
+        self._samples: list[tuple[int, int, SyncSample]] = []  # (t4, clock segment, sample), by t4
+        self._segment = 0  # current clock segment (steps detected so far)
+        self._hypotheses: list[_Hypothesis] = []  # competing suspected steps (disjoint suspect clusters)
+        self._last_step = (0.0, 0.0)  # feasible sizes (ns) of the last confirmed step
+        self._step_first_t4_ns = 0  # arrival of its first suspect
         self._last: SyncSample | None = None
         self._total = 0
-        self._steps = 0
-        self.outliers_dropped = 0
+        self.outliers_rejected = 0  # suspects refuted or left unconfirmed, exchanges outside the consensus
         self._prior = (0.0, drift_prior_ppm * PPM_NS_PER_S)  # drift prior (mean, sd) in ns/s
-        self._drift = (0.0, drift_prior_ppm * PPM_NS_PER_S)  # latest drift fit (mean, sd) in ns/s
-        self._fit: OffsetEstimate | None = None  # cache, None when stale
-        self._envelope: _Envelope | None = None  # least readings of the window, with the cached fit
+        self._drift = self._prior  # latest drift fit (mean, sd) in ns/s
+        self._inconsistent: set[SyncSample] = set()  # window samples outside the consensus (counted once)
+        self._fit: _Fit | None = None  # cache, None when stale
 
     @property
     def steps_detected(self) -> int:
-        return self._steps
+        return self._segment
+
+    @property
+    def converged(self) -> bool:
+        """Whether the fit judges new exchanges (a clear majority and step_armed_after settled
+        samples in the current segment): only then are outliers and steps recognised."""
+        fit = self._current_fit()
+        return fit is not None and fit.armed
+
+    def window(self) -> list[SyncSample]:
+        """The exchanges kept (every clock segment), by OBU receive time t4."""
+        return [s for _, _, s in self._samples]
 
     def add(self, sample: SyncSample) -> bool:
-        """Add an exchange; False (and ignored) when its timestamps are inconsistent."""
+        """Add an exchange (any arrival order); False (and ignored) when its timestamps are inconsistent."""
         if sample.round_trip_ns < 0 or sample.t4_ns < sample.t1_ns:
             return False
         self._total += 1
         self._last = sample
-        self._drop_old_suspects()
-        if self._contradicts(sample):
-            self._suspects.append((self._total, sample))
-            if len(self._suspects) >= self.step_confirm:
-                self._restart_after_step()
-            return True
-        self._samples.append(sample)
-        while sample.t4_ns - self._samples[0].t4_ns > self.horizon_ns:
-            self._samples.popleft()
-        self._fit = None
+        self._expire_hypotheses()
+        fit = self._current_fit()
+        interval = None if fit is None else fit.step_interval(sample, self.step_threshold_ns, self.bound_sigmas)
+        if interval is not None and not interval[0] <= 0.0 <= interval[1]:
+            if self._late_before_step(sample, interval):
+                return True
+            if fit.armed:
+                self._suspect(sample, interval)
+                return True
+        for hyp in list(self._hypotheses):
+            hyp.since.append((sample, interval))
+            if sample.t1_ns > hyp.first_t4_ns and not hyp.overlaps(interval):
+                self._reject(hyp)  # a genuine reply, sent after the suspect, still agrees with the old clock
+        self._insert(sample, self._segment)
         return True
 
     def estimate(self) -> OffsetEstimate | None:
-        """The estimate at the OBU receive time (t4) of the latest accepted exchange."""
-        return None if self._last is None else self.estimate_at(self._last.t4_ns)
+        """The estimate at the newest OBU receive time (t4) seen."""
+        return None if not self._samples else self.estimate_at(self._samples[-1][0])
 
     def estimate_at(self, t_obu_ns: int) -> OffsetEstimate | None:
-        """The estimate extrapolated to OBU time t: theta(t) = theta0 + drift (t - t0)."""
+        """The estimate extrapolated to OBU time t: theta(t) = theta0 + drift (t - t0), with U(t)."""
         fit = self._current_fit()
         if fit is None:
             return None
-        return OffsetEstimate(fit.offset_at_ns(t_obu_ns), fit.uncertainty_ns, self._total, fit.drift_ppm,
-                              t_obu_ns, self._steps)
+        dt_s = (t_obu_ns - fit.t_ref_ns) / NS_PER_S
+        offset = fit.theta_ref_ns + round(fit.theta_rel_ns + fit.drift * dt_s)
+        bound = fit.bound_ns + self.bound_sigmas * fit.drift_sd * abs(dt_s)
+        # while a step is suspected, the clock may have stepped by anything in its [low, high]
+        bound += max((max(abs(h.low), abs(h.high)) for h in self._hypotheses), default=0.0)
+        return OffsetEstimate(offset, int(np.ceil(bound)), self._total, fit.drift / PPM_NS_PER_S, t_obu_ns,
+                              self._segment, fit.drift_sd / PPM_NS_PER_S)
 
     def naive(self) -> OffsetEstimate | None:
         """The latest single exchange, as a plain NTP client without filtering would use."""
         last = self._last
         if last is None:
             return None
-        return OffsetEstimate(last.offset_ns, last.round_trip_ns // 2, self._total, 0.0, last.t4_ns, self._steps)
+        return OffsetEstimate(last.offset_ns, last.round_trip_ns // 2, self._total, 0.0, last.t4_ns, self._segment)
 
     def to_obu_ns(self, rsu_time_ns: int) -> int | None:
         """RSU clock reading -> OBU clock using offset and drift; None before the first exchange."""
@@ -302,66 +260,118 @@ class ClockSync:
         est = self.estimate()
         return None if est is None else est.to_rsu_ns(obu_time_ns)
 
-    # --- internals -------------------------------------------------------------------------
-    def _contradicts(self, sample: SyncSample) -> bool:
-        """A reading below the window's least (detrended) reading of its leg by more than the
-        threshold: queueing only adds delay, so only a clock step (or a shorter route) explains it."""
-        if len(self._samples) - self.step_span < self.step_armed_after:
-            return False
-        self._current_fit()
-        env = self._envelope
-        r_up = (sample.t2_ns - sample.t1_ns - env.theta_ref_ns) - env.drift * (sample.t1_ns - env.t_ref_ns) / NS_PER_S
-        r_down = (sample.t4_ns - sample.t3_ns + env.theta_ref_ns) + env.drift * (sample.t4_ns - env.t_ref_ns) / NS_PER_S
-        return min(r_up - env.min_up, r_down - env.min_down) < -self.step_threshold_ns
-
-    def _drop_old_suspects(self) -> None:
-        """Suspects not confirmed within step_span exchanges are dropped as outliers (a reading
-        below the envelope is never ordinary queueing: a glitch, not data to keep)."""
-        if self._suspects and self._suspects[0][0] <= self._total - self.step_span:
-            self.outliers_dropped += len(self._suspects)
-            self._suspects.clear()
-
-    def _restart_after_step(self) -> None:
-        """The RSU clock stepped: restart the window from the first suspect on, keep the rate as prior."""
-        self._current_fit()  # the pre-step drift becomes the prior of the new window
-        self._prior = (self._drift[0], max(self._drift[1], MIN_DRIFT_SD_PPM * PPM_NS_PER_S))
-        first_ns = self._suspects[0][1].t4_ns
-        after = [s for s in self._samples if s.t4_ns >= first_ns] + [s for _, s in self._suspects]
-        self._samples = deque(sorted(after, key=lambda s: s.t4_ns), maxlen=self._samples.maxlen)
-        self._suspects.clear()
-        self._steps += 1
+    # --- window -----------------------------------------------------------------------------
+    def _insert(self, sample: SyncSample, segment: int) -> None:
+        """Insert by t4 (replies may complete out of order); drop what is past the horizon or the window."""
+        insort(self._samples, (sample.t4_ns, segment, sample), key=lambda e: e[0])
+        newest_ns = self._samples[-1][0]
+        cut = 0
+        while cut < len(self._samples) and newest_ns - self._samples[cut][0] > self.horizon_ns:
+            cut += 1
+        del self._samples[:max(cut, len(self._samples) - self.max_samples)]
         self._fit = None
 
-    def _current_fit(self) -> OffsetEstimate | None:
+    # --- steps and outliers -----------------------------------------------------------------
+    def _suspect(self, sample: SyncSample, interval: tuple[float, float]) -> None:
+        """Join the first hypothesis the sample agrees with, or start one (forged replies and a real
+        step then make separate clusters, and the forged ones cannot break up the step's)."""
+        hyp = next((h for h in self._hypotheses if h.overlaps(interval)), None)
+        if hyp is None:
+            hyp = _Hypothesis(interval[0], interval[1], sample.t4_ns)
+            self._hypotheses.append(hyp)
+        hyp.low, hyp.high = max(hyp.low, interval[0]), min(hyp.high, interval[1])
+        hyp.suspects.append((self._total, sample))
+        if len(hyp.suspects) >= self.step_confirm:
+            self._confirm_step(hyp)
+
+    def _late_before_step(self, sample: SyncSample, interval: tuple[float, float]) -> bool:
+        """A reply stamped before the last step that arrives after it (it agrees with the previous
+        segment: explained by a step of minus the last one) joins the previous segment."""
+        if self._segment == 0 or sample.t1_ns >= self._step_first_t4_ns:
+            return False
+        low, high = self._last_step
+        if not (interval[0] <= -low and -high <= interval[1]):
+            return False
+        self._insert(sample, self._segment - 1)
+        return True
+
+    def _expire_hypotheses(self) -> None:
+        """Suspects not confirmed within step_span exchanges are rejected as outliers."""
+        for hyp in [h for h in self._hypotheses if h.suspects[0][0] <= self._total - self.step_span]:
+            self._reject(hyp)
+
+    def _reject(self, hyp: _Hypothesis) -> None:
+        self.outliers_rejected += len(hyp.suspects)
+        self._hypotheses.remove(hyp)
+
+    def _confirm_step(self, hyp: _Hypothesis) -> None:
+        """The RSU clock stepped: a new segment starts with the suspects and the samples since the
+        first of them that agree with the step; older segments keep informing the drift. The
+        suspects of competing hypotheses are outliers."""
+        self._hypotheses.remove(hyp)
+        for other in list(self._hypotheses):
+            self._reject(other)
+        moved = {id(s) for s, interval in hyp.since if hyp.overlaps(interval)}
+        self._segment += 1
+        self._samples = [(t4, self._segment if id(s) in moved else seg, s) for t4, seg, s in self._samples]
+        for _, s in hyp.suspects:
+            self._insert(s, self._segment)
+        self._last_step, self._step_first_t4_ns = (hyp.low, hyp.high), hyp.first_t4_ns
+        self._fit = None
+
+    # --- fit --------------------------------------------------------------------------------
+    def _current_fit(self) -> _Fit | None:
         if self._fit is None and self._samples:
             self._fit = self._compute_fit()
         return self._fit
 
-    def _compute_fit(self) -> OffsetEstimate:
-        s = self._samples
-        t1, t2, t3, t4 = np.array([(x.t1_ns, x.t2_ns, x.t3_ns, x.t4_ns) for x in s], dtype=np.int64).T
-        newest = int(np.argmax(t4))
-        t_ref, theta_ref = int(t4[newest]), s[newest].offset_ns  # subtracted first: floats stay small, exact
-        x_up = (t2 - t1 - theta_ref).astype(float)  # up + (theta - theta_ref), ns
-        x_down = (t4 - t3 + theta_ref).astype(float)  # down - (theta - theta_ref), ns
-        dt_up, dt_down = (t1 - t_ref) / NS_PER_S, (t4 - t_ref) / NS_PER_S  # s
-        drift, sd = fit_drift(t1 // self.bin_ns, dt_up, x_up, t4 // self.bin_ns, dt_down, x_down, self.quantile,
+    def _compute_fit(self) -> _Fit:
+        seg = np.array([e[1] for e in self._samples])
+        t1, t2, t3, t4 = np.array([(s.t1_ns, s.t2_ns, s.t3_ns, s.t4_ns) for _, _, s in self._samples],
+                                  dtype=np.int64).T
+        segment = self._segment if np.any(seg == self._segment) else int(seg.max())
+        t_ref = int(t4[-1])
+        theta_ref = self._samples[int(np.flatnonzero(seg == segment)[-1])][2].offset_ns
+        up = Leg((t1 - t_ref) / NS_PER_S, (t2 - t1 - theta_ref).astype(float), +1)  # up + theta - theta_ref
+        down = Leg((t4 - t_ref) / NS_PER_S, (t4 - t3 + theta_ref).astype(float), -1)  # down - (theta - theta_ref)
+        current, slack = seg == segment, self._consensus_slack(up, down)
+        agree = current & consensus(up, down, self._drift[0], slack, current)
+        self._count_disagreeing(current & ~agree)
+        legs = [leg.take(agree if g == segment else seg == g) for g in np.unique(seg) for leg in (up, down)]
+        drift, sd = fit_drift(legs, self.bin_ns / NS_PER_S, (t_ref % self.bin_ns) / NS_PER_S, self.quantile,
                               self._prior, MIN_RESID_NS)
         drift = float(np.clip(drift, -self.max_drift, self.max_drift))
         self._drift = (drift, sd)
-        settled = slice(0, max(1, len(s) - self.step_span))  # the newest step_span are still on probation
-        self._envelope = _Envelope(t_ref, theta_ref, drift, float(np.min((x_up - drift * dt_up)[settled])),
-                                   float(np.min((x_down + drift * dt_down)[settled])))
-        recent = dt_down >= -self._offset_horizon_s(dt_up, x_up, dt_down, x_down, drift, sd)
-        theta_rel, env_rtt = envelope_offset(dt_up[recent], x_up[recent], dt_down[recent], x_down[recent],
-                                             drift, self.quantile)
-        return OffsetEstimate(theta_ref + round(theta_rel), max(0, int(np.ceil(0.5 * env_rtt))), self._total,
-                              drift / PPM_NS_PER_S, t_ref, self._steps)
+        cur_up, cur_down = up.take(agree), down.take(agree)
+        drift_bound, h = self.bound_sigmas * sd, self.offset_horizon_ns / NS_PER_S
+        e_up = leg_envelope(cur_up, drift, drift_bound, self.quantile, h, float(self.step_threshold_ns))
+        e_down = leg_envelope(cur_down, drift, drift_bound, self.quantile, h, float(self.step_threshold_ns))
+        theta_rel = 0.5 * (e_up.value_ns - e_down.value_ns)
+        bound = 0.5 * (e_up.value_ns + e_down.value_ns) + drift_bound * 0.5 * (e_up.age_s + e_down.age_s)
+        contested = 2 * np.sum(current & ~agree) >= np.sum(agree)  # no clear majority: the others may be right
+        if contested:
+            bound = max(bound, disputed_ns(up, down, drift, slack, current & ~agree, theta_rel))
+        settled = max(1, len(cur_up.t_s) - self.step_span)  # the newest step_span are on probation
+        return _Fit(t_ref, theta_ref, theta_rel, drift, sd, max(0.0, bound), _least(cur_up, drift, settled, t_ref),
+                    _least(cur_down, drift, settled, t_ref),
+                    not contested and len(cur_up.t_s) - self.step_span >= self.step_armed_after)
 
-    def _offset_horizon_s(self, dt_up, x_up, dt_down, x_down, drift: float, drift_sd: float) -> float:
-        """offset_horizon_s() for this window, within [min_offset_horizon, offset_horizon]."""
-        span_s = float(dt_down[-1] - dt_down[0])
-        rate_hz = (len(dt_down) - 1) / span_s if span_s > 0.0 else 0.0
-        h = offset_horizon_s(tail_mean_sd(x_up - drift * dt_up, self.quantile),
-                             tail_mean_sd(x_down + drift * dt_down, self.quantile), rate_hz, drift_sd)
-        return float(np.clip(h, self.min_offset_horizon_ns / NS_PER_S, self.offset_horizon_ns / NS_PER_S))
+    def _consensus_slack(self, up: Leg, down: Leg) -> np.ndarray:
+        """Per exchange, what a drift error of bound_sigmas sd (of the last fit) does over its age (ns)."""
+        return self.bound_sigmas * self._drift[1] * np.maximum(-up.t_s, -down.t_s) + 1_000.0
+
+    def _count_disagreeing(self, outside: np.ndarray) -> None:
+        """Count each exchange left out by the consensus once in outliers_rejected."""
+        oldest_ns = self._samples[0][0]
+        self._inconsistent = {s for s in self._inconsistent if s.t4_ns >= oldest_ns}  # forget what left the window
+        for i in np.flatnonzero(outside):
+            if self._samples[i][2] not in self._inconsistent:
+                self._inconsistent.add(self._samples[i][2])
+                self.outliers_rejected += 1
+
+
+def _least(leg: Leg, drift: float, count: int, t_ref_ns: int) -> tuple[float, int]:
+    """(least detrended reading among the first count, its OBU time in ns)."""
+    r = leg.detrended(drift)[:count]
+    i = int(np.argmin(r))
+    return float(r[i]), t_ref_ns + round(leg.t_s[i] * NS_PER_S)

@@ -1,0 +1,238 @@
+"""Lower-envelope statistics of one-way clock readings (pure numpy; see clock_sync for the model).
+
+A one-way reading is a true delay (>= 0) plus or minus the clock offset; queueing only ever adds
+delay, so the information is in the lower tail of each leg's readings (Paxson 1998; Moon et al.
+1999). Readings are detrended with a drift d (ns per s): an up reading z_up = up + theta(t) has
+z_up - d t = up + theta(0), a down reading z_down = down - theta(t) has z_down + d t = down -
+theta(0). With sign s = +1 (up) or -1 (down): z - s d t is the detrended reading of either leg.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Readings more than this above their leg's least (detrended) reading are buffered or queued
+# far beyond any drift trend (500 ppm x 60 s = 30 ms): never part of a lower envelope.
+QUEUED_NS = 200_000_000.0
+
+
+@dataclass(frozen=True)
+class Leg:
+    """The readings of one leg (in one clock segment where that matters), arrays of shape (n,).
+
+    t_s: OBU time of the reading relative to the reference time (s; t1 for up, t4 for down);
+    z_ns: the reading (x_up or x_down, ns, relative to a reference offset); sign: +1 up, -1 down.
+    """
+
+    t_s: np.ndarray
+    z_ns: np.ndarray
+    sign: int
+
+    def detrended(self, drift: float) -> np.ndarray:
+        """z - sign d t (ns): delay + const; shape (n,)."""
+        return self.z_ns - self.sign * drift * self.t_s
+
+    def take(self, keep: np.ndarray) -> Leg:
+        return Leg(self.t_s[keep], self.z_ns[keep], self.sign)
+
+
+def lowest(values: np.ndarray, q: float) -> np.ndarray:
+    """Indices of the lowest max(1, ceil(q n)) entries of a (n,) array (the lower tail)."""
+    k = min(len(values), max(1, int(np.ceil(q * len(values)))))
+    return np.argpartition(values, k - 1)[:k]
+
+
+def bin_tail_means(bins: np.ndarray, t: np.ndarray, r: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray]:
+    """(mean t, mean of the lowest fraction q of r) per bin, shapes (m,), bins ascending.
+
+    Bins holding fewer than half the median count (half-filled bins at the window edges) are
+    left out: their lower tail is a weaker lower bound.
+    """
+    order = np.lexsort((r, bins))  # by bin, then by r: each bin's lower tail comes first
+    b, t_s, r_s = bins[order], t[order], r[order]
+    starts = np.flatnonzero(np.r_[True, b[1:] != b[:-1]])
+    ends = np.r_[starts[1:], len(b)]
+    counts = ends - starts
+    k = np.maximum(1, np.ceil(q * counts).astype(int))  # lower-tail size per bin
+    t_cum, r_cum = np.r_[0.0, np.cumsum(t_s)], np.r_[0.0, np.cumsum(r_s)]
+    keep = counts >= 0.5 * np.median(counts)
+    t_bin = (t_cum[ends] - t_cum[starts]) / counts
+    r_bin = (r_cum[starts + k] - r_cum[starts]) / k
+    return t_bin[keep], r_bin[keep]
+
+
+def shared_slope(groups: list[tuple[np.ndarray, np.ndarray]], min_resid: float) -> tuple[float, float] | None:
+    """Least-squares slope shared by point groups (t, y), each with its own intercept, and its std error.
+
+    d = sum_g sum_i (t_i - tbar_g)(y_i - ybar_g) / Sxx,  Sxx = sum_g sum_i (t_i - tbar_g)^2,
+    se = sqrt(s^2 / Sxx),  s^2 = RSS / (m - G - 1) floored at min_resid^2 (m points, G groups);
+    None unless two groups have >= 3 points spread in t.
+    """
+    groups = [(t, y) for t, y in groups if len(t) >= 2]
+    if sum(len(t) >= 3 for t, _ in groups) < 2:
+        return None
+    tc = [t - t.mean() for t, _ in groups]
+    yc = [y - y.mean() for _, y in groups]
+    sxx = float(sum(a @ a for a in tc))
+    if sxx <= 0.0:
+        return None
+    d = float(sum(a @ b for a, b in zip(tc, yc))) / sxx
+    rss = float(sum(np.sum((b - d * a) ** 2) for a, b in zip(tc, yc)))
+    dof = max(1, sum(len(a) for a in tc) - len(tc) - 1)
+    return d, float(np.sqrt(max(rss / dof, min_resid**2) / sxx))
+
+
+def tail_mean_sd(r: np.ndarray, q: float) -> float:
+    """Per-observation sd of the mean of the lowest fraction q of r (from its influence function):
+
+    L = (1/q) int_0^q Q(p) dp,  IF(x) = min(x - Q_q, 0) / q + const, so
+    var = E[(x - Q_q)^2 | tail] / q - (mean_tail - Q_q)^2.
+    """
+    tail = np.sort(r[lowest(r, q)])
+    dev = tail - tail[-1]  # tail[-1] ~ Q_q
+    return float(np.sqrt(max(np.mean(dev**2) / q - np.mean(dev) ** 2, 0.0)))
+
+
+def _bin_envelopes(leg: Leg, bin_s: float, phase_s: float, drift: float, q: float) -> tuple[np.ndarray, np.ndarray]:
+    """(t, sign * (envelope + sign d t)) per bin of a leg: points on a line of slope d, shapes (m,).
+
+    Bin edges sit at t = k bin_s - phase_s (fixed in absolute time as the reference time moves)."""
+    r = leg.detrended(drift)
+    unqueued = r <= r.min() + QUEUED_NS  # buffered readings say nothing about the envelope's slope
+    t = leg.t_s[unqueued]
+    t_bin, e_bin = bin_tail_means(np.floor((t + phase_s) / bin_s), t, r[unqueued], q)
+    return t_bin, leg.sign * e_bin + drift * t_bin
+
+
+def fit_drift(legs: list[Leg], bin_s: float, phase_s: float, q: float, prior: tuple[float, float],
+              min_resid: float, iters: int = 2) -> tuple[float, float]:
+    """(drift, sd) in ns per s of the lower envelopes of all legs and segments, shrunk to a prior.
+
+    Per sub-window (bin of bin_s seconds, edges at k bin_s - phase_s) and leg, the lower-tail
+    mean of the readings detrended with the current drift d is the envelope at the bin's mean
+    time; the envelopes (signed so that every leg rises with slope d) get one shared least-squares
+    slope s with an intercept per leg and clock segment (a step moves the intercepts, not the
+    rate: shared_slope, std error se from the scatter of the bins, but never below the expected
+    scatter tail_mean_sd / sqrt(samples per bin), so that a few bins lying on a line by chance do
+    not fake certainty). Bins whose envelope lies above the grouped Theil-Sen line by more than
+    3 such sd (a leg congested or buffered for a whole bin) are left out. With the prior
+    N(d0, sd0^2), the Gaussian posterior is
+      d = d0 + w (s - d0),  w = sd0^2 / (sd0^2 + se^2),  sd = (1 / sd0^2 + 1 / se^2)^(-1/2).
+    """
+    d0, sd0 = prior
+    d, sd = d0, sd0
+    legs = [leg for leg in legs if len(leg.t_s) >= 3]
+    if not legs:
+        return d0, sd0
+    n = sum(len(leg.t_s) for leg in legs)
+    for _ in range(iters):
+        points = [_bin_envelopes(leg, bin_s, phase_s, d, q) for leg in legs]
+        # a bin envelope scatters at least by the lower-tail-mean noise of its samples
+        n_bins = sum(len(t) for t, _ in points)
+        per_bin = max(tail_mean_sd(leg.detrended(d), q) for leg in legs) / np.sqrt(max(1.0, n / max(n_bins, 1)))
+        floor = max(min_resid, per_bin)
+        robust = theil_sen_slope(points)
+        if robust is not None:
+            points = [_below_line(t, y, leg.sign, robust, 3.0 * floor) for (t, y), leg in zip(points, legs)]
+        fit = shared_slope(points, floor)
+        if fit is None:
+            return d0, sd0
+        s, se = fit
+        d, sd = d0 + sd0**2 / (sd0**2 + se**2) * (s - d0), float((1.0 / sd0**2 + 1.0 / se**2) ** -0.5)
+    return d, sd
+
+
+def theil_sen_slope(groups: list[tuple[np.ndarray, np.ndarray]]) -> float | None:
+    """Median of the pairwise slopes (y_j - y_i) / (t_j - t_i) within each group (Theil 1950, Sen 1968,
+    grouped so that each group keeps its own intercept); None without a pair."""
+    slopes = []
+    for t, y in groups:
+        i, j = np.triu_indices(len(t), 1)
+        dt = t[j] - t[i]
+        ok = dt != 0.0
+        slopes.append((y[j] - y[i])[ok] / dt[ok])
+    slopes = np.concatenate(slopes) if slopes else np.empty(0)
+    return float(np.median(slopes)) if len(slopes) else None
+
+
+def _below_line(t: np.ndarray, y: np.ndarray, sign: int, d: float, limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """The bins of one group whose envelope is not congested: sign (y - d t) <= c + limit, c the lower
+    quartile of sign (y - d t) over the group (a congested bin lies above the envelope line)."""
+    if len(t) < 4:
+        return t, y
+    excess = sign * (y - d * t)
+    keep = excess <= np.percentile(excess, 25) + limit
+    return t[keep], y[keep]
+
+
+@dataclass(frozen=True)
+class TailMean:
+    """The lower-tail mean of one leg's detrended readings: value (ns) and mean age (s, >= 0)."""
+
+    value_ns: float
+    age_s: float
+
+
+def tail_mean(leg: Leg, drift: float, q: float) -> TailMean:
+    """E = mean of the lowest fraction q of the detrended readings, and their mean age -t."""
+    r = leg.detrended(drift)
+    low = lowest(r, q)
+    return TailMean(float(r[low].mean()), float(max(0.0, -leg.t_s[low].mean())))
+
+
+def leg_envelope(leg: Leg, drift: float, drift_bound: float, q: float, horizon_s: float, margin_ns: float,
+                 min_readings: int = 3) -> TailMean:
+    """The lower-tail mean of a leg over the horizon that keeps its bound E + drift_bound * age low.
+
+    Readings more than QUEUED_NS above the leg's least one (buffered) are never part of its lower
+    tail. Starts from the readings of the last horizon_s (at least the newest min_readings) and
+    doubles the horizon while that bounds the leg better by more than margin_ns: a drift error of
+    at most drift_bound (ns/s) moves a reading of age a by drift_bound a, so an older, un-queued
+    envelope is worth more than a recent one whose every reading was buffered.
+    """
+    r = leg.detrended(drift)
+    usable = np.flatnonzero(r <= r.min() + QUEUED_NS)
+    order = usable[np.argsort(-leg.t_s[usable])]  # un-queued readings, newest first
+    ages = -leg.t_s[order]
+    best, best_bound, h = None, np.inf, horizon_s
+    while True:
+        count = max(min(min_readings, len(order)), int(np.searchsorted(ages, h, side="right")))
+        env = tail_mean(leg.take(order[:count]), drift, q)
+        bound = env.value_ns + drift_bound * env.age_s
+        if best is None or bound < best_bound - margin_ns:
+            best, best_bound = env, bound
+        if h >= ages[-1]:
+            return best
+        h *= 2.0
+
+
+def _allowed(up: Leg, down: Leg, drift: float, slack_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The offsets theta(0) each exchange allows, [-(x_down + d t4), x_up - d t1] widened by slack (ns)."""
+    return -down.detrended(drift) - slack_ns, up.detrended(drift) + slack_ns
+
+
+def consensus(up: Leg, down: Leg, drift: float, slack_ns: np.ndarray, among: np.ndarray) -> np.ndarray:
+    """Which exchanges agree on the offset most of them allow (Marzullo 1984), bool shape (n,).
+
+    up and down hold the two readings of the same n exchanges; only those in ``among`` (bool
+    (n,)) vote. Exchange i allows theta(0) in [-(x_down + d t4), x_up - d t1] (both delays >= 0),
+    widened by slack_ns[i] for the drift error; genuine exchanges all contain the true offset, so
+    the point covered by the most intervals is kept and an exchange whose interval misses it (a
+    forged or stepped reply among agreeing ones) is not.
+    """
+    lo, hi = _allowed(up, down, drift, slack_ns)
+    points = np.r_[lo[among], hi[among]]
+    kinds = np.r_[np.ones(np.sum(among)), -np.ones(np.sum(among))]  # +1 opens, -1 closes
+    order = np.lexsort((-kinds, points))  # by value, an opening before a closing at the same value
+    theta = points[order][int(np.argmax(np.cumsum(kinds[order])))]  # start of a most-covered segment
+    return (lo <= theta) & (theta <= hi)
+
+
+def disputed_ns(up: Leg, down: Leg, drift: float, slack_ns: np.ndarray, outside: np.ndarray,
+                theta_ns: float) -> float:
+    """How far from theta_ns the offsets allowed by the exchanges in ``outside`` reach (ns, the far
+    edge of the farthest): what the bound must cover when those may be the genuine ones."""
+    lo, hi = _allowed(up.take(outside), down.take(outside), drift, slack_ns[outside])
+    return float(np.max(np.maximum(np.abs(lo - theta_ns), np.abs(hi - theta_ns)), initial=0.0))
