@@ -511,7 +511,8 @@ class ObuPipeline:
             clock_uncertainty_ns=None if est is None else est.uncertainty_ns,
             clock_drift_ppm=None if est is None else est.drift_ppm,
             clock_offset_naive_ns=None if naive is None else naive.offset_ns,
-            sync_samples=0 if est is None else est.samples, messages_accepted=state.accepted,
+            sync_samples=0 if est is None else est.samples, sync_outliers=state.sync.outliers_rejected,
+            messages_accepted=state.accepted,
             last_data_age_ms=state.last_age_ms, delay_p50_ms=link["delay_p50_ms"], delay_p95_ms=link["delay_p95_ms"],
             jitter_ms=link["jitter_ms"], loss_ratio=link["loss_ratio"],
         )

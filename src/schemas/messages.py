@@ -15,7 +15,7 @@ from . import quantize as q
 from .classes import ObjectClass
 
 # 2: velocity covariance cov_vxx, cov_vxy, cov_vyy on objects
-# 3: header schema_version checked; RsuMetrics; ObuMetrics.output_dropped
+# 3: header schema_version checked; RsuMetrics; ObuMetrics.output_dropped; RsuLinkStatus.sync_outliers
 SCHEMA_VERSION = 3
 MAX_OBJECTS = 1024
 
@@ -268,6 +268,7 @@ class RsuLinkStatus(Message):
     clock_drift_ppm: Annotated[float | None, Field(allow_inf_nan=False)] = None
     clock_offset_naive_ns: Int64 | None = None  # the latest single exchange, for comparison
     sync_samples: Count = 0
+    sync_outliers: Count = 0  # time replies the clock filter rejected (forged, or outliers against its fit)
     messages_accepted: Count = 0
     last_data_age_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None
     delay_p50_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None  # one-way, RSU publish -> OBU
