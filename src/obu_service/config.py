@@ -40,6 +40,7 @@ class ObuConfig(ServiceConfig):
     max_objects_per_list: int = Field(256, ge=1, le=1024)
     max_rsu_objects_per_cycle: int = Field(1024, ge=1, le=100_000)
     max_prediction_s: float = Field(1.0, ge=0, le=10, description="an RSU list predicted further ahead is refused")
+    max_path_points: int = Field(8192, ge=1, le=1 << 20, description="predicted positions in one prediction list")
     future_tolerance_ms: float = Field(20.0, ge=0, le=10_000, description="RSU data may be stamped this much "
                                        "(plus the clock uncertainty) after its arrival")
     # the node's intake (schemas.intake)
@@ -47,7 +48,7 @@ class ObuConfig(ServiceConfig):
     source_rate_hz: float = Field(50.0, gt=0, le=10_000, description="messages per second accepted per key")
     source_burst: int = Field(25, ge=1, le=10_000)
     inbox_capacity: int = Field(512, ge=8, le=100_000, description="queued messages, all keys together")
-    inbox_max_bytes: int = Field(8 << 20, ge=1 << 20, le=1 << 30, description="their bytes")
+    inbox_max_bytes: int = Field(4 << 20, ge=1 << 20, le=1 << 30, description="their bytes")
     input_guard_ms: float = Field(15.0, ge=0, le=1000, description="no large input is started this close to "
                                   "the next timed step (the longest decode of an admitted message)")
 
@@ -105,5 +106,6 @@ class ObuConfig(ServiceConfig):
             accept_unknown_rsus=self.accept_unknown_rsus, max_unknown_rsus=self.max_unknown_rsus,
             rsu_expiry_s=self.rsu_expiry_s, site_radius_m=self.site_radius_m,
             max_objects_per_list=self.max_objects_per_list, max_rsu_objects_per_cycle=self.max_rsu_objects_per_cycle,
-            max_prediction_s=self.max_prediction_s, future_tolerance_ms=self.future_tolerance_ms,
+            max_prediction_s=self.max_prediction_s, max_path_points=self.max_path_points,
+            future_tolerance_ms=self.future_tolerance_ms,
         )

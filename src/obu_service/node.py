@@ -17,7 +17,7 @@ import numpy as np
 import zenoh
 
 from schemas import keys
-from schemas.codec import CodecError, decode, encode, from_body, header_of, object_count, open_body
+from schemas.codec import CodecError, decode, encode, from_body, header_of, object_count, open_body, path_point_count
 from schemas.intake import Intake, Item
 from schemas.messages import EgoPose, ObjectList, PredictionList, TimeReply
 from schemas.runtime import ThrottledLog, announce, log
@@ -134,8 +134,10 @@ class ObuNode:
                 lists = item.kind == "rsu"
                 model = ObjectList if lists else PredictionList
                 body = open_body(item.payload, model, max_bytes)
-                screen = self.pipeline.screen_list if lists else self.pipeline.screen_paths
-                if screen(header_of(body), object_count(body), item.receive_ns):
+                header, n = header_of(body), object_count(body)
+                admitted = (self.pipeline.screen_list(header, n, item.receive_ns) if lists else
+                            self.pipeline.screen_paths(header, n, path_point_count(body), item.receive_ns))
+                if admitted:
                     accept = self.pipeline.on_rsu_message if lists else self.pipeline.on_predictions
                     accept(from_body(body, model), item.receive_ns)
         except CodecError as exc:

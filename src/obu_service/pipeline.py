@@ -84,6 +84,7 @@ class ObuPipelineConfig:
     max_objects_per_list: int = 256
     max_rsu_objects_per_cycle: int = 1024
     max_prediction_s: float = 1.0  # header prediction_ns above this is refused
+    max_path_points: int = 8192  # predicted positions in one prediction list (objects x points)
     future_tolerance_ms: float = 20.0  # beyond the clock uncertainty
 
     def __post_init__(self) -> None:
@@ -185,9 +186,21 @@ class ObuPipeline:
         """Whether an object list with this header may be decoded and fused (counted if not)."""
         return self._screen(header, n_objects, receive_ns, paths=False) is not None
 
-    def screen_paths(self, header: ObjectListHeader, n_objects: int, receive_ns: int) -> bool:
-        """Whether a prediction list with this header may be decoded and used (counted if not)."""
-        return self._screen(header, n_objects, receive_ns, paths=True) is not None
+    def screen_paths(self, header: ObjectListHeader, n_objects: int, n_points: int, receive_ns: int) -> bool:
+        """Whether a prediction list with this header and ``n_points`` predicted positions may be
+        decoded and kept (counted if not): at most max_path_points, and only once the RSU's clock
+        is known (paths cannot be placed before, and the next ones come within a period)."""
+        return self._screen_paths(header, n_objects, n_points, receive_ns) is not None
+
+    def _screen_paths(self, header: ObjectListHeader, n_objects: int, n_points: int, receive_ns: int) -> RsuState | None:
+        if n_points > self.config.max_path_points:
+            self.rejected["too_many_path_points"] += 1
+            return None
+        state = self._screen(header, n_objects, receive_ns, paths=True)
+        if state is not None and state.sync.estimate_at(receive_ns) is None:
+            self.rejected["paths_before_clock_sync"] += 1
+            return None
+        return state
 
     def _screen(self, header: ObjectListHeader, n_objects: int, receive_ns: int, paths: bool) -> RsuState | None:
         """The RSU's state if the message passes admission (module docstring), else None, counted."""
@@ -260,7 +273,8 @@ class ObuPipeline:
     def on_predictions(self, msg: PredictionList, receive_ns: int) -> None:
         """The RSU's long-horizon paths (planning fusion); the newest t0 is kept."""
         header = msg.header
-        state = self._screen(header, max(len(msg.objects), len(msg.paths)), receive_ns, paths=True)
+        state = self._screen_paths(header, max(len(msg.objects), len(msg.paths)), sum(len(p.x) for p in msg.paths),
+                                   receive_ns)
         if state is None:
             return
         state.predictions_seen.add((header.seq, header.capture_time_ns))

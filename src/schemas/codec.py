@@ -345,6 +345,14 @@ def object_count(body: dict[str, Any]) -> int:
     return max(count, len(paths)) if isinstance(paths, list) else count
 
 
+def path_point_count(body: dict[str, Any]) -> int:
+    """Predicted positions an opened prediction list carries (its size once decoded), before decoding."""
+    paths = body.get("paths")
+    if not isinstance(paths, list):
+        return 0
+    return sum(len(p["x"]) for p in paths if isinstance(p, dict) and isinstance(p.get("x"), list))
+
+
 def from_body(body: dict[str, Any], model: type[M]) -> M:
     """The validated ``model`` instance of an opened body (every model rule)."""
     columns = COLUMNAR.get(model.TYPE)

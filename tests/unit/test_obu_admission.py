@@ -278,3 +278,15 @@ def test_a_capture_at_the_cycle_instant_is_its_slot_whatever_the_clock_error(err
     assert not p.ready(t + 60 * MS)
     p.on_rsu_message(rsu_list(t + e, [[5.0, -20.0]], seq=2), t + 70 * MS)
     assert p.ready(t + 70 * MS) and p.fuse(t + 70 * MS).mode == "intra"
+
+
+def test_paths_are_bounded_in_points_and_kept_only_once_the_clock_is_known():
+    p = pipeline(max_path_points=100)
+    t = T0 + 1_000 * MS
+    h = header(t - 100 * MS)
+    assert not p.screen_paths(h, 4, 101, t) and p.screen_paths(h, 4, 100, t)
+    unsynced = ObuPipeline(ObuPipelineConfig(fusion="iou-merge"))
+    paths = PredictionList(header=h, objects=states_from_objects(objs([[5.0, -20.0]])),
+                           paths=(PredictedPath(id=1, x=[5.0] * 50, y=[-20.0] * 50, yaw=[0.0] * 50),))
+    unsynced.on_predictions(paths, t)
+    assert p.rejected == {"too_many_path_points": 1} and unsynced.rejected == {"paths_before_clock_sync": 1}
