@@ -27,6 +27,7 @@ from schemas.codec import encode
 from schemas.config import ConfigError, load_config, one_line_error
 from schemas.keys import check_id, link_control, link_stats
 from schemas.messages import LinkControl
+from schemas.runtime import limit_malloc_arenas
 from schemas.transport import open_session
 from sim.clock import SystemClock
 
@@ -291,6 +292,7 @@ def run(args: argparse.Namespace) -> int:
 
     Returns 0 on a clean stop, 2 on a bad config or profile, 1 when Zenoh cannot start.
     """
+    limit_malloc_arenas()
     if args.list_profiles:
         print("\n".join(bundled_profiles()))
         return 0

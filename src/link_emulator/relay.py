@@ -46,6 +46,7 @@ from schemas.keys import (
     link_stats,
 )
 from schemas.messages import EgoPose, LinkControl
+from schemas.runtime import MemoryTrim
 from schemas.transport import open_session
 from sim.clock import Clock
 
@@ -236,6 +237,7 @@ class LinkRelay:
         self._position = VehiclePosition(config.vehicle_id)
         self._control = ControlStats()
         self._gate = Gate(config, clock)
+        self._trim = MemoryTrim()
         self._in_flight = {"uplink": InFlight(), "downlink": InFlight()}
         self._queries: dict[int, ForwardedQuery] = {}
         self._query_ids = itertools.count()
@@ -324,6 +326,7 @@ class LinkRelay:
             payload = json.dumps(self.stats_snapshot(fired_ns)).encode()
             for session in (self._rsu, self._vehicle):
                 session.put(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+            self._trim.maybe()
 
         return publish
 

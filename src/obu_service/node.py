@@ -20,7 +20,7 @@ from schemas import keys
 from schemas.codec import CodecError, decode, encode, from_body, header_of, object_count, open_body, path_point_count
 from schemas.intake import Intake, Item
 from schemas.messages import EgoPose, ObjectList, PredictionList, TimeReply
-from schemas.runtime import ThrottledLog, announce, log
+from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
@@ -48,6 +48,7 @@ class ObuNode:
                               config.source_burst, max_queued_bytes=config.inbox_max_bytes,
                               preferred=lambda key: _rsu_of(key) in known)
         self._log = ThrottledLog("obu")
+        self._trim = MemoryTrim()
         self._logged: Counter[str] = Counter()  # refusals already handed to the log
         self._details: dict[str, str] = {}  # first codec error message per reason
         self._events: list = []
@@ -177,6 +178,7 @@ class ObuNode:
             self._pub["planning"].put(encode(self.pipeline.last_planning))
         self._count_refusals()
         self._pub["metrics"].put(encode(self.pipeline.metrics(self.clock.now_ns())))
+        self._trim.maybe()  # just published: the next deadline is a cycle away
 
     def _count_refusals(self) -> None:
         """The intake's refusals into the pipeline's counters; the new ones to the throttled log."""

@@ -18,7 +18,7 @@ from schemas import keys
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
 from schemas.intake import KeyedBuckets, TokenBucket
 from schemas.messages import RsuMetrics, TimeRequest
-from schemas.runtime import ThrottledLog, announce, log
+from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
@@ -55,6 +55,7 @@ class RsuNode:
         self._queries = TokenBucket(config.query_rate_hz, config.query_burst, self.true_clock.now_ns())
         self._queriers = KeyedBuckets(config.querier_rate_hz, config.querier_burst, MAX_QUERIERS)  # by obu_id
         self._log = ThrottledLog("rsu")
+        self._trim = MemoryTrim()
         self._logged: Counter[str] = Counter()
         self._details: dict[str, str] = {}
 
@@ -129,6 +130,7 @@ class RsuNode:
         self._metrics.put(encode(RsuMetrics(rsu_id=self.config.rsu_id, t_ns=self.clock.now_ns(),
                                             published=self.published, skipped=self.skipped,
                                             time_replies=replies, rejected=dict(rejected))))
+        self._trim.maybe()
 
     def _on_time_query(self, query) -> None:
         # Answered in the callback: it reads only the clock and must stamp t2/t3 tightly.

@@ -80,6 +80,56 @@ def add_service_options(p, config_name: str, listen_example: str, seed_of: str) 
     p.add_argument("--duration", dest="duration_s", type=float, help="seconds to run (default: scenario duration)")
 
 
+M_ARENA_MAX = -8  # glibc malloc.h
+SERVICE_MALLOC_ARENAS = 2
+
+
+def limit_malloc_arenas(arenas: int = SERVICE_MALLOC_ARENAS) -> bool:
+    """Cap glibc's malloc arenas (as MALLOC_ARENA_MAX does); False where unsupported.
+
+    Every Zenoh callback thread otherwise gets an arena of its own, and what a burst of large
+    messages frees there stays mapped: a fuzzed OBU grew 14-20 MB with the default, 11 MB with 2.
+    Call it before any thread starts (a service's first step).
+    """
+    mallopt = _libc_function("mallopt")
+    return mallopt is not None and mallopt(M_ARENA_MAX, arenas) == 1
+
+
+class MemoryTrim:
+    """Returns freed heap memory to the system (glibc ``malloc_trim``) at most every ``period_s``.
+
+    What Zenoh callback threads allocate and the service loop frees stays cached in glibc's
+    arenas (measured: +8 MB in one arena after a burst of large messages); a service calls
+    ``maybe()`` at a quiet moment of its loop. A no-op where glibc is absent.
+    """
+
+    def __init__(self, period_s: float = 5.0, clock_s=time.monotonic):
+        self.period_s, self._clock_s, self._last_s = period_s, clock_s, clock_s()
+        self._trim = _libc_function("malloc_trim")
+
+    def maybe(self) -> bool:
+        """Trim if the period has passed; True when it trimmed."""
+        now_s = self._clock_s()
+        if self._trim is None or now_s - self._last_s < self.period_s:
+            return False
+        self._last_s = now_s
+        self._trim(0)
+        return True
+
+
+def _libc_function(name: str):
+    """A function of the C library (glibc on Linux), or None."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        import ctypes
+        import ctypes.util
+
+        return getattr(ctypes.CDLL(ctypes.util.find_library("c")), name)
+    except (OSError, AttributeError):
+        return None
+
+
 def run_service(name: str, model, args, make_node) -> int:
     """``v2i <name>``: config from ``--config`` overridden by every CLI flag named like a
     config field, a node from ``make_node(config)``, run until SIGINT/SIGTERM.
@@ -87,6 +137,7 @@ def run_service(name: str, model, args, make_node) -> int:
     Returns 2 with the reason on one stderr line when the configuration cannot be used or
     Zenoh refuses its endpoints.
     """
+    limit_malloc_arenas()
     import zenoh
 
     from .config import ConfigError, load_config, one_line_error

@@ -103,3 +103,18 @@ def test_throttled_log_reports_first_refusal_then_one_summary_per_interval(capsy
     assert capsys.readouterr().err == ""  # nothing new to say
     with pytest.raises(TypeError):
         log.refused("x")  # the first refusal's detail is required
+
+
+def test_memory_trim_runs_at_most_once_a_period():
+    from schemas.runtime import MemoryTrim, limit_malloc_arenas
+
+    clock = FakeClock()
+    trim = MemoryTrim(period_s=5.0, clock_s=lambda: clock.t_ns / S)
+    calls = []
+    trim._trim = calls.append  # count the calls instead of trimming
+    assert not trim.maybe() and calls == []
+    clock.t_ns = 5 * S
+    assert trim.maybe() and not trim.maybe() and calls == [0]
+    clock.t_ns = 10 * S
+    assert trim.maybe() and calls == [0, 0]
+    assert limit_malloc_arenas() in (True, False)  # glibc: True; elsewhere a no-op
