@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.transport import free_tcp_endpoint, open_session
+from schemas.transport import open_session
 
 from .demo import Child, DemoError
 from .hostile import KINDS, HostileInputs

@@ -11,21 +11,13 @@ says so (at once, or when the awaited RSU frame arrives, or at ``fuse_by_ns``):
 
 so the output is on time whatever the link does (seed 003's E2E and output-interval bounds).
 
-Whatever passes admission can never crash fusion, and fusion always publishes:
-
-- admission (``screen_list`` / ``screen_paths``, from the header alone, before any object is
-  decoded): the RSU gets a slot in the ``RsuTable`` (known ids first, unknown ones bounded and
-  expiring); at most ``max_objects_per_list`` objects; ``prediction_ns`` at most
-  ``max_prediction_s``; not a duplicate of a (seq, capture) seen recently; and, once the RSU's
-  clock is known, valid no later than its arrival (plus the clock uncertainty and
-  ``future_tolerance_ms``) and no older than the oldest data a mode can use (``inter_max_age_s``
-  for lists, ``planning_max_age_s`` for paths): a replay is a duplicate or stale;
-- objects farther than ``site_radius_m`` from their RSU (or, for an RSU of unknown position,
-  from the ego) are dropped; a cycle fuses at most ``max_rsu_objects_per_cycle`` RSU objects
-  (known RSUs and newer frames first);
-- the output is fitted to the wire (``fusion.wire.fit_to_wire``: clip, drop, truncate, each
-  counted in ``output_dropped``), never raising.
-Every refusal is counted by reason in ``rejected``.
+Whatever passes admission can never crash fusion, and fusion always publishes: the RSU
+input is admitted or refused from its header before any object is decoded
+(``obu_service.admission``: slots in the ``RsuTable``, object and path counts, predictions,
+duplicates, future and stale stamps, the site radius); a cycle fuses at most
+``max_rsu_objects_per_cycle`` RSU objects (known RSUs and newer frames first); the output is
+fitted to the wire (``fusion.wire.fit_to_wire``: clip, drop, truncate, each counted in
+``output_dropped``), never raising. Every refusal is counted by reason in ``rejected``.
 """
 
 from __future__ import annotations
@@ -44,9 +36,11 @@ from fusion.wire import fit_to_wire, objects_from_states, states_from_objects
 from schemas.messages import (MAX_OBJECTS, SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObjectListHeader,
                               ObuMetrics, PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
 
+from .admission import Admission, Limits
 from .clock_sync import OffsetEstimate
 from .fusion_mode import FUSION_MODES, MODES, Feasible, ModePolicy
 from .methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_fusion, make_fusion
+from .mode_inputs import ModeInputs, Received
 from .planning import objects_at, retimed
 from .rsu_table import RsuState, RsuTable
 from .time_requests import TimeRequests
@@ -55,8 +49,6 @@ __all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "ObuPipeline", "Ob
 
 RSU_ID_BASE = 1_000_000  # output ids of RSU objects: RSU_ID_BASE * (rsu index + 1) + RSU track id mod base
 MAX_RSUS = 64  # RSU slots (known + unknown): the metrics message lists each one
-DEFAULT_RSU_PERIOD_NS = 200_000_000  # until two RSU captures have been seen (5 Hz camera)
-MIN_SLOT_TOLERANCE_NS = 1_000_000  # intra: captures this close to the cycle's count as its slot, at least
 
 
 @dataclass(frozen=True)
@@ -87,6 +79,12 @@ class ObuPipelineConfig:
     max_path_points: int = 8192  # predicted positions in one prediction list (objects x points)
     future_tolerance_ms: float = 20.0  # beyond the clock uncertainty
 
+    def limits(self) -> Limits:
+        """What admission allows (obu_service.admission), in ns."""
+        return Limits(self.max_objects_per_list, self.max_path_points, round(self.max_prediction_s * 1e9),
+                      round(self.future_tolerance_ms * 1e6), round(self.inter_max_age_s * 1e9),
+                      round(self.planning_max_age_s * 1e9), self.site_radius_m)
+
     def __post_init__(self) -> None:
         check_fusion(self.fusion, self.compensation)
         ModePolicy(self.fusion_mode, self.hysteresis_cycles)  # validates the mode
@@ -94,18 +92,6 @@ class ObuPipelineConfig:
         if slots > MAX_RSUS:
             raise ValueError(f"known_rsus ({len(self.known_rsus)}) + max_unknown_rsus ({self.max_unknown_rsus}) "
                              f"exceed {MAX_RSUS} RSU slots")
-
-
-@dataclass
-class _Received:
-    """An RSU list as received: RSU-clock times, placed in OBU time at fusion time."""
-
-    capture_rsu_ns: int
-    valid_rsu_ns: int
-    seq: int
-    objects: ObjectArray  # map frame
-    receive_ns: int
-    used: bool = False  # consumed by a tracking fusion (each list is a measurement once)
 
 
 @dataclass
@@ -138,6 +124,8 @@ class ObuPipeline:
         self._rsus = RsuTable(config.known_rsus, config.max_unknown_rsus, round(config.rsu_expiry_s * 1e9),
                               config.accept_unknown_rsus)
         self._requests = TimeRequests(config.vehicle_id)
+        self._admission = Admission(config.limits(), self._rsus, self.rejected)
+        self._inputs = ModeInputs(config, self._rsus)
         self._cycle: _Cycle | None = None
         self._last_publish_ns: int | None = None
         self._out_seq = 0
@@ -181,72 +169,17 @@ class ObuPipeline:
         state = self._rsus.get(rsu_id)
         return None if state is None else state.sync.naive()
 
-    # --- admission -------------------------------------------------------------------
+    # --- admission (obu_service.admission) --------------------------------------------
     def screen_list(self, header: ObjectListHeader, n_objects: int, receive_ns: int) -> bool:
         """Whether an object list with this header may be decoded and fused (counted if not)."""
-        return self._screen(header, n_objects, receive_ns, paths=False) is not None
+        self._sync(receive_ns)
+        return self._admission.lists(header, n_objects, receive_ns) is not None
 
     def screen_paths(self, header: ObjectListHeader, n_objects: int, n_points: int, receive_ns: int) -> bool:
         """Whether a prediction list with this header and ``n_points`` predicted positions may be
-        decoded and kept (counted if not): at most max_path_points, and only once the RSU's clock
-        is known (paths cannot be placed before, and the next ones come within a period)."""
-        return self._screen_paths(header, n_objects, n_points, receive_ns) is not None
-
-    def _screen_paths(self, header: ObjectListHeader, n_objects: int, n_points: int, receive_ns: int) -> RsuState | None:
-        if n_points > self.config.max_path_points:
-            self.rejected["too_many_path_points"] += 1
-            return None
-        state = self._screen(header, n_objects, receive_ns, paths=True)
-        if state is not None and state.sync.estimate_at(receive_ns) is None:
-            self.rejected["paths_before_clock_sync"] += 1
-            return None
-        return state
-
-    def _screen(self, header: ObjectListHeader, n_objects: int, receive_ns: int, paths: bool) -> RsuState | None:
-        """The RSU's state if the message passes admission (module docstring), else None, counted."""
+        decoded and kept (counted if not)."""
         self._sync(receive_ns)
-        cfg = self.config
-        reason = ("prediction_too_long" if header.prediction_ns > cfg.max_prediction_s * 1e9 else
-                  "too_many_objects" if n_objects > cfg.max_objects_per_list else None)
-        state = self._rsus.admit(header.rsu_id, receive_ns) if reason is None else reason
-        if isinstance(state, str):
-            self.rejected[state] += 1
-            return None
-        seen = state.predictions_seen if paths else state.lists_seen
-        reason = "duplicate" if (header.seq, header.capture_time_ns) in seen else self._timing(state, header, receive_ns, paths)
-        if reason is not None:
-            self.rejected[reason] += 1
-            return None
-        return state
-
-    def _timing(self, state: RsuState, header: ObjectListHeader, receive_ns: int, paths: bool) -> str | None:
-        """``future_timestamp``, ``stale`` or None, once the RSU's clock is known (a stale list
-        still tells the link monitor its delay)."""
-        est = state.sync.estimate_at(receive_ns)
-        if est is None:
-            return None
-        valid_ns = est.to_obu_ns(header.valid_time_ns)
-        if valid_ns - receive_ns > est.uncertainty_ns + self.config.future_tolerance_ms * 1e6:
-            return "future_timestamp"
-        max_age_s = self.config.planning_max_age_s if paths else self.config.inter_max_age_s
-        if receive_ns - valid_ns <= max_age_s * 1e9 + est.uncertainty_ns:
-            return None
-        if not paths:
-            state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns),
-                                     est.to_obu_ns(header.publish_time_ns), receive_ns)
-        return "stale"
-
-    def _on_site(self, state: RsuState, objects: ObjectArray, receive_ns: int) -> ObjectArray:
-        """The objects within site_radius_m of their RSU (of the ego for an RSU of unknown position)."""
-        centre = self._rsus.position(state.rsu_id)
-        if centre is None:
-            ego = self.poses.at(receive_ns)
-            centre = None if ego is None else (ego.x, ego.y)
-        if centre is None or not len(objects):
-            return objects
-        inside = np.hypot(objects.xy[:, 0] - centre[0], objects.xy[:, 1] - centre[1]) <= self.config.site_radius_m
-        self.rejected["object_outside_site"] += int((~inside).sum())
-        return objects.take(inside)
+        return self._admission.paths(header, n_objects, n_points, receive_ns) is not None
 
     # --- inputs ----------------------------------------------------------------------
     def on_pose(self, t_ns: int, pose: Pose2D) -> None:
@@ -254,13 +187,14 @@ class ObuPipeline:
 
     def on_rsu_message(self, msg: ObjectList, receive_ns: int) -> None:
         header = msg.header
-        state = self._screen(header, len(msg.objects), receive_ns, paths=False)
+        self._sync(receive_ns)
+        state = self._admission.lists(header, len(msg.objects), receive_ns)
         if state is None:
             return
         state.lists_seen.add((header.seq, header.capture_time_ns))
-        objects = self._on_site(state, objects_from_states(msg.objects), receive_ns)
+        objects = self._admission.on_site(state, objects_from_states(msg.objects), self.poses.at(receive_ns))
         objects = objects.with_(ids=self._rsu_ids(state, objects.ids), sources=np.full(len(objects), SOURCE_RSU))
-        state.frames.append(_Received(header.capture_time_ns, header.valid_time_ns, header.seq, objects, receive_ns))
+        state.frames.append(Received(header.capture_time_ns, header.valid_time_ns, header.seq, objects, receive_ns))
         state.accepted += 1
         state.last_receive_ns = receive_ns
         est = state.sync.estimate_at(receive_ns)
@@ -273,8 +207,9 @@ class ObuPipeline:
     def on_predictions(self, msg: PredictionList, receive_ns: int) -> None:
         """The RSU's long-horizon paths (planning fusion); the newest t0 is kept."""
         header = msg.header
-        state = self._screen_paths(header, max(len(msg.objects), len(msg.paths)), sum(len(p.x) for p in msg.paths),
-                                   receive_ns)
+        self._sync(receive_ns)
+        state = self._admission.paths(header, max(len(msg.objects), len(msg.paths)), sum(len(p.x) for p in msg.paths),
+                                      receive_ns)
         if state is None:
             return
         state.predictions_seen.add((header.seq, header.capture_time_ns))
@@ -293,9 +228,9 @@ class ObuPipeline:
         if self._last_publish_ns is not None:
             interval_ns = round((self.config.output_interval_ms - self.config.compute_margin_ms) * 1e6)
             fuse_by_ns = min(fuse_by_ns, max(self._last_publish_ns + interval_ns, capture_ns))
-        slots = self._intra_slots(capture_ns, fuse_by_ns)
-        feasible = Feasible(intra=bool(slots), inter=bool(self._inter_frames(capture_ns)[0]),
-                            planning=bool(self._planning_inputs(capture_ns)))
+        slots = self._inputs.intra_slots(capture_ns, fuse_by_ns)
+        feasible = Feasible(intra=bool(slots), inter=bool(self._inputs.inter(capture_ns)[0]),
+                            planning=bool(self._inputs.planning(capture_ns)))
         mode = self._policy.select(feasible)
         self._cycle = _Cycle(capture_ns, own, mode, fuse_by_ns, slots if mode == "intra" else {})
         return fuse_by_ns
@@ -312,7 +247,7 @@ class ObuPipeline:
             return False
         if cycle.mode != "intra" or not cycle.intra_slots or now_ns >= cycle.fuse_by_ns:
             return True
-        return bool(self._intra_frames(cycle)[0])
+        return bool(self._inputs.intra(cycle.capture_ns, cycle.intra_slots)[0])
 
     def reject(self, reason: str, count: int = 1) -> None:
         """Count inputs the shell refused (a codec error's reason, an intake refusal)."""
@@ -327,16 +262,16 @@ class ObuPipeline:
         self._cycle = None
         t_c = cycle.capture_ns
         ego = self.poses.at(t_c) or Pose2D(0.0, 0.0, 0.0)
-        intra = self._intra_frames(cycle)
-        inter = self._inter_frames(t_c)
-        planning = self._planning_inputs(t_c)
+        intra = self._inputs.intra(t_c, cycle.intra_slots)
+        inter = self._inputs.inter(t_c)
+        planning = self._inputs.planning(t_c)
         mode = self._policy.resolve(cycle.mode, Feasible(bool(intra[0]), bool(inter[0]), bool(planning)))
         if self.config.fusion == "vehicle-only":
             mode = "vehicle-only"
         own = cycle.own.with_(ids=np.arange(1, len(cycle.own) + 1))
         newest, fresh = (self._within_budget(frames) for frames in {"intra": intra, "inter": inter}.get(mode, ([], [])))
         fused = self._fusion.fuse(t_c, ego, own, newest, fresh)
-        self._consume(fresh, t_c)
+        self._inputs.consume(fresh, t_c)
         for state in self._rsus:
             ages = [(t_c - f.valid_ns) * 1e-6 for f in newest if f.rsu_index == state.index]
             state.monitor.on_fusion(t_c, ages[0] if ages else None)
@@ -380,122 +315,13 @@ class ObuPipeline:
             self.covered_cycles += 1
             self.rsu_deadline_misses += int(mode == "vehicle-only")
 
-    # --- which RSU data each mode can use ----------------------------------------------
-    def _placed(self, state: RsuState, t_ns: int) -> list[tuple[_Received, RsuFrame]]:
-        """The RSU's frames in OBU time (by valid time), each linked to the one before; [] before
-        sync. A frame valid later than its own arrival (beyond the clock uncertainty and the
-        future tolerance) is left out: it was admitted before the clock was known."""
-        est = state.sync.estimate_at(t_ns)
-        if est is None:
-            return []
-        tolerance_ns = est.uncertainty_ns + self.config.future_tolerance_ms * 1e6
-        placed, previous = [], None
-        for raw in sorted(state.frames, key=lambda f: f.valid_rsu_ns):  # t_obu = t_rsu - theta(t)
-            valid_ns = est.to_obu_ns(raw.valid_rsu_ns)
-            if valid_ns - raw.receive_ns > tolerance_ns:
-                continue
-            previous = RsuFrame(state.index, raw.seq, est.to_obu_ns(raw.capture_rsu_ns), valid_ns, raw.objects,
-                                previous)
-            placed.append((raw, previous))
-        return placed
-
-    def _inter_frames(self, t_c: int) -> tuple[list[RsuFrame], list[RsuFrame]]:
-        """(newest frame of each RSU, frames not yet consumed) within inter_max_age_s of the cycle."""
-        newest, fresh = [], []
-        limit_ns = self.config.inter_max_age_s * 1e9
-        for state in self._rsus:
-            placed = self._placed(state, t_c)
-            if not placed:
-                continue
-            state.last_age_ms = (t_c - placed[-1][1].valid_ns) * 1e-6
-            if abs(t_c - placed[-1][1].valid_ns) <= limit_ns:
-                newest.append(placed[-1][1])
-            fresh += [f for raw, f in placed if not raw.used and f.valid_ns <= t_c and t_c - f.valid_ns <= limit_ns]
-        return newest, fresh
-
-    def _intra_frames(self, cycle: _Cycle) -> tuple[list[RsuFrame], list[RsuFrame]]:
-        """(frames of the cycle's sensing slot, those of them not yet fed to the tracker), once
-        every awaited one has arrived; ([], []) before."""
-        frames, fresh = [], []
-        for rsu_id, slot_ns in cycle.intra_slots.items():
-            state = self._rsus.get(rsu_id)
-            if state is None:  # expired meanwhile
-                return [], []
-            period_ns = self._rsu_period_ns(state)
-            match = [(raw, f) for raw, f in self._placed(state, cycle.capture_ns)
-                     if abs(f.capture_ns - slot_ns) < period_ns / 2]
-            if not match:
-                return [], []
-            raw, frame = max(match, key=lambda m: m[1].valid_ns)
-            frames.append(frame)
-            fresh += [] if raw.used else [frame]
-        return frames, fresh
-
-    def _intra_slots(self, t_c: int, fuse_by_ns: int) -> dict[str, int]:
-        """RSU id -> capture (OBU ns) of its frame for this cycle's slot, for the RSUs whose
-        frame is already here or will be by fuse_by with probability >= intra_min_probability
-        (every RSU heard from, in the fixed ``intra`` mode).
-
-        The slot's frame is the newest RSU capture at or before t_c + u, u the stated clock
-        uncertainty (at least MIN_SLOT_TOLERANCE_NS, at most half a period): a capture at the
-        cycle's own instant belongs to its slot whatever the sign of the clock error. When it has
-        not arrived yet its capture is predicted from the last one: c* = c_last + n T,
-        n = floor((t_c + u - c_last) / T), T the RSU's frame period.
-        """
-        slots = {}
-        for state in self._rsus:
-            est = state.sync.estimate_at(t_c)
-            if est is None:
-                continue
-            period_ns = self._rsu_period_ns(state)
-            reach_ns = t_c + min(max(est.uncertainty_ns, MIN_SLOT_TOLERANCE_NS), period_ns // 2)
-            captures = [f.capture_ns for _, f in self._placed(state, t_c) if f.capture_ns <= reach_ns]
-            if not captures:
-                continue
-            last_ns = max(captures)
-            slot_ns = last_ns + ((reach_ns - last_ns) // period_ns) * period_ns
-            if slot_ns - last_ns > period_ns and self.config.fusion_mode != "intra":
-                continue  # frames are already missing: the link is not delivering, do not wait on it
-            p_on_time = 1.0 if slot_ns == last_ns else state.monitor.arrival_probability((fuse_by_ns - slot_ns) * 1e-6)
-            if p_on_time >= self.config.intra_min_probability or self.config.fusion_mode == "intra":
-                slots[state.rsu_id] = slot_ns
-        return slots
-
-    @staticmethod
-    def _rsu_period_ns(state: RsuState) -> int:
-        """Median interval between the RSU's distinct captures (RSU clock; drift is negligible
-        here), at least 1 ms."""
-        captures = np.unique([f.capture_rsu_ns for f in state.frames])
-        return max(int(np.median(np.diff(captures))), 1_000_000) if len(captures) >= 2 else DEFAULT_RSU_PERIOD_NS
-
-    def _consume(self, fused: list[RsuFrame], t_c: int) -> None:
-        """Mark frames fed to the tracker as used (each is a measurement once). In the fixed
-        intra mode every frame of this slot or before is used up: intra never fuses late data."""
-        done = {(f.rsu_index, f.seq) for f in fused}
-        for state in self._rsus:
-            for raw, frame in self._placed(state, t_c):
-                late = self.config.fusion_mode == "intra" and frame.capture_ns <= t_c
-                raw.used = raw.used or late or (state.index, raw.seq) in done
-
-    def _planning_inputs(self, t_c: int) -> list[tuple[PredictionList, int]]:
-        """(paths, t0 in OBU ns) of each RSU whose newest paths still cover the cycle."""
-        out = []
-        for state in self._rsus:
-            pred, est = state.predictions, state.sync.estimate_at(t_c)
-            if pred is None or est is None:
-                continue
-            t0_ns = est.to_obu_ns(pred.header.valid_time_ns)
-            if 0 <= t_c - t0_ns <= min(self.config.planning_max_age_s * 1e9, pred.horizon_ns):
-                out.append((pred, t0_ns))
-        return out
-
     def _with_planning(self, fused: ObjectArray, inputs, t_c: int, ego: Pose2D, now_ns: int) -> ObjectArray:
         """Own result plus the RSU's predicted objects at the cycle time; the newest paths
         (re-timed to the OBU clock) become the planner-facing output."""
         rsu = []
         for pred, t0_ns in inputs:
             state = self._rsus.get(pred.header.rsu_id)
-            objs = self._on_site(state, objects_at(pred, (t_c - t0_ns) * 1e-9), t_c)
+            objs = self._admission.on_site(state, objects_at(pred, (t_c - t0_ns) * 1e-9), ego)
             rsu.append(map_to_base(objs.with_(ids=self._rsu_ids(state, objs.ids),
                                               sources=np.full(len(objs), SOURCE_RSU)), ego))
         pred, t0_ns = max(inputs, key=lambda item: item[1])

@@ -174,7 +174,8 @@ def test_a_flood_of_fake_ids_never_locks_out_a_registered_rsu():
 
 def test_unknown_rsus_expire_and_established_ones_keep_their_slot():
     table = RsuTable({"rsu1": RSU_XY}, max_unknown=2, expiry_ns=10_000 * MS)
-    a, b = table.admit("a", T0), table.admit("b", T0)
+    a = table.admit("a", T0)
+    table.admit("b", T0)
     a.accepted = 1
     a.sync.add(_sample(T0))  # a is established: synced, data accepted
     assert table.admit("c", T0 + 1 * MS).rsu_id == "c"  # evicts b, the stranger

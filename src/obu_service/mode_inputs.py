@@ -1,0 +1,153 @@
+"""The RSU data each fusion mode can use at a cycle (pure). Times are OBU-clock ns.
+
+An RSU's lists are kept as received (``Received``: RSU-clock stamps) and placed in OBU time
+with the RSU's current clock estimate each time they are looked at (``placed``), so a better
+estimate re-places them; a list valid later than its own arrival (beyond the clock uncertainty
+and the future tolerance) is left out. ``inter``: the newest frame of each RSU and the frames
+not yet fed to the tracker within ``inter_max_age_s``; ``intra_slots`` / ``intra``: the frame
+of each RSU's sensing slot; ``planning``: the newest paths that still cover the cycle;
+``consume`` marks frames fed to the tracker (each list is a measurement once).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fusion.objects import ObjectArray
+from schemas.messages import PredictionList
+
+from .methods import RsuFrame
+from .rsu_table import RsuState, RsuTable
+
+DEFAULT_RSU_PERIOD_NS = 200_000_000  # until two RSU captures have been seen (5 Hz camera)
+MIN_SLOT_TOLERANCE_NS = 1_000_000  # intra: captures this close to the cycle's count as its slot, at least
+
+
+@dataclass
+class Received:
+    """An RSU list as received: RSU-clock times, placed in OBU time at fusion time."""
+
+    capture_rsu_ns: int
+    valid_rsu_ns: int
+    seq: int
+    objects: ObjectArray  # map frame
+    receive_ns: int
+    used: bool = False  # consumed by a tracking fusion (each list is a measurement once)
+
+
+class ModeInputs:
+    """Which RSU data each mode can use; ``config`` is the OBU pipeline's configuration."""
+
+    def __init__(self, config, rsus: RsuTable):
+        self.config, self.rsus = config, rsus
+
+    def placed(self, state: RsuState, t_ns: int) -> list[tuple[Received, RsuFrame]]:
+        """The RSU's frames in OBU time (by valid time), each linked to the one before; [] before
+        sync. A frame valid later than its own arrival (beyond the clock uncertainty and the
+        future tolerance) is left out: it was admitted before the clock was known."""
+        est = state.sync.estimate_at(t_ns)
+        if est is None:
+            return []
+        tolerance_ns = est.uncertainty_ns + self.config.future_tolerance_ms * 1e6
+        placed, previous = [], None
+        for raw in sorted(state.frames, key=lambda f: f.valid_rsu_ns):  # t_obu = t_rsu - theta(t)
+            valid_ns = est.to_obu_ns(raw.valid_rsu_ns)
+            if valid_ns - raw.receive_ns > tolerance_ns:
+                continue
+            previous = RsuFrame(state.index, raw.seq, est.to_obu_ns(raw.capture_rsu_ns), valid_ns, raw.objects,
+                                previous)
+            placed.append((raw, previous))
+        return placed
+
+    def inter(self, t_c: int) -> tuple[list[RsuFrame], list[RsuFrame]]:
+        """(newest frame of each RSU, frames not yet consumed) within inter_max_age_s of the cycle."""
+        newest, fresh = [], []
+        limit_ns = self.config.inter_max_age_s * 1e9
+        for state in self.rsus:
+            placed = self.placed(state, t_c)
+            if not placed:
+                continue
+            state.last_age_ms = (t_c - placed[-1][1].valid_ns) * 1e-6
+            if abs(t_c - placed[-1][1].valid_ns) <= limit_ns:
+                newest.append(placed[-1][1])
+            fresh += [f for raw, f in placed if not raw.used and f.valid_ns <= t_c and t_c - f.valid_ns <= limit_ns]
+        return newest, fresh
+
+    def intra(self, capture_ns: int, slots: dict[str, int]) -> tuple[list[RsuFrame], list[RsuFrame]]:
+        """(frames of the cycle's sensing slot, those of them not yet fed to the tracker), once
+        every awaited one has arrived; ([], []) before."""
+        frames, fresh = [], []
+        for rsu_id, slot_ns in slots.items():
+            state = self.rsus.get(rsu_id)
+            if state is None:  # expired meanwhile
+                return [], []
+            period_ns = rsu_period_ns(state)
+            match = [(raw, f) for raw, f in self.placed(state, capture_ns)
+                     if abs(f.capture_ns - slot_ns) < period_ns / 2]
+            if not match:
+                return [], []
+            raw, frame = max(match, key=lambda m: m[1].valid_ns)
+            frames.append(frame)
+            fresh += [] if raw.used else [frame]
+        return frames, fresh
+
+    def intra_slots(self, t_c: int, fuse_by_ns: int) -> dict[str, int]:
+        """RSU id -> capture (OBU ns) of its frame for this cycle's slot, for the RSUs whose
+        frame is already here or will be by fuse_by with probability >= intra_min_probability
+        (every RSU heard from, in the fixed ``intra`` mode).
+
+        The slot's frame is the newest RSU capture at or before t_c + u, u the stated clock
+        uncertainty (at least MIN_SLOT_TOLERANCE_NS, at most half a period): a capture at the
+        cycle's own instant belongs to its slot whatever the sign of the clock error. When it has
+        not arrived yet its capture is predicted from the last one: c* = c_last + n T,
+        n = floor((t_c + u - c_last) / T), T the RSU's frame period.
+        """
+        slots = {}
+        for state in self.rsus:
+            est = state.sync.estimate_at(t_c)
+            if est is None:
+                continue
+            period_ns = rsu_period_ns(state)
+            reach_ns = t_c + min(max(est.uncertainty_ns, MIN_SLOT_TOLERANCE_NS), period_ns // 2)
+            captures = [f.capture_ns for _, f in self.placed(state, t_c) if f.capture_ns <= reach_ns]
+            if not captures:
+                continue
+            last_ns = max(captures)
+            slot_ns = last_ns + ((reach_ns - last_ns) // period_ns) * period_ns
+            if slot_ns - last_ns > period_ns and self.config.fusion_mode != "intra":
+                continue  # frames are already missing: the link is not delivering, do not wait on it
+            p_on_time = 1.0 if slot_ns == last_ns else state.monitor.arrival_probability((fuse_by_ns - slot_ns) * 1e-6)
+            if p_on_time >= self.config.intra_min_probability or self.config.fusion_mode == "intra":
+                slots[state.rsu_id] = slot_ns
+        return slots
+
+    def consume(self, fused: list[RsuFrame], t_c: int) -> None:
+        """Mark frames fed to the tracker as used (each is a measurement once). In the fixed
+        intra mode every frame of this slot or before is used up: intra never fuses late data."""
+        done = {(f.rsu_index, f.seq) for f in fused}
+        for state in self.rsus:
+            for raw, frame in self.placed(state, t_c):
+                late = self.config.fusion_mode == "intra" and frame.capture_ns <= t_c
+                raw.used = raw.used or late or (state.index, raw.seq) in done
+
+    def planning(self, t_c: int) -> list[tuple[PredictionList, int]]:
+        """(paths, t0 in OBU ns) of each RSU whose newest paths still cover the cycle."""
+        out = []
+        for state in self.rsus:
+            pred, est = state.predictions, state.sync.estimate_at(t_c)
+            if pred is None or est is None:
+                continue
+            t0_ns = est.to_obu_ns(pred.header.valid_time_ns)
+            if 0 <= t_c - t0_ns <= min(self.config.planning_max_age_s * 1e9, pred.horizon_ns):
+                out.append((pred, t0_ns))
+        return out
+
+
+def rsu_period_ns(state: RsuState) -> int:
+    """Median interval between the RSU's distinct captures (RSU clock; drift is negligible
+    here), at least 1 ms."""
+    captures = np.unique([f.capture_rsu_ns for f in state.frames])
+    return max(int(np.median(np.diff(captures))), 1_000_000) if len(captures) >= 2 else DEFAULT_RSU_PERIOD_NS
+
