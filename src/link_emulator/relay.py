@@ -28,11 +28,9 @@ from __future__ import annotations
 import itertools
 import json
 import logging
-import math
 import threading
-from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import zenoh
@@ -53,7 +51,8 @@ from sim.clock import Clock
 from .channel import NS_PER_MS, LinkModel
 from .config import LinkConfig
 from .control import apply_control
-from .gate import Gate, InFlight
+from .gate import Gate, InFlight, VehiclePosition
+from .stats import ControlStats, DirectionStats, RunningStats
 from .profile import LinkProfile, load_profile
 from .scheduler import Action, EventScheduler
 
@@ -62,7 +61,6 @@ log = logging.getLogger(__name__)
 DOWNLINK_KEYS = (RSU_OBJECTS_ALL, RSU_PREDICTIONS_ALL)
 FORWARD_TIMEOUT_S = 5.0  # how long a forwarded time query waits for RSU replies
 OBU_POSE_ALL = "v2x/obu/*/pose"  # ego poses of every vehicle, see schemas.keys.obu_pose
-RECENT_CONTROLS = 16  # control outcomes repeated in every stats message
 
 
 @dataclass(frozen=True)
@@ -84,128 +82,12 @@ DeliveryObserver = Callable[[Delivery], None]
 
 
 @dataclass
-class RunningStats:
-    """Count, mean, min and max of a stream of values (one unit, e.g. ms)."""
-
-    count: int = 0
-    total: float = 0.0
-    minimum: float = float("inf")
-    maximum: float = float("-inf")
-
-    def add(self, value: float) -> None:
-        self.count += 1
-        self.total += value
-        self.minimum = min(self.minimum, value)
-        self.maximum = max(self.maximum, value)
-
-    def as_dict(self) -> dict[str, float | int | None]:
-        if self.count == 0:
-            return {"count": 0, "mean": None, "min": None, "max": None}
-        return {"count": self.count, "mean": self.total / self.count, "min": self.minimum, "max": self.maximum}
-
-
-@dataclass
-class DirectionStats:
-    """Messages of one direction: received by the relay, delivered, dropped; delays in ms."""
-
-    received: int = 0
-    delivered: int = 0
-    dropped: int = 0
-    delay_ms: RunningStats = field(default_factory=RunningStats)
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "received": self.received,
-            "delivered": self.delivered,
-            "dropped": self.dropped,
-            "delay_ms": self.delay_ms.as_dict(),
-        }
-
-
-@dataclass
 class ForwardedQuery:
     """A vehicle time query forwarded to the RSU, kept open until all replies are relayed."""
 
     query: zenoh.Query
     pending_replies: int = 0  # replies scheduled for delivery, not yet sent
     rsu_get_done: bool = False  # the RSU-side get has finished (no more replies)
-
-
-@dataclass
-class VehiclePosition:
-    """The emulated vehicle's latest plausible ego pose and the RSU distance it implies.
-
-    A relay emulates one vehicle's link. Its poses are those of ``vehicle_id`` (configured,
-    or else the first id heard; another id's poses are refused as ``other_vehicle``). A repeat
-    of the last pose is a ``duplicate``; a pose no newer than the last one, or implying a speed over ``max_speed_mps`` since it, is refused
-    as ``implausible``: a forged pose 1000 km away must not cut the link. Undecodable poses are
-    counted in ``rejected``.
-    """
-
-    vehicle_id: str | None = None
-    max_speed_mps: float = 100.0
-    received: int = 0
-    rejected: int = 0  # poses that failed to decode, ignored
-    refused: Counter = field(default_factory=Counter)  # decodable poses not taken, by reason
-    xy_m: tuple[float, float] | None = None  # map frame
-    t_ns: int | None = None  # the vehicle's stamp of the pose taken
-
-    def take(self, pose: EgoPose) -> bool:
-        """Keep ``pose`` if it is the emulated vehicle's and plausible; False (counted) if not."""
-        self.vehicle_id = self.vehicle_id or pose.vehicle_id
-        reason = None
-        if pose.vehicle_id != self.vehicle_id:
-            reason = "other_vehicle"
-        elif pose.t_ns == self.t_ns and (pose.x, pose.y) == self.xy_m:
-            reason = "duplicate"
-        elif self.t_ns is not None:
-            dt_s = (pose.t_ns - self.t_ns) * 1e-9
-            jump_m = math.hypot(pose.x - self.xy_m[0], pose.y - self.xy_m[1])
-            reason = "implausible" if dt_s <= 0 or jump_m > self.max_speed_mps * dt_s else None
-        if reason is not None:
-            self.refused[reason] += 1
-            return False
-        self.received += 1
-        self.xy_m, self.t_ns = (pose.x, pose.y), pose.t_ns
-        return True
-
-    def distance_m(self, rsu_xy_m: tuple[float, float] | None) -> float | None:
-        """Vehicle-RSU distance in m, or None while either position is unknown."""
-        if rsu_xy_m is None or self.xy_m is None:
-            return None
-        return math.hypot(self.xy_m[0] - rsu_xy_m[0], self.xy_m[1] - rsu_xy_m[1])
-
-    def as_dict(self, rsu_xy_m: tuple[float, float] | None) -> dict[str, Any]:
-        return {"vehicle_id": self.vehicle_id, "received": self.received, "rejected": self.rejected,
-                "refused": dict(self.refused), "distance_m": self.distance_m(rsu_xy_m)}
-
-
-@dataclass
-class ControlStats:
-    """LinkControl messages: how many were applied, rejections by reason, and the latest outcomes.
-
-    ``recent`` holds the last ``RECENT_CONTROLS`` outcomes with the message's ``seq`` so that a
-    controller can tell that its own message was handled (``v2i link set``, ``v2i chaos run``):
-    ``{"seq", "result"}`` when applied, ``{"seq", "rejected", "error"}`` when not (seq None when
-    the message could not be decoded).
-    """
-
-    applied: int = 0
-    rejected: dict[str, int] = field(default_factory=dict)
-    recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=RECENT_CONTROLS))
-
-    def apply(self, seq: int, result: str) -> None:
-        self.applied += 1
-        self.recent.append({"seq": seq, "result": result})
-
-    def reject(self, reason: str, seq: int | None, error: str) -> bool:
-        """Count a rejection; True when it is the first one for ``reason`` (log it then)."""
-        self.rejected[reason] = self.rejected.get(reason, 0) + 1
-        self.recent.append({"seq": seq, "rejected": reason, "error": error})
-        return self.rejected[reason] == 1
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"applied": self.applied, "rejected": dict(self.rejected), "recent": list(self.recent)}
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 from link_emulator.config import LinkConfig
 from link_emulator.gate import Gate, InFlight
-from link_emulator.relay import VehiclePosition
+from link_emulator.gate import VehiclePosition
 from schemas.messages import EgoPose
 from sim.clock import SimClock
 
