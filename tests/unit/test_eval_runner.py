@@ -149,3 +149,16 @@ def test_demo_callback_drops_and_counts_when_the_queue_is_full():
     for _ in range(INBOX_MESSAGES + 5):
         demo._keep("objects", sample)  # no scorer: never blocks
     assert demo._inbox.qsize() == INBOX_MESSAGES and demo.dropped == {"objects": 5}
+
+
+@pytest.mark.parametrize("step_ms", [-2000, -700, 500, 2000])
+def test_rsu_clock_steps_of_either_sign_keep_the_run_going_and_the_obu_recovers(step_ms):
+    """The issue's case (an RSU clock stepping back 700 ms killed the RSU): the run completes,
+    every cycle is on time and the OBU's clock estimate is back under 1 ms within 3 s."""
+    spec = RunSpec(seed=1, duration_s=24.0, rsu_clock_offset_ms=350, rsu_clock_drift_ppm=-85,
+                   rsu_clock_step_ms=step_ms, rsu_clock_step_at_s=15.0)
+    run = OfflineRun(spec)
+    out = build_report(spec, run.world, run.execute(), driver="eval")
+    assert out["output_deadline_miss_ratio"] == 0.0
+    assert out["clock_step_recovery_s"] is not None and out["clock_step_recovery_s"] <= 3.0
+    assert out["mode_share"]["vehicle_only"] < 0.1  # fusion resumed after the step
