@@ -66,7 +66,8 @@ class Admission:
         if centre is None or not len(objects):
             return objects
         inside = np.hypot(objects.xy[:, 0] - centre[0], objects.xy[:, 1] - centre[1]) <= self.limits.site_radius_m
-        self.rejected["object_outside_site"] += int((~inside).sum())
+        if not inside.all():
+            self.rejected["object_outside_site"] += int((~inside).sum())
         return objects.take(inside)
 
     def _screen(self, header: ObjectListHeader, n_objects: int, receive_ns: int, paths: bool) -> RsuState | None:
