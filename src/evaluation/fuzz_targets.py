@@ -44,7 +44,7 @@ REPLAY_AGE_NS = 5_000 * MS
 
 
 def _ignore(_reply) -> None:
-    pass
+    """Reply handler of a hostile query: what the target answers to it is not what is measured."""
 
 
 class ObuFuzz(FuzzRun):
