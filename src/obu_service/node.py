@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import heapq
 import threading
-from collections import Counter
 
 import numpy as np
 import zenoh
@@ -49,7 +48,6 @@ class ObuNode:
                               preferred=lambda key: _rsu_of(key) in known)
         self._log = ThrottledLog("obu")
         self._trim = MemoryTrim()
-        self._logged: Counter[str] = Counter()  # refusals already handed to the log
         self._details: dict[str, str] = {}  # first codec error message per reason
         self._events: list = []
         self._held: Item | None = None  # a large input held until after the next event
@@ -107,8 +105,9 @@ class ObuNode:
 
     def _loop(self, stop: threading.Event) -> None:
         """Fire each event at its time; between events, handle inputs. A large input (over
-        CHEAP_INPUT_BYTES; an admitted one decodes in up to ~15 ms) is not started within ``input_guard_ms`` of
-        the next event but held until after it: a cycle's output must not wait for it."""
+        CHEAP_INPUT_BYTES; an admitted one decodes in up to ~15 ms) is not started within
+        ``input_guard_ms`` of the next event but held until after it: a cycle's output must
+        not wait for it."""
         guard_s = self.config.input_guard_ms * 1e-3
         while not stop.is_set():
             due_ns, _, kind, arg = self._events[0]
@@ -184,10 +183,7 @@ class ObuNode:
         """The intake's refusals into the pipeline's counters; the new ones to the throttled log."""
         for reason, n in self._intake.take_counts().items():
             self.pipeline.reject(reason, n)
-        for reason, n in (self.pipeline.rejected - self._logged).items():
-            self._log.refused(reason, self._details.get(reason, f"{n} input(s)"), n)
-        self._logged = Counter(self.pipeline.rejected)
-        self._log.flush()
+        self._log.totals(self.pipeline.rejected, self._details)
 
     def _do_sync(self, _due_ns: int, _) -> None:
         request = self.pipeline.make_time_request(self.clock.now_ns())

@@ -56,7 +56,6 @@ class RsuNode:
         self._queriers = KeyedBuckets(config.querier_rate_hz, config.querier_burst, MAX_QUERIERS)  # by obu_id
         self._log = ThrottledLog("rsu")
         self._trim = MemoryTrim()
-        self._logged: Counter[str] = Counter()
         self._details: dict[str, str] = {}
 
     def run(self, stop: threading.Event) -> None:
@@ -123,10 +122,7 @@ class RsuNode:
         """Publish the metrics; hand the refusals since the last report to the throttled log."""
         with self._lock:
             rejected, replies = Counter(self.rejected), self.time_replies
-        for reason, n in (rejected - self._logged).items():
-            self._log.refused(reason, self._details.get(reason, f"{n} time quer(ies)"), n)
-        self._logged = rejected
-        self._log.flush()
+        self._log.totals(rejected, self._details, "time quer(ies)")
         self._metrics.put(encode(RsuMetrics(rsu_id=self.config.rsu_id, t_ns=self.clock.now_ns(),
                                             published=self.published, skipped=self.skipped,
                                             time_replies=replies, rejected=dict(rejected))))

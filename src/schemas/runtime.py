@@ -45,7 +45,18 @@ class ThrottledLog:
         self.service, self.interval_s, self._clock_s = service, interval_s, clock_s
         self._seen: set[str] = set()
         self._pending: dict[str, int] = {}
+        self._totals: dict[str, int] = {}  # the counters as last seen by ``totals``
         self._last_s = clock_s()
+
+    def totals(self, counts: dict[str, int], details: dict[str, str], unit: str = "input(s)") -> None:
+        """A service's refusal counters as they stand now: what grew since the last call is
+        noted (``details[reason]``, or a count, as the first one's detail), then flushed."""
+        for reason, n in counts.items():
+            new = n - self._totals.get(reason, 0)
+            if new > 0:
+                self.refused(reason, details.get(reason, f"{new} {unit}"), new)
+        self._totals = dict(counts)
+        self.flush()
 
     def refused(self, reason: str, detail: str, count: int = 1) -> None:
         """Note ``count`` refusals for ``reason``; ``detail`` is logged only for the first one."""

@@ -119,3 +119,18 @@ def test_memory_trim_runs_at_most_once_a_period():
     clock.t_ns = 10 * S
     assert trim.maybe() and calls == [0, 0]
     assert limit_malloc_arenas() == sys.platform.startswith("linux")  # glibc's mallopt took it
+
+
+def test_throttled_log_takes_a_services_counters_as_they_grow(capsys):
+    clock = FakeClock()
+    log = ThrottledLog("rsu", interval_s=10.0, clock_s=lambda: clock.t_ns / S)
+    log.totals({"malformed": 3}, {"malformed": "not msgpack"}, "time quer(ies)")
+    log.totals({"malformed": 3}, {})  # nothing new
+    log.totals({"malformed": 5, "too_large": 2}, {})
+    clock.t_ns = 10 * S
+    log.totals({"malformed": 5, "too_large": 2}, {})
+    assert capsys.readouterr().err.splitlines() == [
+        "[rsu] refused (malformed): not msgpack; further refusals are summarised every 10 s",
+        "[rsu] refused (too_large): 2 input(s); further refusals are summarised every 10 s",
+        "[rsu] refused in the last 10 s: malformed 4, too_large 1",
+    ]
