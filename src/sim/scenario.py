@@ -129,6 +129,19 @@ def _carom_bands() -> list[ErrorBand]:
     return [ErrorBand(max_range_m=50.0, mean_error_m=0.8), ErrorBand(max_range_m=120.0, mean_error_m=1.7)]
 
 
+class ImageConfig(_Frozen):
+    """The physical camera behind an image source: what ``sim.camera`` renders and the
+    detector sees. Unset angles come from the sensor they belong to; ``pitch_deg`` None on an
+    RSU aims the optical axis at the ground 0.45 range_m out. ``distortion``: OpenCV k1, k2."""
+
+    yaw_deg: Finite | None = None
+    pitch_deg: Annotated[float, Field(ge=-89.0, le=89.0)] | None = None
+    fov_deg: Annotated[float, Field(gt=1.0, le=120.0)] | None = None  # horizontal; a pinhole beyond 120 deg is useless
+    width: Annotated[int, Field(ge=64, le=4096)] = 640
+    height: Annotated[int, Field(ge=64, le=4096)] = 384
+    distortion: tuple[Finite, Finite] = (0.0, 0.0)
+
+
 class RsuCameraConfig(_Frozen):
     """Roadside monocular camera (CAROM-like detector) on a pole."""
 
@@ -145,6 +158,9 @@ class RsuCameraConfig(_Frozen):
     yaw_noise_std_rad: NonNeg = 0.05
     size_noise_std_m: NonNeg = 0.1
     min_visible_fraction: Probability = 0.3
+    # The rendered camera of ``--rsu-source camera`` (sim.camera.rsu_camera); the noise model
+    # above keeps its own fov. A wide sim fov (> 120 deg) needs image.fov_deg here.
+    image: ImageConfig = Field(default_factory=ImageConfig)
 
     @field_validator("processing_delay_ms")
     @classmethod
@@ -185,6 +201,14 @@ class LidarConfig(_Frozen):
     min_visible_fraction: Probability = 0.3
 
 
+class VehicleCameraConfig(_Frozen):
+    """On-board camera of the ego (image-level fusion, ``--fusion roif``)."""
+
+    rate_hz: PosFloat = 10.0
+    mount: Mount = Field(default_factory=lambda: Mount(x=1.5, y=0.0, z=1.4))
+    image: ImageConfig = Field(default_factory=lambda: ImageConfig(yaw_deg=0.0, pitch_deg=0.0, fov_deg=90.0))
+
+
 class LocalizationConfig(_Frozen):
     x_std_m: NonNeg = 0.05
     y_std_m: NonNeg = 0.05
@@ -204,6 +228,7 @@ class Scenario(_Frozen):
     buildings: list[Building] = Field(default_factory=list)
     rsu: RsuCameraConfig
     lidar: LidarConfig = Field(default_factory=LidarConfig)
+    ego_camera: VehicleCameraConfig | None = None
     localization: LocalizationConfig = Field(default_factory=LocalizationConfig)
 
     @model_validator(mode="after")
