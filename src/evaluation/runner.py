@@ -20,7 +20,7 @@ from obu_service.pipeline import ObuPipeline
 from obu_service.source import OwnFrame, SimulatedVehicle
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from rsu_service.prediction import make_predictor
-from rsu_service.source import Frame, SimulatedCamera
+from rsu_service.source import Frame, make_source
 from schemas.codec import CodecError, decode, encode
 from schemas.messages import ObjectList, PredictionList, TimeReply, TimeRequest
 from sim.clock import SimClock
@@ -66,13 +66,17 @@ class OfflineRun:
         self.queue = EventQueue(self.clock)
         self.link = LinkModel(link_profile or load_profile(spec.profile), spec.seed)
         self.rsu_clock = spec.rsu_config().clock(self.clock, start_ns)
-        self.camera = SimulatedCamera(self.world, spec.seed, start_ns)
-        self.vehicle = SimulatedVehicle(self.world, spec.seed, start_ns)
         self.rsu_config = spec.rsu_config()
+        self.camera = make_source(self.rsu_config, self.world, start_ns)
+        self.vehicle = SimulatedVehicle(self.world, spec.seed, start_ns)
         self.rsu = self._new_rsu()
         self.obu_config = spec.obu_config()
         self.obu = ObuPipeline(self.obu_config.pipeline_config(), self.obu_config.lanes())
         self.record = RunRecord(self.world, start_ns, self.duration_s)
+        self._rsu_xy = np.array([self.world.scenario.rsu.position.x, self.world.scenario.rsu.position.y])
+        perception = getattr(self.camera, "perception", None)
+        if perception is not None:
+            self.record.perception.calibration_reprojection_px = perception.calibration.reprojection_px
         self._down = {name: self._windows_ns(name) for name in SERVICES}
 
     def _new_rsu(self) -> RsuPipeline:
@@ -120,6 +124,7 @@ class OfflineRun:
         if not self._up("rsu"):
             return
         frame = self.camera.capture(self.clock.t_ns)
+        self.record.perception.add(frame.visible_truth_xy, frame.detections.xy, self._rsu_xy, frame.detector_ms)
         self.queue.at(frame.ready_true_ns, self._rsu_publish, frame)
 
     def _rsu_publish(self, frame: Frame) -> None:

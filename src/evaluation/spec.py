@@ -14,6 +14,7 @@ from rsu_service.config import RsuConfig
 from sim.clock import SystemClock
 from sim.world import World
 
+from .perception_metrics import PerceptionTally
 from .metrics import (CycleFrame, CycleLog, DetectionTally, DisplacementTally, TargetTally, clock_errors,
                       deadline_miss_ratio, mode_share)
 
@@ -36,13 +37,14 @@ class RunSpec:
     rsu_clock_step_ms: float = 0.0
     rsu_clock_step_at_s: float | None = None
     deadline_ms: float = 100.0
+    rsu_source: str = "sim"  # sim (noise model) or camera (rendered, detector, calibration)
 
     def rsu_config(self, **fields) -> RsuConfig:
         """The RSU service configuration this run implies (its clock is the injected truth)."""
         return RsuConfig(clock_offset_ms=self.rsu_clock_offset_ms, clock_drift_ppm=self.rsu_clock_drift_ppm,
                          clock_step_ms=self.rsu_clock_step_ms, clock_step_at_s=self.rsu_clock_step_at_s,
                          seed=self.seed, scenario=self.scenario, predict_ahead=self.compensation == "track-predict",
-                         **fields)
+                         source=self.rsu_source, **fields)
 
     def obu_config(self, **fields) -> ObuConfig:
         """The OBU service configuration this run implies."""
@@ -72,6 +74,8 @@ class RunRecord:
         self.planning_handoffs = 0  # paths handed to the planner (OBU clock)
         # clock-offset samples: t_ns, estimated theta_ns, naive theta_ns, estimated drift ppm
         self._offsets = (array("q"), array("q"), array("q"), array("d"))
+        self.perception = PerceptionTally()  # the RSU's raw detections against the truth it could see
+        self.rsu_perception: dict | None = None  # or the RSU's own scores (live: from its metrics)
         self.rsu_messages = 0
         self.covered_cycles = 0  # the OBU's own count: cycles with an RSU heard recently
         self.rsu_deadline_misses = 0
@@ -132,6 +136,7 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
         "vehicle_only": record.vehicle_target.score().as_dict(),
         **clock_errors(record.offset_samples(), truth_clock, record.start_ns, step_ns),
         **record.detection.scores(),
+        "rsu_perception": record.rsu_perception or record.perception.scores(),
     }
 
 

@@ -6,7 +6,7 @@ import argparse
 
 from schemas.runtime import add_service_options, run_service
 
-from .config import PREDICTORS, RsuConfig
+from .config import PREDICTORS, SOURCES, RsuConfig
 
 
 def configure_parser(p: argparse.ArgumentParser) -> None:
@@ -25,6 +25,15 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--predictor", choices=PREDICTORS,
                    help="5 s paths on v2x/rsu/{id}/predictions: lane-following on the scenario's Lanelet2 map, "
                         "constant velocity, or auto (lane when a map exists; default)")
+    p.add_argument("--source", choices=SOURCES,
+                   help="perception: sim (the scenario's camera noise model; default), camera (the scenario "
+                        "rendered, through the ONNX detector and the calibration), video (--video through the same)")
+    p.add_argument("--video", metavar="PATH", help="with --source video: a video file or a folder of PNG/JPEG frames")
+    p.add_argument("--rate-hz", type=float, help="with --source video: frames per second (default: the video's)")
+    p.add_argument("--model", metavar="ONNX", help="detector model, YOLOv8/v5 export layout (default: the shipped one)")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="camera calibration from `v2i camera calibrate` (default: the scenario's shipped one)")
+    p.add_argument("--detector-threads", type=int, help="ONNX Runtime threads (default: its own choice)")
     p.add_argument("--predict-ahead", action="store_true", default=None,
                    help="track-predict compensation: publish tracks predicted to the publish time, "
                         "and once more half a frame later (5 Hz camera -> 10 Hz lists)")

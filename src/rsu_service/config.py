@@ -11,6 +11,7 @@ from schemas.keys import check_id
 from sim.clock import Clock, ClockStep, DriftingClock
 
 PREDICTORS = ("auto", "lane", "cv")  # long-horizon path predictors, see rsu_service.prediction
+SOURCES = ("sim", "camera", "video")  # perception sources, see rsu_service.source
 
 
 class RsuConfig(ServiceConfig):
@@ -24,6 +25,16 @@ class RsuConfig(ServiceConfig):
                                                "(lane when the scenario has a map)")
     predict_ahead: bool = Field(False, description="track-predict: publish tracks predicted to the publish "
                                                    "time and upsample 5 Hz to 10 Hz (seed 000 Algorithm 1)")
+    source: Literal[SOURCES] = Field("sim", description="sim: the scenario's camera noise model (fast); camera: "
+                                     "the world rendered, through the ONNX detector and the calibration; video: "
+                                     "a video file or image folder (--video) through the same")
+    video: str | None = Field(None, description="with source video: a video file or a folder of PNG/JPEG images")
+    rate_hz: float | None = Field(None, gt=0, le=100, description="with source video: frames per second "
+                                  "(default: the video's, 10 for a folder)")
+    model: str | None = Field(None, description="ONNX detector (YOLOv8/v5 export layout; default: the shipped model)")
+    calibration: str | None = Field(None, description="calibration file (v2i camera calibrate); default: the "
+                                    "scenario's shipped one")
+    detector_threads: int | None = Field(None, ge=1, le=256, description="ONNX Runtime intra-op threads")
     query_rate_hz: float = Field(2000.0, gt=0, le=100_000, description="time queries read per second, all "
                                  "queriers together; more are refused unread")
     query_burst: int = Field(500, ge=1, le=100_000)

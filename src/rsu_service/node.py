@@ -27,7 +27,7 @@ from sim.world import World
 from .config import RsuConfig
 from .pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from .prediction import make_predictor
-from .source import SimulatedCamera
+from .source import make_source
 
 
 MAX_QUERIERS = 1024  # querier buckets kept
@@ -43,8 +43,8 @@ class RsuNode:
         self.world = World(load_scenario(config.scenario))
         self.duration_s = config.duration_s or self.world.scenario.duration_s
         self.clock = config.clock(self.true_clock, self.start_ns)
-        self.source = SimulatedCamera(self.world, config.seed, self.start_ns)
-        self.pipeline = RsuPipeline(RsuPipelineConfig(rsu_id=config.rsu_id, sensor="camera/simulated",
+        self.source = make_source(config, self.world, self.start_ns)
+        self.pipeline = RsuPipeline(RsuPipelineConfig(rsu_id=config.rsu_id, sensor=f"camera/{config.source}",
                                                       predict_ahead=config.predict_ahead),
                                     make_predictor(config.predictor, config.scenario))
         self.rejected: Counter[str] = Counter()
@@ -83,7 +83,7 @@ class RsuNode:
         """Capture, process and publish each frame at its time. Only what is current is
         published: a frame whose capture time is more than a frame period past (a restart
         mid-run, a stall) is skipped and counted, never sent late in a burst."""
-        period_ns = round(1e9 / self.world.scenario.rsu.rate_hz)
+        period_ns = round(1e9 / self.source.rate_hz)
         for capture_ns in self.source.capture_times_ns(self.duration_s):
             if not self._sleep_until(capture_ns, stop):
                 return
@@ -91,6 +91,8 @@ class RsuNode:
                 self.skipped += 1
                 continue
             frame = self.source.capture(int(capture_ns))
+            if frame is None:  # the recording has ended
+                break
             if not self._sleep_until(frame.ready_true_ns, stop):
                 return
             capture = Stamp(self.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)

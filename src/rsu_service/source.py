@@ -1,4 +1,16 @@
-"""Perception sources of the RSU. The default is the scenario's simulated camera."""
+"""Perception sources of the RSU: what each camera frame yields, and when.
+
+- ``SimulatedCamera`` (``--source sim``, the fast default): the scenario's noise model on
+  ground truth.
+- ``RenderedCamera`` (``--source camera``): the simulated world rendered by the RSU's camera
+  (``sim.render``), through the ONNX detector and the calibrated ground homography.
+- ``RecordedCamera`` (``--source video``): frames of a video file or an image folder (the
+  user's own recording, model and calibration), through the same detector and homography.
+
+Frame k is captured at start + k / rate (true clock); its detections are ready after the
+processing delay: the scenario's (80-120 ms by default, seed 001) for the simulated world,
+the measured detector time for a recording.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +23,11 @@ from sim.seeding import stream
 from sim.sensors import RsuCamera, frame_times
 from sim.world import World
 
+from .image_perception import ImagePerception
+from .recording import ImageFrames
+
+SOURCES = ("sim", "camera", "video")
+
 
 @dataclass(frozen=True)
 class Frame:
@@ -19,30 +36,129 @@ class Frame:
     capture_true_ns: int
     ready_true_ns: int  # capture + processing delay: when the detections exist
     detections: ObjectArray
+    visible_truth_xy: np.ndarray | None = None  # (T, 2) m: the truth this frame could see (simulation only)
+    detector_ms: float | None = None  # the detector's own time on this frame
 
 
-class SimulatedCamera:
-    """Camera + detector of the scenario's RSU, sampling the simulated world.
+class _Schedule:
+    """Capture times at ``rate_hz`` from ``start_ns`` (true clock)."""
 
-    Frame k is captured at start + k / rate (true clock); its detections are ready after
-    the detector's processing delay (80-120 ms by default, seed 001).
-    """
-
-    def __init__(self, world: World, seed: int, start_ns: int):
-        self.world = world
-        self.start_ns = start_ns
-        self.camera = RsuCamera(world.scenario.rsu, stream(seed, "rsu_camera"))
+    rate_hz: float
+    start_ns: int
 
     @property
     def upsample_offset_ns(self) -> int:
         """Half a frame period: when the upsampled (second) list of a frame is published."""
-        return round(0.5e9 / self.world.scenario.rsu.rate_hz)
+        return round(0.5e9 / self.rate_hz)
 
     def capture_times_ns(self, duration_s: float) -> np.ndarray:
         """(K,) int64 true capture times within the run."""
-        t_s = frame_times(self.world.scenario.rsu.rate_hz, duration_s)
+        t_s = frame_times(self.rate_hz, duration_s)
         return self.start_ns + np.round(t_s * 1e9).astype(np.int64)
+
+
+class SimulatedCamera(_Schedule):
+    """Camera + detector of the scenario's RSU as a noise model on the simulated world."""
+
+    def __init__(self, world: World, seed: int, start_ns: int):
+        self.world, self.start_ns = world, start_ns
+        self.rate_hz = world.scenario.rsu.rate_hz
+        self.camera = RsuCamera(world.scenario.rsu, stream(seed, "rsu_camera"))
 
     def capture(self, capture_true_ns: int) -> Frame:
         dets, delay_s = self.camera.detect(self.world, (capture_true_ns - self.start_ns) * 1e-9)
-        return Frame(int(capture_true_ns), int(capture_true_ns + round(delay_s * 1e9)), dets)
+        return Frame(int(capture_true_ns), int(capture_true_ns + round(delay_s * 1e9)), dets,
+                     self.camera.last_visible_xy)
+
+
+class RenderedCamera(_Schedule):
+    """The RSU's camera rendering the simulated world, through detector and homography.
+
+    The delay is the scenario's processing delay (the RSU's hardware, so that runs are
+    reproducible); the detector's time on this machine is reported beside it.
+    """
+
+    MIN_VISIBLE = 0.3  # a body counts as seen-able (scoring) from this visible fraction
+
+    def __init__(self, world: World, seed: int, start_ns: int, perception: ImagePerception):
+        from sim.camera import rsu_camera
+        from sim.render import SceneRenderer
+
+        cfg = world.scenario.rsu
+        self.world, self.start_ns, self.rate_hz = world, start_ns, cfg.rate_hz
+        self.perception = perception
+        self.camera = rsu_camera(cfg)
+        self.renderer = SceneRenderer(world, seed)
+        self.range_m = cfg.range_m
+        self._noise = stream(seed, "rsu_render")
+        self._delay = stream(seed, "rsu_camera")
+        self._delay_ms = cfg.processing_delay_ms
+
+    def capture(self, capture_true_ns: int) -> Frame:
+        t_s = (capture_true_ns - self.start_ns) * 1e-9
+        rendered = self.renderer.render(self.camera, t_s, self._noise)
+        dets, detector_ms = self.perception.perceive(rendered.image)
+        delay_s = self._delay.uniform(*self._delay_ms) / 1000.0
+        return Frame(int(capture_true_ns), int(capture_true_ns + round(delay_s * 1e9)), dets,
+                     self._visible_truth(rendered.labels, t_s), detector_ms)
+
+    def _visible_truth(self, labels, t_s: float) -> np.ndarray:
+        """(T, 2) map centres of the bodies the frame shows well enough, within range."""
+        seen = (labels.visible >= self.MIN_VISIBLE) & (labels.range_m <= self.range_m)
+        truth = self.world.actors_at(t_s)
+        xy = {int(i): p for i, p in zip(truth.ids, truth.xy)}
+        ego = self.world.ego_at(t_s)
+        xy[0] = np.array([ego.x, ego.y])
+        return np.array([xy[int(i)] for i in labels.ids[seen]], dtype=float).reshape(-1, 2)
+
+
+class RecordedCamera(_Schedule):
+    """Frames of a video file or image folder, one per capture time, in order.
+
+    A frame that cannot be read (corrupt file, wrong size) yields no detections and is
+    counted in ``frames.refused``; the run goes on. ``capture`` gives None at the end.
+    """
+
+    def __init__(self, frames: ImageFrames, perception: ImagePerception, start_ns: int, rate_hz: float | None = None):
+        self.frames, self.perception, self.start_ns = frames, perception, start_ns
+        self.rate_hz = rate_hz or frames.fps
+
+    def capture_times_ns(self, duration_s: float) -> np.ndarray:
+        times = super().capture_times_ns(duration_s)
+        return times if self.frames.count is None else times[: self.frames.count]
+
+    def capture(self, capture_true_ns: int) -> Frame | None:
+        image = self.frames.next()
+        if self.frames.ended:
+            return None
+        if image is None:
+            return Frame(int(capture_true_ns), int(capture_true_ns), ObjectArray.empty())
+        dets, detector_ms = self.perception.perceive(image)
+        return Frame(int(capture_true_ns), int(capture_true_ns + round(detector_ms * 1e6)), dets, None, detector_ms)
+
+
+def make_source(config, world: World, start_ns: int):
+    """The source an ``RsuConfig`` names (``config.source``), its files opened and checked."""
+    if config.source == "sim":
+        return SimulatedCamera(world, config.seed, start_ns)
+    perception = open_perception(config, world)
+    if config.source == "camera":
+        return RenderedCamera(world, config.seed, start_ns, perception)
+    if config.video is None:
+        raise ValueError("--source video needs --video PATH (a video file or a folder of images)")
+    cal = perception.calibration
+    return RecordedCamera(ImageFrames(config.video, (cal.width, cal.height)), perception, start_ns, config.rate_hz)
+
+
+def open_perception(config, world: World) -> ImagePerception:
+    """Detector and calibration of an image source: the given files, else the shipped model and
+    the scenario's shipped calibration."""
+    from perception.calibration import calibration_path
+
+    path = config.calibration or calibration_path(config.scenario)
+    if path is None:
+        raise ValueError(f"scenario {config.scenario!r} has no shipped camera calibration: "
+                         "pass --calibration FILE (make one with `v2i camera calibrate`)")
+    rsu = world.scenario.rsu
+    return ImagePerception.open(path, config.model, camera_xy=(rsu.position.x, rsu.position.y),
+                                threads=config.detector_threads)

@@ -117,6 +117,7 @@ class RsuCamera:
     def __init__(self, cfg: RsuCameraConfig, rng: np.random.Generator):
         self.cfg = cfg
         self.rng = rng
+        self.last_visible_xy = np.zeros((0, 2))  # (T, 2) m: the truth the last frame could see (scoring)
 
     @property
     def position(self) -> np.ndarray:
@@ -146,6 +147,7 @@ class RsuCamera:
         delay_s = rng.uniform(*c.processing_delay_ms) / 1000.0
         truth = world.actors_at(t_s)
         rng_m, observable = self._coverage(world, truth)
+        self.last_visible_xy = truth.xy[observable]
         n = len(truth)
         sigma = per_axis_sigma(mean_error_at(rng_m, c))
         detected = rng.random(n) < c.detection_probability

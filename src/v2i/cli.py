@@ -16,6 +16,7 @@ SUBCOMMANDS = {
     "rsu": "run the roadside unit service",
     "obu": "run the on-board unit service",
     "link": "run the link emulator between RSU and vehicle",
+    "camera": "camera tools: render a scenario's frames with ground-truth boxes, calibrate a camera from points",
     "fuzz": "send hostile messages to a live service and report what it refused, crashes, late outputs and memory",
 }
 
@@ -40,6 +41,9 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rsu-clock-step-ms", type=float, default=0.0, help="injected RSU clock step, ms (see --rsu-clock-step-at-s)")
     p.add_argument("--rsu-clock-step-at-s", type=float, help="scenario time of the RSU clock step, s")
     p.add_argument("--deadline-ms", type=float, default=100.0, help="OBU end-to-end deadline per cycle (default %(default)s)")
+    p.add_argument("--rsu-source", default="sim", choices=("sim", "camera"),
+                   help="RSU perception: sim, the camera noise model (fast), or camera: the scenario rendered by "
+                        "the RSU's camera, through the ONNX detector and the shipped calibration (default %(default)s)")
     p.add_argument("--json", metavar="PATH", help="write the metrics JSON to PATH ('-' for stdout)")
 
 
@@ -51,7 +55,7 @@ def _spec(args: argparse.Namespace):
         fusion_mode=args.fusion_mode, seed=args.seed, duration_s=args.duration,
         rsu_clock_offset_ms=args.rsu_clock_offset_ms, rsu_clock_drift_ppm=args.rsu_clock_drift_ppm,
         rsu_clock_step_ms=args.rsu_clock_step_ms, rsu_clock_step_at_s=args.rsu_clock_step_at_s,
-        deadline_ms=args.deadline_ms,
+        deadline_ms=args.deadline_ms, rsu_source=args.rsu_source,
     )
 
 
@@ -294,6 +298,11 @@ def build_parser() -> argparse.ArgumentParser:
                       help="seconds given to the services to start (default %(default)s)")
     fuzz.add_argument("--json", metavar="PATH", help="write the report JSON to PATH ('-' for stdout)")
     fuzz.set_defaults(func=cmd_fuzz)
+    camera_sub = parsers["camera"].add_subparsers(dest="camera_command", required=True, metavar="{render,calibrate}")
+    import importlib.util  # TEMPORARY until both helpers land
+    for module in ("v2i.camera_render", "v2i.camera_calibrate"):
+        if importlib.util.find_spec(module) is not None:
+            __import__(module, fromlist=["add_parser"]).add_parser(camera_sub)
     for name, module in (("rsu", "rsu_service.cli"), ("obu", "obu_service.cli"), ("link", "link_emulator.cli")):
         mod = __import__(module, fromlist=["configure_parser", "run"])
         mod.configure_parser(parsers[name])
@@ -315,7 +324,8 @@ def main(argv: list[str] | None = None) -> int:
     from schemas.config import one_line_error
 
     args = build_parser().parse_args(argv)
-    prog = f"v2i {args.command}" + (f" {args.chaos_command}" if args.command == "chaos" else "")
+    sub_command = getattr(args, f"{args.command}_command", None)  # chaos run, camera render, ...
+    prog = f"v2i {args.command}" + (f" {sub_command}" if sub_command else "")
     try:
         return args.func(args)
     except ValidationError as exc:  # a ValueError: before it

@@ -1,0 +1,43 @@
+"""Image perception of the RSU: detector boxes through the calibrated ground homography.
+
+An image (H, W, 3) BGR goes through the ONNX detector (``perception.detector``); each box's
+ground contact goes through the calibration's inverse homography into ``map``, with its
+covariance propagated from the pixel error (``perception.ground``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from fusion.objects import ObjectArray
+
+
+class ImagePerception:
+    """Detector + calibration: an image in, objects in map out (ids -1, no velocity)."""
+
+    def __init__(self, detector, calibration, camera_xy=None, pixel_sigma_px: float = 1.0):
+        self.detector = detector
+        self.calibration = calibration
+        self.camera_xy = None if camera_xy is None else np.asarray(camera_xy, dtype=float)
+        self.pixel_sigma_px = pixel_sigma_px
+
+    @classmethod
+    def open(cls, calibration_path: str | Path, model_path: str | Path | None = None, camera_xy=None,
+             threads: int | None = None, score_threshold: float = 0.3) -> "ImagePerception":
+        """The shipped model (or ``model_path``) and the calibration file at ``calibration_path``."""
+        from perception.calibration import load_calibration
+        from perception.detector import OnnxDetector
+
+        return cls(OnnxDetector(model_path, threads=threads, score_threshold=score_threshold),
+                   load_calibration(calibration_path), camera_xy)
+
+    def perceive(self, image: np.ndarray) -> tuple[ObjectArray, float]:
+        """Objects in map and the detector's time on this image (ms)."""
+        from perception.ground import pixels_to_map
+
+        boxes = self.detector.detect(image)
+        objects = pixels_to_map(self.calibration, boxes.xyxy, boxes.cls, boxes.scores,
+                                pixel_sigma_px=self.pixel_sigma_px, camera_xy=self.camera_xy)
+        return objects, self.detector.last_ms
