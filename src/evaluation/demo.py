@@ -36,7 +36,7 @@ from obu_service.fusion_mode import TRACKING_MODES
 from obu_service.source import SimulatedVehicle
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
-from schemas.messages import FusedObjectList, LinkControl, ObuMetrics, PredictionList
+from schemas.messages import FusedObjectList, LinkControl, ObuMetrics, PredictionList, RsuMetrics
 from schemas.runtime import log
 from schemas.transport import free_tcp_endpoint, open_session
 from sim.scenario import load_scenario
@@ -216,7 +216,7 @@ class Demo:
         self.record = RunRecord(self.world, start_ns, self.duration_s, cycles)
         scorer = threading.Thread(target=self._score_inbox, name="demo-scorer", daemon=True)
         scorer.start()
-        monitor, subs = None, []
+        monitor, rsu_monitor, subs = None, None, []
         try:
             for name in ("rsu", "obu", "link"):
                 self.children[name] = Child(name, self._argv(name, start_ns))
@@ -229,6 +229,9 @@ class Demo:
             subs = [monitor.declare_subscriber(keys.obu_objects(vid), lambda s: self._keep("objects", s)),
                     monitor.declare_subscriber(keys.obu_metrics(vid), lambda s: self._keep("metrics", s)),
                     monitor.declare_subscriber(keys.obu_planning(vid), lambda s: self._keep("planning", s))]
+            rsu_monitor = open_session(connect=[self.rsu_ep])  # the RSU's metrics stay on its side of the link
+            subs.append(rsu_monitor.declare_subscriber(keys.rsu_metrics(self.spec.rsu_config().rsu_id),
+                                                       lambda s: self._keep("rsu_metrics", s)))
             if not list(monitor.info.peers_zid()):
                 raise DemoError(f"cannot connect to the OBU at {self.obu_ep}")
             if self._has_link_controls():
@@ -241,8 +244,9 @@ class Demo:
             self._control.close()
             for sub in subs:
                 sub.undeclare()
-            if monitor is not None:
-                monitor.close()
+            for session in (monitor, rsu_monitor):
+                if session is not None:
+                    session.close()
             self._tmp.cleanup()
             self._inbox.put(None)  # after the last message: the scorer drains the queue and ends
             scorer.join()
@@ -295,6 +299,10 @@ class Demo:
             self.record.add_output(decode(data, FusedObjectList))
         elif kind == "planning":
             self.record.add_planning(decode(data, PredictionList))
+        elif kind == "rsu_metrics":
+            perception = decode(data, RsuMetrics).perception
+            if perception is not None:  # each message holds the run's totals so far
+                self.record.rsu_perception = perception.model_dump()
         else:
             self.record.add_obu_metrics(decode(data, ObuMetrics))
 

@@ -17,7 +17,8 @@ from collections import Counter
 from schemas import keys
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
 from schemas.intake import KeyedBuckets, TokenBucket
-from schemas.messages import RsuMetrics, TimeRequest
+from evaluation.perception_metrics import PerceptionTally
+from schemas.messages import RsuMetrics, RsuPerception, TimeRequest
 from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
@@ -57,6 +58,9 @@ class RsuNode:
         self._log = ThrottledLog("rsu")
         self._trim = MemoryTrim()
         self._details: dict[str, str] = {}
+        self.perception = PerceptionTally()  # scored when the source knows the truth (simulated world)
+        if hasattr(self.source, "perception"):
+            self.perception.calibration_reprojection_px = self.source.perception.calibration.reprojection_px
 
     def run(self, stop: threading.Event) -> None:
         session = open_session(self.config.listen, self.config.connect)
@@ -95,6 +99,9 @@ class RsuNode:
                 break
             if not self._sleep_until(frame.ready_true_ns, stop):
                 return
+            if frame.visible_truth_xy is not None:
+                rsu = self.world.scenario.rsu.position
+                self.perception.add(frame.visible_truth_xy, frame.detections.xy, (rsu.x, rsu.y), frame.detector_ms)
             capture = Stamp(self.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
             publisher.put(encode(self.pipeline.on_frame(frame.detections, capture, self._now())))
             self._predictions.put(encode(self.pipeline.predictions(self._now())))
@@ -127,8 +134,12 @@ class RsuNode:
         self._log.totals(rejected, self._details, "time quer(ies)")
         self._metrics.put(encode(RsuMetrics(rsu_id=self.config.rsu_id, t_ns=self.clock.now_ns(),
                                             published=self.published, skipped=self.skipped,
-                                            time_replies=replies, rejected=dict(rejected))))
+                                            time_replies=replies, rejected=dict(rejected),
+                                            perception=self._perception())))
         self._trim.maybe()
+
+    def _perception(self) -> RsuPerception | None:
+        return RsuPerception(**self.perception.scores()) if self.perception.frames else None
 
     def _on_time_query(self, query) -> None:
         # Answered in the callback: it reads only the clock and must stamp t2/t3 tightly.

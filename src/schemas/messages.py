@@ -297,6 +297,25 @@ class ObuMetrics(Message):
     output_dropped: dict[Annotated[str, Field(max_length=64)], Count] = Field(default_factory=dict, max_length=16)
 
 
+Ratio = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+BinLabel = Annotated[str, Field(max_length=16)]
+NonNegative = Annotated[float, Field(ge=0.0, le=1e9, allow_inf_nan=False)]
+
+
+class RsuPerception(Message):
+    """The RSU's raw detections scored against the simulated truth its camera could see
+    (simulation only; ``evaluation.perception_metrics``): the report's ``rsu_perception``."""
+
+    frames: Count
+    recall: Ratio | None = None
+    precision: Ratio | None = None
+    recall_by_range: dict[BinLabel, Ratio | None] = Field(default_factory=dict, max_length=8)
+    visible_truths_by_range: dict[BinLabel, Count] = Field(default_factory=dict, max_length=8)
+    mean_error_m: dict[BinLabel, NonNegative | None] = Field(default_factory=dict, max_length=8)
+    detector_ms: dict[BinLabel, NonNegative] | None = Field(None, max_length=4)
+    calibration_reprojection_px: NonNegative | None = None
+
+
 class RsuMetrics(Message):
     """Periodic RSU health on ``v2x/rsu/{rsu_id}/metrics``."""
 
@@ -307,6 +326,7 @@ class RsuMetrics(Message):
     skipped: Count = 0  # frames not published because their time had passed (restart, stall)
     time_replies: Count = 0
     rejected: dict[Annotated[str, Field(max_length=64)], Count] = Field(default_factory=dict, max_length=64)
+    perception: RsuPerception | None = None  # simulated sources: detections scored against the truth
 
 
 class LinkControl(Message):
