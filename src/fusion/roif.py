@@ -1,0 +1,273 @@
+"""ROIF: image-level fusion of an on-board (OBU) and a roadside (RSU) camera (seed 004 Ch. 4-5).
+
+Per frame, with the detections of both cameras (boxes in their own images):
+
+1. ORB keypoints and descriptors, detected only inside the detection boxes of each image
+   (a mask; seed 004 Sec. 5.3: features outside the boxes gave false matches, Fig. 6.3).
+2. Brute-force Hamming matching (``cv2.BFMatcher(cv2.NORM_HAMMING)``), OBU -> RSU. A match
+   is kept when (a) its normalised Hamming distance d = bits / 256 is below
+   ``max_distance`` (the thesis keeps "d < 0.5", i.e. < 128 of 256 bits, which is about
+   what two unrelated descriptors score: it filters almost nothing, so the default here is
+   0.25 = 64 bits), (b) it passes Lowe's ratio test d1 < ``ratio`` d2 against the second
+   best, and (c) it is mutual (the RSU descriptor's best OBU match is the same: cross check).
+3. Homography H (OBU image -> RSU image) by ``cv2.findHomography(..., cv2.RANSAC)``; fewer
+   than ``min_inliers`` RANSAC inliers (or too few features / matches before it) means no
+   mapping this frame (``status`` says why; the caller counts it).
+4. OBU boxes mapped through H: the 4 corners in homogeneous coordinates,
+   [u', v', w']^T = H [u, v, 1]^T, (u'/w', v'/w'); the mapped box is the axis-aligned box of
+   the 4 mapped corners, clipped to the RSU image (a corner with w' <= 0, behind the
+   view, or a box left with no area drops it).
+5. IoU of every (RSU, mapped OBU) pair, eq. 5.1-5.5; pairs with IoU >= ``iou_gate`` (0.1)
+   may fuse; a one-to-one assignment minimises sum(1 - IoU) (Hungarian, scipy).
+6. Each assigned pair fuses by confidence-weighted corner averaging, eq. 5.6-5.11; the
+   fused confidence is the larger of the two, the class that of the more confident box.
+   Unassigned boxes of either side pass through unchanged (OBU boxes mapped), so the
+   fused list is in the RSU view; without a homography it is the RSU list.
+
+Pure: arrays in, arrays out; no clock, no I/O. Boxes are (N, 4) [x1, y1, x2, y2] px.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .association import assign
+
+SOURCE_RSU = 1  # bit of a fused box: the RSU camera saw it
+SOURCE_OBU = 2  # bit: the OBU camera saw it (mapped into the RSU view)
+DESCRIPTOR_BITS = 256  # ORB descriptors are 32 bytes
+
+# why a frame has no homography
+OK, FEW_FEATURES, FEW_MATCHES, FEW_INLIERS = "ok", "few_features", "few_matches", "few_inliers"
+
+
+@dataclass(frozen=True)
+class RoifConfig:
+    """ROIF parameters (units in the names); the module docstring says how each is used."""
+
+    orb_features: int = 2000  # ORB keypoints per image at most
+    orb_fast_threshold: int = 10  # FAST corner threshold (grey levels); lower finds more on flat renders
+    orb_edge_px: int = 15  # ORB edgeThreshold = patchSize (px): keypoints this close to the border are dropped
+    max_distance: float = 0.25  # normalised Hamming distance bits / 256 a match must stay below
+    ratio: float = 0.8  # Lowe ratio test: best < ratio * second best
+    cross_check: bool = True  # keep mutual best matches only
+    ransac_reproj_px: float = 4.0  # RANSAC inlier threshold (px, RSU image)
+    min_inliers: int = 12  # fewer RANSAC inliers: no mapping this frame
+    iou_gate: float = 0.1  # eq. 5.1-5.5 IoU a (RSU, mapped OBU) pair needs to fuse
+
+
+@dataclass(frozen=True)
+class HomographyFit:
+    """H (3, 3) OBU px -> RSU px or None; counts; mean inlier re-projection error (px) or None.
+
+    ``obu_px``, ``rsu_px`` (K, 2): the matched points (after the distance, ratio and cross
+    checks); ``inlier`` (K,) bool: RANSAC's inliers among them.
+    """
+
+    H: np.ndarray | None
+    status: str
+    keypoints_obu: int
+    keypoints_rsu: int
+    matches: int
+    inliers: int
+    reprojection_px: float | None
+    obu_px: np.ndarray
+    rsu_px: np.ndarray
+    inlier: np.ndarray
+
+
+@dataclass(frozen=True)
+class FusedBoxes:
+    """Boxes in the RSU view: xyxy (F, 4) px, scores (F,), cls (F,) int64, sources (F,) bitmask
+    (SOURCE_RSU | SOURCE_OBU), rsu_index (F,) / obu_index (F,): the input rows each came from (-1: none)."""
+
+    xyxy: np.ndarray
+    scores: np.ndarray
+    cls: np.ndarray
+    sources: np.ndarray
+    rsu_index: np.ndarray
+    obu_index: np.ndarray
+
+
+@dataclass(frozen=True)
+class RoifResult:
+    """One fused frame: the boxes, every OBU box mapped into the RSU view (M, 4) (NaN rows:
+    dropped or no homography), and the homography fit of the frame."""
+
+    fused: FusedBoxes
+    mapped_obu_xyxy: np.ndarray
+    fit: HomographyFit
+
+    @property
+    def homography(self) -> np.ndarray | None:
+        return self.fit.H
+
+
+def box_mask(shape_hw: tuple[int, int], xyxy: np.ndarray) -> np.ndarray:
+    """uint8 mask (H, W): 255 inside any of the boxes (N, 4) px (rounded outward, clipped), else 0."""
+    h, w = shape_hw
+    mask = np.zeros((h, w), dtype=np.uint8)
+    for x1, y1, x2, y2 in np.asarray(xyxy, dtype=float).reshape(-1, 4):
+        c1, r1 = max(int(np.floor(x1)), 0), max(int(np.floor(y1)), 0)
+        c2, r2 = min(int(np.ceil(x2)), w), min(int(np.ceil(y2)), h)
+        if c2 > c1 and r2 > r1:
+            mask[r1:r2, c1:c2] = 255
+    return mask
+
+
+def orb_features(image: np.ndarray, xyxy: np.ndarray, config: RoifConfig) -> tuple[np.ndarray, np.ndarray]:
+    """ORB keypoints (K, 2) px and descriptors (K, 32) uint8 inside the boxes (N, 4) of an image (H, W[, 3])."""
+    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    orb = cv2.ORB_create(nfeatures=config.orb_features, edgeThreshold=config.orb_edge_px,
+                         patchSize=config.orb_edge_px, fastThreshold=config.orb_fast_threshold)
+    keypoints, descriptors = orb.detectAndCompute(grey, box_mask(grey.shape[:2], xyxy))
+    if descriptors is None or not keypoints:
+        return np.zeros((0, 2)), np.zeros((0, 32), dtype=np.uint8)
+    return np.array([kp.pt for kp in keypoints], dtype=float), descriptors
+
+
+def match_descriptors(desc_obu: np.ndarray, desc_rsu: np.ndarray, config: RoifConfig) -> np.ndarray:
+    """Matches (K, 2) rows (OBU index, RSU index) passing the distance, ratio and cross checks."""
+    if len(desc_obu) < 2 or len(desc_rsu) < 2:
+        return np.zeros((0, 2), dtype=int)
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=False)
+    pairs = [p for p in matcher.knnMatch(desc_obu, desc_rsu, k=2) if len(p) == 2]
+    best = np.array([[p[0].queryIdx, p[0].trainIdx] for p in pairs], dtype=int).reshape(-1, 2)
+    d1 = np.array([p[0].distance for p in pairs], dtype=float)
+    d2 = np.array([p[1].distance for p in pairs], dtype=float)
+    keep = (d1 / DESCRIPTOR_BITS < config.max_distance) & (d1 < config.ratio * d2)
+    best = best[keep]
+    if config.cross_check and len(best):
+        back = {m.queryIdx: m.trainIdx for m in matcher.match(desc_rsu, desc_obu)}  # RSU -> OBU best
+        best = best[np.array([back.get(r) == o for o, r in best], dtype=bool)]
+    return best
+
+
+def fit_homography(image_obu: np.ndarray, boxes_obu: np.ndarray, image_rsu: np.ndarray, boxes_rsu: np.ndarray,
+                   config: RoifConfig = RoifConfig()) -> HomographyFit:
+    """Steps 1-3: ORB in the boxes of both images, matching, RANSAC homography OBU -> RSU."""
+    kp_o, desc_o = orb_features(image_obu, boxes_obu, config)
+    kp_r, desc_r = orb_features(image_rsu, boxes_rsu, config)
+    empty = np.zeros((0, 2))
+
+    def failed(status: str, obu=empty, rsu=empty, inlier=np.zeros(0, bool), inliers: int = 0) -> HomographyFit:
+        return HomographyFit(None, status, len(kp_o), len(kp_r), len(obu), inliers, None, obu, rsu, inlier)
+
+    if min(len(kp_o), len(kp_r)) < config.min_inliers:
+        return failed(FEW_FEATURES)
+    pairs = match_descriptors(desc_o, desc_r, config)
+    obu_px, rsu_px = kp_o[pairs[:, 0]], kp_r[pairs[:, 1]]
+    if len(pairs) < max(config.min_inliers, 4):
+        return failed(FEW_MATCHES, obu_px, rsu_px)
+    H, mask = cv2.findHomography(obu_px, rsu_px, cv2.RANSAC, config.ransac_reproj_px)
+    inlier = np.zeros(len(pairs), bool) if mask is None else mask.ravel().astype(bool)
+    if H is None or inlier.sum() < config.min_inliers:
+        return failed(FEW_INLIERS, obu_px, rsu_px, inlier, int(inlier.sum()))
+    # mean re-projection error of the inliers: |pi(H p_obu) - p_rsu|
+    err = np.linalg.norm(map_points(H, obu_px[inlier]) - rsu_px[inlier], axis=1)
+    return HomographyFit(H, OK, len(kp_o), len(kp_r), len(pairs), int(inlier.sum()), float(err.mean()),
+                         obu_px, rsu_px, inlier)
+
+
+def map_points(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Points (N, 2) px through H (3, 3): (u'/w', v'/w') with [u', v', w'] = H [u, v, 1]."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    return cv2.perspectiveTransform(uv.reshape(-1, 1, 2), H).reshape(-1, 2) if len(uv) else uv
+
+
+def map_boxes(H: np.ndarray, xyxy: np.ndarray, image_wh: tuple[int, int]) -> np.ndarray:
+    """Boxes (N, 4) px through H into an image of size (W, H): axis-aligned box of the 4 mapped
+    corners, clipped to the image; NaN rows where a corner maps behind (w' <= 0) or no area is left."""
+    xyxy = np.asarray(xyxy, dtype=float).reshape(-1, 4)
+    corners = xyxy[:, [[0, 1], [2, 1], [2, 3], [0, 3]]]  # (N, 4, 2): tl, tr, br, bl
+    homog = np.concatenate([corners, np.ones(corners.shape[:2] + (1,))], axis=2) @ np.asarray(H, float).T
+    w = homog[..., 2]
+    ok = np.all(w > 1e-9, axis=1)
+    uv = homog[..., :2] / np.where(ok[:, None], w, 1.0)[..., None]
+    out = np.column_stack([uv[..., 0].min(1), uv[..., 1].min(1), uv[..., 0].max(1), uv[..., 1].max(1)])
+    out = np.clip(out, 0.0, np.array([image_wh[0], image_wh[1], image_wh[0], image_wh[1]], dtype=float))
+    ok &= (out[:, 2] > out[:, 0]) & (out[:, 3] > out[:, 1])
+    out[~ok] = np.nan
+    return out
+
+
+def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU (N, M) of axis-aligned boxes a (N, 4) and b (M, 4), eq. 5.1-5.5:
+
+    x_min,i = max(x_min,a, x_min,b), y_min,i = max(...), x_max,i = min(x_max,a, x_max,b),
+    y_max,i = min(...); intersection = 0 when x_min,i >= x_max,i or y_min,i >= y_max,i;
+    union = area a + area b - intersection; IoU = intersection / union (0 for an empty union).
+    NaN boxes overlap nothing.
+    """
+    a, b = np.asarray(a, float).reshape(-1, 4), np.asarray(b, float).reshape(-1, 4)
+    x1 = np.maximum(a[:, None, 0], b[None, :, 0])  # eq. 5.1
+    y1 = np.maximum(a[:, None, 1], b[None, :, 1])  # eq. 5.2
+    x2 = np.minimum(a[:, None, 2], b[None, :, 2])  # eq. 5.3
+    y2 = np.minimum(a[:, None, 3], b[None, :, 3])  # eq. 5.4
+    inter = np.clip(x2 - x1, 0.0, None) * np.clip(y2 - y1, 0.0, None)
+    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
+    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    union = area_a[:, None] + area_b[None, :] - inter  # eq. 5.5
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = np.where(union > 0.0, inter / union, 0.0)
+    return np.nan_to_num(iou, nan=0.0)
+
+
+def fuse_pair(xyxy_rsu: np.ndarray, score_rsu: np.ndarray, xyxy_obu: np.ndarray, score_obu: np.ndarray) -> np.ndarray:
+    """Confidence-weighted corners (K, 4) of K box pairs (K, 4) + (K, 4), scores (K,), eq. 5.6-5.11:
+
+    x_tl = (x_tl,red w_red + x_tl,green w_green) / (w_red + w_green)   (5.6; y_tl 5.7,
+    x_br 5.8, y_br 5.9), red = RSU, green = mapped OBU, w = the detection's confidence;
+    width = x_br - x_tl (5.10), height = y_br - y_tl (5.11).
+    """
+    w_red = np.asarray(score_rsu, float).reshape(-1, 1)
+    w_green = np.asarray(score_obu, float).reshape(-1, 1)
+    none = (w_red + w_green) <= 0.0  # two zero confidences: plain average
+    w_red, w_green = np.where(none, 1.0, w_red), np.where(none, 1.0, w_green)
+    total_weight = w_red + w_green
+    return (np.asarray(xyxy_rsu, float) * w_red + np.asarray(xyxy_obu, float) * w_green) / total_weight
+
+
+def fuse_boxes(rsu: tuple[np.ndarray, np.ndarray, np.ndarray], mapped_obu: tuple[np.ndarray, np.ndarray, np.ndarray],
+               iou_gate: float = 0.1) -> FusedBoxes:
+    """Steps 5-6 on boxes already in the RSU view: (xyxy (N, 4) px, scores (N,), cls (N,)) each;
+    NaN OBU rows (not mapped) take part in nothing."""
+    xr, sr, cr = _columns(rsu)
+    xo, so, co = _columns(mapped_obu)
+    pairs = assign(1.0 - iou_matrix(xr, xo), gate=1.0 - iou_gate)  # IoU >= gate <=> 1 - IoU <= 1 - gate
+    i_r, i_o, lone_r = pairs.matches[:, 0], pairs.matches[:, 1], pairs.unmatched_a
+    lone_o = pairs.unmatched_b[np.isfinite(xo[pairs.unmatched_b]).all(axis=1)]
+    obu_wins = so[i_o] > sr[i_r]
+    n_pair, n_r, n_o = len(i_r), len(lone_r), len(lone_o)
+    return FusedBoxes(
+        xyxy=np.vstack([fuse_pair(xr[i_r], sr[i_r], xo[i_o], so[i_o]), xr[lone_r], xo[lone_o]]).reshape(-1, 4),
+        scores=np.concatenate([np.maximum(sr[i_r], so[i_o]), sr[lone_r], so[lone_o]]),
+        cls=np.concatenate([np.where(obu_wins, co[i_o], cr[i_r]), cr[lone_r], co[lone_o]]).astype(np.int64),
+        sources=np.repeat(np.array([SOURCE_RSU | SOURCE_OBU, SOURCE_RSU, SOURCE_OBU], np.int64), [n_pair, n_r, n_o]),
+        rsu_index=np.concatenate([i_r, lone_r, np.full(n_o, -1)]).astype(np.int64),
+        obu_index=np.concatenate([i_o, np.full(n_r, -1), lone_o]).astype(np.int64),
+    )
+
+
+def _columns(boxes: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(xyxy, scores, cls) as (N, 4) float, (N,) float, (N,) int64."""
+    xyxy, scores, cls = boxes
+    return (np.asarray(xyxy, float).reshape(-1, 4), np.asarray(scores, float).reshape(-1),
+            np.asarray(cls, np.int64).reshape(-1))
+
+
+def roif_fuse(image_obu: np.ndarray, obu: tuple[np.ndarray, np.ndarray, np.ndarray],
+              image_rsu: np.ndarray, rsu: tuple[np.ndarray, np.ndarray, np.ndarray],
+              config: RoifConfig = RoifConfig()) -> RoifResult:
+    """One frame of ROIF, steps 1-6. ``obu``, ``rsu``: (xyxy (N, 4) px, scores (N,), cls (N,)),
+    each in its own image (H, W, 3) BGR."""
+    xo, so, co = _columns(obu)
+    fit = fit_homography(image_obu, xo, image_rsu, _columns(rsu)[0], config)
+    if fit.H is None:
+        mapped = np.full((len(xo), 4), np.nan)
+    else:
+        mapped = map_boxes(fit.H, xo, (image_rsu.shape[1], image_rsu.shape[0]))
+    return RoifResult(fuse_boxes(rsu, (mapped, so, co), config.iou_gate), mapped, fit)

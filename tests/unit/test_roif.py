@@ -1,0 +1,181 @@
+"""ROIF (seed 004): homography from ORB matches inside boxes, IoU (eq. 5.1-5.5), confidence-weighted
+box fusion (eq. 5.6-5.11), the IoU gate, failures counted, the box tracker against filterpy."""
+
+import cv2
+import numpy as np
+import pytest
+import shapely
+from filterpy.kalman import KalmanFilter
+
+from fusion import box_tracker
+from fusion.box_tracker import BoxTracker, BoxTrackerConfig
+from fusion.roif import (FEW_FEATURES, OK, SOURCE_OBU, SOURCE_RSU, RoifConfig, fit_homography, fuse_boxes,
+                         fuse_pair, iou_matrix, map_boxes, map_points, roif_fuse)
+
+W, H = 640, 384
+H_TRUE = np.array([[0.9, 0.05, 20.0], [-0.03, 0.95, 10.0], [1e-4, -5e-5, 1.0]])  # OBU px -> RSU px
+OBU_BOXES = np.array([[50, 50, 200, 160], [300, 100, 450, 250], [420, 200, 600, 360]], float)
+
+
+def textured(seed: int) -> np.ndarray:
+    """A 640 x 384 BGR image with blocky noise and discs: plenty of ORB corners."""
+    rng = np.random.default_rng(seed)
+    img = cv2.resize((rng.random((H // 8, W // 8, 3)) * 255).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST)
+    for _ in range(60):
+        colour = tuple(int(v) for v in rng.integers(0, 255, 3))
+        cv2.circle(img, (int(rng.integers(0, W)), int(rng.integers(0, H))), int(rng.integers(3, 30)), colour, -1)
+    return cv2.GaussianBlur(img, (3, 3), 0)
+
+
+@pytest.fixture(scope="module")
+def views():
+    obu = textured(0)
+    return obu, cv2.warpPerspective(obu, H_TRUE, (W, H))
+
+
+def test_homography_recovered_from_a_known_warp(views):
+    obu, rsu = views
+    fit = fit_homography(obu, OBU_BOXES, rsu, map_boxes(H_TRUE, OBU_BOXES, (W, H)))
+    assert fit.status == OK and fit.inliers >= 100
+    assert fit.reprojection_px < 1.0  # mean over RANSAC inliers, px
+    corners = OBU_BOXES.reshape(-1, 2)
+    np.testing.assert_allclose(map_points(fit.H, corners), map_points(H_TRUE, corners), atol=1.0)
+    # the mapped boxes land on the truth within a pixel, and fuse one-to-one with the RSU's boxes
+    truth = map_boxes(H_TRUE, OBU_BOXES, (W, H))
+    result = roif_fuse(obu, (OBU_BOXES, np.full(3, 0.8), np.ones(3)), rsu, (truth, np.full(3, 0.8), np.ones(3)))
+    np.testing.assert_allclose(result.mapped_obu_xyxy, truth, atol=1.0)
+    assert np.all(result.fused.sources == SOURCE_RSU | SOURCE_OBU)
+
+
+def test_keypoints_only_inside_the_boxes(views):
+    obu, rsu = views
+    fit = fit_homography(obu, OBU_BOXES[:1], rsu, map_boxes(H_TRUE, OBU_BOXES[:1], (W, H)))
+    x1, y1, x2, y2 = OBU_BOXES[0]
+    p = fit.obu_px
+    assert len(p) and np.all((p[:, 0] >= x1) & (p[:, 0] <= x2) & (p[:, 1] >= y1) & (p[:, 1] <= y2))
+
+
+def test_iou_matches_a_hand_computation_and_shapely():
+    a, b = np.array([[0, 0, 4, 4]], float), np.array([[2, 2, 6, 6], [4, 0, 8, 4], [1, 1, 3, 3]], float)
+    # overlap 2 x 2 = 4, union 16 + 16 - 4 = 28; touching edges: 0; b inside a: 4 / 16
+    np.testing.assert_allclose(iou_matrix(a, b), [[4 / 28, 0.0, 0.25]])
+    rng = np.random.default_rng(3)
+    lo = rng.uniform(0, 100, (40, 2))
+    boxes = np.hstack([lo, lo + rng.uniform(1, 60, (40, 2))])
+    polys = shapely.box(boxes[:, 0], boxes[:, 1], boxes[:, 2], boxes[:, 3])
+    inter = shapely.area(shapely.intersection(polys[:, None], polys[None, :]))
+    union = shapely.area(shapely.union(polys[:, None], polys[None, :]))
+    np.testing.assert_allclose(iou_matrix(boxes, boxes), inter / union, atol=1e-12)
+
+
+def test_fusion_weights_follow_eq_5_6_to_5_11():
+    red, green = np.array([[10.0, 20.0, 50.0, 60.0]]), np.array([[14.0, 16.0, 54.0, 70.0]])
+    fused = fuse_pair(red, [0.9], green, [0.3])[0]
+    # x_tl = (10 * 0.9 + 14 * 0.3) / 1.2 = 11, y_tl = (20 * 0.9 + 16 * 0.3) / 1.2 = 19,
+    # x_br = (50 * 0.9 + 54 * 0.3) / 1.2 = 51, y_br = (60 * 0.9 + 70 * 0.3) / 1.2 = 62.5
+    np.testing.assert_allclose(fused, [11.0, 19.0, 51.0, 62.5])
+    assert fused[2] - fused[0] == pytest.approx(40.0) and fused[3] - fused[1] == pytest.approx(43.5)  # 5.10, 5.11
+    out = fuse_boxes((red, [0.9], [3]), (green, [0.3], [5]))
+    np.testing.assert_allclose(out.xyxy, [fused])
+    assert out.scores.tolist() == [0.9] and out.cls.tolist() == [3]  # the more confident box's class
+    assert out.rsu_index.tolist() == [0] and out.obu_index.tolist() == [0]
+
+
+def _pair_with_iou(iou: float) -> tuple[np.ndarray, np.ndarray]:
+    """Two 10 x 10 boxes shifted in x so that their IoU is ``iou``: overlap o, o / (200 - o) = iou."""
+    overlap = 200.0 * iou / (1.0 + iou) / 10.0
+    return np.array([[0.0, 0.0, 10.0, 10.0]]), np.array([[10.0 - overlap, 0.0, 20.0 - overlap, 10.0]])
+
+
+def test_iou_gate_rejects_below_0_1():
+    for iou, fused in ((0.099, False), (0.101, True)):
+        red, green = _pair_with_iou(iou)
+        assert iou_matrix(red, green)[0, 0] == pytest.approx(iou)
+        out = fuse_boxes((red, [0.8], [3]), (green, [0.7], [3]), iou_gate=0.1)
+        assert len(out.xyxy) == (1 if fused else 2)
+        if not fused:  # both pass through, each from its own source
+            assert sorted(out.sources.tolist()) == [SOURCE_RSU, SOURCE_OBU]
+            np.testing.assert_allclose(out.xyxy, np.vstack([red, green]))
+
+
+def test_one_to_one_assignment_prefers_the_larger_overlap():
+    red = np.array([[0, 0, 10, 10], [8, 0, 18, 10]], float)
+    green = np.array([[7, 0, 17, 10]], float)  # overlaps both RSU boxes, the second far more
+    out = fuse_boxes((red, [0.5, 0.5], [3, 3]), (green, [0.5], [3]))
+    assert len(out.xyxy) == 2 and out.rsu_index[out.obu_index == 0].tolist() == [1]
+
+
+def test_too_few_features_gives_no_mapping_and_the_rsu_list():
+    flat = np.full((H, W, 3), 128, np.uint8)
+    boxes = OBU_BOXES[:2]
+    result = roif_fuse(flat, (boxes, [0.9, 0.9], [3, 3]), flat, (boxes, [0.8, 0.8], [3, 3]))
+    assert result.homography is None and result.fit.status == FEW_FEATURES
+    assert np.isnan(result.mapped_obu_xyxy).all()
+    np.testing.assert_allclose(result.fused.xyxy, boxes)
+    assert result.fused.sources.tolist() == [SOURCE_RSU, SOURCE_RSU]
+
+
+def test_unrelated_views_give_no_mapping(views):
+    result = roif_fuse(views[0], (OBU_BOXES, np.ones(3), np.ones(3)), textured(7), (OBU_BOXES, np.ones(3), np.ones(3)),
+                       RoifConfig(min_inliers=12))
+    assert result.homography is None and result.fit.status != OK and result.fit.inliers < 12
+    assert len(result.fused.xyxy) == 3  # the RSU's boxes, nothing mapped
+
+
+def test_no_boxes_no_crash(views):
+    empty = np.zeros((0, 4))
+    result = roif_fuse(views[0], (empty, [], []), views[1], (empty, [], []))
+    assert result.homography is None and len(result.fused.xyxy) == 0
+
+
+def test_box_kf_matches_filterpy():
+    rng = np.random.default_rng(5)
+    cfg = BoxTrackerConfig()
+    n = 3
+    x = np.hstack([rng.uniform(50, 300, (n, 4)), rng.normal(0, 20, (n, 4))])
+    p = np.stack([np.diag(rng.uniform(1, 50, 8)) for _ in range(n)])
+    refs = []
+    for i in range(n):
+        kf = KalmanFilter(dim_x=8, dim_z=4)
+        kf.x, kf.P, kf.H = x[i].copy()[:, None], p[i].copy(), box_tracker.H_BOX
+        kf.R = cfg.measurement_std_px**2 * np.eye(4)
+        refs.append(kf)
+    for _ in range(200):
+        dt = rng.uniform(0.03, 0.3)
+        x, p = box_tracker.kf_predict(x, p, dt, cfg.accel_std_pxps2)
+        for kf in refs:
+            kf.predict(F=box_tracker.transition(dt), Q=box_tracker.process_noise(dt, cfg.accel_std_pxps2))
+        idx = np.flatnonzero(rng.random(n) < 0.7)  # some tracks miss
+        z = x[idx, :4] + rng.normal(0, 5, (len(idx), 4))
+        x[idx], p[idx] = box_tracker.kf_update(x[idx], p[idx], z, refs[0].R)
+        for j, i in enumerate(idx):
+            refs[i].update(z[j])
+        np.testing.assert_allclose(x, np.hstack([kf.x for kf in refs]).T, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(p, np.stack([kf.P for kf in refs]), rtol=0, atol=1e-9)
+
+
+def test_tracker_keeps_ids_through_a_short_miss():
+    tracker = BoxTracker(BoxTrackerConfig(confirm_hits=2, max_misses=3))
+    dt, v = 0.1, np.array([30.0, 0.0, 30.0, 0.0])  # both boxes move right at 30 px/s
+
+    def boxes(k):
+        return np.array([[100, 100, 160, 140], [300, 200, 380, 260]], float) + k * dt * v
+
+    seen = {}
+    for k in range(12):
+        rows = [0, 1] if k not in (5, 6) else [1]  # box 0 missed for two frames
+        out = tracker.step(boxes(k)[rows], np.full(len(rows), 0.9), np.full(len(rows), 3), k * dt)
+        for track_id, det in zip(out.ids, out.detection):
+            if det >= 0:
+                seen.setdefault(rows[det], set()).add(int(track_id))
+        if k in (5, 6):  # the missed box coasts at its predicted place
+            coast = out.xyxy[out.detection < 0]
+            assert len(coast) == 1 and iou_matrix(coast, boxes(k)[:1])[0, 0] > 0.8
+    assert seen == {0: {1}, 1: {2}}
+    # a longer gap deletes the track; the box comes back under a new id
+    for k in range(12, 17):
+        tracker.step(boxes(k)[[1]], [0.9], [3], k * dt)
+    out = tracker.step(boxes(17), [0.9, 0.9], [3, 3], 17 * dt)
+    assert 1 not in out.ids.tolist() and out.ids.tolist() == [2]  # the newcomer is tentative
+    out = tracker.step(boxes(18), [0.9, 0.9], [3, 3], 18 * dt)
+    assert sorted(out.ids.tolist()) == [2, 3]
