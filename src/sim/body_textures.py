@@ -19,7 +19,6 @@ from .textures import (
     BODY_COLOURS,
     BODY_RES_M,
     CLOTHES,
-    FACES,
     SKIN,
     TYRE,
     Painter,
@@ -41,6 +40,7 @@ class Part:
     lwh: tuple[float, float, float]
     z0_m: float
     faces: dict
+    billboard: bool = False  # a figure: drawn as one quad facing the viewer
 
 
 # ------------------------------------------------------------------ vehicles
@@ -298,26 +298,22 @@ def _rider_front(pt: Painter, w, h, shirt, skin, helmet, motor: bool) -> None:
 
 
 def _figure_textures(rng, cls, l, w, h) -> dict[str, np.ndarray]:
-    """BGRA textures of a pedestrian, cyclist or motorcyclist."""
+    """BGRA textures of a pedestrian, cyclist or motorcyclist, seen from front, back and sides."""
     skin = SKIN[rng.integers(len(SKIN))]
     shirt, trousers, hair = (CLOTHES[rng.integers(len(CLOTHES))] for _ in range(3))
     out: dict[str, np.ndarray] = {}
-    for face in FACES:
+    for face in ("front", "back", "left", "right"):
         across = face in ("front", "back")
-        pt = Painter(w if across else l, h if face != "top" else w, BODY_RES_M, None, alpha=True)
         width = w if across else l
-        if face == "top":
-            pt.ellipse(l / 2, w / 2, min(0.45 * l, 0.2 if cls == ObjectClass.PEDESTRIAN else 0.45 * l),
-                       min(0.45 * w, 0.22), shirt)
-            pt.circle(l / 2 + (0.0 if cls == ObjectClass.PEDESTRIAN else 0.1 * l), w / 2, 0.1, hair)
-        elif cls == ObjectClass.PEDESTRIAN:
-            _person(pt, width / 2, width, h, skin, shirt, trousers, hair, "side" if not across else face)
+        pt = Painter(width, h, BODY_RES_M, None, alpha=True)
+        if cls == ObjectClass.PEDESTRIAN:
+            _person(pt, width / 2, width, h, skin, shirt, trousers, hair, face if across else "side")
         elif across:
             _rider_front(pt, w, h, shirt, skin, hair, cls == ObjectClass.MOTORCYCLE)
         else:
             _rider_side(pt, rng, l, h, shirt, skin, hair, cls == ObjectClass.MOTORCYCLE)
         img = add_grain(pt.img, rng, 4.0)
-        if face == "right" or (face == "left" and cls == ObjectClass.PEDESTRIAN and rng.random() < 0.5):
+        if face == "right":
             img = img[:, ::-1].copy()  # the right side shows the front at its last column
         out[face] = img
     return out
@@ -333,11 +329,11 @@ def body_parts(rng: np.random.Generator, cls: int, lwh) -> list[Part]:
     l, w, h = (float(v) for v in lwh)
     if cls in FIGURES:
         faces = _figure_textures(rng, cls, l, w, h)
-    else:
-        body = BODY_COLOURS[rng.integers(len(BODY_COLOURS))]
-        if cls == ObjectClass.CAR:
-            return _car(rng, l, w, h, body)
-        faces = {"left": _vehicle_side(rng, cls, l, h, body), "right": _mirror(_vehicle_side(rng, cls, l, h, body)),
-                 "front": _vehicle_end(rng, cls, w, h, body, True), "back": _vehicle_end(rng, cls, w, h, body, False),
-                 "top": _vehicle_top(rng, cls, l, w, body)}
+        return [Part(0.0, (l, w, h), 0.0, {k: mip_levels(v) for k, v in faces.items()}, billboard=True)]
+    body = BODY_COLOURS[rng.integers(len(BODY_COLOURS))]
+    if cls == ObjectClass.CAR:
+        return _car(rng, l, w, h, body)
+    faces = {"left": _vehicle_side(rng, cls, l, h, body), "right": _mirror(_vehicle_side(rng, cls, l, h, body)),
+             "front": _vehicle_end(rng, cls, w, h, body, True), "back": _vehicle_end(rng, cls, w, h, body, False),
+             "top": _vehicle_top(rng, cls, l, w, body)}
     return [Part(0.0, (l, w, h), 0.0, {k: mip_levels(v) for k, v in faces.items()})]

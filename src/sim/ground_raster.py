@@ -10,6 +10,7 @@ from the signals. Without a network the ground is one paved plaza.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, replace
 
 import cv2
@@ -170,18 +171,20 @@ def _grain(img: np.ndarray, mat: np.ndarray, rng: np.random.Generator, res: floa
         img[r0:r1] = np.clip(chunk, 0, 255).astype(np.uint8)
 
 
-def ground_view(ground: GroundRaster, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int,
+def ground_view(layers: list[GroundRaster], K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int,
                 sky: callable) -> tuple[np.ndarray, np.ndarray]:
     """Ground and sky as an ideal camera (K, R, t) of ``width`` x ``height`` sees them:
     image (H, W, 3) uint8 and inverse depth (H, W) float32 (0 for sky).
 
     Map ground -> pixel: H_g = K [r1 r2 t] (r_i the columns of R). The ground plane z = 0 has
     camera-frame normal r3 through t, so 1 / z_c = (r3^T K^-1 [u, v, 1]^T) / (r3 . t), > 0 where
-    the ray meets the ground ahead. Each row is sampled from the mip level of its median
-    footprint: sqrt|det J| of H_g^-1 = sqrt|det M / (m_3 . p)^3| m per pixel.
-    ``sky(K, R, t, width, height, inv_depth)`` composites sky and haze.
+    the ray meets the ground ahead. ``layers`` go from the coarsest (covering everything) to
+    finer ones over smaller areas, each drawn over the previous where it lies and is finer
+    than it; each row is sampled from the mip level of its median footprint:
+    sqrt|det J| of H_g^-1 = sqrt|det M / (m_3 . p)^3| m per pixel.
+    ``sky(K, R, t, width, height, image, inv_depth)`` composites sky and haze.
     """
-    from .raster import inverse_depth_plane, pick_level
+    from .raster import inverse_depth_plane
 
     Hg = K @ np.column_stack([R[:, 0], R[:, 1], t])
     a, b, e = inverse_depth_plane(np.linalg.inv(K), R[:, 2], t)
@@ -194,17 +197,31 @@ def ground_view(ground: GroundRaster, K: np.ndarray, R: np.ndarray, t: np.ndarra
     with np.errstate(divide="ignore"):  # w = 0 on the horizon row
         metres = np.sqrt(np.abs(np.linalg.det(M) / w_pix**3))
     hit = inv_z[:, np.round(cols).astype(int)] > 0
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows (sky) stay NaN
+        row_m = np.nanmedian(np.where(hit, metres, np.nan), axis=1)
     image = np.zeros((height, width, 3), np.uint8)
-    level_of_row = np.full(height, -1)
-    for row in np.flatnonzero(hit.any(axis=1)):
-        level_of_row[row] = pick_level(ground.levels, float(np.median(metres[row][hit[row]])) / ground.res_m, 0.6)
-    rows = np.flatnonzero(level_of_row >= 0)
-    if len(rows):
-        breaks = np.flatnonzero(np.diff(level_of_row[rows]) != 0) + 1
-        for band in np.split(rows, breaks):
-            v0, v1, lv = int(band[0]), int(band[-1]) + 1, int(level_of_row[band[0]])
-            shift = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -v0], [0.0, 0.0, 1.0]])
-            image[v0:v1] = cv2.warpPerspective(ground.levels[lv], shift @ Hg @ ground.level_to_map(lv), (width, v1 - v0),
-                                               flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                               borderValue=ground.outside_bgr)
+    for k, layer in enumerate(layers):
+        # a finer layer only where the coarser one would be magnified (its texels > 1.5 px)
+        use = np.isfinite(row_m) & ((row_m < 1.5 * layers[k - 1].res_m) if k else True)
+        _warp_rows(image, layer, Hg, row_m, use, first=k == 0)
     return sky(K, R, t, width, height, image, inv_z), inv_z
+
+
+def _warp_rows(image: np.ndarray, layer: GroundRaster, Hg: np.ndarray, row_m: np.ndarray, use: np.ndarray,
+               first: bool) -> None:
+    """Warp ``layer`` into the rows ``use`` of ``image``, rows of one mip level at a time; the
+    first layer fills its outside with its outside colour, later ones leave it untouched."""
+    level = np.full(len(row_m), -1)
+    # level = floor(log2(texels per pixel) + 0.6), clipped to the pyramid
+    level[use] = np.clip(np.floor(np.log2(row_m[use] / layer.res_m) + 0.6), 0, len(layer.levels) - 1)
+    rows = np.flatnonzero(level >= 0)
+    if len(rows) == 0:
+        return
+    border = cv2.BORDER_CONSTANT if first else cv2.BORDER_TRANSPARENT
+    for band in np.split(rows, np.flatnonzero((np.diff(level[rows]) != 0) | (np.diff(rows) > 1)) + 1):
+        v0, v1, lv = int(band[0]), int(band[-1]) + 1, int(level[band[0]])
+        shift = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -v0], [0.0, 0.0, 1.0]])
+        cv2.warpPerspective(layer.levels[lv], shift @ Hg @ layer.level_to_map(lv), (image.shape[1], v1 - v0),
+                            dst=image[v0:v1], flags=cv2.INTER_LINEAR, borderMode=border,
+                            borderValue=layer.outside_bgr)

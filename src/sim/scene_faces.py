@@ -54,6 +54,18 @@ def scene_extent(world: World, margin_m: float = 40.0) -> tuple[float, float, fl
     return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
 
+def detail_extent(world: World, rsu_margin_m: float = 80.0, ego_margin_m: float = 60.0) -> tuple[float, ...]:
+    """(xmin, ymin, xmax, ymax) m of the ground seen up close: around the RSU and the ego's path,
+    within ``scene_extent``."""
+    sc = world.scenario
+    ego = np.asarray(sc.ego.trajectory.path, float)
+    rsu = np.array([sc.rsu.position.x, sc.rsu.position.y])
+    lo = np.minimum(ego.min(axis=0) - ego_margin_m, rsu - rsu_margin_m)
+    hi = np.maximum(ego.max(axis=0) + ego_margin_m, rsu + rsu_margin_m)
+    xmin, ymin, xmax, ymax = scene_extent(world)
+    return max(lo[0], xmin), max(lo[1], ymin), min(hi[0], xmax), min(hi[1], ymax)
+
+
 def _box_polygon(box) -> np.ndarray:
     """Rotated rectangle [x, y, l, w, yaw] -> (4, 2) CCW corners."""
     x, y, l, w, yaw = box
@@ -133,18 +145,44 @@ def box_corners(xy, z_bottom: float, lwh, yaw: float, dx_m: float = 0.0) -> dict
     return out
 
 
-def body_faces(xy, z_bottom: float, yaw: float, parts) -> list[WorldFace]:
-    """The five visible-from-above faces (no bottom) of each part box of a body, textured."""
+def body_faces(xy, z_bottom: float, yaw: float, parts, view_xy) -> list[WorldFace]:
+    """The faces of each part box of a body, textured: five (no bottom) for a solid part; for a
+    ``billboard`` part (a figure) one vertical quad through its centre facing the viewer at
+    ``view_xy`` (2,) m, showing the side of the figure that faces the viewer (a box would show
+    a figure on each of two faces)."""
     c, s = np.cos(yaw), np.sin(yaw)
     fwd, left = np.array([c, s, 0.0]), np.array([-s, c, 0.0])
     normals = {"front": fwd, "back": -fwd, "left": left, "right": -left, "top": np.array([0.0, 0.0, 1.0])}
     out = []
     for part in parts:
         corners = box_corners(xy, z_bottom + part.z0_m, part.lwh, yaw, part.dx_m)
+        if part.billboard:
+            out.append(_billboard(xy, z_bottom + part.z0_m, yaw, part, view_xy))
+            continue
         for name in FACES:
-            levels = part.faces[name]
-            th, tw = levels[0].shape[:2]
-            p = corners[name]
-            e_s, e_t = (p[1] - p[0]) / tw, (p[3] - p[0]) / th
-            out.append(WorldFace(p, normals[name], p[0] + 0.5 * e_s + 0.5 * e_t, e_s, e_t, levels))
+            out.append(_textured(corners[name], normals[name], part.faces[name]))
     return out
+
+
+def _textured(p: np.ndarray, normal: np.ndarray, levels: tuple) -> WorldFace:
+    """A face with corners p (4, 3) TL, TR, BR, BL and the texture stretched over it."""
+    th, tw = levels[0].shape[:2]
+    e_s, e_t = (p[1] - p[0]) / tw, (p[3] - p[0]) / th
+    return WorldFace(p, normal, p[0] + 0.5 * e_s + 0.5 * e_t, e_s, e_t, levels)
+
+
+def _billboard(xy, z0: float, yaw: float, part, view_xy) -> WorldFace:
+    """Vertical quad through the part's centre, normal n toward the viewer (horizontal), right
+    = z x n; the texture of the face whose normal is within 45 deg of n, at that face's width."""
+    d = np.asarray(view_xy, float) - np.asarray(xy, float)
+    az = float(np.arctan2(d[1], d[0]))
+    rel = (az - yaw + np.pi) % (2 * np.pi) - np.pi  # viewer's bearing in the body frame
+    name = ("front", "left", "back", "right")[int(np.floor((rel + np.pi / 4) / (np.pi / 2))) % 4]
+    l, w, h = part.lwh
+    half = (w if name in ("front", "back") else l) / 2
+    n = np.array([np.cos(az), np.sin(az), 0.0])
+    right = np.array([-n[1], n[0], 0.0])
+    c = np.array([xy[0], xy[1], z0]) + part.dx_m * np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    up = np.array([0.0, 0.0, h])
+    return _textured(np.array([c - half * right + up, c + half * right + up, c + half * right, c - half * right]),
+                     n, part.faces[name])
