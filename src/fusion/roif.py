@@ -10,10 +10,21 @@ Per frame, with the detections of both cameras (boxes in their own images):
    what two unrelated descriptors score: it filters almost nothing, so the default here is
    0.25 = 64 bits), (b) it passes Lowe's ratio test d1 < ``ratio`` d2 against the second
    best, and (c) it is mutual (the RSU descriptor's best OBU match is the same: cross check).
-3. Homography H (OBU image -> RSU image) by ``cv2.findHomography(..., cv2.RANSAC)``; fewer
-   than ``min_inliers`` RANSAC inliers (or too few features / matches before it) means no
-   mapping this frame (``status`` says why; the caller counts it).
-4. OBU boxes mapped through H: the 4 corners in homogeneous coordinates,
+3. Frame homography H (OBU image -> RSU image) by ``cv2.findHomography(..., cv2.RANSAC)`` over
+   all matches (the thesis' one H per frame); fewer than ``min_inliers`` RANSAC inliers (or
+   too few features / matches before it): no frame homography (``status`` says why).
+4. OBU boxes into the RSU view. ``mapping="frame"`` (the thesis): every box through the
+   frame's H; none without one. ``mapping="object"`` (default): each box through its own
+   transform, fitted by RANSAC to the matches whose OBU keypoint lies in the box and whose
+   RSU keypoint lies in the RSU box most of them land in (its corresponding box, seed 004
+   Fig. 6.4), where at least ``min_object_inliers`` agree; a box without one goes through the
+   frame's H if ``object_fallback``, else is not mapped. Why: a street of 3-D vehicles at
+   different depths is no plane, and one homography maps well only the depth its inliers
+   came from (RANSAC's dominant object); one object's visible faces are nearly one plane.
+   ``object_model="similarity"`` (default) restricts a box's own homography to scale,
+   rotation and translation (4 degrees of freedom, ``cv2.estimateAffinePartial2D``): with the
+   8-30 matches one small box yields, a full 8-degree homography extrapolated to the box's
+   corners is unstable. Mapping a box: its 4 corners in homogeneous coordinates,
    [u', v', w']^T = H [u, v, 1]^T, (u'/w', v'/w'); the mapped box is the axis-aligned box of
    the 4 mapped corners, clipped to the RSU image (a corner with w' <= 0, behind the
    view, or a box left with no area drops it).
@@ -22,7 +33,7 @@ Per frame, with the detections of both cameras (boxes in their own images):
 6. Each assigned pair fuses by confidence-weighted corner averaging, eq. 5.6-5.11; the
    fused confidence is the larger of the two, the class that of the more confident box.
    Unassigned boxes of either side pass through unchanged (OBU boxes mapped), so the
-   fused list is in the RSU view; without a homography it is the RSU list.
+   fused list is in the RSU view; with no OBU box mapped it is the RSU list.
 
 Pure: arrays in, arrays out; no clock, no I/O. Boxes are (N, 4) [x1, y1, x2, y2] px.
 """
@@ -30,6 +41,7 @@ Pure: arrays in, arrays out; no clock, no I/O. Boxes are (N, 4) [x1, y1, x2, y2]
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -40,6 +52,7 @@ SOURCE_RSU = 1  # bit of a fused box: the RSU camera saw it
 SOURCE_OBU = 2  # bit: the OBU camera saw it (mapped into the RSU view)
 DESCRIPTOR_BITS = 256  # ORB descriptors are 32 bytes
 
+MAPPED_NONE, MAPPED_FRAME, MAPPED_OWN = 0, 1, 2  # how an OBU box was mapped
 # why a frame has no homography
 OK, FEW_FEATURES, FEW_MATCHES, FEW_INLIERS = "ok", "few_features", "few_matches", "few_inliers"
 
@@ -49,13 +62,18 @@ class RoifConfig:
     """ROIF parameters (units in the names); the module docstring says how each is used."""
 
     orb_features: int = 2000  # ORB keypoints per image at most
-    orb_fast_threshold: int = 10  # FAST corner threshold (grey levels); lower finds more on flat renders
-    orb_edge_px: int = 15  # ORB edgeThreshold = patchSize (px): keypoints this close to the border are dropped
+    orb_fast_threshold: int = 5  # FAST corner threshold (grey levels); low: vehicle faces are smooth
+    orb_patch_px: int = 31  # ORB patchSize = edgeThreshold (px): descriptor footprint
+    orb_levels: int = 12  # ORB pyramid levels, scale 1.2 apart: views up to 1.2^(levels - 1) apart in scale match
     max_distance: float = 0.25  # normalised Hamming distance bits / 256 a match must stay below
     ratio: float = 0.8  # Lowe ratio test: best < ratio * second best
     cross_check: bool = True  # keep mutual best matches only
     ransac_reproj_px: float = 4.0  # RANSAC inlier threshold (px, RSU image)
-    min_inliers: int = 12  # fewer RANSAC inliers: no mapping this frame
+    min_inliers: int = 12  # fewer RANSAC inliers: no frame homography
+    mapping: Literal["object", "frame"] = "object"  # each box through its own transform, or all through the frame's
+    min_object_inliers: int = 8  # RANSAC inliers a box's own transform needs
+    object_model: Literal["similarity", "homography"] = "similarity"  # a box's own transform
+    object_fallback: bool = False  # a box without its own transform goes through the frame's H
     iou_gate: float = 0.1  # eq. 5.1-5.5 IoU a (RSU, mapped OBU) pair needs to fuse
 
 
@@ -93,17 +111,42 @@ class FusedBoxes:
 
 
 @dataclass(frozen=True)
+class BoxMapping:
+    """How each of M OBU boxes reaches the RSU view: ``transform`` (M, 3, 3) (NaN: not mapped),
+    ``how`` (M,) MAPPED_NONE / MAPPED_FRAME / MAPPED_OWN, ``inlier_error_px`` (M,) mean
+    re-projection error of the RANSAC inliers of its transform (NaN: none), ``rsu_box`` (M,) the
+    corresponding RSU box its own transform came from (-1: none)."""
+
+    transform: np.ndarray
+    how: np.ndarray
+    inlier_error_px: np.ndarray
+    rsu_box: np.ndarray
+
+    @classmethod
+    def none(cls, m: int) -> "BoxMapping":
+        return cls(np.full((m, 3, 3), np.nan), np.full(m, MAPPED_NONE, np.int64), np.full(m, np.nan),
+                   np.full(m, -1, np.int64))
+
+
+@dataclass(frozen=True)
 class RoifResult:
     """One fused frame: the boxes, every OBU box mapped into the RSU view (M, 4) (NaN rows:
-    dropped or no homography), and the homography fit of the frame."""
+    not mapped or dropped), how each was mapped, and the frame's homography fit."""
 
     fused: FusedBoxes
     mapped_obu_xyxy: np.ndarray
+    mapping: BoxMapping
     fit: HomographyFit
 
     @property
     def homography(self) -> np.ndarray | None:
+        """The frame's homography (3, 3) OBU px -> RSU px, or None."""
         return self.fit.H
+
+    @property
+    def mapped(self) -> bool:
+        """Whether any OBU box reached the RSU view this frame."""
+        return bool(np.any(self.mapping.how != MAPPED_NONE))
 
 
 def box_mask(shape_hw: tuple[int, int], xyxy: np.ndarray) -> np.ndarray:
@@ -121,8 +164,8 @@ def box_mask(shape_hw: tuple[int, int], xyxy: np.ndarray) -> np.ndarray:
 def orb_features(image: np.ndarray, xyxy: np.ndarray, config: RoifConfig) -> tuple[np.ndarray, np.ndarray]:
     """ORB keypoints (K, 2) px and descriptors (K, 32) uint8 inside the boxes (N, 4) of an image (H, W[, 3])."""
     grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-    orb = cv2.ORB_create(nfeatures=config.orb_features, edgeThreshold=config.orb_edge_px,
-                         patchSize=config.orb_edge_px, fastThreshold=config.orb_fast_threshold)
+    orb = cv2.ORB_create(nfeatures=config.orb_features, nlevels=config.orb_levels, edgeThreshold=config.orb_patch_px,
+                         patchSize=config.orb_patch_px, fastThreshold=config.orb_fast_threshold)
     keypoints, descriptors = orb.detectAndCompute(grey, box_mask(grey.shape[:2], xyxy))
     if descriptors is None or not keypoints:
         return np.zeros((0, 2)), np.zeros((0, 32), dtype=np.uint8)
@@ -166,10 +209,13 @@ def fit_homography(image_obu: np.ndarray, boxes_obu: np.ndarray, image_rsu: np.n
     inlier = np.zeros(len(pairs), bool) if mask is None else mask.ravel().astype(bool)
     if H is None or inlier.sum() < config.min_inliers:
         return failed(FEW_INLIERS, obu_px, rsu_px, inlier, int(inlier.sum()))
-    # mean re-projection error of the inliers: |pi(H p_obu) - p_rsu|
-    err = np.linalg.norm(map_points(H, obu_px[inlier]) - rsu_px[inlier], axis=1)
-    return HomographyFit(H, OK, len(kp_o), len(kp_r), len(pairs), int(inlier.sum()), float(err.mean()),
-                         obu_px, rsu_px, inlier)
+    return HomographyFit(H, OK, len(kp_o), len(kp_r), len(pairs), int(inlier.sum()),
+                         inlier_error_px(H, obu_px[inlier], rsu_px[inlier]), obu_px, rsu_px, inlier)
+
+
+def inlier_error_px(H: np.ndarray, obu_px: np.ndarray, rsu_px: np.ndarray) -> float:
+    """Mean re-projection error |pi(H p_obu) - p_rsu| (px) of point pairs (K, 2) + (K, 2)."""
+    return float(np.linalg.norm(map_points(H, obu_px) - rsu_px, axis=1).mean())
 
 
 def map_points(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -259,6 +305,46 @@ def _columns(boxes: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarr
             np.asarray(cls, np.int64).reshape(-1))
 
 
+def _inside(points: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(K,) bool: points (K, 2) px inside the box [x1, y1, x2, y2] (edges included)."""
+    return (points[:, 0] >= box[0]) & (points[:, 0] <= box[2]) & (points[:, 1] >= box[1]) & (points[:, 1] <= box[3])
+
+
+def _object_transform(obu_px: np.ndarray, rsu_px: np.ndarray, config: RoifConfig) -> tuple[np.ndarray | None, float]:
+    """A box's own transform (3, 3) from its matches (K, 2) + (K, 2) and its inliers' mean error
+    (px); (None, NaN) below ``min_object_inliers`` inliers."""
+    if len(obu_px) < max(config.min_object_inliers, 4):
+        return None, float("nan")
+    if config.object_model == "similarity":
+        a, mask = cv2.estimateAffinePartial2D(obu_px, rsu_px, method=cv2.RANSAC,
+                                              ransacReprojThreshold=config.ransac_reproj_px)
+        h = None if a is None else np.vstack([a, [0.0, 0.0, 1.0]])
+    else:
+        h, mask = cv2.findHomography(obu_px, rsu_px, cv2.RANSAC, config.ransac_reproj_px)
+    if h is None or mask is None or mask.sum() < config.min_object_inliers:
+        return None, float("nan")
+    inlier = mask.ravel().astype(bool)
+    return h, inlier_error_px(h, obu_px[inlier], rsu_px[inlier])
+
+
+def box_mapping(fit: HomographyFit, boxes_obu: np.ndarray, boxes_rsu: np.ndarray, config: RoifConfig) -> BoxMapping:
+    """Step 4: how each OBU box (M, 4) reaches the RSU view (module docstring); RSU boxes (N, 4)."""
+    boxes, rsu_boxes = np.asarray(boxes_obu, float).reshape(-1, 4), np.asarray(boxes_rsu, float).reshape(-1, 4)
+    out = BoxMapping.none(len(boxes))
+    if fit.H is not None and (config.mapping == "frame" or config.object_fallback):
+        out.transform[:], out.how[:], out.inlier_error_px[:] = fit.H, MAPPED_FRAME, fit.reprojection_px
+    if config.mapping == "frame" or not len(rsu_boxes) or not len(fit.obu_px):
+        return out
+    in_rsu = np.stack([_inside(fit.rsu_px, b) for b in rsu_boxes])  # (N, K)
+    for j, box in enumerate(boxes):
+        sel = _inside(fit.obu_px, box)
+        i = int(np.argmax((in_rsu & sel).sum(axis=1)))  # the RSU box most of its matches land in
+        h, err = _object_transform(fit.obu_px[sel & in_rsu[i]], fit.rsu_px[sel & in_rsu[i]], config)
+        if h is not None:
+            out.transform[j], out.how[j], out.inlier_error_px[j], out.rsu_box[j] = h, MAPPED_OWN, err, i
+    return out
+
+
 def roif_fuse(image_obu: np.ndarray, obu: tuple[np.ndarray, np.ndarray, np.ndarray],
               image_rsu: np.ndarray, rsu: tuple[np.ndarray, np.ndarray, np.ndarray],
               config: RoifConfig = RoifConfig()) -> RoifResult:
@@ -266,8 +352,9 @@ def roif_fuse(image_obu: np.ndarray, obu: tuple[np.ndarray, np.ndarray, np.ndarr
     each in its own image (H, W, 3) BGR."""
     xo, so, co = _columns(obu)
     fit = fit_homography(image_obu, xo, image_rsu, _columns(rsu)[0], config)
-    if fit.H is None:
-        mapped = np.full((len(xo), 4), np.nan)
-    else:
-        mapped = map_boxes(fit.H, xo, (image_rsu.shape[1], image_rsu.shape[0]))
-    return RoifResult(fuse_boxes(rsu, (mapped, so, co), config.iou_gate), mapped, fit)
+    mapping = box_mapping(fit, xo, _columns(rsu)[0], config)
+    wh = (image_rsu.shape[1], image_rsu.shape[0])
+    mapped = np.full((len(xo), 4), np.nan)
+    for j in np.flatnonzero(mapping.how != MAPPED_NONE):
+        mapped[j] = map_boxes(mapping.transform[j], xo[j:j + 1], wh)[0]
+    return RoifResult(fuse_boxes(rsu, (mapped, so, co), config.iou_gate), mapped, mapping, fit)

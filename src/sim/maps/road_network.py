@@ -214,6 +214,7 @@ def highway_with_ramp(name: str) -> RoadNetwork:
 NETWORKS = {
     "red-light-runner": lambda: four_way_intersection("red-light-runner"),
     "dense-intersection": lambda: four_way_intersection("dense-intersection"),
+    "roif-intersection": lambda: four_way_intersection("roif-intersection"),
     "highway-merge": lambda: highway_with_ramp("highway-merge"),
 }
 
