@@ -131,6 +131,9 @@ class RsuNode:
         """Publish the metrics; hand the refusals since the last report to the throttled log."""
         with self._lock:
             rejected, replies = Counter(self.rejected), self.time_replies
+        frames = getattr(self.source, "frames", None)  # a recording: frames refused unread
+        if frames is not None:
+            rejected.update({f"frame_{reason}": n for reason, n in frames.refused.items()})
         self._log.totals(rejected, self._details, "time quer(ies)")
         self._metrics.put(encode(RsuMetrics(rsu_id=self.config.rsu_id, t_ns=self.clock.now_ns(),
                                             published=self.published, skipped=self.skipped,

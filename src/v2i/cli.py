@@ -299,10 +299,8 @@ def build_parser() -> argparse.ArgumentParser:
     fuzz.add_argument("--json", metavar="PATH", help="write the report JSON to PATH ('-' for stdout)")
     fuzz.set_defaults(func=cmd_fuzz)
     camera_sub = parsers["camera"].add_subparsers(dest="camera_command", required=True, metavar="{render,calibrate}")
-    import importlib.util  # TEMPORARY until both helpers land
     for module in ("v2i.camera_render", "v2i.camera_calibrate"):
-        if importlib.util.find_spec(module) is not None:
-            __import__(module, fromlist=["add_parser"]).add_parser(camera_sub)
+        __import__(module, fromlist=["add_parser"]).add_parser(camera_sub)
     for name, module in (("rsu", "rsu_service.cli"), ("obu", "obu_service.cli"), ("link", "link_emulator.cli")):
         mod = __import__(module, fromlist=["configure_parser", "run"])
         mod.configure_parser(parsers[name])
