@@ -123,7 +123,7 @@ class BoxMapping:
     rsu_box: np.ndarray
 
     @classmethod
-    def none(cls, m: int) -> "BoxMapping":
+    def none(cls, m: int) -> BoxMapping:
         return cls(np.full((m, 3, 3), np.nan), np.full(m, MAPPED_NONE, np.int64), np.full(m, np.nan),
                    np.full(m, -1, np.int64))
 
@@ -194,9 +194,9 @@ def fit_homography(image_obu: np.ndarray, boxes_obu: np.ndarray, image_rsu: np.n
     """Steps 1-3: ORB in the boxes of both images, matching, RANSAC homography OBU -> RSU."""
     kp_o, desc_o = orb_features(image_obu, boxes_obu, config)
     kp_r, desc_r = orb_features(image_rsu, boxes_rsu, config)
-    empty = np.zeros((0, 2))
-
-    def failed(status: str, obu=empty, rsu=empty, inlier=np.zeros(0, bool), inliers: int = 0) -> HomographyFit:
+    def failed(status: str, obu=None, rsu=None, inlier=None, inliers: int = 0) -> HomographyFit:
+        obu, rsu = (np.zeros((0, 2)) if v is None else v for v in (obu, rsu))
+        inlier = np.zeros(len(obu), bool) if inlier is None else inlier
         return HomographyFit(None, status, len(kp_o), len(kp_r), len(obu), inliers, None, obu, rsu, inlier)
 
     if min(len(kp_o), len(kp_r)) < config.min_inliers:

@@ -9,8 +9,22 @@ from filterpy.kalman import KalmanFilter
 
 from fusion import box_tracker
 from fusion.box_tracker import BoxTracker, BoxTrackerConfig
-from fusion.roif import (FEW_FEATURES, MAPPED_FRAME, MAPPED_OWN, OK, SOURCE_OBU, SOURCE_RSU, RoifConfig,
-                         fit_homography, fuse_boxes, fuse_pair, iou_matrix, map_boxes, map_points, roif_fuse)
+from fusion.roif import (
+    FEW_FEATURES,
+    MAPPED_FRAME,
+    MAPPED_OWN,
+    OK,
+    SOURCE_OBU,
+    SOURCE_RSU,
+    RoifConfig,
+    fit_homography,
+    fuse_boxes,
+    fuse_pair,
+    iou_matrix,
+    map_boxes,
+    map_points,
+    roif_fuse,
+)
 
 W, H = 640, 384
 H_TRUE = np.array([[0.9, 0.05, 20.0], [-0.03, 0.95, 10.0], [1e-4, -5e-5, 1.0]])  # OBU px -> RSU px
@@ -209,3 +223,30 @@ def test_tracker_keeps_ids_through_a_short_miss():
     assert 1 not in out.ids.tolist() and out.ids.tolist() == [2]  # the newcomer is tentative
     out = tracker.step(boxes(18), [0.9, 0.9], [3, 3], 18 * dt)
     assert sorted(out.ids.tolist()) == [2, 3]
+
+
+def test_driver_fuses_better_than_the_vehicle_alone():
+    """A short run of ``v2i eval --fusion roif``'s driver on roif-intersection (label stand-in detector)."""
+    from evaluation.image_fusion import run_image_fusion
+
+    report = run_image_fusion("roif-intersection", seed=3, duration_s=2.0, detector="labels")
+    f = report["image_fusion"]
+    assert report["fusion"] == "roif" and report["detector"] == "labels" and f["frames"] == 20
+    assert f["detection_accuracy"] > f["vehicle_only_detection_accuracy"] + 0.2
+    assert f["detection_accuracy"] >= f["rsu_only_detection_accuracy"] - 0.05
+    assert f["precision"] > 0.9 and f["obu_boxes_mapped_own"] > 0 and f["fused_pairs"] > 0
+    assert 0.5 < f["mean_iou"] <= 1.0 and 0.0 < f["reprojection_error_px"] < 60.0
+
+
+def test_driver_is_deterministic_for_a_seed():
+    from evaluation.image_fusion import run_image_fusion
+
+    runs = [run_image_fusion("roif-intersection", seed=5, duration_s=0.5, detector="labels") for _ in range(2)]
+    assert runs[0] == runs[1]
+
+
+def test_driver_needs_an_ego_camera():
+    from evaluation.image_fusion import run_image_fusion
+
+    with pytest.raises(ValueError, match="ego_camera"):
+        run_image_fusion("red-light-runner", duration_s=0.1, detector="labels")
