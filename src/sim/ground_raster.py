@@ -24,6 +24,9 @@ WHITE, YELLOW = (228, 230, 230), (40, 185, 215)
 MATERIAL_GRAIN = np.array([9.0, 7.0, 7.0, 14.0, 12.0], np.float32)  # asphalt, sidewalk, kerb, grass, gravel
 SIDEWALK_M, KERB_M, SHOULDER_M = 3.5, 0.25, 1.2
 COARSE_M = 0.5  # grid of the distance-to-road transform
+FOG_M = 350.0  # fog: f = 1 - exp(-depth / FOG_M)
+FAR_M = 20000.0  # ground farther than this is sky
+HAZE, ZENITH = (212, 204, 196), (205, 150, 95)  # BGR sky at the horizon and high up
 
 
 @dataclass(frozen=True)
@@ -171,8 +174,8 @@ def _grain(img: np.ndarray, mat: np.ndarray, rng: np.random.Generator, res: floa
         img[r0:r1] = np.clip(chunk, 0, 255).astype(np.uint8)
 
 
-def ground_view(layers: list[GroundRaster], K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int,
-                sky: callable) -> tuple[np.ndarray, np.ndarray]:
+def ground_view(layers: list[GroundRaster], K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int,
+                height: int) -> tuple[np.ndarray, np.ndarray]:
     """Ground and sky as an ideal camera (K, R, t) of ``width`` x ``height`` sees them:
     image (H, W, 3) uint8 and inverse depth (H, W) float32 (0 for sky).
 
@@ -182,7 +185,6 @@ def ground_view(layers: list[GroundRaster], K: np.ndarray, R: np.ndarray, t: np.
     finer ones over smaller areas, each drawn over the previous where it lies and is finer
     than it; each row is sampled from the mip level of its median footprint:
     sqrt|det J| of H_g^-1 = sqrt|det M / (m_3 . p)^3| m per pixel.
-    ``sky(K, R, t, width, height, image, inv_depth)`` composites sky and haze.
     """
     from .raster import inverse_depth_plane
 
@@ -190,7 +192,7 @@ def ground_view(layers: list[GroundRaster], K: np.ndarray, R: np.ndarray, t: np.
     a, b, e = inverse_depth_plane(np.linalg.inv(K), R[:, 2], t)
     u, v = np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32)
     inv_z = a * u[None, :] + (b * v + e)[:, None]
-    inv_z = np.where(inv_z > 1.0 / 20000.0, inv_z, 0.0).astype(np.float32)
+    inv_z = np.where(inv_z > 1.0 / FAR_M, inv_z, 0.0).astype(np.float32)
     M = np.linalg.inv(Hg)
     cols = np.linspace(0, width - 1, 9)
     w_pix = M[2, 0] * cols[None, :] + M[2, 1] * v[:, None] + M[2, 2]
@@ -205,7 +207,7 @@ def ground_view(layers: list[GroundRaster], K: np.ndarray, R: np.ndarray, t: np.
         # a finer layer only where the coarser one would be magnified (its texels > 1.5 px)
         use = np.isfinite(row_m) & ((row_m < 1.5 * layers[k - 1].res_m) if k else True)
         _warp_rows(image, layer, Hg, row_m, use, first=k == 0)
-    return sky(K, R, t, width, height, image, inv_z), inv_z
+    return sky_and_haze(K, R, t, width, height, image, inv_z), inv_z
 
 
 def _warp_rows(image: np.ndarray, layer: GroundRaster, Hg: np.ndarray, row_m: np.ndarray, use: np.ndarray,
@@ -225,3 +227,37 @@ def _warp_rows(image: np.ndarray, layer: GroundRaster, Hg: np.ndarray, row_m: np
         cv2.warpPerspective(layer.levels[lv], shift @ Hg @ layer.level_to_map(lv), (image.shape[1], v1 - v0),
                             dst=image[v0:v1], flags=cv2.INTER_LINEAR, borderMode=border,
                             borderValue=layer.outside_bgr)
+
+
+def fog_fraction(depth_m: np.ndarray | float):
+    """Fraction of haze: f = 1 - exp(-depth / FOG_M)."""
+    return 1.0 - np.exp(-np.asarray(depth_m, dtype=np.float32) / FOG_M)
+
+
+def sky_and_haze(K, R, t, width: int, height: int, ground: np.ndarray, inv_depth: np.ndarray,
+                 step_px: int = 8) -> np.ndarray:
+    """Ground faded toward HAZE with depth (fog), sky where no ground.
+
+    Sky colour from HAZE at the horizon to ZENITH with the ray's elevation, sin(el) = d_z / |d|,
+    d = R^T K^-1 [u, v, 1]^T (HAZE below the horizon, so one "far" image serves as sky and as
+    fog colour); out = (1 - f) ground + f far, f = 1 - exp(-depth / FOG_M), 1 for sky. Both
+    are smooth, so they are evaluated every ``step_px`` pixels and interpolated.
+    """
+    from .raster import inverse_depth_plane
+
+    u = np.arange(0, width + step_px, step_px, dtype=np.float32)
+    v = np.arange(0, height + step_px, step_px, dtype=np.float32)
+    M = (R.T @ np.linalg.inv(K)).astype(np.float32)
+    rays = M[None, None, :, 0] * u[None, :, None] + M[None, None, :, 1] * v[:, None, None] + M[:, 2]
+    k = np.clip(rays[..., 2] / np.linalg.norm(rays, axis=-1) / 0.35, 0.0, 1.0) ** 0.7
+    haze, zenith = np.asarray(HAZE, np.float32), np.asarray(ZENITH, np.float32)
+    far_small = haze + k[..., None] * (zenith - haze)
+    a, b, e = inverse_depth_plane(np.linalg.inv(K), R[:, 2], t)
+    inv_z = a * u[None, :] + (b * v + e)[:, None]
+    with np.errstate(divide="ignore"):
+        fog_small = np.where(inv_z > 0, fog_fraction(1.0 / np.maximum(inv_z, 1e-9)), 1.0).astype(np.float32)
+    size = (len(u) * step_px, len(v) * step_px)
+    far = cv2.resize(np.clip(far_small, 0, 255).astype(np.uint8), size)[:height, :width]
+    fog = cv2.resize(fog_small, size)[:height, :width]
+    np.putmask(fog, inv_depth <= 0, 1.0)
+    return cv2.blendLinear(ground, far, 1.0 - fog, fog)

@@ -32,7 +32,14 @@ from fusion.objects import ObjectArray
 from . import raster
 from .body_textures import FIGURES, body_parts
 from .camera import PinholeCamera
-from .ground_raster import GroundRaster, build_ground, choose_resolution, ground_view
+from .ground_raster import (
+    HAZE,
+    GroundRaster,
+    build_ground,
+    choose_resolution,
+    fog_fraction,
+    ground_view,
+)
 from .maps.road_network import road_network
 from .scenario import bundled_scenarios
 from .scene_faces import (
@@ -45,9 +52,6 @@ from .scene_faces import (
 )
 from .world import World
 
-FOG_M = 350.0  # fog: f = 1 - exp(-depth / FOG_M)
-FAR_M = 20000.0  # ground farther than this is sky
-HAZE, ZENITH = (212, 204, 196), (205, 150, 95)  # BGR sky at the horizon and high up
 AMBIENT, DIFFUSE = 0.6, 0.45  # face gain = AMBIENT + DIFFUSE max(0, n . sun)
 SUN_ELEVATION_RAD = np.deg2rad(50.0)
 SHADOW_GAIN = 0.6
@@ -88,6 +92,10 @@ class _Canvas:
     height: int
     maps: tuple | None
     footprint: np.ndarray | None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "K_inv", np.linalg.inv(self.K))
+        object.__setattr__(self, "planes", raster.frustum_planes(self.K, self.width, self.height))
 
     @property
     def R(self) -> np.ndarray:
@@ -151,11 +159,6 @@ def _ground_layers(world: World, rng_coarse, rng_fine, res_m: float | None) -> l
     return [build_ground(network, whole, rng_coarse, coarse_res), build_ground(network, near, rng_fine, fine_res)]
 
 
-def _fog(depth_m: np.ndarray | float):
-    """Fraction of haze: f = 1 - exp(-depth / FOG_M)."""
-    return 1.0 - np.exp(-np.asarray(depth_m, dtype=np.float32) / FOG_M)
-
-
 class SceneRenderer:
     """Renders a ``World`` through any ``PinholeCamera``; textures fixed by ``seed``."""
 
@@ -190,7 +193,9 @@ class SceneRenderer:
 
     def render_bodies(self, camera: PinholeCamera, bodies: ObjectArray,
                       rng: np.random.Generator | None = None) -> RenderedFrame:
-        """The static scene with any ``bodies`` (map; ``z`` the box centre height) instead of the actors."""
+        """The static scene with any ``bodies`` (map; ``z`` the box centre height; ids >= 0) instead of the actors."""
+        if len(bodies) and np.min(bodies.ids) < 0:
+            raise ValueError("body ids must be >= 0 (negative ids mark sky, ground and buildings)")
         z_bottom = np.asarray(bodies.z, float) - bodies.lwh[:, 2] / 2.0
         image, labels = self._render(camera, (bodies.ids, bodies.cls, bodies.xy, z_bottom, bodies.lwh, bodies.yaw), rng)
         return RenderedFrame(image, labels, None)
@@ -235,8 +240,7 @@ class SceneRenderer:
         faces clipped to the view frustum, projected (through the lens: edges sampled, as
         distortion bends them)."""
         cam = canvas.camera
-        planes = raster.frustum_planes(canvas.K, canvas.width, canvas.height)
-        polys = [raster.clip_polygon(p @ cam.R.T + cam.t, planes) for p in corners.values()]
+        polys = [raster.clip_polygon(p @ cam.R.T + cam.t, canvas.planes) for p in corners.values()]
         polys = [p for p in polys if len(p)]
         if not polys:
             return np.zeros(4)
@@ -256,14 +260,14 @@ class SceneRenderer:
         if np.dot(wf.normal, C - wf.polygon[0]) <= 0:  # backface: the camera is behind its plane
             return None
         R, t = canvas.R, canvas.t
-        poly_c = raster.clip_polygon(wf.polygon @ R.T + t, raster.frustum_planes(canvas.K, canvas.width, canvas.height))
+        poly_c = raster.clip_polygon(wf.polygon @ R.T + t, canvas.planes)
         if len(poly_c) < 3:
             return None
         uv = raster.project_ideal(canvas.K, poly_c)
-        plane = raster.inverse_depth_plane(np.linalg.inv(canvas.K), R @ wf.normal, poly_c[0])
+        plane = raster.inverse_depth_plane(canvas.K_inv, R @ wf.normal, poly_c[0])
         H = raster.texel_homography(canvas.K, R, t, wf.origin, wf.e_s, wf.e_t)
         gain = AMBIENT + DIFFUSE * max(0.0, float(wf.normal @ self.sun))
-        fog = float(_fog(poly_c[:, 2].mean()))
+        fog = float(fog_fraction(poly_c[:, 2].mean()))
         return raster.Face(uv, plane, H, wf.levels, gain, fog, HAZE)
 
     def _labels(self, target, canvas: _Canvas, drawn: list, ids, cls, xy) -> BoxLabels:
@@ -274,7 +278,7 @@ class SceneRenderer:
         xyxy = np.array([d[2] for d in drawn], float)
         shown = target.ids if canvas.footprint is None else np.where(canvas.footprint, target.ids, raster.SKY_ID)
         body_ids = np.asarray(ids, np.int64)[idx]
-        counts = np.array([np.count_nonzero(shown == i) for i in body_ids], float)
+        counts = _pixel_counts(shown, body_ids)
         range_m = np.hypot(*(np.asarray(xy, float)[idx] - canvas.camera.centre[:2]).T)
         order = np.argsort(body_ids, kind="stable")
         return BoxLabels(body_ids[order], np.asarray(cls, np.int64)[idx][order], xyxy[order],
@@ -298,8 +302,7 @@ class SceneRenderer:
         if key in self._backgrounds:
             self._backgrounds.move_to_end(key)
             return self._backgrounds[key]
-        image, inv_depth = ground_view(self.ground, canvas.K, canvas.R, canvas.t, canvas.width, canvas.height,
-                                       sky_and_haze)
+        image, inv_depth = ground_view(self.ground, canvas.K, canvas.R, canvas.t, canvas.width, canvas.height)
         target = raster.Target(image, inv_depth, np.where(inv_depth > 0, raster.GROUND_ID, raster.SKY_ID).astype(np.int32))
         for wf in self.buildings:
             got = self._face(canvas, wf)
@@ -322,7 +325,7 @@ class SceneRenderer:
     def _shadows(self, target: raster.Target, canvas: _Canvas, xy, lwh, yaw) -> None:
         """Darken the ground under and behind each body (hull of its footprint and of its top
         corners projected along the sun onto z = 0: offset = -h cot(elev) * sun_xy)."""
-        planes = raster.frustum_planes(canvas.K, canvas.width, canvas.height)
+        planes = canvas.planes
         sun_xy = self.sun[:2] / np.hypot(*self.sun[:2])
         for k in range(len(xy)):
             foot = _footprint(xy[k], lwh[k, 0] + 0.2, lwh[k, 1] + 0.2, yaw[k])
@@ -343,37 +346,19 @@ class SceneRenderer:
             np.copyto(region, (region * SHADOW_GAIN).astype(np.uint8), where=dark[..., None])
 
 
+def _pixel_counts(ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """How many pixels of the id buffer ``ids`` carry each of the ``wanted`` (K,) ids, (K,) float."""
+    if wanted.max() < 1 << 20:  # ids from BUILDING_ID = -3 up to a small bound: one bincount
+        counts = np.bincount((ids.ravel() - raster.BUILDING_ID).astype(np.int64), minlength=int(wanted.max()) + 4)
+        return counts[wanted - raster.BUILDING_ID].astype(float)
+    values, counts = np.unique(ids, return_counts=True)
+    return np.array([counts[values == i].sum() for i in wanted], float)
+
+
 def _footprint(xy, l: float, w: float, yaw: float) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     local = np.array([[l, w], [-l, w], [-l, -w], [l, -w]]) / 2.0
     return np.asarray(xy, float) + local @ np.array([[c, s], [-s, c]])
-
-
-def sky_and_haze(K, R, t, width: int, height: int, ground: np.ndarray, inv_depth: np.ndarray,
-                 step_px: int = 8) -> np.ndarray:
-    """Ground faded toward HAZE with depth (fog), sky where no ground.
-
-    Sky colour from HAZE at the horizon to ZENITH with the ray's elevation, sin(el) = d_z / |d|,
-    d = R^T K^-1 [u, v, 1]^T (HAZE below the horizon, so one "far" image serves as sky and as
-    fog colour); out = (1 - f) ground + f far, f = 1 - exp(-depth / FOG_M), 1 for sky. Both
-    are smooth, so they are evaluated every ``step_px`` pixels and interpolated.
-    """
-    u = np.arange(0, width + step_px, step_px, dtype=np.float32)
-    v = np.arange(0, height + step_px, step_px, dtype=np.float32)
-    M = (R.T @ np.linalg.inv(K)).astype(np.float32)
-    rays = M[None, None, :, 0] * u[None, :, None] + M[None, None, :, 1] * v[:, None, None] + M[:, 2]
-    k = np.clip(rays[..., 2] / np.linalg.norm(rays, axis=-1) / 0.35, 0.0, 1.0) ** 0.7
-    haze, zenith = np.asarray(HAZE, np.float32), np.asarray(ZENITH, np.float32)
-    far_small = haze + k[..., None] * (zenith - haze)
-    a, b, e = raster.inverse_depth_plane(np.linalg.inv(K), R[:, 2], t)
-    inv_z = a * u[None, :] + (b * v + e)[:, None]
-    with np.errstate(divide="ignore"):
-        fog_small = np.where(inv_z > 0, _fog(1.0 / np.maximum(inv_z, 1e-9)), 1.0).astype(np.float32)
-    size = (len(u) * step_px, len(v) * step_px)
-    far = cv2.resize(np.clip(far_small, 0, 255).astype(np.uint8), size)[:height, :width]
-    fog = cv2.resize(fog_small, size)[:height, :width]
-    np.putmask(fog, inv_depth <= 0, 1.0)
-    return cv2.blendLinear(ground, far, 1.0 - fog, fog)
 
 
 def sensor_effects(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:

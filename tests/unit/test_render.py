@@ -193,3 +193,24 @@ def test_clip_polygon_matches_shapely():
     assert Polygon(clipped[:, :2]).symmetric_difference(expected).area < 1e-9
     behind = square - [0, 0, 4.0]  # z = -2: entirely behind the camera
     assert len(raster.clip_polygon(behind, planes)) == 0
+
+
+def test_cli_writes_frames_labels_and_camera(tmp_path, capsys):
+    import json
+
+    from v2i.cli import main
+
+    out = tmp_path / "frames"
+    assert main(["camera", "render", "--scenario", "red-light-runner", "--out", str(out), "--start", "8",
+                 "--duration", "0.4", "--clean", "--format", "png"]) == 0
+    lines = [json.loads(s) for s in (out / "labels.jsonl").read_text().splitlines()]
+    assert [ln["t_s"] for ln in lines] == pytest.approx([8.0, 8.2, 8.4])  # the RSU's 5 Hz
+    assert all((out / ln["file"]).exists() for ln in lines)
+    car = next(b for b in lines[0]["boxes"] if b["id"] == 1)
+    assert car["class"] == "car" and car["visible"] == 1.0 and len(car["xyxy"]) == 4
+    camera = json.loads((out / "camera.json").read_text())
+    image = cv2.imread(str(out / lines[0]["file"]))
+    assert image.shape == (camera["height"], camera["width"], 3) and np.asarray(camera["K"]).shape == (3, 3)
+    (tmp_path / "file").write_text("")
+    assert main(["camera", "render", "--out", str(tmp_path / "file"), "--duration", "0.2"]) == 2
+    assert "--out" in capsys.readouterr().err
