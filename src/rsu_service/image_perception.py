@@ -17,21 +17,26 @@ from fusion.objects import ObjectArray
 class ImagePerception:
     """Detector + calibration: an image in, objects in map out (ids -1, no velocity)."""
 
-    def __init__(self, detector, calibration, camera_xy=None, pixel_sigma_px: float = 1.0):
+    def __init__(self, detector, calibration, camera_xy=None, pixel_sigma_px: float = 1.0,
+                 max_range_m: float | None = None):
+        """``max_range_m``: objects farther from ``camera_xy`` are dropped (the camera's working
+        range: beyond it a pixel spans metres, seed 000 Sec. V-B)."""
         self.detector = detector
         self.calibration = calibration
         self.camera_xy = None if camera_xy is None else np.asarray(camera_xy, dtype=float)
         self.pixel_sigma_px = pixel_sigma_px
+        self.max_range_m = max_range_m
 
     @classmethod
     def open(cls, calibration_path: str | Path, model_path: str | Path | None = None, camera_xy=None,
-             threads: int | None = None, score_threshold: float = 0.3) -> "ImagePerception":
+             threads: int | None = None, score_threshold: float = 0.3,
+             max_range_m: float | None = None) -> "ImagePerception":
         """The shipped model (or ``model_path``) and the calibration file at ``calibration_path``."""
         from perception.calibration import load_calibration
         from perception.detector import OnnxDetector
 
         return cls(OnnxDetector(model_path, threads=threads, score_threshold=score_threshold),
-                   load_calibration(calibration_path), camera_xy)
+                   load_calibration(calibration_path), camera_xy, max_range_m=max_range_m)
 
     def perceive(self, image: np.ndarray) -> tuple[ObjectArray, float]:
         """Objects in map and the detector's time on this image (ms)."""
@@ -40,4 +45,6 @@ class ImagePerception:
         boxes = self.detector.detect(image)
         objects = pixels_to_map(self.calibration, boxes.xyxy, boxes.cls, boxes.scores,
                                 pixel_sigma_px=self.pixel_sigma_px, camera_xy=self.camera_xy)
+        if self.max_range_m is not None and self.camera_xy is not None and len(objects):
+            objects = objects.take(np.hypot(*(objects.xy - self.camera_xy).T) <= self.max_range_m)
         return objects, self.detector.last_ms

@@ -161,4 +161,4 @@ def open_perception(config, world: World) -> ImagePerception:
                          "pass --calibration FILE (make one with `v2i camera calibrate`)")
     rsu = world.scenario.rsu
     return ImagePerception.open(path, config.model, camera_xy=(rsu.position.x, rsu.position.y),
-                                threads=config.detector_threads)
+                                threads=config.detector_threads, max_range_m=rsu.range_m)

@@ -1,0 +1,175 @@
+"""``v2i fuzz --target frames``: hostile image files in the RSU's recording (``--source video``).
+
+A folder holds ``count`` hostile files, each between two genuine frames of the
+red-light-runner RSU camera (rendered clean); the RSU service reads it at ``min(rate, 20)``
+frames per second through the shipped detector and calibration. Kinds: random bytes, a
+truncated PNG, an empty file, a PNG header claiming 2^30 pixels, an image of another size, a
+16-bit image, and a file past the byte limit (sparse). Normal output: one object list per
+file (a refused frame yields an empty detection set, the tracker coasts), late when
+published more than 250 ms after its capture. The report has ``v2i fuzz``'s keys.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from schemas import keys
+from schemas.codec import CodecError, decode
+from schemas.messages import ObjectList, RsuMetrics
+from schemas.transport import free_tcp_endpoint, open_session
+
+from .demo import Child
+from .fuzz import RSU_ID, rss_mb
+from .fuzz_targets import RSU_LATE_NS
+
+MAX_FRAME_RATE_HZ = 20.0  # the detector's pace on this machine, with margin
+GENUINE_TIMES_S = (5.0, 5.5, 6.0, 6.5, 7.0, 7.5, 8.0, 8.5)
+
+
+def _png(image: np.ndarray) -> bytes:
+    return cv2.imencode(".png", image)[1].tobytes()
+
+
+def hostile_frames(genuine: bytes, size_wh: tuple[int, int]) -> dict[str, tuple[str, object]]:
+    """kind -> (file suffix, bytes or a byte count of a sparse file)."""
+    w, h = size_wh
+    bomb = b"\x89PNG\r\n\x1a\n\0\0\0\x0dIHDR" + (1 << 15).to_bytes(4, "big") * 2 + bytes([8, 2, 0, 0, 0, 0, 0, 0, 0])
+    return {
+        "random_bytes": (".jpg", np.random.default_rng(0).integers(0, 256, 20_000, dtype=np.uint8).tobytes()),
+        "truncated": (".png", genuine[: len(genuine) // 3]),
+        "empty": (".jpg", b""),
+        "pixel_bomb": (".png", bomb),
+        "wrong_size": (".png", _png(np.zeros((h // 2, w // 2, 3), np.uint8))),
+        "deep": (".png", _png(np.full((h, w), 1000, np.uint16))),
+        "huge_file": (".jpg", (64 << 20) + 1),
+    }
+
+
+class FramesFuzz:
+    name = "frames"
+
+    def __init__(self, count: int, seed: int = 0, rate_hz: float = 10.0, startup_s: float = 4.0, kinds=None,
+                 progress=sys.stderr):
+        if count < 1 or not rate_hz > 0:
+            raise ValueError("--count must be >= 1 and --rate > 0")
+        self.count, self.startup_s, self.progress = count, startup_s, progress
+        self.rate_hz = min(rate_hz, MAX_FRAME_RATE_HZ)
+        self.rng = np.random.default_rng(seed)
+        self.kinds = list(kinds or ())
+        self.lock = threading.Lock()
+        self.lists: list[tuple[int, bool]] = []
+        self.metrics: RsuMetrics | None = None
+
+    def _write(self, folder: Path) -> Counter[str]:
+        from sim.camera import rsu_camera
+        from sim.render import SceneRenderer
+        from sim.scenario import load_scenario
+        from sim.world import World
+
+        world = World(load_scenario("red-light-runner"))
+        camera = rsu_camera(world.scenario.rsu)
+        renderer = SceneRenderer(world, 0)
+        genuine = [_png(renderer.render(camera, t).image) for t in GENUINE_TIMES_S]
+        pool = hostile_frames(genuine[0], (camera.width, camera.height))
+        unknown = sorted(set(self.kinds) - set(pool))
+        if unknown:
+            raise ValueError(f"unknown frame kind(s) {', '.join(unknown)}; kinds: {', '.join(pool)}")
+        kinds = self.kinds or list(pool)
+        sent: Counter[str] = Counter()
+        for i in range(self.count):
+            kind = kinds[int(self.rng.integers(len(kinds)))]
+            suffix, data = pool[kind]
+            (folder / f"{2 * i:07d}.png").write_bytes(genuine[i % len(genuine)])
+            path = folder / f"{2 * i + 1:07d}{suffix}"
+            if isinstance(data, int):
+                with open(path, "wb") as f:
+                    os.truncate(f.fileno(), data)  # sparse: no disk used
+            else:
+                path.write_bytes(data)
+            sent[kind] += 1
+        return sent
+
+    def run(self) -> dict:
+        with tempfile.TemporaryDirectory(prefix="v2i-fuzz-frames-") as tmp:
+            sent = self._write(Path(tmp))
+            files = 2 * self.count
+            ep = free_tcp_endpoint()
+            run_s = files / self.rate_hz
+            start_ns = time.time_ns() + round(self.startup_s * 1e9)
+            child = Child("rsu", [sys.executable, "-m", "v2i", "rsu", "--listen", ep, "--source", "video",
+                                  "--video", tmp, "--rate-hz", str(self.rate_hz), "--start-at-ns", str(start_ns),
+                                  "--duration", str(run_s + 30.0)])
+            session = None
+            try:
+                child.wait_ready(time.monotonic() + self.startup_s + 20.0)
+                session = open_session(connect=[ep])
+                subs = [session.declare_subscriber(keys.rsu_objects(RSU_ID), self._on_list),
+                        session.declare_subscriber(keys.rsu_metrics(RSU_ID), self._on_metrics)]
+                before = rss_mb(child.proc.pid)
+                crash = self._watch(child, files, start_ns, run_s)
+                report = self._report(sent, files, before, rss_mb(child.proc.pid), crash, run_s)
+                for sub in subs:
+                    sub.undeclare()
+                return report
+            finally:
+                if session is not None:
+                    session.close()
+                child.stop()
+
+    def _watch(self, child: Child, files: int, start_ns: int, run_s: float) -> str | None:
+        """Until every file was published (or the time it needs has passed twice); a crash's text."""
+        deadline = time.monotonic() + (start_ns - time.time_ns()) * 1e-9 + 2.0 * run_s + 10.0
+        last_note = time.monotonic()
+        while time.monotonic() < deadline:
+            if child.proc.poll() is not None:
+                return f"rsu exited with code {child.proc.returncode}"
+            with self.lock:
+                done = self.metrics is not None and self.metrics.published >= files
+            if done:
+                return None
+            if time.monotonic() - last_note > 5.0:
+                last_note = time.monotonic()
+                print(f"v2i fuzz frames: {len(self.lists)}/{files} frames published", file=self.progress, flush=True)
+            time.sleep(0.05)
+        return None
+
+    def _on_list(self, sample) -> None:
+        try:
+            header = decode(sample.payload.to_bytes(), ObjectList).header
+        except CodecError:
+            return
+        with self.lock:
+            self.lists.append((time.time_ns(), header.publish_time_ns - header.capture_time_ns > RSU_LATE_NS))
+
+    def _on_metrics(self, sample) -> None:
+        try:
+            metrics = decode(sample.payload.to_bytes(), RsuMetrics)
+        except CodecError:
+            return
+        with self.lock:
+            self.metrics = metrics
+
+    def _report(self, sent: Counter, files: int, before, after, crash: str | None, run_s: float) -> dict:
+        with self.lock:
+            lists, metrics = list(self.lists), self.metrics
+        refused = {k: v for k, v in (metrics.rejected if metrics else {}).items() if k.startswith("frame_")}
+        r = lambda v: None if v is None else round(v, 1)  # noqa: E731
+        return {
+            "target": self.name, "sent": sum(sent.values()), "sent_by_kind": dict(sorted(sent.items())),
+            "rate_hz": self.rate_hz, "fuzz_s": round(run_s, 2),
+            "rejected": dict(sorted(refused.items())), "rejected_total": sum(refused.values()),
+            "crashes": 0 if crash is None else 1, "crash": crash,
+            "outputs": {"expected": files, "received": len(lists), "late": sum(late for _, late in lists),
+                        "missing": max(files - len(lists), 0)},
+            "rss_mb": {"before": r(before), "after": r(after),
+                       "growth": None if before is None or after is None else r(after - before)},
+        }
