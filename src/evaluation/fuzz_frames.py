@@ -1,6 +1,6 @@
 """``v2i fuzz --target frames``: hostile image files in the RSU's recording (``--source video``).
 
-A folder holds ``count`` hostile files, each between two genuine frames of the
+A folder holds ``WARMUP_FRAMES`` genuine frames, then ``count`` hostile files, each between two genuine frames of the
 red-light-runner RSU camera (rendered clean); the RSU service reads it at ``min(rate, 20)``
 frames per second through the shipped detector and calibration. Kinds: random bytes, a
 truncated PNG, an empty file, a PNG header claiming 2^30 pixels, an image of another size, a
@@ -32,6 +32,7 @@ from .fuzz import RSU_ID, rss_mb
 from .fuzz_targets import RSU_LATE_NS
 
 MAX_FRAME_RATE_HZ = 20.0  # the detector's pace on this machine, with margin
+WARMUP_FRAMES = 10  # genuine frames first: RSS is measured from the 10th list on (ONNX Runtime's arena is warm)
 GENUINE_TIMES_S = (5.0, 5.5, 6.0, 6.5, 7.0, 7.5, 8.0, 8.5)
 
 
@@ -85,11 +86,13 @@ class FramesFuzz:
             raise ValueError(f"unknown frame kind(s) {', '.join(unknown)}; kinds: {', '.join(pool)}")
         kinds = self.kinds or list(pool)
         sent: Counter[str] = Counter()
+        for i in range(WARMUP_FRAMES):
+            (folder / f"0{i:06d}.png").write_bytes(genuine[i % len(genuine)])
         for i in range(self.count):
             kind = kinds[int(self.rng.integers(len(kinds)))]
             suffix, data = pool[kind]
-            (folder / f"{2 * i:07d}.png").write_bytes(genuine[i % len(genuine)])
-            path = folder / f"{2 * i + 1:07d}{suffix}"
+            (folder / f"1{2 * i:07d}.png").write_bytes(genuine[i % len(genuine)])
+            path = folder / f"1{2 * i + 1:07d}{suffix}"
             if isinstance(data, int):
                 with open(path, "wb") as f:
                     os.truncate(f.fileno(), data)  # sparse: no disk used
@@ -101,7 +104,7 @@ class FramesFuzz:
     def run(self) -> dict:
         with tempfile.TemporaryDirectory(prefix="v2i-fuzz-frames-") as tmp:
             sent = self._write(Path(tmp))
-            files = 2 * self.count
+            files = WARMUP_FRAMES + 2 * self.count
             ep = free_tcp_endpoint()
             run_s = files / self.rate_hz
             start_ns = time.time_ns() + round(self.startup_s * 1e9)
@@ -114,8 +117,9 @@ class FramesFuzz:
                 session = open_session(connect=[ep])
                 subs = [session.declare_subscriber(keys.rsu_objects(RSU_ID), self._on_list),
                         session.declare_subscriber(keys.rsu_metrics(RSU_ID), self._on_metrics)]
+                crash = self._watch(child, WARMUP_FRAMES, start_ns, run_s)
                 before = rss_mb(child.proc.pid)
-                crash = self._watch(child, files, start_ns, run_s)
+                crash = crash or self._watch(child, files, start_ns, run_s)
                 report = self._report(sent, files, before, rss_mb(child.proc.pid), crash, run_s)
                 for sub in subs:
                     sub.undeclare()
@@ -126,7 +130,7 @@ class FramesFuzz:
                 child.stop()
 
     def _watch(self, child: Child, files: int, start_ns: int, run_s: float) -> str | None:
-        """Until every file was published (or the time it needs has passed twice); a crash's text."""
+        """Until ``files`` lists were published (or twice the time they need passed); a crash's text."""
         deadline = time.monotonic() + (start_ns - time.time_ns()) * 1e-9 + 2.0 * run_s + 10.0
         last_note = time.monotonic()
         while time.monotonic() < deadline:

@@ -35,8 +35,10 @@ class ImagePerception:
         from perception.calibration import load_calibration
         from perception.detector import OnnxDetector
 
-        return cls(OnnxDetector(model_path, threads=threads, score_threshold=score_threshold),
-                   load_calibration(calibration_path), camera_xy, max_range_m=max_range_m)
+        calibration = load_calibration(calibration_path)
+        detector = OnnxDetector(model_path, threads=threads, score_threshold=score_threshold)
+        detector.detect(np.zeros((calibration.height, calibration.width, 3), np.uint8))  # warm-up: the first run is slow
+        return cls(detector, calibration, camera_xy, max_range_m=max_range_m)
 
     def perceive(self, image: np.ndarray) -> tuple[ObjectArray, float]:
         """Objects in map and the detector's time on this image (ms)."""

@@ -81,7 +81,7 @@ class RsuNode:
             session.close()
             self._log.flush(force=True)
             log("rsu", f"stopped: {self.published} object lists published, {self.skipped} past frames skipped, "
-                       f"rejected {dict(self.rejected)}")
+                       f"rejected {dict(self._refusals())}")
 
     def _publish_frames(self, publisher, stop: threading.Event) -> None:
         """Capture, process and publish each frame at its time. Only what is current is
@@ -127,14 +127,21 @@ class RsuNode:
             stop.wait(remaining_s)
         return False
 
-    def _report(self) -> None:
-        """Publish the metrics; hand the refusals since the last report to the throttled log."""
+    def _refusals(self) -> Counter[str]:
+        """Refused inputs by reason: time queries, and a recording's frames (``frame_<reason>``)."""
         with self._lock:
-            rejected, replies = Counter(self.rejected), self.time_replies
-        frames = getattr(self.source, "frames", None)  # a recording: frames refused unread
+            rejected = Counter(self.rejected)
+        frames = getattr(self.source, "frames", None)
         if frames is not None:
             rejected.update({f"frame_{reason}": n for reason, n in frames.refused.items()})
-        self._log.totals(rejected, self._details, "time quer(ies)")
+        return rejected
+
+    def _report(self) -> None:
+        """Publish the metrics; hand the refusals since the last report to the throttled log."""
+        rejected = self._refusals()
+        with self._lock:
+            replies = self.time_replies
+        self._log.totals(rejected, self._details)
         self._metrics.put(encode(RsuMetrics(rsu_id=self.config.rsu_id, t_ns=self.clock.now_ns(),
                                             published=self.published, skipped=self.skipped,
                                             time_replies=replies, rejected=dict(rejected),

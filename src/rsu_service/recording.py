@@ -83,11 +83,13 @@ class ImageFrames:
             if path.stat().st_size > MAX_IMAGE_BYTES:
                 return self._refuse("too_large")
             data = np.fromfile(path, dtype=np.uint8)
-            wh = image_size(data.tobytes()[:65536])
+            wh = image_size(data[:65536].tobytes())
             if wh is None:
                 return self._refuse("unreadable")
             if wh[0] * wh[1] > MAX_IMAGE_PIXELS:
                 return self._refuse("too_large")
+            if not complete(data[-12:].tobytes()):
+                return self._refuse("truncated")
             image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
         except (OSError, cv2.error):
             image = None
@@ -100,6 +102,12 @@ class ImageFrames:
     def close(self) -> None:
         if self._video is not None:
             self._video.release()
+
+
+def complete(tail: bytes) -> bool:
+    """Whether a PNG or JPEG file ends as one must (IEND chunk, EOI marker): a truncated file is
+    refused before the decoder, which would print its complaints or return half an image."""
+    return tail.endswith(b"IEND\xaeB`\x82") or tail.endswith(b"\xff\xd9")
 
 
 def image_size(head: bytes) -> tuple[int, int] | None:

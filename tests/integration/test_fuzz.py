@@ -23,3 +23,13 @@ def test_a_service_survives_hostile_traffic_and_stays_on_time(target):
     if target == "link":
         lists = report["genuine_lists"]
         assert lists["accepted_by_obu"] >= lists["published"] - 2, lists
+
+
+def test_the_rsu_survives_hostile_frames_in_its_recording():
+    from evaluation.fuzz_frames import FramesFuzz
+
+    report = FramesFuzz(30, seed=3, rate_hz=20.0).run()
+    assert report["sent"] == 30 and report["crashes"] == 0, report
+    assert report["outputs"]["late"] == 0 and report["outputs"]["missing"] == 0, report["outputs"]
+    assert report["rejected_total"] == 30, report["rejected"]  # every hostile file, and nothing genuine
+    assert report["rss_mb"]["growth"] < 20.0, report["rss_mb"]

@@ -50,6 +50,7 @@ def test_folder_frames_in_order_hostile_ones_refused_and_counted(tmp_path):
     assert [int(g[0, 0, 0]) for g in (got[0], got[6], got[7])] == [10, 30, 40]
     assert all(g.shape == (H, W, 3) and g.dtype == np.uint8 for g in good)
     assert frames.refused["unreadable"] >= 1
+    assert frames.refused["truncated"] == 1  # refused before the decoder sees it
     assert frames.refused["too_large"] == 1 and frames.refused["wrong_size"] == 1
     assert frames.refused["not_8bit_colour"] == 1
     assert frames.read + sum(frames.refused.values()) == 8
