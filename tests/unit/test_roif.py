@@ -159,6 +159,18 @@ def test_too_few_features_gives_no_mapping_and_the_rsu_list():
     assert result.fused.sources.tolist() == [SOURCE_RSU, SOURCE_RSU]
 
 
+def test_a_frame_without_mapping_is_counted_by_reason():
+    from evaluation.image_fusion import FusionTally, _count_mapping
+
+    flat = np.full((H, W, 3), 128, np.uint8)
+    tally = FusionTally()
+    result = roif_fuse(flat, (OBU_BOXES, np.ones(3), np.ones(3)), flat, (OBU_BOXES, np.ones(3), np.ones(3)))
+    _count_mapping(tally, result, obu_box_count=3)
+    section = tally.section()
+    assert section["homography_failures"] == 1 and section["homography_failure_reasons"] == {FEW_FEATURES: 1}
+    assert section["frame_homography_failures"] == 1 and section["ransac_inlier_error_px"] is None
+
+
 def test_unrelated_views_give_no_mapping(views):
     result = roif_fuse(views[0], (OBU_BOXES, np.ones(3), np.ones(3)), textured(7), (OBU_BOXES, np.ones(3), np.ones(3)),
                        RoifConfig(min_inliers=12))
