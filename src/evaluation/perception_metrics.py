@@ -63,6 +63,20 @@ class PerceptionTally:
     error_count: np.ndarray = field(default_factory=lambda: np.zeros(len(ERROR_BINS_M), dtype=np.int64))
     detector_ms: list[float] = field(default_factory=list)
     calibration_reprojection_px: float | None = None
+    camera_xy: np.ndarray = field(default_factory=lambda: np.zeros(2))  # (2,) m, for add_frame
+
+    @classmethod
+    def of_source(cls, source, camera_xy) -> "PerceptionTally":
+        """An empty tally for an RSU source (``rsu_service.source``) whose camera is at
+        ``camera_xy`` (2,) m; an image source's calibration error is noted."""
+        perception = getattr(source, "perception", None)
+        return cls(calibration_reprojection_px=None if perception is None else perception.calibration.reprojection_px,
+                   camera_xy=np.asarray(camera_xy, dtype=float))
+
+    def add_frame(self, frame) -> None:
+        """One ``rsu_service.source.Frame``; a frame without its visible truth (a recording) is not scored."""
+        if frame.visible_truth_xy is not None:
+            self.add(frame.visible_truth_xy, frame.detections.xy, self.camera_xy, frame.detector_ms)
 
     def add(self, truth_xy: np.ndarray, det_xy: np.ndarray, camera_xy: np.ndarray,
             detector_ms: float | None = None) -> None:

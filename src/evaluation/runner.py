@@ -28,6 +28,7 @@ from sim.scenario import load_scenario
 from sim.world import World
 
 from .chaos import SERVICES, ChaosTimeline
+from .perception_metrics import PerceptionTally
 from .spec import EVAL_EPOCH_NS, RunRecord, RunSpec
 
 RSU_REPLY_NS = 50_000  # RSU time between receiving a time query and answering it
@@ -73,10 +74,8 @@ class OfflineRun:
         self.obu_config = spec.obu_config()
         self.obu = ObuPipeline(self.obu_config.pipeline_config(), self.obu_config.lanes())
         self.record = RunRecord(self.world, start_ns, self.duration_s)
-        self._rsu_xy = np.array([self.world.scenario.rsu.position.x, self.world.scenario.rsu.position.y])
-        perception = getattr(self.camera, "perception", None)
-        if perception is not None:
-            self.record.perception.calibration_reprojection_px = perception.calibration.reprojection_px
+        rsu = self.world.scenario.rsu.position
+        self.record.perception = PerceptionTally.of_source(self.camera, (rsu.x, rsu.y))
         self._down = {name: self._windows_ns(name) for name in SERVICES}
 
     def _new_rsu(self) -> RsuPipeline:
@@ -124,7 +123,7 @@ class OfflineRun:
         if not self._up("rsu"):
             return
         frame = self.camera.capture(self.clock.t_ns)
-        self.record.perception.add(frame.visible_truth_xy, frame.detections.xy, self._rsu_xy, frame.detector_ms)
+        self.record.perception.add_frame(frame)
         self.queue.at(frame.ready_true_ns, self._rsu_publish, frame)
 
     def _rsu_publish(self, frame: Frame) -> None:

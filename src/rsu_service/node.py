@@ -58,9 +58,8 @@ class RsuNode:
         self._log = ThrottledLog("rsu")
         self._trim = MemoryTrim()
         self._details: dict[str, str] = {}
-        self.perception = PerceptionTally()  # scored when the source knows the truth (simulated world)
-        if hasattr(self.source, "perception"):
-            self.perception.calibration_reprojection_px = self.source.perception.calibration.reprojection_px
+        rsu = self.world.scenario.rsu.position  # scored when the source knows the truth (simulated world)
+        self.perception = PerceptionTally.of_source(self.source, (rsu.x, rsu.y))
 
     def run(self, stop: threading.Event) -> None:
         session = open_session(self.config.listen, self.config.connect)
@@ -99,9 +98,7 @@ class RsuNode:
                 break
             if not self._sleep_until(frame.ready_true_ns, stop):
                 return
-            if frame.visible_truth_xy is not None:
-                rsu = self.world.scenario.rsu.position
-                self.perception.add(frame.visible_truth_xy, frame.detections.xy, (rsu.x, rsu.y), frame.detector_ms)
+            self.perception.add_frame(frame)
             capture = Stamp(self.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
             publisher.put(encode(self.pipeline.on_frame(frame.detections, capture, self._now())))
             self._predictions.put(encode(self.pipeline.predictions(self._now())))
