@@ -36,6 +36,9 @@ class ImagePerception:
         from perception.detector import OnnxDetector
 
         calibration = load_calibration(calibration_path)
+        if camera_xy is None and calibration.camera_xy is None:
+            raise ValueError(f"{calibration_path}: a homography-only calibration does not tell where the camera "
+                             "stands; calibrate with intrinsics (v2i camera calibrate --fov-deg or --intrinsics)")
         detector = OnnxDetector(model_path, threads=threads, score_threshold=score_threshold)
         detector.detect(np.zeros((calibration.height, calibration.width, 3), np.uint8))  # warm-up: the first run is slow
         return cls(detector, calibration, camera_xy, max_range_m=max_range_m)

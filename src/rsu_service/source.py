@@ -155,7 +155,9 @@ def open_perception(config, world: World) -> ImagePerception:
     the scenario's shipped calibration."""
     from perception.calibration import calibration_path
 
-    path = config.calibration or calibration_path(config.scenario)
+    if config.calibration is not None:  # the user's camera: its own pose, no scenario range
+        return ImagePerception.open(config.calibration, config.model, threads=config.detector_threads)
+    path = calibration_path(config.scenario)
     if path is None:
         raise ValueError(f"scenario {config.scenario!r} has no shipped camera calibration: "
                          "pass --calibration FILE (make one with `v2i camera calibrate`)")
