@@ -1,0 +1,1 @@
+"""Camera perception: the ONNX image detector (``detector``), calibration and ground mapping."""
