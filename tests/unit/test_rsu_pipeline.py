@@ -44,3 +44,18 @@ def test_a_step_between_capture_and_publish_never_stamps_publish_before_capture(
     assert msg.header.prediction_ns == 100_000_000  # the monotonic time between them
     up = rsu.upsampled(Stamp(T0 - 600_000_000, T0 + 200_000_000))
     assert up.header.prediction_ns == 200_000_000
+
+
+def test_a_far_camera_track_fits_the_wire():
+    """A camera car 300 m out (variance 400 m^2, as a 15 m pole sees it): the two-point
+    velocity variance (s1^2 + s2^2) / dt^2 = 8e4 passes the wire's 1e4 bound. The RSU clips it
+    (counted) instead of failing to build its list (it did: 'cov_vxx <= 10000')."""
+    rsu = RsuPipeline(RsuPipelineConfig())
+    far = lambda x: ObjectArray(ids=np.array([-1]), cls=np.array([1]), xy=np.array([[x, 0.0]]), z=np.zeros(1),  # noqa: E731
+                                lwh=np.array([[4.5, 1.8, 1.5]]), yaw=np.zeros(1), vxy=np.zeros((1, 2)),
+                                cov_xy=np.eye(2)[None] * 400.0)
+    for k in range(6):
+        msg = rsu.on_frame(far(300.0 + 3.0 * k), T0 + k * 100_000_000, T0 + k * 100_000_000 + 50_000_000)
+        assert rsu.predictions(T0 + k * 100_000_000 + 60_000_000) is not None
+    assert msg.objects and all(o.cov_vxx <= 1e4 for o in msg.objects)
+    assert rsu.wire_fixes["clipped"] > 0
