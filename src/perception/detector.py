@@ -257,6 +257,7 @@ class OnnxDetector:
         self.unmapped_names = tuple(sorted(n for n in (self.names or {}).values()
                                            if n.strip().lower() not in CLASS_BY_NAME))
         self.dropped_unmapped = 0
+        self.dropped_invalid = 0  # candidates above the threshold with a non-finite or empty box
         self.last_ms = float("nan")
         self.last_breakdown_ms = (float("nan"),) * 3
 
@@ -290,7 +291,11 @@ class OnnxDetector:
         if self._layout is None:
             self._bind_layout(tuple(int(d) for d in output.shape))
         cxcywh, conf, best = decode(output, *self._layout)
-        idx = np.flatnonzero(conf >= self.score_threshold)
+        # a model's output is input too: non-finite or empty boxes are dropped and counted
+        valid = np.isfinite(cxcywh).all(axis=1) & (cxcywh[:, 2] > 0) & (cxcywh[:, 3] > 0)
+        above = conf >= self.score_threshold  # False for NaN
+        self.dropped_invalid += int(np.count_nonzero(above & ~valid))
+        idx = np.flatnonzero(above & valid)
         if len(idx) > MAX_CANDIDATES:
             idx = idx[np.argpartition(conf[idx], -MAX_CANDIDATES)[-MAX_CANDIDATES:]]
         c = cxcywh[idx].astype(np.float64)
@@ -303,7 +308,9 @@ class OnnxDetector:
         boxes = lb.to_image(xyxy[keep])
         h, w = image_hw
         boxes = np.clip(boxes, 0.0, [w, h, w, h])
-        return Detections2D(boxes, conf[idx][keep].astype(np.float64), cls[mapped])
+        inside = (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])  # a box wholly off the image is none
+        self.dropped_invalid += int(np.count_nonzero(~inside))
+        return Detections2D(boxes[inside], conf[idx][keep][inside].astype(np.float64), cls[mapped][inside])
 
     def detect(self, image_bgr: np.ndarray) -> Detections2D:
         """Boxes of the mapped classes in ``image_bgr`` (H, W, 3) uint8 BGR; sets ``last_ms``."""

@@ -214,3 +214,19 @@ def test_shipped_model_finds_the_cars_in_rendered_rsu_frames():
     assert total >= 15
     assert found / total >= 0.85, f"found {found} of {total} cars"
     assert np.median(bottom_err_px) <= 1.5
+
+
+def test_non_finite_and_empty_boxes_from_a_model_are_dropped_and_counted(tmp_path):
+    """A model's output is input too: NaN / inf coordinates, zero or negative sizes and boxes
+    wholly off the image never become detections (they did: a NaN box came through NMS)."""
+    out = np.zeros((1, 4 + 2, 8), np.float32)
+    out[0, :4, :] = np.array([48.0, 32.0, 10.0, 8.0])[:, None]
+    out[0, 4, :] = 0.9
+    out[0, 0, 0], out[0, 1, 1], out[0, 2, 2], out[0, 3, 3] = np.nan, np.inf, 0.0, -4.0
+    out[0, 0, 4] = 1e6  # centred far off the image
+    out[0, 4, 5] = np.nan  # a NaN score: below any threshold
+    det = OnnxDetector(constant_model(tmp_path / "m.onnx", out, names="{0: 'car', 1: 'person'}"))
+    d = det.detect(np.zeros((IN_H, IN_W, 3), np.uint8))
+    assert np.isfinite(d.xyxy).all() and np.isfinite(d.scores).all()
+    assert len(d) == 1 and np.allclose(d.xyxy[0], [43.0, 28.0, 53.0, 36.0])  # the two valid rows, one after NMS
+    assert det.dropped_invalid == 5
