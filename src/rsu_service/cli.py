@@ -33,6 +33,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", metavar="ONNX", help="detector model, YOLOv8/v5 export layout (default: the shipped one)")
     p.add_argument("--calibration", metavar="FILE",
                    help="camera calibration from `v2i camera calibrate` (default: the scenario's shipped one)")
+    p.add_argument("--score-threshold", type=float, help="detector score threshold (default 0.4)")
     p.add_argument("--detector-threads", type=int, help="ONNX Runtime threads (default: its own choice)")
     p.add_argument("--predict-ahead", action="store_true", default=None,
                    help="track-predict compensation: publish tracks predicted to the publish time, "

@@ -156,11 +156,13 @@ def open_perception(config, world: World) -> ImagePerception:
     from perception.calibration import calibration_path
 
     if config.calibration is not None:  # the user's camera: its own pose, no scenario range
-        return ImagePerception.open(config.calibration, config.model, threads=config.detector_threads)
+        return ImagePerception.open(config.calibration, config.model, threads=config.detector_threads,
+                                    score_threshold=config.score_threshold)
     path = calibration_path(config.scenario)
     if path is None:
         raise ValueError(f"scenario {config.scenario!r} has no shipped camera calibration: "
                          "pass --calibration FILE (make one with `v2i camera calibrate`)")
     rsu = world.scenario.rsu
     return ImagePerception.open(path, config.model, camera_xy=(rsu.position.x, rsu.position.y),
-                                threads=config.detector_threads, max_range_m=rsu.range_m)
+                                threads=config.detector_threads, score_threshold=config.score_threshold,
+                                max_range_m=rsu.range_m)
