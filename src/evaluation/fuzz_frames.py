@@ -28,7 +28,7 @@ from schemas.messages import ObjectList, RsuMetrics
 from schemas.transport import free_tcp_endpoint, open_session
 
 from .demo import Child
-from .fuzz import RSU_ID, rss_mb
+from .fuzz import RSU_ID, _r, rss_mb
 from .fuzz_targets import RSU_LATE_NS
 
 MAX_FRAME_RATE_HZ = 20.0  # the detector's pace on this machine, with margin
@@ -166,7 +166,6 @@ class FramesFuzz:
         with self.lock:
             lists, metrics = list(self.lists), self.metrics
         refused = {k: v for k, v in (metrics.rejected if metrics else {}).items() if k.startswith("frame_")}
-        r = lambda v: None if v is None else round(v, 1)  # noqa: E731
         return {
             "target": self.name, "sent": sum(sent.values()), "sent_by_kind": dict(sorted(sent.items())),
             "rate_hz": self.rate_hz, "fuzz_s": round(run_s, 2),
@@ -174,6 +173,6 @@ class FramesFuzz:
             "crashes": 0 if crash is None else 1, "crash": crash,
             "outputs": {"expected": files, "received": len(lists), "late": sum(late for _, late in lists),
                         "missing": max(files - len(lists), 0)},
-            "rss_mb": {"before": r(before), "after": r(after),
-                       "growth": None if before is None or after is None else r(after - before)},
+            "rss_mb": {"before": _r(before), "after": _r(after),
+                       "growth": None if before is None or after is None else _r(after - before)},
         }

@@ -332,3 +332,21 @@ def run_image_fusion(scenario: str = DEFAULT_SCENARIO, seed: int = 0, duration_s
         _score_frame(tally, box_tracker, t_s, rsu_frame, ego_frame, det_rsu.boxes(rsu_frame), det_obu.boxes(ego_frame), roif)
     return {"driver": "eval", "scenario": sc.name, "fusion": "roif", "seed": seed, "duration_s": duration,
             "detector": det_rsu.name, "camera_rate_hz": rate_hz, "image_fusion": tally.section()}
+
+
+def summary(report: dict) -> str:
+    """Human lines of a ``run_image_fusion`` report, beside seed 004's figures."""
+    f = report["image_fusion"]
+
+    def pct(v) -> str:
+        return "n/a" if v is None else f"{v:.0%}"
+
+    return "\n".join([
+        f"{report['scenario']} | fusion roif | detector {report['detector']} | seed {report['seed']} | "
+        f"{f['frames']} frames at {report['camera_rate_hz']:g} Hz",
+        f"  detection accuracy: fused {pct(f['detection_accuracy'])}, vehicle-only "
+        f"{pct(f['vehicle_only_detection_accuracy'])}, RSU-only {pct(f['rsu_only_detection_accuracy'])} "
+        "(seed 004: 93 %, 37 %, 91 %)",
+        f"  fused boxes: mean IoU {f['mean_iou']} (0.72), precision {pct(f['precision'])}; re-projection error "
+        f"{f['reprojection_error_px']} px (4.3 px); homography failures {f['homography_failures']}",
+    ])

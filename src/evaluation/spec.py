@@ -162,7 +162,7 @@ def summary(report: dict) -> str:
     if p["frames"]:
         e, ms = p["mean_error_m"], p["detector_ms"]
         lines.append(f"  RSU perception ({report['rsu_source']}): recall {_f(p['recall'])}, precision {_f(p['precision'])}, "
-                     f"mean error {' / '.join('n/a' if v is None else f'{v:.2f}' for v in e.values())} m ({' / '.join(e)})"
+                     f"mean error {' / '.join(_f(v) for v in e.values())} m ({' / '.join(e)})"
                      + (f"; detector p50 {ms['p50']:.1f} ms, p99 {ms['p99']:.1f} ms" if ms else ""))
     if report["displacement_error_m"] is not None:
         lines.append(f"  planning: {report['planning_handoffs']} hand-offs, displacement error "

@@ -28,9 +28,8 @@ class ImagePerception:
         self.max_range_m = max_range_m
 
     @classmethod
-    def open(cls, calibration_path: str | Path, model_path: str | Path | None = None, camera_xy=None,
-             threads: int | None = None, score_threshold: float = 0.3,
-             max_range_m: float | None = None) -> "ImagePerception":
+    def open(cls, calibration_path: str | Path, model_path: str | Path | None, score_threshold: float,
+             camera_xy=None, threads: int | None = None, max_range_m: float | None = None) -> "ImagePerception":
         """The shipped model (or ``model_path``) and the calibration file at ``calibration_path``."""
         from perception.calibration import load_calibration
         from perception.detector import OnnxDetector

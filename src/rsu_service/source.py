@@ -78,8 +78,6 @@ class RenderedCamera(_Schedule):
     reproducible); the detector's time on this machine is reported beside it.
     """
 
-    MIN_VISIBLE = 0.3  # a body counts as seen-able (scoring) from this visible fraction
-
     def __init__(self, world: World, seed: int, start_ns: int, perception: ImagePerception):
         from sim.camera import rsu_camera
         from sim.render import SceneRenderer
@@ -89,7 +87,7 @@ class RenderedCamera(_Schedule):
         self.perception = perception
         self.camera = rsu_camera(cfg)
         self.renderer = SceneRenderer(world, seed)
-        self.range_m = cfg.range_m
+        self.range_m, self.min_visible = cfg.range_m, cfg.min_visible_fraction  # what counts as seen (scoring)
         self._noise = stream(seed, "rsu_render")
         self._delay = stream(seed, "rsu_camera")
         self._delay_ms = cfg.processing_delay_ms
@@ -104,12 +102,10 @@ class RenderedCamera(_Schedule):
 
     def _visible_truth(self, labels, t_s: float) -> np.ndarray:
         """(T, 2) map centres of the bodies the frame shows well enough, within range."""
-        seen = (labels.visible >= self.MIN_VISIBLE) & (labels.range_m <= self.range_m)
-        truth = self.world.actors_at(t_s)
-        xy = {int(i): p for i, p in zip(truth.ids, truth.xy)}
+        seen = (labels.visible >= self.min_visible) & (labels.range_m <= self.range_m)
         ego = self.world.ego_at(t_s)
-        xy[0] = np.array([ego.x, ego.y])
-        return np.array([xy[int(i)] for i in labels.ids[seen]], dtype=float).reshape(-1, 2)
+        xy = np.vstack([[ego.x, ego.y], self.world.actors_at(t_s).xy])  # row = id: the ego 0, actors 1..N
+        return xy[labels.ids[seen]]
 
 
 class RecordedCamera(_Schedule):
@@ -156,13 +152,12 @@ def open_perception(config, world: World) -> ImagePerception:
     from perception.calibration import calibration_path
 
     if config.calibration is not None:  # the user's camera: its own pose, no scenario range
-        return ImagePerception.open(config.calibration, config.model, threads=config.detector_threads,
-                                    score_threshold=config.score_threshold)
+        return ImagePerception.open(config.calibration, config.model, config.score_threshold,
+                                    threads=config.detector_threads)
     path = calibration_path(config.scenario)
     if path is None:
         raise ValueError(f"scenario {config.scenario!r} has no shipped camera calibration: "
                          "pass --calibration FILE (make one with `v2i camera calibrate`)")
     rsu = world.scenario.rsu
-    return ImagePerception.open(path, config.model, camera_xy=(rsu.position.x, rsu.position.y),
-                                threads=config.detector_threads, score_threshold=config.score_threshold,
-                                max_range_m=rsu.range_m)
+    return ImagePerception.open(path, config.model, config.score_threshold, camera_xy=(rsu.position.x, rsu.position.y),
+                                threads=config.detector_threads, max_range_m=rsu.range_m)

@@ -62,9 +62,11 @@ def _spec(args: argparse.Namespace):
     )
 
 
-def _emit(report: dict, json_path: str | None) -> None:
-    """Human summary (stderr when the JSON goes to stdout) and the JSON report."""
-    from evaluation.spec import summary
+def _emit(report: dict, json_path: str | None, summary=None) -> None:
+    """Human summary (stderr when the JSON goes to stdout; default ``evaluation.spec.summary``) and
+    the JSON report."""
+    if summary is None:
+        from evaluation.spec import summary
 
     print(summary(report), file=sys.stderr if json_path == "-" else sys.stdout)
     if json_path == "-":
@@ -159,7 +161,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_eval_roif(args: argparse.Namespace) -> int:
     """Image-level fusion (seed 004), offline: the ``image_fusion`` report."""
-    from evaluation.image_fusion import run_image_fusion
+    from evaluation.image_fusion import run_image_fusion, summary
     from sim.scenario import load_scenario
 
     load_scenario(args.scenario)
@@ -167,25 +169,8 @@ def cmd_eval_roif(args: argparse.Namespace) -> int:
     if args.json not in (None, "-"):
         _check_writable(Path(args.json), "--json")
     report = run_image_fusion(args.scenario, seed=args.seed, duration_s=args.duration)
-    f = report["image_fusion"]
-    print(f"{report['scenario']} | fusion roif | detector {report['detector']} | seed {report['seed']} | "
-          f"{f['frames']} frames at {report['camera_rate_hz']:g} Hz\n"
-          f"  detection accuracy: fused {_pct(f['detection_accuracy'])}, vehicle-only "
-          f"{_pct(f['vehicle_only_detection_accuracy'])}, RSU-only {_pct(f['rsu_only_detection_accuracy'])}"
-          f" (seed 004: 93 %, 37 %, 91 %)\n"
-          f"  fused boxes: mean IoU {f['mean_iou']} (0.72), precision {_pct(f['precision'])}; "
-          f"re-projection error {f['reprojection_error_px']} px (4.3 px); "
-          f"homography failures {f['homography_failures']}",
-          file=sys.stderr if args.json == "-" else sys.stdout)
-    if args.json == "-":
-        print(json.dumps(report, indent=2))
-    elif args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+    _emit(report, args.json, summary)
     return 0
-
-
-def _pct(v) -> str:
-    return "n/a" if v is None else f"{v:.0%}"
 
 
 def cmd_tables(args: argparse.Namespace) -> int:
@@ -241,11 +226,7 @@ def cmd_fuzz(args: argparse.Namespace) -> int:
     report = _live(run.run, "v2i fuzz")
     if isinstance(report, int):
         return report
-    print(summary(report), file=sys.stderr if args.json == "-" else sys.stdout)
-    if args.json == "-":
-        print(json.dumps(report, indent=2))
-    elif args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+    _emit(report, args.json, summary)
     return 1 if report["crashes"] or report["outputs"]["late"] or report["outputs"]["missing"] else 0
 
 
