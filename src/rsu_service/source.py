@@ -79,13 +79,13 @@ class RenderedCamera(_Schedule):
     """
 
     def __init__(self, world: World, seed: int, start_ns: int, perception: ImagePerception):
-        from sim.camera import rsu_camera
+        from sim.camera import rsu_camera, rsu_sway
         from sim.render import SceneRenderer
 
         cfg = world.scenario.rsu
         self.world, self.start_ns, self.rate_hz = world, start_ns, cfg.rate_hz
         self.perception = perception
-        self.camera = rsu_camera(cfg)
+        self.camera, self.sway = rsu_camera(cfg), rsu_sway(cfg, stream(seed, "rsu_sway"))  # nominal pose (calibrated), wind
         self.renderer = SceneRenderer(world, seed)
         self.range_m, self.min_visible = cfg.range_m, cfg.min_visible_fraction  # what counts as seen (scoring)
         self._noise = stream(seed, "rsu_render")
@@ -94,7 +94,7 @@ class RenderedCamera(_Schedule):
 
     def capture(self, capture_true_ns: int) -> Frame:
         t_s = (capture_true_ns - self.start_ns) * 1e-9
-        rendered = self.renderer.render(self.camera, t_s, self._noise)
+        rendered = self.renderer.render(self.sway.move(self.camera, t_s), t_s, self._noise)
         dets, detector_ms = self.perception.perceive(rendered.image)
         delay_s = self._delay.uniform(*self._delay_ms) / 1000.0
         return Frame(int(capture_true_ns), int(capture_true_ns + round(delay_s * 1e9)), dets,

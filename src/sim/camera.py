@@ -83,6 +83,14 @@ class PinholeCamera:
     def distorted(self) -> bool:
         return bool(np.any(self.dist != 0.0))
 
+    def turned(self, yaw_rad: float, pitch_rad: float, roll_rad: float) -> "PinholeCamera":
+        """This camera rotated about its centre C by small angles in its own frame, signed as in
+        ``from_pose``: pan (about the image's vertical axis y; yaw + d at zero pitch), tilt (about x;
+        pitch + d) and roll (about the axis z; roll + d): R' = R_delta R, t' = -R' C."""
+        r_delta, _ = cv2.Rodrigues(np.array([pitch_rad, yaw_rad, -roll_rad]))
+        R = r_delta @ self.R
+        return PinholeCamera(K=self.K, R=R, t=-R @ self.centre, width=self.width, height=self.height, dist=self.dist)
+
     def to_camera(self, points_m: np.ndarray) -> np.ndarray:
         """Map points (N, 3) -> camera frame (N, 3)."""
         return np.asarray(points_m, dtype=float).reshape(-1, 3) @ self.R.T + self.t
@@ -109,6 +117,59 @@ class PinholeCamera:
         if not self.distorted or len(uv) == 0:
             return uv
         return cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist, P=self.K).reshape(-1, 2)
+
+
+# Default wind sway of a camera on a traffic-signal pole (deg, std of each angle). A pole is a
+# cantilever: a tip deflection delta of a pole of length L turns its top by 3 delta / (2 L);
+# ~8 mm rms in a light wind on a 7 m pole gives 1.7 mrad = 0.1 deg, about one pixel of a
+# 640 px, 70 deg camera. Assumed, not measured: vendors ship gyro image stabilisation because
+# poles sway in wind and shake under passing trucks, and fixed coastal cameras drift by up to
+# 10-30 px over months (Bergsma et al.'s Anglet cameras); each 0.1 deg of pitch moves a ground
+# point dr = dpitch (r^2 + h^2) / h, 1.2 m at 70 m from a 7 m pole.
+RSU_SWAY_DEG = 0.1
+SWAY_MODES = 8  # sinusoids summed per angle
+
+
+@dataclass(frozen=True)
+class Sway:
+    """A mount's wind sway: yaw, pitch and roll offsets (rad) as a seeded, stateless function of time.
+
+    Each angle is a sum of ``SWAY_MODES`` sinusoids, a_k = sigma sqrt(2 / K),
+    theta(t) = sum_k a_k cos(2 pi f_k t + phi_k), f_k = sway_hz U(0.7, 1.3), phi_k U(0, 2 pi):
+    stationary with standard deviation sigma, its spectrum near the pole's first mode, and the
+    same at a time whatever frames were rendered before. ``freq_hz``, ``phase_rad`` (3, K).
+    """
+
+    sigma_rad: float
+    freq_hz: np.ndarray
+    phase_rad: np.ndarray
+
+    @classmethod
+    def still(cls) -> "Sway":
+        """No sway."""
+        return cls(0.0, np.zeros((3, SWAY_MODES)), np.zeros((3, SWAY_MODES)))
+
+    @classmethod
+    def draw(cls, sigma_deg: float, sway_hz: float, rng: np.random.Generator) -> "Sway":
+        shape = (3, SWAY_MODES)
+        return cls(float(np.deg2rad(sigma_deg)), sway_hz * rng.uniform(0.7, 1.3, shape), rng.uniform(0, 2 * np.pi, shape))
+
+    def angles_rad(self, t_s: float) -> np.ndarray:
+        """(3,) yaw, pitch (down positive), roll offsets at ``t_s``."""
+        a = self.sigma_rad * np.sqrt(2.0 / SWAY_MODES)
+        return a * np.cos(2.0 * np.pi * self.freq_hz * t_s + self.phase_rad).sum(axis=1)
+
+    def move(self, camera: PinholeCamera, t_s: float) -> PinholeCamera:
+        """``camera`` turned about its centre by the sway at ``t_s`` (itself when sigma is 0)."""
+        if self.sigma_rad == 0.0:
+            return camera
+        return camera.turned(*self.angles_rad(t_s))
+
+
+def rsu_sway(cfg: RsuCameraConfig, rng: np.random.Generator) -> Sway:
+    """The wind sway of a scenario's RSU camera (``cfg.image.sway_deg``, default ``RSU_SWAY_DEG``)."""
+    im = cfg.image
+    return Sway.draw(RSU_SWAY_DEG if im.sway_deg is None else im.sway_deg, im.sway_hz, rng)
 
 
 def rsu_camera(cfg: RsuCameraConfig) -> PinholeCamera:

@@ -140,6 +140,11 @@ class ImageConfig(_Frozen):
     width: Annotated[int, Field(ge=64, le=4096)] = 640
     height: Annotated[int, Field(ge=64, le=4096)] = 384
     distortion: tuple[Finite, Finite] = (0.0, 0.0)
+    # Wind sway of the mount: the standard deviation of each of yaw, pitch and roll (deg) about
+    # the nominal pose, oscillating near the mount's first natural frequency ``sway_hz``
+    # (``sim.camera.Sway``). None: the mount's default (an RSU pole RSU_SWAY_DEG, a vehicle 0).
+    sway_deg: Annotated[float, Field(ge=0.0, le=5.0)] | None = None
+    sway_hz: Annotated[float, Field(gt=0.0, le=50.0)] = 1.0
 
 
 class RsuCameraConfig(_Frozen):

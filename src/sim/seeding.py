@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-STREAMS = ("rsu_camera", "lidar", "localization", "rsu_render", "ego_render")  # append only: indices seed the streams
+STREAMS = ("rsu_camera", "lidar", "localization", "rsu_render", "ego_render", "rsu_sway")  # append only: indices seed the streams
 
 
 def stream(seed: int, name: str) -> np.random.Generator:

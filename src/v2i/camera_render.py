@@ -1,8 +1,9 @@
 """``v2i camera render``: render a scenario's camera to image files with box labels.
 
 Writes ``DIR/frame_00000.jpg`` (or .png), one per capture time, ``DIR/labels.jsonl`` (one line
-per frame: file, t_s, boxes with id, class, xyxy px, visible fraction, range_m; for the moving
-ego camera also its pose R, t) and ``DIR/camera.json`` (K, dist, R, t, width, height).
+per frame: file, t_s, boxes with id, class, xyxy px, visible fraction, range_m, and the
+frame's camera pose R, t: the ego's moves, the RSU's sways in the wind) and ``DIR/camera.json``
+(K, dist, R, t, width, height).
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ Render what a scenario's camera sees (sim.render) and write the frames with thei
 boxes: for training and checking the detector, and for image-level fusion.
 
 --view rsu: the RSU's physical camera (the scenario's rsu.image: yaw, pitch, fov, size,
-distortion), fixed on its pole, from rsu.phase_s at rsu.rate_hz. --view ego: the ego's
+distortion) on its pole, swaying in the wind (rsu.image.sway_deg, default 0.1 deg),
+from rsu.phase_s at rsu.rate_hz. --view ego: the ego's
 on-board camera (the scenario's ego_camera; a scenario without one gets the default
 VehicleCameraConfig: 1.5 m ahead of the ego's centre, 1.4 m up, looking ahead, 90 deg, 640 x 384,
 10 Hz), moving with the ego, which it does not see (hidden).
@@ -29,8 +31,8 @@ VehicleCameraConfig: 1.5 m ahead of the ego's centre, 1.4 m up, looking ahead, 9
 Labels list only bodies with a pixel in the image (the ego is id 0). xyxy: the box of the
 projected 3-D box corners, clipped to the image; visible: the fraction of its silhouette not
 hidden by nearer things. --noise (default) adds random exposure, blur and sensor noise from
---seed (the stream rsu_render / ego_render that v2i eval uses); --clean renders noiseless,
-deterministic frames. --seed also fixes the textures."""
+--seed (the stream rsu_render / ego_render that v2i eval uses) and the pole's sway; --clean
+renders noiseless, deterministic frames from a still pole. --seed also fixes the textures."""
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -61,15 +63,17 @@ def _check(args) -> None:
         raise ValueError(f"--start must be a finite number >= 0, got {args.start}")
 
 
-def _camera_setup(world, view: str):
-    """(camera at time t function, rate_hz, first capture time, noise stream name, hide_ego)."""
-    from sim.camera import rsu_camera, vehicle_camera
+def _camera_setup(world, view: str, sway_rng):
+    """(camera at time t function, rate_hz, first capture time, noise stream name, hide_ego);
+    the RSU's pole sways when ``sway_rng`` (numpy Generator) is given."""
+    from sim.camera import Sway, rsu_camera, rsu_sway, vehicle_camera
     from sim.scenario import VehicleCameraConfig
 
     sc = world.scenario
     if view == "rsu":
         cam = rsu_camera(sc.rsu)
-        return (lambda t_s: cam), sc.rsu.rate_hz, sc.rsu.phase_s, "rsu_render", False
+        sway = rsu_sway(sc.rsu, sway_rng) if sway_rng is not None else Sway.still()
+        return (lambda t_s: sway.move(cam, t_s)), sc.rsu.rate_hz, sc.rsu.phase_s, "rsu_render", False
     cfg = sc.ego_camera or VehicleCameraConfig()
     return (lambda t_s: vehicle_camera(cfg, world.ego_at(t_s))), cfg.rate_hz, 0.0, "ego_render", True
 
@@ -91,21 +95,18 @@ def _prepare_out(out: str) -> Path:
 def _camera_json(camera, view: str, rate_hz: float, args) -> dict:
     return {"scenario": args.scenario, "view": view, "width": camera.width, "height": camera.height,
             "K": camera.K.tolist(), "dist": camera.dist.tolist(), "R": camera.R.tolist(), "t": camera.t.tolist(),
-            "rate_hz": rate_hz, "seed": args.seed, "noise": args.noise, "moving": view == "ego",
-            "note": "X_c = R X_w + t (map: x east, y north, z up; camera: x right, y down, z forward)"
-                    + ("; R, t are the first frame's, each labels line has its own" if view == "ego" else "")}
+            "rate_hz": rate_hz, "seed": args.seed, "noise": args.noise,
+            "note": "X_c = R X_w + t (map: x east, y north, z up; camera: x right, y down, z forward); "
+                    "R, t are the first frame's, each labels line has its own"}
 
 
-def _label_line(name: str, t_s: float, labels, camera, moving: bool) -> dict:
+def _label_line(name: str, t_s: float, labels, camera) -> dict:
     from schemas.classes import ObjectClass
 
     boxes = [{"id": int(i), "class": ObjectClass(int(c)).name.lower(), "xyxy": [round(float(v), 2) for v in box],
               "visible": round(float(vis), 4), "range_m": round(float(r), 3)}
              for i, c, box, vis, r in zip(labels.ids, labels.cls, labels.xyxy, labels.visible, labels.range_m)]
-    line = {"file": name, "t_s": round(t_s, 6), "boxes": boxes}
-    if moving:
-        line["R"], line["t"] = camera.R.tolist(), camera.t.tolist()
-    return line
+    return {"file": name, "t_s": round(t_s, 6), "boxes": boxes, "R": camera.R.tolist(), "t": camera.t.tolist()}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -118,7 +119,8 @@ def run(args: argparse.Namespace) -> int:
 
     _check(args)
     world = World(load_scenario(args.scenario))
-    camera_at, rate_hz, phase_s, stream_name, hide_ego = _camera_setup(world, args.view)
+    sway_rng = stream(args.seed, "rsu_sway") if args.noise else None
+    camera_at, rate_hz, phase_s, stream_name, hide_ego = _camera_setup(world, args.view, sway_rng)
     rate_hz = args.rate or rate_hz
     start_s = phase_s if args.start is None else args.start
     end_s = start_s + args.duration if args.duration is not None else world.duration_s
@@ -140,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
             name = f"frame_{k:05d}.{args.format}"
             if not cv2.imwrite(str(folder / name), frame.image):
                 raise OSError(f"--out {args.out}: could not write {name}")
-            labels_file.write(json.dumps(_label_line(name, float(t_s), frame.labels, camera, args.view == "ego")) + "\n")
+            labels_file.write(json.dumps(_label_line(name, float(t_s), frame.labels, camera)) + "\n")
             if tty or (k + 1) % 25 == 0 or k + 1 == len(times):
                 end = "\r" if tty and k + 1 < len(times) else "\n"
                 print(f"frame {k + 1}/{len(times)}  t = {t_s:.2f} s  {1e3 * spent_s / (k + 1):.1f} ms/frame rendering",

@@ -214,3 +214,56 @@ def test_cli_writes_frames_labels_and_camera(tmp_path, capsys):
     (tmp_path / "file").write_text("")
     assert main(["camera", "render", "--out", str(tmp_path / "file"), "--duration", "0.2"]) == 2
     assert "--out" in capsys.readouterr().err
+
+
+def test_turned_camera_matches_the_pose_angles_it_stands_for():
+    cam = _camera(pitch_deg=11.0, yaw_deg=30.0)
+    d = 0.004
+    np.testing.assert_allclose(cam.turned(0.0, d, 0.0).R, _camera(pitch_deg=11.0 + np.rad2deg(d), yaw_deg=30.0).R, atol=1e-12)
+    np.testing.assert_allclose(cam.turned(0.0, 0.0, d).R, _camera(pitch_deg=11.0, yaw_deg=30.0, roll_rad=d).R, atol=1e-12)
+    level = _camera(pitch_deg=0.0, yaw_deg=30.0)  # pan = yaw exactly when the axis is level
+    np.testing.assert_allclose(level.turned(d, 0.0, 0.0).R, _camera(pitch_deg=0.0, yaw_deg=30.0 + np.rad2deg(d)).R, atol=1e-12)
+    np.testing.assert_allclose(cam.turned(d, d, d).centre, cam.centre, atol=1e-12)  # about its own centre
+
+
+def test_sway_is_stationary_with_its_sigma_and_a_function_of_time_only():
+    from sim.camera import Sway
+
+    sway = Sway.draw(0.1, 1.0, np.random.default_rng(3))
+    t = np.arange(0.0, 600.0, 0.05)
+    angles = np.rad2deg(np.array([sway.angles_rad(s) for s in t]))
+    np.testing.assert_allclose(angles.std(axis=0), 0.1, rtol=0.25)
+    assert np.abs(angles.mean(axis=0)).max() < 0.02
+    np.testing.assert_array_equal(sway.angles_rad(7.3), Sway.draw(0.1, 1.0, np.random.default_rng(3)).angles_rad(7.3))
+    cam = _camera()
+    assert Sway.still().move(cam, 7.3) is cam
+
+
+def test_pole_sway_moves_a_far_ground_point_as_r_squared_over_h():
+    """dr = dpitch (r^2 + h^2) / h: the sway's range error grows with the square of the range."""
+    h = 7.0
+    cam = PinholeCamera.from_pose((0.0, 0.0, h), 0.0, np.deg2rad(8.0))
+    tilted = cam.turned(0.0, np.deg2rad(0.1), 0.0)
+    for r in (20.0, 70.0):
+        uv, _ = tilted.project(np.array([[r, 0.0, 0.0]]))  # where the tilted camera sees the point ...
+        hom = np.linalg.inv(cam.ground_homography()) @ np.append(uv[0], 1.0)  # ... read with the still calibration
+        seen_r = hom[0] / hom[2]
+        # tilted down, the camera sees the point higher in the image: it reads farther
+        assert seen_r - r == pytest.approx(np.deg2rad(0.1) * (r ** 2 + h ** 2) / h, rel=0.05)
+
+
+def test_rsu_view_sways_unless_clean(tmp_path):
+    import json
+
+    from v2i.cli import main
+
+    def poses(*flags):
+        out = tmp_path / "-".join(flags or ("noisy",))
+        assert main(["camera", "render", "--scenario", "red-light-runner", "--out", str(out), "--start", "8",
+                     "--duration", "0.4", "--format", "png", *flags]) == 0
+        return [np.asarray(json.loads(s)["R"]) for s in (out / "labels.jsonl").read_text().splitlines()]
+
+    clean, noisy = poses("--clean"), poses()
+    np.testing.assert_array_equal(clean[0], clean[2])
+    moved_deg = np.rad2deg(np.arccos(np.clip(np.einsum("ij,ij->i", noisy[0], noisy[2]), -1, 1)))
+    assert 0.0 < moved_deg.max() < 1.5  # a fraction of a degree between frames
