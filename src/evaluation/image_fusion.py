@@ -50,17 +50,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fusion.association import assign
-from fusion.box_tracker import BoxTracker, BoxTrackerConfig
-from fusion.roif import (
-    MAPPED_FRAME,
-    MAPPED_NONE,
-    MAPPED_OWN,
-    OK,
-    RoifConfig,
-    iou_matrix,
-    map_boxes,
-    roif_fuse,
-)
+from fusion.box_tracker import BoxTrackerConfig
+from fusion.roif import MAPPED_FRAME, MAPPED_NONE, MAPPED_OWN, OK, RoifConfig, iou_matrix, map_boxes
+from fusion.roif_features import ViewFeatures, view_features
+from fusion.roif_pipeline import RoifFrame, RoifFramePipeline
 from sim.camera import rsu_camera, vehicle_camera
 from sim.scenario import load_scenario
 from sim.seeding import stream
@@ -242,11 +235,7 @@ def _vehicle_view(tally: FusionTally, result, obu_boxes: np.ndarray, ego_labels,
     """The OBU's boxes (M, 4) against the ego-view truth of the objects of T: which it found
     (scene accuracy) and, for those ROIF mapped, the corner errors of the mapped box and of the
     ego-view truth box through the same transform against the RSU-view truth."""
-    ids, xyxy = np.asarray(ego_labels.ids, np.int64), np.asarray(ego_labels.xyxy, float).reshape(-1, 4)
-    keep = np.isin(ids, rsu_ids)
-    ids, xyxy = ids[keep], xyxy[keep]
-    m = assign(1.0 - iou_matrix(xyxy, obu_boxes), gate=1.0 - MATCH_IOU).matches
-    tally.vehicle_scene_found += len(m)
+    ids, xyxy, m = _vehicle_scene(tally, obu_boxes, ego_labels, rsu_ids)
     m = m[result.mapping.how[m[:, 1]] != MAPPED_NONE]
     if not len(m):
         return
@@ -265,6 +254,17 @@ def _vehicle_view(tally: FusionTally, result, obu_boxes: np.ndarray, ego_labels,
         tally.gt_corner_err_px.append(float(corner_error_px(gt_mapped[ok], target[ok]).mean()))
 
 
+def _vehicle_scene(tally: FusionTally, obu_boxes: np.ndarray, ego_labels, rsu_ids: np.ndarray) -> tuple:
+    """The objects of T the OBU found in its own image: ego-view truth ids (E,) and boxes (E, 4)
+    of the objects of T, and the (truth, OBU box) matches (M, 2) at IoU >= 0.5."""
+    ids, xyxy = np.asarray(ego_labels.ids, np.int64), np.asarray(ego_labels.xyxy, float).reshape(-1, 4)
+    keep = np.isin(ids, rsu_ids)
+    ids, xyxy = ids[keep], xyxy[keep]
+    m = assign(1.0 - iou_matrix(xyxy, obu_boxes), gate=1.0 - MATCH_IOU).matches
+    tally.vehicle_scene_found += len(m)
+    return ids, xyxy, m
+
+
 def _count_mapping(tally: FusionTally, result, obu_box_count: int) -> None:
     """Frame homography (the thesis' one per frame) and box mapping counts of one frame."""
     fit = result.fit
@@ -281,36 +281,44 @@ def _count_mapping(tally: FusionTally, result, obu_box_count: int) -> None:
         tally.failures[reason] = tally.failures.get(reason, 0) + 1
 
 
-def _score_frame(tally: FusionTally, tracker: BoxTracker, t_s: float, rsu_frame, ego_frame,
-                 rsu_boxes: tuple, obu_boxes: tuple, config: RoifConfig) -> None:
-    """ROIF on one frame pair, tracking, and every tally."""
-    result = roif_fuse(ego_frame.image, obu_boxes, rsu_frame.image, rsu_boxes, config)
-    fused = result.fused
-    truth, truth_ids, ignore = _truth(rsu_frame.labels)
+def score_frame(tally: FusionTally, frame: RoifFrame, rsu_labels, ego_labels) -> None:
+    """Every tally of one stepped frame against the RSU view's labels and the ego view's labels
+    (``BoxLabels``). A frame without an RSU partner (live only) has no boxes in the RSU view:
+    its truths count as missed by the fused, RSU-only and mapped lists; its tracks still count."""
+    truth, truth_ids, ignore = _truth(rsu_labels)
+    empty = np.zeros((0, 4))
     tally.frames += 1
-    _count_mapping(tally, result, len(obu_boxes[0]))
-    tally.fused_pairs += int(np.count_nonzero(fused.rsu_index[fused.obu_index >= 0] >= 0))
-    tally.mapped_own += int(np.count_nonzero(result.mapping.how == MAPPED_OWN))
-    tally.mapped_frame += int(np.count_nonzero(result.mapping.how == MAPPED_FRAME))
-    tally.fused.add(fused.xyxy, truth, ignore)
-    tally.rsu.add(rsu_boxes[0], truth, ignore)
-    tally.vehicle.add(result.mapped_obu_xyxy, truth, ignore)
-    ego_truth, _, ego_ignore = _truth(ego_frame.labels)
-    tally.vehicle_own.add(obu_boxes[0], ego_truth, ego_ignore)
-    tracks = tracker.step(fused.xyxy, fused.scores, fused.cls, t_s)
-    ti, bi = tally.tracked.add(tracks.xyxy, truth, ignore)
-    for i, b in zip(truth_ids[ti], tracks.ids[bi]):
+    result, obu_xyxy = frame.result, frame.obu.boxes
+    ego_truth, _, ego_ignore = _truth(ego_labels)
+    tally.vehicle_own.add(obu_xyxy, ego_truth, ego_ignore)
+    if result is not None:
+        fused = result.fused
+        _count_mapping(tally, result, len(obu_xyxy))
+        tally.fused_pairs += int(np.count_nonzero(fused.rsu_index[fused.obu_index >= 0] >= 0))
+        tally.mapped_own += int(np.count_nonzero(result.mapping.how == MAPPED_OWN))
+        tally.mapped_frame += int(np.count_nonzero(result.mapping.how == MAPPED_FRAME))
+    tally.fused.add(empty if result is None else result.fused.xyxy, truth, ignore)
+    tally.rsu.add(empty if frame.rsu is None else frame.rsu.boxes, truth, ignore)
+    tally.vehicle.add(empty if result is None else result.mapped_obu_xyxy, truth, ignore)
+    ti, bi = tally.tracked.add(frame.tracks.xyxy, truth, ignore)
+    for i, b in zip(truth_ids[ti], frame.tracks.ids[bi]):
         tally.track_ids.setdefault(int(i), set()).add(int(b))
-    h, w = rsu_frame.image.shape[:2]
-    _vehicle_view(tally, result, np.asarray(obu_boxes[0], float).reshape(-1, 4), ego_frame.labels, truth, truth_ids, (w, h))
+    if result is not None:
+        _vehicle_view(tally, result, obu_xyxy, ego_labels, truth, truth_ids, frame.rsu.image_wh)
+    else:
+        _vehicle_scene(tally, obu_xyxy, ego_labels, truth_ids)
 
 
 def run_image_fusion(scenario: str = DEFAULT_SCENARIO, seed: int = 0, duration_s: float | None = None,
                      detector: str = "onnx", model_path: str | None = None, roif: RoifConfig | None = None,
-                     tracker: BoxTrackerConfig | None = None) -> dict:
+                     tracker: BoxTrackerConfig | None = None, rsu_max_features: int | None = None,
+                     wire: bool = False) -> dict:
     """ROIF over a scenario with an ``ego_camera``: the run's identification and its ``image_fusion``
     section. Deterministic for a seed. ``duration_s`` None: the scenario's; ``detector``: "onnx"
-    (``model_path`` None: the shipped model) or "labels" (the stand-in)."""
+    (``model_path`` None: the shipped model) or "labels" (the stand-in). ``rsu_max_features``: the
+    RSU's per-frame ORB cap (default ``roif.orb_features``, as the OBU's); ``wire``: the RSU's
+    features reach the fusion through an encoded ``RsuImageFeatures`` (as on the live link; the
+    report's ``rsu_features`` gives the message sizes)."""
     from sim.render import SceneRenderer
 
     sc = load_scenario(scenario)
@@ -323,15 +331,41 @@ def run_image_fusion(scenario: str = DEFAULT_SCENARIO, seed: int = 0, duration_s
     noise_rsu, noise_ego = stream(seed, "rsu_render"), stream(seed, "ego_render")
     rate_hz = sc.ego_camera.rate_hz
     duration = sc.duration_s if duration_s is None else min(float(duration_s), sc.duration_s)
-    roif = roif or RoifConfig()
-    tally, box_tracker = FusionTally(), BoxTracker(tracker or BoxTrackerConfig())
+    pipeline = RoifFramePipeline(roif, tracker)
+    tally, wire_bytes = FusionTally(), []
     for k in range(int(np.ceil(duration * rate_hz - 1e-9))):
         t_s = k / rate_hz
         rsu_frame = renderer.render(cam_rsu, t_s, noise_rsu)
         ego_frame = renderer.render(vehicle_camera(sc.ego_camera, world.ego_at(t_s)), t_s, noise_ego, hide_ego=True)
-        _score_frame(tally, box_tracker, t_s, rsu_frame, ego_frame, det_rsu.boxes(rsu_frame), det_obu.boxes(ego_frame), roif)
-    return {"driver": "eval", "scenario": sc.name, "fusion": "roif", "seed": seed, "duration_s": duration,
-            "detector": det_rsu.name, "camera_rate_hz": rate_hz, "image_fusion": tally.section()}
+        rsu = view_features(rsu_frame.image, det_rsu.boxes(rsu_frame), pipeline.roif, rsu_max_features)
+        if wire:
+            rsu = _through_wire(rsu, k, wire_bytes)
+        obu = view_features(ego_frame.image, det_obu.boxes(ego_frame), pipeline.roif)
+        score_frame(tally, pipeline.step(obu, rsu, t_s), rsu_frame.labels, ego_frame.labels)
+    report = {"driver": "eval", "scenario": sc.name, "fusion": "roif", "seed": seed, "duration_s": duration,
+              "detector": det_rsu.name, "camera_rate_hz": rate_hz, "image_fusion": tally.section()}
+    if wire or rsu_max_features is not None:
+        report["rsu_features"] = {"max_per_frame": rsu_max_features or pipeline.roif.orb_features, "wire": wire,
+                                  **({"message_bytes": _percentiles(wire_bytes)} if wire else {})}
+    return report
+
+
+def _through_wire(rsu: ViewFeatures, seq: int, sizes: list) -> ViewFeatures:
+    """The RSU's features as the OBU decodes them from an ``RsuImageFeatures`` message (its size in ``sizes``)."""
+    from schemas.codec import decode, encode
+    from schemas.image_messages import RsuImageFeatures
+
+    data = encode(RsuImageFeatures.from_view("rsu", seq, 10**18, rsu))
+    sizes.append(len(data))
+    return decode(data, RsuImageFeatures).view()
+
+
+def _percentiles(values: list) -> dict:
+    """{p50, p99, max} of a list of numbers (None when empty)."""
+    if not values:
+        return {"p50": None, "p99": None, "max": None}
+    v = np.asarray(values, float)
+    return {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99)), "max": float(v.max())}
 
 
 def summary(report: dict) -> str:

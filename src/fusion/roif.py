@@ -3,7 +3,9 @@
 Per frame, with the detections of both cameras (boxes in their own images):
 
 1. ORB keypoints and descriptors, detected only inside the detection boxes of each image
-   (a mask; seed 004 Sec. 5.3: features outside the boxes gave false matches, Fig. 6.3).
+   (a mask; seed 004 Sec. 5.3: features outside the boxes gave false matches, Fig. 6.3):
+   ``fusion.roif_features.ViewFeatures``, computed by each camera's own node (the RSU sends
+   its features, never its image); ``roif_fuse`` takes the two views' features.
 2. Brute-force Hamming matching (``cv2.BFMatcher(cv2.NORM_HAMMING)``), OBU -> RSU. A match
    is kept when (a) its normalised Hamming distance d = bits / 256 is below
    ``max_distance`` (the thesis keeps "d < 0.5", i.e. < 128 of 256 bits, which is about
@@ -47,6 +49,7 @@ import cv2
 import numpy as np
 
 from .association import assign
+from .roif_features import ViewFeatures, view_features
 
 SOURCE_RSU = 1  # bit of a fused box: the RSU camera saw it
 SOURCE_OBU = 2  # bit: the OBU camera saw it (mapped into the RSU view)
@@ -149,29 +152,6 @@ class RoifResult:
         return bool(np.any(self.mapping.how != MAPPED_NONE))
 
 
-def box_mask(shape_hw: tuple[int, int], xyxy: np.ndarray) -> np.ndarray:
-    """uint8 mask (H, W): 255 inside any of the boxes (N, 4) px (rounded outward, clipped), else 0."""
-    h, w = shape_hw
-    mask = np.zeros((h, w), dtype=np.uint8)
-    for x1, y1, x2, y2 in np.asarray(xyxy, dtype=float).reshape(-1, 4):
-        c1, r1 = max(int(np.floor(x1)), 0), max(int(np.floor(y1)), 0)
-        c2, r2 = min(int(np.ceil(x2)), w), min(int(np.ceil(y2)), h)
-        if c2 > c1 and r2 > r1:
-            mask[r1:r2, c1:c2] = 255
-    return mask
-
-
-def orb_features(image: np.ndarray, xyxy: np.ndarray, config: RoifConfig) -> tuple[np.ndarray, np.ndarray]:
-    """ORB keypoints (K, 2) px and descriptors (K, 32) uint8 inside the boxes (N, 4) of an image (H, W[, 3])."""
-    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-    orb = cv2.ORB_create(nfeatures=config.orb_features, nlevels=config.orb_levels, edgeThreshold=config.orb_patch_px,
-                         patchSize=config.orb_patch_px, fastThreshold=config.orb_fast_threshold)
-    keypoints, descriptors = orb.detectAndCompute(grey, box_mask(grey.shape[:2], xyxy))
-    if descriptors is None or not keypoints:
-        return np.zeros((0, 2)), np.zeros((0, 32), dtype=np.uint8)
-    return np.array([kp.pt for kp in keypoints], dtype=float), descriptors
-
-
 def match_descriptors(desc_obu: np.ndarray, desc_rsu: np.ndarray, config: RoifConfig) -> np.ndarray:
     """Matches (K, 2) rows (OBU index, RSU index) passing the distance, ratio and cross checks."""
     if len(desc_obu) < 2 or len(desc_rsu) < 2:
@@ -189,15 +169,15 @@ def match_descriptors(desc_obu: np.ndarray, desc_rsu: np.ndarray, config: RoifCo
     return best
 
 
-def fit_homography(image_obu: np.ndarray, boxes_obu: np.ndarray, image_rsu: np.ndarray, boxes_rsu: np.ndarray,
-                   config: RoifConfig = RoifConfig()) -> HomographyFit:
-    """Steps 1-3: ORB in the boxes of both images, matching, RANSAC homography OBU -> RSU."""
-    kp_o, desc_o = orb_features(image_obu, boxes_obu, config)
-    kp_r, desc_r = orb_features(image_rsu, boxes_rsu, config)
-    def failed(status: str, obu=None, rsu=None, inlier=None, inliers: int = 0) -> HomographyFit:
-        obu, rsu = (np.zeros((0, 2)) if v is None else v for v in (obu, rsu))
-        inlier = np.zeros(len(obu), bool) if inlier is None else inlier
-        return HomographyFit(None, status, len(kp_o), len(kp_r), len(obu), inliers, None, obu, rsu, inlier)
+def fit_homography(obu: ViewFeatures, rsu: ViewFeatures, config: RoifConfig = RoifConfig()) -> HomographyFit:
+    """Steps 2-3 on the features of both views (step 1, ``fusion.roif_features.view_features``):
+    matching, RANSAC homography OBU -> RSU."""
+    kp_o, desc_o, kp_r, desc_r = obu.keypoints, obu.descriptors, rsu.keypoints, rsu.descriptors
+
+    def failed(status: str, obu_px=None, rsu_px=None, inlier=None, inliers: int = 0) -> HomographyFit:
+        obu_px, rsu_px = (np.zeros((0, 2)) if v is None else v for v in (obu_px, rsu_px))
+        inlier = np.zeros(len(obu_px), bool) if inlier is None else inlier
+        return HomographyFit(None, status, len(kp_o), len(kp_r), len(obu_px), inliers, None, obu_px, rsu_px, inlier)
 
     if min(len(kp_o), len(kp_r)) < config.min_inliers:
         return failed(FEW_FEATURES)
@@ -211,6 +191,18 @@ def fit_homography(image_obu: np.ndarray, boxes_obu: np.ndarray, image_rsu: np.n
         return failed(FEW_INLIERS, obu_px, rsu_px, inlier, int(inlier.sum()))
     return HomographyFit(H, OK, len(kp_o), len(kp_r), len(pairs), int(inlier.sum()),
                          inlier_error_px(H, obu_px[inlier], rsu_px[inlier]), obu_px, rsu_px, inlier)
+
+
+def fit_homography_images(image_obu: np.ndarray, boxes_obu: np.ndarray, image_rsu: np.ndarray, boxes_rsu: np.ndarray,
+                          config: RoifConfig = RoifConfig()) -> HomographyFit:
+    """Steps 1-3 from the two images (H, W, 3) BGR and their boxes (N, 4) px."""
+    return fit_homography(_features(image_obu, boxes_obu, config), _features(image_rsu, boxes_rsu, config), config)
+
+
+def _features(image: np.ndarray, xyxy: np.ndarray, config: RoifConfig) -> ViewFeatures:
+    """Features of an image with boxes only (scores 0, class 0: the fit does not read them)."""
+    n = len(np.asarray(xyxy, float).reshape(-1, 4))
+    return view_features(image, (xyxy, np.zeros(n), np.zeros(n, np.int64)), config)
 
 
 def inlier_error_px(H: np.ndarray, obu_px: np.ndarray, rsu_px: np.ndarray) -> float:
@@ -345,16 +337,22 @@ def box_mapping(fit: HomographyFit, boxes_obu: np.ndarray, boxes_rsu: np.ndarray
     return out
 
 
-def roif_fuse(image_obu: np.ndarray, obu: tuple[np.ndarray, np.ndarray, np.ndarray],
-              image_rsu: np.ndarray, rsu: tuple[np.ndarray, np.ndarray, np.ndarray],
-              config: RoifConfig = RoifConfig()) -> RoifResult:
-    """One frame of ROIF, steps 1-6. ``obu``, ``rsu``: (xyxy (N, 4) px, scores (N,), cls (N,)),
-    each in its own image (H, W, 3) BGR."""
-    xo, so, co = _columns(obu)
-    fit = fit_homography(image_obu, xo, image_rsu, _columns(rsu)[0], config)
-    mapping = box_mapping(fit, xo, _columns(rsu)[0], config)
-    wh = (image_rsu.shape[1], image_rsu.shape[0])
+def roif_fuse(obu: ViewFeatures, rsu: ViewFeatures, config: RoifConfig = RoifConfig()) -> RoifResult:
+    """One frame of ROIF, steps 2-6, on the two views' features (boxes, scores, classes, ORB
+    keypoints and descriptors inside the boxes): the OBU's computed on board, the RSU's as it
+    sent them. Fused boxes are in the RSU view (``rsu.image_wh``)."""
+    xo, so, co = obu.detections
+    fit = fit_homography(obu, rsu, config)
+    mapping = box_mapping(fit, xo, rsu.boxes, config)
     mapped = np.full((len(xo), 4), np.nan)
     for j in np.flatnonzero(mapping.how != MAPPED_NONE):
-        mapped[j] = map_boxes(mapping.transform[j], xo[j:j + 1], wh)[0]
-    return RoifResult(fuse_boxes(rsu, (mapped, so, co), config.iou_gate), mapped, mapping, fit)
+        mapped[j] = map_boxes(mapping.transform[j], xo[j:j + 1], rsu.image_wh)[0]
+    return RoifResult(fuse_boxes(rsu.detections, (mapped, so, co), config.iou_gate), mapped, mapping, fit)
+
+
+def roif_fuse_images(image_obu: np.ndarray, obu: tuple[np.ndarray, np.ndarray, np.ndarray],
+                     image_rsu: np.ndarray, rsu: tuple[np.ndarray, np.ndarray, np.ndarray],
+                     config: RoifConfig = RoifConfig()) -> RoifResult:
+    """One frame of ROIF, steps 1-6, from both images (H, W, 3) BGR and their detections
+    (xyxy (N, 4) px, scores (N,), cls (N,)): both views' features computed here."""
+    return roif_fuse(view_features(image_obu, obu, config), view_features(image_rsu, rsu, config), config)

@@ -10,12 +10,13 @@ import re
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
-RSU_TOPICS = ("objects", "predictions", "time", "alive", "metrics")
+RSU_TOPICS = ("objects", "predictions", "time", "alive", "metrics", "image_features")
 
 RSU_OBJECTS_ALL = "v2x/rsu/*/objects"
 RSU_PREDICTIONS_ALL = "v2x/rsu/*/predictions"
 RSU_TIME_ALL = "v2x/rsu/*/time"
 RSU_ALIVE_ALL = "v2x/rsu/*/alive"
+RSU_IMAGE_FEATURES_ALL = "v2x/rsu/*/image_features"
 
 
 def check_id(node_id: str) -> str:
@@ -62,6 +63,11 @@ def rsu_metrics(rsu_id: str) -> str:
     return _rsu(rsu_id, "metrics")
 
 
+def rsu_image_features(rsu_id: str) -> str:
+    """Camera frames' boxes + ORB features for image-level fusion (ROIF), RSU -> vehicles."""
+    return _rsu(rsu_id, "image_features")
+
+
 def obu_objects(vehicle_id: str) -> str:
     """Fused object lists published by a vehicle's OBU."""
     return _obu(vehicle_id, "objects")
@@ -75,6 +81,11 @@ def obu_metrics(vehicle_id: str) -> str:
 def obu_planning(vehicle_id: str) -> str:
     """Planner-facing output of a vehicle's OBU: RSU paths handed over in planning fusion."""
     return _obu(vehicle_id, "planning")
+
+
+def obu_image_objects(vehicle_id: str) -> str:
+    """Image-level fused boxes (ROIF) of a vehicle's OBU, one message per ego camera frame."""
+    return _obu(vehicle_id, "image_objects")
 
 
 def obu_pose(vehicle_id: str) -> str:

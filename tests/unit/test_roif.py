@@ -17,13 +17,13 @@ from fusion.roif import (
     SOURCE_OBU,
     SOURCE_RSU,
     RoifConfig,
-    fit_homography,
+    fit_homography_images,
     fuse_boxes,
     fuse_pair,
     iou_matrix,
     map_boxes,
     map_points,
-    roif_fuse,
+    roif_fuse_images,
 )
 
 W, H = 640, 384
@@ -49,7 +49,7 @@ def views():
 
 def test_homography_recovered_from_a_known_warp(views):
     obu, rsu = views
-    fit = fit_homography(obu, OBU_BOXES, rsu, map_boxes(H_TRUE, OBU_BOXES, (W, H)))
+    fit = fit_homography_images(obu, OBU_BOXES, rsu, map_boxes(H_TRUE, OBU_BOXES, (W, H)))
     assert fit.status == OK and fit.inliers >= 100
     # re-projection error of the recovered H against the true one over the boxes: < 1 px
     u, v = np.meshgrid(np.linspace(50, 600, 12), np.linspace(50, 360, 8))
@@ -60,7 +60,7 @@ def test_homography_recovered_from_a_known_warp(views):
     assert fit.reprojection_px < 1.5  # RANSAC inliers: ORB keypoints on coarse pyramid levels sit ~1 px off
     # the mapped boxes land on the truth within a pixel, and fuse one-to-one with the RSU's boxes
     truth = map_boxes(H_TRUE, OBU_BOXES, (W, H))
-    result = roif_fuse(obu, (OBU_BOXES, np.full(3, 0.8), np.ones(3)), rsu, (truth, np.full(3, 0.8), np.ones(3)),
+    result = roif_fuse_images(obu, (OBU_BOXES, np.full(3, 0.8), np.ones(3)), rsu, (truth, np.full(3, 0.8), np.ones(3)),
                        RoifConfig(mapping="frame"))
     np.testing.assert_allclose(result.mapped_obu_xyxy, truth, atol=1.0)
     assert np.all(result.mapping.how == MAPPED_FRAME)
@@ -82,18 +82,18 @@ def test_each_box_through_its_own_transform_when_the_scene_is_no_plane():
     boxes = np.array([[40, 60, 280, 300], [380, 60, 620, 300]], float)
     truth = np.vstack([map_boxes(h_left, boxes[:1], (W, H)), map_boxes(h_right, boxes[1:], (W, H))])
     dets_rsu = (truth, np.full(2, 0.8), np.ones(2))
-    own = roif_fuse(obu, (boxes, np.full(2, 0.8), np.ones(2)), rsu, dets_rsu, RoifConfig(object_model="homography"))
+    own = roif_fuse_images(obu, (boxes, np.full(2, 0.8), np.ones(2)), rsu, dets_rsu, RoifConfig(object_model="homography"))
     assert own.mapping.how.tolist() == [MAPPED_OWN, MAPPED_OWN] and own.mapping.rsu_box.tolist() == [0, 1]
     np.testing.assert_allclose(own.mapped_obu_xyxy, truth, atol=1.5)
     assert np.all(own.mapping.inlier_error_px < 1.5)
-    frame = roif_fuse(obu, (boxes, np.full(2, 0.8), np.ones(2)), rsu, dets_rsu, RoifConfig(mapping="frame"))
+    frame = roif_fuse_images(obu, (boxes, np.full(2, 0.8), np.ones(2)), rsu, dets_rsu, RoifConfig(mapping="frame"))
     worst = np.abs(frame.mapped_obu_xyxy - truth).max(axis=1)
     assert frame.homography is not None and worst.min() < 3.0 and worst.max() > 15.0
 
 
 def test_keypoints_only_inside_the_boxes(views):
     obu, rsu = views
-    fit = fit_homography(obu, OBU_BOXES[:1], rsu, map_boxes(H_TRUE, OBU_BOXES[:1], (W, H)))
+    fit = fit_homography_images(obu, OBU_BOXES[:1], rsu, map_boxes(H_TRUE, OBU_BOXES[:1], (W, H)))
     x1, y1, x2, y2 = OBU_BOXES[0]
     p = fit.obu_px
     assert len(p) and np.all((p[:, 0] >= x1) & (p[:, 0] <= x2) & (p[:, 1] >= y1) & (p[:, 1] <= y2))
@@ -152,7 +152,7 @@ def test_one_to_one_assignment_prefers_the_larger_overlap():
 def test_too_few_features_gives_no_mapping_and_the_rsu_list():
     flat = np.full((H, W, 3), 128, np.uint8)
     boxes = OBU_BOXES[:2]
-    result = roif_fuse(flat, (boxes, [0.9, 0.9], [3, 3]), flat, (boxes, [0.8, 0.8], [3, 3]))
+    result = roif_fuse_images(flat, (boxes, [0.9, 0.9], [3, 3]), flat, (boxes, [0.8, 0.8], [3, 3]))
     assert result.homography is None and result.fit.status == FEW_FEATURES and not result.mapped
     assert np.isnan(result.mapped_obu_xyxy).all()
     np.testing.assert_allclose(result.fused.xyxy, boxes)
@@ -164,7 +164,7 @@ def test_a_frame_without_mapping_is_counted_by_reason():
 
     flat = np.full((H, W, 3), 128, np.uint8)
     tally = FusionTally()
-    result = roif_fuse(flat, (OBU_BOXES, np.ones(3), np.ones(3)), flat, (OBU_BOXES, np.ones(3), np.ones(3)))
+    result = roif_fuse_images(flat, (OBU_BOXES, np.ones(3), np.ones(3)), flat, (OBU_BOXES, np.ones(3), np.ones(3)))
     _count_mapping(tally, result, obu_box_count=3)
     section = tally.section()
     assert section["homography_failures"] == 1 and section["homography_failure_reasons"] == {FEW_FEATURES: 1}
@@ -172,7 +172,7 @@ def test_a_frame_without_mapping_is_counted_by_reason():
 
 
 def test_unrelated_views_give_no_mapping(views):
-    result = roif_fuse(views[0], (OBU_BOXES, np.ones(3), np.ones(3)), textured(7), (OBU_BOXES, np.ones(3), np.ones(3)),
+    result = roif_fuse_images(views[0], (OBU_BOXES, np.ones(3), np.ones(3)), textured(7), (OBU_BOXES, np.ones(3), np.ones(3)),
                        RoifConfig(min_inliers=12))
     assert result.homography is None and result.fit.status != OK and result.fit.inliers < 12
     assert not result.mapped and len(result.fused.xyxy) == 3  # the RSU's boxes, nothing mapped
@@ -180,7 +180,7 @@ def test_unrelated_views_give_no_mapping(views):
 
 def test_no_boxes_no_crash(views):
     empty = np.zeros((0, 4))
-    result = roif_fuse(views[0], (empty, [], []), views[1], (empty, [], []))
+    result = roif_fuse_images(views[0], (empty, [], []), views[1], (empty, [], []))
     assert result.homography is None and len(result.fused.xyxy) == 0
 
 
