@@ -228,7 +228,8 @@ class Demo:
             vid = self.spec.obu_config().vehicle_id
             subs = [monitor.declare_subscriber(keys.obu_objects(vid), lambda s: self._keep("objects", s)),
                     monitor.declare_subscriber(keys.obu_metrics(vid), lambda s: self._keep("metrics", s)),
-                    monitor.declare_subscriber(keys.obu_planning(vid), lambda s: self._keep("planning", s))]
+                    monitor.declare_subscriber(keys.obu_planning(vid), lambda s: self._keep("planning", s)),
+                    *self._more_subscriptions(monitor, vid)]
             rsu_monitor = open_session(connect=[self.rsu_ep])  # the RSU's metrics stay on its side of the link
             subs.append(rsu_monitor.declare_subscriber(keys.rsu_metrics(self.spec.rsu_config().rsu_id),
                                                        lambda s: self._keep("rsu_metrics", s)))
@@ -253,6 +254,10 @@ class Demo:
         if self._scoring_error is not None:
             raise DemoError(f"scoring the OBU output failed: {self._scoring_error!r}") from self._scoring_error
         return self._report()
+
+    def _more_subscriptions(self, monitor, vehicle_id: str) -> list:
+        """Further OBU outputs a subclass watches (``image_fusion_demo``); none here."""
+        return []
 
     def _has_link_controls(self) -> bool:
         return self.chaos is not None and any(e.link_control(LINK_ID) is not None for e in self.chaos.events)

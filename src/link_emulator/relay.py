@@ -37,6 +37,7 @@ import zenoh
 
 from schemas.codec import CodecError, decode
 from schemas.keys import (
+    RSU_IMAGE_FEATURES_ALL,
     RSU_OBJECTS_ALL,
     RSU_PREDICTIONS_ALL,
     RSU_TIME_ALL,
@@ -58,7 +59,7 @@ from .scheduler import Action, EventScheduler
 
 log = logging.getLogger(__name__)
 
-DOWNLINK_KEYS = (RSU_OBJECTS_ALL, RSU_PREDICTIONS_ALL)
+DOWNLINK_KEYS = (RSU_OBJECTS_ALL, RSU_PREDICTIONS_ALL, RSU_IMAGE_FEATURES_ALL)
 FORWARD_TIMEOUT_S = 5.0  # how long a forwarded time query waits for RSU replies
 OBU_POSE_ALL = "v2x/obu/*/pose"  # ego poses of every vehicle, see schemas.keys.obu_pose
 

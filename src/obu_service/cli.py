@@ -20,7 +20,19 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicle-id", help="vehicle id used in key expressions (default ego)")
     p.add_argument("--connect", action="append", metavar="EP",
                    help="Zenoh endpoint to connect to, e.g. the RSU's when no link emulator is used (repeatable)")
-    p.add_argument("--fusion", choices=FUSION_METHODS, help="fusion method (default kf)")
+    p.add_argument("--fusion", choices=(*FUSION_METHODS, "roif"),
+                   help="fusion method (default kf); roif: image-level fusion (seed 004) of the ego camera (the "
+                        "scenario's ego_camera, rendered, through the ONNX detector, ORB) with the RSU's "
+                        "v2x/rsu/{id}/image_features (v2i rsu --source camera --image-features), published as "
+                        "ImageFusedBoxes on v2x/obu/{id}/image_objects at the camera's rate")
+    p.add_argument("--roif-pair-tolerance-ms", type=float,
+                   help="roif: an RSU frame pairs with an ego frame whose capture time (clock-corrected) is "
+                        "within this (default 50)")
+    p.add_argument("--roif-wait-ms", type=float,
+                   help="roif: how long an ego frame waits for its RSU partner before it goes out with the "
+                        "ego's own boxes only, counted (default 300)")
+    p.add_argument("--roif-deadline-ms", type=float, help="roif: ego capture -> output deadline (default 450)")
+    p.add_argument("--roif-threads", type=int, help="roif: ONNX Runtime threads of the ego camera's detector")
     p.add_argument("--fusion-mode", choices=FUSION_MODES,
                    help="intra | inter | planning | vehicle-only, or adaptive: the most accurate feasible mode "
                         "per cycle given the measured latency and the deadline (default adaptive)")
@@ -33,6 +45,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     def make_node(config: ObuConfig):
+        if config.fusion == "roif":
+            from .image_fusion_node import ImageFusionNode
+
+            return ImageFusionNode(config)
         from .node import ObuNode
 
         return ObuNode(config)

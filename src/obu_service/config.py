@@ -16,7 +16,9 @@ from .pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES, ObuPipelineCo
 class ObuConfig(ServiceConfig):
     vehicle_id: str = "ego"
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7448"])
-    fusion: Literal[FUSION_METHODS] = "kf"
+    fusion: Literal[(*FUSION_METHODS, "roif")] = Field("kf", description="object-level method, or roif: "
+                                                       "image-level fusion of the ego camera with the RSU's "
+                                                       "image features (seed 004; obu_service.image_fusion)")
     compensation: Literal[COMPENSATIONS] = "predict"
     fusion_mode: Literal[FUSION_MODES] = Field("adaptive", description="which RSU data a cycle fuses (seed 003)")
     iou_threshold: float = Field(0.1, gt=0, le=1)
@@ -52,6 +54,17 @@ class ObuConfig(ServiceConfig):
     input_guard_ms: float = Field(15.0, ge=0, le=1000, description="no large input is started this close to "
                                   "the next timed step (the longest decode of an admitted message)")
 
+    # image-level fusion (fusion roif; obu_service.image_fusion)
+    roif_pair_tolerance_ms: float = Field(50.0, ge=0, le=1000, description="an RSU frame pairs with an ego "
+                                          "camera frame when their capture times differ by at most this")
+    roif_wait_ms: float = Field(300.0, ge=0, le=10_000, description="an ego frame waits this long for its "
+                                "RSU partner (RSU processing + link), then goes out with its own boxes only")
+    roif_deadline_ms: float = Field(450.0, gt=0, le=10_000, description="ego camera capture -> image output; "
+                                    "later is a deadline miss")
+    roif_max_age_ms: float = Field(2000.0, gt=0, le=60_000, description="RSU frames older on arrival are stale")
+    roif_model: str | None = Field(None, description="ONNX detector of the ego camera (default: the shipped one)")
+    roif_threads: int | None = Field(None, ge=1, le=256, description="ONNX Runtime threads of the ego camera")
+
     @field_validator("known_rsus")
     @classmethod
     def _valid_rsu_ids(cls, v: dict[str, tuple[float, float]] | None) -> dict[str, tuple[float, float]] | None:
@@ -66,7 +79,8 @@ class ObuConfig(ServiceConfig):
 
     @model_validator(mode="after")
     def _method_fits_compensation(self) -> "ObuConfig":
-        check_fusion(self.fusion, self.compensation)
+        if self.fusion != "roif":
+            check_fusion(self.fusion, self.compensation)
         return self
 
     @model_validator(mode="after")

@@ -29,7 +29,14 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="perception: sim (the scenario's camera noise model; default), camera (the scenario "
                         "rendered, through the ONNX detector and the calibration), video (--video through the same)")
     p.add_argument("--video", metavar="PATH", help="with --source video: a video file or a folder of PNG/JPEG frames")
-    p.add_argument("--rate-hz", type=float, help="with --source video: frames per second (default: the video's)")
+    p.add_argument("--rate-hz", type=float, help="with --source video: frames per second (default: the video's); "
+                   "with --source camera: the camera's rate (default: the scenario's RSU rate)")
+    p.add_argument("--image-features", action="store_true", default=None,
+                   help="with --source camera|video: also publish each frame's detection boxes and the ORB "
+                        "keypoints + descriptors inside them on v2x/rsu/{id}/image_features, for image-level "
+                        "fusion on the OBU (v2i obu --fusion roif; seed 004)")
+    p.add_argument("--image-features-max", type=int, metavar="N",
+                   help="ORB keypoints per frame at most in image_features (default 1000: ~42 kB a frame)")
     p.add_argument("--model", metavar="ONNX", help="detector model, YOLOv8/v5 export layout (default: the shipped one)")
     p.add_argument("--calibration", metavar="FILE",
                    help="camera calibration from `v2i camera calibrate` (default: the scenario's shipped one)")

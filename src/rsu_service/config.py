@@ -30,7 +30,12 @@ class RsuConfig(ServiceConfig):
                                      "a video file or image folder (--video) through the same")
     video: str | None = Field(None, description="with source video: a video file or a folder of PNG/JPEG images")
     rate_hz: float | None = Field(None, gt=0, le=100, description="with source video: frames per second "
-                                  "(default: the video's, 10 for a folder)")
+                                  "(default: the video's, 10 for a folder); with source camera: the camera's "
+                                  "rate (default: the scenario's RSU rate)")
+    image_features: bool = Field(False, description="with source camera or video: also publish each frame's "
+                                 "boxes + ORB features on v2x/rsu/{id}/image_features (ROIF, seed 004)")
+    image_features_max: int = Field(1000, ge=1, le=4096, description="ORB keypoints per frame at most in "
+                                    "image_features (the strongest; ~42 bytes each on the wire)")
     model: str | None = Field(None, description="ONNX detector (YOLOv8/v5 export layout; default: the shipped model)")
     calibration: str | None = Field(None, description="calibration file (v2i camera calibrate); default: the "
                                     "scenario's shipped one")

@@ -47,8 +47,18 @@ class ImagePerception:
         from perception.ground import pixels_to_map
 
         boxes = self.detector.detect(image)
+        self.last_detections = (np.asarray(boxes.xyxy, float).reshape(-1, 4), np.asarray(boxes.scores, float),
+                                np.asarray(boxes.cls, np.int64))  # the boxes ROIF's features are found in
         objects = pixels_to_map(self.calibration, boxes.xyxy, boxes.cls, boxes.scores,
                                 pixel_sigma_px=self.pixel_sigma_px, camera_xy=self.camera_xy)
         if self.max_range_m is not None and self.camera_xy is not None and len(objects):
             objects = objects.take(np.hypot(*(objects.xy - self.camera_xy).T) <= self.max_range_m)
         return objects, self.detector.last_ms
+
+    def features(self, image: np.ndarray, max_features: int):
+        """ROIF features (``fusion.roif_features.ViewFeatures``) of the image ``perceive`` last saw:
+        its detector boxes and at most ``max_features`` ORB keypoints + descriptors inside them."""
+        from fusion.roif import RoifConfig
+        from fusion.roif_features import view_features
+
+        return view_features(image, self.last_detections, RoifConfig(), max_features)

@@ -18,6 +18,7 @@ from schemas import keys
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
 from schemas.intake import KeyedBuckets, TokenBucket
 from evaluation.perception_metrics import PerceptionTally
+from schemas.image_messages import RsuImageFeatures
 from schemas.messages import RsuMetrics, RsuPerception, TimeRequest
 from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
 from schemas.transport import open_session
@@ -69,7 +70,8 @@ class RsuNode:
             publisher = session.declare_publisher(keys.rsu_objects(rsu_id))
             self._predictions = session.declare_publisher(keys.rsu_predictions(rsu_id))
             self._metrics = session.declare_publisher(keys.rsu_metrics(rsu_id))
-            entities = [publisher, self._predictions, self._metrics,
+            self._features = session.declare_publisher(keys.rsu_image_features(rsu_id))
+            entities = [publisher, self._predictions, self._metrics, self._features,
                         session.declare_queryable(keys.rsu_time(rsu_id), self._on_time_query),
                         session.liveliness().declare_token(keys.rsu_alive(rsu_id))]
             announce("ready", "rsu", rsu_id=self.config.rsu_id, listen=self.config.listen)
@@ -102,6 +104,9 @@ class RsuNode:
             capture = Stamp(self.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
             publisher.put(encode(self.pipeline.on_frame(frame.detections, capture, self._now())))
             self._predictions.put(encode(self.pipeline.predictions(self._now())))
+            if frame.image_features is not None:  # ROIF: the frame's boxes + ORB features, stamped at capture
+                self._features.put(encode(RsuImageFeatures.from_view(self.config.rsu_id, self.published,
+                                                                     capture.wall_ns, frame.image_features)))
             self.published += 1
             if self.config.predict_ahead and self._sleep_until(frame.ready_true_ns + self.source.upsample_offset_ns, stop):
                 publisher.put(encode(self.pipeline.upsampled(self._now())))

@@ -38,6 +38,7 @@ class Frame:
     detections: ObjectArray
     visible_truth_xy: np.ndarray | None = None  # (T, 2) m: the truth this frame could see (simulation only)
     detector_ms: float | None = None  # the detector's own time on this frame
+    image_features: object | None = None  # fusion.roif_features.ViewFeatures when the RSU sends them (ROIF)
 
 
 class _Schedule:
@@ -78,13 +79,16 @@ class RenderedCamera(_Schedule):
     reproducible); the detector's time on this machine is reported beside it.
     """
 
-    def __init__(self, world: World, seed: int, start_ns: int, perception: ImagePerception):
+    def __init__(self, world: World, seed: int, start_ns: int, perception: ImagePerception,
+                 rate_hz: float | None = None, features_max: int | None = None):
+        """``rate_hz``: frames per second (default the scenario's RSU rate); ``features_max``:
+        with a number, each frame also carries ROIF features (at most that many ORB keypoints)."""
         from sim.camera import rsu_camera, rsu_sway
         from sim.render import SceneRenderer
 
         cfg = world.scenario.rsu
-        self.world, self.start_ns, self.rate_hz = world, start_ns, cfg.rate_hz
-        self.perception = perception
+        self.world, self.start_ns, self.rate_hz = world, start_ns, rate_hz or cfg.rate_hz
+        self.perception, self.features_max = perception, features_max
         self.camera, self.sway = rsu_camera(cfg), rsu_sway(cfg, stream(seed, "rsu_sway"))  # nominal pose (calibrated), wind
         self.renderer = SceneRenderer(world, seed)
         self.range_m, self.min_visible = cfg.range_m, cfg.min_visible_fraction  # what counts as seen (scoring)
@@ -98,7 +102,8 @@ class RenderedCamera(_Schedule):
         dets, detector_ms = self.perception.perceive(rendered.image)
         delay_s = self._delay.uniform(*self._delay_ms) / 1000.0
         return Frame(int(capture_true_ns), int(capture_true_ns + round(delay_s * 1e9)), dets,
-                     self._visible_truth(rendered.labels, t_s), detector_ms)
+                     self._visible_truth(rendered.labels, t_s), detector_ms,
+                     _features(self.perception, rendered.image, self.features_max))
 
     def _visible_truth(self, labels, t_s: float) -> np.ndarray:
         """(T, 2) map centres of the bodies the frame shows well enough, within range."""
@@ -115,9 +120,11 @@ class RecordedCamera(_Schedule):
     counted in ``frames.refused``; the run goes on. ``capture`` gives None at the end.
     """
 
-    def __init__(self, frames: ImageFrames, perception: ImagePerception, start_ns: int, rate_hz: float | None = None):
+    def __init__(self, frames: ImageFrames, perception: ImagePerception, start_ns: int, rate_hz: float | None = None,
+                 features_max: int | None = None):
         self.frames, self.perception, self.start_ns = frames, perception, start_ns
         self.rate_hz = rate_hz or frames.fps
+        self.features_max = features_max
 
     def capture_times_ns(self, duration_s: float) -> np.ndarray:
         times = super().capture_times_ns(duration_s)
@@ -130,7 +137,13 @@ class RecordedCamera(_Schedule):
         if image is None:
             return Frame(int(capture_true_ns), int(capture_true_ns), ObjectArray.empty())
         dets, detector_ms = self.perception.perceive(image)
-        return Frame(int(capture_true_ns), int(capture_true_ns + round(detector_ms * 1e6)), dets, None, detector_ms)
+        return Frame(int(capture_true_ns), int(capture_true_ns + round(detector_ms * 1e6)), dets, None, detector_ms,
+                     _features(self.perception, image, self.features_max))
+
+
+def _features(perception: ImagePerception, image, features_max: int | None):
+    """ROIF features of the image just perceived (same render, same boxes), or None when not sent."""
+    return None if features_max is None else perception.features(image, features_max)
 
 
 def make_source(config, world: World, start_ns: int):
@@ -138,12 +151,14 @@ def make_source(config, world: World, start_ns: int):
     if config.source == "sim":
         return SimulatedCamera(world, config.seed, start_ns)
     perception = open_perception(config, world)
+    features_max = config.image_features_max if config.image_features else None
     if config.source == "camera":
-        return RenderedCamera(world, config.seed, start_ns, perception)
+        return RenderedCamera(world, config.seed, start_ns, perception, config.rate_hz, features_max)
     if config.video is None:
         raise ValueError("--source video needs --video PATH (a video file or a folder of images)")
     cal = perception.calibration
-    return RecordedCamera(ImageFrames(config.video, (cal.width, cal.height)), perception, start_ns, config.rate_hz)
+    return RecordedCamera(ImageFrames(config.video, (cal.width, cal.height)), perception, start_ns, config.rate_hz,
+                          features_max)
 
 
 def open_perception(config, world: World) -> ImagePerception:

@@ -27,9 +27,10 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="red-light-runner", help="bundled scenario name or YAML path (default %(default)s)")
     p.add_argument("--profile", default="lte-v2x", help="link profile: bundled name or YAML path (default %(default)s)")
     p.add_argument("--fusion", default="kf", choices=(*FUSION_METHODS, "roif"),
-                   help="fusion method (default %(default)s); roif (v2i eval only): image-level fusion of the ego's "
-                        "and the RSU's camera boxes by ORB + RANSAC homography (seed 004) on a scenario with an "
-                        "ego_camera, e.g. --scenario roif-intersection")
+                   help="fusion method (default %(default)s); roif: image-level fusion of the ego's and the RSU's "
+                        "camera boxes by ORB + RANSAC homography (seed 004) on a scenario with an ego_camera, e.g. "
+                        "--scenario roif-intersection: offline in v2i eval; live in v2i demo (RSU --source camera "
+                        "--image-features at the ego camera's rate, the link, OBU --fusion roif; startup >= 12 s)")
     p.add_argument("--fusion-mode", default="adaptive", choices=FUSION_MODES,
                    help="which RSU data a cycle fuses (seed 003): intra waits for the frame of the cycle's slot, "
                         "inter uses the newest buffered one, planning hands the RSU's 5 s paths to the planner; "
@@ -97,8 +98,8 @@ def _check_inputs(args: argparse.Namespace) -> None:
     load_scenario(args.scenario)
     load_profile(args.profile)
     _check_numbers(args)
-    if args.fusion == "roif":
-        raise ValueError("--fusion roif runs offline only: v2i eval --fusion roif --scenario roif-intersection")
+    if args.fusion == "roif" and args.command != "demo":
+        raise ValueError(f"--fusion roif runs in v2i eval and v2i demo, not v2i {args.command}")
     spec = _spec(args)
     spec.rsu_config()  # pydantic ValidationError: summarised by main with the flags' names
     spec.obu_config()
@@ -191,8 +192,23 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from evaluation.demo import Demo, LinkOutage
 
     _check_inputs(args)
+    if args.fusion == "roif":
+        return _run_roif_demo(args)
     outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
     return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage), args.json, "v2i demo")
+
+
+def _run_roif_demo(args: argparse.Namespace) -> int:
+    """``v2i demo --fusion roif``: RSU camera + features, link, OBU image fusion; the ``image_fusion`` report."""
+    from evaluation.image_fusion_demo import ImageFusionDemo, summary
+
+    if args.kill_link_at is not None:
+        raise ValueError("--kill-link-at is not supported with --fusion roif")
+    report = _live(ImageFusionDemo(_spec(args), startup_s=args.startup).run, "v2i demo")
+    if isinstance(report, int):
+        return report
+    _emit(report, args.json, summary)
+    return 0
 
 
 def cmd_chaos_run(args: argparse.Namespace) -> int:

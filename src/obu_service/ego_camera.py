@@ -1,0 +1,58 @@
+"""The vehicle's front camera for image-level fusion (``--fusion roif``): render, detect, ORB.
+
+Frame k is captured at start + k / ``scenario.ego_camera.rate_hz`` (OBU clock, the true clock
+in simulation): the scenario rendered (``sim.render.SceneRenderer``, textures by the run's seed,
+as the RSU's renderer, so both cameras see the same surfaces) by ``sim.camera.vehicle_camera``
+at the ego's pose, the ego itself hidden; boxes from the ONNX detector (the shipped model, or
+``model_path``); ORB features inside them (``fusion.roif_features``). The same steps as
+``v2i eval --fusion roif``'s ego view.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fusion.roif import RoifConfig
+from fusion.roif_features import ViewFeatures, view_features
+from schemas.image_messages import MAX_BOXES
+from sim.seeding import stream
+from sim.sensors import frame_times
+from sim.world import World
+
+
+class EgoCamera:
+    def __init__(self, world: World, seed: int, start_ns: int, model_path: str | None = None,
+                 roif: RoifConfig | None = None, threads: int | None = None):
+        from perception.detector import OnnxDetector
+        from sim.camera import vehicle_camera
+        from sim.render import SceneRenderer
+
+        cfg = world.scenario.ego_camera
+        if cfg is None:
+            raise ValueError(f"scenario {world.scenario.name!r} has no ego_camera: --fusion roif needs one "
+                             "(e.g. roif-intersection)")
+        self.world, self.start_ns, self.rate_hz, self.config = world, start_ns, cfg.rate_hz, cfg
+        self.roif = roif or RoifConfig()
+        self.renderer = SceneRenderer(world, seed)
+        self.detector = OnnxDetector(model_path, threads=threads)
+        self._camera = vehicle_camera
+        self._noise = stream(seed, "ego_render")
+        probe = self._camera(cfg, world.ego_at(0.0))
+        self.detector.detect(np.zeros((probe.height, probe.width, 3), np.uint8))  # warm-up: the first run is slow
+
+    @property
+    def period_ns(self) -> int:
+        return round(1e9 / self.rate_hz)
+
+    def frame_times_ns(self, duration_s: float) -> np.ndarray:
+        """(K,) int64 capture times of the run."""
+        return self.start_ns + np.round(frame_times(self.rate_hz, duration_s) * 1e9).astype(np.int64)
+
+    def capture(self, t_ns: int) -> ViewFeatures:
+        """The frame captured at ``t_ns``: its boxes (the ``MAX_BOXES`` best at most) and ORB features."""
+        t_s = (t_ns - self.start_ns) * 1e-9
+        frame = self.renderer.render(self._camera(self.config, self.world.ego_at(t_s)), t_s, self._noise, hide_ego=True)
+        d = self.detector.detect(frame.image)
+        xyxy, scores, cls = np.asarray(d.xyxy, float).reshape(-1, 4), np.asarray(d.scores, float), np.asarray(d.cls)
+        keep = np.sort(np.argsort(-scores, kind="stable")[:MAX_BOXES])
+        return view_features(frame.image, (xyxy[keep], scores[keep], cls[keep]), self.roif)

@@ -1,0 +1,169 @@
+"""OBU node for image-level fusion (``v2i obu --fusion roif``): the Zenoh shell around
+``image_fusion.ImageFusionPipeline`` and the ego camera.
+
+Zenoh callbacks only stamp the receive time and put the payload into the bounded, rate-limited
+``Intake`` (registered RSUs first): RSU feature frames (``v2x/rsu/*/image_features``) and time
+replies. The one loop owns the pipeline: at each ego camera frame's capture time it renders,
+detects and extracts features (``EgoCamera``), queues the frame, and publishes every frame that
+can be fused (``ImageFusedBoxes`` on ``v2x/obu/{id}/image_objects``) as soon as its RSU partner
+is decoded or its wait is over; a frame whose capture time is already a period past when the loop
+gets to it (the loop fell behind) is not rendered but published at once as an empty ego-view
+frame and counted (``camera_frame_skipped``), never silently dropped. Metrics
+(``ObuMetrics``) follow every output.
+"""
+
+from __future__ import annotations
+
+import heapq
+import threading
+
+import numpy as np
+import zenoh
+
+from fusion.roif_features import ViewFeatures
+from schemas import keys
+from schemas.codec import CodecError, decode, encode
+from schemas.image_messages import RsuImageFeatures
+from schemas.intake import Intake, Item
+from schemas.messages import TimeReply
+from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
+from schemas.transport import open_session
+from sim.clock import Clock, SystemClock
+from sim.scenario import load_scenario
+from sim.world import World
+
+from .config import ObuConfig
+from .ego_camera import EgoCamera
+from .image_fusion import ImageFusionConfig, ImageFusionPipeline
+
+
+class ImageFusionNode:
+    def __init__(self, config: ObuConfig, clock: Clock | None = None):
+        self.config = config
+        self.clock = clock or SystemClock()
+        self.start_ns = config.start_at_ns or self.clock.now_ns()
+        self.world = World(load_scenario(config.scenario))
+        self.duration_s = config.duration_s or self.world.scenario.duration_s
+        self.camera = EgoCamera(self.world, config.seed, self.start_ns, config.roif_model, threads=config.roif_threads)
+        known = tuple(config.registered_rsus())
+        self.pipeline = ImageFusionPipeline(ImageFusionConfig(
+            vehicle_id=config.vehicle_id, known_rsus=known, pair_tolerance_ms=config.roif_pair_tolerance_ms,
+            wait_ms=config.roif_wait_ms, deadline_ms=config.roif_deadline_ms, max_age_ms=config.roif_max_age_ms,
+            future_tolerance_ms=config.future_tolerance_ms))
+        self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
+                              config.source_burst, max_queued_bytes=config.inbox_max_bytes,
+                              preferred=lambda key: _rsu_of(key) in known)
+        self._log, self._trim = ThrottledLog("obu"), MemoryTrim()
+        self._details: dict[str, str] = {}
+        self._events: list = []
+
+    def run(self, stop: threading.Event) -> None:
+        session = open_session(self.config.listen, self.config.connect)
+        vid = self.config.vehicle_id
+        entities = []
+        try:
+            critical = dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME,
+                            express=True)
+            self._out = session.declare_publisher(keys.obu_image_objects(vid), **critical)
+            self._metrics = session.declare_publisher(keys.obu_metrics(vid))
+            entities = [self._out, self._metrics,
+                        session.declare_subscriber(keys.RSU_IMAGE_FEATURES_ALL, self._on_features_sample)]
+            self._session = session
+            self._schedule()
+            announce("ready", "obu", vehicle_id=vid, listen=self.config.listen, fusion="roif")
+            self._loop(stop)
+        finally:
+            for entity in entities:
+                entity.undeclare()
+            session.close()
+            p = self.pipeline
+            self._log.flush(force=True)
+            log("obu", f"stopped: {p.cycles} image frames, {p.unpaired} without an RSU frame, "
+                       f"{p.deadline_misses} deadline misses, rejected {dict(p.rejected)}")
+
+    # --- Zenoh callbacks: stamp and enqueue only ------------------------------------------
+    def _on_features_sample(self, sample) -> None:
+        self._put("features", sample)
+
+    def _on_time_reply(self, reply) -> None:
+        if reply.ok is not None:
+            self._put("time", reply.ok)
+
+    def _put(self, kind: str, sample) -> None:
+        payload = sample.payload
+        self._intake.put(kind, str(sample.key_expr), len(payload), self.clock.now_ns(), payload.to_bytes)
+
+    # --- the loop ---------------------------------------------------------------------------
+    def _schedule(self) -> None:
+        now = self.clock.now_ns()
+        for t in self.camera.frame_times_ns(self.duration_s):
+            if t >= now:
+                heapq.heappush(self._events, (int(t), 1, "capture"))
+        period_ns = round(1e9 / self.config.sync_rate_hz)
+        for t in np.arange(max(now, self.start_ns - 2 * period_ns), self.start_ns + self.duration_s * 1e9, period_ns):
+            heapq.heappush(self._events, (int(t), 2, "sync"))
+        heapq.heappush(self._events, (self.start_ns + round((self.duration_s + 1.0) * 1e9), 3, "end"))
+
+    def _loop(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            due_ns, _, kind = self._events[0]
+            timeout_s = (due_ns - self.clock.now_ns()) * 1e-9
+            if timeout_s > 0:
+                item = self._intake.get(min(timeout_s, 0.2))
+                if item is not None:
+                    self._handle_input(item)
+                continue
+            heapq.heappop(self._events)
+            if kind == "end":
+                return
+            getattr(self, f"_do_{kind}")(due_ns)
+            self._publish_ready()
+
+    def _handle_input(self, item: Item) -> None:
+        max_bytes = self.config.max_message_bytes
+        try:
+            if item.kind == "time":
+                self.pipeline.on_time_reply(decode(item.payload, TimeReply, max_bytes), item.receive_ns)
+            else:
+                self.pipeline.on_features(decode(item.payload, RsuImageFeatures, max_bytes), item.receive_ns)
+        except CodecError as exc:
+            self.pipeline.reject(f"features_{exc.reason}" if item.kind == "features" else exc.reason)
+            self._details.setdefault(exc.reason, f"{item.kind} on {item.source}: {exc}")
+        self._publish_ready()
+
+    def _do_capture(self, due_ns: int) -> None:
+        if self.clock.now_ns() - due_ns > self.camera.period_ns:  # fell behind: this frame's time has passed
+            self.pipeline.reject("camera_frame_skipped")
+            features = ViewFeatures.of(np.zeros((0, 4)), [], [], np.zeros((0, 2)), np.zeros((0, 32)),
+                                       (self.camera.config.image.width, self.camera.config.image.height))
+        else:
+            features = self.camera.capture(due_ns)
+        fuse_by_ns = self.pipeline.on_frame(features, due_ns)
+        heapq.heappush(self._events, (fuse_by_ns, 0, "wait_over"))
+
+    def _do_wait_over(self, _due_ns: int) -> None:
+        """A frame's wait for its RSU partner is over: ``_publish_ready`` fuses it without one."""
+
+    def _publish_ready(self) -> None:
+        while self.pipeline.ready(now_ns := self.clock.now_ns()):
+            self._out.put(encode(self.pipeline.fuse_next(now_ns)))
+            self._count_refusals()
+            self._metrics.put(encode(self.pipeline.metrics(self.clock.now_ns())))
+            self._trim.maybe()
+
+    def _count_refusals(self) -> None:
+        for reason, n in self._intake.take_counts().items():
+            self.pipeline.reject(reason, n)
+        self._log.totals(self.pipeline.rejected, self._details)
+
+    def _do_sync(self, _due_ns: int) -> None:
+        request = self.pipeline.make_time_request(self.clock.now_ns())
+        self._session.get(keys.RSU_TIME_ALL, self._on_time_reply, payload=encode(request),
+                          timeout=self.config.time_query_timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
+
+
+def _rsu_of(key: str) -> str | None:
+    try:
+        return keys.rsu_id_from_key(key)
+    except ValueError:
+        return None
