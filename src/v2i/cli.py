@@ -236,6 +236,10 @@ def cmd_fuzz(args: argparse.Namespace) -> int:
     kinds = args.kinds.split(",") if args.kinds else None
     if args.target == "frames":
         from evaluation.fuzz_frames import FramesFuzz as target
+    elif args.fusion == "roif":
+        if args.target != "obu":
+            raise ValueError("--fusion roif fuzzes the OBU only: v2i fuzz --target obu --fusion roif")
+        from evaluation.fuzz_roif import ObuRoifFuzz as target
     else:
         target = TARGETS[args.target]
     run = target(args.count, seed=args.seed, rate_hz=args.rate, startup_s=args.startup, kinds=kinds)
@@ -328,6 +332,10 @@ def build_parser() -> argparse.ArgumentParser:
     fuzz.add_argument("--target", required=True, choices=("obu", "rsu", "link", "frames"),
                       help="the service to attack; frames: hostile image files in the RSU's recording "
                            "(--source video), read at min(--rate, 20) frames/s")
+    fuzz.add_argument("--fusion", choices=("roif",), help="with --target obu: an OBU fusing images (--fusion roif) "
+                      "under hostile RsuImageFeatures (kinds: malformed, wrong_type, unknown_keys, non_finite, "
+                      "out_of_image, oversized_counts, wrong_descriptor_length, bad_index, absurd_times, edge_valid, "
+                      "special: flood, fake_id, replay); RSU and OBU on roif-intersection")
     fuzz.add_argument("--count", type=int, default=10_000, help="hostile messages to send (default %(default)s)")
     fuzz.add_argument("--rate", type=float, default=2000.0, help="messages per second (default %(default)s)")
     fuzz.add_argument("--seed", type=int, default=0, help="seed of the hostile messages (default %(default)s)")
