@@ -1,0 +1,90 @@
+"""The OBU fusing images (``--fusion roif``) over Zenoh: the test is the RSU (answers time queries,
+publishes rendered RSU frames' features); the OBU renders its own camera, pairs, fuses and
+publishes an ImageFusedBoxes per frame; hostile feature messages are refused by reason."""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+
+import pytest
+
+from fusion.roif import RoifConfig
+from fusion.roif_features import view_features
+from obu_service.config import ObuConfig
+from obu_service.image_fusion_node import ImageFusionNode
+from perception.detector import OnnxDetector
+from schemas import keys
+from schemas.codec import decode, encode
+from schemas.image_messages import ImageFusedBoxes, RsuImageFeatures
+from schemas.messages import ObuMetrics, TimeReply, TimeRequest
+from schemas.transport import free_tcp_endpoint, open_session
+from sim.camera import rsu_camera
+from sim.render import SceneRenderer
+from sim.scenario import load_scenario
+from sim.world import World
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
+SCENARIO, RSU_ID, FRAMES, RATE_HZ = "roif-intersection", "rsu-roif", 15, 10.0
+
+
+def _answer_time(query) -> None:
+    t2 = time.time_ns()
+    request = decode(query.payload.to_bytes(), TimeRequest)
+    query.reply(keys.rsu_time(RSU_ID), encode(TimeReply(rsu_id=RSU_ID, seq=request.seq, t1_ns=request.t1_ns,
+                                                         t2_ns=t2, t3_ns=time.time_ns())))
+
+
+def test_obu_fuses_images_live_and_refuses_bad_features():
+    world = World(load_scenario(SCENARIO))
+    renderer, camera, detector = SceneRenderer(world, 0), rsu_camera(world.scenario.rsu), OnnxDetector(threads=1)
+    ep = free_tcp_endpoint()
+    start_ns = time.time_ns() + 12_000_000_000
+    node = ImageFusionNode(ObuConfig(listen=[ep], scenario=SCENARIO, fusion="roif", start_at_ns=start_ns,
+                                     duration_s=FRAMES / RATE_HZ, roif_threads=1, sync_rate_hz=20.0))
+    outputs, metrics = queue.Queue(), queue.Queue()
+    rsu = open_session(connect=[ep])
+    declared = [rsu.declare_queryable(keys.rsu_time(RSU_ID), _answer_time),
+                rsu.declare_subscriber(keys.obu_image_objects("ego"), lambda s: outputs.put(s.payload.to_bytes())),
+                rsu.declare_subscriber(keys.obu_metrics("ego"), lambda s: metrics.put(s.payload.to_bytes()))]
+    publisher = rsu.declare_publisher(keys.rsu_image_features(RSU_ID))
+    stop = threading.Event()
+    thread = threading.Thread(target=node.run, args=(stop,))
+    thread.start()
+    try:
+        for k in range(FRAMES):
+            t_ns = start_ns + round(k * 1e9 / RATE_HZ)
+            while time.time_ns() < t_ns:
+                time.sleep(0.002)
+            frame = renderer.render(camera, k / RATE_HZ)
+            d = detector.detect(frame.image)
+            features = view_features(frame.image, (d.xyxy, d.scores, d.cls), RoifConfig(), 1000)
+            publisher.put(encode(RsuImageFeatures.from_view(RSU_ID, k, t_ns, features)))
+            if k == 5:  # hostile: truncated, from an unknown RSU
+                publisher.put(encode(RsuImageFeatures.from_view(RSU_ID, 99, t_ns, features))[:-9])
+                rsu.put(keys.rsu_image_features("stranger"), encode(RsuImageFeatures.from_view("stranger", 1, t_ns, features)))
+        got, deadline = [], time.monotonic() + 10.0
+        while len(got) < FRAMES and time.monotonic() < deadline:
+            try:
+                got.append(decode(outputs.get(timeout=0.2), ImageFusedBoxes))
+            except queue.Empty:
+                pass
+    finally:
+        stop.set()
+        thread.join(15.0)
+        publisher.undeclare()
+        for d in declared:
+            d.undeclare()
+        rsu.close()
+    assert not thread.is_alive()
+    assert [o.seq for o in got] == list(range(1, FRAMES + 1)), "one output per ego frame, in order"
+    paired = [o for o in got if o.view == "rsu"]
+    assert len(paired) >= FRAMES - 3, f"most frames pair with the RSU frame of their time: {[o.view for o in got]}"
+    assert all(abs(o.rsu_t_obu_ns - o.t_ns) <= 50_000_000 for o in paired)
+    assert sum(o.fused.n for o in paired) > 0
+    last = None
+    while not metrics.empty():
+        last = decode(metrics.get(), ObuMetrics)
+    assert last is not None and last.cycles == FRAMES
+    assert last.rejected.get("features_malformed") == 1 and last.rejected.get("features_unknown_rsu") == 1
