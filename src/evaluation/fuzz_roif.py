@@ -29,12 +29,21 @@ import numpy as np
 
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
-from schemas.image_messages import (DESCRIPTOR_BYTES, F4, MAX_BOXES, MAX_KEYPOINTS, U1, U2, ImageFusedBoxes,
-                                    RsuImageFeatures, to_bytes)
+from schemas.image_messages import (
+    DESCRIPTOR_BYTES,
+    F4,
+    MAX_BOXES,
+    MAX_KEYPOINTS,
+    U1,
+    U2,
+    ImageFusedBoxes,
+    RsuImageFeatures,
+    to_bytes,
+)
 from schemas.transport import free_tcp_endpoint
 from sim.scenario import load_scenario
 
-from .fuzz import MS, VEHICLE_ID, FuzzRun
+from .fuzz import MS, VEHICLE_ID
 from .fuzz_targets import CLOCK_OFFSET_MS, REPLAY_AGE_NS, ObuFuzz
 
 SCENARIO = "roif-intersection"

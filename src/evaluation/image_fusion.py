@@ -51,7 +51,15 @@ import numpy as np
 
 from fusion.association import assign
 from fusion.box_tracker import BoxTrackerConfig
-from fusion.roif import MAPPED_FRAME, MAPPED_NONE, MAPPED_OWN, OK, RoifConfig, iou_matrix, map_boxes
+from fusion.roif import (
+    MAPPED_FRAME,
+    MAPPED_NONE,
+    MAPPED_OWN,
+    OK,
+    RoifConfig,
+    iou_matrix,
+    map_boxes,
+)
 from fusion.roif_features import ViewFeatures, view_features
 from fusion.roif_pipeline import RoifFrame, RoifFramePipeline
 from sim.camera import rsu_camera, vehicle_camera

@@ -34,6 +34,8 @@ from schemas.messages import ObuMetrics, RsuMetrics
 from .demo import Demo
 from .image_fusion import FusionTally, score_frame
 
+PAIRED_KEYS = ("frames", "truths", "detection_accuracy", "rsu_only_detection_accuracy", "vehicle_only_detection_accuracy",
+               "mean_iou", "precision")
 # three processes build a renderer (ground rasters, textures) and load a detector on 2 cores: ~6-8 s
 MIN_STARTUP_S = 12.0
 
@@ -77,7 +79,7 @@ class ImageFusionDemo(Demo):
 
     def _report(self) -> dict:
         start_ns = self.record.start_ns
-        tally = score_outputs(self.world, self.spec.seed, start_ns, self.rate_hz, self.outputs)
+        tally, paired = score_outputs(self.world, self.spec.seed, start_ns, self.rate_hz, self.outputs)
         expected = int(np.ceil(self.duration_s * self.rate_hz - 1e-9))
         m = self.obu_metrics
         latency_ms = [(o.publish_time_ns - o.t_ns) / 1e6 for o in self.outputs]
@@ -86,6 +88,7 @@ class ImageFusionDemo(Demo):
             "frames_paired": sum(o.view == "rsu" for o in self.outputs),
             "frames_unpaired": sum(o.view == "ego" for o in self.outputs),
             "output_latency_ms": _percentiles(latency_ms),
+            "paired_frames_only": {k: paired.section()[k] for k in PAIRED_KEYS},
             "cycles": None if m is None else m.cycles,
             "output_deadline_misses": None if m is None else m.output_deadline_misses,
             "rejected": {} if m is None else dict(m.rejected),
@@ -93,11 +96,13 @@ class ImageFusionDemo(Demo):
         }
         return {"driver": "demo", "scenario": self.world.scenario.name, "fusion": "roif", "profile": self.spec.profile,
                 "seed": self.spec.seed, "duration_s": self.duration_s, "detector": "onnx", "camera_rate_hz": self.rate_hz,
-                "image_fusion": tally.section(), "image_fusion_live": live, "rsu_perception": self.record.rsu_perception}
+                "image_fusion": tally.section(), "image_fusion_live": live}
 
 
-def score_outputs(world, seed: int, start_ns: int, rate_hz: float, outputs: list[ImageFusedBoxes]) -> FusionTally:
-    """The offline eval's tally over the OBU's outputs, in frame order, against rendered truth labels."""
+def score_outputs(world, seed: int, start_ns: int, rate_hz: float,
+                  outputs: list[ImageFusedBoxes]) -> tuple[FusionTally, FusionTally]:
+    """The offline eval's tally over the OBU's outputs, in frame order, against rendered truth
+    labels; and the same over the frames that paired with an RSU frame only."""
     from sim.camera import rsu_camera, rsu_sway, vehicle_camera
     from sim.render import SceneRenderer
     from sim.seeding import stream
@@ -106,7 +111,7 @@ def score_outputs(world, seed: int, start_ns: int, rate_hz: float, outputs: list
     renderer = SceneRenderer(world, seed)
     cam_rsu, sway = rsu_camera(sc.rsu), rsu_sway(sc.rsu, stream(seed, "rsu_sway"))
     period_ns = 1e9 / rate_hz
-    tally = FusionTally()
+    tally, paired = FusionTally(), FusionTally()
     for msg in sorted(outputs, key=lambda o: o.t_ns):
         t_ego_s = (msg.t_ns - start_ns) * 1e-9
         t_rsu_ns = msg.t_ns if msg.rsu_t_obu_ns is None else msg.rsu_t_obu_ns
@@ -114,7 +119,9 @@ def score_outputs(world, seed: int, start_ns: int, rate_hz: float, outputs: list
         rsu_labels = renderer.render(sway.move(cam_rsu, t_rsu_s), t_rsu_s).labels
         ego_labels = renderer.render(vehicle_camera(sc.ego_camera, world.ego_at(t_ego_s)), t_ego_s, hide_ego=True).labels
         score_frame(tally, frame_of(msg), rsu_labels, ego_labels)
-    return tally
+        if msg.view == "rsu":  # its own tracker view: the tracks are the same objects, scored again
+            score_frame(paired, frame_of(msg), rsu_labels, ego_labels)
+    return tally, paired
 
 
 def frame_of(msg: ImageFusedBoxes) -> RoifFrame:

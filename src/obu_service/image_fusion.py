@@ -30,7 +30,17 @@ from fusion.box_tracker import BoxTrackerConfig
 from fusion.roif import MAPPED_NONE, RoifConfig
 from fusion.roif_features import ViewFeatures
 from fusion.roif_pipeline import RoifFrame, RoifFramePipeline
-from schemas.image_messages import F4, I2, MAX_BOXES, U1, U4, BoxColumns, ImageFusedBoxes, RsuImageFeatures, to_bytes
+from schemas.image_messages import (
+    F4,
+    I2,
+    MAX_BOXES,
+    U1,
+    U4,
+    BoxColumns,
+    ImageFusedBoxes,
+    RsuImageFeatures,
+    to_bytes,
+)
 from schemas.messages import ObuMetrics, RsuLinkStatus, TimeReply, TimeRequest
 
 from .clock_sync import ClockSync

@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import Field, Strict, model_validator
 
 from .classes import ObjectClass
-from .messages import Count, Message, NodeId, SchemaVersion, Seq, TimeNs, SCHEMA_VERSION
+from .messages import SCHEMA_VERSION, Count, Message, NodeId, SchemaVersion, Seq, TimeNs
 
 MAX_BOXES = 256  # boxes per frame
 MAX_KEYPOINTS = 4096  # keypoints per frame (an RSU caps its ORB well below: --image-features-max, 1000)
@@ -67,7 +67,7 @@ class BoxColumns(Message):
     cls: Column = b""
 
     @model_validator(mode="after")
-    def _valid(self) -> "BoxColumns":
+    def _valid(self) -> BoxColumns:
         xyxy, score, cls = self.arrays()
         for name, ok in (("xyxy: not finite", np.isfinite(xyxy)),
                          ("xyxy: empty box (x2 <= x1 or y2 <= y1)", (xyxy[:, 2] > xyxy[:, 0]) & (xyxy[:, 3] > xyxy[:, 1])),
@@ -90,7 +90,7 @@ class BoxColumns(Message):
         return _first_bad((xyxy[:, :2] >= 0) & (xyxy[:, 2:] <= [width, height]))
 
     @classmethod
-    def of(cls, xyxy, score, classes) -> "BoxColumns":
+    def of(cls, xyxy, score, classes) -> BoxColumns:
         xyxy = np.asarray(xyxy, float).reshape(-1, 4)
         return cls(n=len(xyxy), xyxy=to_bytes(xyxy, F4), score=to_bytes(np.clip(score, 0.0, 1.0), F4),
                    cls=to_bytes(classes, U1))
@@ -119,7 +119,7 @@ class RsuImageFeatures(Message):
     keypoint_box: Column = b""
 
     @model_validator(mode="after")
-    def _valid(self) -> "RsuImageFeatures":
+    def _valid(self) -> RsuImageFeatures:
         box = self.boxes.outside(self.image_width, self.image_height)
         if box is not None:
             raise ValueError(f"boxes: box {box} is not inside the {self.image_width} x {self.image_height} image")
@@ -146,7 +146,7 @@ class RsuImageFeatures(Message):
                                column(self.keypoint_box, U2, k, 1, "keypoint_box").ravel())
 
     @classmethod
-    def from_view(cls, rsu_id: str, seq: int, t_ns: int, view) -> "RsuImageFeatures":
+    def from_view(cls, rsu_id: str, seq: int, t_ns: int, view) -> RsuImageFeatures:
         """The message of a ``ViewFeatures`` (keypoints in no box are not sent)."""
         keep = (view.box_index >= 0) & (view.box_index < len(view.boxes))
         return cls(rsu_id=rsu_id, seq=seq, t_ns=t_ns, image_width=view.image_wh[0], image_height=view.image_wh[1],
@@ -203,7 +203,7 @@ class ImageFusedBoxes(Message):
     rsu: BoxColumns = BoxColumns()
 
     @model_validator(mode="after")
-    def _valid(self) -> "ImageFusedBoxes":
+    def _valid(self) -> ImageFusedBoxes:
         if self.publish_time_ns < self.t_ns:
             raise ValueError("publish_time_ns is before t_ns (same OBU clock)")
         if (self.view == "rsu") != (self.rsu_id is not None and self.rsu_seq is not None and self.rsu_t_ns is not None):

@@ -6,11 +6,29 @@ import msgpack
 import numpy as np
 import pytest
 
-from fusion.roif import RoifConfig, fit_homography, match_descriptors, roif_fuse, roif_fuse_images
-from fusion.roif_features import ViewFeatures, box_mask, keypoint_box_index, view_features
+from fusion.roif import (
+    RoifConfig,
+    fit_homography,
+    match_descriptors,
+    roif_fuse,
+    roif_fuse_images,
+)
+from fusion.roif_features import (
+    ViewFeatures,
+    box_mask,
+    keypoint_box_index,
+    view_features,
+)
 from fusion.roif_pipeline import VIEW_EGO, VIEW_RSU, RoifFramePipeline
 from obu_service.image_fusion import ImageFusionConfig, ImageFusionPipeline
-from schemas.codec import CodecError, InvalidMessage, MalformedMessage, WrongMessageType, decode, encode
+from schemas.codec import (
+    CodecError,
+    InvalidMessage,
+    MalformedMessage,
+    WrongMessageType,
+    decode,
+    encode,
+)
 from schemas.image_messages import F4, U2, ImageFusedBoxes, RsuImageFeatures
 from schemas.messages import ObjectList, TimeReply
 
@@ -163,7 +181,7 @@ def test_obu_pairs_refuses_by_reason_and_publishes_every_frame(views):
     img_o, det_o, img_r, det_r = views
     pipe = ImageFusionPipeline(ImageFusionConfig(known_rsus=("rsu-1",)))
     obu, rsu = view_features(img_o, det_o, pipe.roif.roif), view_features(img_r, det_r, pipe.roif.roif)
-    msg = lambda t_rsu, rsu_id="rsu-1", seq=1: RsuImageFeatures.from_view(rsu_id, seq, t_rsu, rsu)  # noqa: E731
+    msg = lambda t_rsu, rsu_id="rsu-1", seq=1: RsuImageFeatures.from_view(rsu_id, seq, t_rsu, rsu)
     assert not pipe.on_features(msg(T0), T0) and pipe.rejected["features_unsynced"] == 1
     _synced(pipe)
     offset = 250_000_000
