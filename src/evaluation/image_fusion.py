@@ -1,14 +1,15 @@
 """Offline driver of image-level fusion (``v2i eval --fusion roif``; seed 004 Ch. 5-6).
 
 At the ego camera's rate (``scenario.ego_camera.rate_hz``), frame k at t_k = k / rate:
-render the RSU view (``sim.camera.rsu_camera``) and the ego view (``sim.camera.vehicle_camera``
-at the ego's true pose, the ego itself hidden) with ``sim.render.SceneRenderer``; detect boxes
-in both; fuse them with ROIF (``fusion.roif``: ORB + RANSAC homography, OBU boxes mapped into
+render the RSU view (``sim.camera.rsu_camera``, swaying as the live RSU's) and the ego view
+(``sim.camera.vehicle_camera`` at the ego's true pose, the ego itself hidden) with
+``sim.render.SceneRenderer``; detect boxes in both (the RSU at the live RSU's score threshold,
+ORB features up to its per-frame cap: ``RSU_DEFAULTS``); fuse them with ROIF (``fusion.roif``: ORB + RANSAC homography, OBU boxes mapped into
 the RSU view, eq. 5.6-5.11); track the fused boxes (``fusion.box_tracker``); score against the
 RSU view's ground-truth labels.
 
 Detectors: ``"onnx"`` (``perception.detector.OnnxDetector``, the shipped model or
-``model_path``) or ``"labels"``, a stand-in that reads the renderer's ``BoxLabels``: each
+``model_path``; the RSU's at ``v2i rsu``'s score threshold, the OBU's at the detector's default) or ``"labels"``, a stand-in that reads the renderer's ``BoxLabels``: each
 label with visible fraction v >= 0.3 is detected with probability p_detect min(1, v / 0.6),
 its corners jittered by N(0, (jitter * size)^2), its score U(0.5, 1). The report names the
 detector used.
@@ -62,7 +63,8 @@ from fusion.roif import (
 )
 from fusion.roif_features import ViewFeatures, view_features
 from fusion.roif_pipeline import RoifFrame, RoifFramePipeline
-from sim.camera import rsu_camera, vehicle_camera
+from rsu_service.config import RsuConfig
+from sim.camera import rsu_camera, rsu_sway, vehicle_camera
 from sim.scenario import load_scenario
 from sim.seeding import stream
 from sim.world import World
@@ -71,6 +73,8 @@ MIN_VISIBLE = 0.3  # least visible fraction of a truth that counts
 MATCH_IOU = 0.5  # IoU a box needs to match a truth
 DEFAULT_SCENARIO = "roif-intersection"
 DETECTORS = ("onnx", "labels")
+# the live RSU's score threshold and per-frame ORB cap (v2i rsu --score-threshold, --image-features-max)
+RSU_DEFAULTS = {name: RsuConfig.model_fields[name].default for name in ("score_threshold", "image_features_max")}
 NO_OBJECT_TRANSFORM = "no_object_transform"  # a frame homography, but no OBU box had its own transform
 
 
@@ -108,10 +112,11 @@ class OnnxBoxes:
 
     name = "onnx"
 
-    def __init__(self, model_path=None):
+    def __init__(self, model_path=None, score_threshold: float | None = None):
         from perception.detector import OnnxDetector
 
-        self.detector = OnnxDetector(model_path)
+        kw = {} if score_threshold is None else {"score_threshold": score_threshold}
+        self.detector = OnnxDetector(model_path, **kw)
 
     def boxes(self, frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         d = self.detector.detect(frame.image)
@@ -229,9 +234,8 @@ def corner_error_px(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _detectors(detector: str, model_path, seed: int) -> tuple:
     """(RSU view detector, ego view detector); the stand-in draws from its own seeded streams."""
-    if detector == "onnx":
-        onnx = OnnxBoxes(model_path)
-        return onnx, onnx
+    if detector == "onnx":  # the RSU's threshold is the RSU service's (v2i rsu --score-threshold), the OBU's the detector's
+        return OnnxBoxes(model_path, RSU_DEFAULTS["score_threshold"]), OnnxBoxes(model_path)
     if detector == "labels":
         rngs = [np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0x501F, k))) for k in range(2)]
         return LabelDetector(rngs[0]), LabelDetector(rngs[1])
@@ -324,7 +328,7 @@ def run_image_fusion(scenario: str = DEFAULT_SCENARIO, seed: int = 0, duration_s
     """ROIF over a scenario with an ``ego_camera``: the run's identification and its ``image_fusion``
     section. Deterministic for a seed. ``duration_s`` None: the scenario's; ``detector``: "onnx"
     (``model_path`` None: the shipped model) or "labels" (the stand-in). ``rsu_max_features``: the
-    RSU's per-frame ORB cap (default ``roif.orb_features``, as the OBU's); ``wire``: the RSU's
+    RSU's per-frame ORB cap (default the live RSU's, ``RSU_DEFAULTS``); ``wire``: the RSU's
     features reach the fusion through an encoded ``RsuImageFeatures`` (as on the live link; the
     report's ``rsu_features`` gives the message sizes)."""
     from sim.render import SceneRenderer
@@ -335,7 +339,8 @@ def run_image_fusion(scenario: str = DEFAULT_SCENARIO, seed: int = 0, duration_s
     world = World(sc)
     renderer = SceneRenderer(world, seed=seed)
     det_rsu, det_obu = _detectors(detector, model_path, seed)
-    cam_rsu = rsu_camera(sc.rsu)
+    cam_rsu, sway = rsu_camera(sc.rsu), rsu_sway(sc.rsu, stream(seed, "rsu_sway"))  # as the live RSU's camera
+    rsu_max_features = RSU_DEFAULTS["image_features_max"] if rsu_max_features is None else rsu_max_features
     noise_rsu, noise_ego = stream(seed, "rsu_render"), stream(seed, "ego_render")
     rate_hz = sc.ego_camera.rate_hz
     duration = sc.duration_s if duration_s is None else min(float(duration_s), sc.duration_s)
@@ -343,7 +348,7 @@ def run_image_fusion(scenario: str = DEFAULT_SCENARIO, seed: int = 0, duration_s
     tally, wire_bytes = FusionTally(), []
     for k in range(int(np.ceil(duration * rate_hz - 1e-9))):
         t_s = k / rate_hz
-        rsu_frame = renderer.render(cam_rsu, t_s, noise_rsu)
+        rsu_frame = renderer.render(sway.move(cam_rsu, t_s), t_s, noise_rsu)
         ego_frame = renderer.render(vehicle_camera(sc.ego_camera, world.ego_at(t_s)), t_s, noise_ego, hide_ego=True)
         rsu = view_features(rsu_frame.image, det_rsu.boxes(rsu_frame), pipeline.roif, rsu_max_features)
         if wire:
@@ -352,9 +357,8 @@ def run_image_fusion(scenario: str = DEFAULT_SCENARIO, seed: int = 0, duration_s
         score_frame(tally, pipeline.step(obu, rsu, t_s), rsu_frame.labels, ego_frame.labels)
     report = {"driver": "eval", "scenario": sc.name, "fusion": "roif", "seed": seed, "duration_s": duration,
               "detector": det_rsu.name, "camera_rate_hz": rate_hz, "image_fusion": tally.section()}
-    if wire or rsu_max_features is not None:
-        report["rsu_features"] = {"max_per_frame": rsu_max_features or pipeline.roif.orb_features, "wire": wire,
-                                  **({"message_bytes": _percentiles(wire_bytes)} if wire else {})}
+    report["rsu_features"] = {"max_per_frame": rsu_max_features, "wire": wire,
+                              **({"message_bytes": _percentiles(wire_bytes)} if wire else {})}
     return report
 
 
