@@ -4,15 +4,15 @@ At the ego camera's rate (``scenario.ego_camera.rate_hz``), frame k at t_k = k /
 render the RSU view (``sim.camera.rsu_camera``, swaying as the live RSU's) and the ego view
 (``sim.camera.vehicle_camera`` at the ego's true pose, the ego itself hidden) with
 ``sim.render.SceneRenderer``; detect boxes in both (the RSU at the live RSU's score threshold,
-ORB features up to its per-frame cap: ``RSU_DEFAULTS``); fuse them with ROIF (``fusion.roif``: ORB + RANSAC homography, OBU boxes mapped into
-the RSU view, eq. 5.6-5.11); track the fused boxes (``fusion.box_tracker``); score against the
-RSU view's ground-truth labels.
+ORB features up to its per-frame cap: ``RSU_DEFAULTS``); fuse them with ROIF (``fusion.roif``:
+ORB + RANSAC homography, OBU boxes mapped into the RSU view, eq. 5.6-5.11); track the fused
+boxes (``fusion.box_tracker``); score against the RSU view's ground-truth labels.
 
 Detectors: ``"onnx"`` (``perception.detector.OnnxDetector``, the shipped model or
-``model_path``; the RSU's at ``v2i rsu``'s score threshold, the OBU's at the detector's default) or ``"labels"``, a stand-in that reads the renderer's ``BoxLabels``: each
-label with visible fraction v >= 0.3 is detected with probability p_detect min(1, v / 0.6),
-its corners jittered by N(0, (jitter * size)^2), its score U(0.5, 1). The report names the
-detector used.
+``model_path``; the RSU's at ``v2i rsu``'s score threshold, the OBU's at the detector's
+default) or ``"labels"``, a stand-in that reads the renderer's ``BoxLabels``: each label with
+visible fraction v >= 0.3 is detected with probability p_detect min(1, v / 0.6), its corners
+jittered by N(0, (jitter * size)^2), its score U(0.5, 1). The report names the detector used.
 
 Scoring, per frame, against the RSU view's truth T = labels of actors (ids > 0) with visible
 >= ``MIN_VISIBLE`` (0.3). Boxes match truths one-to-one (Hungarian on 1 - IoU) at IoU >= 0.5,
@@ -234,7 +234,7 @@ def corner_error_px(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _detectors(detector: str, model_path, seed: int) -> tuple:
     """(RSU view detector, ego view detector); the stand-in draws from its own seeded streams."""
-    if detector == "onnx":  # the RSU's threshold is the RSU service's (v2i rsu --score-threshold), the OBU's the detector's
+    if detector == "onnx":  # the RSU at v2i rsu's --score-threshold, the OBU at the detector's default
         return OnnxBoxes(model_path, RSU_DEFAULTS["score_threshold"]), OnnxBoxes(model_path)
     if detector == "labels":
         rngs = [np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0x501F, k))) for k in range(2)]

@@ -9,12 +9,16 @@ times are OBU-clock ns unless named ``*_rsu_ns``.
   outside the registry (``features_unknown_rsu``), before the clock is synchronised
   (``features_unsynced``), stamped after their arrival by more than ``future_tolerance_ms``
   (``features_future``), older than ``max_age_ms`` at arrival (``features_stale``), seen
-  before (``features_duplicate``). At most ``max_rsu_frames`` are kept (the newest).
+  before (``features_duplicate``), too late for their frame (``features_late``, below). At
+  most ``max_rsu_frames`` are kept (the newest).
 - Own frames (``on_frame``: the ego camera's ``ViewFeatures`` at capture time t) wait for a
   partner: the newest RSU frame with |t_obu - t| <= ``pair_tolerance_ms``. A frame is fused
   as soon as its partner is buffered, else at t + ``wait_ms`` without one: its output is then
   its own boxes in the ego view (``view == "ego"``, counted in ``unpaired``). Frames are fused
-  in capture order (the tracker's time runs forward).
+  in capture order (the tracker's time runs forward). An RSU frame that arrives after the own
+  frame it would have paired with went out alone is refused as ``features_late`` (the wait was
+  too short for it): of the ``unpaired`` frames, about ``unpaired - features_late`` had an RSU
+  frame that never came (lost on the link, skipped by the RSU).
 - Each output is due at t + ``deadline_ms``; a later one is a deadline miss (counted, still
   published). ``metrics`` reports cycles, misses, refusals and the clock per RSU.
 """
@@ -84,6 +88,7 @@ class ImageFusionPipeline:
         self._pending: deque[tuple[int, ViewFeatures]] = deque()  # own frames (t_ns, features), oldest first
         self.rejected: Counter[str] = Counter()
         self.cycles = self.deadline_misses = self.unpaired = self.accepted = 0
+        self._alone: deque[int] = deque(maxlen=RECENT_FRAMES)  # capture times (ns) of frames fused without a partner
         self._seq = 0
 
     # --- clock ------------------------------------------------------------------------------
@@ -125,6 +130,8 @@ class ImageFusionPipeline:
         if key in self._seen:
             return self._refuse("features_duplicate")
         self._seen.append(key)
+        if any(abs(t_obu - t) <= c.pair_tolerance_ms * NS_PER_MS for t in self._alone):
+            return self._refuse("features_late")
         self._rsu_frames.append(_RsuFrame(msg.rsu_id, msg.seq, msg.t_ns, t_obu, msg.view()))
         while len(self._rsu_frames) > c.max_rsu_frames:
             self._rsu_frames.popleft()
@@ -160,6 +167,8 @@ class ImageFusionPipeline:
         frame = self.roif.step(obu, None if partner is None else partner.features, t_ns * 1e-9)
         self.cycles += 1
         self.unpaired += partner is None
+        if partner is None:
+            self._alone.append(t_ns)
         publish_ns = max(int(now_ns), t_ns)
         self.deadline_misses += publish_ns > t_ns + self.config.deadline_ms * NS_PER_MS
         self._seq += 1

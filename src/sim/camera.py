@@ -152,7 +152,8 @@ class Sway:
     @classmethod
     def draw(cls, sigma_deg: float, sway_hz: float, rng: np.random.Generator) -> "Sway":
         shape = (3, SWAY_MODES)
-        return cls(float(np.deg2rad(sigma_deg)), sway_hz * rng.uniform(0.7, 1.3, shape), rng.uniform(0, 2 * np.pi, shape))
+        freq_hz = sway_hz * rng.uniform(0.7, 1.3, shape)
+        return cls(float(np.deg2rad(sigma_deg)), freq_hz, rng.uniform(0, 2 * np.pi, shape))
 
     def angles_rad(self, t_s: float) -> np.ndarray:
         """(3,) yaw, pitch (down positive), roll offsets at ``t_s``."""

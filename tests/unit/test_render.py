@@ -218,11 +218,12 @@ def test_cli_writes_frames_labels_and_camera(tmp_path, capsys):
 
 def test_turned_camera_matches_the_pose_angles_it_stands_for():
     cam = _camera(pitch_deg=11.0, yaw_deg=30.0)
-    d = 0.004
-    np.testing.assert_allclose(cam.turned(0.0, d, 0.0).R, _camera(pitch_deg=11.0 + np.rad2deg(d), yaw_deg=30.0).R, atol=1e-12)
-    np.testing.assert_allclose(cam.turned(0.0, 0.0, d).R, _camera(pitch_deg=11.0, yaw_deg=30.0, roll_rad=d).R, atol=1e-12)
+    d, d_deg = 0.004, np.rad2deg(0.004)
+    R = lambda c: c.R  # noqa: E731
+    np.testing.assert_allclose(R(cam.turned(0.0, d, 0.0)), R(_camera(pitch_deg=11.0 + d_deg, yaw_deg=30.0)), atol=1e-12)
+    np.testing.assert_allclose(R(cam.turned(0.0, 0.0, d)), R(_camera(pitch_deg=11.0, yaw_deg=30.0, roll_rad=d)), atol=1e-12)
     level = _camera(pitch_deg=0.0, yaw_deg=30.0)  # pan = yaw exactly when the axis is level
-    np.testing.assert_allclose(level.turned(d, 0.0, 0.0).R, _camera(pitch_deg=0.0, yaw_deg=30.0 + np.rad2deg(d)).R, atol=1e-12)
+    np.testing.assert_allclose(R(level.turned(d, 0.0, 0.0)), R(_camera(pitch_deg=0.0, yaw_deg=30.0 + d_deg)), atol=1e-12)
     np.testing.assert_allclose(cam.turned(d, d, d).centre, cam.centre, atol=1e-12)  # about its own centre
 
 

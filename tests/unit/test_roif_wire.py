@@ -201,6 +201,10 @@ def test_obu_pairs_refuses_by_reason_and_publishes_every_frame(views):
     assert not pipe.ready(T0 + 300_000_000) and pipe.ready(T0 + 500_000_000)
     out = pipe.fuse_next(T0 + 700_000_000)
     assert out.view == "ego" and out.rsu_id is None and pipe.unpaired == 1 and pipe.deadline_misses == 1
+    # its partner arrives after it went out alone: too late, refused as such, not buffered
+    assert not pipe.on_features(msg(T0 + offset + 190_000_000, seq=5), T0 + 750_000_000)
+    assert pipe.rejected["features_late"] == 1 and pipe.accepted == 1
+    assert pipe.on_features(msg(T0 + offset + 300_000_000, seq=6), T0 + 750_000_000)  # the next frame's: kept
 
 
 @pytest.mark.parametrize("n_boxes, n_kp, how", [(2, 0, "in"), (2, 300, "nowhere"), (0, 0, "in"), (2, 4096, "in")])
