@@ -18,6 +18,7 @@ from link_emulator.control import apply_control
 from link_emulator.profile import LinkProfile, load_profile
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import OwnFrame, SimulatedVehicle
+from perception.scoring import PerceptionTally
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from rsu_service.prediction import make_predictor
 from rsu_service.source import Frame, make_source
@@ -28,7 +29,6 @@ from sim.scenario import load_scenario
 from sim.world import World
 
 from .chaos import SERVICES, ChaosTimeline
-from .perception_metrics import PerceptionTally
 from .spec import EVAL_EPOCH_NS, RunRecord, RunSpec
 
 RSU_REPLY_NS = 50_000  # RSU time between receiving a time query and answering it

@@ -10,11 +10,11 @@ import numpy as np
 
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObuMetrics, PredictionList
 from obu_service.config import ObuConfig
+from perception.scoring import PerceptionTally
 from rsu_service.config import RsuConfig
 from sim.clock import SystemClock
 from sim.world import World
 
-from .perception_metrics import PerceptionTally
 from .metrics import (CycleFrame, CycleLog, DetectionTally, DisplacementTally, TargetTally, clock_errors,
                       deadline_miss_ratio, mode_share)
 

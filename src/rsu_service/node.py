@@ -14,10 +14,10 @@ from __future__ import annotations
 import threading
 from collections import Counter
 
+from perception.scoring import PerceptionTally
 from schemas import keys
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
 from schemas.intake import KeyedBuckets, TokenBucket
-from evaluation.perception_metrics import PerceptionTally
 from schemas.image_messages import RsuImageFeatures
 from schemas.messages import RsuMetrics, RsuPerception, TimeRequest
 from schemas.runtime import MemoryTrim, ThrottledLog, announce, log

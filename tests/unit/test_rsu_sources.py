@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from evaluation.perception_metrics import PerceptionTally, match
+from perception.scoring import PerceptionTally, match
 from rsu_service.recording import MAX_IMAGE_PIXELS, ImageFrames, RecordingError, image_size
 
 W, H = 64, 48
