@@ -35,6 +35,7 @@ from sim.world import World
 from .config import ObuConfig
 from .ego_camera import EgoCamera
 from .image_fusion import ImageFusionConfig, ImageFusionPipeline
+from .time_requests import sync_times_ns
 
 
 class ImageFusionNode:
@@ -52,7 +53,7 @@ class ImageFusionNode:
             future_tolerance_ms=config.future_tolerance_ms))
         self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
                               config.source_burst, max_queued_bytes=config.inbox_max_bytes,
-                              preferred=lambda key: _rsu_of(key) in known)
+                              preferred=lambda key: keys.rsu_id_or_none(key) in known)
         self._log, self._trim = ThrottledLog("obu"), MemoryTrim()
         self._details: dict[str, str] = {}
         self._events: list = []
@@ -99,9 +100,8 @@ class ImageFusionNode:
         for t in self.camera.frame_times_ns(self.duration_s):
             if t >= now:
                 heapq.heappush(self._events, (int(t), 1, "capture"))
-        period_ns = round(1e9 / self.config.sync_rate_hz)
-        for t in np.arange(max(now, self.start_ns - 2 * period_ns), self.start_ns + self.duration_s * 1e9, period_ns):
-            heapq.heappush(self._events, (int(t), 2, "sync"))
+        for t in sync_times_ns(now, self.start_ns, self.duration_s, self.config.sync_rate_hz):
+            heapq.heappush(self._events, (t, 2, "sync"))
         heapq.heappush(self._events, (self.start_ns + round((self.duration_s + 1.0) * 1e9), 3, "end"))
 
     def _loop(self, stop: threading.Event) -> None:
@@ -160,10 +160,3 @@ class ImageFusionNode:
         request = self.pipeline.make_time_request(self.clock.now_ns())
         self._session.get(keys.RSU_TIME_ALL, self._on_time_reply, payload=encode(request),
                           timeout=self.config.time_query_timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
-
-
-def _rsu_of(key: str) -> str | None:
-    try:
-        return keys.rsu_id_from_key(key)
-    except ValueError:
-        return None

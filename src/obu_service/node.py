@@ -12,7 +12,6 @@ from __future__ import annotations
 import heapq
 import threading
 
-import numpy as np
 import zenoh
 
 from schemas import keys
@@ -28,6 +27,7 @@ from sim.world import World
 from .config import ObuConfig
 from .pipeline import ObuPipeline
 from .source import OwnFrame, SimulatedVehicle
+from .time_requests import sync_times_ns
 
 
 CHEAP_INPUT_BYTES = 4096  # decodes in well under 2 ms (a 64-object list: 4.4 kB, 0.45 ms)
@@ -45,7 +45,7 @@ class ObuNode:
         known = set(self.pipeline.config.known_rsus)
         self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
                               config.source_burst, max_queued_bytes=config.inbox_max_bytes,
-                              preferred=lambda key: _rsu_of(key) in known)
+                              preferred=lambda key: keys.rsu_id_or_none(key) in known)
         self._log = ThrottledLog("obu")
         self._trim = MemoryTrim()
         self._details: dict[str, str] = {}  # first codec error message per reason
@@ -98,9 +98,8 @@ class ObuNode:
         for t in self.vehicle.cycle_times_ns(self.duration_s):
             if t >= now:
                 heapq.heappush(self._events, (int(t), 1, "capture", None))
-        period_ns = round(1e9 / self.config.sync_rate_hz)
-        for t in np.arange(max(now, self.start_ns - 2 * period_ns), self.start_ns + self.duration_s * 1e9, period_ns):
-            heapq.heappush(self._events, (int(t), 2, "sync", None))
+        for t in sync_times_ns(now, self.start_ns, self.duration_s, self.config.sync_rate_hz):
+            heapq.heappush(self._events, (t, 2, "sync", None))
         heapq.heappush(self._events, (self.start_ns + round((self.duration_s + 1.0) * 1e9), 3, "end", None))
 
     def _loop(self, stop: threading.Event) -> None:
@@ -190,11 +189,3 @@ class ObuNode:
         # every reply, unmerged: two replies on one RSU's key are a conflict the pipeline must see
         self._session.get(keys.RSU_TIME_ALL, self._on_time_reply, payload=encode(request),
                           timeout=self.config.time_query_timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
-
-
-def _rsu_of(key: str) -> str | None:
-    """The RSU id in an RSU key expression, None for any other key."""
-    try:
-        return keys.rsu_id_from_key(key)
-    except ValueError:
-        return None

@@ -17,6 +17,8 @@ from __future__ import annotations
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from schemas.messages import TimeReply, TimeRequest
 
 from .clock_sync import SyncSample
@@ -82,3 +84,11 @@ class TimeRequests:
             if reply is not None and not reply.conflicted:
                 out.append((rsu_id, SyncSample(pending.t1_ns, reply.t2_ns, reply.t3_ns, reply.t4_ns)))
         return out
+
+
+def sync_times_ns(now_ns: int, start_ns: int, duration_s: float, rate_hz: float) -> list[int]:
+    """Times (ns) of a run's time queries: every 1 / ``rate_hz`` from two periods before the
+    run's start (so the clock is synchronised when it begins), none in the past, until its end."""
+    period_ns = round(1e9 / rate_hz)
+    first_ns = max(now_ns, start_ns - 2 * period_ns)
+    return [int(t) for t in np.arange(first_ns, start_ns + duration_s * 1e9, period_ns)]

@@ -112,3 +112,11 @@ def rsu_id_from_key(key: str) -> str:
         return check_id(parts[2])
     except ValueError:
         raise ValueError(f"{key!r} is not an RSU key: bad rsu id {parts[2]!r}") from None
+
+
+def rsu_id_or_none(key: str) -> str | None:
+    """The RSU id in an RSU key expression, None for any other key."""
+    try:
+        return rsu_id_from_key(key)
+    except ValueError:
+        return None
