@@ -29,6 +29,7 @@ from pydantic import ValidationError
 from . import quantize as q
 from .messages import (MAX_OBJECTS, SCHEMA_VERSION, FusedObjectList, Message, ObjectList, ObjectListHeader,
                        PredictionList)
+from .sensor_messages import GroundTruth, SensorObjects
 
 MAX_MESSAGE_BYTES = 1 << 20
 # Largest msgpack array/map accepted. The unpacker pre-allocates a container from its
@@ -129,6 +130,8 @@ COLUMNAR: dict[str, tuple[Column, ...]] = {
     ObjectList.TYPE: OBJECT_COLUMNS,
     FusedObjectList.TYPE: FUSED_OBJECT_COLUMNS,
     PredictionList.TYPE: OBJECT_COLUMNS,
+    SensorObjects.TYPE: OBJECT_COLUMNS,  # sensor inputs (schemas.sensor_messages)
+    GroundTruth.TYPE: OBJECT_COLUMNS,
 }
 
 _short = reprlib.Repr()

@@ -93,6 +93,27 @@ def obu_pose(vehicle_id: str) -> str:
     return _obu(vehicle_id, "pose")
 
 
+# Sensor inputs of the services (``--source zenoh``) and the simulated world's truth
+# (``schemas.sensor_messages``). Outside ``v2x/rsu/**`` and ``v2x/obu/**``, so the link
+# emulator never relays them and an input can never be mistaken for an RSU's output.
+WORLD_TRUTH = "v2x/world/truth"
+
+
+def sensor_rsu_objects(rsu_id: str) -> str:
+    """Detections of an RSU's own sensor (``SensorObjects``, frame ``map``): sensor -> RSU."""
+    return f"v2x/sensor/rsu/{check_id(rsu_id)}/objects"
+
+
+def sensor_vehicle_objects(vehicle_id: str) -> str:
+    """Detections of a vehicle's own sensor (``SensorObjects``, frame ``base_link``): sensor -> OBU."""
+    return f"v2x/sensor/vehicle/{check_id(vehicle_id)}/objects"
+
+
+def sensor_vehicle_pose(vehicle_id: str) -> str:
+    """A vehicle's localisation (``LocalizationPose``, map): localisation -> OBU."""
+    return f"v2x/sensor/vehicle/{check_id(vehicle_id)}/pose"
+
+
 def link_control(link_id: str) -> str:
     """Control channel of a link emulator."""
     return _link(link_id, "control")
