@@ -42,7 +42,7 @@ class RsuNode:
         self.config = config
         self.true_clock = true_clock or SystemClock()
         self.start_ns = config.start_at_ns or self.true_clock.now_ns()
-        self.world = World(load_scenario(config.scenario))
+        self.world = World(load_scenario(config.scenario), site=True)  # the RSU sees every vehicle
         self.duration_s = config.duration_s or self.world.scenario.duration_s
         self.clock = config.clock(self.true_clock, self.start_ns)
         self.source = make_source(config, self.world, self.start_ns)
@@ -59,7 +59,8 @@ class RsuNode:
         self._log = ThrottledLog("rsu")
         self._trim = MemoryTrim()
         self._details: dict[str, str] = {}
-        rsu = self.world.scenario.rsu.position  # scored when the source knows the truth (simulated world)
+        # scored when the source knows the truth (simulated world)
+        rsu = self.world.scenario.rsus[self.world.scenario.rsu_index(config.rsu_id)].position
         self.perception = PerceptionTally.of_source(self.source, (rsu.x, rsu.y))
 
     def run(self, stop: threading.Event) -> None:

@@ -59,12 +59,16 @@ class _Schedule:
 
 
 class SimulatedCamera(_Schedule):
-    """Camera + detector of the scenario's RSU as a noise model on the simulated world."""
+    """Camera + detector of one of the scenario's RSUs as a noise model on the simulated world
+    (``world``: the site view, ``World(..., site=True)``, so that it sees every vehicle)."""
 
-    def __init__(self, world: World, seed: int, start_ns: int):
+    def __init__(self, world: World, seed: int, start_ns: int, rsu_id: str = ""):
+        """``rsu_id``: which RSU of the scenario (``Scenario.rsu_index``; "" the first)."""
+        index = world.scenario.rsu_index(rsu_id) if rsu_id else 0
+        cfg = world.scenario.rsus[index]
         self.world, self.start_ns = world, start_ns
-        self.rate_hz = world.scenario.rsu.rate_hz
-        self.camera = RsuCamera(world.scenario.rsu, stream(seed, "rsu_camera"))
+        self.rate_hz = cfg.rate_hz
+        self.camera = RsuCamera(cfg, stream(seed, "rsu_camera", index))
 
     def capture(self, capture_true_ns: int) -> Frame:
         dets, delay_s = self.camera.detect(self.world, (capture_true_ns - self.start_ns) * 1e-9)
@@ -80,20 +84,23 @@ class RenderedCamera(_Schedule):
     """
 
     def __init__(self, world: World, seed: int, start_ns: int, perception: ImagePerception,
-                 rate_hz: float | None = None, features_max: int | None = None):
+                 rate_hz: float | None = None, features_max: int | None = None, rsu_id: str = ""):
         """``rate_hz``: frames per second (default the scenario's RSU rate); ``features_max``:
-        with a number, each frame also carries ROIF features (at most that many ORB keypoints)."""
+        with a number, each frame also carries ROIF features (at most that many ORB keypoints);
+        ``rsu_id`` as for ``SimulatedCamera``."""
         from sim.camera import rsu_camera, rsu_sway
         from sim.render import SceneRenderer
 
-        cfg = world.scenario.rsu
+        index = world.scenario.rsu_index(rsu_id) if rsu_id else 0
+        cfg = world.scenario.rsus[index]
         self.world, self.start_ns, self.rate_hz = world, start_ns, rate_hz or cfg.rate_hz
         self.perception, self.features_max = perception, features_max
-        self.camera, self.sway = rsu_camera(cfg), rsu_sway(cfg, stream(seed, "rsu_sway"))  # nominal pose (calibrated), wind
+        # nominal pose (calibrated), wind
+        self.camera, self.sway = rsu_camera(cfg), rsu_sway(cfg, stream(seed, "rsu_sway", index))
         self.renderer = SceneRenderer(world, seed)
         self.range_m, self.min_visible = cfg.range_m, cfg.min_visible_fraction  # what counts as seen (scoring)
-        self._noise = stream(seed, "rsu_render")
-        self._delay = stream(seed, "rsu_camera")
+        self._noise = stream(seed, "rsu_render", index)
+        self._delay = stream(seed, "rsu_camera", index)
         self._delay_ms = cfg.processing_delay_ms
 
     def capture(self, capture_true_ns: int) -> Frame:
@@ -108,9 +115,7 @@ class RenderedCamera(_Schedule):
     def _visible_truth(self, labels, t_s: float) -> np.ndarray:
         """(T, 2) map centres of the bodies the frame shows well enough, within range."""
         seen = (labels.visible >= self.min_visible) & (labels.range_m <= self.range_m)
-        ego = self.world.ego_at(t_s)
-        xy = np.vstack([[ego.x, ego.y], self.world.actors_at(t_s).xy])  # row = id: the ego 0, actors 1..N
-        return xy[labels.ids[seen]]
+        return self.world.positions_of(labels.ids[seen], t_s)
 
 
 class RecordedCamera(_Schedule):
@@ -149,11 +154,11 @@ def _features(perception: ImagePerception, image, features_max: int | None):
 def make_source(config, world: World, start_ns: int):
     """The source an ``RsuConfig`` names (``config.source``), its files opened and checked."""
     if config.source == "sim":
-        return SimulatedCamera(world, config.seed, start_ns)
+        return SimulatedCamera(world, config.seed, start_ns, config.rsu_id)
     perception = open_perception(config, world)
     features_max = config.image_features_max if config.image_features else None
     if config.source == "camera":
-        return RenderedCamera(world, config.seed, start_ns, perception, config.rate_hz, features_max)
+        return RenderedCamera(world, config.seed, start_ns, perception, config.rate_hz, features_max, config.rsu_id)
     if config.video is None:
         raise ValueError("--source video needs --video PATH (a video file or a folder of images)")
     cal = perception.calibration
@@ -173,6 +178,6 @@ def open_perception(config, world: World) -> ImagePerception:
     if path is None:
         raise ValueError(f"scenario {config.scenario!r} has no shipped camera calibration: "
                          "pass --calibration FILE (make one with `v2i camera calibrate`)")
-    rsu = world.scenario.rsu
+    rsu = world.scenario.rsus[world.scenario.rsu_index(config.rsu_id)]
     return ImagePerception.open(path, config.model, config.score_threshold, camera_xy=(rsu.position.x, rsu.position.y),
                                 threads=config.detector_threads, max_range_m=rsu.range_m)

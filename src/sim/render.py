@@ -183,7 +183,7 @@ class SceneRenderer:
         actors = self.world.actors_at(t_s)
         ids, cls, xy = actors.ids, actors.cls, actors.xy
         z_bottom, lwh, yaw = actors.z - actors.lwh[:, 2] / 2.0, actors.lwh, actors.yaw
-        if not hide_ego:
+        if not hide_ego and self.world.ego_name is not None:  # the site view has no ego
             ego = self.world.ego_at(t_s)
             ids, cls = np.append(ids, 0), np.append(cls, self.ego_cls)
             xy, z_bottom = np.vstack([xy, [ego.x, ego.y]]), np.append(z_bottom, 0.0)

@@ -4,9 +4,19 @@ A scenario is a ground-truth world (ego, actors, static buildings) plus the sens
 that observe it (roadside camera, on-board LiDAR, localisation). Frame ``map``: x east,
 y north, metres; angles in the YAML are degrees where named ``*_deg``, radians otherwise.
 
-Trajectory model: a polyline ``path`` in map (m) and a piecewise-linear speed profile
-``speed: [[t_s, mps], ...]`` (constant before the first and after the last key); see
-``sim.world`` for the kinematics.
+Trajectory model: a polyline ``path`` in map (m), its corners optionally rounded by circular
+arcs of ``corner_radius_m``, and a speed profile, either by time ``speed: [[t_s, mps], ...]``
+(piecewise linear in time, constant before the first and after the last key) or by distance
+along the path ``speed_at_m: [[s_m, mps], ...]`` (constant acceleration between keys, so it
+converts exactly to time keys: t_{k+1} = t_k + 2 (s_{k+1} - s_k) / (v_k + v_{k+1})); see
+``sim.world`` for the kinematics. An actor may exist only from ``spawn_s`` to ``despawn_s``;
+its trajectory's clock starts at ``spawn_s``.
+
+A site has RSUs (``rsus:``, each a roadside camera with its id, pose, rate, delay and an
+optional link profile) and connected vehicles (``vehicles:``, the first one the ego, each
+with its own LiDAR, localisation and camera). The single-RSU, single-vehicle form of older
+files (``rsu:``, ``ego:``, ``lidar:``, ``localization:``, ``ego_camera:``) still loads: it is
+read as one-element ``rsus`` and ``vehicles``.
 """
 
 from __future__ import annotations
@@ -21,6 +31,8 @@ from shapely.validation import explain_validity
 
 from schemas.classes import ObjectClass
 from schemas.config import ConfigError, bundled_names, load_bundled_or_file
+
+from .paths import rounded_path, speed_keys_from_distance
 
 Point2 = tuple[float, float]
 PosFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
@@ -38,10 +50,13 @@ class _Frozen(BaseModel):
 
 
 class Trajectory(_Frozen):
-    """Polyline path (map, m) + speed profile [[t_s, mps], ...]; single point = static."""
+    """Polyline path (map, m), corners rounded by ``corner_radius_m``, and a speed profile by time
+    ([[t_s, mps], ...]) or by distance along the path ([[s_m, mps], ...]); single point = static."""
 
     path: list[tuple[Finite, Finite]] = Field(min_length=1)
     speed: list[tuple[Finite, NonNeg]] = Field(default_factory=lambda: [(0.0, 0.0)], min_length=1)
+    speed_at_m: list[tuple[NonNeg, NonNeg]] | None = Field(default=None, min_length=1)
+    corner_radius_m: PosFloat | None = None
     yaw_deg: Finite | None = None  # heading of a static (single-point) actor
 
     @field_validator("path")
@@ -61,10 +76,24 @@ class Trajectory(_Frozen):
         return speed
 
     @model_validator(mode="after")
-    def _yaw_only_when_static(self) -> "Trajectory":
+    def _consistent(self) -> "Trajectory":
         if self.yaw_deg is not None and len(self.path) > 1:
             raise ValueError("yaw_deg is only for a single-point (static) path; a path's heading is its tangent")
+        if self.speed_at_m is not None:
+            if "speed" in self.model_fields_set:
+                raise ValueError("give 'speed' (by time) or 'speed_at_m' (by distance), not both")
+            speed_keys_from_distance(self.speed_at_m)  # raises when the body could never get there
+        if self.corner_radius_m is not None:
+            rounded_path(self.path, self.corner_radius_m)  # raises when a corner's arc does not fit
         return self
+
+    def time_keys(self) -> list[Point2]:
+        """The speed profile by time [[t_s, mps], ...] (``speed_at_m`` converted)."""
+        return self.speed if self.speed_at_m is None else speed_keys_from_distance(self.speed_at_m)
+
+    def points(self) -> list[Point2]:
+        """The path the body follows: ``path`` with its corners rounded (``rounded_path``)."""
+        return self.path if self.corner_radius_m is None else rounded_path(self.path, self.corner_radius_m)
 
     @property
     def is_static(self) -> bool:
@@ -72,17 +101,27 @@ class Trajectory(_Frozen):
 
 
 class Body(_Frozen):
-    """The ego or an actor: a named box of a class following a trajectory."""
+    """A vehicle or an actor: a named box of a class following a trajectory. An actor exists
+    from ``spawn_s`` until ``despawn_s`` (scenario time); its trajectory's clock starts at
+    ``spawn_s`` (speed key t = 0 is the moment it appears)."""
 
     name: str = Field(min_length=1)
     cls: ObjectClass = Field(alias="class")
     size: tuple[PosFloat, PosFloat, PosFloat]  # length, width, height (m)
     trajectory: Trajectory
+    spawn_s: NonNeg = 0.0
+    despawn_s: PosFloat | None = None
 
     @field_validator("cls", mode="before")
     @classmethod
     def _parse_class(cls, value: Any) -> ObjectClass:
         return ObjectClass.parse(value)
+
+    @model_validator(mode="after")
+    def _lifetime(self) -> "Body":
+        if self.despawn_s is not None and self.despawn_s <= self.spawn_s:
+            raise ValueError(f"despawn_s ({self.despawn_s}) must come after spawn_s ({self.spawn_s})")
+        return self
 
 
 class BoxGeometry(_Frozen):
@@ -166,6 +205,9 @@ class RsuCameraConfig(_Frozen):
     # The rendered camera of ``--rsu-source camera`` (sim.camera.rsu_camera); the noise model
     # above keeps its own fov. A wide sim fov (> 120 deg) needs image.fov_deg here.
     image: ImageConfig = Field(default_factory=ImageConfig)
+    # The link between this RSU and each vehicle (a bundled profile name or a YAML path);
+    # None: the run's profile (``--profile``).
+    link_profile: str | None = None
 
     @field_validator("processing_delay_ms")
     @classmethod
@@ -223,28 +265,119 @@ class LocalizationConfig(_Frozen):
     correlation_time_s: NonNeg = 5.0
 
 
+class VehicleSpec(Body):
+    """A connected vehicle: a body that runs an OBU with its own LiDAR, localisation and
+    (optional) camera. Vehicles exist for the whole run (no spawn / despawn)."""
+
+    lidar: LidarConfig = Field(default_factory=LidarConfig)
+    localization: LocalizationConfig = Field(default_factory=LocalizationConfig)
+    ego_camera: VehicleCameraConfig | None = None
+
+    @model_validator(mode="after")
+    def _always_there(self) -> "VehicleSpec":
+        if self.spawn_s != 0.0 or self.despawn_s is not None:
+            raise ValueError("a vehicle runs an OBU for the whole run: spawn_s / despawn_s are for actors")
+        return self
+
+
+_SINGLE_VEHICLE_KEYS = ("lidar", "localization", "ego_camera")
+
+
+def _migrate_single(data: Any) -> Any:
+    """The older single-RSU, single-vehicle layout read as one-element ``rsus`` / ``vehicles``."""
+    if not isinstance(data, dict):
+        return data
+    data = dict(data)
+    if "rsu" in data:
+        if "rsus" in data:
+            raise ValueError("give 'rsus' (a list) or the older 'rsu' (one), not both")
+        data["rsus"] = [data.pop("rsu")]
+    sensors = {k: data.pop(k) for k in _SINGLE_VEHICLE_KEYS if k in data}
+    if "ego" in data:
+        if "vehicles" in data:
+            raise ValueError("give 'vehicles' (a list, the first is the ego) or the older 'ego', not both")
+        ego = data.pop("ego")
+        data["vehicles"] = [{**ego, **sensors} if isinstance(ego, dict) else ego]
+    elif sensors:
+        raise ValueError(f"{sorted(sensors)} belong to a vehicle: put them under its entry in 'vehicles'")
+    return data
+
+
 class Scenario(_Frozen):
     name: str = Field(min_length=1)
     description: str = ""
     duration_s: PosFloat
     target: str  # name of the actor scored as "the target"
-    ego: Body
+    vehicles: list[VehicleSpec] = Field(min_length=1, max_length=64)  # the first one is the ego
     actors: list[Body] = Field(min_length=1)
     buildings: list[Building] = Field(default_factory=list)
-    rsu: RsuCameraConfig
-    lidar: LidarConfig = Field(default_factory=LidarConfig)
-    ego_camera: VehicleCameraConfig | None = None
-    localization: LocalizationConfig = Field(default_factory=LocalizationConfig)
+    rsus: list[RsuCameraConfig] = Field(min_length=1, max_length=62)
+
+    _migrate = model_validator(mode="before")(_migrate_single)
 
     @model_validator(mode="after")
     def _names(self) -> "Scenario":
-        names = [self.ego.name] + [a.name for a in self.actors]
+        names = [v.name for v in self.vehicles] + [a.name for a in self.actors]
         duplicates = sorted({n for n in names if names.count(n) > 1})
         if duplicates:
             raise ValueError(f"body names must be unique, repeated: {duplicates}")
-        if self.target not in names[1:]:
-            raise ValueError(f"target {self.target!r} is not an actor; actors: {names[1:]}")
+        actors = [a.name for a in self.actors]
+        if self.target not in actors:
+            raise ValueError(f"target {self.target!r} is not an actor; actors: {actors}")
+        ids = [r.id for r in self.rsus]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"RSU ids must be unique, got {ids}")
         return self
+
+    # the first RSU and the ego: the single-RSU, single-vehicle view older code reads
+    @property
+    def rsu(self) -> RsuCameraConfig:
+        return self.rsus[0]
+
+    @property
+    def ego(self) -> VehicleSpec:
+        return self.vehicles[0]
+
+    @property
+    def lidar(self) -> LidarConfig:
+        return self.ego.lidar
+
+    @property
+    def localization(self) -> LocalizationConfig:
+        return self.ego.localization
+
+    @property
+    def ego_camera(self) -> VehicleCameraConfig | None:
+        return self.ego.ego_camera
+
+    def rsu_by_id(self, rsu_id: str | None) -> RsuCameraConfig:
+        """The RSU of that id (None: the first); ScenarioError naming the ids there are."""
+        if rsu_id is None:
+            return self.rsu
+        for rsu in self.rsus:
+            if rsu.id == rsu_id:
+                return rsu
+        raise ScenarioError(f"scenario {self.name!r} has no RSU {rsu_id!r}; its RSUs: {[r.id for r in self.rsus]}")
+
+    def rsu_index(self, rsu_id: str) -> int:
+        """Index in ``rsus`` of the RSU a service of id ``rsu_id`` runs: the RSU of that id, or
+        the only RSU of a single-RSU scenario whatever the id (services name themselves freely)."""
+        ids = [r.id for r in self.rsus]
+        if rsu_id in ids:
+            return ids.index(rsu_id)
+        if len(ids) == 1:
+            return 0
+        raise ScenarioError(f"scenario {self.name!r} has no RSU {rsu_id!r}; its RSUs: {ids}")
+
+    def vehicle(self, name: str | None) -> VehicleSpec:
+        """The vehicle of that name (None: the ego); ScenarioError naming the vehicles there are."""
+        if name is None:
+            return self.ego
+        for v in self.vehicles:
+            if v.name == name:
+                return v
+        raise ScenarioError(f"scenario {self.name!r} has no vehicle {name!r}; its vehicles: "
+                            f"{[v.name for v in self.vehicles]}")
 
 
 def bundled_scenarios() -> list[str]:

@@ -7,7 +7,13 @@ Kinematics of one body (all bodies evaluated at once on padded arrays):
     p(t)  = point at arc length s(t) on the polyline, clamped to [0, L] (stops at the end)
     heading = tangent u of the current segment; velocity = v u; acceleration = (dv/dt) u.
 The centripetal term v^2 kappa is ignored: a polyline has zero curvature on its segments
-and turns instantly at its vertices (densify a path for a smooth turn).
+and turns at its vertices (``corner_radius_m`` rounds the corners into finely sampled arcs).
+A body spawned at ``spawn_s`` follows its trajectory on the clock t - spawn_s.
+
+Whose world: the scenario seen from one vehicle (``ego``, default the first): the other
+vehicles are actors like any other, so its sensors see them and its scores count them. The
+site view (``ego=None``, what an RSU sees) has every vehicle as an actor and no ego.
+Ids: actors 1..N in YAML order, then the vehicles N+1..N+V, the same in every view.
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ class _SpeedProfiles:
     """Piecewise-linear speed v(t) and its integral s(t) for N bodies, vectorised."""
 
     def __init__(self, trajectories: list[Trajectory]):
-        keys = [np.asarray(tr.speed, dtype=float) for tr in trajectories]
+        keys = [np.asarray(tr.time_keys(), dtype=float) for tr in trajectories]
         slopes, integrals = [], []
         for k in keys:
             dt, dv = np.diff(k[:, 0]), np.diff(k[:, 1])
@@ -71,12 +77,12 @@ class _Paths:
     """Polylines for N bodies: point and unit tangent at an arc length, vectorised."""
 
     def __init__(self, trajectories: list[Trajectory]):
-        pts = [np.asarray(tr.path, dtype=float) for tr in trajectories]
+        pts = [np.asarray(tr.points(), dtype=float) for tr in trajectories]
         tangents, cum = [], []
         for tr, p in zip(trajectories, pts):
             seg = np.diff(p, axis=0)
             length = np.hypot(seg[:, 0], seg[:, 1])
-            if tr.is_static:
+            if len(p) == 1:
                 yaw = np.deg2rad(tr.yaw_deg or 0.0)
                 tangents.append(np.array([[np.cos(yaw), np.sin(yaw)]]))
             else:
@@ -122,36 +128,82 @@ def _building_arrays(buildings: list[Building]) -> tuple[np.ndarray, tuple[np.nd
 
 
 class World:
-    """Ground truth of a scenario. Actor ids are 1..N in YAML order; the ego has none."""
+    """Ground truth of a scenario from one vehicle (module docstring). Ids are stable across views."""
 
-    def __init__(self, scenario: Scenario):
+    def __init__(self, scenario: Scenario, ego: str | None = None, *, site: bool = False):
+        """``ego``: the vehicle whose view this is (None: the first); ``site=True``: the RSU's
+        view, every vehicle an actor and no ego."""
         self.scenario = scenario
-        actors = scenario.actors
-        self.ids = np.arange(1, len(actors) + 1, dtype=np.int64)
+        ego_spec = None if site else scenario.vehicle(ego)
+        bodies = list(scenario.actors) + list(scenario.vehicles)
+        all_ids = np.arange(1, len(bodies) + 1, dtype=np.int64)
+        keep = [b is not ego_spec for b in bodies]
+        actors = [b for b, k in zip(bodies, keep) if k]
+        self.ego_name: str | None = None if ego_spec is None else ego_spec.name
+        self.ids = all_ids[keep]
         self.cls = np.array([int(a.cls) for a in actors], dtype=np.int64)
         self.lwh = np.array([a.size for a in actors], dtype=float)  # (N, 3) m
         self.actor_names: dict[int, str] = {int(i): a.name for i, a in zip(self.ids, actors)}
+        self.vehicle_ids: dict[str, int] = {v.name: int(i) for v, i in zip(scenario.vehicles, all_ids[len(scenario.actors):])}
         self.target_id: int = next(i for i, n in self.actor_names.items() if n == scenario.target)
-        self.ego_size = np.array(scenario.ego.size, dtype=float)  # (3,) l, w, h (m)
         self.building_boxes, self.building_polygons = _building_arrays(scenario.buildings)
+        self._spawn_s = np.array([a.spawn_s for a in actors])
+        self._despawn_s = np.array([np.inf if a.despawn_s is None else a.despawn_s for a in actors])
+        self._timed = bool((self._spawn_s > 0).any() or np.isfinite(self._despawn_s).any())
         self._actors = Trajectories([a.trajectory for a in actors])
-        self._ego = Trajectories([scenario.ego.trajectory])
+        self._ego = None if ego_spec is None else Trajectories([ego_spec.trajectory])
+        self.ego_size = None if ego_spec is None else np.array(ego_spec.size, dtype=float)  # (3,) l, w, h (m)
 
     @property
     def duration_s(self) -> float:
         return self.scenario.duration_s
 
+    def present(self, t_s: float) -> np.ndarray:
+        """(N,) bool: the actors that exist at t_s (spawn_s <= t_s < despawn_s)."""
+        return (self._spawn_s <= t_s) & (t_s < self._despawn_s)
+
     def actors_at(self, t_s: float) -> ObjectArray:
-        """Ground truth of every actor except the ego at time t_s (s), map frame."""
-        xy, yaw, vxy, axy = self._actors.at(t_s)
+        """Ground truth at time t_s (s), map frame, of every actor present then (the other
+        vehicles included, this view's ego excluded)."""
+        if self._timed:
+            # each body on its own clock t - spawn_s: evaluate all at once per distinct spawn time
+            xy, yaw, vxy, axy = self._at_own_clocks(t_s)
+        else:
+            xy, yaw, vxy, axy = self._actors.at(t_s)
         n = len(self.ids)
-        return ObjectArray(
+        out = ObjectArray(
             ids=self.ids.copy(), cls=self.cls.copy(), xy=xy, z=self.lwh[:, 2] / 2.0, lwh=self.lwh.copy(),
             yaw=yaw, vxy=vxy, axy=axy, cov_xy=np.zeros((n, 2, 2)), confidence=np.ones(n),
             sources=np.zeros(n, dtype=np.int64),
         )
+        return out.take(self.present(t_s)) if self._timed else out
+
+    def _at_own_clocks(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        out = None
+        for spawn in np.unique(self._spawn_s):
+            rows = self._spawn_s == spawn
+            state = self._actors.at(t_s - spawn)
+            if out is None:
+                out = tuple(np.array(a) for a in state)
+            for full, part in zip(out, state):
+                full[rows] = part[rows]
+        return out
+
+    def positions_of(self, ids: np.ndarray, t_s: float) -> np.ndarray:
+        """(K, 2) map positions (m) at t_s of the bodies ``ids`` (K,): actors present then, or 0 for the ego."""
+        ids = np.asarray(ids, dtype=np.int64)
+        xy = np.zeros((len(ids), 2))
+        actor = ids != 0
+        truth = self.actors_at(t_s)
+        xy[actor] = truth.xy[np.searchsorted(truth.ids, ids[actor])]
+        if not actor.all():
+            ego = self.ego_at(t_s)
+            xy[~actor] = (ego.x, ego.y)
+        return xy
 
     def ego_at(self, t_s: float) -> Pose2D:
         """True ego pose (box centre = base_link origin) and velocity in map at t_s (s)."""
+        if self._ego is None:
+            raise ValueError("the site view (World(..., site=True)) has no ego")
         xy, yaw, vxy, _ = self._ego.at(t_s)
         return Pose2D(x=float(xy[0, 0]), y=float(xy[0, 1]), yaw=float(yaw[0]), vx=float(vxy[0, 0]), vy=float(vxy[0, 1]))

@@ -63,10 +63,10 @@ def test_load_bundled_by_name_and_by_path(tmp_path):
     ("edit", "field"),
     [
         (lambda d: d["actors"][1].update(size=[5.9, -2.0, 2.6]), "actors.1.size"),
-        (lambda d: d["lidar"].update(range_mm=100), "lidar.range_mm"),
+        (lambda d: d["lidar"].update(range_mm=100), "vehicles.0.lidar.range_mm"),  # the older layout, migrated
         (lambda d: d["actors"][0].update({"class": "spaceship"}), "actors.0.class"),
         (lambda d: d["actors"][0]["trajectory"].update(speed=[[2.0, 1.0], [1.0, 2.0]]), "actors.0.trajectory.speed"),
-        (lambda d: d["rsu"].update(processing_delay_ms=[120, 80]), "rsu.processing_delay_ms"),
+        (lambda d: d["rsu"].update(processing_delay_ms=[120, 80]), "rsus.0.processing_delay_ms"),
     ],
 )
 def test_bad_field_is_named(tmp_path, edit, field):
