@@ -21,17 +21,22 @@ class OwnFrame:
 
 
 class SimulatedVehicle:
-    """Ego LiDAR (10 Hz) and localisation sampling the simulated world."""
+    """Ego LiDAR (10 Hz) and localisation sampling the simulated world, seen from the vehicle
+    ``world`` is the view of (``World(scenario, ego=name)``); the k-th vehicle of a scenario
+    draws from the k-th streams."""
 
     def __init__(self, world: World, seed: int, start_ns: int):
         self.world = world
         self.start_ns = start_ns
-        self.lidar = Lidar(world.scenario.lidar, stream(seed, "lidar"))
-        self.localization = Localization(world.scenario.localization, stream(seed, "localization"))
+        spec = world.scenario.vehicle(world.ego_name)
+        index = world.scenario.vehicles.index(spec)
+        self.rate_hz = spec.lidar.rate_hz
+        self.lidar = Lidar(spec.lidar, stream(seed, "lidar", index))
+        self.localization = Localization(spec.localization, stream(seed, "localization", index))
 
     def cycle_times_ns(self, duration_s: float) -> np.ndarray:
         """(K,) int64 LiDAR capture times: the OBU's 10 Hz cycles."""
-        t_s = frame_times(self.world.scenario.lidar.rate_hz, duration_s)
+        t_s = frame_times(self.rate_hz, duration_s)
         return self.start_ns + np.round(t_s * 1e9).astype(np.int64)
 
     def capture(self, capture_ns: int) -> OwnFrame:
