@@ -16,6 +16,8 @@ SUBCOMMANDS = {
     "rsu": "run the roadside unit service",
     "obu": "run the on-board unit service",
     "link": "run the link emulator between RSU and vehicle",
+    "world": "run the simulated world in real time, publishing sensor inputs for services with --source zenoh",
+    "router": "run a Zenoh router for sites with many RSUs and vehicles (the services attach as clients)",
     "camera": "camera tools: render a scenario's frames with ground-truth boxes, calibrate a camera from points",
     "fuzz": "send hostile messages to a live service and report what it refused, crashes, late outputs and memory",
 }
@@ -351,7 +353,8 @@ def build_parser() -> argparse.ArgumentParser:
     camera_sub = parsers["camera"].add_subparsers(dest="camera_command", required=True, metavar="{render,calibrate}")
     for module in ("v2i.camera_render", "v2i.camera_calibrate"):
         __import__(module, fromlist=["add_parser"]).add_parser(camera_sub)
-    for name, module in (("rsu", "rsu_service.cli"), ("obu", "obu_service.cli"), ("link", "link_emulator.cli")):
+    for name, module in (("rsu", "rsu_service.cli"), ("obu", "obu_service.cli"), ("link", "link_emulator.cli"),
+                         ("router", "v2i.router"), ("world", "v2i.world_node")):
         mod = __import__(module, fromlist=["configure_parser", "run"])
         mod.configure_parser(parsers[name])
         parsers[name].set_defaults(func=mod.run)
