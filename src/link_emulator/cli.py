@@ -1,6 +1,8 @@
 """Command line of the link emulator (``v2i link ...``).
 
-``v2i link --rsu-connect EP --vehicle-connect EP [--profile NAME]`` runs the relay;
+``v2i link --rsu-connect EP --vehicle-connect EP [--profile NAME]`` runs the relay for one
+vehicle; ``v2i link --rsu-connect EP --vehicle ID=EP[,EP] --vehicle ID=EP ...`` for several, one
+channel per RSU-vehicle pair (one emulator per RSU, see ``relay.py``);
 ``v2i link validate --profile NAME [--samples N] [--json -]`` checks a profile's channel
 model against its declaration (see ``validate.py``);
 ``v2i link set --connect EP (--profile NAME | --clear | --outage S | ...)`` changes a running
@@ -31,7 +33,7 @@ from schemas.runtime import limit_malloc_arenas
 from schemas.transport import open_session
 from sim.clock import SystemClock
 
-from .config import LinkConfig
+from .config import MAX_VEHICLES, LinkConfig
 from .profile import DirectionProfile, TraceReplay, bundled_profiles, load_profile
 from .relay import LinkRelay
 from .validate import P50_Z, Settings, validate_direction
@@ -43,8 +45,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--config", metavar="FILE", help="YAML file with LinkConfig fields; the options below override it"
     )
     parser.add_argument("--link-id", help="link name used in v2x/link/{link_id}/stats (default link1)")
-    parser.add_argument("--vehicle-id", help="the vehicle whose ego poses set the RSU distance (default: the first "
-                        "one heard; poses of others, and implausible jumps, are refused)")
+    parser.add_argument("--vehicle-id", help="with --vehicle-connect: the vehicle whose ego poses set the RSU "
+                        "distance (default: the first one heard; poses of others, and implausible jumps, are refused)")
     parser.add_argument(
         "--rsu-connect",
         metavar="EP",
@@ -55,7 +57,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--vehicle-connect",
         metavar="EP",
         action="append",
-        help="Zenoh endpoint of the vehicle side, e.g. tcp/127.0.0.1:7448 (repeatable)",
+        help="Zenoh endpoint of the vehicle side, e.g. tcp/127.0.0.1:7448 (repeatable; one vehicle)",
+    )
+    parser.add_argument(
+        "--vehicle",
+        metavar="ID=EP[,EP]",
+        dest="vehicles",
+        action="append",
+        type=parse_vehicle,
+        help=f"a vehicle served on its own session and channel: its id and the Zenoh endpoint(s) of its side, "
+        f"e.g. car1=tcp/127.0.0.1:7448 (repeatable, at most {MAX_VEHICLES}; instead of --vehicle-connect)",
     )
     parser.add_argument(
         "--profile",
@@ -83,6 +94,18 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     text = "change a running link emulator: switch its profile, clear or add an impairment"
     configure_set_parser(sub.add_parser("set", help=text, description=SET_DESCRIPTION,
                                         formatter_class=argparse.RawDescriptionHelpFormatter))
+
+
+def parse_vehicle(text: str) -> dict[str, object]:
+    """argparse type of ``--vehicle ID=EP[,EP]``: ``{"vehicle_id": ID, "connect": [EP, ...]}``.
+
+    The id and endpoints are validated with the rest of the config (``LinkConfig``).
+    """
+    vehicle_id, sep, endpoints = text.partition("=")
+    connect = [ep.strip() for ep in endpoints.split(",") if ep.strip()]
+    if not sep or not vehicle_id.strip() or not connect:
+        raise argparse.ArgumentTypeError(f"expected ID=EP[,EP], e.g. car1=tcp/127.0.0.1:7448, got {text!r}")
+    return {"vehicle_id": vehicle_id.strip(), "connect": connect}
 
 
 def configure_validate_parser(parser: argparse.ArgumentParser) -> None:
@@ -120,12 +143,14 @@ Exactly one action:
   --loss P --for S           lose messages with probability P for S seconds
   --bandwidth KBPS --for S   cap the send rate at KBPS kbit/s for S seconds
 Impairments act on --direction (default both) from their receipt on; impairments of a
-killed and restarted emulator are gone.
+killed and restarted emulator are gone. Every action applies to every vehicle's channel of
+an emulator serving several, or with --vehicle ID to that vehicle's only.
 
 examples:
   v2i link set --connect tcp/127.0.0.1:7450 --outage 10
   v2i link set --connect tcp/127.0.0.1:7450 --delay-spike 300 --for 2 --direction downlink
   v2i link set --connect tcp/127.0.0.1:7450 --clear
+  v2i link set --connect tcp/127.0.0.1:7450 --vehicle car2 --loss 1 --for 5
 """
 
 
@@ -134,6 +159,8 @@ def configure_set_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--connect", metavar="EP", action="append", required=True,
                         help="the emulator's control endpoint (its --control-listen), e.g. tcp/127.0.0.1:7450")
     parser.add_argument("--link-id", default="link1", help="the emulator's link id (default %(default)s)")
+    parser.add_argument("--vehicle", dest="vehicle_id", metavar="ID",
+                        help="act on this vehicle's channel only (default: every vehicle's)")
     action = parser.add_mutually_exclusive_group(required=True)
     action.add_argument("--profile", metavar="NAME", help="switch to this bundled profile")
     action.add_argument("--clear", action="store_true", help="remove every impairment")
@@ -162,6 +189,7 @@ class SetAction:
     bandwidth_kbps: float | None = None
     for_s: float | None = None
     direction: str = "both"
+    vehicle_id: str | None = None
 
 
 def control_from_action(link_id: str, action: SetAction, seq: int = 0) -> LinkControl:
@@ -173,7 +201,7 @@ def control_from_action(link_id: str, action: SetAction, seq: int = 0) -> LinkCo
         raise ValueError(f"{given[0]} needs --for S (how long it lasts)")
     if not given and action.for_s is not None:
         raise ValueError("--for applies to --delay-spike, --loss and --bandwidth only")
-    fields: dict = {"link_id": link_id, "seq": seq}
+    fields: dict = {"link_id": link_id, "seq": seq, "vehicle_id": action.vehicle_id}
     if action.profile is not None:
         fields["profile"] = action.profile
     elif action.clear:
@@ -194,7 +222,7 @@ def control_from_action(link_id: str, action: SetAction, seq: int = 0) -> LinkCo
 def run_set(args: argparse.Namespace) -> int:
     """``v2i link set``: 0 when the emulator confirmed the change, 1 when it did not, 2 on bad arguments."""
     action = SetAction(args.profile, args.clear, args.outage, args.delay_spike, args.loss, args.bandwidth,
-                       args.for_s, args.direction)
+                       args.for_s, args.direction, args.vehicle_id)
     try:
         check_id(args.link_id)
         control = control_from_action(args.link_id, action, seq=time.time_ns() % 2**63)
@@ -304,6 +332,7 @@ def run(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "control_listen": args.control_listen,
         "vehicle_id": args.vehicle_id,
+        "vehicles": args.vehicles,
     }
     try:
         config = load_config(LinkConfig, args.config, overrides)
@@ -318,7 +347,7 @@ def run(args: argparse.Namespace) -> int:
         except zenoh.ZError as exc:
             print(f"link emulator: cannot open Zenoh sessions: {exc}", file=sys.stderr)
             return 1
-        _print_ready(config.link_id)
+        _print_ready(config.link_id, [side.vehicle_id for side in config.vehicle_sides()])
         relay.run(stop)
     return 0
 
@@ -377,9 +406,9 @@ def _fmt(value: float | None) -> str:
     return "-" if value is None else f"{value:.4f}"
 
 
-def _print_ready(link_id: str) -> None:
-    """The one machine-readable line telling supervisors that the relay is up."""
-    print(json.dumps({"event": "ready", "service": "link", "link_id": link_id}), flush=True)
+def _print_ready(link_id: str, vehicle_ids: list[str | None]) -> None:
+    """The one machine-readable line telling supervisors that the relay is up (and for whom)."""
+    print(json.dumps({"event": "ready", "service": "link", "link_id": link_id, "vehicles": vehicle_ids}), flush=True)
 
 
 @contextmanager

@@ -4,20 +4,47 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, model_validator
 
 # <protocol>/<address>[?<metadata>][#<config>], e.g. tcp/127.0.0.1:7447 or udp/[::1]:7447
 Endpoint = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+/\S+$")]
+VehicleId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
+
+# RSU-vehicle pairs one emulator serves: each costs a Zenoh session, a channel model and a
+# stats entry (published every period), so the number is bounded; a V2X radio cell rarely
+# serves more vehicles at once.
+MAX_VEHICLES = 64
+
+
+class VehicleLinkConfig(BaseModel):
+    """One vehicle served by the emulator: its id (names ``v2x/obu/{vehicle_id}/*``) and the
+    Zenoh endpoints of its side, reached by a session of its own (``--vehicle ID=EP[,EP]``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    vehicle_id: VehicleId
+    connect: list[Endpoint] = Field(min_length=1, description="Zenoh endpoints of this vehicle's side")
+
+
+class VehicleSide(BaseModel):
+    """A vehicle side as the relay opens it: ``vehicle_id`` None means "the first one heard"."""
+
+    model_config = ConfigDict(frozen=True)
+
+    vehicle_id: str | None
+    connect: list[str]
 
 
 class LinkConfig(BaseModel):
     """Where the emulator connects and which profile it imposes.
 
-    ``rsu_connect`` and ``vehicle_connect`` are Zenoh endpoints (e.g. ``tcp/10.0.0.1:7447``)
-    of the two sides; the emulator opens one session per side and is their only path.
-    ``rsu_position`` (map frame, m) lets the channel model depend on the vehicle-RSU
-    distance, the vehicle's position coming from its published ego pose.
-    ``control_listen``: endpoints the vehicle-side session also listens on, for controllers
+    ``rsu_connect`` are the Zenoh endpoints (e.g. ``tcp/10.0.0.1:7447``) of the RSU side; the
+    vehicle sides are either ``vehicle_connect`` (one vehicle, ``vehicle_id`` or the first id
+    heard, seeded by ``seed`` itself) or ``vehicles`` (each its own id, endpoints, session and
+    channel, seeded by ``seed`` and its id). The emulator opens one session per side and is
+    their only path. ``rsu_position`` (map frame, m) lets the channel model depend on the
+    vehicle-RSU distance, each vehicle's position coming from its published ego pose.
+    ``control_listen``: endpoints a control session of the emulator listens on, for controllers
     (``v2i link set``, ``v2i chaos run``) that put ``LinkControl`` on ``v2x/link/{link_id}/control``
     and read the stats there; Zenoh peers do not forward, so a controller must reach the
     emulator directly.
@@ -27,7 +54,10 @@ class LinkConfig(BaseModel):
 
     link_id: str = Field(default="link1", pattern=r"^[A-Za-z0-9_-]{1,64}$", description="names v2x/link/{link_id}/*")
     rsu_connect: list[Endpoint] = Field(min_length=1, description="Zenoh endpoints of the RSU side")
-    vehicle_connect: list[Endpoint] = Field(min_length=1, description="Zenoh endpoints of the vehicle side")
+    vehicle_connect: list[Endpoint] = Field(default_factory=list, description="Zenoh endpoints of the one "
+                                            "vehicle side (one-vehicle form; else ``vehicles``)")
+    vehicles: list[VehicleLinkConfig] = Field(default_factory=list, description="the vehicles served, each on its "
+                                              f"own session and channel (at most {MAX_VEHICLES})")
     control_listen: list[Endpoint] = Field(
         default_factory=list, description="extra Zenoh endpoints to listen on for link controllers"
     )
@@ -50,3 +80,26 @@ class LinkConfig(BaseModel):
     max_in_flight: int = Field(default=100_000, ge=16, description="messages scheduled for delivery, per direction")
     max_in_flight_bytes: int = Field(default=64 << 20, ge=1 << 16, description="their bytes, per direction")
     max_open_queries: int = Field(default=1024, ge=1, description="vehicle time queries kept open")
+
+    @model_validator(mode="after")
+    def _one_vehicle_form(self) -> LinkConfig:
+        """Either ``vehicle_connect`` (one vehicle) or ``vehicles`` (up to MAX_VEHICLES, ids unique)."""
+        if bool(self.vehicle_connect) == bool(self.vehicles):
+            raise ValueError("give the vehicle side(s) either as vehicle_connect (one vehicle, --vehicle-connect) "
+                             "or as vehicles (--vehicle ID=EP[,EP], repeatable), exactly one of them")
+        if len(self.vehicles) > MAX_VEHICLES:
+            raise ValueError(f"vehicles: {len(self.vehicles)} given, one emulator serves at most {MAX_VEHICLES} "
+                             "(run one emulator per RSU, each for the vehicles in its range)")
+        ids = [v.vehicle_id for v in self.vehicles]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"vehicles: vehicle ids must be unique, got {', '.join(sorted(i for i in set(ids) if ids.count(i) > 1))} twice")
+        if self.vehicles and self.vehicle_id is not None:
+            raise ValueError("vehicle_id (--vehicle-id) belongs to the one-vehicle form; each entry of vehicles "
+                             "names its own")
+        return self
+
+    def vehicle_sides(self) -> list[VehicleSide]:
+        """The vehicle sides to open, in configured order (one for the one-vehicle form)."""
+        if self.vehicle_connect:
+            return [VehicleSide(vehicle_id=self.vehicle_id, connect=list(self.vehicle_connect))]
+        return [VehicleSide(vehicle_id=v.vehicle_id, connect=list(v.connect)) for v in self.vehicles]

@@ -335,12 +335,14 @@ class LinkControl(Message):
     Exactly one action: ``profile`` switches to a bundled profile (names only: a remote
     peer must not make the emulator read files), ``clear`` removes every impairment, or an
     impairment of ``duration_s`` from its receipt: ``outage``, ``extra_delay_ms``,
-    ``loss_probability`` and/or ``bandwidth_kbps`` on ``direction``.
+    ``loss_probability`` and/or ``bandwidth_kbps`` on ``direction``. ``vehicle_id`` limits it
+    to that vehicle's channel of an emulator serving several (None: every channel).
     """
 
     TYPE: ClassVar[str] = "link_control"
     link_id: NodeId
     seq: Seq = 0
+    vehicle_id: NodeId | None = None
     profile: Annotated[str | None, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")] = None
     clear: bool = False
     duration_s: Annotated[float | None, Field(gt=0.0, le=86_400.0, allow_inf_nan=False)] = None

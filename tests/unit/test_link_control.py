@@ -64,8 +64,8 @@ def test_relay_applies_a_control_and_reports_it_in_the_stats(relay):
     assert stats["profile"] == "dsrc"
     assert stats["control"]["applied"] == 2 and stats["control"]["rejected"] == {}
     assert [o["seq"] for o in stats["control"]["recent"]] == [5, 6]
-    assert relay._model.downlink.transmit(500_000_000, 100) is None  # inside the outage
-    assert relay._model.downlink.transmit(1_500_000_000, 100) is not None
+    assert relay.pairs[0].model.downlink.transmit(500_000_000, 100) is None  # inside the outage
+    assert relay.pairs[0].model.downlink.transmit(1_500_000_000, 100) is not None
 
 
 def test_relay_counts_bad_controls_by_reason_and_changes_nothing(relay):
