@@ -27,7 +27,8 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                         "constant velocity, or auto (lane when a map exists; default)")
     p.add_argument("--source", choices=SOURCES,
                    help="perception: sim (the scenario's camera noise model; default), camera (the scenario "
-                        "rendered, through the ONNX detector and the calibration), video (--video through the same)")
+                        "rendered, through the ONNX detector and the calibration), video (--video through the same), "
+                        "zenoh (SensorObjects received on v2x/sensor/rsu/{id}/objects, e.g. from v2i world)")
     p.add_argument("--video", metavar="PATH", help="with --source video: a video file or a folder of PNG/JPEG frames")
     p.add_argument("--rate-hz", type=float, help="with --source video: frames per second (default: the video's); "
                    "with --source camera: the camera's rate (default: the scenario's RSU rate)")

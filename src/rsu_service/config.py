@@ -11,7 +11,7 @@ from schemas.keys import check_id
 from sim.clock import Clock, ClockStep, DriftingClock
 
 PREDICTORS = ("auto", "lane", "cv")  # long-horizon path predictors, see rsu_service.prediction
-SOURCES = ("sim", "camera", "video")  # perception sources, see rsu_service.source
+SOURCES = ("sim", "camera", "video", "zenoh")  # perception sources, see rsu_service.source
 
 
 class RsuConfig(ServiceConfig):
@@ -27,7 +27,8 @@ class RsuConfig(ServiceConfig):
                                                    "time and upsample 5 Hz to 10 Hz (seed 000 Algorithm 1)")
     source: Literal[SOURCES] = Field("sim", description="sim: the scenario's camera noise model (fast); camera: "
                                      "the world rendered, through the ONNX detector and the calibration; video: "
-                                     "a video file or image folder (--video) through the same")
+                                     "a video file or image folder (--video) through the same; zenoh: SensorObjects received on "
+                                     "v2x/sensor/rsu/{rsu_id}/objects (e.g. from v2i world)")
     video: str | None = Field(None, description="with source video: a video file or a folder of PNG/JPEG images")
     rate_hz: float | None = Field(None, gt=0, le=100, description="with source video: frames per second "
                                   "(default: the video's, 10 for a folder); with source camera: the camera's "
@@ -42,6 +43,14 @@ class RsuConfig(ServiceConfig):
     detector_threads: int | None = Field(None, ge=1, le=256, description="ONNX Runtime intra-op threads")
     score_threshold: float = Field(0.4, gt=0, lt=1, description="detector score threshold (0.3 let a facade "
                                    "texture 76 m out through as a pedestrian in 79 of 150 red-light-runner frames)")
+    input_max_objects: int = Field(1024, ge=1, le=1024, description="with source zenoh: frames with more "
+                                   "detections are refused")
+    input_max_age_ms: float = Field(1000.0, gt=0, le=60_000, description="with source zenoh: frames captured "
+                                    "longer before their receipt are refused (stale)")
+    input_future_ms: float = Field(20.0, ge=0, le=10_000, description="with source zenoh: frames stamped "
+                                   "this much after their receipt are refused (the sensor shares this host's clock)")
+    input_max_bytes: int = Field(262_144, ge=1024, le=1 << 20, description="with source zenoh: larger "
+                                 "payloads are refused unread")
     query_rate_hz: float = Field(2000.0, gt=0, le=100_000, description="time queries read per second, all "
                                  "queriers together; more are refused unread")
     query_burst: int = Field(500, ge=1, le=100_000)

@@ -7,6 +7,13 @@ before any decoding, and a querier (its ``obu_id``) beyond ``querier_rate_hz`` i
 after it (``querier_rate_limited``), so a flood under one name does not starve the others;
 each refusal is counted by reason in ``v2x/rsu/{id}/metrics`` and logged in a throttled
 summary.
+
+With ``--source zenoh`` the RSU runs no camera of its own: it subscribes to
+``v2x/sensor/rsu/{rsu_id}/objects`` (``SensorObjects`` in ``map``, stamped in this host's
+clock), hands each payload from the Zenoh callback to a bounded, rate-limited ``Intake``, and
+its loop screens it (``schemas.sensor_screen``: codec rules, sensor id, frame, stale, future,
+out-of-order, object count; refusals counted as ``input_<reason>``) and processes the frame on
+receipt exactly as a simulated camera's frame at its ready time.
 """
 
 from __future__ import annotations
@@ -14,13 +21,17 @@ from __future__ import annotations
 import threading
 from collections import Counter
 
+import numpy as np
+
 from perception.scoring import PerceptionTally
 from schemas import keys
+from fusion.wire import objects_from_states
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
-from schemas.intake import KeyedBuckets, TokenBucket
+from schemas.intake import Intake, KeyedBuckets, TokenBucket
 from schemas.image_messages import RsuImageFeatures
-from schemas.messages import RsuMetrics, RsuPerception, TimeRequest
+from schemas.messages import SOURCE_RSU, RsuMetrics, RsuPerception, TimeRequest
 from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
+from schemas.sensor_screen import InputRefused, SensorLimits, SensorScreen
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
@@ -29,10 +40,12 @@ from sim.world import World
 from .config import RsuConfig
 from .pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from .prediction import make_predictor
-from .source import make_source
+from .source import Frame, make_source
 
 
 MAX_QUERIERS = 1024  # querier buckets kept
+REPORT_EVERY_NS = 1_000_000_000  # --source zenoh: metrics at least this often, frames or not
+INPUT_QUEUE, INPUT_RATE_HZ, INPUT_BURST = 64, 50.0, 25  # --source zenoh: queued frames; frames/s and burst
 
 
 class RsuNode:
@@ -45,7 +58,11 @@ class RsuNode:
         self.world = World(load_scenario(config.scenario), site=True)  # the RSU sees every vehicle
         self.duration_s = config.duration_s or self.world.scenario.duration_s
         self.clock = config.clock(self.true_clock, self.start_ns)
-        self.source = make_source(config, self.world, self.start_ns)
+        self.source = None if config.source == "zenoh" else make_source(config, self.world, self.start_ns)
+        self._inputs = Intake(INPUT_QUEUE, config.input_max_bytes, INPUT_RATE_HZ, INPUT_BURST)
+        self._screen = SensorScreen(config.rsu_id, "map", SensorLimits(config.input_max_objects,
+                                                                      config.input_max_age_ms,
+                                                                      config.input_future_ms, config.input_max_bytes))
         self.pipeline = RsuPipeline(RsuPipelineConfig(rsu_id=config.rsu_id, sensor=f"camera/{config.source}",
                                                       predict_ahead=config.predict_ahead),
                                     make_predictor(config.predictor, config.scenario))
@@ -59,9 +76,12 @@ class RsuNode:
         self._log = ThrottledLog("rsu")
         self._trim = MemoryTrim()
         self._details: dict[str, str] = {}
+        self._reported_ns = 0  # true clock of the last metrics
         # scored when the source knows the truth (simulated world)
-        rsu = self.world.scenario.rsus[self.world.scenario.rsu_index(config.rsu_id)].position
-        self.perception = PerceptionTally.of_source(self.source, (rsu.x, rsu.y))
+        rsu = self.world.scenario.rsus[self.world.scenario.rsu_index(config.rsu_id)]
+        self.perception = PerceptionTally.of_source(self.source, (rsu.position.x, rsu.position.y))
+        # predict-ahead publishes a frame's second list half a frame period after the first
+        self._upsample_offset_ns = round(0.5e9 / rsu.rate_hz) if self.source is None else self.source.upsample_offset_ns
 
     def run(self, stop: threading.Event) -> None:
         session = open_session(self.config.listen, self.config.connect)
@@ -75,8 +95,10 @@ class RsuNode:
             entities = [publisher, self._predictions, self._metrics, self._features,
                         session.declare_queryable(keys.rsu_time(rsu_id), self._on_time_query),
                         session.liveliness().declare_token(keys.rsu_alive(rsu_id))]
+            if self.source is None:
+                entities.append(session.declare_subscriber(keys.sensor_rsu_objects(rsu_id), self._on_input))
             announce("ready", "rsu", rsu_id=self.config.rsu_id, listen=self.config.listen)
-            self._publish_frames(publisher, stop)
+            (self._publish_inputs if self.source is None else self._publish_frames)(publisher, stop)
         finally:
             for entity in entities:
                 entity.undeclare()
@@ -99,21 +121,53 @@ class RsuNode:
             frame = self.source.capture(int(capture_ns))
             if frame is None:  # the recording has ended
                 break
-            if not self._sleep_until(frame.ready_true_ns, stop):
+            if not self._sleep_until(frame.ready_true_ns, stop) or not self._publish(publisher, frame, stop):
                 return
-            self.perception.add_frame(frame)
-            capture = Stamp(self.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
-            publisher.put(encode(self.pipeline.on_frame(frame.detections, capture, self._now())))
-            self._predictions.put(encode(self.pipeline.predictions(self._now())))
-            if frame.image_features is not None:  # ROIF: the frame's boxes + ORB features, stamped at capture
-                self._features.put(encode(RsuImageFeatures.from_view(self.config.rsu_id, self.published,
-                                                                     capture.wall_ns, frame.image_features)))
-            self.published += 1
-            if self.config.predict_ahead and self._sleep_until(frame.ready_true_ns + self.source.upsample_offset_ns, stop):
-                publisher.put(encode(self.pipeline.upsampled(self._now())))
-                self.published += 1
-            self._report()
         self._sleep_until(self.start_ns + round((self.duration_s + 1.0) * 1e9), stop)
+
+    def _on_input(self, sample) -> None:
+        """Zenoh callback (--source zenoh): stamp and enqueue only."""
+        payload = sample.payload
+        self._inputs.put("objects", str(sample.key_expr), len(payload), self.true_clock.now_ns(), payload.to_bytes)
+
+    def _publish_inputs(self, publisher, stop: threading.Event) -> None:
+        """--source zenoh: each frame received and accepted is processed and published at once,
+        until the run's end (start + duration + 1 s)."""
+        end_ns = self.start_ns + round((self.duration_s + 1.0) * 1e9)
+        while not stop.is_set() and (remaining_ns := end_ns - self.true_clock.now_ns()) > 0:
+            item = self._inputs.get(min(remaining_ns * 1e-9, 0.2))
+            if self.true_clock.now_ns() - self._reported_ns > REPORT_EVERY_NS:  # refusals show while no frame comes
+                self._report()
+            if item is None:
+                continue
+            try:
+                msg = self._screen.objects(item.payload, item.receive_ns)
+            except InputRefused as exc:
+                with self._lock:
+                    self.rejected[exc.reason] += 1
+                    self._details.setdefault(exc.reason, f"input on {item.source}: {exc}")
+                continue
+            dets = objects_from_states(msg.objects)
+            dets = dets.with_(ids=np.full(len(dets), -1, dtype=np.int64), sources=np.full(len(dets), SOURCE_RSU))
+            if not self._publish(publisher, Frame(msg.header.capture_time_ns, item.receive_ns, dets), stop):
+                return
+
+    def _publish(self, publisher, frame: Frame, stop: threading.Event) -> bool:
+        """Process one frame whose detections are ready now and publish its list(s); False when
+        stopped meanwhile."""
+        self.perception.add_frame(frame)
+        capture = Stamp(self.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
+        publisher.put(encode(self.pipeline.on_frame(frame.detections, capture, self._now())))
+        self._predictions.put(encode(self.pipeline.predictions(self._now())))
+        if frame.image_features is not None:  # ROIF: the frame's boxes + ORB features, stamped at capture
+            self._features.put(encode(RsuImageFeatures.from_view(self.config.rsu_id, self.published,
+                                                                 capture.wall_ns, frame.image_features)))
+        self.published += 1
+        if self.config.predict_ahead and self._sleep_until(frame.ready_true_ns + self._upsample_offset_ns, stop):
+            publisher.put(encode(self.pipeline.upsampled(self._now())))
+            self.published += 1
+        self._report()
+        return not stop.is_set()
 
     def _now(self) -> Stamp:
         """Now on the RSU's wall clock and on its monotonic clock (the simulation's true
@@ -133,6 +187,8 @@ class RsuNode:
     def _refusals(self) -> Counter[str]:
         """Refused inputs by reason: time queries, and a recording's frames (``frame_<reason>``)."""
         with self._lock:
+            for reason, n in self._inputs.take_counts().items():  # --source zenoh: refused unread
+                self.rejected[f"input_{reason}"] += n
             rejected = Counter(self.rejected)
         frames = getattr(self.source, "frames", None)
         if frames is not None:
@@ -142,6 +198,7 @@ class RsuNode:
     def _report(self) -> None:
         """Publish the metrics; hand the refusals since the last report to the throttled log."""
         rejected = self._refusals()
+        self._reported_ns = self.true_clock.now_ns()
         with self._lock:
             replies = self.time_replies
         self._log.totals(rejected, self._details)

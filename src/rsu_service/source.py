@@ -6,6 +6,9 @@
   (``sim.render``), through the ONNX detector and the calibrated ground homography.
 - ``RecordedCamera`` (``--source video``): frames of a video file or an image folder (the
   user's own recording, model and calibration), through the same detector and homography.
+- ``--source zenoh`` has no source object here: the node receives ``SensorObjects`` on
+  ``v2x/sensor/rsu/{rsu_id}/objects`` (``rsu_service.node``), e.g. from ``v2i world``, which
+  samples the ``SimulatedCamera`` below.
 
 Frame k is captured at start + k / rate (true clock); its detections are ready after the
 processing delay: the scenario's (80-120 ms by default, seed 001) for the simulated world,
@@ -26,7 +29,7 @@ from sim.world import World
 from .image_perception import ImagePerception
 from .recording import ImageFrames
 
-SOURCES = ("sim", "camera", "video")
+SOURCES = ("sim", "camera", "video", "zenoh")
 
 
 @dataclass(frozen=True)
@@ -153,6 +156,8 @@ def _features(perception: ImagePerception, image, features_max: int | None):
 
 def make_source(config, world: World, start_ns: int):
     """The source an ``RsuConfig`` names (``config.source``), its files opened and checked."""
+    if config.source == "zenoh":
+        raise ValueError("source zenoh has no local source: the RSU node subscribes to its sensor key")
     if config.source == "sim":
         return SimulatedCamera(world, config.seed, start_ns, config.rsu_id)
     perception = open_perception(config, world)

@@ -1,0 +1,116 @@
+"""``v2i world``: the simulated world of a scenario in real time, published as sensor inputs.
+
+For services running ``--source zenoh`` (and for monitors): every RSU camera's detections on
+``v2x/sensor/rsu/{rsu_id}/objects``, every vehicle's LiDAR detections and localisation on
+``v2x/sensor/vehicle/{vehicle_id}/objects|pose``, and the ground truth on ``v2x/world/truth``
+(``v2i.world_feed`` says what and when). Give it the services' ``--start-at-ns``, ``--seed`` and
+``--scenario`` and they receive what ``--source sim`` would have sampled.
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+
+from pydantic import Field, field_validator
+
+from schemas.codec import encode
+from schemas.config import ServiceConfig
+from schemas.runtime import add_service_options, announce, log, run_service
+from schemas.transport import open_session
+from sim.clock import Clock, SystemClock
+from sim.scenario import load_scenario
+
+from .world_feed import WorldFeed
+
+LATE_NS = 50_000_000  # a publication this far behind its time is counted late
+
+
+def _renames(values: list[str]) -> dict[str, str]:
+    """``SCENARIO_ID=NAME`` (or a bare ``NAME`` for a scenario's only RSU / vehicle) as a map."""
+    out = {}
+    for value in values:
+        scenario_id, _, name = value.rpartition("=")
+        out[scenario_id] = name
+    return out
+
+
+class WorldConfig(ServiceConfig):
+    listen: list[str] = Field(default_factory=list)
+    rsu_id: list[str] = Field(default_factory=list, description="publish a scenario RSU under another id: "
+                              "SCENARIO_ID=RSU_ID, or RSU_ID alone for the scenario's only RSU")
+    vehicle_id: list[str] = Field(default_factory=list, description="publish a scenario vehicle under another "
+                                  "id: NAME=VEHICLE_ID, or VEHICLE_ID alone for the scenario's only vehicle")
+    lidar_delay_ms: float = Field(50.0, ge=0, le=10_000, description="vehicle LiDAR capture -> detections "
+                                  "published (the OBU's fuse_delay_ms with --source sim)")
+    truth_rate_hz: float = Field(10.0, gt=0, le=100)
+
+    @field_validator("rsu_id", "vehicle_id")
+    @classmethod
+    def _one_name_each(cls, v: list[str]) -> list[str]:
+        if len(_renames(v)) != len(v):
+            raise ValueError(f"renames the same one twice: {v}")
+        return v
+
+
+class WorldNode:
+    def __init__(self, config: WorldConfig, clock: Clock | None = None):
+        self.config, self.clock = config, clock or SystemClock()
+        self.start_ns = config.start_at_ns or self.clock.now_ns()
+        scenario = load_scenario(config.scenario)
+        self.duration_s = config.duration_s or scenario.duration_s
+        self.feed = WorldFeed(scenario, config.seed, self.start_ns, self.duration_s, _renames(config.rsu_id),
+                              _renames(config.vehicle_id), config.lidar_delay_ms, config.truth_rate_hz)
+        self.published = self.late = 0
+
+    def run(self, stop: threading.Event) -> None:
+        session = open_session(self.config.listen, self.config.connect)
+        publishers: dict[str, object] = {}
+        try:
+            announce("ready", "world", rsus=sorted(self.feed.cameras), vehicles=sorted(self.feed.vehicles),
+                     listen=self.config.listen)
+            for pub in self.feed.publications():
+                if not self._sleep_until(pub.t_ns, stop):
+                    return
+                if pub.key not in publishers:
+                    publishers[pub.key] = session.declare_publisher(pub.key)
+                publishers[pub.key].put(encode(pub.message))
+                self.published += 1
+                self.late += self.clock.now_ns() - pub.t_ns > LATE_NS
+        finally:
+            for publisher in publishers.values():
+                publisher.undeclare()
+            session.close()
+            log("world", f"stopped: {self.published} messages published ({self.late} over "
+                         f"{LATE_NS // 1_000_000} ms late), {self.feed.counts}")
+
+    def _sleep_until(self, t_ns: int, stop: threading.Event) -> bool:
+        while not stop.is_set():
+            remaining_s = (t_ns - self.clock.now_ns()) * 1e-9
+            if remaining_s <= 0:
+                return True
+            stop.wait(remaining_s)
+        return False
+
+
+def configure_parser(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Simulated world: runs the scenario in real time from --start-at-ns and publishes what the "
+        "sensors see, for services running --source zenoh: each RSU camera's detections on "
+        "v2x/sensor/rsu/{id}/objects, each vehicle's LiDAR detections and localisation on "
+        "v2x/sensor/vehicle/{id}/objects|pose, the ground truth on v2x/world/truth. The same --seed "
+        "gives the detections --source sim samples."
+    )
+    add_service_options(p, "WorldConfig", "tcp/127.0.0.1:7450", "sensor noise")
+    p.add_argument("--connect", action="append", metavar="EP", help="Zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--rsu-id", action="append", metavar="[SCENARIO_ID=]ID",
+                   help="publish a scenario RSU under the id its service runs with (repeatable); a bare ID "
+                        "names the scenario's only RSU")
+    p.add_argument("--vehicle-id", action="append", metavar="[NAME=]ID",
+                   help="publish a scenario vehicle under the id its OBU runs with (repeatable)")
+    p.add_argument("--lidar-delay-ms", type=float, help="LiDAR capture -> detections published (default 50)")
+    p.add_argument("--truth-rate-hz", type=float, help="ground truth messages per second (default 10)")
+
+
+def run(args: argparse.Namespace) -> int:
+    return run_service("world", WorldConfig, args, WorldNode)
