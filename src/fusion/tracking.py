@@ -41,9 +41,31 @@ Life cycle (``tracks`` returns confirmed and coasting tracks):
 - coasting: confirmed but not updated at the current time; predicted only.
 - deleted: by ``prune`` once its last update is older than ``max_coast_s``.
 
-Sources: each update carries a bitmask (``source_mask`` OR the detection's ``sources``);
-a track's ``sources`` is the OR of the bits that updated it within the last ``max_coast_s``.
-Ids are unique within a Tracker instance, starting at 1.
+Sources: each update carries a bitmask (``source_mask`` OR the detection's ``sources``)
+of ``SOURCE_BITS`` (63) bits, so an int64; the OBU gives bit 0 to its own vehicle and bit
+1 + i to RSU slot i (``slot_source``; ``schemas.messages`` documents the bits and how the
+wire folds them into one byte). A track's ``sources`` is the OR of the bits that updated it
+within the last ``max_coast_s``. Ids are unique within a Tracker instance, starting at 1.
+
+Fusing another tracker's estimates (``update(..., estimates=True)``, e.g. an RSU's tracks).
+A matched pair (track, estimate with bits b) is fused by exactly one rule, in this order:
+1. alone: no source outside b updated the track within ``max_coast_s``: the track takes the
+   estimate as its state (x, P from the estimate as for a new track): the newest estimate
+   already holds everything that source said before.
+2. covariance intersection: a source outside b that has delivered estimates (any earlier
+   ``estimates=True`` update of this tracker) updated the track within ``max_coast_s``.
+   The track then holds another filter's estimates, whose errors are correlated with this
+   one's in an unknown way (common process noise, the same source's earlier estimates
+   reaching it through the other's), so a Kalman update would count shared information
+   twice. CI (``fusion.covariance_intersection``): the Kalman update with P / w and
+   R / (1 - w), i.e. P+^-1 = w P^-1 + (1 - w) H^T R^-1 H,
+   x+ = P+ (w P^-1 x + (1 - w) H^T R^-1 z), w minimising det P+; H observes the position,
+   and also the velocity where the estimate measured one (CV / CA with ``velocity_updates``;
+   R = blockdiag(cov_xy, cov_vxy)). ``estimate_fusion="kf"`` turns this rule off (rule 3).
+3. otherwise (only raw-measurement sources, such as the own LiDAR, share the track): a
+   Kalman update of the position only (see ``_correct``).
+Raw measurements (``estimates=False``) always get the Kalman update (position, and the
+velocity where measured).
 """
 
 from __future__ import annotations
@@ -57,11 +79,12 @@ from scipy.optimize import linear_sum_assignment
 
 from . import kalman
 from .association import Assignment
+from .covariance_intersection import ci_update, ci_weights
 from .frames import wrap_angle
 from .geometry import box_polygons
 from .objects import ObjectArray
 
-SOURCE_BITS = 8  # the wire's sources field is one byte
+SOURCE_BITS = 63  # source bitmasks are int64: bit 0 own vehicle, bits 1..62 one per RSU / peer slot
 _BIT_VALUES = 1 << np.arange(SOURCE_BITS)
 _BLOCKED = 1e12  # cost of a forbidden pair inside the assignment solver
 
@@ -88,9 +111,11 @@ class TrackerConfig:
     velocity_updates: bool = True  # cv / ca: measured velocities (cov_vxy below unknown) update the state too
     shape_hold_s: float = 0.3  # a box shape from a precise source is kept this long against coarser ones
     two_point_init: bool = True  # cv / ca: a track born without a velocity takes it from its first two positions
+    estimate_fusion: Literal["ci", "kf"] = "ci"  # estimates into a track another estimate source shares (module doc)
 
     def __post_init__(self) -> None:
-        for name, allowed in (("gate", ("distance", "mahalanobis")), ("cost", ("distance", "mahalanobis", "iou"))):
+        for name, allowed in (("gate", ("distance", "mahalanobis")), ("cost", ("distance", "mahalanobis", "iou")),
+                              ("estimate_fusion", ("ci", "kf"))):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"TrackerConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
         kalman.make_model(self.motion, 1.0, 1.0, 1.0)  # validates the name
@@ -157,11 +182,13 @@ class TrackTable:
 
 @dataclass(frozen=True)
 class TrackerSnapshot:
-    """The whole filter state of a Tracker (deep copies): time, next id, track table."""
+    """The whole filter state of a Tracker (deep copies): time, next id, track table, and the
+    source bits that have delivered estimates (SOURCE_BITS,) bool."""
 
     t_s: float | None
     next_id: int
     table: TrackTable
+    estimate_bits: np.ndarray
 
 
 def compatible_classes(track_cls: np.ndarray, det_cls: np.ndarray) -> np.ndarray:
@@ -291,11 +318,18 @@ def assign_gated(cost: np.ndarray) -> Assignment:
     return assign_pairs(GatedPairs(ti, di, cost[ti, di]), *cost.shape)
 
 
+def slot_source(slot: int) -> int:
+    """Source bit of cooperative slot ``slot`` (an RSU or peer vehicle): 1 << (1 + slot), slot in [0, 62)."""
+    if not 0 <= slot < SOURCE_BITS - 1:
+        raise ValueError(f"source slot must be in [0, {SOURCE_BITS - 1}), got {slot}")
+    return 1 << (1 + slot)
+
+
 def source_mask_bits(masks: np.ndarray) -> np.ndarray:
-    """(K, SOURCE_BITS) booleans of K bitmasks; bits beyond the wire's byte are refused."""
+    """(K, SOURCE_BITS) booleans of K int64 bitmasks; negative masks (bit 63) are refused."""
     masks = np.asarray(masks, dtype=np.int64)
-    if np.any((masks < 0) | (masks >= 1 << SOURCE_BITS)):
-        raise ValueError(f"source bitmasks must be in [0, {1 << SOURCE_BITS}), got {masks.max()}")
+    if np.any(masks < 0):
+        raise ValueError(f"source bitmasks must be in [0, 2^{SOURCE_BITS}), got {masks.min()}")
     return (masks[:, None] & _BIT_VALUES[None, :]) != 0
 
 
@@ -309,6 +343,7 @@ class Tracker:
         self._next_id = 1
         self._t_s: float | None = None
         self._table = TrackTable.empty(self.model.dim_x)
+        self._estimate_bits = np.zeros(SOURCE_BITS, bool)  # bits that have delivered estimates
 
     def __len__(self) -> int:
         return len(self._table)
@@ -336,14 +371,15 @@ class Tracker:
         """Associate detections (map frame) with the tracks predicted to t_s, update the matched
         tracks, spawn tracks from the unmatched detections. Several updates per cycle are allowed.
 
-        ``estimates``: the detections are another tracker's estimates (an RSU's tracks). A
-        matched track that no other source updated within ``max_coast_s`` takes the estimate
-        as its state: the newest estimate already holds everything that source said before,
-        and filtering it in would count that again. Other matched tracks get the Kalman update.
-        Tracks matched with or spawned by an estimate are confirmed (another tracker confirmed it).
+        ``estimates``: the detections are another tracker's estimates (an RSU's tracks), fused by
+        the rules of the module docstring (alone: replace; shared with another estimate source:
+        covariance intersection; else a Kalman position update). Tracks matched with or spawned
+        by an estimate are confirmed (another tracker confirmed it).
         """
         self.predict(t_s)
         bits = source_mask_bits(np.asarray(dets.sources) | int(source_mask))
+        if estimates:
+            self._estimate_bits |= source_mask_bits(np.array([int(source_mask)]))[0] | bits.any(axis=0)
         result = associate(self.config, self._table, dets)
         ti, di = result.matches[:, 0], result.matches[:, 1]
         alone = self._seen_only_by(ti, bits[di], t_s) if estimates else np.zeros(len(ti), bool)
@@ -354,6 +390,10 @@ class Tracker:
         k = int(alone.sum())
         self._table.x[ti[alone]], self._table.p[ti[alone]] = x0[:k], p0[:k]
         ti, di = ti[~alone], di[~alone]
+        if estimates and self.config.estimate_fusion == "ci":
+            shared = self._shared_with_estimates(ti, bits[di], t_s)
+            self._intersect(ti[shared], di[shared], dets)
+            ti, di = ti[~shared], di[~shared]
         pair = self._second_positions(ti, di, dets, t_s)
         if pair.any():
             self._two_point(ti[pair], di[pair], dets, t_s)
@@ -405,11 +445,12 @@ class Tracker:
 
     def snapshot(self) -> TrackerSnapshot:
         """Deep copy of the whole filter state."""
-        return TrackerSnapshot(self._t_s, self._next_id, self._table.copy())
+        return TrackerSnapshot(self._t_s, self._next_id, self._table.copy(), self._estimate_bits.copy())
 
     def restore(self, snapshot: TrackerSnapshot) -> None:
         """Return to a snapshot (copied again, so it can be restored more than once)."""
         self._t_s, self._next_id, self._table = snapshot.t_s, snapshot.next_id, snapshot.table.copy()
+        self._estimate_bits = snapshot.estimate_bits.copy()
 
     def _check_time(self, t_s: float) -> None:
         if self._t_s is not None and t_s < self._t_s:
@@ -419,6 +460,27 @@ class Tracker:
         """(K,) True where tracks ti were updated within max_coast_s by no source outside bits (K, SOURCE_BITS)."""
         recent = (t_s - self._table.seen_s[ti]) <= self.config.max_coast_s
         return ~(recent & ~bits).any(axis=1)
+
+    def _shared_with_estimates(self, ti: np.ndarray, bits: np.ndarray, t_s: float) -> np.ndarray:
+        """(K,) True where tracks ti were updated within max_coast_s by a source outside bits
+        (K, SOURCE_BITS) that has delivered estimates (rule 2 of the module docstring)."""
+        recent = (t_s - self._table.seen_s[ti]) <= self.config.max_coast_s
+        return (recent & ~bits & self._estimate_bits[None, :]).any(axis=1)
+
+    def _intersect(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray) -> None:
+        """Covariance intersection of tracks ti with estimates di: the position, or the position and
+        velocity where the estimate measured one (CV / CA with velocity_updates), one w per track."""
+        tab = self._table
+        if not len(ti):
+            return
+        with_v = np.zeros(len(ti), bool)
+        if self.config.velocity_updates and self.config.motion in ("cv", "ca"):
+            with_v = dets.velocity_known()[di]
+        for rows, z, r in ((~with_v, dets.xy[di], dets.cov_xy[di]), (with_v, *_position_velocity(dets, di))):
+            t = ti[rows]
+            if len(t):
+                w = ci_weights(tab.p[t], r[rows])
+                tab.x[t], tab.p[t] = ci_update(tab.x[t], tab.p[t], z[rows], r[rows], w)
 
     def _second_positions(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, t_s: float) -> np.ndarray:
         """(K,) True where the pair (track ti, detection di) is a two-point initialisation: the track
@@ -499,6 +561,13 @@ class Tracker:
                          _trace2(dets.cov_xy[index]), born.copy(),
                          np.full(n, estimates or self.config.confirm_hits <= 1), x, p, velocity_prior)
         self._table = self._table.append(new)
+
+
+def _position_velocity(dets: ObjectArray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """z (K, 4) = [x, y, vx, vy] and R (K, 4, 4) = blockdiag(cov_xy, cov_vxy) of dets[index]."""
+    r = np.zeros((len(index), 4, 4))
+    r[:, :2, :2], r[:, 2:, 2:] = dets.cov_xy[index], dets.cov_vxy[index]
+    return np.column_stack([dets.xy[index], dets.vxy[index]]), r
 
 
 def filter_inputs(dets: ObjectArray, index: np.ndarray) -> kalman.Measured:

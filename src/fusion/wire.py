@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from schemas import messages as m
-from schemas.messages import FusedObject, ObjectState
+from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, FusedObject, ObjectState
 
 from .frames import wrap_angle
 from .objects import ObjectArray
@@ -39,13 +39,22 @@ def objects_from_states(states: Sequence[ObjectState]) -> ObjectArray:
     )
 
 
+def wire_sources(masks: np.ndarray) -> np.ndarray:
+    """The wire's one-byte sources (K,) of K int64 source bitmasks of the OBU's tracker: bit 0
+    (own vehicle) stays SOURCE_VEHICLE, any of bits 1..62 (RSU / peer slots) becomes SOURCE_RSU."""
+    masks = np.asarray(masks, dtype=np.int64)
+    return (masks & SOURCE_VEHICLE) | np.where((masks & ~SOURCE_VEHICLE) != 0, SOURCE_RSU, 0)
+
+
 def states_from_objects(objs: ObjectArray, fused: bool = False) -> tuple[ObjectState, ...]:
-    """Wire objects of an ObjectArray; ``fused`` adds the ``sources`` bitmask.
+    """Wire objects of an ObjectArray; ``fused`` adds the ``sources`` bitmask, folded into the
+    wire's byte (``wire_sources``).
 
     Ids must be non-negative (track ids); values are clipped to the wire's ranges where
     physics allows none outside them (sizes >= 0, confidence in [0, 1]).
     """
     model = FusedObject if fused else ObjectState
+    sources = wire_sources(objs.sources) if fused else None
     out = []
     for i in range(len(objs)):
         kw = dict(
@@ -60,7 +69,7 @@ def states_from_objects(objs: ObjectArray, fused: bool = False) -> tuple[ObjectS
             confidence=float(np.clip(objs.confidence[i], 0.0, 1.0)), age_s=float(max(objs.age_s[i], 0.0)),
         )
         if fused:
-            kw["sources"] = int(objs.sources[i])
+            kw["sources"] = int(sources[i])
         out.append(model(**kw))
     return tuple(out)
 

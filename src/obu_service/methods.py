@@ -12,10 +12,12 @@ returns the fused objects in base_link at the cycle time.
 - ``kf``: a Kalman-filter tracker in ``map`` updated with own LiDAR, then with each RSU
   frame once (seed 001); with ``oosm`` compensation RSU frames are out-of-sequence
   measurements at their capture time and the filter is re-run from there. RSU objects
-  are the RSU tracker's estimates (position and velocity with covariances): a track only
-  the RSU has seen takes the newest one as its state, since it already holds what the
-  older ones said; a track the LiDAR also sees fuses it in a Kalman update
-  (``Tracker.update(..., estimates=True)``).
+  are the RSU tracker's estimates (position and velocity with covariances), each RSU slot
+  its own source bit (``fusion.tracking.slot_source``): a track only this RSU has seen
+  takes the newest one as its state, since it already holds what the older ones said; a
+  track another RSU also updates fuses it by covariance intersection (the two filters'
+  errors are correlated); a track only the LiDAR also sees fuses its position in a Kalman
+  update (``Tracker.update(..., estimates=True)``, rules in ``fusion.tracking``).
   ``kf-vehicle`` and ``kf-rsu`` are the same tracker fed by one source only (seed 001's
   "LiDAR only KF" and "camera only KF" ablations).
 
@@ -42,8 +44,7 @@ from fusion.nms import nms_fuse
 from fusion.objects import ObjectArray
 from fusion.oosm import OosmTracker
 from fusion.tclf import tclf_compensate, tclf_fuse
-from fusion.tracking import TrackerConfig
-from schemas.messages import SOURCE_RSU
+from fusion.tracking import TrackerConfig, slot_source
 
 FUSION_METHODS = ("kf", "iou-merge", "nms", "tclf", "rsu-only", "vehicle-only", "kf-vehicle", "kf-rsu")
 COMPENSATIONS = ("predict", "none", "track-predict", "lane", "oosm")
@@ -58,7 +59,7 @@ class RsuFrame:
     seq: int
     capture_ns: int
     valid_ns: int  # capture + the RSU's own prediction horizon
-    objects: ObjectArray  # map frame, sources = SOURCE_RSU
+    objects: ObjectArray  # map frame, sources = slot_source(rsu_index)
     previous: "RsuFrame | None" = None  # the frame before, for two-frame velocity (TCLF)
 
 
@@ -119,7 +120,7 @@ class KalmanFusion:
             # oosm: a measurement at its own time, re-filtered into the past; else moved to the cycle
             at_ns = frame.valid_ns if self.compensation == "oosm" else cycle_ns
             rsu = add_pose_uncertainty(self._as_measurement(frame, at_ns), ego)
-            self._update(rsu, self._t(at_ns), frame.objects.sources, estimates=True)
+            self._update(rsu, self._t(at_ns), slot_source(frame.rsu_index), estimates=True)
         return map_to_base(self._tracks(t_s), ego, pose_uncertainty=False)
 
     def _as_measurement(self, frame: RsuFrame, cycle_ns: int) -> ObjectArray:
@@ -128,8 +129,9 @@ class KalmanFusion:
         objs = compensate(frame, cycle_ns, self.compensation, self.motion)
         return objs.with_(cov_xy=objs.cov_xy + dt_s**2 * objs.cov_vxy)
 
-    def _update(self, dets: ObjectArray, t_s: float, sources: np.ndarray, estimates: bool = False) -> None:
-        mask = int(np.bitwise_or.reduce(sources)) if len(sources) else SOURCE_RSU
+    def _update(self, dets: ObjectArray, t_s: float, sources, estimates: bool = False) -> None:
+        """One batch into the tracker; ``sources``: the batch's bitmask, or its objects' (K,) masks."""
+        mask = int(np.bitwise_or.reduce(np.atleast_1d(sources)))
         if isinstance(self.tracker, OosmTracker):
             self.tracker.update(dets, t_s, mask, estimates)
         else:

@@ -32,9 +32,10 @@ from fusion.frames import Pose2D, map_to_base
 from fusion.merger import iou_merge
 from fusion.objects import ObjectArray
 from fusion.pose_history import PoseHistory
+from fusion.tracking import SOURCE_BITS, slot_source
 from fusion.wire import fit_to_wire, objects_from_states, states_from_objects
-from schemas.messages import (MAX_OBJECTS, SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObjectListHeader,
-                              ObuMetrics, PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
+from schemas.messages import (MAX_OBJECTS, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics,
+                              PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
 
 from .admission import Admission, Limits
 from .clock_sync import OffsetEstimate
@@ -48,7 +49,7 @@ from .time_requests import TimeRequests
 __all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "ObuPipeline", "ObuPipelineConfig"]
 
 RSU_ID_BASE = 1_000_000  # output ids of RSU objects: RSU_ID_BASE * (rsu index + 1) + RSU track id mod base
-MAX_RSUS = 64  # RSU slots (known + unknown): the metrics message lists each one
+MAX_RSUS = SOURCE_BITS - 1  # RSU slots (known + unknown): one tracker source bit each (62; metrics list <= 64)
 
 
 @dataclass(frozen=True)
@@ -91,7 +92,7 @@ class ObuPipelineConfig:
         slots = len(self.known_rsus) + (self.max_unknown_rsus if self.accept_unknown_rsus else 0)
         if slots > MAX_RSUS:
             raise ValueError(f"known_rsus ({len(self.known_rsus)}) + max_unknown_rsus ({self.max_unknown_rsus}) "
-                             f"exceed {MAX_RSUS} RSU slots")
+                             f"exceed {MAX_RSUS} RSU slots (one fusion source bit each)")
 
 
 @dataclass
@@ -193,7 +194,8 @@ class ObuPipeline:
             return
         state.lists_seen.add((header.seq, header.capture_time_ns))
         objects = self._admission.on_site(state, objects_from_states(msg.objects), self.poses.at(receive_ns))
-        objects = objects.with_(ids=self._rsu_ids(state, objects.ids), sources=np.full(len(objects), SOURCE_RSU))
+        objects = objects.with_(ids=self._rsu_ids(state, objects.ids),
+                                sources=np.full(len(objects), slot_source(state.index), np.int64))
         state.frames.append(Received(header.capture_time_ns, header.valid_time_ns, header.seq, objects, receive_ns))
         state.accepted += 1
         state.last_receive_ns = receive_ns
@@ -323,7 +325,8 @@ class ObuPipeline:
             state = self._rsus.get(pred.header.rsu_id)
             objs = self._admission.on_site(state, objects_at(pred, (t_c - t0_ns) * 1e-9), ego)
             rsu.append(map_to_base(objs.with_(ids=self._rsu_ids(state, objs.ids),
-                                              sources=np.full(len(objs), SOURCE_RSU)), ego))
+                                              sources=np.full(len(objs), slot_source(state.index), np.int64)),
+                                   ego))
         pred, t0_ns = max(inputs, key=lambda item: item[1])
         self.last_planning = retimed(pred, t0_ns, now_ns)
         return iou_merge(fused, ObjectArray.concat(rsu), self.config.iou_threshold)

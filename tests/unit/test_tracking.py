@@ -343,8 +343,9 @@ def test_tracks_predicts_a_copy_and_time_never_goes_back():
     np.testing.assert_array_equal(tracker._table.x, before.table.x)
     with pytest.raises(ValueError, match="OosmTracker"):
         tracker.predict(0.1)
+    tracker.update(dets([0, 0]), 0.3, 1 << 62)  # bits 0..62 are sources (one per RSU slot); bit 63 is not
     with pytest.raises(ValueError, match="source"):
-        tracker.update(dets([0, 0]), 0.3, 256)
+        tracker.update(dets([0, 0]), 0.3, -(1 << 63))
 
 
 def test_snapshot_restore_is_a_deep_copy():
