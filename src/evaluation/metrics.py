@@ -47,6 +47,8 @@ class TargetScore:
     first_detection_time_s: float | None
     nees_mean: float | None = None
     nees_fraction_inside: float | None = None
+    track_ids: int = 0  # distinct output ids the target was detected under
+    id_switches: int = 0  # times its output id changed from one detected cycle to the next
 
     def as_dict(self) -> dict:
         return {
@@ -54,6 +56,7 @@ class TargetScore:
             "first_detection_distance_m": _round(self.first_detection_distance_m),
             "first_detection_time_s": _round(self.first_detection_time_s), "detected_cycles": self.detected_cycles,
             "nees_mean": _round(self.nees_mean), "nees_fraction_inside": _round(self.nees_fraction_inside),
+            "track_ids": self.track_ids, "id_switches": self.id_switches,
         }
 
 
@@ -91,11 +94,13 @@ class CycleFrame:
 
 class TargetTally:
     """``world.target_id`` in a stream of outputs. Per cycle where it is detected: cycle time,
-    BEV IoU, squared error, NEES eps and ego distance (48 bytes); scored in cycle order."""
+    BEV IoU, squared error, NEES eps, ego distance and the output id (56 bytes); scored in
+    cycle order."""
 
     def __init__(self, target_id: int, sources_mask: int | None = None):
         self.target_id, self.sources_mask = target_id, sources_mask
         self._cycle_ns, self._cols = array("q"), {k: array("d") for k in ("t_s", "iou", "sq_err", "eps", "dist")}
+        self._ids = array("q")
 
     def add(self, frame: CycleFrame) -> None:
         truth, out = frame.truth, frame.out
@@ -110,6 +115,7 @@ class TargetTally:
                   "sq_err": np.sum(np.square(err)), "eps": nees_values(err[None], out.cov_xy[k][None])[0],
                   "dist": np.linalg.norm(truth.xy[i])}
         self._cycle_ns.append(frame.cycle_ns)
+        self._ids.append(int(out.ids[k]))
         for name, value in values.items():
             self._cols[name].append(float(value))
 
@@ -119,6 +125,7 @@ class TargetTally:
         col = {k: np.array(v, dtype=float)[order] for k, v in self._cols.items()}
         consistency = nees_summary(col["eps"])
         detected = len(order)
+        ids = np.array(self._ids, dtype=np.int64)[order]
         return TargetScore(
             detected_cycles=detected,
             mean_bev_iou=float(np.mean(col["iou"])) if detected else None,
@@ -126,6 +133,7 @@ class TargetTally:
             first_detection_distance_m=float(col["dist"][0]) if detected else None,
             first_detection_time_s=float(col["t_s"][0]) if detected else None,
             nees_mean=consistency["mean"], nees_fraction_inside=consistency["fraction_inside"],
+            track_ids=len(np.unique(ids)), id_switches=int(np.count_nonzero(np.diff(ids))),
         )
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import heapq
 import itertools
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -25,11 +26,11 @@ from rsu_service.source import Frame, make_source
 from schemas.codec import CodecError, decode, encode
 from schemas.messages import ObjectList, PredictionList, TimeReply, TimeRequest
 from sim.clock import SimClock
-from sim.scenario import load_scenario
+from sim.scenario import RsuCameraConfig, load_scenario
 from sim.world import World
 
 from .chaos import SERVICES, ChaosTimeline
-from .spec import EVAL_EPOCH_NS, RunRecord, RunSpec
+from .spec import EVAL_EPOCH_NS, RunRecord, RunSpec, site_report
 
 RSU_REPLY_NS = 50_000  # RSU time between receiving a time query and answering it
 
@@ -52,36 +53,88 @@ class EventQueue:
             fn(*args)
 
 
+@dataclass
+class _Rsu:
+    """One RSU of the site: its camera, its pipeline (restartable) and its drifting clock."""
+
+    index: int
+    cfg: RsuCameraConfig
+    camera: object  # a rsu_service.source source
+    pipeline: RsuPipeline
+    clock: object  # sim.clock.DriftingClock
+
+    @property
+    def xy(self) -> tuple[float, float]:
+        return self.cfg.position.x, self.cfg.position.y
+
+
+@dataclass
+class _Vehicle:
+    """One connected vehicle: its view of the world, sensing, OBU and record, and a link
+    (``LinkModel``, own draws) to each RSU by RSU index."""
+
+    name: str
+    world: World
+    sensing: SimulatedVehicle
+    obu: ObuPipeline
+    record: RunRecord
+    links: list[LinkModel]
+
+
 class OfflineRun:
-    """One scenario run; ``execute()`` returns the RunRecord scored by build_report."""
+    """One scenario run: every RSU and every vehicle of the scenario, each vehicle with its own
+    channel to each RSU. ``execute()`` returns the first vehicle's (the ego's) RunRecord;
+    ``records`` holds every vehicle's, ``report()`` scores them all."""
 
     def __init__(self, spec: RunSpec, start_ns: int = EVAL_EPOCH_NS, link_profile: LinkProfile | None = None,
                  chaos: ChaosTimeline | None = None):
-        """``chaos``: timed faults; its RSU clock step must already be in ``spec`` (``with_chaos``)."""
+        """``chaos``: timed faults; its RSU clock step must already be in ``spec`` (``with_chaos``).
+        ``link_profile``: every pair's profile (default: the RSU's ``link_profile``, else ``spec.profile``)."""
         self.spec = spec
         self.chaos = chaos
-        self.world = World(load_scenario(spec.scenario))
-        self.duration_s = spec.duration_s or self.world.scenario.duration_s
+        self.scenario = load_scenario(spec.scenario)
+        self.site = World(self.scenario, site=True)
+        self.duration_s = spec.duration_s or self.scenario.duration_s
         self.start_ns = start_ns
         self.clock = SimClock(start_ns)
         self.queue = EventQueue(self.clock)
-        self.link = LinkModel(link_profile or load_profile(spec.profile), spec.seed)
-        self.rsu_clock = spec.rsu_config().clock(self.clock, start_ns)
         self.rsu_config = spec.rsu_config()
-        self.camera = make_source(self.rsu_config, self.world, start_ns)
-        self.vehicle = SimulatedVehicle(self.world, spec.seed, start_ns)
-        self.rsu = self._new_rsu()
         self.obu_config = spec.obu_config()
-        self.obu = ObuPipeline(self.obu_config.pipeline_config(), self.obu_config.lanes())
-        self.record = RunRecord(self.world, start_ns, self.duration_s)
-        rsu = self.world.scenario.rsu.position
-        self.record.perception = PerceptionTally.of_source(self.camera, (rsu.x, rsu.y))
+        self.rsus = [self._new_rsu_site(k, cfg) for k, cfg in enumerate(self.scenario.rsus)]
+        profiles = [link_profile or load_profile(cfg.link_profile or spec.profile) for cfg in self.scenario.rsus]
+        self.vehicles = [self._new_vehicle(v, profiles) for v in range(len(self.scenario.vehicles))]
+        self.world = self.vehicles[0].world
+        self.records = {v.name: v.record for v in self.vehicles}
+        self.record = self.vehicles[0].record
+        self.perception = {r.cfg.id: PerceptionTally.of_source(r.camera, r.xy) for r in self.rsus}
+        self.record.perception = self.perception[self.rsus[0].cfg.id]
         self._down = {name: self._windows_ns(name) for name in SERVICES}
 
-    def _new_rsu(self) -> RsuPipeline:
+    @property
+    def link(self) -> LinkModel:
+        """The ego's link to the first RSU (the single-link view of older callers)."""
+        return self.vehicles[0].links[0]
+
+    def _new_rsu_site(self, index: int, cfg: RsuCameraConfig) -> _Rsu:
+        config = self.rsu_config.model_copy(update={"rsu_id": cfg.id})
+        return _Rsu(index, cfg, make_source(config, self.site, self.start_ns), self._new_pipeline(cfg.id),
+                    config.clock(self.clock, self.start_ns))
+
+    def _new_pipeline(self, rsu_id: str) -> RsuPipeline:
         """A freshly started RSU (a restart loses its tracks and restarts its sequence numbers)."""
-        return RsuPipeline(RsuPipelineConfig(rsu_id=self.world.scenario.rsu.id, predict_ahead=self.rsu_config.predict_ahead),
+        return RsuPipeline(RsuPipelineConfig(rsu_id=rsu_id, predict_ahead=self.rsu_config.predict_ahead),
                            make_predictor(self.rsu_config.predictor, self.spec.scenario))
+
+    def _new_vehicle(self, index: int, profiles: list[LinkProfile]) -> _Vehicle:
+        name = self.scenario.vehicles[index].name
+        world = World(self.scenario, ego=name)
+        obu = ObuPipeline(self.obu_config.model_copy(update={"vehicle_id": name}).pipeline_config(),
+                          self.obu_config.lanes())
+        # pair (RSU k, vehicle v) draws from its own stream; the first pair keeps the run's seed
+        pair_seed = [self.spec.seed if index == k == 0 else [self.spec.seed, index, k] for k in range(len(profiles))]
+        links = [LinkModel(p, seed) for p, seed in zip(profiles, pair_seed)]
+        return _Vehicle(name, world, SimulatedVehicle(world, self.spec.seed, self.start_ns), obu,
+                        RunRecord(world, self.start_ns, self.duration_s), links)
 
     def _windows_ns(self, service: str) -> list[tuple[int, int]]:
         if self.chaos is None:
@@ -94,120 +147,147 @@ class OfflineRun:
         return not any(a <= t_ns < b for a, b in self._down[service])
 
     def _schedule_chaos(self) -> None:
+        """Link events reach every pair's channel; an RSU restart restarts every RSU."""
         for event in self.chaos.sorted_events() if self.chaos else ():
             at_ns = self.start_ns + round(event.at_s * 1e9)
             control = event.link_control("eval")
             if control is not None:
-                self.queue.at(at_ns, lambda c=control: apply_control(self.link, c, self.clock.t_ns))
+                self.queue.at(at_ns, self._control_links, control)
             elif event.restart == "rsu":
-                self.queue.at(at_ns, lambda: setattr(self, "rsu", self._new_rsu()))
+                self.queue.at(at_ns, self._restart_rsus)
+
+    def _control_links(self, control) -> None:
+        for vehicle in self.vehicles:
+            for link in vehicle.links:
+                apply_control(link, control, self.clock.t_ns)
+
+    def _restart_rsus(self) -> None:
+        for rsu in self.rsus:
+            rsu.pipeline = self._new_pipeline(rsu.cfg.id)
 
     def execute(self) -> RunRecord:
         self._schedule_chaos()
-        for t in self.camera.capture_times_ns(self.duration_s):
-            self.queue.at(t, self._rsu_capture)
-        cycles = self.vehicle.cycle_times_ns(self.duration_s)
-        self.record.cycle_times_ns = cycles
-        for t in cycles:
-            self.queue.at(t, self._obu_capture)
+        for rsu in self.rsus:
+            for t in rsu.camera.capture_times_ns(self.duration_s):
+                self.queue.at(t, self._rsu_capture, rsu)
         end_ns = self.start_ns + round(self.duration_s * 1e9)
-        for t in range(self.start_ns, end_ns, round(1e9 / self.obu_config.sync_rate_hz)):
-            self.queue.at(t, self._obu_sync)
+        for vehicle in self.vehicles:
+            cycles = vehicle.sensing.cycle_times_ns(self.duration_s)
+            vehicle.record.cycle_times_ns = cycles
+            for t in cycles:
+                self.queue.at(t, self._obu_capture, vehicle)
+            for t in range(self.start_ns, end_ns, round(1e9 / self.obu_config.sync_rate_hz)):
+                self.queue.at(t, self._obu_sync, vehicle)
         self.queue.run()
-        self.record.covered_cycles = self.obu.covered_cycles
-        self.record.rsu_deadline_misses = self.obu.rsu_deadline_misses
+        for vehicle in self.vehicles:
+            vehicle.record.covered_cycles = vehicle.obu.covered_cycles
+            vehicle.record.rsu_deadline_misses = vehicle.obu.rsu_deadline_misses
         return self.record
 
+    def report(self, driver: str = "eval") -> dict:
+        """The ego's report (``build_report``), with every vehicle's scores under ``vehicles``
+        and every RSU's perception under ``rsus`` (call after ``execute``)."""
+        return site_report(self.spec, [(v.name, v.world, v.record) for v in self.vehicles],
+                           {rid: tally.scores() for rid, tally in self.perception.items()}, driver)
+
     # --- RSU side ----------------------------------------------------------------------
-    def _rsu_capture(self) -> None:
+    def _rsu_capture(self, rsu: _Rsu) -> None:
         if not self._up("rsu"):
             return
-        frame = self.camera.capture(self.clock.t_ns)
-        self.record.perception.add_frame(frame)
-        self.queue.at(frame.ready_true_ns, self._rsu_publish, frame)
+        frame = rsu.camera.capture(self.clock.t_ns)
+        self.perception[rsu.cfg.id].add_frame(frame)
+        self.queue.at(frame.ready_true_ns, self._rsu_publish, rsu, frame)
 
-    def _rsu_publish(self, frame: Frame) -> None:
+    def _rsu_publish(self, rsu: _Rsu, frame: Frame) -> None:
         if not self._up("rsu"):
             return
-        capture = Stamp(self.rsu_clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
-        msg = self.rsu.on_frame(frame.detections, capture, self._rsu_now())
-        self._send(self.link.downlink, encode(msg), self._obu_receive)
-        self._send(self.link.downlink, encode(self.rsu.predictions(self._rsu_now())), self._obu_predictions)
-        if self.rsu.config.predict_ahead:
-            self.queue.at(self.clock.t_ns + self.camera.upsample_offset_ns, self._rsu_upsample)
+        capture = Stamp(rsu.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
+        msg = rsu.pipeline.on_frame(frame.detections, capture, self._rsu_now(rsu))
+        self._broadcast(rsu, encode(msg), self._obu_receive)
+        self._broadcast(rsu, encode(rsu.pipeline.predictions(self._rsu_now(rsu))), self._obu_predictions)
+        if rsu.pipeline.config.predict_ahead:
+            self.queue.at(self.clock.t_ns + rsu.camera.upsample_offset_ns, self._rsu_upsample, rsu)
 
-    def _rsu_upsample(self) -> None:
+    def _rsu_upsample(self, rsu: _Rsu) -> None:
         if not self._up("rsu"):
             return
-        self._send(self.link.downlink, encode(self.rsu.upsampled(self._rsu_now())), self._obu_receive)
+        self._broadcast(rsu, encode(rsu.pipeline.upsampled(self._rsu_now(rsu))), self._obu_receive)
 
-    def _rsu_now(self) -> Stamp:
+    def _rsu_now(self, rsu: _Rsu) -> Stamp:
         """Now on the RSU's wall clock (offset, drift, steps) and its monotonic clock (the true one)."""
-        return Stamp(self.rsu_clock.now_ns(), self.clock.t_ns)
+        return Stamp(rsu.clock.now_ns(), self.clock.t_ns)
 
-    def _rsu_time_query(self, data: bytes) -> None:
+    def _rsu_time_query(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         if not self._up("rsu"):
             return
         request = decode(data, TimeRequest)
-        t2 = self.rsu_clock.now_ns()
-        reply = answer_time_request(request, self.rsu.config.rsu_id, t2, t2 + RSU_REPLY_NS)
-        self.queue.at(self.clock.t_ns + RSU_REPLY_NS, self._send, self.link.downlink, encode(reply), self._obu_time_reply)
+        t2 = rsu.clock.now_ns()
+        reply = answer_time_request(request, rsu.pipeline.config.rsu_id, t2, t2 + RSU_REPLY_NS)
+        self.queue.at(self.clock.t_ns + RSU_REPLY_NS, self._send, vehicle, rsu, "downlink", encode(reply),
+                      self._obu_time_reply)
 
     # --- link --------------------------------------------------------------------------
-    def _send(self, channel, data: bytes, deliver: Callable) -> None:
-        """Through the channel model at the current vehicle-RSU distance; duplicates arrive twice."""
+    def _broadcast(self, rsu: _Rsu, data: bytes, deliver: Callable) -> None:
+        """One RSU message down every vehicle's channel to that RSU, each its own draws."""
+        for vehicle in self.vehicles:
+            self._send(vehicle, rsu, "downlink", data, deliver)
+
+    def _send(self, vehicle: _Vehicle, rsu: _Rsu, direction: str, data: bytes, deliver: Callable) -> None:
+        """Through the pair's channel model at the current vehicle-RSU distance; duplicates arrive twice."""
         if not self._up("link"):
             return
-        for arrival_ns in channel.transmit_all(self.clock.t_ns, len(data), distance_m=self._rsu_distance_m()):
-            self.queue.at(arrival_ns, self._arrive, deliver, data)
+        channel = getattr(vehicle.links[rsu.index], direction)
+        ego = vehicle.world.ego_at((self.clock.t_ns - self.start_ns) * 1e-9)
+        distance_m = float(np.hypot(ego.x - rsu.xy[0], ego.y - rsu.xy[1]))
+        for arrival_ns in channel.transmit_all(self.clock.t_ns, len(data), distance_m=distance_m):
+            self.queue.at(arrival_ns, self._arrive, deliver, vehicle, rsu, data)
 
-    def _arrive(self, deliver: Callable, data: bytes) -> None:
+    def _arrive(self, deliver: Callable, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         """A message in flight is lost when the emulator relaying it was killed meanwhile."""
         if self._up("link"):
-            deliver(data)
-
-    def _rsu_distance_m(self) -> float:
-        ego = self.world.ego_at((self.clock.t_ns - self.start_ns) * 1e-9)
-        rsu = self.world.scenario.rsu.position
-        return float(np.hypot(ego.x - rsu.x, ego.y - rsu.y))
+            deliver(vehicle, rsu, data)
 
     # --- OBU side ----------------------------------------------------------------------
-    def _obu_receive(self, data: bytes) -> None:
+    def _obu_receive(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         try:
-            self.obu.on_rsu_message(decode(data, ObjectList), self.clock.t_ns)
-            self.record.rsu_messages += 1
+            vehicle.obu.on_rsu_message(decode(data, ObjectList), self.clock.t_ns)
+            vehicle.record.rsu_messages += 1
         except CodecError as exc:
-            self.obu.reject(exc.reason)
-        self._obu_fuse_if_ready()
+            vehicle.obu.reject(exc.reason)
+        self._obu_fuse_if_ready(vehicle)
 
-    def _obu_predictions(self, data: bytes) -> None:
+    def _obu_predictions(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         try:
-            self.obu.on_predictions(decode(data, PredictionList), self.clock.t_ns)
+            vehicle.obu.on_predictions(decode(data, PredictionList), self.clock.t_ns)
         except CodecError as exc:
-            self.obu.reject(exc.reason)
+            vehicle.obu.reject(exc.reason)
 
-    def _obu_sync(self) -> None:
-        self._send(self.link.uplink, encode(self.obu.make_time_request(self.clock.t_ns)), self._rsu_time_query)
+    def _obu_sync(self, vehicle: _Vehicle) -> None:
+        """One time request, up the vehicle's channel to every RSU (each answers it)."""
+        data = encode(vehicle.obu.make_time_request(self.clock.t_ns))
+        for rsu in self.rsus:
+            self._send(vehicle, rsu, "uplink", data, self._rsu_time_query)
 
-    def _obu_time_reply(self, data: bytes) -> None:
-        self.obu.on_time_reply(decode(data, TimeReply), self.clock.t_ns)
+    def _obu_time_reply(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
+        vehicle.obu.on_time_reply(decode(data, TimeReply), self.clock.t_ns)
 
-    def _obu_capture(self) -> None:
-        frame = self.vehicle.capture(self.clock.t_ns)
-        self.obu.on_pose(frame.capture_ns, frame.pose)
-        self.queue.at(frame.capture_ns + round(self.obu_config.fuse_delay_ms * 1e6), self._obu_fuse, frame)
+    def _obu_capture(self, vehicle: _Vehicle) -> None:
+        frame = vehicle.sensing.capture(self.clock.t_ns)
+        vehicle.obu.on_pose(frame.capture_ns, frame.pose)
+        self.queue.at(frame.capture_ns + round(self.obu_config.fuse_delay_ms * 1e6), self._obu_fuse, vehicle, frame)
 
-    def _obu_fuse(self, frame: OwnFrame) -> None:
+    def _obu_fuse(self, vehicle: _Vehicle, frame: OwnFrame) -> None:
         """Own objects are ready: plan the cycle; fuse now, on the awaited frame or at fuse_by."""
-        fuse_by_ns = self.obu.on_detections(frame.detections, frame.capture_ns)
-        self.queue.at(fuse_by_ns, self._obu_fuse_if_ready)
-        self._obu_fuse_if_ready()
+        fuse_by_ns = vehicle.obu.on_detections(frame.detections, frame.capture_ns)
+        self.queue.at(fuse_by_ns, self._obu_fuse_if_ready, vehicle)
+        self._obu_fuse_if_ready(vehicle)
 
-    def _obu_fuse_if_ready(self) -> None:
-        if not self.obu.ready(self.clock.t_ns):
+    def _obu_fuse_if_ready(self, vehicle: _Vehicle) -> None:
+        obu = vehicle.obu
+        if not obu.ready(self.clock.t_ns):
             return
-        self.record.add_output(self.obu.fuse(self.clock.t_ns), self.obu.last_planning)
-        rsu_id = self.rsu.config.rsu_id
-        est, naive = self.obu.clock_offset(rsu_id, self.clock.t_ns), self.obu.naive_clock_offset(rsu_id)
+        vehicle.record.add_output(obu.fuse(self.clock.t_ns), obu.last_planning)
+        rsu_id = self.rsus[0].cfg.id  # every RSU runs the same clock model: the first one is scored
+        est, naive = obu.clock_offset(rsu_id, self.clock.t_ns), obu.naive_clock_offset(rsu_id)
         if est is not None:
-            self.record.add_offset_sample(self.clock.t_ns, est.offset_ns, naive.offset_ns, est.drift_ppm)
+            vehicle.record.add_offset_sample(self.clock.t_ns, est.offset_ns, naive.offset_ns, est.drift_ppm)

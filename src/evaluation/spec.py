@@ -140,6 +140,21 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
     }
 
 
+_RUN_KEYS = ("driver", *RunSpec.__dataclass_fields__)  # what describes the run, not one vehicle's scores
+
+
+def site_report(spec: RunSpec, vehicles: Sequence[tuple[str, World, RunRecord]], rsus: dict[str, dict],
+                driver: str) -> dict:
+    """The ego's (first vehicle's) ``build_report``, plus ``vehicles``: each vehicle's scores
+    by name (the same keys without the run's description), and ``rsus``: each RSU's
+    perception scores by id."""
+    reports = {name: build_report(spec, world, record, driver) for name, world, record in vehicles}
+    ego = reports[vehicles[0][0]]
+    return {**ego,
+            "vehicles": {name: {k: v for k, v in r.items() if k not in _RUN_KEYS} for name, r in reports.items()},
+            "rsus": rsus}
+
+
 def summary(report: dict) -> str:
     """A short human summary of a report."""
     t, v, c = report["target"], report["vehicle_only"], report["clock_offset_error_ms"]
@@ -164,6 +179,12 @@ def summary(report: dict) -> str:
         lines.append(f"  RSU perception ({report['rsu_source']}): recall {_f(p['recall'])}, precision {_f(p['precision'])}, "
                      f"mean error {' / '.join(_f(v) for v in e.values())} m ({' / '.join(e)})"
                      + (f"; detector p50 {ms['p50']:.1f} ms, p99 {ms['p99']:.1f} ms" if ms else ""))
+    for name, v in report.get("vehicles", {}).items() if len(report.get("vehicles", {})) > 1 else ():
+        t = v["target"]
+        lines.append(f"  vehicle {name}: target first seen at {_m(t['first_detection_distance_m'])} "
+                     f"(vehicle-only {_m(v['vehicle_only']['first_detection_distance_m'])}), RMSE {_m(t['rmse_m'])}, "
+                     f"{t['track_ids']} track id(s), {t['id_switches']} switch(es); output misses "
+                     f"{v['output_deadline_miss_ratio']:.1%}")
     if report["displacement_error_m"] is not None:
         lines.append(f"  planning: {report['planning_handoffs']} hand-offs, displacement error "
                      f"{report['displacement_error_m']:.2f} m")

@@ -123,11 +123,11 @@ def robustness_tables(hw: RunSpec) -> list[Table]:
 
 def _run(job: tuple[RunSpec, LinkProfile | None]) -> dict:
     from .runner import OfflineRun
-    from .spec import build_report
 
     spec, profile = job
     run = OfflineRun(spec, link_profile=profile)
-    return build_report(spec, run.world, run.execute(), driver="eval")
+    run.execute()
+    return run.report(driver="eval")
 
 
 def run_tables(tables: list[Table], seeds: list[int], workers: int = 2) -> list[dict]:

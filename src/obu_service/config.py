@@ -103,13 +103,12 @@ class ObuConfig(ServiceConfig):
         return lane_predictor(self.scenario) if self.compensation == "lane" else None
 
     def registered_rsus(self) -> dict[str, tuple[float, float]]:
-        """known_rsus, or the scenario's RSU when none are configured."""
+        """known_rsus, or the scenario's RSUs when none are configured."""
         if self.known_rsus is not None:
             return dict(self.known_rsus)
         from sim.scenario import load_scenario
 
-        rsu = load_scenario(self.scenario).rsu
-        return {rsu.id: (rsu.position.x, rsu.position.y)}
+        return {rsu.id: (rsu.position.x, rsu.position.y) for rsu in load_scenario(self.scenario).rsus}
 
     def pipeline_config(self) -> ObuPipelineConfig:
         return ObuPipelineConfig(

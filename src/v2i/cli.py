@@ -140,7 +140,6 @@ def _check_folder(path: Path, flag: str) -> None:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from evaluation.runner import OfflineRun
-    from evaluation.spec import build_report
 
     if args.fusion == "roif":
         return cmd_eval_roif(args)
@@ -155,7 +154,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from evaluation.chaos import with_chaos
 
     run = OfflineRun(with_chaos(_spec(args), chaos), chaos=chaos)
-    report = build_report(run.spec, run.world, run.execute(), driver="eval")
+    run.execute()
+    report = run.report(driver="eval")
     if chaos:
         report["chaos"] = chaos.name
     _emit(report, args.json)
