@@ -20,6 +20,11 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicle-id", help="vehicle id used in key expressions (default ego)")
     p.add_argument("--connect", action="append", metavar="EP",
                    help="Zenoh endpoint to connect to, e.g. the RSU's when no link emulator is used (repeatable)")
+    p.add_argument("--source", choices=("sim", "zenoh"),
+                   help="own detections and pose: sim (the scenario's LiDAR and localisation; default) or zenoh "
+                        "(SensorObjects and LocalizationPose received on v2x/sensor/vehicle/{id}/objects|pose, "
+                        "e.g. from v2i world or examples/external_publisher.py; one cycle per detection frame, "
+                        "a cycle without own objects when a frame is missing at the slot's fuse-by time)")
     p.add_argument("--fusion", choices=(*FUSION_METHODS, "roif"),
                    help="fusion method (default kf); roif: image-level fusion (seed 004) of the ego camera (the "
                         "scenario's ego_camera, rendered, through the ONNX detector, ORB) with the RSU's "
@@ -46,6 +51,8 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     def make_node(config: ObuConfig):
         if config.fusion == "roif":
+            if config.source != "sim":
+                raise ValueError("--source zenoh feeds object-level fusion; --fusion roif renders its own camera")
             from .image_fusion_node import ImageFusionNode
 
             return ImageFusionNode(config)

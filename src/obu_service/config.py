@@ -19,6 +19,9 @@ class ObuConfig(ServiceConfig):
     fusion: Literal[(*FUSION_METHODS, "roif")] = Field("kf", description="object-level method, or roif: "
                                                        "image-level fusion of the ego camera with the RSU's "
                                                        "image features (seed 004; obu_service.image_fusion)")
+    source: Literal["sim", "zenoh"] = Field("sim", description="own detections and pose: sim, the scenario's "
+                                            "LiDAR and localisation sampled in the OBU; zenoh: received on "
+                                            "v2x/sensor/vehicle/{vehicle_id}/objects|pose (e.g. from v2i world)")
     compensation: Literal[COMPENSATIONS] = "predict"
     fusion_mode: Literal[FUSION_MODES] = Field("adaptive", description="which RSU data a cycle fuses (seed 003)")
     iou_threshold: float = Field(0.1, gt=0, le=1)
@@ -110,6 +113,15 @@ class ObuConfig(ServiceConfig):
 
         return {rsu.id: (rsu.position.x, rsu.position.y) for rsu in load_scenario(self.scenario).rsus}
 
+    def own_size_m(self) -> tuple[float, float]:
+        """Length, width (m) of this vehicle: the scenario's vehicle of this id, else its ego."""
+        from sim.scenario import load_scenario
+
+        scenario = load_scenario(self.scenario)
+        names = [v.name for v in scenario.vehicles]
+        size = scenario.vehicle(self.vehicle_id if self.vehicle_id in names else None).size
+        return size[0], size[1]
+
     def pipeline_config(self) -> ObuPipelineConfig:
         return ObuPipelineConfig(
             vehicle_id=self.vehicle_id, fusion=self.fusion, compensation=self.compensation,
@@ -120,5 +132,5 @@ class ObuConfig(ServiceConfig):
             rsu_expiry_s=self.rsu_expiry_s, site_radius_m=self.site_radius_m,
             max_objects_per_list=self.max_objects_per_list, max_rsu_objects_per_cycle=self.max_rsu_objects_per_cycle,
             max_prediction_s=self.max_prediction_s, max_path_points=self.max_path_points,
-            future_tolerance_ms=self.future_tolerance_ms,
+            future_tolerance_ms=self.future_tolerance_ms, ego_size_m=self.own_size_m(),
         )

@@ -5,6 +5,15 @@ rate-limited ``Intake`` (registered RSUs served first); the loop in ``run`` owns
 pipeline, wakes at each cycle's capture and fusion times and at each time-sync exchange,
 and publishes every cycle whether or not RSU data arrived. A list is decoded in stages:
 envelope and header first, and its objects only if the pipeline admits the header.
+
+With ``--source zenoh`` the vehicle's own detections and pose come from outside, on
+``v2x/sensor/vehicle/{vehicle_id}/objects`` and ``.../pose`` (``schemas.sensor_messages``),
+through the same intake; the loop screens them (``schemas.sensor_screen``, refusals counted as
+``input_<reason>``) and feeds ``on_pose`` / ``on_detections`` exactly as the embedded vehicle
+does. The cycle clock (``source.ExternalCycles``): one cycle per accepted detection frame, at
+its capture time; when the next frame has not come by its slot's fuse-by time (expected
+capture + deadline - compute margin), a gap cycle without own objects goes out on time
+(counted as ``input_missing``); a frame whose slot already went out is ``input_late``.
 """
 
 from __future__ import annotations
@@ -14,11 +23,13 @@ import threading
 
 import zenoh
 
+from fusion.objects import ObjectArray
 from schemas import keys
 from schemas.codec import CodecError, decode, encode, from_body, header_of, object_count, open_body, path_point_count
 from schemas.intake import Intake, Item
 from schemas.messages import EgoPose, ObjectList, PredictionList, TimeReply
 from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
+from schemas.sensor_screen import InputRefused, SensorLimits, SensorScreen
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
@@ -26,10 +37,11 @@ from sim.world import World
 
 from .config import ObuConfig
 from .pipeline import ObuPipeline
-from .source import OwnFrame, SimulatedVehicle
+from .source import ExternalCycles, OwnFrame, SimulatedVehicle, detections_of, pose_of
 from .time_requests import sync_times_ns
 
 
+INPUT_MAX_AGE_MS = 1000.0  # --source zenoh: older detection frames or poses are stale
 CHEAP_INPUT_BYTES = 4096  # decodes in well under 2 ms (a 64-object list: 4.4 kB, 0.45 ms)
 
 
@@ -40,12 +52,19 @@ class ObuNode:
         self.start_ns = config.start_at_ns or self.clock.now_ns()
         self.world = World(load_scenario(config.scenario))
         self.duration_s = config.duration_s or self.world.scenario.duration_s
-        self.vehicle = SimulatedVehicle(self.world, config.seed, self.start_ns)
+        self.vehicle = SimulatedVehicle(self.world, config.seed, self.start_ns) if config.source == "sim" else None
         self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
         known = set(self.pipeline.config.known_rsus)
+        vid = config.vehicle_id
+        own = {keys.sensor_vehicle_objects(vid), keys.sensor_vehicle_pose(vid)}
         self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
                               config.source_burst, max_queued_bytes=config.inbox_max_bytes,
-                              preferred=lambda key: keys.rsu_id_or_none(key) in known)
+                              preferred=lambda key: key in own or keys.rsu_id_or_none(key) in known)
+        self._screen = SensorScreen(vid, "base_link", SensorLimits(config.max_objects_per_list, INPUT_MAX_AGE_MS,
+                                                                  config.future_tolerance_ms, config.max_message_bytes))
+        pc = self.pipeline.config
+        self._cycles = ExternalCycles(self.start_ns, round(1e9 / self.world.scenario.lidar.rate_hz),
+                                      round((pc.deadline_ms - pc.compute_margin_ms) * 1e6))
         self._log = ThrottledLog("obu")
         self._trim = MemoryTrim()
         self._details: dict[str, str] = {}  # first codec error message per reason
@@ -65,6 +84,11 @@ class ObuNode:
                                            ("pose", keys.obu_pose(vid)), ("planning", keys.obu_planning(vid)))}
             entities = [*self._pub.values(), session.declare_subscriber(keys.RSU_OBJECTS_ALL, self._on_rsu_sample),
                         session.declare_subscriber(keys.RSU_PREDICTIONS_ALL, self._on_predictions_sample)]
+            if self.vehicle is None:
+                entities += [session.declare_subscriber(keys.sensor_vehicle_objects(vid),
+                                                        lambda sample: self._put("sensor_objects", sample)),
+                             session.declare_subscriber(keys.sensor_vehicle_pose(vid),
+                                                        lambda sample: self._put("sensor_pose", sample))]
             self._session = session
             self._schedule()
             announce("ready", "obu", vehicle_id=vid, listen=self.config.listen)
@@ -95,7 +119,9 @@ class ObuNode:
     # --- the loop ------------------------------------------------------------------------
     def _schedule(self) -> None:
         now = self.clock.now_ns()
-        for t in self.vehicle.cycle_times_ns(self.duration_s):
+        if self.vehicle is None:
+            heapq.heappush(self._events, (self._cycles.gap_due_ns, 1, "gap", self._cycles.gap_due_ns))
+        for t in self.vehicle.cycle_times_ns(self.duration_s) if self.vehicle is not None else ():
             if t >= now:
                 heapq.heappush(self._events, (int(t), 1, "capture", None))
         for t in sync_times_ns(now, self.start_ns, self.duration_s, self.config.sync_rate_hz):
@@ -129,6 +155,8 @@ class ObuNode:
         try:
             if item.kind == "time":
                 self.pipeline.on_time_reply(decode(item.payload, TimeReply, max_bytes), item.receive_ns)
+            elif item.kind.startswith("sensor_"):
+                self._handle_sensor(item)
             else:
                 lists = item.kind == "rsu"
                 model = ObjectList if lists else PredictionList
@@ -139,26 +167,55 @@ class ObuNode:
                 if admitted:
                     accept = self.pipeline.on_rsu_message if lists else self.pipeline.on_predictions
                     accept(from_body(body, model), item.receive_ns)
-        except CodecError as exc:
+        except CodecError as exc:  # InputRefused included
             self.pipeline.reject(exc.reason)
             self._details.setdefault(exc.reason, f"{item.kind} on {item.source}: {exc}")
         self._publish_if_ready()
 
+    def _handle_sensor(self, item: Item) -> None:
+        """--source zenoh: a pose goes to the pipeline (and out as the vehicle's pose); a detection
+        frame starts a cycle, unless its slot already went out."""
+        if item.kind == "sensor_pose":
+            msg = self._screen.pose(item.payload, item.receive_ns)
+            self._on_pose(msg.t_ns, pose_of(msg))
+            return
+        msg = self._screen.objects(item.payload, item.receive_ns)
+        capture_ns = msg.header.capture_time_ns
+        if not self._cycles.accept(capture_ns):
+            raise InputRefused("input_late", f"frame captured at {capture_ns}: its cycle already went out")
+        self._start_cycle(capture_ns, detections_of(msg))
+
+    def _do_gap(self, _due_ns: int, due_ns: int) -> None:
+        """No detection frame by this slot's fuse-by time: the cycle goes out without own objects."""
+        if due_ns != self._cycles.gap_due_ns:
+            return  # a frame started the slot's cycle meanwhile; its own gap event is queued
+        capture_ns = self._cycles.gap(self.clock.now_ns())
+        self.pipeline.reject("input_missing")
+        self._start_cycle(capture_ns, ObjectArray.empty())
+
+    def _on_pose(self, t_ns: int, pose) -> None:
+        self.pipeline.on_pose(t_ns, pose)
+        self._pub["pose"].put(encode(EgoPose(vehicle_id=self.config.vehicle_id, t_ns=t_ns, x=pose.x, y=pose.y,
+                                             yaw=pose.yaw, vx=pose.vx, vy=pose.vy)))
+
     def _do_capture(self, due_ns: int, _) -> None:
         frame = self.vehicle.capture(due_ns)
-        self.pipeline.on_pose(frame.capture_ns, frame.pose)
-        p = frame.pose
-        self._pub["pose"].put(encode(EgoPose(vehicle_id=self.config.vehicle_id, t_ns=frame.capture_ns,
-                                             x=p.x, y=p.y, yaw=p.yaw, vx=p.vx, vy=p.vy)))
+        self._on_pose(frame.capture_ns, frame.pose)
         fuse_ns = frame.capture_ns + round(self.config.fuse_delay_ms * 1e6)
         heapq.heappush(self._events, (fuse_ns, 0, "fuse", frame))
 
     def _do_fuse(self, _due_ns: int, frame: OwnFrame) -> None:
+        self._start_cycle(frame.capture_ns, frame.detections)
+
+    def _start_cycle(self, capture_ns: int, detections: ObjectArray) -> None:
         """Own objects are ready: plan the cycle, then fuse now, on the awaited frame or at fuse_by."""
         if self.pipeline.pending:  # a cycle still waiting when the next starts: publish it first
             self._publish(self.clock.now_ns())
-        fuse_by_ns = self.pipeline.on_detections(frame.detections, frame.capture_ns)
+        fuse_by_ns = self.pipeline.on_detections(detections, capture_ns)
         heapq.heappush(self._events, (fuse_by_ns, 0, "deadline", None))
+        if self.vehicle is None:  # --source zenoh: the next slot's gap cycle, unless a frame comes first
+            due_ns = self._cycles.gap_due_ns
+            heapq.heappush(self._events, (due_ns, 1, "gap", due_ns))
         self._publish_if_ready()
 
     def _do_deadline(self, _due_ns: int, _) -> None:

@@ -223,3 +223,81 @@ def test_sensor_keys_never_meet_what_the_link_relays_or_the_obu_publishes() -> N
         for b in relayed:
             assert not zenoh.KeyExpr(a).intersects(zenoh.KeyExpr(b)), (a, b)
     assert keys.rsu_id_or_none(keys.sensor_rsu_objects("rsu1")) is None
+
+
+# --- the nodes' screening of sensor inputs (schemas.sensor_screen) --------------------------------
+
+
+def screen(**limits):
+    from schemas.sensor_screen import SensorLimits, SensorScreen
+
+    return SensorScreen("rsu1", "map", SensorLimits(**limits))
+
+
+def refused(fn, *args) -> str:
+    from schemas.sensor_screen import InputRefused
+
+    with pytest.raises(InputRefused) as info:
+        fn(*args)
+    return info.value.reason
+
+
+def test_screen_accepts_a_valid_frame_and_then_only_newer_ones() -> None:
+    s = screen()
+    receive = T0 + 100 * MS
+    assert s.objects(encode(sensor_objects(2)), receive).header.seq == 7
+    assert refused(s.objects, encode(sensor_objects(2)), receive) == "input_out_of_order"  # a replay
+    later = sensor_objects(2, capture_time_ns=T0 + 200 * MS, ready_time_ns=T0 + 290 * MS)
+    assert len(s.objects(encode(later), T0 + 300 * MS).objects) == 2
+
+
+@pytest.mark.parametrize("payload, reason", [
+    (b"\x00garbage", "input_malformed"),
+    (encode(pose()), "input_wrong_type"),
+    (encode(sensor_objects(sensor_id="rsu2")), "input_wrong_sensor"),
+    (encode(sensor_objects(frame_id="base_link")), "input_wrong_frame"),
+    (encode(sensor_objects(capture_time_ns=T0 + 500 * MS, ready_time_ns=T0 + 500 * MS)), "input_future"),
+    (encode(sensor_objects(capture_time_ns=T0 - 2000 * MS, ready_time_ns=T0 - 1900 * MS)), "input_stale"),
+    (encode(sensor_objects(9)), "input_too_many_objects"),
+])
+def test_screen_refusals_are_counted_by_reason(payload: bytes, reason: str) -> None:
+    assert refused(screen(max_objects=8).objects, payload, T0 + 100 * MS) == reason
+
+
+def test_screen_refuses_large_payloads_before_reading_them() -> None:
+    assert refused(screen(max_bytes=1024).objects, encode(sensor_objects(100)), T0 + 100 * MS) == "input_too_large"
+
+
+def test_screen_checks_poses_by_vehicle() -> None:
+    from schemas.sensor_screen import SensorScreen
+
+    s = SensorScreen("ego", "base_link")
+    assert s.pose(encode(pose()), T0 + 5 * MS).x == 1.5
+    assert refused(s.pose, encode(pose()), T0 + 10 * MS) == "input_out_of_order"
+    assert refused(s.pose, encode(pose(vehicle_id="car2", t_ns=T0 + 50 * MS)), T0 + 60 * MS) == "input_wrong_sensor"
+    assert refused(s.pose, encode(pose(t_ns=T0 + 900 * MS)), T0 + 100 * MS) == "input_future"
+
+
+def test_received_pose_keeps_its_error_statistics() -> None:
+    from obu_service.source import pose_of
+
+    p = pose_of(pose(cov_xyaw=1e-6))
+    assert (p.x, p.y, p.yaw) == (1.5, -2.0, pytest.approx(0.3, abs=1e-3))
+    assert p.uncertainty.cov[0, 2] == 1e-6 and p.uncertainty.correlation_time_s == 5.0
+    assert pose_of(pose(cov_xx=0.0, cov_yy=0.0, cov_yawyaw=0.0)).uncertainty is None
+
+
+# --- the OBU's cycle clock with outside detections (obu_service.source.ExternalCycles) --------------
+
+
+def test_external_cycles_follow_frames_and_fill_gaps_on_time() -> None:
+    from obu_service.source import ExternalCycles
+
+    cycles = ExternalCycles(start_ns=T0, period_ns=100 * MS, wait_ns=90 * MS)
+    assert cycles.gap_due_ns == T0 + 90 * MS and cycles.gap(T0 + 89 * MS) is None
+    assert cycles.accept(T0 + 3 * MS)  # a frame of the first slot (any phase)
+    assert cycles.gap_due_ns == T0 + 193 * MS
+    assert cycles.gap(T0 + 193 * MS) == T0 + 103 * MS  # the frame of that slot never came
+    assert not cycles.accept(T0 + 104 * MS)  # ... and comes too late: its slot went out
+    assert cycles.accept(T0 + 205 * MS)  # the next one starts its own cycle
+    assert cycles.gap(T0 + 394 * MS) is None and cycles.gap(T0 + 395 * MS) == T0 + 305 * MS
