@@ -12,7 +12,10 @@ From the header alone, before any object is decoded (``lists``, ``paths``):
   is a duplicate or stale. Paths are kept only once the clock is known (they cannot be placed
   before, and the next ones come within a period).
 Then ``on_site`` drops the objects farther than ``site_radius_m`` from their RSU (from the
-ego, for an RSU of unknown position). Every refusal is counted by reason in ``rejected``.
+ego, for an RSU of unknown position), and ``not_ego`` the RSU's detection of this very
+vehicle (an RSU sees every vehicle it serves: an object centred within the ego's footprint
+grown by a margin, at the list's capture time, is the ego itself, never an obstacle).
+Every refusal is counted by reason in ``rejected``.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.frames import Pose2D
+from fusion.frames import Pose2D, map_to_base_points
 from fusion.objects import ObjectArray
 from schemas.messages import ObjectListHeader
 
@@ -38,6 +41,7 @@ class Limits:
     list_max_age_ns: int
     paths_max_age_ns: int
     site_radius_m: float
+    ego_half_lw_m: tuple[float, float] = (0.0, 0.0)  # ego half length, half width + margin (m); 0: no filter
 
 
 class Admission:
@@ -69,6 +73,18 @@ class Admission:
         if not inside.all():
             self.rejected["object_outside_site"] += int((~inside).sum())
         return objects.take(inside)
+
+    def not_ego(self, objects: ObjectArray, ego: Pose2D | None) -> ObjectArray:
+        """The objects (map) whose centre is outside the ego's footprint at pose ``ego``
+        (|x| <= half length, |y| <= half width in base_link: ``ego_self_detection``)."""
+        half_l, half_w = self.limits.ego_half_lw_m
+        if ego is None or half_l <= 0.0 or not len(objects):
+            return objects
+        local = map_to_base_points(objects.xy, ego)
+        own = (np.abs(local[:, 0]) <= half_l) & (np.abs(local[:, 1]) <= half_w)
+        if own.any():
+            self.rejected["ego_self_detection"] += int(own.sum())
+        return objects.take(~own)
 
     def _screen(self, header: ObjectListHeader, n_objects: int, receive_ns: int, paths: bool) -> RsuState | None:
         lim = self.limits

@@ -79,12 +79,15 @@ class ObuPipelineConfig:
     max_prediction_s: float = 1.0  # header prediction_ns above this is refused
     max_path_points: int = 8192  # predicted positions in one prediction list (objects x points)
     future_tolerance_ms: float = 20.0  # beyond the clock uncertainty
+    ego_size_m: tuple[float, float] = (4.7, 1.85)  # length, width of this vehicle: RSU objects on it are itself
+    self_margin_m: float = 1.0  # beyond the footprint (the RSU's error near its pole is ~0.8 m, seed 000)
 
     def limits(self) -> Limits:
         """What admission allows (obu_service.admission), in ns."""
         return Limits(self.max_objects_per_list, self.max_path_points, round(self.max_prediction_s * 1e9),
                       round(self.future_tolerance_ms * 1e6), round(self.inter_max_age_s * 1e9),
-                      round(self.planning_max_age_s * 1e9), self.site_radius_m)
+                      round(self.planning_max_age_s * 1e9), self.site_radius_m,
+                      (self.ego_size_m[0] / 2 + self.self_margin_m, self.ego_size_m[1] / 2 + self.self_margin_m))
 
     def __post_init__(self) -> None:
         check_fusion(self.fusion, self.compensation)
@@ -194,12 +197,14 @@ class ObuPipeline:
             return
         state.lists_seen.add((header.seq, header.capture_time_ns))
         objects = self._admission.on_site(state, objects_from_states(msg.objects), self.poses.at(receive_ns))
+        est = state.sync.estimate_at(receive_ns)
+        capture_ns = receive_ns if est is None else est.to_obu_ns(header.capture_time_ns)
+        objects = self._admission.not_ego(objects, self.poses.at(capture_ns))
         objects = objects.with_(ids=self._rsu_ids(state, objects.ids),
                                 sources=np.full(len(objects), slot_source(state.index), np.int64))
         state.frames.append(Received(header.capture_time_ns, header.valid_time_ns, header.seq, objects, receive_ns))
         state.accepted += 1
         state.last_receive_ns = receive_ns
-        est = state.sync.estimate_at(receive_ns)
         if est is not None:
             state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns),
                                      est.to_obu_ns(header.publish_time_ns), receive_ns)

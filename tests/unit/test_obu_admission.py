@@ -291,3 +291,18 @@ def test_paths_are_bounded_in_points_and_kept_only_once_the_clock_is_known():
                            paths=(PredictedPath(id=1, x=[5.0] * 50, y=[-20.0] * 50, yaw=[0.0] * 50),))
     unsynced.on_predictions(paths, t)
     assert p.rejected == {"too_many_path_points": 1} and unsynced.rejected == {"paths_before_clock_sync": 1}
+
+
+def test_the_rsu_detection_of_the_ego_itself_is_dropped_and_counted():
+    """An RSU sees the vehicles it serves: the object on the ego's own footprint (at the list's
+    capture time) is the ego, never an obstacle; one just beyond the footprint + margin stays."""
+    p = pipeline(ego_size_m=(4.0, 2.0), self_margin_m=1.0)
+    t = T0 + 400 * MS
+    p.on_pose(t - 100 * MS, Pose2D(10.0, 0.0, np.pi / 2))  # the ego at capture time: at (10, 0) facing north
+    p.on_pose(t, Pose2D(10.0, 5.0, np.pi / 2))  # and 5 m farther on when the list arrives
+    p.on_rsu_message(rsu_list(t - 100 * MS, [(10.5, 2.5), (13.2, 0.0), (10.0, 5.0)]), t)
+    assert p.rejected["ego_self_detection"] == 1
+    # (10.5, 2.5): 2.5 m ahead, 0.5 m right: inside 3 x 2 m half extents -> itself;
+    # (13.2, 0) is 3.2 m to its right (beyond 2 m) and (10, 5) 5 m ahead (beyond 3 m) -> kept
+    out = cycle(p, t + 50 * MS, own_xy=((60.0, 60.0),))
+    assert len(out.objects) == 3  # its own far object and the two RSU objects that are not itself
