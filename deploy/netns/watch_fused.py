@@ -6,9 +6,12 @@ least one RSU-sourced object, then ``{"event": "done", ...}``. Exit status 0 onc
 ``--min-rsu-lists`` such lists arrived, 1 when ``--timeout-s`` passed first.
 
 Zenoh peers do not forward for each other, so a session connected to the OBU sees what the
-OBU publishes, not what the link emulator publishes to the OBU (e.g. its statistics).
+OBU publishes, not what the link emulator publishes to the OBU (e.g. its statistics). Behind
+a router (``V2I_ZENOH_MODE=client``, ``--connect`` the vehicle side's router) it sees the
+whole vehicle side.
 
     python deploy/netns/watch_fused.py --connect tcp/10.10.2.2:7448 [--vehicle-id ego]
+    V2I_ZENOH_MODE=client python deploy/netns/watch_fused.py --connect tcp/10.10.2.1:7447
 """
 
 from __future__ import annotations

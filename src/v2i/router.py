@@ -134,7 +134,7 @@ class RouterNode:
             self.connected.pop(zid, None)
         kinds = {k: sum(1 for w in self.connected.values() if w == k) for k in ("client", "peer", "router")}
         log("router", f"{whatami} {zid} {'connected' if opened else 'left'}; now "
-                      + ", ".join(f"{n} {k}s" for k, n in kinds.items()))
+                      + ", ".join(f"{k}s {n}" for k, n in kinds.items()))
 
 
 def configure_parser(p: argparse.ArgumentParser) -> None:
