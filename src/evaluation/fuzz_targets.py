@@ -12,6 +12,8 @@ are, what its normal output is and where it counts what it refused.
 - ``rsu``: the RSU alone. The attacker sends hostile time queries; a probe asks the time
   genuinely at 10 Hz. Normal output: the object lists at the camera rate, late when the RSU
   stamped publish more than 250 ms after capture; and the probes' answers.
+- ``obu-inputs`` / ``rsu-inputs`` (``evaluation.fuzz_inputs``): ``v2i world`` feeding the
+  service with ``--source zenoh``, the attacker on its sensor input keys.
 - ``link``: the demo's topology (RSU, emulator with profile ``ideal``, OBU), the emulator
   also connected to the attacker's two sessions; the attacker sends hostile lists on the RSU
   side and hostile poses, controls and time queries on the vehicle side. Normal output: the
@@ -339,4 +341,6 @@ class LinkFuzz(ObuFuzz):
                 "genuine_lists": {"published": published1 - published0, "accepted_by_obu": accepted1 - accepted0}}
 
 
-TARGETS = {"obu": ObuFuzz, "rsu": RsuFuzz, "link": LinkFuzz}
+from .fuzz_inputs import ObuInputsFuzz, RsuInputsFuzz  # noqa: E402 (they build on FuzzRun, not on this module)
+
+TARGETS = {"obu": ObuFuzz, "rsu": RsuFuzz, "link": LinkFuzz, "obu-inputs": ObuInputsFuzz, "rsu-inputs": RsuInputsFuzz}

@@ -331,9 +331,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "ids, floods, replays) and forging time replies; rsu: hostile time queries; link: hostile "
                          "lists, poses, controls and queries on both sides of the emulator. Exit code 1 when the "
                          "target crashed or an output was late or missing.")
-    fuzz.add_argument("--target", required=True, choices=("obu", "rsu", "link", "frames"),
+    fuzz.add_argument("--target", required=True, choices=("obu", "rsu", "link", "frames", "obu-inputs", "rsu-inputs"),
                       help="the service to attack; frames: hostile image files in the RSU's recording "
-                           "(--source video), read at min(--rate, 20) frames/s")
+                           "(--source video), read at min(--rate, 20) frames/s; obu-inputs / rsu-inputs: the "
+                           "service with --source zenoh fed by v2i world, hostile SensorObjects / "
+                           "LocalizationPose on its sensor keys")
     fuzz.add_argument("--fusion", choices=("roif",), help="with --target obu: an OBU fusing images (--fusion roif) "
                       "under hostile RsuImageFeatures (kinds: malformed, wrong_type, unknown_keys, non_finite, "
                       "out_of_image, oversized_counts, wrong_descriptor_length, bad_index, absurd_times, edge_valid, "
