@@ -61,7 +61,8 @@ A matched pair (track, estimate with bits b) is fused by exactly one rule, in th
    R / (1 - w), i.e. P+^-1 = w P^-1 + (1 - w) H^T R^-1 H,
    x+ = P+ (w P^-1 x + (1 - w) H^T R^-1 z), w minimising det P+; H observes the position,
    and also the velocity where the estimate measured one (CV / CA with ``velocity_updates``;
-   R = blockdiag(cov_xy, cov_vxy)). ``estimate_fusion="kf"`` turns this rule off (rule 3).
+   R = blockdiag(cov_xy, cov_vxy)). ``estimate_fusion="kf"`` turns this rule off (rule 3);
+   ``"ci-all"`` applies it to every track rule 1 leaves (rule 3 never applies).
 3. otherwise (only raw-measurement sources, such as the own LiDAR, share the track): a
    Kalman update of the position only (see ``_correct``).
 Raw measurements (``estimates=False``) always get the Kalman update (position, and the
@@ -111,11 +112,11 @@ class TrackerConfig:
     velocity_updates: bool = True  # cv / ca: measured velocities (cov_vxy below unknown) update the state too
     shape_hold_s: float = 0.3  # a box shape from a precise source is kept this long against coarser ones
     two_point_init: bool = True  # cv / ca: a track born without a velocity takes it from its first two positions
-    estimate_fusion: Literal["ci", "kf"] = "ci"  # estimates into a track another estimate source shares (module doc)
+    estimate_fusion: Literal["ci", "kf", "ci-all"] = "ci"  # estimates into a track others share (module doc)
 
     def __post_init__(self) -> None:
         for name, allowed in (("gate", ("distance", "mahalanobis")), ("cost", ("distance", "mahalanobis", "iou")),
-                              ("estimate_fusion", ("ci", "kf"))):
+                              ("estimate_fusion", ("ci", "kf", "ci-all"))):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"TrackerConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
         kalman.make_model(self.motion, 1.0, 1.0, 1.0)  # validates the name
@@ -390,8 +391,9 @@ class Tracker:
         k = int(alone.sum())
         self._table.x[ti[alone]], self._table.p[ti[alone]] = x0[:k], p0[:k]
         ti, di = ti[~alone], di[~alone]
-        if estimates and self.config.estimate_fusion == "ci":
+        if estimates and self.config.estimate_fusion != "kf":
             shared = self._shared_with_estimates(ti, bits[di], t_s)
+            shared |= self.config.estimate_fusion == "ci-all"  # every track another source shares
             self._intersect(ti[shared], di[shared], dets)
             ti, di = ti[~shared], di[~shared]
         pair = self._second_positions(ti, di, dets, t_s)

@@ -206,3 +206,18 @@ def test_hand_over_between_two_rsus_keeps_the_obu_track_id():
             sources.add(obj.sources)
     assert len(set(ids)) == 1 and len(ids) == 49
     assert sources == {SOURCE_RSU}
+
+
+def test_ci_all_intersects_an_estimate_into_a_lidar_track_too():
+    tracker = Tracker(TrackerConfig(estimate_fusion="ci-all"))
+    tracker.update(dets([0.0, 0.0], 0.3), 0.0, LIDAR)
+    tracker.update(dets([0.0, 0.0], 0.3), 0.1, LIDAR)
+    tracker.predict(0.2)
+    x, p = tracker._table.x.copy(), tracker._table.p.copy()
+    tracker.update(dets([0.5, 0.0], 0.2), 0.2, RSU_A, estimates=True)
+    r = np.eye(2)[None] * 0.04
+    w = ci_weights(p, r)
+    assert 0.0 < w[0] < 1.0
+    np.testing.assert_allclose(tracker._table.x, ci_update(x, p, np.array([[0.5, 0.0]]), r, w)[0], atol=1e-12)
+    with pytest.raises(ValueError, match="estimate_fusion"):
+        TrackerConfig(estimate_fusion="average")
