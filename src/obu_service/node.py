@@ -50,7 +50,10 @@ class ObuNode:
         self.config = config
         self.clock = clock or SystemClock()
         self.start_ns = config.start_at_ns or self.clock.now_ns()
-        self.world = World(load_scenario(config.scenario))
+        scenario = load_scenario(config.scenario)
+        # this vehicle's view when the scenario has it (its LiDAR, its streams), else the ego's
+        own = config.vehicle_id if config.vehicle_id in [v.name for v in scenario.vehicles] else None
+        self.world = World(scenario, ego=own)
         self.duration_s = config.duration_s or self.world.scenario.duration_s
         self.vehicle = SimulatedVehicle(self.world, config.seed, self.start_ns) if config.source == "sim" else None
         self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
