@@ -52,8 +52,9 @@ from sim.scenario import load_scenario
 
 RSU_ID = "rsu1"
 LINK_ID = "scale1"
-STARTUP_S = 6.0  # imports + Zenoh sessions of V processes before the scenario starts (plus 1 s per 4 vehicles)
-SETTLE_S = 2.0  # measurement starts this long after the scenario start
+STARTUP_S = 6.0  # imports + Zenoh sessions before the scenario starts, plus STARTUP_PER_VEHICLE_S per vehicle
+STARTUP_PER_VEHICLE_S = 1.2  # 20 OBUs starting at once on 2 shared cores took ~21 s to be ready
+SETTLE_S = 2.0  # measurement starts this long after the scenario start and after every process is ready
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 
@@ -174,13 +175,18 @@ class Taps:
         self.inbox: queue.Queue = queue.Queue()
         self.published: dict[int, int] = {}
         self.received: dict[str, dict[int, int]] = {vid: {} for vid in tap_eps}
+        self.link_stats: dict = {}  # the emulator's latest stats, heard on the first tap
         self.sessions = [open_session(listen=[ep]) for ep in tap_eps.values()]
         self.subs = [s.declare_subscriber(keys.RSU_OBJECTS_ALL,
                                           lambda smp, vid=vid: self.inbox.put((vid, time.time_ns(), smp.payload.to_bytes())))
                      for vid, s in zip(tap_eps, self.sessions)]
+        self.subs.append(self.sessions[0].declare_subscriber(keys.link_stats(LINK_ID), self._on_stats))
         self.sessions.append(open_session(connect=[rsu_ep]))
         self.subs.append(self.sessions[-1].declare_subscriber(
             keys.rsu_objects(RSU_ID), lambda smp: self.inbox.put((None, time.time_ns(), smp.payload.to_bytes()))))
+
+    def _on_stats(self, sample) -> None:
+        self.link_stats = json.loads(sample.payload.to_bytes())
 
     def drain(self) -> None:
         """Decode what arrived (in this thread, outside the callbacks)."""
@@ -226,7 +232,7 @@ def run_once(args: argparse.Namespace, n_vehicles: int, tmp: Path) -> dict:
     rsu_xy = (scenario.rsu.position.x, scenario.rsu.position.y)
     link_config = tmp / "link.yaml"
     link_config.write_text(json.dumps({"rsu_position": list(rsu_xy), "stats_period_s": 1.0}))
-    startup_s = STARTUP_S + n_vehicles / 4.0
+    startup_s = STARTUP_S + STARTUP_PER_VEHICLE_S * n_vehicles
     duration_s = SETTLE_S + args.measure_s + 1.0
     start_ns = time.time_ns() + round(startup_s * 1e9)
     rsu_ep = free_tcp_endpoint()
@@ -251,6 +257,9 @@ def run_once(args: argparse.Namespace, n_vehicles: int, tmp: Path) -> dict:
                                vehicles=vehicles))
         procs[-1].wait_ready(deadline)
         late_s = (time.time_ns() - start_ns) * 1e-9
+        if late_s > 0:
+            raise RuntimeError(f"V={n_vehicles}: processes were ready {late_s:.1f} s after the scenario start; "
+                               "raise STARTUP_PER_VEHICLE_S (the machine is slower or busier)")
         window = (start_ns + round(SETTLE_S * 1e9), start_ns + round((SETTLE_S + args.measure_s) * 1e9))
         while time.time_ns() < window[0]:
             time.sleep(0.05)
@@ -280,7 +289,10 @@ def run_once(args: argparse.Namespace, n_vehicles: int, tmp: Path) -> dict:
                             "p50_ms": float(np.percentile(delays, 50)) if delays.size else None,
                             "p95_ms": float(np.percentile(delays, 95)) if delays.size else None,
                             "cpu_pct": cpu[vid], "rss_mb": rss[vid], "light": done.get(vid)}
-    return {"vehicles": n_vehicles, "late_start_s": late_s, "per_vehicle": per_vehicle,
+    stats = taps.link_stats
+    link_stats = {"lateness_ms": stats.get("lateness_ms"), "refused": stats.get("refused"),
+                  "relay_delay_ms_mean": [p["downlink"]["delay_ms"]["mean"] for p in stats.get("pairs", [])]}
+    return {"vehicles": n_vehicles, "late_start_s": late_s, "per_vehicle": per_vehicle, "link_stats": link_stats,
             "rsu": {"cpu_pct": cpu["rsu"], "rss_mb": rss["rsu"]}, "link": {"cpu_pct": cpu["link"], "rss_mb": rss["link"]}}
 
 
@@ -321,6 +333,12 @@ def print_table(args: argparse.Namespace, results: list[dict]) -> None:
               f"{_f(np.median(p95s) if p95s else None):>7} {_f(max(p95s) if p95s else None):>9} "
               f"{_f(r['link']['cpu_pct']):>9} {_f(r['link']['rss_mb'], '.0f'):>7} {_f(r['rsu']['cpu_pct']):>8} "
               f"{_f(np.mean([v['cpu_pct'] or 0 for v in vs])):>13} {_f(np.mean([v['rss_mb'] or 0 for v in vs]), '.0f'):>11}")
+    for r in results:
+        s = r["link_stats"]
+        means = [m for m in s["relay_delay_ms_mean"] if m is not None]
+        print(f"V={r['vehicles']}: emulator lateness {s['lateness_ms']}, refused {s['refused']}, relay delay mean "
+              f"per pair {_f(min(means) if means else None)}-{_f(max(means) if means else None)} ms "
+              f"(whole run, lists and time replies)")
     if args.per_vehicle:
         for r in results:
             print(f"V={r['vehicles']}: " + "; ".join(

@@ -115,7 +115,9 @@ class TimeQueryRelay:
         """Zenoh callback (RSU side): copy the reply out, stamp and enqueue."""
         receive_ns = self._clock.now_ns()
         body = reply.ok if reply.ok is not None else reply.err
-        if not self._gate.admit(str(reply.ok.key_expr) if reply.ok is not None else "reply_err", len(body.payload)):
+        # bucketed per pair: V vehicles' replies share the RSU's key (20 at 10 Hz exceed one key's rate)
+        key = f"reply {reply.ok.key_expr}" if reply.ok is not None else "reply_err"
+        if not self._gate.admit(pair.gate_key(key), len(body.payload)):
             return
         if reply.ok is not None:
             copied = RsuReply(True, str(reply.ok.key_expr), reply.ok.payload.to_bytes(), reply.ok.encoding)

@@ -135,3 +135,17 @@ def test_link_set_vehicle_names_it_in_the_control():
     assert control.vehicle_id == "car2" and control.outage
     with pytest.raises(ValueError, match="vehicle_id"):
         control_from_action("l1", SetAction(clear=True, vehicle_id="no/such"))
+
+
+def test_vehicle_keys_have_a_rate_bucket_per_pair():
+    """Every vehicle asks v2x/rsu/{id}/time and gets replies on it: one vehicle at its burst must not
+    starve the others (20 OBUs at 10 Hz exceed one key's 100/s)."""
+    relay = relay_for("car1", "car2")
+    gate = relay._gate
+    key = "v2x/rsu/rsu1/time"
+    car1, car2 = relay.pairs
+    burst = relay.config.source_burst
+    assert all(gate.admit(car1.gate_key(key), 10) for _ in range(burst))
+    assert not gate.admit(car1.gate_key(key), 10)  # car1's bucket is empty
+    assert gate.admit(car2.gate_key(key), 10) and gate.admit(car2.gate_key(f"reply {key}"), 10)
+    assert gate.snapshot() == {"rate_limited": 1}
