@@ -194,10 +194,32 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from evaluation.demo import Demo, LinkOutage
 
     _check_inputs(args)
+    if _is_site(args.scenario):
+        return _run_site_demo(args)
     if args.fusion == "roif":
         return _run_roif_demo(args)
     outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
     return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage), args.json, "v2i demo")
+
+
+def _is_site(scenario: str) -> bool:
+    """More than one RSU or vehicle: ``v2i demo`` runs every node (``evaluation.site_demo``)."""
+    from evaluation.site_demo import is_site
+    from sim.scenario import load_scenario
+
+    return is_site(load_scenario(scenario))
+
+
+def _run_site_demo(args: argparse.Namespace) -> int:
+    """``v2i demo`` of a scenario with several RSUs or vehicles: each node its own process."""
+    from evaluation.site_demo import SITE_STARTUP_S, SiteDemo
+
+    if args.kill_link_at is not None or args.fusion == "roif":
+        flag = "--kill-link-at" if args.kill_link_at is not None else "--fusion roif"
+        raise ValueError(f"{flag} runs a single RSU and vehicle; scenario {args.scenario!r} has several "
+                         "(v2i demo runs every node of it, without chaos or image fusion)")
+    startup_s = max(args.startup, SITE_STARTUP_S)  # every node of the site starts at once
+    return _run_demo(SiteDemo(_spec(args), startup_s=startup_s), args.json, "v2i demo")
 
 
 def _run_roif_demo(args: argparse.Namespace) -> int:
@@ -219,6 +241,9 @@ def cmd_chaos_run(args: argparse.Namespace) -> int:
     from link_emulator.profile import bundled_profiles
 
     _check_inputs(args)
+    if _is_site(args.scenario):
+        raise ValueError(f"v2i chaos run plays a timeline on one RSU-vehicle link; scenario {args.scenario!r} "
+                         "has several RSUs or vehicles")
     chaos = load_chaos(args.timeline)
     unknown = [e.profile for e in chaos.events if e.profile is not None and e.profile not in bundled_profiles()]
     if unknown:

@@ -1,0 +1,274 @@
+"""``v2i demo`` of a site: every RSU, one link emulator per RSU and every vehicle's OBU as
+separate OS processes on loopback Zenoh, scored per vehicle like ``v2i eval`` scores them.
+
+Processes (R RSUs, V vehicles): R ``v2i rsu --rsu-id X`` (each listens on its own port),
+V ``v2i obu --vehicle-id NAME`` (each listens on its own port and senses as that vehicle of
+the scenario), and R ``v2i link`` (emulator ``link-X`` connects to RSU X and to every OBU,
+``--vehicle NAME=EP`` once per vehicle: one channel per RSU-vehicle pair). The emulators
+are the only path between the RSU and vehicle sides.
+
+One watcher session connects to every OBU and every RSU (a peer does not forward between
+the peers it connects to, Zenoh's default ``peer_to_peer`` routing, so it adds no path
+around the emulators). As in ``evaluation.demo``: the callbacks only enqueue the payload
+into a bounded inbox (a full inbox drops, counted), a scorer thread decodes and scores,
+each vehicle has its ``RunRecord`` (fused lists routed by their ``vehicle_id``), each OBU's
+metrics feed its record, each RSU's metrics give its perception scores. The report is
+``site_report`` (the keys of ``v2i eval`` on the same scenario), plus the monitor's drops
+and the RSU lists each OBU accepted per RSU. Every child is stopped in ``finally``, by pid;
+nothing else is touched. Chaos timelines are single-link only (``evaluation.demo``).
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+from obu_service.source import SimulatedVehicle
+from perception.scoring import PerceptionTally
+from schemas import keys
+from schemas.codec import CodecError, decode
+from schemas.messages import FusedObjectList, ObuMetrics, PredictionList, RsuMetrics
+from schemas.runtime import log
+from schemas.transport import free_tcp_endpoint, open_session
+from sim.scenario import Scenario, load_scenario
+from sim.world import World
+
+from .demo import INBOX_MESSAGES, POLL_S, Child, DemoError
+from .spec import RunRecord, RunSpec, site_report
+
+SITE_STARTUP_S = 15.0  # least start-up time: 7 Python services importing numpy, scipy, zenoh on 2 busy cores (6-10+ s at load 9)
+STOP_WAIT_S = 5.0  # a child still running this long after SIGTERM is killed
+CONNECT_WAIT_S = 3.0  # the watcher must reach every service within this
+
+
+def is_site(scenario: Scenario) -> bool:
+    """True when the scenario has more than one RSU or more than one vehicle (a ``SiteDemo``)."""
+    return len(scenario.rsus) > 1 or len(scenario.vehicles) > 1
+
+
+def link_id(rsu_id: str) -> str:
+    """The emulator serving RSU ``rsu_id`` (names ``v2x/link/{link_id}/*``)."""
+    return f"link-{rsu_id}"
+
+
+class SiteDemo:
+    """Every node of ``spec.scenario`` as its own process; ``run()`` returns the site report."""
+
+    def __init__(self, spec: RunSpec, startup_s: float = SITE_STARTUP_S):
+        """``startup_s``: launch -> scenario time zero; every service must be ready by then."""
+        self.spec = spec
+        self.scenario = load_scenario(spec.scenario)
+        self.duration_s = spec.duration_s or self.scenario.duration_s
+        self.startup_s = startup_s
+        self.rsu_ids = [rsu.id for rsu in self.scenario.rsus]
+        self.vehicle_ids = [v.name for v in self.scenario.vehicles]
+        self.worlds = {name: World(self.scenario, ego=name) for name in self.vehicle_ids}
+        endpoints = _distinct_endpoints(len(self.rsu_ids) + len(self.vehicle_ids))
+        self.rsu_eps = dict(zip(self.rsu_ids, endpoints))
+        self.obu_eps = dict(zip(self.vehicle_ids, endpoints[len(self.rsu_ids):]))
+        self.children: dict[str, Child] = {}
+        self.records: dict[str, RunRecord] = {}
+        self.rsu_perception: dict[str, dict] = {}  # rsu id -> its latest totals (RsuMetrics.perception)
+        self.rsu_lists_accepted: dict[str, dict[str, int]] = {}  # vehicle -> rsu id -> lists its OBU accepted
+        self.dropped: Counter = Counter()  # messages a full inbox refused, by kind
+        self.unknown: Counter = Counter()  # messages naming a vehicle or RSU not in the scenario, by kind
+        self._inbox: queue.Queue = queue.Queue(maxsize=INBOX_MESSAGES)
+        self._drop_lock = threading.Lock()
+        self._scoring_error: Exception | None = None
+        self._tmp = tempfile.TemporaryDirectory(prefix="v2i-site-demo-")
+
+    def run(self) -> dict:
+        start_ns = time.time_ns() + round(self.startup_s * 1e9)
+        for name, world in self.worlds.items():
+            cycles = SimulatedVehicle(world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
+            self.records[name] = RunRecord(world, start_ns, self.duration_s, cycles)
+        scorer = threading.Thread(target=self._score_inbox, name="site-demo-scorer", daemon=True)
+        scorer.start()
+        watcher, subs = None, []
+        try:
+            self._start_children(start_ns)
+            deadline = time.monotonic() + (start_ns - time.time_ns()) * 1e-9
+            launched = time.monotonic()
+            for child in self.children.values():
+                child.wait_ready(deadline)
+            log("demo", f"all {len(self.children)} processes ready after {time.monotonic() - launched:.1f} s "
+                        f"(start {self.startup_s:g} s after launch)")
+            # connect once every service listens: a failed first attempt is retried only after 1, 2, 4 s
+            watcher = open_session(connect=[*self.obu_eps.values(), *self.rsu_eps.values()])
+            subs = self._subscribe(watcher)
+            self._wait_connected(watcher)
+            self._supervise(start_ns)
+        finally:
+            self._stop_children()
+            for sub in subs:
+                sub.undeclare()
+            if watcher is not None:
+                watcher.close()
+            self._tmp.cleanup()
+            self._inbox.put(None)  # after the last message: the scorer drains the queue and ends
+            scorer.join()
+        if self._scoring_error is not None:
+            raise DemoError(f"scoring the OBU outputs failed: {self._scoring_error!r}") from self._scoring_error
+        return self._report()
+
+    # --- processes -----------------------------------------------------------------------
+    def _start_children(self, start_ns: int) -> None:
+        """RSUs and OBUs first (they listen), then the emulators (they connect to both sides)."""
+        for rsu_id in self.rsu_ids:
+            self.children[f"rsu {rsu_id}"] = Child(f"rsu {rsu_id}", self._rsu_argv(rsu_id, start_ns))
+        for name in self.vehicle_ids:
+            self.children[f"obu {name}"] = Child(f"obu {name}", self._obu_argv(name, start_ns))
+        for rsu_id in self.rsu_ids:
+            self.children[link_id(rsu_id)] = Child(link_id(rsu_id), self._link_argv(rsu_id))
+        log("demo", f"site {self.spec.scenario}: {len(self.children)} processes, pids "
+                    + ", ".join(f"{name} {c.proc.pid}" for name, c in self.children.items()))
+
+    def _common(self, start_ns: int) -> list[str]:
+        s = self.spec
+        return ["--scenario", s.scenario, "--seed", str(s.seed), "--start-at-ns", str(start_ns),
+                "--duration", str(self.duration_s)]
+
+    def _rsu_argv(self, rsu_id: str, start_ns: int) -> list[str]:
+        s = self.spec
+        ahead = ["--predict-ahead"] if s.rsu_config().predict_ahead else []
+        step = [] if s.rsu_clock_step_at_s is None else ["--clock-step-ms", str(s.rsu_clock_step_ms),
+                                                          "--clock-step-at-s", str(s.rsu_clock_step_at_s)]
+        return [sys.executable, "-m", "v2i", "rsu", "--rsu-id", rsu_id, "--listen", self.rsu_eps[rsu_id],
+                *self._common(start_ns), "--clock-offset-ms", str(s.rsu_clock_offset_ms),
+                "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead, "--source", s.rsu_source]
+
+    def _obu_argv(self, name: str, start_ns: int) -> list[str]:
+        s = self.spec
+        return [sys.executable, "-m", "v2i", "obu", "--vehicle-id", name, "--listen", self.obu_eps[name],
+                *self._common(start_ns), "--fusion", s.fusion, "--compensation", s.compensation,
+                "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms)]
+
+    def _link_argv(self, rsu_id: str) -> list[str]:
+        """Emulator of RSU ``rsu_id``: its position (distance-dependent channels; no CLI flag has
+        it) and profile (the RSU's ``link_profile``, else the run's, as ``v2i eval``)."""
+        rsu = self.scenario.rsu_by_id(rsu_id)
+        config = Path(self._tmp.name) / f"{link_id(rsu_id)}.yaml"
+        config.write_text(json.dumps({"rsu_position": [rsu.position.x, rsu.position.y]}))  # JSON is YAML
+        vehicles = [arg for name, ep in self.obu_eps.items() for arg in ("--vehicle", f"{name}={ep}")]
+        return [sys.executable, "-m", "v2i", "link", "--config", str(config), "--link-id", link_id(rsu_id),
+                "--rsu-connect", self.rsu_eps[rsu_id], *vehicles, "--profile", rsu.link_profile or self.spec.profile,
+                "--seed", str(self.spec.seed)]
+
+    def _supervise(self, start_ns: int) -> None:
+        """Until the run's end (+0.5 s; the services end at +1 s): any child that exits ends the demo."""
+        end_ns = start_ns + round((self.duration_s + 0.5) * 1e9)
+        while time.time_ns() < end_ns:
+            for name, child in self.children.items():
+                if child.proc.poll() is not None:
+                    raise DemoError(f"{name} exited with code {child.proc.returncode} during the run")
+            time.sleep(POLL_S)
+
+    def _stop_children(self) -> None:
+        """SIGTERM every child started here at once, then wait for each; SIGKILL what outlives STOP_WAIT_S."""
+        alive = [c for c in self.children.values() if c.proc.poll() is None]
+        for child in alive:
+            child.proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + STOP_WAIT_S
+        for child in alive:
+            try:
+                child.proc.wait(max(deadline - time.monotonic(), 0.0))
+            except subprocess.TimeoutExpired:
+                log("demo", f"{child.name} (pid {child.proc.pid}) ignored SIGTERM for {STOP_WAIT_S:g} s: killed")
+                child.proc.kill()
+                child.proc.wait()
+
+    # --- watching and scoring ------------------------------------------------------------
+    def _subscribe(self, watcher) -> list:
+        subs = []
+        for name in self.vehicle_ids:
+            for kind, key in (("objects", keys.obu_objects(name)), ("metrics", keys.obu_metrics(name)),
+                              ("planning", keys.obu_planning(name))):
+                subs.append(watcher.declare_subscriber(key, lambda s, k=kind, n=name: self._keep(k, n, s)))
+        for rsu_id in self.rsu_ids:
+            subs.append(watcher.declare_subscriber(keys.rsu_metrics(rsu_id),
+                                                   lambda s, r=rsu_id: self._keep("rsu_metrics", r, s)))
+        return subs
+
+    def _wait_connected(self, watcher) -> None:
+        """Every OBU and RSU must be a peer of the watcher (else its scores would silently be empty)."""
+        wanted = len(self.obu_eps) + len(self.rsu_eps)
+        deadline = time.monotonic() + CONNECT_WAIT_S
+        while (peers := len(list(watcher.info.peers_zid()))) < wanted:
+            if time.monotonic() > deadline:
+                raise DemoError(f"the watcher reached {peers} of {wanted} services "
+                                f"({', '.join([*self.obu_eps.values(), *self.rsu_eps.values()])})")
+            time.sleep(0.05)
+
+    def _keep(self, kind: str, node: str, sample) -> None:
+        """Zenoh callback: enqueue the payload for the scorer; a full inbox drops it (counted)."""
+        try:
+            self._inbox.put_nowait((kind, node, sample.payload.to_bytes()))
+        except queue.Full:
+            with self._drop_lock:
+                self.dropped[kind] += 1
+
+    def _score_inbox(self) -> None:
+        """Scorer thread: decode and score each message in arrival order until the None that ends the run."""
+        while (item := self._inbox.get()) is not None:
+            if self._scoring_error is not None:
+                continue  # keep draining so that the callbacks never block; run() raises it
+            try:
+                self._score(*item)
+            except CodecError as exc:
+                log("demo", f"undecodable {item[0]} message from {item[1]}: {exc}")
+            except Exception as exc:  # noqa: BLE001 - re-raised by run() as a DemoError
+                self._scoring_error = exc
+
+    def _score(self, kind: str, node: str, data: bytes) -> None:
+        """``node``: the vehicle (or RSU) whose key the message came on; fused lists and OBU
+        metrics go to the record of the vehicle they name."""
+        if kind == "rsu_metrics":
+            metrics = decode(data, RsuMetrics)
+            if metrics.perception is not None:  # each message holds the run's totals so far
+                self.rsu_perception[metrics.rsu_id] = metrics.perception.model_dump()
+            return
+        if kind == "planning":
+            self.records[node].add_planning(decode(data, PredictionList))
+            return
+        message = decode(data, FusedObjectList if kind == "objects" else ObuMetrics)
+        record = self.records.get(message.vehicle_id)
+        if record is None:
+            self.unknown[kind] += 1
+        elif kind == "objects":
+            record.add_output(message)
+        else:
+            record.add_obu_metrics(message)
+            self.rsu_lists_accepted[message.vehicle_id] = {r.rsu_id: r.messages_accepted for r in message.rsus}
+
+    def _report(self) -> dict:
+        """``site_report`` (the ego's record carries the first RSU's perception, as in ``v2i eval``)."""
+        first = self.rsu_ids[0]
+        if first in self.rsu_perception:
+            self.records[self.vehicle_ids[0]].rsu_perception = self.rsu_perception[first]
+        rsus = {rsu_id: self.rsu_perception.get(rsu_id) or PerceptionTally().scores() for rsu_id in self.rsu_ids}
+        vehicles = [(name, self.worlds[name], self.records[name]) for name in self.vehicle_ids]
+        report = site_report(self.spec, vehicles, rsus, driver="demo")
+        report["monitor_messages_dropped"] = dict(self.dropped)
+        report["rsu_lists_accepted"] = {name: self.rsu_lists_accepted.get(name, {}) for name in self.vehicle_ids}
+        if sum(self.dropped.values()):
+            log("demo", f"the scorer fell behind: dropped {dict(self.dropped)} (scores miss them)")
+        if sum(self.unknown.values()):
+            log("demo", f"messages naming no vehicle of the scenario: {dict(self.unknown)}")
+        return report
+
+
+def _distinct_endpoints(count: int) -> list[str]:
+    """``count`` different free loopback TCP endpoints (a port freed a moment ago can come back)."""
+    endpoints: list[str] = []
+    while len(endpoints) < count:
+        if (ep := free_tcp_endpoint()) not in endpoints:
+            endpoints.append(ep)
+    return endpoints
