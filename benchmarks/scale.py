@@ -16,7 +16,7 @@ directly (no link emulator, so the OBU is what is measured):
   phases spread over the period: unsynchronised RSUs), ``--rsu-latency-ms`` after capture,
   stamped by its own clock (offset (k + 1) * 3.7 ms), and answers the OBU's time queries on
   ``v2x/rsu/{id}/time`` (``rsu_service.pipeline.answer_time_request``). The objects circle
-  centres that follow the ego's true path (within 60 m of it), so they stay on site; with
+  the ego on its true path (8-60 m from it), so they stay on site; with
   ``--objects shared`` every RSU sees the same N objects (one site, overlapping views, own
   noise), with ``distinct`` each RSU has its own N.
 
@@ -47,19 +47,20 @@ from pathlib import Path
 import numpy as np
 
 PERIOD_NS = 100_000_000  # the OBU's 10 Hz cycle
-SITE_RADIUS_M = 60.0  # objects circle within this of the ego
+SITE_RADIUS_M = 60.0  # objects circle the ego within this
+MIN_RANGE_M = 8.0  # and no closer (never on the ego itself)
 CLOCK_OFFSET_STEP_NS = 3_700_000  # RSU k's clock runs (k + 1) * this ahead of the true clock
 
 
 # --- the synthetic RSUs (child process: ``scale.py publish ...``) -----------------------
 class Site:
-    """N objects, each circling a centre that moves with the ego: p(t) = e(t) + c + r u(w t + phi),
-    u(a) = (cos a, sin a), v = e'(t) + r w u'(w t + phi), centripetal a = -r w^2 u."""
+    """N objects, each on a circle around the ego: p(t) = e(t) + r u(w t + phi), u(a) = (cos a, sin a),
+    v = e'(t) + r w u'(w t + phi), centripetal a = -r w^2 u; r in [MIN_RANGE_M, SITE_RADIUS_M]
+    (uniform over the annulus), tangential speed 1-8 m/s either way."""
 
     def __init__(self, world, n: int, rng: np.random.Generator):
         self.world, self.n = world, n
-        self.r_m = SITE_RADIUS_M * np.sqrt(rng.uniform(0.05, 0.5, n))  # (N,) circle radius
-        self.c_m = rng.uniform(-0.5, 0.5, (n, 2)) * SITE_RADIUS_M * 0.6  # (N, 2) circle centre - ego
+        self.r_m = np.sqrt(rng.uniform(MIN_RANGE_M**2, SITE_RADIUS_M**2, n))  # (N,) circle radius
         self.w_rps = rng.choice([-1.0, 1.0], n) * rng.uniform(1.0, 8.0, n) / self.r_m  # (N,) angular speed
         self.phi = rng.uniform(0, 2 * np.pi, n)
         self.cls = rng.choice([1, 1, 1, 2, 5, 6], n)  # mostly cars
@@ -73,7 +74,7 @@ class Site:
         ego = self.world.ego_at(t_s)
         a = self.w_rps * t_s + self.phi
         u, du = np.column_stack([np.cos(a), np.sin(a)]), np.column_stack([-np.sin(a), np.cos(a)])
-        xy = np.array([ego.x, ego.y]) + self.c_m + self.r_m[:, None] * u
+        xy = np.array([ego.x, ego.y]) + self.r_m[:, None] * u
         vxy = np.array([ego.vx, ego.vy]) + (self.r_m * self.w_rps)[:, None] * du
         n = self.n
         return ObjectArray(
@@ -103,10 +104,10 @@ class Rsus:
         self.lock = threading.Lock()
 
     def on_query(self, index: int, query) -> None:
+        from rsu_service.pipeline import answer_time_request
         from schemas import keys
         from schemas.codec import CodecError, decode, encode
         from schemas.messages import TimeRequest
-        from rsu_service.pipeline import answer_time_request
 
         t2_ns = time.time_ns() + self.offset_ns[index]
         try:
@@ -133,10 +134,10 @@ class Rsus:
         return events
 
     def run(self, stop: threading.Event) -> None:
+        from fusion.wire import states_from_objects
         from schemas import keys
         from schemas.codec import encode
         from schemas.messages import ObjectList, ObjectListHeader
-        from fusion.wire import states_from_objects
 
         pubs = [self.session.declare_publisher(keys.rsu_objects(r)) for r in self.ids]
         queryables = [self.session.declare_queryable(keys.rsu_time(r), lambda q, i=i: self.on_query(i, q))
@@ -307,9 +308,11 @@ def run_one(k: int, n: int, args, procs: list[subprocess.Popen], tmp: Path) -> d
         sleep_until_ns(window_ns[1])
         used = usage.stop()
         time.sleep(0.5)  # the window's last cycle is published up to 100 ms after its capture
+        stop_all([publisher])
+        time.sleep(0.5)  # the OBU takes the last lists and reports them in its next cycles' metrics
     finally:
         collector.close()
-        stop_all([obu, publisher])
+        stop_all([publisher, obu])
     done = json.loads(publisher.stdout.read().strip().splitlines()[-1])
     stopped = [line for line in (tmp / "obu.log").read_text().splitlines() if "stopped:" in line]
     row = summarise(collector.objects, collector.metrics, window_ns)
@@ -336,13 +339,14 @@ def summarise(objects: list[bytes], metrics: list[bytes], window_ns: tuple[int, 
     e2e_ms = np.array([(cycles[s][1] - cycles[s][0]) * 1e-6 for s in inside])
     modes = {m: last.mode_counts.get(m, 0) - first.mode_counts.get(m, 0) for m in last.mode_counts}
     final = ms[-1]
-    return dict(
-        cycles=last.cycles - first.cycles, misses=last.output_deadline_misses - first.output_deadline_misses,
-        compute_p50_ms=float(np.percentile(compute_ms, 50)), compute_p99_ms=float(np.percentile(compute_ms, 99)),
-        compute_max_ms=float(compute_ms.max()), compute_samples=len(compute_ms), compute_ms=compute_ms.round(3).tolist(),
-        e2e_p99_ms=float(np.percentile(e2e_ms, 99)), out_objects=int(np.median([cycles[s][2] for s in inside])),
-        modes={m: c for m, c in modes.items() if c}, accepted=sum(r.messages_accepted for r in final.rsus),
-        refused=dict(final.rejected), output_dropped=dict(final.output_dropped))
+    return {
+        "cycles": last.cycles - first.cycles, "misses": last.output_deadline_misses - first.output_deadline_misses,
+        "compute_p50_ms": float(np.percentile(compute_ms, 50)), "compute_p99_ms": float(np.percentile(compute_ms, 99)),
+        "compute_max_ms": float(compute_ms.max()), "compute_samples": len(compute_ms),
+        "compute_ms": compute_ms.round(3).tolist(), "e2e_p99_ms": float(np.percentile(e2e_ms, 99)),
+        "out_objects": int(np.median([cycles[s][2] for s in inside])), "modes": {m: c for m, c in modes.items() if c},
+        "accepted": sum(r.messages_accepted for r in final.rsus), "refused": dict(final.rejected),
+        "output_dropped": dict(final.output_dropped)}
 
 
 # --- the table ----------------------------------------------------------------------------
