@@ -1,0 +1,89 @@
+"""``v2i demo`` of a site: connected-intersection's 2 RSUs, 2 link emulators and 3 OBUs as
+real OS processes on loopback Zenoh (``evaluation.site_demo``), scored per vehicle.
+
+One short run: every vehicle publishes and is scored, every OBU hears both RSUs through
+its own channels, the report has the offline runner's keys, no child outlives the demo.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from evaluation.runner import OfflineRun
+from evaluation.site_demo import SiteDemo, is_site
+from evaluation.spec import RunSpec
+from sim.scenario import load_scenario
+from v2i.cli import main
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(150)]
+
+SPEC = RunSpec(scenario="connected-intersection", profile="lte-v2x", seed=0, duration_s=9.0)
+
+
+@pytest.fixture(scope="module")
+def demo() -> SiteDemo:
+    demo = SiteDemo(SPEC)
+    demo.report = demo.run()
+    return demo
+
+
+def test_every_node_ran_as_its_own_process(demo):
+    assert sorted(demo.children) == ["link-rsu-nw", "link-rsu-se", "obu car-2", "obu car-3", "obu ego",
+                                     "rsu rsu-nw", "rsu rsu-se"]
+    assert len({child.proc.pid for child in demo.children.values()}) == 7
+
+
+def test_no_child_outlives_the_demo(demo):
+    for name, child in demo.children.items():
+        assert child.proc.poll() is not None, f"{name} still runs"
+        with pytest.raises(ProcessLookupError):  # reaped: the pid names no process of ours any more
+            os.kill(child.proc.pid, 0)
+
+
+def test_every_vehicle_is_scored_with_lists_from_both_rsus(demo):
+    vehicles = demo.report["vehicles"]
+    assert sorted(vehicles) == ["car-2", "car-3", "ego"]
+    for name, scores in vehicles.items():
+        assert scores["cycles"] == 90, name
+        assert scores["outputs"] > 0.9 * scores["cycles"], name  # published cycles the watcher scored
+        accepted = demo.report["rsu_lists_accepted"][name]
+        assert sorted(accepted) == ["rsu-nw", "rsu-se"], name
+        assert min(accepted.values()) > 0, f"{name} heard {accepted}"
+    # each OBU senses as its own vehicle: car-3 faces the runner's approach and its own LiDAR
+    # sees it from t = 4.5 s; the ego's LiDAR only from t = 10 s (offline, 9 s: 44 and 0 cycles)
+    assert vehicles["car-3"]["vehicle_only"]["detected_cycles"] > 20
+    assert vehicles["ego"]["vehicle_only"]["detected_cycles"] == 0
+    assert vehicles["ego"]["target"]["detected_cycles"] > 0  # through the RSUs only
+
+
+def test_each_rsu_reports_its_perception(demo):
+    rsus = demo.report["rsus"]
+    assert sorted(rsus) == ["rsu-nw", "rsu-se"]
+    for rsu_id, perception in rsus.items():
+        assert perception["frames"] > 0, rsu_id
+
+
+def test_report_has_the_offline_runners_keys(demo):
+    run = OfflineRun(SPEC)
+    run.execute()
+    offline = run.report()
+    assert set(offline) <= set(demo.report)
+    assert set(offline["vehicles"]) == set(demo.report["vehicles"])
+    for name, scores in offline["vehicles"].items():
+        assert set(scores) == set(demo.report["vehicles"][name]), name
+    assert set(offline["rsus"]["rsu-se"]) == set(demo.report["rsus"]["rsu-se"])
+    assert demo.report["driver"] == "demo"
+
+
+def test_site_scenarios_are_told_apart():
+    assert is_site(load_scenario("connected-intersection"))
+    assert is_site(load_scenario("two-rsu-corridor"))
+    assert not is_site(load_scenario("red-light-runner"))
+
+
+@pytest.mark.parametrize("argv", [["demo", "--kill-link-at", "2"], ["demo", "--fusion", "roif"]])
+def test_single_link_options_are_refused_on_a_site(argv, capsys):
+    assert main([*argv[:1], "--scenario", "connected-intersection", *argv[1:]]) == 2
+    assert "several" in capsys.readouterr().err
