@@ -56,8 +56,11 @@ def _graph(lmap):
 
 
 # ------------------------------------------------------------------------------- maps as data
+MAPLESS = {"two-rsu-corridor"}  # no road network designed for it yet: compensation 'lane' refuses it
+
+
 def test_every_bundled_scenario_has_a_map():
-    assert bundled_maps() == bundled_scenarios()
+    assert bundled_maps() == sorted(set(bundled_scenarios()) - MAPLESS)
 
 
 @pytest.mark.parametrize("name", sorted(LANELET_COUNTS))

@@ -215,6 +215,7 @@ NETWORKS = {
     "red-light-runner": lambda: four_way_intersection("red-light-runner"),
     "dense-intersection": lambda: four_way_intersection("dense-intersection"),
     "roif-intersection": lambda: four_way_intersection("roif-intersection"),
+    "connected-intersection": lambda: four_way_intersection("connected-intersection"),
     "highway-merge": lambda: highway_with_ramp("highway-merge"),
 }
 
