@@ -11,9 +11,9 @@ of each RSU's sensing slot; ``planning``: the newest paths that still cover the 
 
 from __future__ import annotations
 
+import itertools
+import statistics
 from dataclasses import dataclass
-
-import numpy as np
 
 from fusion.objects import ObjectArray
 from schemas.messages import PredictionList
@@ -37,6 +37,20 @@ class Received:
     used: bool = False  # consumed by a tracking fusion (each list is a measurement once)
 
 
+@dataclass(frozen=True)
+class Placement:
+    """``ModeInputs.placed``'s answer for one RSU (kept in ``RsuState.placement``), valid while
+    the RSU's estimate and its frames are these."""
+
+    estimate: object  # OffsetEstimate (frozen: compared by value)
+    frames: tuple[Received, ...]  # compared by identity
+    placed: tuple[tuple[Received, RsuFrame], ...]
+
+    def holds(self, est, frames) -> bool:
+        return (self.estimate == est and len(self.frames) == len(frames)
+                and all(a is b for a, b in zip(self.frames, frames)))
+
+
 class ModeInputs:
     """Which RSU data each mode can use; ``config`` is the OBU pipeline's configuration."""
 
@@ -46,10 +60,19 @@ class ModeInputs:
     def placed(self, state: RsuState, t_ns: int) -> list[tuple[Received, RsuFrame]]:
         """The RSU's frames in OBU time (by valid time), each linked to the one before; [] before
         sync. A frame valid later than its own arrival (beyond the clock uncertainty and the
-        future tolerance) is left out: it was admitted before the clock was known."""
+        future tolerance) is left out: it was admitted before the clock was known. The answer
+        is reused while the RSU's estimate at t_ns and its frames are unchanged."""
         est = state.sync.estimate_at(t_ns)
         if est is None:
             return []
+        last = state.placement  # a cycle asks about 6 times (intra_slots, intra, inter, consume)
+        if last is not None and last.holds(est, state.frames):
+            return list(last.placed)
+        placed = self._place(state, est)
+        state.placement = Placement(est, tuple(state.frames), tuple(placed))
+        return placed
+
+    def _place(self, state: RsuState, est) -> list[tuple[Received, RsuFrame]]:
         tolerance_ns = est.uncertainty_ns + self.config.future_tolerance_ms * 1e6
         placed, previous = [], None
         for raw in sorted(state.frames, key=lambda f: f.valid_rsu_ns):  # t_obu = t_rsu - theta(t)
@@ -147,7 +170,9 @@ class ModeInputs:
 
 def rsu_period_ns(state: RsuState) -> int:
     """Median interval between the RSU's distinct captures (RSU clock; drift is negligible
-    here), at least 1 ms."""
-    captures = np.unique([f.capture_rsu_ns for f in state.frames])
-    return max(int(np.median(np.diff(captures))), 1_000_000) if len(captures) >= 2 else DEFAULT_RSU_PERIOD_NS
+    here), at least 1 ms. (At most ``frames_kept`` captures: plain Python beats numpy here.)"""
+    captures = sorted({f.capture_rsu_ns for f in state.frames})
+    if len(captures) < 2:
+        return DEFAULT_RSU_PERIOD_NS
+    return max(int(statistics.median(b - a for a, b in itertools.pairwise(captures))), 1_000_000)
 

@@ -59,6 +59,7 @@ class RsuState:
     last_receive_ns: int | None = None  # last list or paths accepted (coverage)
     last_age_ms: float | None = None
     steps_seen: int = 0  # RSU clock steps already acted on
+    placement: object = None  # obu_service.mode_inputs.Placement: its frames as last placed in OBU time
 
     @property
     def established(self) -> bool:

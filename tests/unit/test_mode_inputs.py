@@ -1,0 +1,79 @@
+"""ModeInputs reuses an RSU's placement only while it is the same; the RSU period's median."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fusion.objects import ObjectArray
+from obu_service.clock_sync import SyncSample
+from obu_service.mode_inputs import ModeInputs, Received, rsu_period_ns
+from obu_service.pipeline import ObuPipelineConfig
+from obu_service.rsu_table import RsuTable
+
+T0 = 1_700_000_000_000_000_000
+MS = 1_000_000
+OFFSET_NS = 3 * MS  # rsu clock - obu clock
+
+
+def _objects(n: int) -> ObjectArray:
+    return ObjectArray(ids=np.arange(n), cls=np.ones(n, int), xy=np.zeros((n, 2)), z=np.zeros(n),
+                       lwh=np.ones((n, 3)), yaw=np.zeros(n), vxy=np.zeros((n, 2)))
+
+
+def _synced_state(table: RsuTable, t_ns: int):
+    state = table.admit("rsu-a", t_ns)
+    for k in range(6):  # symmetric 1 ms legs: theta = OFFSET_NS
+        t1 = t_ns + k * 100 * MS
+        state.sync.add(SyncSample(t1, t1 + MS + OFFSET_NS, t1 + MS + OFFSET_NS, t1 + 2 * MS))
+    return state
+
+
+def _receive(state, capture_obu_ns: int, seq: int) -> Received:
+    raw = Received(capture_obu_ns + OFFSET_NS, capture_obu_ns + OFFSET_NS, seq, _objects(3), capture_obu_ns + 30 * MS)
+    state.frames.append(raw)
+    return raw
+
+
+def _same(a, b) -> bool:
+    return len(a) == len(b) and all(ra is rb and fa == fb for (ra, fa), (rb, fb) in zip(a, b))
+
+
+def test_placement_is_reused_only_while_estimate_and_frames_are_unchanged():
+    table = RsuTable()
+    inputs = ModeInputs(ObuPipelineConfig(), table)
+    state = _synced_state(table, T0)
+    t_ns = T0 + 1000 * MS
+    for seq in range(3):
+        _receive(state, T0 + 700 * MS + seq * 100 * MS, seq)
+    first = inputs.placed(state, t_ns)
+    assert len(first) == 3 and inputs.placed(state, t_ns) == first
+    assert inputs.placed(state, t_ns) is not first  # callers get their own list
+
+    _receive(state, T0 + 1000 * MS, 3)  # a new frame: placed again
+    again = inputs.placed(state, t_ns)
+    assert len(again) == 4 and _same(again, inputs._place(state, state.sync.estimate_at(t_ns)))
+
+    state.frames.popleft()  # one dropped: placed again
+    assert _same(inputs.placed(state, t_ns), inputs._place(state, state.sync.estimate_at(t_ns)))
+
+    # a later cycle (another estimate) and a new exchange that moves the offset: placed again
+    later = T0 + 1100 * MS
+    t1 = T0 + 900 * MS
+    state.sync.add(SyncSample(t1, t1 + MS + OFFSET_NS + 2 * MS, t1 + MS + OFFSET_NS + 2 * MS, t1 + 2 * MS))
+    assert _same(inputs.placed(state, later), inputs._place(state, state.sync.estimate_at(later)))
+
+    state.frames.clear()
+    assert inputs.placed(state, later) == []
+
+
+def test_rsu_period_is_the_median_capture_interval():
+    table = RsuTable()
+    state = table.admit("rsu-a", T0)
+    assert rsu_period_ns(state) == 200 * MS  # the default until two captures
+    rng = np.random.default_rng(0)
+    captures = T0 + np.cumsum(rng.integers(80 * MS, 130 * MS, 8))
+    for seq, c in enumerate(captures):
+        _receive(state, int(c), seq)
+    _receive(state, int(captures[-1]), 99)  # a repeated capture counts once
+    expected = int(np.median(np.diff(np.unique(captures))))
+    assert rsu_period_ns(state) == expected
