@@ -70,8 +70,9 @@ class Admission:
         if centre is None or not len(objects):
             return objects
         inside = np.hypot(objects.xy[:, 0] - centre[0], objects.xy[:, 1] - centre[1]) <= self.limits.site_radius_m
-        if not inside.all():
-            self.rejected["object_outside_site"] += int((~inside).sum())
+        if inside.all():
+            return objects  # the usual case: no copy
+        self.rejected["object_outside_site"] += int((~inside).sum())
         return objects.take(inside)
 
     def not_ego(self, objects: ObjectArray, ego: Pose2D | None) -> ObjectArray:
@@ -82,8 +83,9 @@ class Admission:
             return objects
         local = map_to_base_points(objects.xy, ego)
         own = (np.abs(local[:, 0]) <= half_l) & (np.abs(local[:, 1]) <= half_w)
-        if own.any():
-            self.rejected["ego_self_detection"] += int(own.sum())
+        if not own.any():
+            return objects  # the usual case: no copy
+        self.rejected["ego_self_detection"] += int(own.sum())
         return objects.take(~own)
 
     def _screen(self, header: ObjectListHeader, n_objects: int, receive_ns: int, paths: bool) -> RsuState | None:
