@@ -52,8 +52,8 @@ class SensorHostileInputs(HostileInputs):
         return super().valid(type_name, t_ns, n_objects, **header)
 
     def frame(self, t_ns: int, n: int = 8, spread_m: float = 80.0, **header) -> SensorObjects:
-        fields = dict(sensor_id=self.node_id, seq=int(self.rng.integers(1 << 40)), frame_id=self.frame_id,
-                      capture_time_ns=t_ns - 60 * MS, ready_time_ns=t_ns - 10 * MS) | header
+        fields = {"sensor_id": self.node_id, "seq": int(self.rng.integers(1 << 40)), "frame_id": self.frame_id,
+                  "capture_time_ns": t_ns - 60 * MS, "ready_time_ns": t_ns - 10 * MS} | header
         return SensorObjects(header=SensorHeader(**fields), objects=self._objects(n, spread_m))
 
     def extreme_values(self, type_name: str, t_ns: int) -> bytes:

@@ -73,7 +73,7 @@ def test_external_publisher_objects_come_out_of_the_obus_fused_output():
 
         first = collect(outputs, has_the_car, 20.0)
         for _ in range(10):  # ten more cycles in a row carry it, on time, with the publisher's pose
-            out = collect(outputs, lambda o: o.cycle_time_ns > first.cycle_time_ns, 5.0)
+            out = collect(outputs, lambda o, t_ns=first.cycle_time_ns: o.cycle_time_ns > t_ns, 5.0)
             assert has_the_car(out) and out.publish_time_ns - out.cycle_time_ns < 100_000_000
             assert out.ego_y == 0.0 and out.ego_x > 0.0
             first = out
