@@ -2,6 +2,7 @@
 
     python benchmarks/scale_cycle.py --k 8 --n 100                # per-stage ms per cycle
     python benchmarks/scale_cycle.py --k 8 --n 100 --profile 25   # plus cProfile's top 25 by own time
+    python benchmarks/scale_cycle.py --k 1,2,4,8 --n 50,100,200   # one summary line per configuration
 
 The companion of ``benchmarks/scale.py`` (the live processes), free of process scheduling
 and of the load others put on the machine: the same synthetic RSUs (``scale.Site``, the
@@ -29,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from scale import CLOCK_OFFSET_STEP_NS, PERIOD_NS, Site, site_rsus
+from scale import CLOCK_OFFSET_STEP_NS, PERIOD_NS, Site, parse_list, site_rsus
 
 from fusion.wire import states_from_objects
 from obu_service.config import ObuConfig
@@ -150,20 +151,10 @@ def stage_table(driver: Driver, warmup_cycles: int) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--k", type=int, default=8, help="RSUs (default 8)")
-    p.add_argument("--n", type=int, default=100, help="objects per RSU list (default 100)")
-    p.add_argument("--seconds", type=float, default=20.0, help="simulated run (default 20)")
-    p.add_argument("--warmup-s", type=float, default=5.0, help="cycles before this are not counted (default 5)")
-    p.add_argument("--rsu-rate-hz", type=float, default=10.0)
-    p.add_argument("--rsu-latency-ms", type=float, default=30.0)
-    p.add_argument("--objects", choices=("shared", "distinct"), default="shared")
-    p.add_argument("--scenario", default="red-light-runner")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--profile", type=int, metavar="ROWS", help="also print cProfile's top ROWS functions by own time")
-    args = p.parse_args(argv)
-    driver = Driver(args.k, args.n, args)
+def run_config(k: int, n: int, args) -> Driver:
+    """One configuration, run (under cProfile with ``--profile``); its stage table printed
+    when it is the only one (or ``--stages``), else one summary line."""
+    driver = Driver(k, n, args)
     driver.schedule(args.seconds)
     profiler = cProfile.Profile() if args.profile else None
     if profiler:
@@ -171,12 +162,46 @@ def main(argv: list[str] | None = None) -> int:
     driver.run()
     if profiler:
         profiler.disable()
-    print(f"K={args.k} N={args.n} ({args.objects}), {len(driver.cycle_ms)} cycles, modes "
-          f"{ {m: c for m, c in driver.pipeline.modes.items() if c} }, refused {dict(driver.pipeline.rejected)}"
-          + (" (times under cProfile)" if profiler else ""))
-    print(stage_table(driver, round(args.warmup_s * 10)))
+    refused = dict(driver.pipeline.rejected)
+    if args.stages:
+        print(f"K={k} N={n} ({args.objects}), {len(driver.cycle_ms)} cycles, modes "
+              f"{ {m: c for m, c in driver.pipeline.modes.items() if c} }, refused {refused}"
+              + (" (times under cProfile)" if profiler else ""))
+        print(stage_table(driver, round(args.warmup_s * 10)))
+    else:
+        cycles = driver.cycle_ms[round(args.warmup_s * 10):]
+        fuse = np.array([c.get("fuse", 0.0) + c.get("encode output", 0.0) for c in cycles])
+        total = np.array([sum(c.values()) for c in cycles])
+        print(f"{k:>3} {n:>4} {np.percentile(fuse, 50):10.2f} {np.percentile(fuse, 99):10.2f} "
+              f"{np.percentile(total, 50):9.2f} {np.percentile(total, 99):9.2f} {total.mean() / 100 * 100:10.0f}  "
+              f"{refused or ''}", flush=True)
     if profiler:
         pstats.Stats(profiler).sort_stats("tottime").print_stats(args.profile)
+    return driver
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--k", type=parse_list, default=[8], help="RSU counts, e.g. 1,2,4,8 (default 8)")
+    p.add_argument("--n", type=parse_list, default=[100], help="objects per RSU list, e.g. 50,100,200 (default 100)")
+    p.add_argument("--seconds", type=float, default=20.0, help="simulated run (default 20)")
+    p.add_argument("--warmup-s", type=float, default=5.0, help="cycles before this are not counted (default 5)")
+    p.add_argument("--rsu-rate-hz", type=float, default=10.0)
+    p.add_argument("--rsu-latency-ms", type=float, default=30.0)
+    p.add_argument("--objects", choices=("shared", "distinct"), default="shared")
+    p.add_argument("--scenario", default="red-light-runner")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--stages", action="store_true", help="the per-stage table of each configuration "
+                   "(the default for a single one)")
+    p.add_argument("--profile", type=int, metavar="ROWS", help="also print cProfile's top ROWS functions by own time")
+    args = p.parse_args(argv)
+    args.stages = args.stages or len(args.k) * len(args.n) == 1
+    if not args.stages:
+        print("CPU ms per cycle (this process, in-process OBU calls); cpu% = all OBU work / 100 ms cycle")
+        print(f"{'K':>3} {'N':>4} {'fuse+enc50':>10} {'fuse+enc99':>10} {'all p50':>9} {'all p99':>9} {'cpu% mean':>10}  refused")
+    for k in args.k:
+        for n in args.n:
+            run_config(k, n, args)
     return 0
 
 
