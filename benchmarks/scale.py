@@ -398,6 +398,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--profile-obu", metavar="FILE", help="run the OBU under cProfile, stats to FILE (last run's)")
     p.add_argument("--json", metavar="FILE", help="write every row here")
     args = p.parse_args(argv)
+    for signum in (signal.SIGINT, signal.SIGTERM):  # even where started with SIGINT ignored (a shell's &)
+        signal.signal(signum, signal.default_int_handler)
     if args.profile_obu:
         args.profile_obu = str(Path(args.profile_obu).resolve())
     print(f"one OBU, K RSUs x N objects ({args.objects}) at {args.rsu_rate_hz:g} Hz each, {args.measure_s:g} s "
