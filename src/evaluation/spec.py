@@ -103,7 +103,7 @@ class RunRecord:
         for r in metrics.rsus:
             if None not in (r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm):
                 self.add_offset_sample(metrics.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm)
-        self.rsu_messages = max((r.messages_accepted for r in metrics.rsus), default=0)
+        self.rsu_messages = sum(r.messages_accepted for r in metrics.rsus)  # every RSU's, as offline
         self.covered_cycles, self.rsu_deadline_misses = metrics.covered_cycles, metrics.rsu_deadline_misses
 
     def offset_samples(self) -> np.ndarray:
