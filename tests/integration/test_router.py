@@ -10,6 +10,7 @@ import queue
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
@@ -99,6 +100,30 @@ def test_peers_are_not_routed_so_services_behind_a_router_are_clients() -> None:
     ep = free_tcp_endpoint()
     with router("--listen", ep), client(ep, mode="peer") as a, client(ep, mode="peer") as b:
         assert _delivered(a, b, 2.0) == []
+
+
+def test_a_client_started_before_its_router_waits_for_it() -> None:
+    """Zenoh's default client gives up at once; v2i's waits CLIENT_CONNECT_TIMEOUT_MS (10 s)."""
+    ep = free_tcp_endpoint()
+    opened: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: opened.put(_open_or_error(ep)), daemon=True).start()
+    time.sleep(1.0)
+    assert opened.empty(), "the client gave up (or connected) before any router was up"
+    with router("--listen", ep):
+        early = opened.get(timeout=READY_S)
+        assert isinstance(early, zenoh.Session), f"the early client failed: {early}"
+        try:
+            with client(ep) as late:
+                assert _delivered(late, early, DELIVERY_S)
+        finally:
+            early.close()
+
+
+def _open_or_error(ep: str) -> zenoh.Session | Exception:
+    try:
+        return open_session(connect=[ep], mode="client")
+    except zenoh.ZError as exc:
+        return exc
 
 
 def test_routers_chain_and_unconnected_routers_stay_apart() -> None:
