@@ -289,7 +289,8 @@ def run_one(k: int, n: int, args, procs: list[subprocess.Popen], tmp: Path) -> d
 
     obu_ep, rsu_ep = free_tcp_endpoint(), free_tcp_endpoint()
     rsus = site_rsus(args.scenario, k)
-    (tmp / "obu.yaml").write_text(json.dumps({"known_rsus": rsus}))  # JSON is YAML
+    budget = {"max_rsu_objects_per_cycle": args.max_rsu_objects} if args.max_rsu_objects else {}
+    (tmp / "obu.yaml").write_text(json.dumps({"known_rsus": rsus, **budget}))  # JSON is YAML
     start_at_ns = time.time_ns() + round(args.startup_s * 1e9)
     run_s = args.warmup_s + args.measure_s + 2.0
     common = ["--scenario", args.scenario, "--start-at-ns", str(start_at_ns), "--seed", str(args.seed)]
@@ -395,6 +396,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="every RSU sees the same N objects (default) or its own N")
     p.add_argument("--scenario", default="red-light-runner", help="bundled scenario of the OBU's own sensing")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-rsu-objects", type=int, help="the OBU's max_rsu_objects_per_cycle (default: its own, "
+                   "1024; K x N above it is refused as rsu_objects_over_budget)")
     p.add_argument("--profile-obu", metavar="FILE", help="run the OBU under cProfile, stats to FILE (last run's)")
     p.add_argument("--json", metavar="FILE", help="write every row here")
     args = p.parse_args(argv)

@@ -53,7 +53,9 @@ class Driver:
     def __init__(self, k: int, n: int, args):
         world = World(load_scenario(args.scenario))
         self.ids = list(site_rsus(args.scenario, k))
-        config = ObuConfig(scenario=args.scenario, known_rsus=site_rsus(args.scenario, k), start_at_ns=START_NS)
+        budget = {"max_rsu_objects_per_cycle": args.max_rsu_objects} if args.max_rsu_objects else {}
+        config = ObuConfig(scenario=args.scenario, known_rsus=site_rsus(args.scenario, k), start_at_ns=START_NS,
+                           **budget)
         self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
         self.vehicle = SimulatedVehicle(world, args.seed, START_NS)
         seeds = np.random.SeedSequence(args.seed).spawn(2 * k)
@@ -191,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--objects", choices=("shared", "distinct"), default="shared")
     p.add_argument("--scenario", default="red-light-runner")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-rsu-objects", type=int, help="the OBU's max_rsu_objects_per_cycle (default 1024)")
     p.add_argument("--stages", action="store_true", help="the per-stage table of each configuration "
                    "(the default for a single one)")
     p.add_argument("--profile", type=int, metavar="ROWS", help="also print cProfile's top ROWS functions by own time")
