@@ -121,21 +121,22 @@ class LinkRelay:
     # ---- life cycle -------------------------------------------------------------------
 
     def open(self) -> None:
-        """Open every session and declare the subscribers and the time queryables."""
+        """Open every session, then declare the subscribers and the time queryables.
+
+        Declared only once every session is open: opening 20 sessions takes seconds, and what
+        arrived meanwhile would wait for the scheduler (``run``) and fire that late.
+        """
         try:
             self._rsu = self._queries.rsu = open_session(connect=self.config.rsu_connect)
-            for key in DOWNLINK_KEYS:
-                self._declared.append(self._rsu.declare_subscriber(key, self._on_rsu_sample))
-            control_sessions = [self._rsu]
             if self.config.control_listen:
                 self._control_session = open_session(listen=self.config.control_listen)
-                control_sessions.append(self._control_session)
-            for pair in self._pairs:
-                session = open_session(connect=pair.side.connect)
-                self._vehicles.append(session)
-                control_sessions.append(session)
+            for pair in self._pairs:  # appended one by one: a failure closes those already open
+                self._vehicles.append(open_session(connect=pair.side.connect))
+            for key in DOWNLINK_KEYS:
+                self._declared.append(self._rsu.declare_subscriber(key, self._on_rsu_sample))
+            for pair, session in zip(self._pairs, self._vehicles):
                 self._declare_vehicle_side(pair, session)
-            for session in control_sessions:
+            for session in self._sessions():
                 self._declared.append(session.declare_subscriber(link_control(self.config.link_id),
                                                                  self._on_control_sample))
         except BaseException:
