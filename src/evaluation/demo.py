@@ -176,7 +176,44 @@ class PlayedEvent:
     seq: int | None = None
 
 
-class Demo:
+class InboxScoring:
+    """The bounded inbox between Zenoh callbacks and one scorer thread, shared by the demos.
+
+    ``_keep(kind, sample, *context)`` (a Zenoh callback) only enqueues (kind, *context, payload);
+    a full inbox drops it, counted by kind in ``dropped``. ``_score_inbox`` (the scorer thread)
+    calls ``self._score(kind, *context, payload)`` in arrival order until a None ends the run;
+    the first scoring error is kept in ``_scoring_error`` for ``run()`` to raise.
+    """
+
+    def _init_inbox(self) -> None:
+        self.dropped: Counter = Counter()  # messages a full inbox refused, by kind
+        self._inbox: queue.Queue = queue.Queue(maxsize=INBOX_MESSAGES)
+        self._drop_lock = threading.Lock()
+        self._scoring_error: Exception | None = None
+
+    def _keep(self, kind: str, sample, *context) -> None:
+        """Zenoh callback: enqueue the payload for the scorer; a full inbox drops it (counted)."""
+        try:
+            self._inbox.put_nowait((kind, *context, sample.payload.to_bytes()))
+        except queue.Full:
+            with self._drop_lock:
+                self.dropped[kind] += 1
+
+    def _score_inbox(self) -> None:
+        """Scorer thread: decode and score each message in arrival order until the None that ends the run."""
+        while (item := self._inbox.get()) is not None:
+            if self._scoring_error is not None:
+                continue  # keep draining so that the callbacks never block; run() raises it
+            try:
+                self._score(*item)
+            except CodecError as exc:
+                source = f" from {item[1]}" if len(item) > 2 else ""
+                log("demo", f"undecodable {item[0]} message{source}: {exc}")
+            except Exception as exc:  # noqa: BLE001 - re-raised by run() as a DemoError
+                self._scoring_error = exc
+
+
+class Demo(InboxScoring):
     def __init__(self, spec: RunSpec, startup_s: float = 4.0, outage: LinkOutage | None = None,
                  chaos: ChaosTimeline | None = None):
         """``chaos``: a timeline to play; its RSU clock step must already be in ``spec`` (``with_chaos``).
@@ -193,10 +230,7 @@ class Demo:
         self.children: dict[str, Child] = {}
         self.played: list[PlayedEvent] = []
         self.record: RunRecord | None = None  # scored as messages arrive, from run()
-        self.dropped: Counter = Counter()  # messages a full inbox refused, by kind
-        self._inbox: queue.Queue = queue.Queue(maxsize=INBOX_MESSAGES)
-        self._drop_lock = threading.Lock()
-        self._scoring_error: Exception | None = None
+        self._init_inbox()
         self._down: set[str] = set()  # services killed on purpose and not yet restarted
         self._restarting: dict[str, float] = {}  # service -> monotonic deadline of its ready line
         self._control = ControlChannel(self.control_ep, LINK_ID)
@@ -278,26 +312,6 @@ class Demo:
         return base + ["--config", str(self.link_config), "--link-id", LINK_ID, "--rsu-connect", self.rsu_ep,
                        "--vehicle-connect", self.obu_ep, "--control-listen", self.control_ep,
                        "--profile", s.profile, "--seed", str(s.seed), "--vehicle-id", s.obu_config().vehicle_id]
-
-    def _keep(self, kind: str, sample) -> None:
-        """Zenoh callback: enqueue the payload for the scorer; a full inbox drops it (counted)."""
-        try:
-            self._inbox.put_nowait((kind, sample.payload.to_bytes()))
-        except queue.Full:
-            with self._drop_lock:
-                self.dropped[kind] += 1
-
-    def _score_inbox(self) -> None:
-        """Scorer thread: decode and score each message in arrival order until the None that ends the run."""
-        while (item := self._inbox.get()) is not None:
-            if self._scoring_error is not None:
-                continue  # keep draining so that the callbacks never block; run() raises it
-            try:
-                self._score(*item)
-            except CodecError as exc:
-                log("demo", f"undecodable {item[0]} message: {exc}")
-            except Exception as exc:  # noqa: BLE001 - re-raised by run() as a DemoError
-                self._scoring_error = exc
 
     def _score(self, kind: str, data: bytes) -> None:
         if kind == "objects":

@@ -21,7 +21,6 @@ nothing else is touched. Chaos timelines are single-link only (``evaluation.demo
 from __future__ import annotations
 
 import json
-import queue
 import signal
 import subprocess
 import sys
@@ -34,17 +33,18 @@ from pathlib import Path
 from obu_service.source import SimulatedVehicle
 from perception.scoring import PerceptionTally
 from schemas import keys
-from schemas.codec import CodecError, decode
+from schemas.codec import decode
 from schemas.messages import FusedObjectList, ObuMetrics, PredictionList, RsuMetrics
 from schemas.runtime import log
 from schemas.transport import free_tcp_endpoint, open_session
 from sim.scenario import Scenario, load_scenario
 from sim.world import World
 
-from .demo import INBOX_MESSAGES, POLL_S, Child, DemoError
+from .demo import POLL_S, Child, DemoError, InboxScoring
 from .spec import RunRecord, RunSpec, site_report
 
-SITE_STARTUP_S = 15.0  # least start-up time: 7 Python services importing numpy, scipy, zenoh on 2 busy cores (6-10+ s at load 9)
+# least start-up time: 7 Python services importing numpy, scipy, zenoh on 2 busy cores (6-10+ s at load 9)
+SITE_STARTUP_S = 15.0
 STOP_WAIT_S = 5.0  # a child still running this long after SIGTERM is killed
 CONNECT_WAIT_S = 3.0  # the watcher must reach every service within this
 
@@ -59,7 +59,7 @@ def link_id(rsu_id: str) -> str:
     return f"link-{rsu_id}"
 
 
-class SiteDemo:
+class SiteDemo(InboxScoring):
     """Every node of ``spec.scenario`` as its own process; ``run()`` returns the site report."""
 
     def __init__(self, spec: RunSpec, startup_s: float = SITE_STARTUP_S):
@@ -78,11 +78,8 @@ class SiteDemo:
         self.records: dict[str, RunRecord] = {}
         self.rsu_perception: dict[str, dict] = {}  # rsu id -> its latest totals (RsuMetrics.perception)
         self.rsu_lists_accepted: dict[str, dict[str, int]] = {}  # vehicle -> rsu id -> lists its OBU accepted
-        self.dropped: Counter = Counter()  # messages a full inbox refused, by kind
         self.unknown: Counter = Counter()  # messages naming a vehicle or RSU not in the scenario, by kind
-        self._inbox: queue.Queue = queue.Queue(maxsize=INBOX_MESSAGES)
-        self._drop_lock = threading.Lock()
-        self._scoring_error: Exception | None = None
+        self._init_inbox()
         self._tmp = tempfile.TemporaryDirectory(prefix="v2i-site-demo-")
 
     def run(self) -> dict:
@@ -191,10 +188,10 @@ class SiteDemo:
         for name in self.vehicle_ids:
             for kind, key in (("objects", keys.obu_objects(name)), ("metrics", keys.obu_metrics(name)),
                               ("planning", keys.obu_planning(name))):
-                subs.append(watcher.declare_subscriber(key, lambda s, k=kind, n=name: self._keep(k, n, s)))
+                subs.append(watcher.declare_subscriber(key, lambda s, k=kind, n=name: self._keep(k, s, n)))
         for rsu_id in self.rsu_ids:
             subs.append(watcher.declare_subscriber(keys.rsu_metrics(rsu_id),
-                                                   lambda s, r=rsu_id: self._keep("rsu_metrics", r, s)))
+                                                   lambda s, r=rsu_id: self._keep("rsu_metrics", s, r)))
         return subs
 
     def _wait_connected(self, watcher) -> None:
@@ -206,26 +203,6 @@ class SiteDemo:
                 raise DemoError(f"the watcher reached {peers} of {wanted} services "
                                 f"({', '.join([*self.obu_eps.values(), *self.rsu_eps.values()])})")
             time.sleep(0.05)
-
-    def _keep(self, kind: str, node: str, sample) -> None:
-        """Zenoh callback: enqueue the payload for the scorer; a full inbox drops it (counted)."""
-        try:
-            self._inbox.put_nowait((kind, node, sample.payload.to_bytes()))
-        except queue.Full:
-            with self._drop_lock:
-                self.dropped[kind] += 1
-
-    def _score_inbox(self) -> None:
-        """Scorer thread: decode and score each message in arrival order until the None that ends the run."""
-        while (item := self._inbox.get()) is not None:
-            if self._scoring_error is not None:
-                continue  # keep draining so that the callbacks never block; run() raises it
-            try:
-                self._score(*item)
-            except CodecError as exc:
-                log("demo", f"undecodable {item[0]} message from {item[1]}: {exc}")
-            except Exception as exc:  # noqa: BLE001 - re-raised by run() as a DemoError
-                self._scoring_error = exc
 
     def _score(self, kind: str, node: str, data: bytes) -> None:
         """``node``: the vehicle (or RSU) whose key the message came on; fused lists and OBU
