@@ -42,6 +42,7 @@ from .clock_sync import OffsetEstimate
 from .fusion_mode import FUSION_MODES, MODES, Feasible, ModePolicy
 from .methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_fusion, make_fusion
 from .mode_inputs import ModeInputs, Received
+from .peers import MAX_PEERS, PeerIntake
 from .planning import objects_at, retimed
 from .rsu_table import RsuState, RsuTable
 from .time_requests import TimeRequests
@@ -133,6 +134,13 @@ class ObuPipeline:
         self._cycle: _Cycle | None = None
         self._last_publish_ns: int | None = None
         self._out_seq = 0
+        self.peers: PeerIntake | None = None  # V2V peers (``enable_v2v``)
+
+    def enable_v2v(self, max_peers: int = MAX_PEERS) -> PeerIntake:
+        """Take in V2V peers' shared lists (``obu_service.peers``), in slots after the RSUs'."""
+        first_slot = len(self.config.known_rsus) + self._rsus.max_unknown
+        self.peers = PeerIntake(self.config, self.rejected, self.poses, first_slot, max_peers)
+        return self.peers
 
     # --- clock synchronisation -------------------------------------------------------
     def make_time_request(self, t1_ns: int) -> TimeRequest:
@@ -277,6 +285,10 @@ class ObuPipeline:
             mode = "vehicle-only"
         own = cycle.own.with_(ids=np.arange(1, len(cycle.own) + 1))
         newest, fresh = (self._within_budget(frames) for frames in {"intra": intra, "inter": inter}.get(mode, ([], [])))
+        if self.peers is not None and self.config.fusion != "vehicle-only":  # V2V: every cycle, inter-frame
+            peer_newest, peer_fresh = self.peers.frames(t_c)
+            newest, fresh = newest + peer_newest, fresh + peer_fresh
+            self.peers.consume(peer_fresh, t_c)
         fused = self._fusion.fuse(t_c, ego, own, newest, fresh)
         self._inputs.consume(fresh, t_c)
         for state in self._rsus:

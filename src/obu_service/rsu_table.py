@@ -71,8 +71,11 @@ class RsuTable:
     """RSU states by id; see the module docstring for who gets a slot and for how long."""
 
     def __init__(self, known: Mapping[str, tuple[float, float]] | None = None, max_unknown: int = 16,
-                 expiry_ns: int = 30_000_000_000, accept_unknown: bool = True):
+                 expiry_ns: int = 30_000_000_000, accept_unknown: bool = True, first_index: int = 0):
+        """``first_index``: the smallest slot index handed out (a second table, such as the V2V
+        peers', takes slots after the RSUs' so that no two sources share a tracker bit)."""
         self.known = dict(known or {})
+        self.first_index = first_index
         self.max_unknown = max_unknown if accept_unknown else 0
         self.expiry_ns = expiry_ns
         self._states: dict[str, RsuState] = {}
@@ -120,6 +123,6 @@ class RsuTable:
                     return "too_many_rsus"
                 del self._states[min(spare, key=lambda s: s.heard_ns).rsu_id]
         used = {s.index for s in self._states.values()}
-        index = next(i for i in range(len(used) + 1) if i not in used)
+        index = next(i for i in range(self.first_index, self.first_index + len(used) + 1) if i not in used)
         self._states[rsu_id] = RsuState(rsu_id, index, known, now_ns)
         return self._states[rsu_id]
