@@ -3,6 +3,14 @@
 The RSU pipeline, the OBU pipeline, the codec and the link channel model are the very
 objects the services use; only the clock (simulated) and the transport (an event
 queue instead of Zenoh) differ. A 30 s scenario runs in a few seconds.
+
+V2V (the scenario's ``v2v``, or ``RunSpec.v2v``): after each output a vehicle sends its shared
+list (``obu_service.peers.shared_list``) to every other vehicle, and with each time-sync tick a
+peer time request; a peer answers ``PEER_REPLY_NS`` later. Every message from vehicle a to
+vehicle b crosses the ordered pair's own ``LinkModel`` (the V2V profile's downlink direction,
+seeded by (seed, a, b), at the a-b distance at send time), as the live V2V emulator does
+(``link_emulator.v2v_relay``). The vehicles' OBUs share the true clock here, so each peer
+clock estimate is its own error. Chaos link events act on the RSU links only.
 """
 
 from __future__ import annotations
@@ -17,6 +25,7 @@ import numpy as np
 from link_emulator.channel import LinkModel
 from link_emulator.control import apply_control
 from link_emulator.profile import LinkProfile, load_profile
+from obu_service.peers import PEER_REPLY_NS, shared_list
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import OwnFrame, SimulatedVehicle
 from perception.scoring import PerceptionTally
@@ -24,9 +33,9 @@ from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_t
 from rsu_service.prediction import make_predictor
 from rsu_service.source import Frame, make_source
 from schemas.codec import CodecError, decode, encode
-from schemas.messages import ObjectList, PredictionList, TimeReply, TimeRequest
+from schemas.messages import FusedObjectList, ObjectList, PredictionList, TimeReply, TimeRequest
 from sim.clock import SimClock
-from sim.scenario import RsuCameraConfig, load_scenario
+from sim.scenario import RsuCameraConfig, V2vConfig, load_scenario
 from sim.world import World
 
 from .chaos import SERVICES, ChaosTimeline
@@ -103,6 +112,8 @@ class OfflineRun:
         self.rsus = [self._new_rsu_site(k, cfg) for k, cfg in enumerate(self.scenario.rsus)]
         profiles = [link_profile or load_profile(cfg.link_profile or spec.profile) for cfg in self.scenario.rsus]
         self.vehicles = [self._new_vehicle(v, profiles) for v in range(len(self.scenario.vehicles))]
+        self.v2v = v2v_config(self.scenario.v2v, spec.v2v)
+        self.v2v_links = self._new_v2v_links() if self.v2v is not None else {}
         self.world = self.vehicles[0].world
         self.records = {v.name: v.record for v in self.vehicles}
         self.record = self.vehicles[0].record
@@ -135,6 +146,14 @@ class OfflineRun:
         links = [LinkModel(p, seed) for p, seed in zip(profiles, pair_seed)]
         return _Vehicle(name, world, SimulatedVehicle(world, self.spec.seed, self.start_ns), obu,
                         RunRecord(world, self.start_ns, self.duration_s), links)
+
+    def _new_v2v_links(self) -> dict[tuple[str, str], LinkModel]:
+        """One channel per ordered vehicle pair (sender, receiver), its own draws; peers enabled."""
+        profile = load_profile(self.v2v.link_profile)
+        for vehicle in self.vehicles:
+            vehicle.obu.enable_v2v(self.v2v.max_peers)
+        return {(a.name, b.name): LinkModel(profile, [self.spec.seed, 1_000 + i, j])
+                for i, a in enumerate(self.vehicles) for j, b in enumerate(self.vehicles) if a is not b}
 
     def _windows_ns(self, service: str) -> list[tuple[int, int]]:
         if self.chaos is None:
@@ -187,8 +206,14 @@ class OfflineRun:
     def report(self, driver: str = "eval") -> dict:
         """The ego's report (``build_report``), with every vehicle's scores under ``vehicles``
         and every RSU's perception under ``rsus`` (call after ``execute``)."""
-        return site_report(self.spec, [(v.name, v.world, v.record) for v in self.vehicles],
-                           {rid: tally.scores() for rid, tally in self.perception.items()}, driver)
+        report = site_report(self.spec, [(v.name, v.world, v.record) for v in self.vehicles],
+                             {rid: tally.scores() for rid, tally in self.perception.items()}, driver)
+        report["v2v"] = None if self.v2v is None else self.v2v.model_dump()
+        end_ns = self.start_ns + round(self.duration_s * 1e9)
+        for v in self.vehicles if self.v2v is not None else ():
+            report["vehicles"][v.name]["peers"] = v.obu.peers.summary(end_ns)
+            report["vehicles"][v.name]["v2v_rejected"] = {k: n for k, n in v.obu.rejected.items() if k.startswith("v2v_")}
+        return report
 
     # --- RSU side ----------------------------------------------------------------------
     def _rsu_capture(self, rsu: _Rsu) -> None:
@@ -263,10 +288,13 @@ class OfflineRun:
             vehicle.obu.reject(exc.reason)
 
     def _obu_sync(self, vehicle: _Vehicle) -> None:
-        """One time request, up the vehicle's channel to every RSU (each answers it)."""
+        """One time request, up the vehicle's channel to every RSU (each answers it), and one to every peer."""
         data = encode(vehicle.obu.make_time_request(self.clock.t_ns))
         for rsu in self.rsus:
             self._send(vehicle, rsu, "uplink", data, self._rsu_time_query)
+        if self.v2v is not None:
+            self._v2v_broadcast(vehicle, encode(vehicle.obu.peers.make_time_request(self.clock.t_ns)),
+                                self._peer_time_request)
 
     def _obu_time_reply(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         vehicle.obu.on_time_reply(decode(data, TimeReply), self.clock.t_ns)
@@ -286,8 +314,48 @@ class OfflineRun:
         obu = vehicle.obu
         if not obu.ready(self.clock.t_ns):
             return
-        vehicle.record.add_output(obu.fuse(self.clock.t_ns), obu.last_planning)
+        out = obu.fuse(self.clock.t_ns)
+        vehicle.record.add_output(out, obu.last_planning)
+        if self.v2v is not None:
+            self._v2v_broadcast(vehicle, encode(shared_list(out)), self._peer_list)
         rsu_id = self.rsus[0].cfg.id  # every RSU runs the same clock model: the first one is scored
         est, naive = obu.clock_offset(rsu_id, self.clock.t_ns), obu.naive_clock_offset(rsu_id)
         if est is not None:
             vehicle.record.add_offset_sample(self.clock.t_ns, est.offset_ns, naive.offset_ns, est.drift_ppm)
+
+    # --- V2V ---------------------------------------------------------------------------
+    def _v2v_broadcast(self, sender: _Vehicle, data: bytes, deliver: Callable) -> None:
+        for receiver in self.vehicles:
+            if receiver is not sender:
+                self._v2v_send(sender, receiver, data, deliver)
+
+    def _v2v_send(self, sender: _Vehicle, receiver: _Vehicle, data: bytes, deliver: Callable) -> None:
+        """Through the (sender, receiver) channel at their distance now; duplicates arrive twice."""
+        t_s = (self.clock.t_ns - self.start_ns) * 1e-9
+        a, b = sender.world.ego_at(t_s), receiver.world.ego_at(t_s)
+        channel = self.v2v_links[(sender.name, receiver.name)].downlink
+        for arrival_ns in channel.transmit_all(self.clock.t_ns, len(data), distance_m=float(np.hypot(a.x - b.x, a.y - b.y))):
+            self.queue.at(arrival_ns, deliver, sender, receiver, data)
+
+    def _peer_list(self, sender: _Vehicle, receiver: _Vehicle, data: bytes) -> None:
+        try:
+            receiver.obu.peers.on_list(decode(data, FusedObjectList), sender.name, self.clock.t_ns)
+        except CodecError as exc:
+            receiver.obu.reject(f"v2v_{exc.reason}")
+
+    def _peer_time_request(self, sender: _Vehicle, receiver: _Vehicle, data: bytes) -> None:
+        """The receiver answers PEER_REPLY_NS later, back through its own channel to the sender."""
+        t2_ns = self.clock.t_ns
+        reply = receiver.obu.peers.answer(decode(data, TimeRequest), sender.name, t2_ns, t2_ns + PEER_REPLY_NS)
+        if reply is not None:
+            self.queue.at(t2_ns + PEER_REPLY_NS, self._v2v_send, receiver, sender, encode(reply), self._peer_time_reply)
+
+    def _peer_time_reply(self, answerer: _Vehicle, receiver: _Vehicle, data: bytes) -> None:
+        receiver.obu.peers.on_time_reply(decode(data, TimeReply), answerer.name, self.clock.t_ns)
+
+
+def v2v_config(scenario_v2v: V2vConfig | None, switch: bool | None) -> V2vConfig | None:
+    """The V2V a run uses: the scenario's (``switch`` None), none (False), the scenario's or the default (True)."""
+    if switch is None:
+        return scenario_v2v
+    return (scenario_v2v or V2vConfig()) if switch else None

@@ -38,6 +38,7 @@ class RunSpec:
     rsu_clock_step_at_s: float | None = None
     deadline_ms: float = 100.0
     rsu_source: str = "sim"  # sim (noise model) or camera (rendered, detector, calibration)
+    v2v: bool | None = None  # vehicles share lists (V2V): None as the scenario says, True / False on / off
 
     def rsu_config(self, **fields) -> RsuConfig:
         """The RSU service configuration this run implies (its clock is the injected truth)."""

@@ -303,6 +303,16 @@ def _migrate_single(data: Any) -> Any:
     return data
 
 
+class V2vConfig(_Frozen):
+    """V2V between the connected vehicles (``v2v: true``, or a block with these fields): each
+    vehicle shares the objects its own sensors perceive with every other vehicle, through a
+    channel of its own per ordered vehicle pair (sender -> receiver: this profile's downlink
+    direction, at the distance between the two vehicles); see ``obu_service.peers``."""
+
+    link_profile: str = "lte-v2x"  # PC5 sidelink: a bundled profile name or a YAML path
+    max_peers: Annotated[int, Field(ge=1, le=32)] = 8  # peer slots (tracker source bits) per OBU
+
+
 class Scenario(_Frozen):
     name: str = Field(min_length=1)
     description: str = ""
@@ -312,8 +322,17 @@ class Scenario(_Frozen):
     actors: list[Body] = Field(min_length=1)
     buildings: list[Building] = Field(default_factory=list)
     rsus: list[RsuCameraConfig] = Field(min_length=1, max_length=62)
+    v2v: V2vConfig | None = None  # None (or ``v2v: false``): vehicles do not share with each other
 
     _migrate = model_validator(mode="before")(_migrate_single)
+
+    @field_validator("v2v", mode="before")
+    @classmethod
+    def _v2v_switch(cls, value: Any) -> Any:
+        """``v2v: true`` is the default block, ``v2v: false`` none."""
+        if isinstance(value, bool):
+            return {} if value else None
+        return value
 
     @model_validator(mode="after")
     def _names(self) -> "Scenario":
