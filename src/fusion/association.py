@@ -1,4 +1,15 @@
-"""Global nearest-neighbour association with gating (scipy's Hungarian solver)."""
+"""Global nearest-neighbour association with gating (scipy's Hungarian solver).
+
+``assign`` takes a dense cost and a gate; ``assign_sparse`` takes only the K pairs that passed
+the gate (the tracker's path): the gated bipartite graph splits into connected components, and
+a minimum-cost matching of the largest size is one per component. Most components of a
+tracker's gated graph are a single pair (its track and its detection in no other pair): that
+pair is matched as it is, without the solver; the remaining components go to one
+``linear_sum_assignment`` over their own rows and columns, a block-diagonal problem whose
+blocks are never matched across (pairs outside the gate cost ``_BIG``, so a matching of the
+largest size is the cheapest; tests/unit/test_association.py checks the result against the
+solver on the whole gated cost).
+"""
 
 from __future__ import annotations
 
@@ -45,3 +56,39 @@ def center_distance_cost(a_xy: np.ndarray, b_xy: np.ndarray, a_cls=None, b_cls=N
     if a_cls is not None and b_cls is not None:
         cost = np.where(np.asarray(a_cls)[:, None] == np.asarray(b_cls)[None, :], cost, np.inf)
     return cost
+
+
+def assign_sparse(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n_a: int, n_b: int) -> Assignment:
+    """Largest one-to-one matching of minimum cost among K allowed pairs (a[k], b[k]) with cost
+    (K,), a in [0, n_a), b in [0, n_b); pairs appear at most once. Matches sorted by a.
+
+    A pair whose a and b are in no other pair is a component of its own and is matched; the
+    other pairs are solved together over their distinct rows and columns (module docstring).
+    """
+    a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
+    single = (np.bincount(a, minlength=n_a)[a] == 1) & (np.bincount(b, minlength=n_b)[b] == 1)
+    ma, mb = a[single], b[single]
+    if not single.all():
+        rest = ~single
+        rows, ri = _compact(a[rest], n_a)
+        cols, ci = _compact(b[rest], n_b)
+        sub = np.full((len(rows), len(cols)), _BIG)
+        sub[ri, ci] = cost[rest]
+        r, c = linear_sum_assignment(sub)
+        ok = sub[r, c] < _BIG
+        ma, mb = np.concatenate([ma, rows[r[ok]]]), np.concatenate([mb, cols[c[ok]]])
+    order = np.argsort(ma, kind="stable")
+    ma, mb = ma[order], mb[order]
+    free_a, free_b = np.ones(n_a, bool), np.ones(n_b, bool)
+    free_a[ma], free_b[mb] = False, False
+    return Assignment(np.column_stack([ma, mb]), np.flatnonzero(free_a), np.flatnonzero(free_b))
+
+
+def _compact(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct values of index (sorted) in [0, size) and the position of each entry among them."""
+    present = np.zeros(size, bool)
+    present[index] = True
+    values = np.flatnonzero(present)
+    lookup = np.empty(size, np.int64)
+    lookup[values] = np.arange(len(values))
+    return values, lookup[index]

@@ -76,10 +76,9 @@ from typing import Literal
 
 import numpy as np
 import shapely
-from scipy.optimize import linear_sum_assignment
 
 from . import kalman
-from .association import Assignment
+from .association import Assignment, assign_sparse
 from .covariance_intersection import ci_update, ci_weights
 from .frames import wrap_angle
 from .geometry import box_polygons
@@ -87,7 +86,6 @@ from .objects import ObjectArray
 
 SOURCE_BITS = 63  # source bitmasks are int64: bit 0 own vehicle, bits 1..62 one per RSU / peer slot
 _BIT_VALUES = 1 << np.arange(SOURCE_BITS)
-_BLOCKED = 1e12  # cost of a forbidden pair inside the assignment solver
 
 
 @dataclass(frozen=True)
@@ -271,33 +269,10 @@ def paired_bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
 
 
-def _compact(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct values of index (sorted) and the position of each entry among them."""
-    present = np.zeros(size, bool)
-    present[index] = True
-    values = np.flatnonzero(present)
-    lookup = np.empty(size, np.int64)
-    lookup[values] = np.arange(len(values))
-    return values, lookup[index]
-
-
 def assign_pairs(pairs: GatedPairs, n_tracks: int, n_dets: int) -> Assignment:
-    """Minimum-cost one-to-one matching among the gated pairs (scipy linear_sum_assignment).
-
-    Only tracks and detections with a gated pair enter the solver (same optimum, smaller problem).
-    """
-    matches = np.zeros((0, 2), dtype=np.int64)
-    if len(pairs.track):
-        rows, ri = _compact(pairs.track, n_tracks)
-        cols, ci = _compact(pairs.det, n_dets)
-        sub = np.full((len(rows), len(cols)), _BLOCKED)
-        sub[ri, ci] = pairs.cost
-        r, c = linear_sum_assignment(sub)
-        ok = sub[r, c] < _BLOCKED
-        matches = np.column_stack([rows[r[ok]], cols[c[ok]]])
-    free_a, free_b = np.ones(n_tracks, bool), np.ones(n_dets, bool)
-    free_a[matches[:, 0]], free_b[matches[:, 1]] = False, False
-    return Assignment(matches, np.flatnonzero(free_a), np.flatnonzero(free_b))
+    """Minimum-cost one-to-one matching among the gated pairs (``association.assign_sparse``:
+    per connected component of the gated graph, scipy linear_sum_assignment for those of more than one pair)."""
+    return assign_sparse(pairs.track, pairs.det, pairs.cost, n_tracks, n_dets)
 
 
 def associate(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> Assignment:

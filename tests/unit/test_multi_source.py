@@ -6,6 +6,7 @@ import pytest
 from scipy.optimize import minimize_scalar
 
 from fusion.covariance_intersection import (
+    W_MIN,
     ci_update,
     ci_weights,
     covariance_intersection,
@@ -88,6 +89,52 @@ def test_ci_is_consistent_for_any_correlation_and_kf_is_not():
         true = a @ p1 @ a.T + b @ p2 @ b.T + a @ c @ b.T + b @ c.T @ a.T
         slack[name] = np.linalg.eigvalsh(p - true).min()
     assert slack["ci"] > -1e-9 and slack["kf"] < -1e-3  # CI bounds the error, KF is over-confident
+
+
+def bisection_weights(p: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The previous weight search (52 halvings of [W_MIN, 1] on g(w)), from numpy's generalised
+    eigenvalues, the reference of the Newton search; valid pairs only."""
+    n, m = p.shape[-1], r.shape[-1]
+    s = p[:, :m, :m]
+    chol = np.linalg.cholesky(r)
+    half = np.linalg.solve(chol, s)
+    lam = np.linalg.eigvalsh(np.linalg.solve(chol, np.swapaxes(half, -1, -2)))  # eig(R^-1 S)
+
+    def slope(wt):  # g(w) = (n - m) / w + sum (1 - lambda) / (w (1 - lambda) + lambda)
+        return (n - m) / wt + ((1 - lam) / (wt[:, None] * (1 - lam) + lam)).sum(axis=1)
+
+    lo, hi = np.full(len(lam), W_MIN), np.ones(len(lam))
+    for _ in range(52):
+        mid = 0.5 * (lo + hi)
+        rising = slope(mid) > 0
+        lo, hi = np.where(rising, mid, lo), np.where(rising, hi, mid)
+    w = 0.5 * (lo + hi)
+    w[slope(np.ones(len(lam))) >= 0] = 1.0
+    w[slope(np.full(len(lam), W_MIN)) <= 0] = W_MIN
+    return w
+
+
+@pytest.mark.parametrize("n, m", [(4, 2), (4, 4), (6, 2), (6, 4), (5, 2)])
+def test_newton_weight_equals_the_bisection(n, m):
+    """Scales over four decades on both sides: interior optima, w = 1 and w = W_MIN all occur."""
+    rng = np.random.default_rng(10 * n + m)
+    k = 400
+    p = spd(rng, k, n) * 10.0 ** rng.uniform(-2, 2, (k, 1, 1))
+    r = spd(rng, k, m) * 10.0 ** rng.uniform(-2, 2, (k, 1, 1))
+    same = np.zeros(k, bool)
+    if m == n:  # identical covariances: P+ = P for every w, whose choice is up to rounding in g
+        same[:5], r[:5] = True, p[:5]
+    w, ref = ci_weights(p, r), bisection_weights(p, r)
+    np.testing.assert_allclose(w[~same], ref[~same], rtol=0, atol=1e-9)
+    inside = (w > W_MIN) & (w < 1.0)
+    assert inside.sum() > k // 4 and (w == 1.0).any()
+    # the fused covariance at the Newton weight is CI's (information form) and no larger in det
+    x, z = rng.normal(size=(k, n)), rng.normal(size=(k, m))
+    _, p_new = ci_update(x, p, z, r, w)
+    _, p_ref = ci_update(x, p, z, r, ref)
+    assert np.all(np.linalg.det(p_new[inside]) <= np.linalg.det(p_ref[inside]) * (1 + 1e-9))
+    np.testing.assert_allclose(p_new, p_ref, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(p_new[same], p[same], rtol=1e-6)
 
 
 def test_ci_weights_refuse_broken_covariances_without_raising():
