@@ -4,6 +4,11 @@ A target is sampled at its centre, 4 corners and (optionally) 4 edge midpoints; 
 visible when the segment origin -> sample crosses no occluder. Occluders are rotated boxes
 (slab test in each box's own frame), polygons (edge crossings + containment) and, optionally,
 the other targets' boxes (never the target itself).
+
+Pruning (``PRUNE``): an occluder is tested exactly only against the segments that pass its
+bounding circle, found by bearing and range (points sorted by bearing, one ``searchsorted`` per
+occluder); the rest cannot hit it. ``PRUNE = False`` tests every segment against every
+occluder (the reference, equal to the pruned result; ``benchmarks/eval_speed.py --reference``).
 """
 
 from __future__ import annotations
@@ -13,6 +18,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from fusion.objects import ObjectArray
+
+PRUNE = True  # False: every segment against every occluder (the reference the pruned test equals)
+_MARGIN_M = 1e-6  # bounding circles grow by this, and
+_MARGIN_RAD = 1e-9  # bearing spans by this, so that rounding never prunes a true hit
 
 # Sample offsets in units of (l/2, w/2) in the box frame: centre, corners, edge midpoints.
 _OFFSETS = {
@@ -51,14 +60,61 @@ def segments_hit_boxes(a: np.ndarray, b: np.ndarray, boxes: np.ndarray) -> np.nd
     if len(a) == 0 or len(boxes) == 0:
         return np.zeros((len(a), len(boxes)), dtype=bool)
     rot = _rot(boxes[:, 4])  # (B, 2, 2)
-    half = boxes[None, :, 2:4] / 2.0  # (1, B, 2)
     q0 = np.einsum("bji,qbj->qbi", rot, a[:, None, :] - boxes[None, :, :2])  # R^T (a - c)
     d = np.einsum("bji,qj->qbi", rot, b - a)  # R^T (b - a)
+    return _slab_hits(q0, d, boxes[None, :, 2:4] / 2.0)
+
+
+def pair_hits_boxes(a: np.ndarray, b: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(K,) bool: segment a[k] -> b[k] (K, 2) intersects box boxes[k] (K, 5): the slab test of
+    ``segments_hit_boxes`` on given pairs only (the same arithmetic, so the same answers)."""
+    rot = _rot(boxes[:, 4])  # (K, 2, 2)
+    q0 = np.einsum("kji,kj->ki", rot, a - boxes[:, :2])  # R^T (a - c)
+    d = np.einsum("kji,kj->ki", rot, b - a)  # R^T (b - a)
+    return _slab_hits(q0, d, boxes[:, 2:4] / 2.0)
+
+
+def _slab_hits(q0: np.ndarray, d: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """(...) bool from start points q0 (..., 2) and directions d (..., 2) in box frames, half sizes (..., 2)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         t1, t2 = (-half - q0) / d, (half - q0) / d  # d = 0: +-inf if inside the slab, same sign if not
     enter = np.minimum(t1, t2).max(axis=-1)
     leave = np.maximum(t1, t2).min(axis=-1)
     return np.maximum(enter, 0.0) <= np.minimum(leave, 1.0)
+
+
+def cone_pairs(origin_xy: np.ndarray, pts: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate pairs: point indices (K,) and circle indices (K,) such that the segment
+    origin (2,) -> pts[k] (Q, 2) may meet the circle (centres (C, 2), radii (C,) m); every
+    segment that meets a circle is among them.
+
+    A circle at distance D > r from the origin spans the bearings theta_c +- asin(r / D) (a ray
+    at angle phi from the centre's bearing passes at D sin(phi) from it), and a segment reaches it
+    only if its length is >= D - r. A circle around the origin (D <= r) keeps every point.
+    Circles grow by ``_MARGIN_M`` and spans by ``_MARGIN_RAD`` so that rounding never drops a hit.
+    """
+    rel, crel = pts - origin_xy, centres - origin_xy
+    bearing, length = np.arctan2(rel[:, 1], rel[:, 0]), np.hypot(rel[:, 0], rel[:, 1])
+    order = np.argsort(bearing, kind="stable")
+    c_bearing, c_dist, r = np.arctan2(crel[:, 1], crel[:, 0]), np.hypot(crel[:, 0], crel[:, 1]), radii + _MARGIN_M
+    around = c_dist <= r
+    with np.errstate(divide="ignore", invalid="ignore"):
+        span = np.where(around, np.inf, np.arcsin(np.minimum(r / c_dist, 1.0)) + _MARGIN_RAD)
+    lo, hi = c_bearing - span, c_bearing + span
+    # bearing intervals in [-pi, pi]: the main one, and the part wrapped past -pi or +pi (span <= pi/2)
+    circle = np.arange(len(centres))
+    wrap_lo, wrap_hi = (lo < -np.pi) & ~around, (hi > np.pi) & ~around
+    starts = np.concatenate([np.maximum(lo, -np.pi), lo[wrap_lo] + 2 * np.pi, np.full(wrap_hi.sum(), -np.pi)])
+    ends = np.concatenate([np.minimum(hi, np.pi), np.full(wrap_lo.sum(), np.pi), hi[wrap_hi] - 2 * np.pi])
+    owner = np.concatenate([circle, circle[wrap_lo], circle[wrap_hi]])
+    sorted_bearing = bearing[order]
+    first = np.searchsorted(sorted_bearing, starts, side="left")
+    count = np.maximum(np.searchsorted(sorted_bearing, ends, side="right") - first, 0)
+    # ranges [first, first + count) of the sorted points -> flat indices
+    offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    point, circ = order[np.repeat(first, count) + offset], np.repeat(owner, count)
+    reach = length[point] >= c_dist[circ] - r[circ] - _MARGIN_M
+    return point[reach], circ[reach]
 
 
 def _edges(polygons: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -112,17 +168,46 @@ def visible_fraction(
     n = len(targets)
     if n == 0:
         return np.zeros(0)
+    origin = np.asarray(origin_xy, dtype=float)
     pts = box_points(targets.xy, targets.lwh[:, :2], targets.yaw, samples).reshape(-1, 2)  # (N S, 2)
-    origin = np.broadcast_to(np.asarray(origin_xy, dtype=float), pts.shape)
     owner = np.repeat(np.arange(n), samples)  # target of each sample point
-    blocked = np.zeros(len(pts), dtype=bool)
-    if occluder_boxes is not None and len(occluder_boxes):
-        blocked |= segments_hit_boxes(origin, pts, occluder_boxes).any(axis=1)
-    if len(polygons):
-        blocked |= segments_hit_polygons(origin, pts, polygons).any(axis=1)
+    boxes = np.zeros((0, 5)) if occluder_boxes is None else np.asarray(occluder_boxes, dtype=float).reshape(-1, 5)
     if targets_occlude and n > 1:
-        boxes = np.column_stack([targets.xy, targets.lwh[:, :2], targets.yaw])
-        hits = segments_hit_boxes(origin, pts, boxes)
-        hits[np.arange(len(pts)), owner] = False  # a target never hides itself
-        blocked |= hits.any(axis=1)
+        boxes = np.concatenate([boxes, np.column_stack([targets.xy, targets.lwh[:, :2], targets.yaw])])
+        box_owner = np.concatenate([np.full(len(boxes) - n, -1), np.arange(n)])  # a target never hides itself
+    else:
+        box_owner = np.full(len(boxes), -1)
+    blocked_by = _blocked_pruned if PRUNE else _blocked_all
+    blocked = blocked_by(origin, pts, owner, boxes, box_owner, polygons)
     return 1.0 - blocked.reshape(n, samples).mean(axis=1)
+
+
+def _blocked_all(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarray:
+    """(Q,) bool: segment origin -> pts[q] meets a box not owned by owner[q], or a polygon; all pairs tested."""
+    a = np.broadcast_to(origin, pts.shape)
+    blocked = np.zeros(len(pts), dtype=bool)
+    if len(boxes):
+        hits = segments_hit_boxes(a, pts, boxes)
+        hits &= box_owner[None, :] != owner[:, None]
+        blocked |= hits.any(axis=1)
+    if len(polygons):
+        blocked |= segments_hit_polygons(a, pts, polygons).any(axis=1)
+    return blocked
+
+
+def _blocked_pruned(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarray:
+    """``_blocked_all``, testing exactly only the pairs whose bounding circles ``cone_pairs`` keeps."""
+    blocked = np.zeros(len(pts), dtype=bool)
+    if len(boxes):
+        q, k = cone_pairs(origin, pts, boxes[:, :2], np.hypot(boxes[:, 2], boxes[:, 3]) / 2.0)
+        q, k = q[box_owner[k] != owner[q]], k[box_owner[k] != owner[q]]
+        hit = pair_hits_boxes(np.broadcast_to(origin, (len(q), 2)), pts[q], boxes[k])
+        blocked[q[hit]] = True
+    for poly in polygons:
+        poly = np.asarray(poly, dtype=float)
+        centre = (poly.min(axis=0) + poly.max(axis=0)) / 2.0
+        radius = np.hypot(*(poly - centre).T).max()
+        q, _ = cone_pairs(origin, pts, centre[None], np.array([radius]))
+        q = q[~blocked[q]]
+        blocked[q[segments_hit_polygons(np.broadcast_to(origin, (len(q), 2)), pts[q], [poly])[:, 0]]] = True
+    return blocked

@@ -1,0 +1,85 @@
+"""Offline evaluator speed per bundled scenario, as x real time (simulated s / wall s).
+
+    python benchmarks/eval_speed.py [--scenarios a,b] [--seed 1] [--repeats 3] [--profile N] [--reference]
+
+Each scenario runs in this process exactly as ``v2i eval --scenario NAME --seed SEED`` runs it
+(the same parser, spec and ``OfflineRun``; imports are paid once, before the first timing, and
+reported apart as ``import_s``). One line per scenario: simulated seconds, the median wall
+seconds of ``--repeats`` runs (spec -> execute -> report) and their ratio. ``--reference``
+also times each scenario with the unpruned occlusion test (``sim.occlusion.PRUNE = False``,
+the code before pruning) in the same run and prints the speed-up. ``--profile N`` runs each
+scenario once more under cProfile and prints its N costliest functions (cumulative).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import pstats
+import statistics
+import time
+
+_T0 = time.perf_counter()
+from evaluation.chaos import with_chaos
+from evaluation.runner import OfflineRun
+from sim import occlusion
+from sim.scenario import bundled_scenarios
+from v2i.cli import _spec, build_parser
+
+IMPORT_S = time.perf_counter() - _T0
+
+
+def run_once(name: str, seed: int) -> tuple[float, float]:
+    """One ``v2i eval`` run in-process: (simulated s, wall s)."""
+    args = build_parser().parse_args(["eval", "--scenario", name, "--seed", str(seed)])
+    start = time.perf_counter()
+    run = OfflineRun(with_chaos(_spec(args), None), chaos=None)
+    run.execute()
+    run.report(driver="eval")
+    wall_s = time.perf_counter() - start
+    return run.duration_s, wall_s
+
+
+def median_wall(name: str, seed: int, repeats: int, prune: bool) -> tuple[float, float]:
+    """(simulated s, median wall s of ``repeats`` runs) with occlusion pruning on or off."""
+    occlusion.PRUNE = prune
+    try:
+        runs = [run_once(name, seed) for _ in range(repeats)]
+    finally:
+        occlusion.PRUNE = True
+    return runs[0][0], statistics.median(w for _, w in runs)
+
+
+def profile(name: str, seed: int, top: int) -> None:
+    """Print the ``top`` functions by cumulative time of one run."""
+    prof = cProfile.Profile()
+    prof.runcall(run_once, name, seed)
+    print(f"--- cProfile {name} (seed {seed}), top {top} by cumulative time")
+    pstats.Stats(prof).sort_stats("cumulative").print_stats(top)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenarios", help="comma-separated names (default: every bundled scenario)")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per scenario; the median is printed")
+    parser.add_argument("--reference", action="store_true", help="also time the unpruned occlusion test")
+    parser.add_argument("--profile", type=int, metavar="N", help="print cProfile's N costliest functions per scenario")
+    args = parser.parse_args()
+    names = args.scenarios.split(",") if args.scenarios else bundled_scenarios()
+    print(f"import_s {IMPORT_S:.2f} (paid once per v2i eval process, not in the times below)")
+    head = f"{'scenario':24s} {'sim_s':>6s} {'wall_s':>7s} {'x_real':>7s}"
+    print(head + (f" {'ref_wall_s':>10s} {'ref_x':>6s} {'speedup':>7s}" if args.reference else ""))
+    for name in names:
+        sim_s, wall_s = median_wall(name, args.seed, args.repeats, prune=True)
+        line = f"{name:24s} {sim_s:6.1f} {wall_s:7.2f} {sim_s / wall_s:7.1f}"
+        if args.reference:
+            _, ref_s = median_wall(name, args.seed, args.repeats, prune=False)
+            line += f" {ref_s:10.2f} {sim_s / ref_s:6.1f} {ref_s / wall_s:7.2f}"
+        print(line, flush=True)
+    for name in names if args.profile else ():
+        profile(name, args.seed, args.profile)
+
+
+if __name__ == "__main__":
+    main()
