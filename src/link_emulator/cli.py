@@ -3,6 +3,8 @@
 ``v2i link --rsu-connect EP --vehicle-connect EP [--profile NAME]`` runs the relay for one
 vehicle; ``v2i link --rsu-connect EP --vehicle ID=EP[,EP] --vehicle ID=EP ...`` for several, one
 channel per RSU-vehicle pair (one emulator per RSU, see ``relay.py``);
+``v2i link --v2v --vehicle ID=EP --vehicle ID=EP ...`` relays the vehicles' V2V messages to each
+other, one channel per ordered vehicle pair (one V2V emulator per site, see ``v2v_relay.py``);
 ``v2i link validate --profile NAME [--samples N] [--json -]`` checks a profile's channel
 model against its declaration (see ``validate.py``);
 ``v2i link set --connect EP (--profile NAME | --clear | --outage S | ...)`` changes a running
@@ -36,6 +38,7 @@ from sim.clock import SystemClock
 from .config import MAX_VEHICLES, LinkConfig
 from .profile import DirectionProfile, TraceReplay, bundled_profiles, load_profile
 from .relay import LinkRelay
+from .v2v_relay import V2vRelay
 from .validate import P50_Z, Settings, validate_direction
 
 
@@ -68,6 +71,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help=f"a vehicle served on its own session and channel: its id and the Zenoh endpoint(s) of its side, "
         f"e.g. car1=tcp/127.0.0.1:7448 (repeatable, at most {MAX_VEHICLES}; instead of --vehicle-connect)",
     )
+    parser.add_argument("--v2v", action="store_true", default=None,
+                        help="V2V mode: no RSU side; relay each --vehicle's v2x/v2v/<id>/** to every other vehicle, "
+                        "through a channel per ordered vehicle pair (at least two --vehicle)")
     parser.add_argument(
         "--profile",
         metavar="NAME|PATH",
@@ -333,10 +339,11 @@ def run(args: argparse.Namespace) -> int:
         "control_listen": args.control_listen,
         "vehicle_id": args.vehicle_id,
         "vehicles": args.vehicles,
+        "v2v": args.v2v,
     }
     try:
         config = load_config(LinkConfig, args.config, overrides)
-        relay = LinkRelay(config, SystemClock())
+        relay = V2vRelay(config, SystemClock()) if config.v2v else LinkRelay(config, SystemClock())
     except ConfigError as exc:
         print(f"link emulator: {exc}", file=sys.stderr)
         return 2

@@ -53,7 +53,10 @@ class LinkConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     link_id: str = Field(default="link1", pattern=r"^[A-Za-z0-9_-]{1,64}$", description="names v2x/link/{link_id}/*")
-    rsu_connect: list[Endpoint] = Field(min_length=1, description="Zenoh endpoints of the RSU side")
+    rsu_connect: list[Endpoint] = Field(default_factory=list, description="Zenoh endpoints of the RSU side "
+                                        "(required, except in the V2V mode)")
+    v2v: bool = Field(default=False, description="V2V mode: no RSU side; relay each vehicle's v2x/v2v/{id}/** to "
+                      "every other vehicle through a channel per ordered vehicle pair (``v2v_relay``)")
     vehicle_connect: list[Endpoint] = Field(default_factory=list, description="Zenoh endpoints of the one "
                                             "vehicle side (one-vehicle form; else ``vehicles``)")
     vehicles: list[VehicleLinkConfig] = Field(default_factory=list, description="the vehicles served, each on its "
@@ -83,7 +86,13 @@ class LinkConfig(BaseModel):
 
     @model_validator(mode="after")
     def _one_vehicle_form(self) -> LinkConfig:
-        """Either ``vehicle_connect`` (one vehicle) or ``vehicles`` (up to MAX_VEHICLES, ids unique)."""
+        """Either ``vehicle_connect`` (one vehicle) or ``vehicles`` (up to MAX_VEHICLES, ids unique);
+        an RSU side, except in the V2V mode (``vehicles`` only, at least two, no RSU side)."""
+        if self.v2v and (self.rsu_connect or self.vehicle_connect or len(self.vehicles) < 2):
+            raise ValueError("v2v (--v2v) relays between vehicles only: give at least two vehicles as vehicles "
+                             "(--vehicle ID=EP[,EP]) and no rsu_connect or vehicle_connect")
+        if not self.v2v and not self.rsu_connect:
+            raise ValueError("rsu_connect (--rsu-connect): at least one Zenoh endpoint of the RSU side")
         if bool(self.vehicle_connect) == bool(self.vehicles):
             raise ValueError("give the vehicle side(s) either as vehicle_connect (one vehicle, --vehicle-connect) "
                              "or as vehicles (--vehicle ID=EP[,EP], repeatable), exactly one of them")

@@ -141,3 +141,42 @@ def rsu_id_or_none(key: str) -> str | None:
         return rsu_id_from_key(key)
     except ValueError:
         return None
+
+
+# V2V (``obu_service.peers``): what a vehicle sends its peers over the air. The sender's id is in
+# the key, and the V2V emulator relays from a vehicle's session only its own ``v2x/v2v/{id}/**``.
+V2V_OBJECTS_ALL = "v2x/v2v/*/objects"
+V2V_TIME_ALL = "v2x/v2v/*/time"
+
+
+def v2v_from(vehicle_id: str) -> str:
+    """Everything vehicle ``vehicle_id`` sends its peers (what a V2V emulator relays from it)."""
+    return f"v2x/v2v/{check_id(vehicle_id)}/**"
+
+
+def v2v_objects(vehicle_id: str) -> str:
+    """A vehicle's shared list: the objects its own sensors perceive (``FusedObjectList``)."""
+    return f"v2x/v2v/{check_id(vehicle_id)}/objects"
+
+
+def v2v_time(vehicle_id: str) -> str:
+    """A vehicle's time requests to its peers (``TimeRequest``, broadcast)."""
+    return f"v2x/v2v/{check_id(vehicle_id)}/time"
+
+
+def v2v_time_reply(answerer: str, requester: str) -> str:
+    """``answerer``'s reply (``TimeReply``) to ``requester``'s time request."""
+    return f"v2x/v2v/{check_id(answerer)}/time_reply/{check_id(requester)}"
+
+
+def v2v_sender(key: str) -> str:
+    """The sending vehicle's id in a concrete V2V key; ValueError for any other key."""
+    parts = str(key).split("/")
+    if len(parts) < 4 or parts[:2] != ["v2x", "v2v"]:
+        raise ValueError(f"{key!r} is not a V2V key (v2x/v2v/<vehicle_id>/...)")
+    return check_id(parts[2])
+
+
+def obu_peers(vehicle_id: str) -> str:
+    """A vehicle's V2V peers as its OBU sees them (JSON: lists accepted, clock offset per peer)."""
+    return _obu(vehicle_id, "peers")
