@@ -305,7 +305,8 @@ class Demo(InboxScoring):
             step = [] if s.rsu_clock_step_at_s is None else ["--clock-step-ms", str(s.rsu_clock_step_ms),
                                                               "--clock-step-at-s", str(s.rsu_clock_step_at_s)]
             return base + ["--listen", self.rsu_ep, *common, "--clock-offset-ms", str(s.rsu_clock_offset_ms),
-                           "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead, "--source", s.rsu_source]
+                           "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead, "--source", s.rsu_source,
+                           "--wire", s.wire]
         if name == "obu":
             return base + ["--listen", self.obu_ep, *common, "--fusion", s.fusion, "--compensation", s.compensation,
                            "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms)]

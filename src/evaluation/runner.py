@@ -33,6 +33,7 @@ from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_t
 from rsu_service.prediction import make_predictor
 from rsu_service.source import Frame, make_source
 from schemas.codec import CodecError, decode, encode
+from schemas.list_wire import decode_list, encode_list
 from schemas.messages import FusedObjectList, ObjectList, PredictionList, TimeReply, TimeRequest
 from sim.clock import SimClock
 from sim.scenario import RsuCameraConfig, V2vConfig, load_scenario
@@ -228,7 +229,7 @@ class OfflineRun:
             return
         capture = Stamp(rsu.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
         msg = rsu.pipeline.on_frame(frame.detections, capture, self._rsu_now(rsu))
-        self._broadcast(rsu, encode(msg), self._obu_receive)
+        self._broadcast_list(rsu, msg)
         self._broadcast(rsu, encode(rsu.pipeline.predictions(self._rsu_now(rsu))), self._obu_predictions)
         if rsu.pipeline.config.predict_ahead:
             self.queue.at(self.clock.t_ns + rsu.camera.upsample_offset_ns, self._rsu_upsample, rsu)
@@ -236,7 +237,13 @@ class OfflineRun:
     def _rsu_upsample(self, rsu: _Rsu) -> None:
         if not self._up("rsu"):
             return
-        self._broadcast(rsu, encode(rsu.pipeline.upsampled(self._rsu_now(rsu))), self._obu_receive)
+        self._broadcast_list(rsu, rsu.pipeline.upsampled(self._rsu_now(rsu)))
+
+    def _broadcast_list(self, rsu: _Rsu, msg: ObjectList) -> None:
+        """An object list in the run's encoding (``spec.wire``: v2i, cpm or sdsm; an SDSM has none for no objects)."""
+        data = encode_list(msg, self.spec.wire)
+        if data is not None:
+            self._broadcast(rsu, data, self._obu_receive)
 
     def _rsu_now(self, rsu: _Rsu) -> Stamp:
         """Now on the RSU's wall clock (offset, drift, steps) and its monotonic clock (the true one)."""
@@ -275,7 +282,7 @@ class OfflineRun:
     # --- OBU side ----------------------------------------------------------------------
     def _obu_receive(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         try:
-            vehicle.obu.on_rsu_message(decode(data, ObjectList), self.clock.t_ns)
+            vehicle.obu.on_rsu_message(decode_list(data, self.spec.wire, rsu.pipeline.config.rsu_id), self.clock.t_ns)
             vehicle.record.rsu_messages += 1
         except CodecError as exc:
             vehicle.obu.reject(exc.reason)

@@ -39,13 +39,14 @@ class RunSpec:
     deadline_ms: float = 100.0
     rsu_source: str = "sim"  # sim (noise model) or camera (rendered, detector, calibration)
     v2v: bool | None = None  # vehicles share lists (V2V): None as the scenario says, True / False on / off
+    wire: str = "v2i"  # RSU object list encoding: v2i, cpm or sdsm (schemas.list_wire)
 
     def rsu_config(self, **fields) -> RsuConfig:
         """The RSU service configuration this run implies (its clock is the injected truth)."""
         return RsuConfig(clock_offset_ms=self.rsu_clock_offset_ms, clock_drift_ppm=self.rsu_clock_drift_ppm,
                          clock_step_ms=self.rsu_clock_step_ms, clock_step_at_s=self.rsu_clock_step_at_s,
                          seed=self.seed, scenario=self.scenario, predict_ahead=self.compensation == "track-predict",
-                         source=self.rsu_source, **fields)
+                         source=self.rsu_source, wire=self.wire, **fields)
 
     def obu_config(self, **fields) -> ObuConfig:
         """The OBU service configuration this run implies."""

@@ -48,9 +48,11 @@ import zenoh
 
 from schemas.codec import CodecError, decode
 from schemas.keys import (
+    RSU_CPM_ALL,
     RSU_IMAGE_FEATURES_ALL,
     RSU_OBJECTS_ALL,
     RSU_PREDICTIONS_ALL,
+    RSU_SDSM_ALL,
     RSU_TIME_ALL,
     link_control,
     link_stats,
@@ -73,7 +75,7 @@ __all__ = ["Delivery", "DeliveryObserver", "LinkRelay"]
 
 log = logging.getLogger(__name__)
 
-DOWNLINK_KEYS = (RSU_OBJECTS_ALL, RSU_PREDICTIONS_ALL, RSU_IMAGE_FEATURES_ALL)
+DOWNLINK_KEYS = (RSU_OBJECTS_ALL, RSU_PREDICTIONS_ALL, RSU_IMAGE_FEATURES_ALL, RSU_CPM_ALL, RSU_SDSM_ALL)
 OBU_POSE_ALL = "v2x/obu/*/pose"  # ego poses of every vehicle, see schemas.keys.obu_pose
 
 

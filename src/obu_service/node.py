@@ -27,6 +27,7 @@ from fusion.objects import ObjectArray
 from schemas import keys
 from schemas.codec import CodecError, decode, encode, from_body, header_of, object_count, open_body, path_point_count
 from schemas.intake import Intake, Item
+from schemas.list_wire import decode_list
 from schemas.messages import EgoPose, ObjectList, PredictionList, TimeReply
 from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
 from schemas.sensor_screen import InputRefused, SensorLimits, SensorScreen
@@ -86,7 +87,10 @@ class ObuNode:
                          for name, key in (("objects", keys.obu_objects(vid)), ("metrics", keys.obu_metrics(vid)),
                                            ("pose", keys.obu_pose(vid)), ("planning", keys.obu_planning(vid)))}
             entities = [*self._pub.values(), session.declare_subscriber(keys.RSU_OBJECTS_ALL, self._on_rsu_sample),
-                        session.declare_subscriber(keys.RSU_PREDICTIONS_ALL, self._on_predictions_sample)]
+                        session.declare_subscriber(keys.RSU_PREDICTIONS_ALL, self._on_predictions_sample),
+                        # object lists in a standard encoding (RSU --wire cpm|sdsm), fused the same way
+                        session.declare_subscriber(keys.RSU_CPM_ALL, lambda sample: self._put("cpm", sample)),
+                        session.declare_subscriber(keys.RSU_SDSM_ALL, lambda sample: self._put("sdsm", sample))]
             if self.vehicle is None:
                 entities += [session.declare_subscriber(keys.sensor_vehicle_objects(vid),
                                                         lambda sample: self._put("sensor_objects", sample)),
@@ -160,6 +164,8 @@ class ObuNode:
                 self.pipeline.on_time_reply(decode(item.payload, TimeReply, max_bytes), item.receive_ns)
             elif item.kind.startswith("sensor_"):
                 self._handle_sensor(item)
+            elif item.kind in ("cpm", "sdsm"):
+                self._handle_standard(item)
             else:
                 lists = item.kind == "rsu"
                 model = ObjectList if lists else PredictionList
@@ -174,6 +180,13 @@ class ObuNode:
             self.pipeline.reject(exc.reason)
             self._details.setdefault(exc.reason, f"{item.kind} on {item.source}: {exc}")
         self._publish_if_ready()
+
+    def _handle_standard(self, item: Item) -> None:
+        """An RSU object list as a CPM or SDSM (``schemas.list_wire``): decoded whole (the RSU named
+        by its key), then screened and fused as a v2i list."""
+        msg = decode_list(item.payload, item.kind, keys.rsu_id_or_none(item.source), self.config.max_message_bytes)
+        if self.pipeline.screen_list(msg.header, len(msg.objects), item.receive_ns):
+            self.pipeline.on_rsu_message(msg, item.receive_ns)
 
     def _handle_sensor(self, item: Item) -> None:
         """--source zenoh: a pose goes to the pipeline (and out as the vehicle's pose); a detection

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from schemas.list_wire import WIRES
 from schemas.runtime import add_service_options, run_service
 
 from .config import PREDICTORS, SOURCES, RsuConfig
@@ -43,6 +44,11 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="camera calibration from `v2i camera calibrate` (default: the scenario's shipped one)")
     p.add_argument("--score-threshold", type=float, help="detector score threshold (default 0.4)")
     p.add_argument("--detector-threads", type=int, help="ONNX Runtime threads (default: its own choice)")
+    p.add_argument("--wire", choices=WIRES,
+                   help="object list encoding: v2i (the project's compact msgpack columns on v2x/rsu/{id}/objects; "
+                        "default), cpm (ETSI collective perception message, UPER, on v2x/rsu/{id}/cpm) or sdsm "
+                        "(SAE J3224 sensor data sharing message, UPER, on v2x/rsu/{id}/sdsm); a v2i OBU fuses all "
+                        "three, at the standard's resolution")
     p.add_argument("--predict-ahead", action="store_true", default=None,
                    help="track-predict compensation: publish tracks predicted to the publish time, "
                         "and once more half a frame later (5 Hz camera -> 10 Hz lists)")

@@ -8,6 +8,7 @@ from pydantic import Field, field_validator
 
 from schemas.config import ServiceConfig
 from schemas.keys import check_id
+from schemas.list_wire import WIRES
 from sim.clock import Clock, ClockStep, DriftingClock
 
 PREDICTORS = ("auto", "lane", "cv")  # long-horizon path predictors, see rsu_service.prediction
@@ -23,6 +24,9 @@ class RsuConfig(ServiceConfig):
     clock_step_at_s: float | None = Field(None, ge=0, description="scenario time of the clock step")
     predictor: Literal[PREDICTORS] = Field("auto", description="long-horizon paths: lane (Lanelet2 map), cv, or auto "
                                                "(lane when the scenario has a map)")
+    wire: Literal[WIRES] = Field("v2i", description="object list encoding: v2i (msgpack columns on "
+                                 "v2x/rsu/{id}/objects), cpm (ETSI CPM, UPER, on .../cpm) or sdsm (SAE J3224 SDSM, "
+                                 "UPER, on .../sdsm); see schemas.list_wire")
     predict_ahead: bool = Field(False, description="track-predict: publish tracks predicted to the publish "
                                                    "time and upsample 5 Hz to 10 Hz (seed 000 Algorithm 1)")
     source: Literal[SOURCES] = Field("sim", description="sim: the scenario's camera noise model (fast); camera: "

@@ -27,6 +27,7 @@ from perception.scoring import PerceptionTally
 from schemas import keys
 from fusion.wire import objects_from_states
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
+from schemas.list_wire import encode_list, list_key
 from schemas.intake import Intake, KeyedBuckets, TokenBucket
 from schemas.image_messages import RsuImageFeatures
 from schemas.messages import SOURCE_RSU, RsuMetrics, RsuPerception, TimeRequest
@@ -88,7 +89,7 @@ class RsuNode:
         entities = []
         try:
             rsu_id = self.config.rsu_id
-            publisher = session.declare_publisher(keys.rsu_objects(rsu_id))
+            publisher = session.declare_publisher(list_key(self.config.wire, rsu_id))
             self._predictions = session.declare_publisher(keys.rsu_predictions(rsu_id))
             self._metrics = session.declare_publisher(keys.rsu_metrics(rsu_id))
             self._features = session.declare_publisher(keys.rsu_image_features(rsu_id))
@@ -157,17 +158,23 @@ class RsuNode:
         stopped meanwhile."""
         self.perception.add_frame(frame)
         capture = Stamp(self.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
-        publisher.put(encode(self.pipeline.on_frame(frame.detections, capture, self._now())))
+        self._put_list(publisher, self.pipeline.on_frame(frame.detections, capture, self._now()))
         self._predictions.put(encode(self.pipeline.predictions(self._now())))
         if frame.image_features is not None:  # ROIF: the frame's boxes + ORB features, stamped at capture
             self._features.put(encode(RsuImageFeatures.from_view(self.config.rsu_id, self.published,
                                                                  capture.wall_ns, frame.image_features)))
         self.published += 1
         if self.config.predict_ahead and self._sleep_until(frame.ready_true_ns + self._upsample_offset_ns, stop):
-            publisher.put(encode(self.pipeline.upsampled(self._now())))
+            self._put_list(publisher, self.pipeline.upsampled(self._now()))
             self.published += 1
         self._report()
         return not stop.is_set()
+
+    def _put_list(self, publisher, msg) -> None:
+        """An object list in the configured encoding (--wire); an SDSM has none for an empty list."""
+        data = encode_list(msg, self.config.wire)
+        if data is not None:
+            publisher.put(data)
 
     def _now(self) -> Stamp:
         """Now on the RSU's wall clock and on its monotonic clock (the simulation's true

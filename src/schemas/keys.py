@@ -10,13 +10,16 @@ import re
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
-RSU_TOPICS = ("objects", "predictions", "time", "alive", "metrics", "image_features")
+RSU_TOPICS = ("objects", "predictions", "time", "alive", "metrics", "image_features", "cpm", "sdsm")
 
 RSU_OBJECTS_ALL = "v2x/rsu/*/objects"
 RSU_PREDICTIONS_ALL = "v2x/rsu/*/predictions"
 RSU_TIME_ALL = "v2x/rsu/*/time"
 RSU_ALIVE_ALL = "v2x/rsu/*/alive"
 RSU_IMAGE_FEATURES_ALL = "v2x/rsu/*/image_features"
+# object lists in a standard encoding (RSU --wire cpm|sdsm; schemas.cpm, schemas.sdsm)
+RSU_CPM_ALL = "v2x/rsu/*/cpm"
+RSU_SDSM_ALL = "v2x/rsu/*/sdsm"
 
 
 def check_id(node_id: str) -> str:
@@ -41,6 +44,16 @@ def _link(link_id: str, topic: str) -> str:
 def rsu_objects(rsu_id: str) -> str:
     """Object lists published by an RSU (RSU -> vehicles)."""
     return _rsu(rsu_id, "objects")
+
+
+def rsu_cpm(rsu_id: str) -> str:
+    """Object lists of an RSU as ETSI collective perception messages (UPER; ``schemas.cpm``)."""
+    return _rsu(rsu_id, "cpm")
+
+
+def rsu_sdsm(rsu_id: str) -> str:
+    """Object lists of an RSU as SAE J3224 sensor data sharing messages (UPER; ``schemas.sdsm``)."""
+    return _rsu(rsu_id, "sdsm")
 
 
 def rsu_predictions(rsu_id: str) -> str:

@@ -52,6 +52,10 @@ def _run_options(p: argparse.ArgumentParser) -> None:
                         "the RSU's camera, through the ONNX detector and the shipped calibration (default %(default)s)")
     p.add_argument("--v2v", choices=("on", "off"), help="vehicles share their own perception with each other "
                    "(V2V, through a channel per vehicle pair; obu_service/peers.py): default as the scenario's v2v says")
+    p.add_argument("--wire", default="v2i", choices=("v2i", "cpm", "sdsm"),
+                   help="RSU object list encoding: v2i (compact msgpack columns), cpm (ETSI collective perception "
+                        "message, UPER) or sdsm (SAE J3224, UPER); the OBU fuses each at its resolution "
+                        "(default %(default)s)")
     p.add_argument("--json", metavar="PATH", help="write the metrics JSON to PATH ('-' for stdout)")
 
 
@@ -64,7 +68,7 @@ def _spec(args: argparse.Namespace):
         rsu_clock_offset_ms=args.rsu_clock_offset_ms, rsu_clock_drift_ppm=args.rsu_clock_drift_ppm,
         rsu_clock_step_ms=args.rsu_clock_step_ms, rsu_clock_step_at_s=args.rsu_clock_step_at_s,
         deadline_ms=args.deadline_ms, rsu_source=args.rsu_source,
-        v2v=None if getattr(args, "v2v", None) is None else args.v2v == "on",
+        v2v=None if getattr(args, "v2v", None) is None else args.v2v == "on", wire=getattr(args, "wire", "v2i"),
     )
 
 
