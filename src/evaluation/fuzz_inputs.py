@@ -20,13 +20,12 @@ import sys
 import time
 from collections import Counter
 
-import msgpack
-
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.messages import FusedObjectList, ObjectList, ObuMetrics, RsuMetrics
 from schemas.sensor_messages import LocalizationPose, SensorHeader, SensorObjects
 from schemas.transport import free_tcp_endpoint
+from schemas.wire_view import pack_view, unpack_view
 from sim.scenario import load_scenario
 
 from .fuzz import MS, RSU_ID, VEHICLE_ID, FuzzRun
@@ -64,10 +63,10 @@ class SensorHostileInputs(HostileInputs):
     def absurd_times(self, type_name: str, t_ns: int) -> bytes:
         if type_name != "sensor_objects":
             return super().absurd_times(type_name, t_ns)
-        envelope = msgpack.unpackb(self.valid(type_name, t_ns), raw=False)
+        envelope = unpack_view(self.valid(type_name, t_ns))
         field = str(self.rng.choice(["capture_time_ns", "ready_time_ns"]))
         envelope["d"]["header"][field] = int(self.rng.choice([0, -1, t_ns + 10**12, t_ns - 10**12, 2**63 - 1]))
-        return msgpack.packb(envelope, use_bin_type=True)
+        return pack_view(envelope)
 
 
 class _InputsFuzz(FuzzRun):

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import msgpack
 import numpy as np
 
 from fusion.objects import ObjectArray
 from fusion.wire import states_from_objects
 from schemas.codec import encode
+from schemas.wire_view import pack_view, unpack_view
 from schemas.messages import (MAX_TIME_NS, MIN_TIME_NS, SCHEMA_VERSION, EgoPose, LinkControl, ObjectList,
                               ObjectListHeader, PredictedPath, PredictionList, TimeReply, TimeRequest)
 
@@ -98,7 +98,7 @@ class HostileInputs:
             envelope = [envelope["v"], envelope["t"], envelope["d"]]
         else:
             envelope["v"] = "2"
-        return msgpack.packb(envelope, use_bin_type=True)
+        return pack_view(envelope)
 
     def unknown_keys(self, type_name: str, t_ns: int) -> bytes:
         envelope = self._unpacked(type_name, t_ns)
@@ -106,13 +106,13 @@ class HostileInputs:
         target[str(self.rng.choice(["evil", "__class__", "x" * 100, "schema_version_2"]))] = 1
         if isinstance(envelope["d"].get("objects"), dict) and self.rng.random() < 0.5:
             envelope["d"]["objects"]["evil"] = b"\x00" * 8
-        return msgpack.packb(envelope, use_bin_type=True)
+        return pack_view(envelope)
 
     def header_version(self, type_name: str, t_ns: int) -> bytes:
         envelope = self._unpacked("object_list" if type_name not in ("object_list", "prediction_list") else type_name,
                                   t_ns)
         envelope["d"]["header"]["schema_version"] = int(self.rng.choice([0, 1, SCHEMA_VERSION - 1, SCHEMA_VERSION + 1]))
-        return msgpack.packb(envelope, use_bin_type=True)
+        return pack_view(envelope)
 
     def wrong_shapes(self, type_name: str, t_ns: int) -> bytes:
         envelope = self._unpacked(type_name, t_ns)
@@ -122,9 +122,9 @@ class HostileInputs:
         if choice == 0 and isinstance(objects, dict):
             objects["n"] = int(self.rng.choice([-1, objects["n"] + 1, 10**9, 2**63 - 1]))
         elif choice == 1 and isinstance(objects, dict):
-            objects["x"] = objects["x"][:-1]
+            objects["rows"] = objects["rows"][:-1]
         elif choice == 2 and isinstance(objects, dict):
-            objects["y"] = [1, 2, 3]
+            objects["refs"] = [1, 2, 3]
         elif choice == 3:
             body["header" if "header" in body else next(iter(body))] = [1, "a", None]
         elif choice == 4:
@@ -137,7 +137,7 @@ class HostileInputs:
         else:
             body.clear()
         try:
-            return msgpack.packb(envelope, use_bin_type=True)
+            return pack_view(envelope)
         except (ValueError, OverflowError):  # nesting deeper than msgpack packs: random bytes instead
             return self.random_bytes(type_name, t_ns)
 
@@ -146,7 +146,7 @@ class HostileInputs:
         body = envelope["d"].get("header", envelope["d"])
         key = str(self.rng.choice(sorted(body)))
         body[key] = float(self.rng.choice([np.nan, np.inf, -np.inf]))
-        return msgpack.packb(envelope, use_bin_type=True)
+        return pack_view(envelope)
 
     def extreme_values(self, type_name: str, t_ns: int) -> bytes:
         """Valid messages at the edges of every range: what passes validation must not crash."""
@@ -171,7 +171,7 @@ class HostileInputs:
             envelope = self._unpacked(type_name, t_ns)
             for key in [k for k in envelope["d"] if k.endswith("_ns")]:
                 envelope["d"][key] = int(self.rng.choice([0, -1, MIN_TIME_NS - 1, MAX_TIME_NS + 1, 2**63 - 1]))
-            return msgpack.packb(envelope, use_bin_type=True)
+            return pack_view(envelope)
         choice = int(self.rng.integers(5))
         header = [dict(age_ms=-900.0), dict(age_ms=3_600_000.0), dict(prediction_ns=10_000 * MS),
                   dict(age_ms=(t_ns - MIN_TIME_NS) // MS), dict(age_ms=-5_000.0)][choice]
@@ -185,15 +185,14 @@ class HostileInputs:
         return encode(ObjectList(header=self._header(t_ns, sensor="s" * 128), objects=self._objects(1024)))
 
     def large_malformed(self, type_name: str, t_ns: int) -> bytes:
-        """A 1024-object list (~65 kB) whose last column is one byte short: all the cost of a big
+        """A 1024-object list whose packed rows are one byte short: all the cost of a big
         message, none of its validity."""
-        envelope = msgpack.unpackb(encode(ObjectList(header=self._header(t_ns), objects=self._objects(1024))),
-                                   raw=False)
-        envelope["d"]["objects"]["age_s"] = envelope["d"]["objects"]["age_s"][:-1]
-        return msgpack.packb(envelope, use_bin_type=True)
+        envelope = unpack_view(encode(ObjectList(header=self._header(t_ns), objects=self._objects(1024))))
+        envelope["d"]["objects"]["rows"] = envelope["d"]["objects"]["rows"][:-1]
+        return pack_view(envelope)
 
     def _unpacked(self, type_name: str, t_ns: int) -> dict:
-        return msgpack.unpackb(self.valid(type_name, t_ns), raw=False)
+        return unpack_view(self.valid(type_name, t_ns))
 
 
 KINDS: dict[str, Callable[[HostileInputs, str, int], bytes]] = {

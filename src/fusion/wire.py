@@ -1,4 +1,10 @@
-"""Conversion between wire object models and ``ObjectArray``, and fitting objects to the wire."""
+"""Conversion between the wire's object columns and ``ObjectArray``, and fitting objects to the wire.
+
+``schemas.columns.ObjectColumns`` holds a list's objects as an (N, K) matrix in the column order
+``id, cls, x, y, z, length, width, height, yaw, vx, vy, ax, ay, yaw_rate, cov_xx, cov_xy, cov_yy,
+cov_vxx, cov_vxy, cov_vyy, confidence, age_s[, sources]``; both conversions are column slices and
+stacks, no per-object work.
+"""
 
 from __future__ import annotations
 
@@ -8,34 +14,34 @@ from collections.abc import Sequence
 import numpy as np
 
 from schemas import messages as m
-from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, FusedObject, ObjectState
+from schemas.columns import COLUMN, ObjectColumns
+from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, ObjectState
 
 from .frames import wrap_angle
 from .objects import ObjectArray
 
-_SCALARS = ("id", "cls", "x", "y", "z", "length", "width", "height", "yaw", "vx", "vy", "ax", "ay",
-            "yaw_rate", "cov_xx", "cov_xy", "cov_yy", "cov_vxx", "cov_vxy", "cov_vyy", "confidence", "age_s")
+_C = COLUMN
+_COV = [_C["cov_xx"], _C["cov_xy"], _C["cov_xy"], _C["cov_yy"]]  # row-major [[xx, xy], [xy, yy]]
+_VCOV = [_C["cov_vxx"], _C["cov_vxy"], _C["cov_vxy"], _C["cov_vyy"]]
 
 
-def _sym2(xx: np.ndarray, xy: np.ndarray, yy: np.ndarray) -> np.ndarray:
-    """(N, 2, 2) symmetric matrices [[xx, xy], [xy, yy]]."""
-    return np.stack([np.stack([xx, xy], -1), np.stack([xy, yy], -1)], -2)
+def objects_from_states(states: ObjectColumns | Sequence[ObjectState]) -> ObjectArray:
+    """ObjectArray of a list's objects (in the frame the message states); ``sources`` 0 unless fused.
 
-
-def objects_from_states(states: Sequence[ObjectState]) -> ObjectArray:
-    """ObjectArray of wire objects (in the frame the message states)."""
-    if not states:
+    ``states``: the message's ObjectColumns (or, for small hand-made lists, object models).
+    """
+    cols = states if isinstance(states, ObjectColumns) else ObjectColumns.from_states(states)
+    n, v, codes = len(cols), cols.values, cols.codes
+    if n == 0:
         return ObjectArray.empty()
-    col = {name: np.array([getattr(s, name) for s in states]) for name in _SCALARS}
-    sources = np.array([getattr(s, "sources", 0) for s in states], dtype=np.int64)
     return ObjectArray(
-        ids=col["id"].astype(np.int64), cls=col["cls"].astype(np.int64),
-        xy=np.column_stack([col["x"], col["y"]]), z=col["z"],
-        lwh=np.column_stack([col["length"], col["width"], col["height"]]), yaw=col["yaw"],
-        vxy=np.column_stack([col["vx"], col["vy"]]), axy=np.column_stack([col["ax"], col["ay"]]),
-        yaw_rate=col["yaw_rate"], cov_xy=_sym2(col["cov_xx"], col["cov_xy"], col["cov_yy"]),
-        cov_vxy=_sym2(col["cov_vxx"], col["cov_vxy"], col["cov_vyy"]), confidence=col["confidence"],
-        age_s=col["age_s"], sources=sources,
+        ids=codes[:, _C["id"]].copy(), cls=codes[:, _C["cls"]].copy(), xy=v[:, _C["x"]:_C["y"] + 1].copy(),
+        z=v[:, _C["z"]].copy(), lwh=v[:, _C["length"]:_C["height"] + 1].copy(), yaw=v[:, _C["yaw"]].copy(),
+        vxy=v[:, _C["vx"]:_C["vy"] + 1].copy(), axy=v[:, _C["ax"]:_C["ay"] + 1].copy(),
+        yaw_rate=v[:, _C["yaw_rate"]].copy(), cov_xy=v[:, _COV].reshape(n, 2, 2),
+        cov_vxy=v[:, _VCOV].reshape(n, 2, 2), confidence=v[:, _C["confidence"]].copy(),
+        age_s=v[:, _C["age_s"]].copy(),
+        sources=codes[:, _C["sources"]].copy() if cols.fused else np.zeros(n, np.int64),
     )
 
 
@@ -46,32 +52,28 @@ def wire_sources(masks: np.ndarray) -> np.ndarray:
     return (masks & SOURCE_VEHICLE) | np.where((masks & ~SOURCE_VEHICLE) != 0, SOURCE_RSU, 0)
 
 
-def states_from_objects(objs: ObjectArray, fused: bool = False) -> tuple[ObjectState, ...]:
-    """Wire objects of an ObjectArray; ``fused`` adds the ``sources`` bitmask, folded into the
-    wire's byte (``wire_sources``).
+def states_from_objects(objs: ObjectArray, fused: bool = False) -> ObjectColumns:
+    """The wire's object columns of an ObjectArray; ``fused`` adds the ``sources`` bitmask, folded
+    into the wire's byte (``wire_sources``). Validated and quantised as arrays (an
+    ``InvalidMessage`` names the first object and column out of range).
 
-    Ids must be non-negative (track ids); values are clipped to the wire's ranges where
-    physics allows none outside them (sizes >= 0, confidence in [0, 1]).
+    Ids must be non-negative (track ids); confidence is clipped to [0, 1] and age to >= 0
+    (``fit_to_wire`` clips the rest).
     """
-    model = FusedObject if fused else ObjectState
-    sources = wire_sources(objs.sources) if fused else None
-    out = []
-    for i in range(len(objs)):
-        kw = dict(
-            id=int(objs.ids[i]), cls=int(objs.cls[i]), x=float(objs.xy[i, 0]), y=float(objs.xy[i, 1]),
-            z=float(objs.z[i]), length=float(objs.lwh[i, 0]), width=float(objs.lwh[i, 1]),
-            height=float(objs.lwh[i, 2]), yaw=float(objs.yaw[i]), vx=float(objs.vxy[i, 0]),
-            vy=float(objs.vxy[i, 1]), ax=float(objs.axy[i, 0]), ay=float(objs.axy[i, 1]),
-            yaw_rate=float(objs.yaw_rate[i]), cov_xx=float(objs.cov_xy[i, 0, 0]),
-            cov_xy=float(objs.cov_xy[i, 0, 1]), cov_yy=float(objs.cov_xy[i, 1, 1]),
-            cov_vxx=float(objs.cov_vxy[i, 0, 0]), cov_vxy=float(objs.cov_vxy[i, 0, 1]),
-            cov_vyy=float(objs.cov_vxy[i, 1, 1]),
-            confidence=float(np.clip(objs.confidence[i], 0.0, 1.0)), age_s=float(max(objs.age_s[i], 0.0)),
-        )
-        if fused:
-            kw["sources"] = int(sources[i])
-        out.append(model(**kw))
-    return tuple(out)
+    n = len(objs)
+    table = np.empty((n, len(COLUMN) if fused else len(COLUMN) - 1))
+    table[:, _C["id"]], table[:, _C["cls"]] = objs.ids, objs.cls
+    table[:, _C["x"]:_C["y"] + 1], table[:, _C["z"]] = objs.xy, objs.z
+    table[:, _C["length"]:_C["height"] + 1], table[:, _C["yaw"]] = objs.lwh, objs.yaw
+    table[:, _C["vx"]:_C["vy"] + 1], table[:, _C["ax"]:_C["ay"] + 1] = objs.vxy, objs.axy
+    table[:, _C["yaw_rate"]] = objs.yaw_rate
+    table[:, _C["cov_xx"]:_C["cov_yy"] + 1] = objs.cov_xy.reshape(n, 4)[:, [0, 1, 3]]
+    table[:, _C["cov_vxx"]:_C["cov_vyy"] + 1] = objs.cov_vxy.reshape(n, 4)[:, [0, 1, 3]]
+    table[:, _C["confidence"]] = np.clip(objs.confidence, 0.0, 1.0)
+    table[:, _C["age_s"]] = np.maximum(objs.age_s, 0.0)
+    if fused:
+        table[:, _C["sources"]] = wire_sources(objs.sources)
+    return ObjectColumns.from_values(table, fused)
 
 
 def fit_to_wire(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS) -> tuple[ObjectArray, Counter[str]]:

@@ -1,34 +1,36 @@
-"""The one wire codec: versioned msgpack envelope, columnar object tuples, validated decode.
+"""The one wire codec: versioned msgpack envelopes, validated decode.
 
-Wire layout::
+Two envelope shapes, both msgpack:
 
-    {"v": SCHEMA_VERSION, "t": Model.TYPE, "d": body}
+- object lists (``ObjectList``, ``FusedObjectList``, ``PredictionList``, ``SensorObjects``,
+  ``GroundTruth``: the models with an ``objects`` field) are one array
+  ``[SCHEMA_VERSION, tag, fields, objects]``: ``tag`` a small int (``LIST_TAGS``), ``fields`` the
+  model's other fields in declaration order (a nested header likewise), ``nil`` where a field has
+  its default and trailing ``nil`` left out, ``objects`` the column section of
+  :mod:`schemas.object_wire` (per-message column widths, bit-packed rows);
+- every other message is ``{"v": SCHEMA_VERSION, "t": Model.TYPE, "d": model_dump()}``.
 
-``body`` is the model's ``model_dump(mode="python")``, except that the object tuple of
-an :class:`ObjectList` / :class:`FusedObjectList` becomes a map of columns
-``{"n": count, "x": bytes, ...}``: each column is a little-endian integer array of the
-quantisation codes (``quantize.code(value, step)``). The models already hold grid values
-``k * step`` and decoding computes ``k * step`` again, so ``decode(encode(m)) == m`` exactly.
-
-Every failure of :func:`decode` on untrusted bytes is a :class:`CodecError` whose
-``reason`` is a short label fit for a rejection counter.
+Object values are quantisation codes: the columns hold grid values ``k * step`` and decoding
+computes ``k * step`` again, so ``decode(encode(m)) == m`` exactly. Every failure of
+:func:`decode` on untrusted bytes is a :class:`CodecError` whose ``reason`` is a short label fit
+for a rejection counter.
 """
 
 from __future__ import annotations
 
 import reprlib
-from collections.abc import Sequence
-from dataclasses import dataclass
-from operator import attrgetter
+from functools import cache
 from typing import Any, TypeVar
 
 import msgpack
-import numpy as np
 from pydantic import ValidationError
 
-from . import quantize as q
-from .messages import (MAX_OBJECTS, SCHEMA_VERSION, FusedObjectList, Message, ObjectList, ObjectListHeader,
-                       PredictionList)
+from .columns import OBJECT_SPECS
+from .errors import (CodecError, InvalidMessage, MalformedMessage, MessageTooLarge,  # noqa: F401 (re-exported)
+                     SchemaVersionError, WrongMessageType)
+from .messages import SCHEMA_VERSION, FusedObjectList, Message, ObjectList, ObjectListHeader, PredictionList
+from .object_wire import EMPTY_SECTION, pack_objects, unpack_objects
+from .object_wire import object_count as _section_count
 from .sensor_messages import GroundTruth, SensorObjects
 
 MAX_MESSAGE_BYTES = 1 << 20
@@ -36,103 +38,13 @@ MAX_MESSAGE_BYTES = 1 << 20
 # declared length, so this bounds the memory a tiny hostile payload can claim.
 MAX_CONTAINER_LEN = 4096
 ENVELOPE_KEYS = frozenset({"v", "t", "d"})
+LIST_ENVELOPE_LEN = 4
+# Envelope tag of each object-list model (the array envelope); names of the object columns.
+LIST_TAGS: dict[str, int] = {ObjectList.TYPE: 1, FusedObjectList.TYPE: 2, PredictionList.TYPE: 3,
+                             SensorObjects.TYPE: 4, GroundTruth.TYPE: 5}
+OBJECT_COLUMNS = OBJECT_SPECS  # each has .name: the object attributes in wire order
 
 M = TypeVar("M", bound=Message)
-
-
-class CodecError(ValueError):
-    """A message that cannot be encoded or decoded; ``reason`` is a counter label."""
-
-    reason = "codec"
-
-
-class MessageTooLarge(CodecError):
-    """Payload (or encoded message) exceeds the size limit."""
-
-    reason = "too_large"
-
-
-class MalformedMessage(CodecError):
-    """Not msgpack, wrong envelope shape, or a bad object column."""
-
-    reason = "malformed"
-
-
-class SchemaVersionError(CodecError):
-    """Envelope schema version differs from this build's ``SCHEMA_VERSION``."""
-
-    reason = "version"
-
-
-class WrongMessageType(CodecError):
-    """Envelope type tag differs from the expected model's ``TYPE``."""
-
-    reason = "wrong_type"
-
-
-class InvalidMessage(CodecError):
-    """Well-formed envelope whose content breaks a model rule; ``field`` names it."""
-
-    reason = "invalid"
-
-    def __init__(self, message: str, field: str = "") -> None:
-        super().__init__(message)
-        self.field = field
-
-
-@dataclass(frozen=True)
-class Column:
-    """One object attribute on the wire: ``dtype`` little-endian code, ``step`` grid (None: integer)."""
-
-    name: str
-    dtype: np.dtype
-    step: float | None = None
-
-    @property
-    def bounds(self) -> tuple[int, int]:
-        """Smallest and largest code the dtype can hold."""
-        info = np.iinfo(self.dtype)
-        return int(info.min), int(info.max)
-
-
-def _col(name: str, dtype: str, step: float | None = None) -> Column:
-    return Column(name, np.dtype(dtype), step)
-
-
-OBJECT_COLUMNS: tuple[Column, ...] = (
-    _col("id", "<u4"),
-    _col("cls", "u1"),
-    _col("x", "<i4", q.POSITION_M),
-    _col("y", "<i4", q.POSITION_M),
-    _col("z", "<i4", q.POSITION_M),
-    _col("length", "<u2", q.SIZE_M),
-    _col("width", "<u2", q.SIZE_M),
-    _col("height", "<u2", q.SIZE_M),
-    _col("yaw", "<i2", q.YAW_RAD),
-    _col("vx", "<i2", q.SPEED_MPS),
-    _col("vy", "<i2", q.SPEED_MPS),
-    _col("ax", "<i2", q.ACCEL_MPS2),
-    _col("ay", "<i2", q.ACCEL_MPS2),
-    _col("yaw_rate", "<i2", q.YAW_RATE_RADPS),
-    _col("cov_xx", "<u4", q.COV_M2),
-    _col("cov_xy", "<i4", q.COV_M2),
-    _col("cov_yy", "<u4", q.COV_M2),
-    _col("cov_vxx", "<u4", q.COV_M2),
-    _col("cov_vxy", "<i4", q.COV_M2),
-    _col("cov_vyy", "<u4", q.COV_M2),
-    _col("confidence", "u1", q.CONFIDENCE),
-    _col("age_s", "<u4", q.AGE_S),
-)
-FUSED_OBJECT_COLUMNS: tuple[Column, ...] = (*OBJECT_COLUMNS, _col("sources", "u1"))
-
-# Message TYPE -> columns of its ``objects`` tuple.
-COLUMNAR: dict[str, tuple[Column, ...]] = {
-    ObjectList.TYPE: OBJECT_COLUMNS,
-    FusedObjectList.TYPE: FUSED_OBJECT_COLUMNS,
-    PredictionList.TYPE: OBJECT_COLUMNS,
-    SensorObjects.TYPE: OBJECT_COLUMNS,  # sensor inputs (schemas.sensor_messages)
-    GroundTruth.TYPE: OBJECT_COLUMNS,
-}
 
 _short = reprlib.Repr()
 _short.maxstring = 40
@@ -140,96 +52,54 @@ _short.maxother = 40
 _short.maxlevel = 2
 
 
-# ---------------------------------------------------------------- columns
+# ---------------------------------------------------------------- positional fields
 
 
-def _object_table(objects: Sequence[Any], columns: Sequence[Column]) -> np.ndarray:
-    """(n, len(columns)) float64 array of the objects' attribute values."""
-    getter = attrgetter(*(c.name for c in columns))
-    try:
-        table = np.array([getter(o) for o in objects], dtype=np.float64)
-    except (AttributeError, TypeError, ValueError, OverflowError) as exc:
-        raise InvalidMessage(f"objects: cannot read object attributes as numbers: {exc}", "objects") from exc
-    return table.reshape(len(objects), len(columns))
+@cache
+def _layout(model: type[Message]) -> tuple[tuple[str, Any, type[Message] | None], ...]:
+    """(name, default, nested model or None) of each field but ``objects``, in declaration order."""
+    out = []
+    for name, info in model.model_fields.items():
+        if name == "objects":
+            continue
+        nested = info.annotation if isinstance(info.annotation, type) and issubclass(info.annotation, Message) else None
+        out.append((name, info.default, nested))
+    return tuple(out)
 
 
-def _column_codes(values: np.ndarray, col: Column) -> np.ndarray:
-    """Integer codes of one column, range-checked before the cast (no silent wrap-around)."""
-    codes = np.rint(values if col.step is None else values / col.step)
-    lo, hi = col.bounds
-    ok = np.isfinite(codes) & (codes >= lo) & (codes <= hi)
-    if col.step is None:
-        ok &= codes == values  # integer attributes must already be integers
-    if not ok.all():
-        i = int(np.flatnonzero(~ok)[0])
-        raise InvalidMessage(
-            f"objects.{i}.{col.name} = {values[i]!r} does not fit the wire column "
-            f"({col.dtype.name}, step {col.step or 1}: codes {lo}..{hi})",
-            f"objects.{i}.{col.name}",
-        )
-    return codes.astype(col.dtype)
+def _positional(msg: Message) -> list[Any]:
+    """The fields of ``msg`` (but ``objects``) as a list: nil for a default, trailing nils dropped."""
+    out: list[Any] = []
+    for name, default, nested in _layout(type(msg)):
+        value = getattr(msg, name)
+        if value == default and type(value) is type(default):
+            out.append(None)
+        elif nested is not None:
+            out.append(_positional(value))
+        elif isinstance(value, tuple):
+            out.append([v.model_dump(mode="python") if isinstance(v, Message) else v for v in value])
+        else:
+            out.append(value)
+    while out and out[-1] is None:
+        out.pop()
+    return out
 
 
-def pack_columns(objects: Sequence[Any], columns: Sequence[Column]) -> dict[str, Any]:
-    """``{"n": count, name: little-endian code bytes}`` for a tuple of objects."""
-    if len(objects) > MAX_OBJECTS:
-        raise InvalidMessage(f"objects: {len(objects)} objects, at most {MAX_OBJECTS} allowed", "objects")
-    table = _object_table(objects, columns)
-    packed: dict[str, Any] = {"n": len(objects)}
-    for j, col in enumerate(columns):
-        packed[col.name] = _column_codes(table[:, j], col).tobytes()
-    return packed
-
-
-def _column_count(packed: Any, columns: Sequence[Column]) -> int:
-    """Validated object count of a column map (shape errors are MalformedMessage)."""
-    if not isinstance(packed, dict):
-        raise MalformedMessage(f"objects must be a column map, got {type(packed).__name__}")
-    n = packed.get("n")
-    if type(n) is not int or n < 0:
-        raise MalformedMessage(f"objects column map needs a non-negative integer 'n', got {_short.repr(n)}")
-    if n > MAX_OBJECTS:
-        raise InvalidMessage(f"objects: {n} objects, at most {MAX_OBJECTS} allowed", "objects")
-    expected = {"n", *(c.name for c in columns)}
-    if packed.keys() != expected:
-        missing = sorted(expected - packed.keys())
-        extra = sorted(map(repr, packed.keys() - expected))
-        raise MalformedMessage(f"objects column map: missing columns {missing}, unexpected {extra}")
-    return n
-
-
-def _column_values(buf: Any, n: int, col: Column) -> list:
-    """Decoded values of one column: ints, or ``code * step`` floats."""
-    size = n * col.dtype.itemsize
-    if not isinstance(buf, bytes) or len(buf) != size:
-        got = f"{len(buf)} bytes" if isinstance(buf, bytes) else type(buf).__name__
-        raise MalformedMessage(
-            f"objects column {col.name!r}: got {got}, expected {size} bytes ({n} x {col.dtype.name})"
-        )
-    codes = np.frombuffer(buf, dtype=col.dtype)
-    # k * step in float64: the same arithmetic as quantize.quantize, hence bit-exact.
-    return codes.tolist() if col.step is None else (codes * col.step).tolist()
-
-
-def unpack_columns(packed: Any, columns: Sequence[Column]) -> list[dict[str, Any]]:
-    """Per-object attribute dicts from a column map (inverse of :func:`pack_columns`)."""
-    n = _column_count(packed, columns)
-    names = [c.name for c in columns]
-    values = [_column_values(packed[c.name], n, c) for c in columns]
-    return [dict(zip(names, row)) for row in zip(*values)]
+def _named(values: Any, model: type[Message], where: str) -> dict[str, Any]:
+    """The field map of a positional list (inverse of ``_positional``; nil: the default)."""
+    layout = _layout(model)
+    if not isinstance(values, list) or len(values) > len(layout):
+        got = f"{len(values)} entries" if isinstance(values, list) else type(values).__name__
+        raise MalformedMessage(f"{where} must be an array of at most {len(layout)} fields, got {got}")
+    body = {}
+    for (name, _, nested), value in zip(layout, values):
+        if value is not None:
+            body[name] = _named(value, nested, f"{where}.{name}") if nested is not None and isinstance(value, list) \
+                else value
+    return body
 
 
 # ---------------------------------------------------------------- encode
-
-
-def _body(msg: Message) -> dict[str, Any]:
-    """Plain-data body of a message, object tuples packed as columns."""
-    columns = COLUMNAR.get(msg.TYPE)
-    if columns is None:
-        return msg.model_dump(mode="python")
-    body = msg.model_dump(mode="python", exclude={"objects"})
-    body["objects"] = pack_columns(msg.objects, columns)
-    return body
 
 
 def encode(msg: Message, max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
@@ -240,11 +110,15 @@ def encode(msg: Message, max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
     """
     if not isinstance(msg, Message):
         raise TypeError(f"encode() takes a schemas Message, got {type(msg).__name__}")
-    envelope = {"v": SCHEMA_VERSION, "t": msg.TYPE, "d": _body(msg)}
+    tag = LIST_TAGS.get(msg.TYPE)
+    if tag is None:
+        envelope: Any = {"v": SCHEMA_VERSION, "t": msg.TYPE, "d": msg.model_dump(mode="python")}
+    else:
+        envelope = [SCHEMA_VERSION, tag, _positional(msg), pack_objects(msg.objects)]
     try:
         data = msgpack.packb(envelope, use_bin_type=True)
     except (TypeError, ValueError, OverflowError) as exc:
-        raise InvalidMessage(f"cannot encode {msg.TYPE}: {exc}") from exc
+        raise InvalidMessage(f"cannot encode {msg.TYPE}: {exc}") from None
     if len(data) > max_bytes:
         raise MessageTooLarge(f"encoded {msg.TYPE} is {len(data)} bytes, limit is {max_bytes}")
     return data
@@ -278,22 +152,29 @@ def _unpack(data: bytes | bytearray | memoryview, size: int, max_bytes: int) -> 
 
 
 def _open_envelope(envelope: Any, model: type[Message]) -> dict[str, Any]:
-    """The body of a checked envelope: shape, then version, then type tag."""
-    if not isinstance(envelope, dict) or envelope.keys() != ENVELOPE_KEYS:
+    """The body of a checked envelope: shape, then version, then type tag (an object list's
+    body: its named fields, ``objects`` still the packed section)."""
+    if isinstance(envelope, list) and len(envelope) == LIST_ENVELOPE_LEN:
+        version, tag, fields, objects = envelope
+    elif isinstance(envelope, dict) and envelope.keys() == ENVELOPE_KEYS:
+        version, tag, fields, objects = envelope["v"], envelope["t"], envelope["d"], None
+    else:
         got = f"keys {sorted(map(repr, envelope))}" if isinstance(envelope, dict) else type(envelope).__name__
-        raise MalformedMessage(f"envelope must be a map with keys 'v', 't', 'd', got {got[:80]}")
-    version, tag, body = envelope["v"], envelope["t"], envelope["d"]
+        raise MalformedMessage(f"envelope must be a map with keys 'v', 't', 'd' or a {LIST_ENVELOPE_LEN}-entry "
+                               f"object-list array, got {got[:80]}")
     if type(version) is not int:
-        raise MalformedMessage(f"envelope version 'v' must be an integer, got {_short.repr(version)}")
+        raise MalformedMessage(f"envelope version must be an integer, got {_short.repr(version)}")
     if version != SCHEMA_VERSION:
         raise SchemaVersionError(f"schema version {version} received, this build speaks version {SCHEMA_VERSION}")
-    if type(tag) is not str:
-        raise MalformedMessage(f"envelope type tag 't' must be a string, got {_short.repr(tag)}")
-    if tag != model.TYPE:
+    if type(tag) not in (str, int):
+        raise MalformedMessage(f"envelope type tag must be a string or an integer, got {_short.repr(tag)}")
+    if tag != LIST_TAGS.get(model.TYPE, model.TYPE):
         raise WrongMessageType(f"message type {_short.repr(tag)} received where {model.TYPE!r} was expected")
-    if not isinstance(body, dict):
-        raise MalformedMessage(f"envelope body 'd' must be a map, got {type(body).__name__}")
-    return body
+    if objects is None:
+        if not isinstance(fields, dict):
+            raise MalformedMessage(f"envelope body 'd' must be a map, got {type(fields).__name__}")
+        return fields
+    return {**_named(fields, model, "fields"), "objects": objects}
 
 
 def _describe(exc: ValidationError, type_name: str, limit: int = 3) -> InvalidMessage:
@@ -342,9 +223,7 @@ def header_of(body: dict[str, Any]) -> ObjectListHeader:
 
 def object_count(body: dict[str, Any]) -> int:
     """Objects (and, for predictions, paths) an opened body declares, before any is decoded."""
-    objects, paths = body.get("objects"), body.get("paths")
-    n = objects.get("n") if isinstance(objects, dict) else None
-    count = n if type(n) is int and n >= 0 else 0
+    count, paths = _section_count(body.get("objects")), body.get("paths")
     return max(count, len(paths)) if isinstance(paths, list) else count
 
 
@@ -358,9 +237,9 @@ def path_point_count(body: dict[str, Any]) -> int:
 
 def from_body(body: dict[str, Any], model: type[M]) -> M:
     """The validated ``model`` instance of an opened body (every model rule)."""
-    columns = COLUMNAR.get(model.TYPE)
-    if columns is not None and "objects" in body:
-        body = {**body, "objects": unpack_columns(body["objects"], columns)}
+    if model.TYPE in LIST_TAGS:
+        objects = unpack_objects(body.get("objects", list(EMPTY_SECTION)), model is FusedObjectList)
+        body = {**body, "objects": objects}
     try:
         return model.model_validate(body)
     except ValidationError as exc:

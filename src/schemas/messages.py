@@ -9,29 +9,23 @@ from __future__ import annotations
 import math
 from typing import Annotated, ClassVar, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PlainSerializer, PlainValidator, model_validator
 
 from . import quantize as q
 from .classes import ObjectClass
+from .columns import ObjectColumns, objects_field
+from .limits import (ACCEL_MAX_MPS2, AGE_MAX_S, HEIGHT_MAX_M, MAX_OBJECTS, POSITION_MAX_M, SIZE_MAX_M,  # noqa: F401
+                     SOURCE_RSU, SOURCE_VEHICLE, SPEED_MAX_MPS, UNKNOWN_VELOCITY_VAR, VARIANCE_MAX, YAW_RATE_MAX)
 
 # 2: velocity covariance cov_vxx, cov_vxy, cov_vyy on objects
 # 3: header schema_version checked; RsuMetrics; ObuMetrics.output_dropped; RsuLinkStatus.sync_outliers
-SCHEMA_VERSION = 3
-MAX_OBJECTS = 1024
+# 4: object lists as one msgpack array [v, tag, fields, objects]: positional fields (nil: default),
+#    objects as bit-packed rows of per-message column widths (schemas.object_wire)
+SCHEMA_VERSION = 4
 
 # Plausible wall-clock range: 2000-01-01 .. 2100-01-01. Anything outside is a broken clock.
 MIN_TIME_NS = 946_684_800 * 10**9
 MAX_TIME_NS = 4_102_444_800 * 10**9
-
-UNKNOWN_VELOCITY_VAR = 1e4  # m^2/s^2 (100 m/s std): no velocity measured; equals the Variance maximum
-
-# Sources of a fused object (FusedObject.sources, one byte on the wire): SOURCE_VEHICLE, the
-# vehicle's own sensors; SOURCE_RSU, any cooperative source (an RSU or, later, a peer vehicle).
-# Inside the OBU the tracker keeps one bit per source in an int64 (fusion.tracking.SOURCE_BITS):
-# bit 0 own vehicle, bit 1 + i the OBU's RSU slot i (fusion.tracking.slot_source; slot 0 is
-# SOURCE_RSU), and fusion.wire.wire_sources folds bits 1..62 into SOURCE_RSU on the way out.
-SOURCE_VEHICLE = 1
-SOURCE_RSU = 2
 
 NodeId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
 TimeNs = Annotated[int, Field(ge=MIN_TIME_NS, le=MAX_TIME_NS)]
@@ -51,18 +45,6 @@ def _yaw(v: float) -> float:
     return (k - 3600 if k >= 1800 else k) * q.YAW_RAD
 
 
-# Value ranges of the wire (|value| <= bound, or [0, bound] where negative is meaningless).
-POSITION_MAX_M = 1e6
-HEIGHT_MAX_M = 1e4
-SIZE_MAX_M = 100.0
-SPEED_MAX_MPS = 200.0
-ACCEL_MAX_MPS2 = 100.0
-# 30 rad/s rounded up to the grid: the quantised value of any accepted input must itself be
-# accepted, or a decoded message would fail re-validation (30.0 quantises to 30.00046).
-YAW_RATE_MAX = math.ceil(30.0 / q.YAW_RATE_RADPS) * q.YAW_RATE_RADPS
-VARIANCE_MAX = 1e4  # m^2 or m^2/s^2; also the covariance bound
-AGE_MAX_S = 1e6
-
 Position = Annotated[float, Field(ge=-POSITION_MAX_M, le=POSITION_MAX_M, allow_inf_nan=False), _grid(q.POSITION_M)]
 Height = Annotated[float, Field(ge=-HEIGHT_MAX_M, le=HEIGHT_MAX_M, allow_inf_nan=False), _grid(q.POSITION_M)]
 Size = Annotated[float, Field(ge=0.0, le=SIZE_MAX_M, allow_inf_nan=False), _grid(q.SIZE_M)]
@@ -78,6 +60,14 @@ Confidence = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False), _grid(
 AgeS = Annotated[float, Field(ge=0.0, le=AGE_MAX_S, allow_inf_nan=False), _grid(q.AGE_S)]
 # A message's own schema_version field must be this build's (a different one is read differently).
 SchemaVersion = Annotated[int, Field(ge=SCHEMA_VERSION, le=SCHEMA_VERSION)]
+# A list's objects: validated columns (schemas.columns), built from an ObjectColumns or from
+# per-object models / dicts; ``FusedObjects`` carry ``sources``.
+# (model_dump gives per-object dicts: for inspection, not for the wire.)
+_AS_DICTS = PlainSerializer(lambda cols: [obj.model_dump() for obj in cols])
+Objects = Annotated[ObjectColumns, PlainValidator(objects_field(fused=False)), _AS_DICTS]
+FusedObjects = Annotated[ObjectColumns, PlainValidator(objects_field(fused=True)), _AS_DICTS]
+EMPTY_OBJECTS = ObjectColumns.empty()
+EMPTY_FUSED = ObjectColumns.empty(fused=True)
 
 
 class Message(BaseModel):
@@ -152,7 +142,7 @@ class ObjectList(Message):
 
     TYPE: ClassVar[str] = "object_list"
     header: ObjectListHeader
-    objects: Annotated[tuple[ObjectState, ...], Field(max_length=MAX_OBJECTS)] = ()
+    objects: Objects = EMPTY_OBJECTS
 
 
 MAX_PATH_POINTS = 128  # 12.8 s at 0.1 s steps
@@ -185,16 +175,16 @@ class PredictionList(Message):
     TYPE: ClassVar[str] = "prediction_list"
     header: ObjectListHeader
     step_ns: Annotated[int, Field(ge=1_000_000, le=10_000_000_000)] = 100_000_000
-    objects: Annotated[tuple[ObjectState, ...], Field(max_length=MAX_OBJECTS)] = ()
+    objects: Objects = EMPTY_OBJECTS
     paths: Annotated[tuple[PredictedPath, ...], Field(max_length=MAX_OBJECTS)] = ()
 
     @model_validator(mode="after")
     def _one_path_per_object(self) -> "PredictionList":
         if len(self.paths) != len(self.objects):
             raise ValueError(f"{len(self.objects)} objects but {len(self.paths)} paths")
-        for i, (obj, path) in enumerate(zip(self.objects, self.paths)):
-            if obj.id != path.id:
-                raise ValueError(f"paths.{i}.id {path.id} differs from objects.{i}.id {obj.id}")
+        for i, (obj_id, path) in enumerate(zip(self.objects.ids.tolist(), self.paths)):
+            if obj_id != path.id:
+                raise ValueError(f"paths.{i}.id {path.id} differs from objects.{i}.id {obj_id}")
         return self
 
     @property
@@ -221,7 +211,7 @@ class FusedObjectList(Message):
     ego_x: Position = 0.0
     ego_y: Position = 0.0
     ego_yaw: Yaw = 0.0
-    objects: Annotated[tuple[FusedObject, ...], Field(max_length=MAX_OBJECTS)] = ()
+    objects: FusedObjects = EMPTY_FUSED
 
 
 class TimeRequest(Message):

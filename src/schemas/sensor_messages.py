@@ -26,7 +26,7 @@ from typing import Annotated, ClassVar, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from .messages import (MAX_OBJECTS, SCHEMA_VERSION, VARIANCE_MAX, Message, NodeId, ObjectState, Position, SchemaVersion,
+from .messages import (EMPTY_OBJECTS, SCHEMA_VERSION, VARIANCE_MAX, Message, NodeId, Objects, Position, SchemaVersion,
                        Seq, Size, Speed, TimeNs, Yaw)
 
 SENSOR_FRAMES = ("map", "base_link")
@@ -72,7 +72,7 @@ class SensorObjects(Message):
 
     TYPE: ClassVar[str] = "sensor_objects"
     header: SensorHeader
-    objects: Annotated[tuple[ObjectState, ...], Field(max_length=MAX_OBJECTS)] = ()
+    objects: Objects = EMPTY_OBJECTS
 
 
 class LocalizationPose(Message):
@@ -139,5 +139,5 @@ class GroundTruth(Message):
     t_ns: TimeNs
     scenario: Annotated[str, Field(max_length=128)] = ""
     frame_id: Literal["map"] = "map"
-    objects: Annotated[tuple[ObjectState, ...], Field(max_length=MAX_OBJECTS)] = ()
+    objects: Objects = EMPTY_OBJECTS
     vehicles: Annotated[tuple[VehicleTruth, ...], Field(max_length=MAX_VEHICLES)] = ()

@@ -40,7 +40,10 @@ from schemas import (
     decode,
     encode,
 )
+from schemas.codec import LIST_TAGS
+from schemas.columns import COLUMN, ObjectColumns
 from schemas.messages import MAX_TIME_NS, MIN_TIME_NS, YAW_RATE_MAX
+from schemas.wire_view import pack_view, unpack_view
 
 FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 T0 = 1_700_000_000 * 10**9
@@ -176,11 +179,20 @@ MODELS = [ObjectList, FusedObjectList, TimeRequest, TimeReply, EgoPose, ObuMetri
 
 
 def envelope(tag: str, body: object, version: object = SCHEMA_VERSION) -> bytes:
-    return msgpack.packb({"v": version, "t": tag, "d": body}, use_bin_type=True)
+    """An envelope of a named body (an object list's goes out as its array envelope)."""
+    return pack_view({"v": version, "t": LIST_TAGS.get(tag, tag), "d": body})
 
 
 def body_of(data: bytes) -> dict:
-    return msgpack.unpackb(data, raw=False)["d"]
+    return unpack_view(data)["d"]
+
+
+def present_index(name: str, body: dict) -> int:
+    """Position of a column among the present ones of an objects section (its width and ref)."""
+    mask = body["objects"]["present"]
+    j = COLUMN[name]
+    assert mask >> j & 1, f"{name} not present"
+    return bin(mask & ((1 << j) - 1)).count("1")
 
 
 def header(**changes) -> ObjectListHeader:
@@ -346,23 +358,28 @@ def test_non_finite_field_is_invalid(bad: float) -> None:
     assert err.reason == "invalid" and err.field == "x" and "x:" in str(err)
 
 
-def test_non_finite_object_value_is_rejected_on_encode() -> None:
-    msg = ObjectList.model_construct(header=header(), objects=(car(0), car(1).model_copy(update={"vx": math.nan})))
+def test_non_finite_object_value_is_rejected_when_the_columns_are_built() -> None:
+    bad = (car(0), car(1).model_copy(update={"vx": math.nan}))  # model_copy skips validation
     with pytest.raises(InvalidMessage) as info:
-        encode(msg)
+        ObjectColumns.from_states(bad)
     assert info.value.field == "objects.1.vx"
+    with pytest.raises(ValueError, match="objects.1.vx"):
+        ObjectList(header=header(), objects=bad)
 
 
 def test_unknown_key_in_body_is_invalid() -> None:
-    body = body_of(encode(object_list(1))) | {"speed_limit": 50}
-    err = decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage)
+    body = body_of(encode(EgoPose(vehicle_id="car-1", t_ns=T0, x=1.0, y=2.0))) | {"speed_limit": 50}
+    err = decode_fails(envelope(EgoPose.TYPE, body), EgoPose, InvalidMessage)
     assert err.field == "speed_limit"
 
 
-def test_unknown_key_in_header_is_invalid() -> None:
+def test_extra_positional_field_of_an_object_list_is_malformed() -> None:
+    # object lists carry their fields by position: an unknown one is an entry too many
+    body = body_of(encode(object_list(1))) | {"speed_limit": 50}
+    assert "at most 1 fields" in str(decode_fails(envelope(ObjectList.TYPE, body), ObjectList, MalformedMessage))
     body = body_of(encode(object_list(1)))
     body["header"]["extra"] = 1
-    assert decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage).field == "header.extra"
+    decode_fails(envelope(ObjectList.TYPE, body), ObjectList, MalformedMessage)
 
 
 @pytest.mark.parametrize("t_ns", [0, 86_400 * 10**9, 7_258_118_400 * 10**9])  # 1970-01-01, 1970-01-02, 2200-01-01
@@ -384,16 +401,14 @@ def test_publish_before_capture_is_invalid() -> None:
 
 def test_out_of_model_range_column_value_is_invalid() -> None:
     body = body_of(encode(object_list(3)))
-    x = np.frombuffer(body["objects"]["x"], "<i4").copy()
-    x[2] = 2**31 - 1  # fits int32, but 21474836 m is outside the model's +-1e6 m
-    body["objects"]["x"] = x.tobytes()
+    body["objects"]["refs"][present_index("x", body)] = 2**31 - 1  # 21474836 m: outside the model's +-1e6 m
     err = decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage)
-    assert err.field == "objects.2.x"
+    assert err.field == "objects.0.x"
 
 
 def test_unknown_class_code_is_invalid() -> None:
     body = body_of(encode(object_list(1)))
-    body["objects"]["cls"] = bytes([200])
+    body["objects"]["refs"][present_index("cls", body)] = 200
     assert decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage).field == "objects.0.cls"
 
 
@@ -402,17 +417,19 @@ def test_unknown_class_code_is_invalid() -> None:
 
 def test_truncated_column_is_malformed() -> None:
     body = body_of(encode(object_list(4)))
-    body["objects"]["y"] = body["objects"]["y"][:-1]
+    rows = body["objects"]["rows"]
+    body["objects"]["rows"] = rows[:-1]
     err = decode_fails(envelope(ObjectList.TYPE, body), ObjectList, MalformedMessage)
-    assert "'y'" in str(err) and "expected 16 bytes" in str(err)
+    assert f"rows are {len(rows) - 1} bytes, 4 objects of {len(rows) // 4} bytes expected" in str(err)
 
 
-@pytest.mark.parametrize("change", ["missing", "extra", "n_negative", "n_str", "not_bytes", "not_map"])
-def test_bad_column_map_is_malformed(change: str) -> None:
+@pytest.mark.parametrize("change", ["missing", "extra", "n_negative", "n_str", "not_bytes", "not_array", "wide",
+                                    "flag", "refs", "scale", "beyond"])
+def test_bad_column_layout_is_malformed(change: str) -> None:
     body = body_of(encode(object_list(2)))
     cols = body["objects"]
     if change == "missing":
-        del cols["yaw"]
+        cols["present"] &= ~(1 << COLUMN["x"])  # a required column
     elif change == "extra":
         cols["colour"] = b"\x00\x00"
     elif change == "n_negative":
@@ -420,45 +437,62 @@ def test_bad_column_map_is_malformed(change: str) -> None:
     elif change == "n_str":
         cols["n"] = "2"
     elif change == "not_bytes":
-        cols["id"] = [0, 1]
+        cols["rows"] = [0, 1]
+    elif change == "wide":
+        cols["widths"] = bytes([49]) + cols["widths"][1:]
+    elif change == "flag":
+        cols["widths"] = bytes([cols["widths"][0] | 0x80]) + cols["widths"][1:]
+    elif change == "refs":
+        cols["refs"] = cols["refs"][:-1]
+    elif change == "scale":
+        cols["widths"] = bytes([cols["widths"][0] | 0x40]) + cols["widths"][1:]
+        cols["scales"] = [2**47]
+    elif change == "beyond":
+        cols["present"] |= 1 << 22  # sources: not a column of an ObjectList
     else:
-        body["objects"] = [cols]
+        body["objects"] = {"objects": list(cols.values())}
     decode_fails(envelope(ObjectList.TYPE, body), ObjectList, MalformedMessage)
 
 
 def test_object_count_above_max_is_invalid() -> None:
     n = MAX_OBJECTS + 1
     body = body_of(encode(object_list(1)))
-    body["objects"] = {"n": n} | {k: v * n for k, v in body["objects"].items() if k != "n"}
+    body["objects"] |= {"n": n, "rows": body["objects"]["rows"] * n}
     err = decode_fails(envelope(ObjectList.TYPE, body), ObjectList, InvalidMessage)
     assert err.field == "objects" and str(MAX_OBJECTS) in str(err)
-    too_many = ObjectList.model_construct(header=header(), objects=(car(0),) * n)
     with pytest.raises(InvalidMessage):
-        encode(too_many)
+        ObjectColumns.from_states((car(0),) * n)
 
 
 @pytest.mark.parametrize(("field", "value"), [("x", 3e7), ("id", 2**32), ("id", -1), ("vx", 400.0), ("length", -1.0)])
-def test_unrepresentable_value_is_rejected_on_encode_not_wrapped(field: str, value: float) -> None:
+def test_unrepresentable_value_is_rejected_not_wrapped(field: str, value: float) -> None:
     bad = car(0).model_copy(update={field: value})  # model_copy skips validation
     with pytest.raises(InvalidMessage) as info:
-        encode(ObjectList.model_construct(header=header(), objects=(bad,)))
+        ObjectColumns.from_states((bad,))
     assert info.value.field == f"objects.0.{field}"
 
 
-def test_columns_are_little_endian_codes() -> None:
-    msg = ObjectList(header=header(), objects=(car(3, x=-1.25, yaw=-math.pi, confidence=0.5, age_s=2.5),))
-    cols = body_of(encode(msg))["objects"]
-    assert cols["n"] == 1
-    assert cols["id"] == (3).to_bytes(4, "little")
-    assert cols["x"] == (-125).to_bytes(4, "little", signed=True)
-    assert cols["yaw"] == (-1800).to_bytes(2, "little", signed=True)
-    assert cols["confidence"] == bytes([50]) and cols["age_s"] == (2500).to_bytes(4, "little")
+def test_columns_are_codes_with_per_message_widths() -> None:
+    msg = ObjectList(header=header(), objects=(car(3, x=-1.25, yaw=-math.pi, confidence=0.5, age_s=2.5),
+                                               car(4, x=-1.05, yaw=-math.pi, confidence=0.5, age_s=2.5)))
+    body = body_of(encode(msg))
+    cols = body["objects"]
+    assert cols["n"] == 2
+    # default columns (z, height, ax, ay, yaw_rate, covariances) are left out
+    assert not cols["present"] >> COLUMN["z"] & 1 and not cols["present"] >> COLUMN["cov_vxx"] & 1
+    ref = {name: cols["refs"][present_index(name, body)] for name in ("id", "x", "yaw", "confidence", "age_s")}
+    assert ref == {"id": 3, "x": -125, "yaw": -1800, "confidence": 50, "age_s": 2500}
+    width = {name: cols["widths"][present_index(name, body)] for name in ("id", "x", "yaw")}
+    assert width == {"id": 1, "x": 0x40 | 1, "yaw": 0}  # x: codes -125, -105 = ref + {0, 1} * 20
+    assert cols["scales"] == [20]
+    assert len(cols["rows"]) == 2  # 2 bits per object (id, x) in one byte each
 
 
 def test_fused_list_carries_sources_column() -> None:
     obj = FusedObject(**dict(car(1)), sources=3)
     msg = FusedObjectList(vehicle_id="car-1", seq=1, cycle_time_ns=T0, publish_time_ns=T0, objects=(obj,))
-    assert body_of(encode(msg))["objects"]["sources"] == b"\x03"
+    body = body_of(encode(msg))
+    assert body["objects"]["refs"][present_index("sources", body)] == 3
     assert decode(encode(msg), FusedObjectList).objects[0].sources == 3
 
 
