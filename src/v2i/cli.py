@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
 import signal
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 
 SUBCOMMANDS = {
@@ -323,16 +325,22 @@ def _interrupt_on(*signals: int) -> None:
         signal.signal(sig, _raise)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(commands: Iterable[str] | None = None) -> argparse.ArgumentParser:
+    """The ``v2i`` parser; only ``commands`` (default: all) get their options, so that a command
+    imports no other command's modules (``v2i --help`` imports none: ``benchmarks/cli_start.py``)."""
     parser = _OneLineParser(
         prog="v2i",
         description="Cooperative perception between a roadside unit and a vehicle over an emulated V2X link.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     parsers = {name: sub.add_parser(name, help=text, description=text) for name, text in SUBCOMMANDS.items()}
-    for name in ("demo", "eval"):
-        _run_options(parsers[name])
-    ev = parsers["eval"]
+    for name in SUBCOMMANDS if commands is None else commands:
+        _OPTIONS[name](parsers[name])
+    return parser
+
+
+def _eval_options(ev: argparse.ArgumentParser) -> None:
+    _run_options(ev)
     ev.add_argument("--table", choices=["seeds"], help="run the experiment tables (seed 000 Tables I-III, "
                     "seed 001 Table 1, OTVIC Table IV) instead of one run")
     ev.add_argument("--seeds", type=int, default=5, help="with --table: seeds --seed .. --seed+N-1 (default %(default)s)")
@@ -341,12 +349,18 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--chaos", metavar="FILE", help="chaos timeline YAML: timed link faults, service kills and "
                     "restarts, an RSU clock step (see evaluation/chaos.py)")
     ev.set_defaults(func=cmd_eval)
-    demo = parsers["demo"]
+
+
+def _demo_options(demo: argparse.ArgumentParser) -> None:
+    _run_options(demo)
     demo.add_argument("--startup", type=float, default=4.0, help="seconds given to the services to start (default %(default)s)")
     demo.add_argument("--kill-link-at", type=float, metavar="S", help="chaos: kill the link emulator S seconds into the run")
     demo.add_argument("--link-down-s", type=float, default=3.0, help="chaos: restart it this many seconds later (default %(default)s)")
     demo.set_defaults(func=cmd_demo)
-    chaos_sub = parsers["chaos"].add_subparsers(dest="chaos_command", required=True, metavar="{run}")
+
+
+def _chaos_options(chaos: argparse.ArgumentParser) -> None:
+    chaos_sub = chaos.add_subparsers(dest="chaos_command", required=True, metavar="{run}")
     text = "play a chaos timeline YAML during a live demo and report each fault's effect"
     chaos_run = chaos_sub.add_parser("run", help=text, description=text + (
         ". Link events (profile, outage, delay_spike, loss_burst, bandwidth_cap) go to the link emulator "
@@ -358,7 +372,9 @@ def build_parser() -> argparse.ArgumentParser:
     chaos_run.add_argument("--startup", type=float, default=4.0,
                            help="seconds given to the services to start (default %(default)s)")
     chaos_run.set_defaults(func=cmd_chaos_run)
-    fuzz = parsers["fuzz"]
+
+
+def _fuzz_options(fuzz: argparse.ArgumentParser) -> None:
     fuzz.description += (". obu: an RSU and the OBU, the attacker publishing on the RSU keys (spoofed and fake "
                          "ids, floods, replays) and forging time replies; rsu: hostile time queries; link: hostile "
                          "lists, poses, controls and queries on both sides of the emulator. Exit code 1 when the "
@@ -384,15 +400,38 @@ def build_parser() -> argparse.ArgumentParser:
                       help="seconds given to the services to start (default %(default)s)")
     fuzz.add_argument("--json", metavar="PATH", help="write the report JSON to PATH ('-' for stdout)")
     fuzz.set_defaults(func=cmd_fuzz)
-    camera_sub = parsers["camera"].add_subparsers(dest="camera_command", required=True, metavar="{render,calibrate}")
+
+
+def _camera_options(camera: argparse.ArgumentParser) -> None:
+    camera_sub = camera.add_subparsers(dest="camera_command", required=True, metavar="{render,calibrate}")
     for module in ("v2i.camera_render", "v2i.camera_calibrate"):
-        __import__(module, fromlist=["add_parser"]).add_parser(camera_sub)
-    for name, module in (("rsu", "rsu_service.cli"), ("obu", "obu_service.cli"), ("link", "link_emulator.cli"),
-                         ("router", "v2i.router"), ("world", "v2i.world_node")):
-        mod = __import__(module, fromlist=["configure_parser", "run"])
-        mod.configure_parser(parsers[name])
-        parsers[name].set_defaults(func=mod.run)
-    return parser
+        importlib.import_module(module).add_parser(camera_sub)
+
+
+def _service_options(module: str):
+    """Options of a service command from its module's ``configure_parser``; runs its ``run``."""
+
+    def options(p: argparse.ArgumentParser) -> None:
+        mod = importlib.import_module(module)
+        mod.configure_parser(p)
+        p.set_defaults(func=mod.run)
+
+    return options
+
+
+# command -> the function adding its options (and importing its modules: only when it is parsed)
+_OPTIONS = {
+    "demo": _demo_options, "eval": _eval_options, "chaos": _chaos_options, "rsu": _service_options("rsu_service.cli"),
+    "obu": _service_options("obu_service.cli"), "link": _service_options("link_emulator.cli"),
+    "world": _service_options("v2i.world_node"), "router": _service_options("v2i.router"),
+    "camera": _camera_options, "fuzz": _fuzz_options,
+}
+
+
+def _named_command(argv: list[str]) -> list[str]:
+    """The command that ``argv`` runs (the first word; ``v2i`` has no option but --help), or none."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return [word] if word in SUBCOMMANDS else []
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -404,17 +443,14 @@ class _OneLineParser(argparse.ArgumentParser):
 
 def main(argv: list[str] | None = None) -> int:
     """Run a ``v2i`` command; bad input of any kind is one line on stderr and exit code 2."""
-    from pydantic import ValidationError
-
-    from schemas.config import one_line_error
-
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser(_named_command(argv)).parse_args(argv)
     sub_command = getattr(args, f"{args.command}_command", None)  # chaos run, camera render, ...
     prog = f"v2i {args.command}" + (f" {sub_command}" if sub_command else "")
     try:
         return args.func(args)
-    except ValidationError as exc:  # a ValueError: before it
+    except (ValueError, OSError) as exc:  # pydantic's ValidationError is a ValueError
+        from schemas.config import one_line_error
+
         print(f"{prog}: {one_line_error(exc, _FLAG_OF_FIELD)}", file=sys.stderr)
-    except (ValueError, OSError) as exc:
-        print(f"{prog}: {one_line_error(exc)}", file=sys.stderr)
     return 2
