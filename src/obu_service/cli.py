@@ -46,6 +46,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--deadline-ms", type=float, help="end-to-end deadline per cycle from LiDAR capture (default 100)")
     p.add_argument("--output-interval-ms", type=float, help="longest allowed gap between two outputs (default 150)")
     p.add_argument("--sync-rate-hz", type=float, help="time-sync exchanges per second (default 10)")
+    p.add_argument("--v2v", action="store_true", default=None,
+                   help="V2V: share what the own sensors perceive with peer vehicles on v2x/v2v/{id}/objects, "
+                        "answer and send peer time requests, fuse peers' lists (each peer its own source slot)")
+    p.add_argument("--max-peers", type=int, help="V2V peers given a fusion source slot (default 8)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -48,6 +48,9 @@ class ObuConfig(ServiceConfig):
     max_path_points: int = Field(8192, ge=1, le=1 << 20, description="predicted positions in one prediction list")
     future_tolerance_ms: float = Field(20.0, ge=0, le=10_000, description="RSU data may be stamped this much "
                                        "(plus the clock uncertainty) after its arrival")
+    v2v: bool = Field(False, description="V2V: share own perception on v2x/v2v/{vehicle_id}/objects and fuse "
+                      "peers' (obu_service.peers), through the V2V emulator")
+    max_peers: int = Field(8, ge=1, le=32, description="V2V peers given a fusion source slot")
     # the node's intake (schemas.intake)
     max_message_bytes: int = Field(262_144, ge=1024, le=1 << 20, description="larger payloads are refused unread")
     source_rate_hz: float = Field(50.0, gt=0, le=10_000, description="messages per second accepted per key")

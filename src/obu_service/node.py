@@ -40,6 +40,7 @@ from .config import ObuConfig
 from .pipeline import ObuPipeline
 from .source import ExternalCycles, OwnFrame, SimulatedVehicle, detections_of, pose_of
 from .time_requests import sync_times_ns
+from .v2v_shell import KINDS as V2V_KINDS, V2vShell
 
 
 INPUT_MAX_AGE_MS = 1000.0  # --source zenoh: older detection frames or poses are stale
@@ -60,6 +61,8 @@ class ObuNode:
         self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
         known = set(self.pipeline.config.known_rsus)
         vid = config.vehicle_id
+        self._v2v = (V2vShell(vid, self.pipeline.enable_v2v(config.max_peers), self.clock, config.max_message_bytes)
+                     if config.v2v else None)  # V2V peers (obu_service.v2v_shell)
         own = {keys.sensor_vehicle_objects(vid), keys.sensor_vehicle_pose(vid)}
         self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
                               config.source_burst, max_queued_bytes=config.inbox_max_bytes,
@@ -96,6 +99,8 @@ class ObuNode:
                                                         lambda sample: self._put("sensor_objects", sample)),
                              session.declare_subscriber(keys.sensor_vehicle_pose(vid),
                                                         lambda sample: self._put("sensor_pose", sample))]
+            if self._v2v is not None:
+                entities += self._v2v.declare(session, self._put)
             self._session = session
             self._schedule()
             announce("ready", "obu", vehicle_id=vid, listen=self.config.listen)
@@ -164,6 +169,8 @@ class ObuNode:
                 self.pipeline.on_time_reply(decode(item.payload, TimeReply, max_bytes), item.receive_ns)
             elif item.kind.startswith("sensor_"):
                 self._handle_sensor(item)
+            elif item.kind in V2V_KINDS:
+                self._v2v.handle(item)
             elif item.kind in ("cpm", "sdsm"):
                 self._handle_standard(item)
             else:
@@ -245,6 +252,8 @@ class ObuNode:
     def _publish(self, now_ns: int) -> None:
         out = self.pipeline.fuse(now_ns)
         self._pub["objects"].put(encode(out))
+        if self._v2v is not None:
+            self._v2v.share(out)
         if self.pipeline.last_planning is not None:
             self._pub["planning"].put(encode(self.pipeline.last_planning))
         self._count_refusals()
@@ -258,6 +267,8 @@ class ObuNode:
         self._log.totals(self.pipeline.rejected, self._details)
 
     def _do_sync(self, _due_ns: int, _) -> None:
+        if self._v2v is not None:
+            self._v2v.sync(self.clock.now_ns())
         request = self.pipeline.make_time_request(self.clock.now_ns())
         # every reply, unmerged: two replies on one RSU's key are a conflict the pipeline must see
         self._session.get(keys.RSU_TIME_ALL, self._on_time_reply, payload=encode(request),

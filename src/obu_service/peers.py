@@ -71,8 +71,11 @@ PEER_REPLY_NS = 50_000  # an OBU's time between receiving a peer's time request 
 def shared_list(out: FusedObjectList) -> FusedObjectList:
     """What a vehicle shares of its fused output ``out``: the objects its own sensors perceive
     (``SOURCE_VEHICLE`` in ``sources``), same header (sender clock, base_link, ego pose)."""
-    own = tuple(o for o in out.objects if o.sources & SOURCE_VEHICLE)
-    return out if len(own) == len(out.objects) else out.model_copy(update={"objects": own})
+    own = [o for o in out.objects if o.sources & SOURCE_VEHICLE]
+    if len(own) == len(out.objects):
+        return out
+    fields = {name: getattr(out, name) for name in type(out).model_fields}
+    return type(out).model_validate({**fields, "objects": own})  # validated: the wire's own container
 
 
 def answer(request: TimeRequest, me: str, t2_ns: int, t3_ns: int) -> TimeReply:

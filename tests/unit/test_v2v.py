@@ -109,7 +109,8 @@ def test_the_receiver_does_not_rely_on_the_sender_filtering():
     """A sender sharing its whole fused list (RSU-only objects included): those are dropped."""
     _, b, outs_a, _, _ = run_pair(8)
     objs = dets(np.array([[8.0, 0.0], [12.0, 1.0]])).with_(sources=np.array([SOURCE_RSU, SOURCE_VEHICLE]))
-    bad = outs_a[-1].model_copy(update={"seq": 99, "objects": states_from_objects(objs, fused=True)})
+    fields = {name: getattr(outs_a[-1], name) for name in FusedObjectList.model_fields}
+    bad = FusedObjectList.model_validate({**fields, "seq": 99, "objects": states_from_objects(objs, fused=True)})
     assert b.peers.on_list(bad, "car-a", outs_a[-1].publish_time_ns + 20 * MS)
     assert b.rejected["v2v_not_own_perception"] == 1
     state = b.peers.table.get("car-a")
@@ -126,7 +127,8 @@ def test_the_receiver_does_not_rely_on_the_sender_filtering():
 def test_bad_peer_lists_are_refused_and_counted(change, reason):
     p = pipeline("car-b")
     msg = FusedObjectList(vehicle_id="car-a", seq=1, cycle_time_ns=T0, publish_time_ns=T0 + 40 * MS)
-    assert not p.peers.on_list(msg.model_copy(update=change), "car-a", T0 + 60 * MS)
+    fields = {name: getattr(msg, name) for name in FusedObjectList.model_fields}
+    assert not p.peers.on_list(FusedObjectList.model_construct(**{**fields, **change}), "car-a", T0 + 60 * MS)
     assert p.rejected[reason] == 1
 
 
