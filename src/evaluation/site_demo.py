@@ -5,7 +5,13 @@ Processes (R RSUs, V vehicles): R ``v2i rsu --rsu-id X`` (each listens on its ow
 V ``v2i obu --vehicle-id NAME`` (each listens on its own port and senses as that vehicle of
 the scenario), and R ``v2i link`` (emulator ``link-X`` connects to RSU X and to every OBU,
 ``--vehicle NAME=EP`` once per vehicle: one channel per RSU-vehicle pair). The emulators
-are the only path between the RSU and vehicle sides.
+are the only path between the RSU and vehicle sides. With V2V (the scenario's ``v2v``, or
+``--v2v on``) the OBUs run ``--v2v`` and one more emulator, ``link-v2v`` (``v2i link --v2v``,
+one per site: ``link_emulator.v2v_relay``), connects to every OBU and is the only path between
+vehicles, a channel per ordered vehicle pair with the scenario's V2V profile; the watcher also
+reaches it on its control endpoint for its stats (``v2v_link`` in the report: per pair
+received / delivered / dropped and delay) and hears each OBU's peers (``v2x/obu/{id}/peers``:
+``vehicles.{id}.peers``, as ``v2i eval``; ``v2v_rejected`` from its metrics).
 
 One watcher session connects to every OBU and every RSU (a peer does not forward between
 the peers it connects to, Zenoh's default ``peer_to_peer`` routing, so it adds no path
@@ -41,6 +47,7 @@ from sim.scenario import Scenario, load_scenario
 from sim.world import World
 
 from .demo import POLL_S, Child, DemoError, InboxScoring
+from .runner import v2v_config
 from .spec import RunRecord, RunSpec, site_report
 
 # least start-up time: 7 Python services importing numpy, scipy, zenoh on 2 busy cores (6-10+ s at load 9)
@@ -52,6 +59,9 @@ CONNECT_WAIT_S = 3.0  # the watcher must reach every service within this
 def is_site(scenario: Scenario) -> bool:
     """True when the scenario has more than one RSU or more than one vehicle (a ``SiteDemo``)."""
     return len(scenario.rsus) > 1 or len(scenario.vehicles) > 1
+
+
+V2V_LINK_ID = "link-v2v"  # the site's V2V emulator
 
 
 def link_id(rsu_id: str) -> str:
@@ -74,6 +84,11 @@ class SiteDemo(InboxScoring):
         endpoints = _distinct_endpoints(len(self.rsu_ids) + len(self.vehicle_ids))
         self.rsu_eps = dict(zip(self.rsu_ids, endpoints))
         self.obu_eps = dict(zip(self.vehicle_ids, endpoints[len(self.rsu_ids):]))
+        self.v2v = v2v_config(self.scenario.v2v, spec.v2v) if len(self.vehicle_ids) > 1 else None
+        self.v2v_ep = _distinct_endpoints(len(endpoints) + 1)[-1] if self.v2v is not None else None
+        self.v2v_stats: dict | None = None  # the V2V emulator's latest stats
+        self.peers: dict[str, dict] = {}  # vehicle -> its OBU's latest peers summary
+        self.obu_rejected: dict[str, dict[str, int]] = {}  # vehicle -> its OBU's refusals (latest metrics)
         self.children: dict[str, Child] = {}
         self.records: dict[str, RunRecord] = {}
         self.rsu_perception: dict[str, dict] = {}  # rsu id -> its latest totals (RsuMetrics.perception)
@@ -99,7 +114,8 @@ class SiteDemo(InboxScoring):
             log("demo", f"all {len(self.children)} processes ready after {time.monotonic() - launched:.1f} s "
                         f"(start {self.startup_s:g} s after launch)")
             # connect once every service listens: a failed first attempt is retried only after 1, 2, 4 s
-            watcher = open_session(connect=[*self.obu_eps.values(), *self.rsu_eps.values()])
+            watcher = open_session(connect=[*self.obu_eps.values(), *self.rsu_eps.values(),
+                                            *([self.v2v_ep] if self.v2v_ep else [])])
             subs = self._subscribe(watcher)
             self._wait_connected(watcher)
             self._supervise(start_ns)
@@ -125,6 +141,8 @@ class SiteDemo(InboxScoring):
             self.children[f"obu {name}"] = Child(f"obu {name}", self._obu_argv(name, start_ns))
         for rsu_id in self.rsu_ids:
             self.children[link_id(rsu_id)] = Child(link_id(rsu_id), self._link_argv(rsu_id))
+        if self.v2v is not None:
+            self.children[V2V_LINK_ID] = Child(V2V_LINK_ID, self._v2v_link_argv())
         log("demo", f"site {self.spec.scenario}: {len(self.children)} processes, pids "
                     + ", ".join(f"{name} {c.proc.pid}" for name, c in self.children.items()))
 
@@ -144,9 +162,16 @@ class SiteDemo(InboxScoring):
 
     def _obu_argv(self, name: str, start_ns: int) -> list[str]:
         s = self.spec
+        v2v = [] if self.v2v is None else ["--v2v", "--max-peers", str(self.v2v.max_peers)]
         return [sys.executable, "-m", "v2i", "obu", "--vehicle-id", name, "--listen", self.obu_eps[name],
                 *self._common(start_ns), "--fusion", s.fusion, "--compensation", s.compensation,
-                "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms)]
+                "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms), *v2v]
+
+    def _v2v_link_argv(self) -> list[str]:
+        """The site's V2V emulator: every OBU, a channel per ordered pair, the scenario's V2V profile."""
+        vehicles = [arg for name, ep in self.obu_eps.items() for arg in ("--vehicle", f"{name}={ep}")]
+        return [sys.executable, "-m", "v2i", "link", "--v2v", "--link-id", V2V_LINK_ID, *vehicles,
+                "--profile", self.v2v.link_profile, "--seed", str(self.spec.seed), "--control-listen", self.v2v_ep]
 
     def _link_argv(self, rsu_id: str) -> list[str]:
         """Emulator of RSU ``rsu_id``: its position (distance-dependent channels; no CLI flag has
@@ -192,11 +217,17 @@ class SiteDemo(InboxScoring):
         for rsu_id in self.rsu_ids:
             subs.append(watcher.declare_subscriber(keys.rsu_metrics(rsu_id),
                                                    lambda s, r=rsu_id: self._keep("rsu_metrics", s, r)))
+        if self.v2v is not None:
+            subs.append(watcher.declare_subscriber(keys.link_stats(V2V_LINK_ID),
+                                                   lambda s: self._keep("v2v_stats", s, V2V_LINK_ID)))
+            for name in self.vehicle_ids:
+                subs.append(watcher.declare_subscriber(keys.obu_peers(name),
+                                                       lambda s, n=name: self._keep("peers", s, n)))
         return subs
 
     def _wait_connected(self, watcher) -> None:
         """Every OBU and RSU must be a peer of the watcher (else its scores would silently be empty)."""
-        wanted = len(self.obu_eps) + len(self.rsu_eps)
+        wanted = len(self.obu_eps) + len(self.rsu_eps) + (self.v2v_ep is not None)
         deadline = time.monotonic() + CONNECT_WAIT_S
         while (peers := len(list(watcher.info.peers_zid()))) < wanted:
             if time.monotonic() > deadline:
@@ -212,6 +243,13 @@ class SiteDemo(InboxScoring):
             if metrics.perception is not None:  # each message holds the run's totals so far
                 self.rsu_perception[metrics.rsu_id] = metrics.perception.model_dump()
             return
+        if kind in ("v2v_stats", "peers"):  # JSON, the latest kept
+            value = json.loads(data)
+            if kind == "v2v_stats":
+                self.v2v_stats = value
+            elif node in self.records:
+                self.peers[node] = value
+            return
         if kind == "planning":
             self.records[node].add_planning(decode(data, PredictionList))
             return
@@ -224,6 +262,7 @@ class SiteDemo(InboxScoring):
         else:
             record.add_obu_metrics(message)
             self.rsu_lists_accepted[message.vehicle_id] = {r.rsu_id: r.messages_accepted for r in message.rsus}
+            self.obu_rejected[message.vehicle_id] = dict(message.rejected)
 
     def _report(self) -> dict:
         """``site_report`` (the ego's record carries the first RSU's perception, as in ``v2i eval``)."""
@@ -235,11 +274,27 @@ class SiteDemo(InboxScoring):
         report = site_report(self.spec, vehicles, rsus, driver="demo")
         report["monitor_messages_dropped"] = dict(self.dropped)
         report["rsu_lists_accepted"] = {name: self.rsu_lists_accepted.get(name, {}) for name in self.vehicle_ids}
+        report["v2v"] = None if self.v2v is None else self.v2v.model_dump()
+        if self.v2v is not None:
+            report["v2v_link"] = _v2v_link_summary(self.v2v_stats)
+            for name in self.vehicle_ids:
+                rejected = self.obu_rejected.get(name, {})
+                report["vehicles"][name]["peers"] = self.peers.get(name, {})
+                report["vehicles"][name]["v2v_rejected"] = {k: n for k, n in rejected.items() if k.startswith("v2v_")}
         if sum(self.dropped.values()):
             log("demo", f"the scorer fell behind: dropped {dict(self.dropped)} (scores miss them)")
         if sum(self.unknown.values()):
             log("demo", f"messages naming no vehicle of the scenario: {dict(self.unknown)}")
         return report
+
+
+def _v2v_link_summary(stats: dict | None) -> dict:
+    """The V2V emulator's sums and each ordered pair's counters (from its latest stats)."""
+    if stats is None:
+        return {"pairs": {}}
+    pairs = {f"{p['from']}>{p['to']}": {k: p[k] for k in ("received", "delivered", "dropped", "distance_m")}
+             | {"delay_mean_ms": p["delay_ms"].get("mean")} for p in stats.get("pairs", [])}
+    return {"total": stats.get("v2v"), "refused": stats.get("refused"), "pairs": pairs}
 
 
 def _distinct_endpoints(count: int) -> list[str]:
