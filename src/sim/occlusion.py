@@ -68,9 +68,11 @@ def segments_hit_boxes(a: np.ndarray, b: np.ndarray, boxes: np.ndarray) -> np.nd
 def pair_hits_boxes(a: np.ndarray, b: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     """(K,) bool: segment a[k] -> b[k] (K, 2) intersects box boxes[k] (K, 5): the slab test of
     ``segments_hit_boxes`` on given pairs only (the same arithmetic, so the same answers)."""
-    rot = _rot(boxes[:, 4])  # (K, 2, 2)
-    q0 = np.einsum("kji,kj->ki", rot, a - boxes[:, :2])  # R^T (a - c)
-    d = np.einsum("kji,kj->ki", rot, b - a)  # R^T (b - a)
+    c, s = np.cos(boxes[:, 4]), np.sin(boxes[:, 4])
+    ac, ba = a - boxes[:, :2], b - a
+    # R^T v = (c v_x + s v_y, -s v_x + c v_y): the two products and one sum einsum forms
+    q0 = np.column_stack([c * ac[:, 0] + s * ac[:, 1], -s * ac[:, 0] + c * ac[:, 1]])
+    d = np.column_stack([c * ba[:, 0] + s * ba[:, 1], -s * ba[:, 0] + c * ba[:, 1]])
     return _slab_hits(q0, d, boxes[:, 2:4] / 2.0)
 
 
@@ -78,8 +80,9 @@ def _slab_hits(q0: np.ndarray, d: np.ndarray, half: np.ndarray) -> np.ndarray:
     """(...) bool from start points q0 (..., 2) and directions d (..., 2) in box frames, half sizes (..., 2)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         t1, t2 = (-half - q0) / d, (half - q0) / d  # d = 0: +-inf if inside the slab, same sign if not
-    enter = np.minimum(t1, t2).max(axis=-1)
-    leave = np.maximum(t1, t2).min(axis=-1)
+    lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
+    enter = np.maximum(lo[..., 0], lo[..., 1])  # the latest entry over the two slabs
+    leave = np.minimum(hi[..., 0], hi[..., 1])  # the earliest exit
     return np.maximum(enter, 0.0) <= np.minimum(leave, 1.0)
 
 

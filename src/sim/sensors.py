@@ -41,9 +41,13 @@ def frame_times(rate_hz: float, duration_s: float, phase_s: float = 0.0) -> np.n
     return phase_s + np.arange(count) / rate_hz
 
 
+# row c = the prior size of class code c (the codes are 0 .. len - 1; a gap fails here, at import)
+_DEFAULT_LWH_BY_CODE = np.array([CLASS_DEFAULT_LWH[ObjectClass(c)] for c in range(len(ObjectClass))], dtype=float)
+
+
 def _default_lwh(cls: np.ndarray) -> np.ndarray:
     """Class prior sizes (N, 3) m for class codes (N,)."""
-    return np.array([CLASS_DEFAULT_LWH[ObjectClass(int(c))] for c in cls], dtype=float).reshape(-1, 3)
+    return _DEFAULT_LWH_BY_CODE[np.asarray(cls, dtype=np.int64)].reshape(-1, 3)
 
 
 class Lidar:
