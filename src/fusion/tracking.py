@@ -21,7 +21,9 @@ the young track fall behind it.
 Association per ``update``: a pair (track, detection) is allowed when the classes are
 compatible (equal, or either is UNKNOWN = 0) and the pair passes the gate:
 ``gate="distance"``: centre distance <= ``gate_m``; ``gate="mahalanobis"``:
-d2 = y^T S^-1 y <= ``gate_chi2`` (9.21: 99 % for 2 dof). Among allowed pairs a
+d2 = y^T S^-1 y <= ``gate_chi2`` (9.21: 99 % for 2 dof); ``gate="either"``: one of the two
+(a young track whose velocity is still uncertain reaches as far as its covariance says, an
+established one at least ``gate_m`` however small its covariance). Among allowed pairs a
 minimum-cost one-to-one assignment (scipy ``linear_sum_assignment``) with cost
 ``distance`` (m), ``mahalanobis`` (d2) or ``iou`` (1 - BEV IoU of the predicted box and the
 detected box). Matched tracks get a Kalman update of the position and, for CV / CA with
@@ -98,8 +100,8 @@ class TrackerConfig:
     confirm_hits: int = 2
     max_coast_s: float = 0.6
     motion: Literal["cv", "ca", "ctrv"] = "cv"
-    gate: Literal["distance", "mahalanobis"] = "distance"
-    gate_chi2: float = kalman.CHI2_2DOF_99  # d2 gate for gate="mahalanobis"
+    gate: Literal["distance", "mahalanobis", "either"] = "distance"
+    gate_chi2: float = kalman.CHI2_2DOF_99  # d2 gate for gate="mahalanobis" or "either"
     cost: Literal["distance", "mahalanobis", "iou"] = "distance"
     jerk_std_mps3: float = 5.0  # sigma_j: CA white-noise jerk
     yaw_accel_std_radps2: float = 1.0  # sigma_alpha: CTRV omega-dot noise
@@ -113,7 +115,7 @@ class TrackerConfig:
     estimate_fusion: Literal["ci", "kf", "ci-all"] = "ci"  # estimates into a track others share (module doc)
 
     def __post_init__(self) -> None:
-        for name, allowed in (("gate", ("distance", "mahalanobis")), ("cost", ("distance", "mahalanobis", "iou")),
+        for name, allowed in (("gate", ("distance", "mahalanobis", "either")), ("cost", ("distance", "mahalanobis", "iou")),
                               ("estimate_fusion", ("ci", "kf", "ci-all"))):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"TrackerConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
@@ -214,25 +216,25 @@ def _candidates(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
 
     Distance gate: |y| <= gate_m. Mahalanobis gate: d2 = y^T S^-1 y >= |y|^2 / lambda_max(S) and
     lambda_max(S) <= tr(S) = tr(H P H^T) + tr(R), so a pair with |y|^2 > chi2 (tr P_xy + tr R) fails.
+    Either gate: a pair that passes one of the two bounds.
     """
     if not len(table) or not len(dets):
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    if config.gate == "distance":
-        lam_p, lam_r, reach_m = None, None, config.gate_m
-    else:
+    reach_m = config.gate_m
+    if config.gate != "distance":
         lam_p, lam_r = _trace2(table.p[:, :2, :2]), _trace2(dets.cov_xy)
         reach_m = np.sqrt(config.gate_chi2 * (lam_p.max() + lam_r.max()))
+        if config.gate == "either":
+            reach_m = max(reach_m, config.gate_m)
     (x_lo, y_lo), (x_hi, y_hi) = dets.xy.min(axis=0) - reach_m, dets.xy.max(axis=0) + reach_m
     tx, ty = table.x[:, 0], table.x[:, 1]
     rows = np.flatnonzero((tx >= x_lo) & (tx <= x_hi) & (ty >= y_lo) & (ty <= y_hi))
     dx = np.subtract.outer(table.x[rows, 0], dets.xy[:, 0])
     dy = np.subtract.outer(table.x[rows, 1], dets.xy[:, 1])
     r2 = dx * dx + dy * dy
-    if config.gate == "distance":
-        near = r2 <= config.gate_m**2
-    else:
-        near = r2 <= config.gate_chi2 * np.add.outer(lam_p[rows], lam_r)
-    ti, di = np.nonzero(near)
+    near_distance = r2 <= config.gate_m**2 if config.gate != "mahalanobis" else False
+    near_mahalanobis = r2 <= config.gate_chi2 * np.add.outer(lam_p[rows], lam_r) if config.gate != "distance" else False
+    ti, di = np.nonzero(near_distance | near_mahalanobis)
     ti = rows[ti]
     keep = compatible_classes(table.cls[ti], dets.cls[di])
     return ti[keep], di[keep]
@@ -243,9 +245,14 @@ def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
     ti, di = _candidates(config, table, dets)
     y = dets.xy[di] - table.x[ti, :2]
     dist = np.hypot(y[:, 0], y[:, 1])
-    if config.gate == "mahalanobis" or config.cost == "mahalanobis":
+    if config.gate != "distance" or config.cost == "mahalanobis":
         d2 = kalman.mahalanobis_sq_pairs(table.x[ti], table.p[ti], dets.xy[di], dets.cov_xy[di])
-    inside = dist <= config.gate_m if config.gate == "distance" else d2 <= config.gate_chi2
+    if config.gate == "distance":
+        inside = dist <= config.gate_m
+    elif config.gate == "mahalanobis":
+        inside = d2 <= config.gate_chi2
+    else:
+        inside = (dist <= config.gate_m) | (d2 <= config.gate_chi2)
     ti, di = ti[inside], di[inside]
     if config.cost == "distance":
         cost = dist[inside]

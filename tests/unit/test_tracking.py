@@ -193,7 +193,7 @@ def far_fast_car_tracks(seed, **cfg):
     return ids, out
 
 
-@pytest.mark.parametrize("gate", ["distance", "mahalanobis"])
+@pytest.mark.parametrize("gate", ["distance", "mahalanobis", "either"])
 def test_far_fast_car_converges_without_a_second_track(gate):
     seeds = range(40)
     split_new = sum(len(far_fast_car_tracks(s, gate=gate)[0]) > 1 for s in seeds)
@@ -252,6 +252,27 @@ def test_mahalanobis_gate_rejects_an_outlier_the_distance_gate_accepts():
         tracker.predict(0.3)
         tracker.update(dets([3.5, 0.0], std=0.2), 0.3, LIDAR)  # 3.5 m < gate_m, d2 >> 9.21
         assert len(tracker) == expected_tracks, gate
+
+
+def test_either_gate_passes_what_one_of_the_two_gates_passes():
+    """A settled track 3.5 m from a precise detection (distance gate only) and a young RSU track
+    whose velocity is unknown 6.2 m from the next list 0.4 s later (Mahalanobis gate only):
+    ``either`` keeps both on their track, each single gate splits one of them."""
+    def settled(gate):
+        tracker = confirmed_tracker(gate=gate)
+        tracker.predict(0.3)
+        tracker.update(dets([3.5, 0.0], std=0.2), 0.3, LIDAR)
+        return len(tracker)
+
+    def young(gate):
+        tracker = Tracker(TrackerConfig(gate=gate))
+        tracker.update(with_velocity(dets([40.0, 0.0], std=1.4), (9.5, -3.6), 9.6), 0.0, RSU, estimates=True)
+        tracker.predict(0.4)
+        tracker.update(with_velocity(dets([48.6, 2.3], std=1.1), (18.8, 3.7), 3.1), 0.4, RSU, estimates=True)
+        return len(tracker)
+
+    assert (settled("distance"), settled("mahalanobis"), settled("either")) == (1, 2, 1)
+    assert (young("distance"), young("mahalanobis"), young("either")) == (2, 1, 1)
 
 
 def test_mahalanobis_cost_prefers_the_likely_track_over_the_nearest():
