@@ -141,8 +141,8 @@ class PeerIntake:
 
     def on_time_reply(self, reply: TimeReply, answerer: str, t4_ns: int) -> None:
         """A peer's reply heard on ``v2x/v2v/{answerer}/time_reply/{me}``."""
-        if reply.rsu_id != answerer:
-            self.rejected["time_reply_key_mismatch"] += 1
+        if reply.rsu_id != answerer or answerer == self.me:
+            self.rejected["time_reply_key_mismatch" if reply.rsu_id != answerer else "self"] += 1
             return
         refused = self._requests.match(reply, t4_ns)
         if refused is not None:

@@ -6,8 +6,10 @@ tick, and its answer to a peer's request on ``v2x/v2v/{me}/time_reply/{peer}`` (
 request's receive stamp, t3 = read just before the put). Heard: ``v2x/v2v/*/objects``,
 ``v2x/v2v/*/time`` and ``v2x/v2v/*/time_reply/{me}``; the callbacks put them into the node's
 bounded intake like every other input (kinds ``v2v_objects``, ``v2v_time``, ``v2v_reply``) and
-the node's loop hands them to ``handle``. A session hears its own puts: samples on this
-vehicle's own keys are local echoes of what it sent and are dropped in the callback.
+the node's loop hands them to ``handle``. What this vehicle sends to peers is published for
+remote subscribers only (``Locality.REMOTE``), so it never hears its own messages back from its
+own session; a sample on its own ``v2x/v2v/{me}/...`` keys came from elsewhere (a replay, a
+forger) and is refused as ``v2v_self`` (``PeerIntake``).
 Between vehicles the V2V emulator (``link_emulator.v2v_relay``) is the only path.
 """
 
@@ -19,7 +21,7 @@ from collections.abc import Callable
 import zenoh
 
 from schemas import keys
-from schemas.codec import decode, encode
+from schemas.codec import CodecError, decode, encode
 from schemas.intake import Item
 from schemas.messages import FusedObjectList, TimeReply, TimeRequest
 from sim.clock import Clock
@@ -40,13 +42,13 @@ class V2vShell:
     def declare(self, session, put: Callable[[str, object], None]) -> list:
         """Publishers and subscribers on ``session``; the entities to undeclare."""
         self._session = session
-        self._pub = {"objects": session.declare_publisher(keys.v2v_objects(self.me)),
-                     "time": session.declare_publisher(keys.v2v_time(self.me)),
+        remote = zenoh.Locality.REMOTE
+        self._pub = {"objects": session.declare_publisher(keys.v2v_objects(self.me), allowed_destination=remote),
+                     "time": session.declare_publisher(keys.v2v_time(self.me), allowed_destination=remote),
                      "peers": session.declare_publisher(keys.obu_peers(self.me))}
-        own = f"v2x/v2v/{self.me}/"
 
         def heard(kind: str):
-            return lambda sample: None if str(sample.key_expr).startswith(own) else put(kind, sample)
+            return lambda sample: put(kind, sample)
 
         subs = [session.declare_subscriber(keys.V2V_OBJECTS_ALL, heard("v2v_objects")),
                 session.declare_subscriber(keys.V2V_TIME_ALL, heard("v2v_time")),
@@ -54,15 +56,26 @@ class V2vShell:
         return [*self._pub.values(), *subs]
 
     def handle(self, item: Item) -> None:
-        """One V2V input from the intake (CodecError for an undecodable one: the node counts it)."""
-        sender = keys.v2v_sender(item.source)
+        """One V2V input from the intake; an undecodable one is counted as ``v2v_<codec reason>``."""
+        try:
+            self._handle(item)
+        except CodecError as exc:
+            self.peers.rejected[exc.reason] += 1
+
+    def _handle(self, item: Item) -> None:
+        try:
+            sender = keys.v2v_sender(item.source)
+        except ValueError:  # a key whose id chunk is no vehicle id (Zenoh allows more characters)
+            self.peers.rejected["bad_sender_key"] += 1
+            return
         if item.kind == "v2v_objects":
             self.peers.on_list(decode(item.payload, FusedObjectList, self.max_bytes), sender, item.receive_ns)
         elif item.kind == "v2v_time":
             request = decode(item.payload, TimeRequest, self.max_bytes)
             reply = self.peers.answer(request, sender, item.receive_ns, self.clock.now_ns())
             if reply is not None:
-                self._session.put(keys.v2v_time_reply(self.me, sender), encode(reply))
+                self._session.put(keys.v2v_time_reply(self.me, sender), encode(reply),
+                                  allowed_destination=zenoh.Locality.REMOTE)
         else:
             self.peers.on_time_reply(decode(item.payload, TimeReply, self.max_bytes), sender, item.receive_ns)
 

@@ -167,3 +167,48 @@ def test_peer_clock_offset_is_learned_from_time_exchanges():
     a.peers.on_time_reply(b.peers.answer(req, "car-a", T0 + 3_001 * MS, T0 + 3_001 * MS), "car-c", T0 + 3_002 * MS)
     assert a.rejected["v2v_time_reply_key_mismatch"] == 1
     assert b.peers.answer(req, "car-x", T0, T0) is None and b.rejected["v2v_time_request_key_mismatch"] == 1
+
+
+def test_the_node_shell_counts_what_it_cannot_read():
+    from obu_service.v2v_shell import V2vShell
+    from schemas.intake import Item
+    from sim.clock import SimClock
+
+    p = ObuPipeline(ObuPipelineConfig(vehicle_id="ego"))
+    shell = V2vShell("ego", p.enable_v2v(), SimClock(T0), 1 << 18)
+    shell.handle(Item("v2v_objects", "v2x/v2v/a.b/objects", b"\x00", T0))  # Zenoh allows ids we do not
+    shell.handle(Item("v2v_objects", "v2x/v2v/car-a/objects", b"\x00", T0))
+    shell.handle(Item("v2v_reply", "v2x/v2v/ego/time_reply/ego", b"\x00", T0))
+    assert p.rejected == Counter({"v2v_bad_sender_key": 1, "v2v_malformed": 2})
+
+
+def test_hostile_v2v_messages_never_raise_past_the_codec():
+    """Every hostile kind around every V2V message: decoded ones go through the intake without raising."""
+    from evaluation.fuzz_v2v import V2V_TYPES, V2vHostile
+    from evaluation.hostile import KINDS
+    from schemas.codec import CodecError, decode
+    from schemas.messages import TimeReply, TimeRequest
+
+    a = pipeline("ego")
+    a.on_pose(T0, POSE_A)
+    hostile = V2vHostile(np.random.default_rng(2), "x0", "x0")
+    models = {"fused_object_list": FusedObjectList, "time_request": TimeRequest, "time_reply": TimeReply}
+    decoded = Counter()
+    for kind in KINDS:
+        for typ in V2V_TYPES:
+            for _ in range(5):
+                try:
+                    msg = decode(hostile.make(kind, typ, T0), models[typ], 1 << 18)
+                except CodecError:
+                    continue
+                decoded[typ] += 1
+                if typ == "fused_object_list":
+                    a.peers.on_list(msg, "x0", T0)
+                elif typ == "time_request":
+                    a.peers.answer(msg, "x0", T0, T0)
+                else:
+                    a.peers.on_time_reply(msg, "x0", T0)
+    assert min(decoded.values()) > 0
+    a.on_detections(ObjectArray.empty(), T0)
+    out = a.fuse(T0 + 10 * MS)  # fusing whatever was admitted does not raise either
+    assert out.vehicle_id == "ego"
