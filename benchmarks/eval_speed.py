@@ -9,14 +9,20 @@ seconds of ``--repeats`` runs (spec -> execute -> report) and their ratio. ``--r
 also times each scenario with the unpruned occlusion test (``sim.occlusion.PRUNE = False``,
 the code before pruning) in the same run and prints the speed-up. ``--profile N`` runs each
 scenario once more under cProfile and prints its N costliest functions (cumulative).
+``--stages`` runs each scenario once more with a timer around each function of ``STAGES``
+and prints each one's exclusive wall seconds (time inside it, less time inside another timed
+stage it calls) and share of the run; "other" is the event loop, links and glue.
 """
 
 from __future__ import annotations
 
 import argparse
 import cProfile
+import functools
+import importlib
 import pstats
 import statistics
+import sys
 import time
 
 _T0 = time.perf_counter()
@@ -27,6 +33,77 @@ from sim.scenario import bundled_scenarios
 from v2i.cli import _spec, build_parser
 
 IMPORT_S = time.perf_counter() - _T0
+
+# label -> "module:qualified name" of the functions timed by --stages
+STAGES = {
+    "scenario YAML": "sim.scenario:load_scenario",
+    "LiDAR + localisation sim": "obu_service.source:SimulatedVehicle.capture",
+    "RSU camera sim": "rsu_service.source:SimulatedCamera.capture",
+    "occlusion": "sim.occlusion:visible_fraction",
+    "RSU on_frame": "rsu_service.pipeline:RsuPipeline.on_frame",
+    "RSU predictions": "rsu_service.pipeline:RsuPipeline.predictions",
+    "codec encode": "schemas.codec:encode",
+    "codec decode": "schemas.codec:decode",
+    "OBU on_rsu_message": "obu_service.pipeline:ObuPipeline.on_rsu_message",
+    "OBU on_detections": "obu_service.pipeline:ObuPipeline.on_detections",
+    "OBU fuse": "obu_service.pipeline:ObuPipeline.fuse",
+    "OBU clock estimate": "obu_service.clock_sync:ClockSync.estimate_at",
+    "scoring outputs": "evaluation.spec:RunRecord.add_output",
+}
+
+
+class StageTimer:
+    """Exclusive wall seconds per stage: a stage's time less that of timed stages inside it."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = dict.fromkeys(STAGES, 0.0)
+        self._stack: list[list[float]] = []  # [start, seconds in timed children]
+
+    def wrap(self, label: str, fn):
+        @functools.wraps(fn)
+        def timed(*args, **kwargs):
+            self._stack.append([time.perf_counter(), 0.0])
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                start, inner = self._stack.pop()
+                spent = time.perf_counter() - start
+                self.seconds[label] += spent - inner
+                if self._stack:
+                    self._stack[-1][1] += spent
+        return timed
+
+    def install(self) -> list:
+        """Wrap every stage where it is looked up (its class, or each module holding the function)."""
+        undo = []
+        for label, where in STAGES.items():
+            module, _, qualname = where.partition(":")
+            owner = importlib.import_module(module)
+            *path, name = qualname.split(".")
+            for part in path:
+                owner = getattr(owner, part)
+            fn = getattr(owner, name)
+            holders = [owner] if path else [m for m in list(sys.modules.values()) if getattr(m, name, None) is fn]
+            for holder in holders:
+                undo.append((holder, name, fn))
+                setattr(holder, name, self.wrap(label, fn))
+        return undo
+
+
+def stages(name: str, seed: int) -> None:
+    """Print each stage's exclusive seconds and share of one run."""
+    timer = StageTimer()
+    undo = timer.install()
+    try:
+        _, wall_s = run_once(name, seed)
+    finally:
+        for holder, attr, fn in reversed(undo):
+            setattr(holder, attr, fn)
+    print(f"--- stages {name} (seed {seed}): {wall_s:.2f} s wall")
+    for label, sec in sorted(timer.seconds.items(), key=lambda kv: -kv[1]):
+        print(f"    {label:26s} {sec:6.2f} s {100 * sec / wall_s:5.1f} %")
+    other = wall_s - sum(timer.seconds.values())
+    print(f"    {'other':26s} {other:6.2f} s {100 * other / wall_s:5.1f} %")
 
 
 def run_once(name: str, seed: int) -> tuple[float, float]:
@@ -65,6 +142,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per scenario; the median is printed")
     parser.add_argument("--reference", action="store_true", help="also time the unpruned occlusion test")
     parser.add_argument("--profile", type=int, metavar="N", help="print cProfile's N costliest functions per scenario")
+    parser.add_argument("--stages", action="store_true", help="print exclusive wall seconds per stage (STAGES)")
     args = parser.parse_args()
     names = args.scenarios.split(",") if args.scenarios else bundled_scenarios()
     print(f"import_s {IMPORT_S:.2f} (paid once per v2i eval process, not in the times below)")
@@ -77,6 +155,8 @@ def main() -> None:
             _, ref_s = median_wall(name, args.seed, args.repeats, prune=False)
             line += f" {ref_s:10.2f} {sim_s / ref_s:6.1f} {ref_s / wall_s:7.2f}"
         print(line, flush=True)
+    for name in names if args.stages else ():
+        stages(name, args.seed)
     for name in names if args.profile else ():
         profile(name, args.seed, args.profile)
 

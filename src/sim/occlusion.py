@@ -65,15 +65,21 @@ def segments_hit_boxes(a: np.ndarray, b: np.ndarray, boxes: np.ndarray) -> np.nd
     return _slab_hits(q0, d, boxes[None, :, 2:4] / 2.0)
 
 
-def pair_hits_boxes(a: np.ndarray, b: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """(K,) bool: segment a[k] -> b[k] (K, 2) intersects box boxes[k] (K, 5): the slab test of
-    ``segments_hit_boxes`` on given pairs only (the same arithmetic, so the same answers)."""
-    c, s = np.cos(boxes[:, 4]), np.sin(boxes[:, 4])
-    ac, ba = a - boxes[:, :2], b - a
-    # R^T v = (c v_x + s v_y, -s v_x + c v_y): the two products and one sum einsum forms
-    q0 = np.column_stack([c * ac[:, 0] + s * ac[:, 1], -s * ac[:, 0] + c * ac[:, 1]])
-    d = np.column_stack([c * ba[:, 0] + s * ba[:, 1], -s * ba[:, 0] + c * ba[:, 1]])
-    return _slab_hits(q0, d, boxes[:, 2:4] / 2.0)
+def pair_hits_boxes(origin_xy: np.ndarray, pts: np.ndarray, boxes: np.ndarray, q: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """(K,) bool: segment origin (2,) -> pts[q] (Q, 2) intersects box boxes[k] (B, 5), per pair
+    (q (K,), k (K,)): the slab test of ``segments_hit_boxes``, written out per axis with the
+    same operations (R^T v = (c v_x + s v_y, -s v_x + c v_y)), so the same answers bit for bit."""
+    c, s, half = np.cos(boxes[:, 4])[k], np.sin(boxes[:, 4])[k], boxes[:, 2:4] / 2.0
+    ac, ba = (origin_xy - boxes[:, :2])[k], (pts - origin_xy)[q]  # a - c, b - a
+    entries, exits = [], []
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for q0, d, h in ((c * ac[:, 0] + s * ac[:, 1], c * ba[:, 0] + s * ba[:, 1], half[k, 0]),
+                         (-s * ac[:, 0] + c * ac[:, 1], -s * ba[:, 0] + c * ba[:, 1], half[k, 1])):
+            t1, t2 = (-h - q0) / d, (h - q0) / d
+            entries.append(np.minimum(t1, t2))
+            exits.append(np.maximum(t1, t2))
+    enter, leave = np.maximum(*entries), np.minimum(*exits)
+    return np.maximum(enter, 0.0) <= np.minimum(leave, 1.0)
 
 
 def _slab_hits(q0: np.ndarray, d: np.ndarray, half: np.ndarray) -> np.ndarray:
@@ -204,7 +210,7 @@ def _blocked_pruned(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarra
     if len(boxes):
         q, k = cone_pairs(origin, pts, boxes[:, :2], np.hypot(boxes[:, 2], boxes[:, 3]) / 2.0)
         q, k = q[box_owner[k] != owner[q]], k[box_owner[k] != owner[q]]
-        hit = pair_hits_boxes(np.broadcast_to(origin, (len(q), 2)), pts[q], boxes[k])
+        hit = pair_hits_boxes(origin, pts, boxes, q, k)
         blocked[q[hit]] = True
     for poly in polygons:
         poly = np.asarray(poly, dtype=float)
