@@ -30,9 +30,19 @@ def demo() -> SiteDemo:
 
 
 def test_every_node_ran_as_its_own_process(demo):
-    assert sorted(demo.children) == ["link-rsu-nw", "link-rsu-se", "obu car-2", "obu car-3", "obu ego",
-                                     "rsu rsu-nw", "rsu rsu-se"]
-    assert len({child.proc.pid for child in demo.children.values()}) == 7
+    assert sorted(demo.children) == ["link-rsu-nw", "link-rsu-se", "link-v2v", "obu car-2", "obu car-3", "obu ego",
+                                     "rsu rsu-nw", "rsu rsu-se"]  # link-v2v: the scenario's V2V
+    assert len({child.proc.pid for child in demo.children.values()}) == 8
+
+
+def test_vehicles_share_through_the_v2v_emulator(demo):
+    pairs = demo.report["v2v_link"]["pairs"]
+    assert sorted(pairs) == sorted(f"{a}>{b}" for a in ("ego", "car-2", "car-3") for b in ("ego", "car-2", "car-3")
+                                   if a != b)
+    assert all(p["delivered"] > 0 and p["distance_m"] is not None for p in pairs.values()), pairs
+    for name, scores in demo.report["vehicles"].items():
+        assert sorted(scores["peers"]) == sorted({"ego", "car-2", "car-3"} - {name}), name
+        assert all(p["lists_accepted"] > 0 and p["sync_samples"] > 0 for p in scores["peers"].values()), name
 
 
 def test_no_child_outlives_the_demo(demo):
