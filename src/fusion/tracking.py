@@ -22,7 +22,8 @@ Association per ``update``: a pair (track, detection) is allowed when the classe
 compatible (equal, or either is UNKNOWN = 0) and the pair passes the gate:
 ``gate="distance"``: centre distance <= ``gate_m``; ``gate="mahalanobis"``:
 d2 = y^T S^-1 y <= ``gate_chi2`` (9.21: 99 % for 2 dof); ``gate="either"``: one of the two
-(a young track whose velocity is still uncertain reaches as far as its covariance says, an
+within ``gate_max_m`` (a young track whose velocity is still uncertain reaches as far as its
+covariance says, but not across a junction on an unknown velocity's 100 m/s prior; an
 established one at least ``gate_m`` however small its covariance). Among allowed pairs a
 minimum-cost one-to-one assignment (scipy ``linear_sum_assignment``) with cost
 ``distance`` (m), ``mahalanobis`` (d2) or ``iou`` (1 - BEV IoU of the predicted box and the
@@ -102,6 +103,7 @@ class TrackerConfig:
     motion: Literal["cv", "ca", "ctrv"] = "cv"
     gate: Literal["distance", "mahalanobis", "either"] = "distance"
     gate_chi2: float = kalman.CHI2_2DOF_99  # d2 gate for gate="mahalanobis" or "either"
+    gate_max_m: float = 15.0  # gate="either": no pair farther apart, whatever its d2 (35 m/s x 0.4 s)
     cost: Literal["distance", "mahalanobis", "iou"] = "distance"
     jerk_std_mps3: float = 5.0  # sigma_j: CA white-noise jerk
     yaw_accel_std_radps2: float = 1.0  # sigma_alpha: CTRV omega-dot noise
@@ -216,7 +218,7 @@ def _candidates(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
 
     Distance gate: |y| <= gate_m. Mahalanobis gate: d2 = y^T S^-1 y >= |y|^2 / lambda_max(S) and
     lambda_max(S) <= tr(S) = tr(H P H^T) + tr(R), so a pair with |y|^2 > chi2 (tr P_xy + tr R) fails.
-    Either gate: a pair that passes one of the two bounds.
+    Either gate: a pair that passes one of the two bounds, within gate_max_m.
     """
     if not len(table) or not len(dets):
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -225,7 +227,7 @@ def _candidates(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
         lam_p, lam_r = _trace2(table.p[:, :2, :2]), _trace2(dets.cov_xy)
         reach_m = np.sqrt(config.gate_chi2 * (lam_p.max() + lam_r.max()))
         if config.gate == "either":
-            reach_m = max(reach_m, config.gate_m)
+            reach_m = min(max(reach_m, config.gate_m), config.gate_max_m)
     (x_lo, y_lo), (x_hi, y_hi) = dets.xy.min(axis=0) - reach_m, dets.xy.max(axis=0) + reach_m
     tx, ty = table.x[:, 0], table.x[:, 1]
     rows = np.flatnonzero((tx >= x_lo) & (tx <= x_hi) & (ty >= y_lo) & (ty <= y_hi))
@@ -234,6 +236,8 @@ def _candidates(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
     r2 = dx * dx + dy * dy
     near_distance = r2 <= config.gate_m**2 if config.gate != "mahalanobis" else False
     near_mahalanobis = r2 <= config.gate_chi2 * np.add.outer(lam_p[rows], lam_r) if config.gate != "distance" else False
+    if config.gate == "either":
+        near_mahalanobis &= r2 <= config.gate_max_m**2
     ti, di = np.nonzero(near_distance | near_mahalanobis)
     ti = rows[ti]
     keep = compatible_classes(table.cls[ti], dets.cls[di])
@@ -252,7 +256,7 @@ def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
     elif config.gate == "mahalanobis":
         inside = d2 <= config.gate_chi2
     else:
-        inside = (dist <= config.gate_m) | (d2 <= config.gate_chi2)
+        inside = (dist <= config.gate_m) | ((d2 <= config.gate_chi2) & (dist <= config.gate_max_m))
     ti, di = ti[inside], di[inside]
     if config.cost == "distance":
         cost = dist[inside]

@@ -275,6 +275,18 @@ def test_either_gate_passes_what_one_of_the_two_gates_passes():
     assert (young("distance"), young("mahalanobis"), young("either")) == (2, 1, 1)
 
 
+def test_either_gate_stops_at_gate_max_m():
+    """An estimate 20 m off with a 15 m position std (an unknown velocity moved 150 ms) passes
+    the Mahalanobis gate; ``either`` does not pair anything farther than gate_max_m (15 m)."""
+    def tracks(gate):
+        tracker = confirmed_tracker(gate=gate)
+        tracker.predict(0.3)
+        tracker.update(dets([20.0, 0.0], std=15.0), 0.3, RSU, estimates=True)
+        return len(tracker)
+
+    assert (tracks("mahalanobis"), tracks("either")) == (1, 2)
+
+
 def test_mahalanobis_cost_prefers_the_likely_track_over_the_nearest():
     tracker = Tracker(TrackerConfig(cost="mahalanobis", gate="mahalanobis"))
     tracker.predict(0.0)
