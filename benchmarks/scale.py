@@ -324,13 +324,13 @@ def run_one(k: int, n: int, args, procs: list[subprocess.Popen], tmp: Path) -> d
 
 def summarise(objects: list[bytes], metrics: list[bytes], window_ns: tuple[int, int]) -> dict:
     """Cycles, misses, compute and E2E percentiles over the window; accepted / refused overall."""
-    from schemas.codec import decode, open_body
+    from schemas.codec import decode, object_count, open_body
     from schemas.messages import FusedObjectList, ObuMetrics
 
     cycles = {}  # seq -> (cycle_time_ns, publish_time_ns, objects out)
     for payload in objects:
         body = open_body(payload, FusedObjectList)
-        cycles[body["seq"]] = (body["cycle_time_ns"], body["publish_time_ns"], body["objects"]["n"])
+        cycles[body["seq"]] = (body["cycle_time_ns"], body["publish_time_ns"], object_count(body))
     ms = sorted((decode(p, ObuMetrics) for p in metrics), key=lambda m: m.cycles)
     inside = {s for s, (t, _, _) in cycles.items() if window_ns[0] <= t < window_ns[1]}
     before = [m for m in ms if m.cycles < min(inside)]
