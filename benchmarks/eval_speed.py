@@ -1,13 +1,14 @@
 """Offline evaluator speed per bundled scenario, as x real time (simulated s / wall s).
 
-    python benchmarks/eval_speed.py [--scenarios a,b] [--seed 1] [--repeats 3] [--profile N] [--reference]
+    python benchmarks/eval_speed.py [--scenarios a,b] [--seed 1] [--repeats 3] [--reference] [--stages] [--profile N]
 
 Each scenario runs in this process exactly as ``v2i eval --scenario NAME --seed SEED`` runs it
 (the same parser, spec and ``OfflineRun``; imports are paid once, before the first timing, and
 reported apart as ``import_s``). One line per scenario: simulated seconds, the median wall
 seconds of ``--repeats`` runs (spec -> execute -> report) and their ratio. ``--reference``
 also times each scenario with the unpruned occlusion test (``sim.occlusion.PRUNE = False``,
-the code before pruning) in the same run and prints the speed-up. ``--profile N`` runs each
+the code before pruning) in the same run, prints the speed-up and whether the two reports
+(the JSON of ``v2i eval --json``) are equal. ``--profile N`` runs each
 scenario once more under cProfile and prints its N costliest functions (cumulative).
 ``--stages`` runs each scenario once more with a timer around each function of ``STAGES``
 and prints each one's exclusive wall seconds (time inside it, less time inside another timed
@@ -20,6 +21,7 @@ import argparse
 import cProfile
 import functools
 import importlib
+import json
 import pstats
 import statistics
 import sys
@@ -95,7 +97,7 @@ def stages(name: str, seed: int) -> None:
     timer = StageTimer()
     undo = timer.install()
     try:
-        _, wall_s = run_once(name, seed)
+        _, wall_s, _ = run_once(name, seed)
     finally:
         for holder, attr, fn in reversed(undo):
             setattr(holder, attr, fn)
@@ -106,25 +108,25 @@ def stages(name: str, seed: int) -> None:
     print(f"    {'other':26s} {other:6.2f} s {100 * other / wall_s:5.1f} %")
 
 
-def run_once(name: str, seed: int) -> tuple[float, float]:
-    """One ``v2i eval`` run in-process: (simulated s, wall s)."""
+def run_once(name: str, seed: int) -> tuple[float, float, dict]:
+    """One ``v2i eval`` run in-process: (simulated s, wall s, its report)."""
     args = build_parser().parse_args(["eval", "--scenario", name, "--seed", str(seed)])
     start = time.perf_counter()
     run = OfflineRun(with_chaos(_spec(args), None), chaos=None)
     run.execute()
-    run.report(driver="eval")
+    report = run.report(driver="eval")
     wall_s = time.perf_counter() - start
-    return run.duration_s, wall_s
+    return run.duration_s, wall_s, report
 
 
-def median_wall(name: str, seed: int, repeats: int, prune: bool) -> tuple[float, float]:
-    """(simulated s, median wall s of ``repeats`` runs) with occlusion pruning on or off."""
+def median_wall(name: str, seed: int, repeats: int, prune: bool) -> tuple[float, float, str]:
+    """(simulated s, median wall s of ``repeats`` runs, the report as JSON) with occlusion pruning on or off."""
     occlusion.PRUNE = prune
     try:
         runs = [run_once(name, seed) for _ in range(repeats)]
     finally:
         occlusion.PRUNE = True
-    return runs[0][0], statistics.median(w for _, w in runs)
+    return runs[0][0], statistics.median(w for _, w, _ in runs), json.dumps(runs[0][2], sort_keys=True)
 
 
 def profile(name: str, seed: int, top: int) -> None:
@@ -140,20 +142,21 @@ def main() -> None:
     parser.add_argument("--scenarios", help="comma-separated names (default: every bundled scenario)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per scenario; the median is printed")
-    parser.add_argument("--reference", action="store_true", help="also time the unpruned occlusion test")
+    parser.add_argument("--reference", action="store_true",
+                        help="also time the unpruned occlusion test and compare the two runs' reports")
     parser.add_argument("--profile", type=int, metavar="N", help="print cProfile's N costliest functions per scenario")
     parser.add_argument("--stages", action="store_true", help="print exclusive wall seconds per stage (STAGES)")
     args = parser.parse_args()
     names = args.scenarios.split(",") if args.scenarios else bundled_scenarios()
     print(f"import_s {IMPORT_S:.2f} (paid once per v2i eval process, not in the times below)")
     head = f"{'scenario':24s} {'sim_s':>6s} {'wall_s':>7s} {'x_real':>7s}"
-    print(head + (f" {'ref_wall_s':>10s} {'ref_x':>6s} {'speedup':>7s}" if args.reference else ""))
+    print(head + (f" {'ref_wall_s':>10s} {'ref_x':>6s} {'speedup':>7s} same_report" if args.reference else ""))
     for name in names:
-        sim_s, wall_s = median_wall(name, args.seed, args.repeats, prune=True)
+        sim_s, wall_s, report = median_wall(name, args.seed, args.repeats, prune=True)
         line = f"{name:24s} {sim_s:6.1f} {wall_s:7.2f} {sim_s / wall_s:7.1f}"
         if args.reference:
-            _, ref_s = median_wall(name, args.seed, args.repeats, prune=False)
-            line += f" {ref_s:10.2f} {sim_s / ref_s:6.1f} {ref_s / wall_s:7.2f}"
+            _, ref_s, ref_report = median_wall(name, args.seed, args.repeats, prune=False)
+            line += f" {ref_s:10.2f} {sim_s / ref_s:6.1f} {ref_s / wall_s:7.2f} {'yes' if ref_report == report else 'NO'}"
         print(line, flush=True)
     for name in names if args.stages else ():
         stages(name, args.seed)
