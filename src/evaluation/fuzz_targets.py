@@ -2,7 +2,8 @@
 are, what its normal output is and where it counts what it refused.
 
 - ``obu``: an RSU (clock offset 250 ms) and the OBU connected to it directly. The attacker's
-  session reaches both: it publishes on the RSU keys of other ids (and, as one special kind
+  session reaches both: it publishes on the RSU keys of other ids (v2i lists, and CPM / SDSM
+  lists on ``.../cpm`` / ``.../sdsm``: ``evaluation.fuzz_standard``; and, as one special kind
   among the others, valid lists on the genuine RSU's own key: without signatures, issue 14,
   those are indistinguishable from the RSU's), replays the genuine RSU's lists, and, once the OBU has synchronised and fuses RSU data, answers
   half of its time queries at once with a forged clock (245 ms further ahead, a
@@ -38,6 +39,7 @@ from schemas.transport import free_tcp_endpoint
 from sim.scenario import load_scenario
 
 from .fuzz import LINK_ID, MS, RSU_ID, VEHICLE_ID, FuzzRun
+from .fuzz_standard import StandardHostile
 
 CLOCK_OFFSET_MS = 250.0  # the RSU's injected clock offset: the truth the OBU's estimate is scored against
 FORGED_SHIFT_NS = 245_000_000  # forged time replies claim the RSU clock is this much further ahead
@@ -92,7 +94,17 @@ class ObuFuzz(FuzzRun):
         flood = valid(rsu_id="flood")
         return [("flood", lambda: self.deliver("object_list", flood, keys.rsu_objects("flood"))),
                 ("fake_id", fake_id), ("replay", self._replay),
-                ("spoofed_id", lambda: self.deliver("object_list", valid(), keys.rsu_objects(RSU_ID)))]
+                ("spoofed_id", lambda: self.deliver("object_list", valid(), keys.rsu_objects(RSU_ID))),
+                *self._standard_actions()]
+
+    def _standard_actions(self) -> list:
+        """Hostile CPM / SDSM lists (``evaluation.fuzz_standard``) on the RSU keys of other ids."""
+        hostile, now, actions = StandardHostile(self.rng), time.time_ns(), []
+        for wire, topic in (("cpm", keys.rsu_cpm), ("sdsm", keys.rsu_sdsm)):
+            pool = itertools.cycle([hostile.make(wire, now)[1] for _ in range(64)])
+            actions.append((wire, lambda topic=topic, pool=pool: self.deliver(
+                "object_list", next(pool), topic(f"x{int(self.rng.integers(8))}"))))
+        return actions
 
     def _replay(self) -> None:
         """A captured genuine list again: the newest (a duplicate) or one >= 5 s old (stale)."""

@@ -236,12 +236,16 @@ def _rhos(obj: dict) -> tuple[float, float]:
     for m in matrices:
         bits = int.from_bytes(m["componentsIncludedIntheMatrix"][0], "big") >> 3  # 13 bits, MSB first
         cols = m["matrix"]
-        cell = lambda j, k: cols[j][k] if j < len(cols) and k < len(cols[j]) and cols[j][k] != 101 else 0
         if bits == 0b1100000000000:
-            return cell(0, 0) / 100.0, 0.0
+            return _cell(cols, 0, 0) / 100.0, 0.0
         if bits == 0b1101100000000:
-            return cell(0, 0) / 100.0, cell(2, 0) / 100.0
+            return _cell(cols, 0, 0) / 100.0, _cell(cols, 2, 0) / 100.0
     return 0.0, 0.0
+
+
+def _cell(cols: list[list[int]], j: int, k: int) -> int:
+    """Correlation cell (percent) k of column j; 0 when absent or unavailable (101)."""
+    return cols[j][k] if j < len(cols) and k < len(cols[j]) and cols[j][k] != 101 else 0
 
 
 def _fill(cols: dict[str, np.ndarray], i: int, obj: dict, ref_xy: tuple[float, float]) -> None:

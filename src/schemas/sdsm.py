@@ -86,7 +86,7 @@ def _level(bound: float, levels: tuple[float, ...], names: tuple[str, ...]) -> s
 def _time(capture_ns: int) -> dict:
     """DDateTime (UTC, ms within the minute) of a Unix time in ns."""
     ms = (int(capture_ns) + 500_000) // 1_000_000
-    t = dt.datetime.fromtimestamp(ms // 1000, dt.timezone.utc)
+    t = dt.datetime.fromtimestamp(ms // 1000, dt.UTC)
     return {"year": t.year, "month": t.month, "day": t.day, "hour": t.hour, "minute": t.minute,
             "second": t.second * 1000 + ms % 1000, "offset": 0}
 
@@ -97,7 +97,7 @@ def _unix_ms(stamp: dict) -> int:
     if any(p not in stamp for p in parts) or stamp["second"] >= 60_000:
         raise InvalidMessage("sdsm time stamp incomplete or out of range", "sDSMTimeStamp")
     try:
-        t = dt.datetime(stamp["year"], stamp["month"], stamp["day"], stamp["hour"], stamp["minute"], tzinfo=dt.timezone.utc)
+        t = dt.datetime(stamp["year"], stamp["month"], stamp["day"], stamp["hour"], stamp["minute"], tzinfo=dt.UTC)
     except ValueError as exc:
         raise InvalidMessage(f"sdsm time stamp: {exc}", "sDSMTimeStamp") from None
     return int(t.timestamp()) * 1000 + stamp["second"] - stamp.get("offset", 0) * 60_000
@@ -113,15 +113,20 @@ def _heading(c: dict[str, np.ndarray], i: int, moving: bool) -> float:
 
 def _detail(c: dict[str, np.ndarray], i: int, kind: str, sub: int) -> tuple[str, dict]:
     if kind == "vehicle":
-        return "detVeh", {"size": {"width": int(np.clip(round(c["width"][i] / 0.01), 0, 1023)),
-                                   "length": int(np.clip(round(c["length"][i] / 0.01), 0, 4095))},
-                          "height": int(np.clip(round(c["height"][i] / 0.05), 0, 127)), "vehicleClass": sub}
+        return "detVeh", {"size": {"width": _clip(c["width"][i] / 0.01, 0, 1023),
+                                   "length": _clip(c["length"][i] / 0.01, 0, 4095)},
+                          "height": _clip(c["height"][i] / 0.05, 0, 127), "vehicleClass": sub}
     if kind == "vru":
         return "detVRU", {"basicType": sub,
-                          "radius": int(np.clip(round(max(c["length"][i], c["width"][i]) / 2 / 0.1), 0, 200))}
-    return "detObst", {"obstSize": {"width": int(np.clip(round(c["width"][i] / 0.1), 0, 1023)),
-                                    "length": int(np.clip(round(c["length"][i] / 0.1), 0, 1023)),
-                                    "height": int(np.clip(round(c["height"][i] / 0.1), 0, 1023))}}
+                          "radius": _clip(max(c["length"][i], c["width"][i]) / 2 / 0.1, 0, 200)}
+    return "detObst", {"obstSize": {"width": _clip(c["width"][i] / 0.1, 0, 1023),
+                                    "length": _clip(c["length"][i] / 0.1, 0, 1023),
+                                    "height": _clip(c["height"][i] / 0.1, 0, 1023)}}
+
+
+def _clip(code: float, lo: int, hi: int) -> int:
+    """round(code) saturated to [lo, hi]."""
+    return min(max(round(float(code)), lo), hi)
 
 
 def _object(c: dict[str, np.ndarray], i: int, delta_ms: int) -> dict:
@@ -132,24 +137,24 @@ def _object(c: dict[str, np.ndarray], i: int, delta_ms: int) -> dict:
     kind, sub = CLASS_TO_SDSM.get(int(c["cls"][i]), ("unknown", 0))
     pos_bound = sw.Z95 * np.sqrt(max(c["cov_xx"][i], c["cov_yy"][i], 0.0))
     common: dict[str, Any] = {
-        "objType": kind, "objTypeCfd": int(round(float(np.clip(c["confidence"][i], 0, 1)) * 100)),
+        "objType": kind, "objTypeCfd": round(float(np.clip(c["confidence"][i], 0, 1)) * 100),
         "objectID": int(c["id"][i]) % 65536, "measurementTime": delta_ms, "timeConfidence": 0,
-        "pos": {"offsetX": int(round(c["x"][i] / 0.1)), "offsetY": int(round(c["y"][i] / 0.1))},
+        "pos": {"offsetX": round(float(c["x"][i]) / 0.1), "offsetY": round(float(c["y"][i]) / 0.1)},
         "posConfidence": {"pos": _level(pos_bound, POSITION_LEVELS_M, POSITION_ENUM), "elevation": "unavailable"},
-        "speed": int(min(round(speed / 0.02), 8190)) if known else 8191,
+        "speed": min(round(speed / 0.02), 8190) if known else 8191,
         "speedConfidence": _level(sw.Z95 * np.sqrt(max(c["cov_vxx"][i], c["cov_vyy"][i])), SPEED_LEVELS_MPS,
                                   SPEED_ENUM) if known else "unavailable",
         # heading: clockwise from north, 0.0125 degree
-        "heading": int(round(((90.0 - np.degrees(heading)) % 360.0) / 0.0125)) % 28800, "headingConf": "unavailable",
+        "heading": round(float((90.0 - np.degrees(heading)) % 360.0) / 0.0125) % 28800, "headingConf": "unavailable",
     }
     if c["z"][i]:
-        common["pos"]["offsetZ"] = int(round(c["z"][i] / 0.1))
+        common["pos"]["offsetZ"] = round(float(c["z"][i]) / 0.1)
     if c["ax"][i] or c["ay"][i] or c["yaw_rate"][i]:
         ch, sh = np.cos(heading), np.sin(heading)  # a_long = a . h, a_lat = a . h_perp (left)
         common["accel4way"] = {
-            "long": int(np.clip(round((c["ax"][i] * ch + c["ay"][i] * sh) / 0.01), -2000, 2000)),
-            "lat": int(np.clip(round((-c["ax"][i] * sh + c["ay"][i] * ch) / 0.01), -2000, 2000)),
-            "vert": 0, "yaw": int(np.clip(round(np.degrees(c["yaw_rate"][i]) / 0.01), -32767, 32767))}
+            "long": _clip((c["ax"][i] * ch + c["ay"][i] * sh) / 0.01, -2000, 2000),
+            "lat": _clip((-c["ax"][i] * sh + c["ay"][i] * ch) / 0.01, -2000, 2000),
+            "vert": 0, "yaw": _clip(np.degrees(c["yaw_rate"][i]) / 0.01, -32767, 32767)}
     return {"detObjCommon": common, "detObjOptData": _detail(c, i, kind, sub)}
 
 

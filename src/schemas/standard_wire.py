@@ -12,6 +12,7 @@ from such a dict; ``object_list`` builds the validated ``ObjectList`` the OBU ac
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Sequence
 from functools import cache
 from pathlib import Path
@@ -37,12 +38,43 @@ SITE_ORIGIN_E7 = (0, 0)
 Z95 = 1.959963984540054  # two-sided 95 % quantile of the normal law: confidence = Z95 * sigma
 
 
-@cache
+_compile_lock = threading.Lock()
+
+
 def compiled(filename: str) -> Any:
-    """The UPER codec of an ASN.1 file in ``asn1/`` (compiled once per process)."""
+    """The UPER codec of an ASN.1 file in ``asn1/``, compiled once per process (the first call
+    takes ~0.3 s: ``warm_up`` does it on a thread)."""
+    with _compile_lock:
+        spec = _compiled(filename)
+    _warm.add(filename)
+    return spec
+
+
+@cache
+def _compiled(filename: str) -> Any:
     import asn1tools  # imported on first use: a v2i-only process never pays for it
 
     return asn1tools.compile_files(str(ASN1_DIR / filename), "uper")
+
+
+_warm: set[str] = set()  # files compiled so far
+
+
+def is_compiled(filename: str) -> bool:
+    """Whether ``compiled(filename)`` returns at once."""
+    return filename in _warm
+
+
+def warm_up(filenames: tuple[str, ...]) -> threading.Thread:
+    """Compile ``filenames`` on a daemon thread (a service loop must not stall ~0.3 s on the first message)."""
+
+    def work() -> None:
+        for name in filenames:
+            compiled(name)
+
+    thread = threading.Thread(target=work, name="asn1-warm-up", daemon=True)
+    thread.start()
+    return thread
 
 
 def asn1_decode(spec: Any, type_name: str, data: bytes, what: str) -> dict:
@@ -108,13 +140,14 @@ def columns_of(objects: Any) -> dict[str, np.ndarray]:
         return {k: objects.column(k).astype(np.float64) for k in COLUMN_NAMES}
     if hasattr(objects, "xy"):  # fusion.objects.ObjectArray
         o = objects
-        return dict(
-            id=o.ids.astype(np.float64), cls=o.cls.astype(np.float64), x=o.xy[:, 0], y=o.xy[:, 1], z=o.z,
-            length=o.lwh[:, 0], width=o.lwh[:, 1], height=o.lwh[:, 2], yaw=o.yaw, vx=o.vxy[:, 0], vy=o.vxy[:, 1],
-            ax=o.axy[:, 0], ay=o.axy[:, 1], yaw_rate=o.yaw_rate, cov_xx=o.cov_xy[:, 0, 0], cov_xy=o.cov_xy[:, 0, 1],
-            cov_yy=o.cov_xy[:, 1, 1], cov_vxx=o.cov_vxy[:, 0, 0], cov_vxy=o.cov_vxy[:, 0, 1],
-            cov_vyy=o.cov_vxy[:, 1, 1], confidence=o.confidence, age_s=o.age_s,
-        )
+        return {
+            "id": o.ids.astype(np.float64), "cls": o.cls.astype(np.float64), "x": o.xy[:, 0], "y": o.xy[:, 1],
+            "z": o.z, "length": o.lwh[:, 0], "width": o.lwh[:, 1], "height": o.lwh[:, 2], "yaw": o.yaw,
+            "vx": o.vxy[:, 0], "vy": o.vxy[:, 1], "ax": o.axy[:, 0], "ay": o.axy[:, 1], "yaw_rate": o.yaw_rate,
+            "cov_xx": o.cov_xy[:, 0, 0], "cov_xy": o.cov_xy[:, 0, 1], "cov_yy": o.cov_xy[:, 1, 1],
+            "cov_vxx": o.cov_vxy[:, 0, 0], "cov_vxy": o.cov_vxy[:, 0, 1], "cov_vyy": o.cov_vxy[:, 1, 1],
+            "confidence": o.confidence, "age_s": o.age_s,
+        }
     states: Sequence[ObjectState] = tuple(objects)
     return {k: np.array([getattr(s, k) for s in states], dtype=np.float64) for k in COLUMN_NAMES}
 
@@ -123,8 +156,8 @@ def object_list(header: ObjectListHeader, columns: dict[str, np.ndarray]) -> Obj
     """The validated ObjectList of a decoded header and columns (every v2i model rule)."""
     table = np.column_stack([columns[k] for k in COLUMN_NAMES]).reshape(len(columns["id"]), len(COLUMN_NAMES))
     try:
-        from .columns import ObjectColumns  # the columnar object lists (issue 15 section 1), where present
-    except ImportError:  # per-object models
+        from .columns import ObjectColumns
+    except ImportError:  # before the columnar object lists (issue 15 section 1): per-object models
         rows = [dict(zip(COLUMN_NAMES, row)) for row in table.tolist()]
         for row in rows:
             row["id"], row["cls"] = int(row["id"]), int(row["cls"])

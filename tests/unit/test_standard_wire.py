@@ -121,8 +121,9 @@ def test_limits_and_fit() -> None:
 
 
 def test_list_wire_gives_the_same_objectlist_for_every_encoding() -> None:
-    msg = ObjectList(header=_header(), objects=[dict(id=5, cls=1, x=12.34, y=-5.67, length=4.5, width=1.8,
-                                                     vx=3.21, vy=0.5, cov_vxx=0.04, cov_vyy=0.04)])
+    msg = ObjectList(header=_header(), objects=[{"id": 5, "cls": 1, "x": 12.34, "y": -5.67, "length": 4.5,
+                                                     "width": 1.8, "vx": 3.21, "vy": 0.5, "cov_vxx": 0.04,
+                                                     "cov_vyy": 0.04}])
     assert list_wire.list_key("cpm", "rsu-a") == "v2x/rsu/rsu-a/cpm"
     for wire in list_wire.WIRES:
         out = list_wire.decode_list(list_wire.encode_list(msg, wire), wire, "rsu-a")
