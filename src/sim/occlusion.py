@@ -209,7 +209,8 @@ def _blocked_pruned(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarra
     blocked = np.zeros(len(pts), dtype=bool)
     if len(boxes):
         q, k = cone_pairs(origin, pts, boxes[:, :2], np.hypot(boxes[:, 2], boxes[:, 3]) / 2.0)
-        q, k = q[box_owner[k] != owner[q]], k[box_owner[k] != owner[q]]
+        other = box_owner[k] != owner[q]  # a target never hides itself
+        q, k = q[other], k[other]
         hit = pair_hits_boxes(origin, pts, boxes, q, k)
         blocked[q[hit]] = True
     for poly in polygons:
