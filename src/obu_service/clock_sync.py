@@ -165,17 +165,25 @@ class ClockSync:
     is fitted over the whole window, the offset from the samples of the last offset_horizon_ns;
     quantile: the lower-tail fraction taken as the envelope of each leg; bound_sigmas: drift
     standard deviations the uncertainty allows for. Samples may arrive in any order.
+
+    Refits: until the fit is armed (converged) every exchange refits the window; after that
+    every ``refit_every`` exchanges or ``refit_interval_ns`` of exchange time, whichever comes
+    first (a confirmed step refits at once). In between, the last fit is extrapolated with its
+    drift (``estimate_at``). A 600-sample fit costs ~0.6 ms: an OBU querying 8 RSUs at 10 Hz
+    spent ~5 ms of every 100 ms cycle refitting for one new sample in 600.
     """
 
     def __init__(self, window: int = 600, *, horizon_ns: int = 60 * NS_PER_S,
                  offset_horizon_ns: int = 30 * NS_PER_S, bin_ns: int = 2 * NS_PER_S, quantile: float = 0.1,
                  drift_prior_ppm: float = 100.0, max_drift_ppm: float = 500.0, step_threshold_ns: int = 2_000_000,
-                 step_confirm: int = 3, step_span: int = 10, step_armed_after: int = 30, bound_sigmas: float = 3.0):
+                 step_confirm: int = 3, step_span: int = 10, step_armed_after: int = 30, bound_sigmas: float = 3.0,
+                 refit_every: int = 5, refit_interval_ns: int = NS_PER_S):
         self.max_samples, self.horizon_ns, self.offset_horizon_ns = window, horizon_ns, offset_horizon_ns
         self.bin_ns, self.quantile = bin_ns, quantile
         self.max_drift, self.bound_sigmas = max_drift_ppm * PPM_NS_PER_S, bound_sigmas
         self.step_threshold_ns, self.step_confirm, self.step_span = step_threshold_ns, step_confirm, step_span
         self.step_armed_after = step_armed_after
+        self.refit_every, self.refit_interval_ns = refit_every, refit_interval_ns
         self._samples: list[tuple[int, int, SyncSample]] = []  # (t4, clock segment, sample), by t4
         self._segment = 0  # current clock segment (steps detected so far)
         self._hypotheses: list[_Hypothesis] = []  # competing suspected steps (disjoint suspect clusters)
@@ -187,7 +195,8 @@ class ClockSync:
         self._prior = (0.0, drift_prior_ppm * PPM_NS_PER_S)  # drift prior (mean, sd) in ns/s
         self._drift = self._prior  # latest drift fit (mean, sd) in ns/s
         self._inconsistent: set[SyncSample] = set()  # window samples outside the consensus (counted once)
-        self._fit: _Fit | None = None  # cache, None when stale
+        self._fit: _Fit | None = None  # cache, None when it must be refitted
+        self._unfitted = 0  # exchanges inserted since the cached fit
 
     @property
     def steps_detected(self) -> int:
@@ -269,7 +278,7 @@ class ClockSync:
         while cut < len(self._samples) and newest_ns - self._samples[cut][0] > self.horizon_ns:
             cut += 1
         del self._samples[:max(cut, len(self._samples) - self.max_samples)]
-        self._fit = None
+        self._unfitted += 1
 
     # --- steps and outliers -----------------------------------------------------------------
     def _suspect(self, sample: SyncSample, interval: tuple[float, float]) -> None:
@@ -321,8 +330,12 @@ class ClockSync:
 
     # --- fit --------------------------------------------------------------------------------
     def _current_fit(self) -> _Fit | None:
-        if self._fit is None and self._samples:
-            self._fit = self._compute_fit()
+        fit = self._fit
+        due = fit is None or self._unfitted > 0 and (
+            not fit.armed or self._unfitted >= self.refit_every
+            or self._samples[-1][0] - fit.t_ref_ns >= self.refit_interval_ns)
+        if due and self._samples:
+            self._fit, self._unfitted = self._compute_fit(), 0
         return self._fit
 
     def _compute_fit(self) -> _Fit:

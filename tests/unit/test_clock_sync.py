@@ -1,3 +1,5 @@
+from collections import Counter
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -365,3 +367,28 @@ def test_shared_slope_and_theil_sen_equal_the_library_fits():
     assert se == pytest.approx(np.sqrt(rss[0] / dof / sum(np.sum((t - t.mean()) ** 2) for t, _ in groups)), rel=1e-9)
     t, y = groups[1]
     assert theil_sen_slope([(t, y)]) == pytest.approx(theilslopes(y, t).slope, rel=1e-12)
+
+
+def test_a_converged_filter_refits_every_refit_every_exchanges_not_each_one(monkeypatch):
+    """Until armed every exchange refits, then one refit per refit_every (5) exchanges; between
+    refits the extrapolated estimate stays inside its bound."""
+    clock, samples = lte_run(300 * MS, 40.0, 5, duration_s=30)
+    fits = Counter()
+    compute = ClockSync._compute_fit
+
+    def counting(self):
+        fits[id(self)] += 1
+        return compute(self)
+
+    monkeypatch.setattr(ClockSync, "_compute_fit", counting)
+    throttled, every = ClockSync(), ClockSync(refit_every=1)
+    armed = 0
+    for s in samples:
+        for sync in (throttled, every):
+            sync.add(s)
+            est = sync.estimate_at(s.t4_ns)
+            assert abs(est.offset_ns - clock.offset_at(s.t4_ns)) <= est.uncertainty_ns
+        armed += throttled.converged
+    assert fits[id(every)] == len(samples)
+    unarmed = len(samples) - armed
+    assert unarmed < 0.3 * len(samples) and fits[id(throttled)] <= unarmed + armed / 5 + 2
