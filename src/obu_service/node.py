@@ -44,7 +44,8 @@ from .v2v_shell import KINDS as V2V_KINDS, V2vShell
 
 
 INPUT_MAX_AGE_MS = 1000.0  # --source zenoh: older detection frames or poses are stale
-CHEAP_INPUT_BYTES = 4096  # decodes in well under 2 ms (a 64-object list: 4.4 kB, 0.45 ms)
+CHEAP_INPUT_BYTES = 4096  # decodes in well under 1 ms (schema 4: ~180 objects, 0.1 ms; a prediction list's
+# paths are still one model each: 64 objects x 128 points decode in ~5 ms)
 # A CPM / SDSM (asn1tools, pure Python) decodes at ~1 us per byte: 8 objects 0.3 kB 0.3 ms, 255 objects 8 kB 8 ms
 CHEAP_STANDARD_BYTES = 512
 
@@ -146,7 +147,7 @@ class ObuNode:
     def _loop(self, stop: threading.Event) -> None:
         """Fire each event at its time; between events, handle inputs. A large input (over
         CHEAP_INPUT_BYTES, a CPM / SDSM over CHEAP_STANDARD_BYTES; an admitted one decodes in up
-        to ~15 ms) is not started within ``input_guard_ms`` of the next event but held until
+        to ~10 ms) is not started within ``input_guard_ms`` of the next event but held until
         after it: a cycle's output must not wait for it."""
         guard_s = self.config.input_guard_ms * 1e-3
         while not stop.is_set():
