@@ -16,6 +16,7 @@ from .classes import ObjectClass
 from .columns import ObjectColumns, objects_field
 from .limits import (ACCEL_MAX_MPS2, AGE_MAX_S, HEIGHT_MAX_M, MAX_OBJECTS, POSITION_MAX_M, SIZE_MAX_M,  # noqa: F401
                      SOURCE_RSU, SOURCE_VEHICLE, SPEED_MAX_MPS, UNKNOWN_VELOCITY_VAR, VARIANCE_MAX, YAW_RATE_MAX)
+from .path_points import grid_positions, grid_yaws, points_validator
 
 # 2: velocity covariance cov_vxx, cov_vxy, cov_vyy on objects
 # 3: header schema_version checked; RsuMetrics; ObuMetrics.output_dropped; RsuLinkStatus.sync_outliers
@@ -146,6 +147,8 @@ class ObjectList(Message):
 
 
 MAX_PATH_POINTS = 128  # 12.8 s at 0.1 s steps
+_PATH_POSITIONS = points_validator(-POSITION_MAX_M, POSITION_MAX_M, MAX_PATH_POINTS, grid_positions)
+_PATH_YAWS = points_validator(-100.0, 100.0, MAX_PATH_POINTS, grid_yaws)  # Yaw's range
 
 
 class PredictedPath(Message):
@@ -153,9 +156,10 @@ class PredictedPath(Message):
 
     TYPE: ClassVar[str] = "predicted_path"
     id: Annotated[int, Field(ge=0, lt=2**32)]
-    x: Annotated[tuple[Position, ...], Field(max_length=MAX_PATH_POINTS)] = ()
-    y: Annotated[tuple[Position, ...], Field(max_length=MAX_PATH_POINTS)] = ()
-    yaw: Annotated[tuple[Yaw, ...], Field(max_length=MAX_PATH_POINTS)] = ()
+    # per-point rules of Position / Yaw, checked and gridded as arrays (schemas.path_points)
+    x: Annotated[tuple[Position, ...], Field(max_length=MAX_PATH_POINTS), _PATH_POSITIONS] = ()
+    y: Annotated[tuple[Position, ...], Field(max_length=MAX_PATH_POINTS), _PATH_POSITIONS] = ()
+    yaw: Annotated[tuple[Yaw, ...], Field(max_length=MAX_PATH_POINTS), _PATH_YAWS] = ()
 
     @model_validator(mode="after")
     def _same_lengths(self) -> "PredictedPath":

@@ -1,0 +1,86 @@
+"""PredictedPath's array fast path (schemas.path_points) accepts, rejects and grids exactly as
+the per-point models do: values bit for bit, errors field for field."""
+
+from __future__ import annotations
+
+import math
+import struct
+from typing import Annotated
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pydantic import Field, ValidationError, model_validator
+
+from schemas import quantize as q
+from schemas.messages import MAX_PATH_POINTS, Message, Position, PredictedPath, Yaw, _yaw
+from schemas.path_points import grid_positions, grid_yaws
+
+
+class PerPointPath(Message):
+    """PredictedPath as it was: each point validated and gridded by its own Position / Yaw."""
+
+    id: Annotated[int, Field(ge=0, lt=2**32)]
+    x: Annotated[tuple[Position, ...], Field(max_length=MAX_PATH_POINTS)] = ()
+    y: Annotated[tuple[Position, ...], Field(max_length=MAX_PATH_POINTS)] = ()
+    yaw: Annotated[tuple[Yaw, ...], Field(max_length=MAX_PATH_POINTS)] = ()
+
+    @model_validator(mode="after")
+    def _same_lengths(self) -> "PerPointPath":
+        if not len(self.x) == len(self.y) == len(self.yaw):
+            raise ValueError(f"x, y and yaw must have one entry per step, got {len(self.x)}, {len(self.y)}, {len(self.yaw)}")
+        return self
+
+
+def _bits(values) -> list[bytes]:
+    return [struct.pack("<d", v) for v in values]  # -0.0 and 0.0 differ here
+
+
+def _outcome(model: type, fields: dict):
+    try:
+        path = model(id=3, **fields)
+    except ValidationError as exc:
+        return "error", [(e["type"], e["loc"], e["msg"]) for e in exc.errors(include_url=False)]
+    assert all(type(v) is float for v in path.x + path.y + path.yaw)
+    return "ok", (_bits(path.x), _bits(path.y), _bits(path.yaw))
+
+
+_FINITE = st.floats(-2e6, 2e6, allow_nan=False)
+_POINT = st.one_of(_FINITE, st.floats(-1e4, 1e4), st.floats(), st.sampled_from([0.0, -0.0, -0.004, 0.005, -0.005, 0.015,
+                                                                                  math.pi, -math.pi, 3.14159, 99.9, -100.0,
+                                                                                  1e6, -1e6, 1e6 + 0.001, 100.0001]))
+_ODD = st.one_of(st.integers(-20_000, 20_000), st.booleans(), st.just("1.5"), st.none(), st.just(np.float64(0.5)))
+
+
+@st.composite
+def _fields(draw) -> dict:
+    n = draw(st.one_of(st.integers(0, 8), st.just(MAX_PATH_POINTS), st.just(MAX_PATH_POINTS + 1)))
+    fields = {}
+    for name in ("x", "y", "yaw"):
+        points = draw(st.lists(_POINT, min_size=n, max_size=n))
+        if points and draw(st.integers(0, 9)) == 0:  # now and then one point of another type
+            points[draw(st.integers(0, len(points) - 1))] = draw(_ODD)
+        fields[name] = tuple(points) if draw(st.booleans()) else points
+    return fields
+
+
+@settings(max_examples=400, deadline=None)
+@given(_fields())
+def test_fast_path_equals_per_point_models(fields) -> None:
+    assert _outcome(PredictedPath, fields) == _outcome(PerPointPath, fields)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1e4, 1e4, allow_nan=False), max_size=64))
+def test_grids_equal_the_scalar_functions(values) -> None:
+    a = np.array(values, dtype=np.float64)
+    assert _bits(grid_positions(a).tolist()) == _bits([q.quantize(v, q.POSITION_M) for v in values])
+    assert _bits(grid_yaws(a).tolist()) == _bits([_yaw(v) for v in values])
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), 1e6 + 0.5, "x"])
+def test_a_bad_point_still_names_its_index(bad) -> None:
+    with pytest.raises(ValidationError) as info:
+        PredictedPath(id=1, x=[1.0, 2.0, bad], y=[0.0] * 3, yaw=[0.0] * 3)
+    assert info.value.errors()[0]["loc"] == ("x", 2)
