@@ -49,21 +49,20 @@ W_TOL = 1e-12  # Newton stops once every step is below this (module docstring)
 _MAX_STEPS = 60  # safeguard: each step at least halves the bracket where Newton fails, 2^-60 < W_TOL
 
 
-def _whitening(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(ok (K,), L^-1 (K', m, m) of the K' rows where ok): R = L L^T for the R (K, m, m) that have a
-    Cholesky factor (positive definite to rounding); one batched call, then one per row only when
-    the batch holds a matrix that has none (broken input)."""
-    ok = np.ones(len(r), bool)
+def _whitening(r: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """(ok, L^-1 (K', m, m) of the K' rows where ok): R = L L^T for the R (K, m, m) that have a
+    Cholesky factor (positive definite to rounding); ok is None when every row has one (K' = K).
+    One batched call, then one per row only when the batch holds a matrix that has none (broken input)."""
     try:
-        chol = np.linalg.cholesky(r)
+        return None, np.linalg.inv(np.linalg.cholesky(r))
     except np.linalg.LinAlgError:
+        ok = np.ones(len(r), bool)
         for i in range(len(r)):
             try:
                 np.linalg.cholesky(r[i])
             except np.linalg.LinAlgError:
                 ok[i] = False
-        chol = np.linalg.cholesky(r[ok])
-    return ok, np.linalg.inv(chol)
+        return ok, np.linalg.inv(np.linalg.cholesky(r[ok]))
 
 
 def det_minimising_weight(lam: np.ndarray, free: int) -> np.ndarray:
@@ -110,17 +109,24 @@ def ci_weights(p: np.ndarray, r: np.ndarray, first: int = 0) -> np.ndarray:
     k, n, m = len(p), p.shape[-1], r.shape[-1]
     sel = slice(first, first + m)
     p_obs = p[:, sel, sel]
+    if np.isfinite(p_obs.sum() + r.sum()):  # every pair finite (a sum is finite only if each term is)
+        rows = None
+    else:
+        rows = np.flatnonzero(np.isfinite(p_obs).all(axis=(1, 2)) & np.isfinite(r).all(axis=(1, 2)))
+        p_obs, r = p_obs[rows], r[rows]
+    factored, inv_l = _whitening(r)
+    if factored is not None:
+        rows = np.flatnonzero(factored) if rows is None else rows[factored]
+        p_obs = p_obs[factored]
     w = np.ones(k)
-    ok = np.isfinite(p_obs).all(axis=(1, 2)) & np.isfinite(r).all(axis=(1, 2))
-    rows = np.flatnonzero(ok)
-    factored, inv_l = _whitening(r[rows])
-    rows = rows[factored]
-    if not len(rows):
+    if not len(p_obs):
         return w
-    s = p_obs[rows]
-    lam = np.linalg.eigvalsh(inv_l @ (0.5 * (s + np.swapaxes(s, -1, -2))) @ np.swapaxes(inv_l, -1, -2))
+    lam = np.linalg.eigvalsh(inv_l @ (0.5 * (p_obs + np.swapaxes(p_obs, -1, -2))) @ np.swapaxes(inv_l, -1, -2))
     # H P H^T positive definite: R^-1 S has positive eigenvalues, none below 1e-12 of the largest
     pd = lam[:, 0] > 1e-12 * np.abs(lam[:, -1])
+    if rows is None and pd.all():
+        return det_minimising_weight(lam, n - m)
+    rows = np.arange(k) if rows is None else rows
     w[rows[pd]] = det_minimising_weight(lam[pd], n - m)
     return w
 
@@ -131,19 +137,33 @@ def ci_update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w: np.
     entries first .. first + m - 1, weights w (K,): the Kalman update with P / w and
     R / (1 - w) (module docstring). Rows with w = 1 are returned unchanged. New arrays."""
     x, p = x.copy(), p.copy()
+    ci_update_into(x, p, z, r, w, first)
+    return x, p
+
+
+def ci_update_into(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w: np.ndarray,
+                   first: int = 0) -> None:
+    """``ci_update`` written into x (K, n) and P (K, n, n)."""
     use = w < 1.0
-    if not use.any():
-        return x, p
-    wu = w[use][:, None, None]
-    pw, rw = p[use] / wu, r[use] / (1.0 - wu)
+    every = use.all()
+    if not every and not use.any():
+        return
+    if every:
+        xu, pu, zu, ru, wu = x, p, z, r, w[:, None, None]
+    else:
+        xu, pu, zu, ru, wu = x[use], p[use], z[use], r[use], w[use][:, None, None]
+    pw, rw = pu / wu, ru / (1.0 - wu)
     sel = slice(first, first + r.shape[-1])
     s = pw[:, sel, sel] + rw  # S = H P H^T / w + R / (1 - w)
     gain = np.swapaxes(np.linalg.solve(s, np.swapaxes(pw[:, :, sel], -1, -2)), -1, -2)  # K = (P / w) H^T S^-1
-    x[use] = x[use] + (gain @ (z[use] - x[use, sel])[:, :, None])[:, :, 0]
+    x_new = xu + (gain @ (zu - xu[:, sel])[:, :, None])[:, :, 0]
     # Joseph form with A = (I - K H) P / w: P+ = A + (K R' - A H^T) K^T (as kalman.update)
     a = pw - gain @ pw[:, sel, :]
-    p[use] = a + (gain @ rw - a[:, :, sel]) @ np.swapaxes(gain, -1, -2)
-    return x, p
+    p_new = a + (gain @ rw - a[:, :, sel]) @ np.swapaxes(gain, -1, -2)
+    if every:
+        x[...], p[...] = x_new, p_new
+    else:
+        x[use], p[use] = x_new, p_new
 
 
 def covariance_intersection(x1: np.ndarray, p1: np.ndarray, x2: np.ndarray, p2: np.ndarray,

@@ -148,7 +148,7 @@ class ConstantVelocity:
         return self.accel_std_mps2**2 * _per_axis(np.outer(g, g))
 
     def initial(self, m: Measured, prior: StatePrior) -> tuple[np.ndarray, np.ndarray]:
-        return np.column_stack([m.xy, m.vxy]), _linear_prior(m, prior, [])
+        return np.concatenate([m.xy, m.vxy], axis=1), _linear_prior(m, prior, [])
 
     def velocity(self, x: np.ndarray) -> np.ndarray:
         return x[:, 2:4]
@@ -180,7 +180,7 @@ class ConstantAcceleration:
         return self.jerk_std_mps3**2 * _per_axis(np.outer(g, g))
 
     def initial(self, m: Measured, prior: StatePrior) -> tuple[np.ndarray, np.ndarray]:
-        return np.column_stack([m.xy, m.vxy, m.axy]), _linear_prior(m, prior, [prior.accel_std_mps2**2] * 2)
+        return np.concatenate([m.xy, m.vxy, m.axy], axis=1), _linear_prior(m, prior, [prior.accel_std_mps2**2] * 2)
 
     def velocity(self, x: np.ndarray) -> np.ndarray:
         return x[:, 2:4]

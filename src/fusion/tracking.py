@@ -49,6 +49,8 @@ of ``SOURCE_BITS`` (63) bits, so an int64; the OBU gives bit 0 to its own vehicl
 1 + i to RSU slot i (``slot_source``; ``schemas.messages`` documents the bits and how the
 wire folds them into one byte). A track's ``sources`` is the OR of the bits that updated it
 within the last ``max_coast_s``. Ids are unique within a Tracker instance, starting at 1.
+The tracks live in preallocated rows (``track_table.TrackStore``) with one last-update column per
+source bit in use, not 63; association (gating, cost, assignment) is ``fusion.gating``.
 
 Fusing another tracker's estimates (``update(..., estimates=True)``, e.g. an RSU's tracks).
 A matched pair (track, estimate with bits b) is fused by exactly one rule, in this order:
@@ -78,16 +80,23 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-import shapely
 
 from . import kalman
-from .association import Assignment, assign_sparse
-from .covariance_intersection import ci_update, ci_weights
+from .covariance_intersection import ci_update_into, ci_weights
 from .frames import wrap_angle
-from .geometry import box_polygons
+from .gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
+    GatedPairs,
+    assign_gated,
+    assign_pairs,
+    associate,
+    association_cost,
+    compatible_classes,
+    gated_pairs,
+    paired_bev_iou,
+)
 from .objects import ObjectArray
+from .track_table import SOURCE_BITS, TrackStore, TrackTable
 
-SOURCE_BITS = 63  # source bitmasks are int64: bit 0 own vehicle, bits 1..62 one per RSU / peer slot
 _BIT_VALUES = 1 << np.arange(SOURCE_BITS)
 
 
@@ -131,178 +140,15 @@ class TrackerConfig:
                                  self.init_yaw_rate_std_radps)
 
 
-@dataclass
-class TrackTable:
-    """Columns of N tracks: filter state x (N, n), P (N, n, n); ids, cls (N,); z (N,) m,
-    lwh (N, 3) m, yaw (N,) rad, confidence (N,) of the last detection; hits (N,);
-    born_s, updated_s (N,) s; seen_s (N, SOURCE_BITS) s, last update per source bit (-inf never);
-    shape_var (N,) m^2, shape_s (N,) s: position variance and time of the detection the box shape came from;
-    confirmed (N,) bool (see the life cycle); birth_x (N, n), birth_p (N, n, n): the state the track was
-    born with; velocity_prior (N,) bool: born without a measured velocity (two-point initialisation)."""
-
-    x: np.ndarray
-    p: np.ndarray
-    ids: np.ndarray
-    cls: np.ndarray
-    z: np.ndarray
-    lwh: np.ndarray
-    yaw: np.ndarray
-    confidence: np.ndarray
-    hits: np.ndarray
-    born_s: np.ndarray
-    updated_s: np.ndarray
-    seen_s: np.ndarray
-    shape_var: np.ndarray
-    shape_s: np.ndarray
-    confirmed: np.ndarray
-    birth_x: np.ndarray
-    birth_p: np.ndarray
-    velocity_prior: np.ndarray
-
-    @classmethod
-    def empty(cls, dim_x: int) -> TrackTable:
-        z1, no = np.zeros(0), np.zeros(0, bool)
-        x, p = np.zeros((0, dim_x)), np.zeros((0, dim_x, dim_x))
-        return cls(x, p, np.zeros(0, np.int64), np.zeros(0, np.int64), z1, np.zeros((0, 3)), z1, z1,
-                   np.zeros(0, np.int64), z1, z1, np.zeros((0, SOURCE_BITS)), z1, z1, no, x.copy(), p.copy(), no.copy())
-
-    def __len__(self) -> int:
-        return len(self.x)
-
-    def take(self, index) -> TrackTable:
-        return TrackTable(*(column[index] for column in self.columns()))
-
-    def copy(self) -> TrackTable:
-        return TrackTable(*(column.copy() for column in self.columns()))
-
-    def append(self, other: TrackTable) -> TrackTable:
-        return TrackTable(*(np.concatenate([a, b]) for a, b in zip(self.columns(), other.columns())))
-
-    def columns(self):
-        """The column arrays in field order (the instance dict holds exactly the fields, in order)."""
-        return vars(self).values()
-
-
 @dataclass(frozen=True)
 class TrackerSnapshot:
     """The whole filter state of a Tracker (deep copies): time, next id, track table, and the
-    source bits that have delivered estimates (SOURCE_BITS,) bool."""
+    bitmask of the sources that have delivered estimates."""
 
     t_s: float | None
     next_id: int
     table: TrackTable
-    estimate_bits: np.ndarray
-
-
-def compatible_classes(track_cls: np.ndarray, det_cls: np.ndarray) -> np.ndarray:
-    """True where classes are equal or either is UNKNOWN (0); paired arrays or broadcast (N, 1), (1, M)."""
-    return (track_cls == det_cls) | (track_cls == 0) | (det_cls == 0)
-
-
-@dataclass(frozen=True)
-class GatedPairs:
-    """K (track, detection) pairs inside the gate and class-compatible, with their cost (K,)."""
-
-    track: np.ndarray
-    det: np.ndarray
-    cost: np.ndarray
-
-
-def _trace2(c: np.ndarray) -> np.ndarray:
-    """Trace of 2 x 2 covariances (K, 2, 2): an upper bound of their largest eigenvalue."""
-    return c[:, 0, 0] + c[:, 1, 1]
-
-
-def _candidates(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs that may pass the gate: tracks near the detections' bounding box, then a bound on each pair.
-
-    Distance gate: |y| <= gate_m. Mahalanobis gate: d2 = y^T S^-1 y >= |y|^2 / lambda_max(S) and
-    lambda_max(S) <= tr(S) = tr(H P H^T) + tr(R), so a pair with |y|^2 > chi2 (tr P_xy + tr R) fails.
-    Either gate: a pair that passes one of the two bounds, within gate_max_m.
-    """
-    if not len(table) or not len(dets):
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    reach_m = config.gate_m
-    if config.gate != "distance":
-        lam_p, lam_r = _trace2(table.p[:, :2, :2]), _trace2(dets.cov_xy)
-        reach_m = np.sqrt(config.gate_chi2 * (lam_p.max() + lam_r.max()))
-        if config.gate == "either":
-            reach_m = min(max(reach_m, config.gate_m), config.gate_max_m)
-    (x_lo, y_lo), (x_hi, y_hi) = dets.xy.min(axis=0) - reach_m, dets.xy.max(axis=0) + reach_m
-    tx, ty = table.x[:, 0], table.x[:, 1]
-    rows = np.flatnonzero((tx >= x_lo) & (tx <= x_hi) & (ty >= y_lo) & (ty <= y_hi))
-    dx = np.subtract.outer(table.x[rows, 0], dets.xy[:, 0])
-    dy = np.subtract.outer(table.x[rows, 1], dets.xy[:, 1])
-    r2 = dx * dx + dy * dy
-    near_distance = r2 <= config.gate_m**2 if config.gate != "mahalanobis" else False
-    near_mahalanobis = r2 <= config.gate_chi2 * np.add.outer(lam_p[rows], lam_r) if config.gate != "distance" else False
-    if config.gate == "either":
-        near_mahalanobis &= r2 <= config.gate_max_m**2
-    ti, di = np.nonzero(near_distance | near_mahalanobis)
-    ti = rows[ti]
-    keep = compatible_classes(table.cls[ti], dets.cls[di])
-    return ti[keep], di[keep]
-
-
-def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> GatedPairs:
-    """Class-compatible pairs inside the configured gate with the configured cost (see module doc)."""
-    ti, di = _candidates(config, table, dets)
-    y = dets.xy[di] - table.x[ti, :2]
-    dist = np.hypot(y[:, 0], y[:, 1])
-    if config.gate != "distance" or config.cost == "mahalanobis":
-        d2 = kalman.mahalanobis_sq_pairs(table.x[ti], table.p[ti], dets.xy[di], dets.cov_xy[di])
-    if config.gate == "distance":
-        inside = dist <= config.gate_m
-    elif config.gate == "mahalanobis":
-        inside = d2 <= config.gate_chi2
-    else:
-        inside = (dist <= config.gate_m) | ((d2 <= config.gate_chi2) & (dist <= config.gate_max_m))
-    ti, di = ti[inside], di[inside]
-    if config.cost == "distance":
-        cost = dist[inside]
-    elif config.cost == "mahalanobis":
-        cost = d2[inside]
-    else:  # 1 - BEV IoU of the predicted box (last detected size and yaw) and the detected box
-        a = np.column_stack([table.x[ti, :2], table.lwh[ti, :2], table.yaw[ti]])
-        cost = 1.0 - paired_bev_iou(a, np.column_stack([dets.xy[di], dets.lwh[di, :2], dets.yaw[di]]))
-    return GatedPairs(ti, di, cost)
-
-
-def paired_bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU (K,) of paired BEV boxes a[k], b[k] (K, 5) [x, y, l, w, yaw]: |A n B| / (|A| + |B| - |A n B|).
-
-    Polygons from ``fusion.geometry``; one intersection per pair instead of a whole matrix.
-    """
-    if not len(a):
-        return np.zeros(0)
-    inter = shapely.area(shapely.intersection(box_polygons(a), box_polygons(b)))
-    union = a[:, 2] * a[:, 3] + b[:, 2] * b[:, 3] - inter
-    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
-
-
-def assign_pairs(pairs: GatedPairs, n_tracks: int, n_dets: int) -> Assignment:
-    """Minimum-cost one-to-one matching among the gated pairs (``association.assign_sparse``:
-    per connected component of the gated graph, scipy linear_sum_assignment for those of more than one pair)."""
-    return assign_sparse(pairs.track, pairs.det, pairs.cost, n_tracks, n_dets)
-
-
-def associate(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> Assignment:
-    """Gate, cost and assign the detections to the tracks (indices into table and dets)."""
-    return assign_pairs(gated_pairs(config, table, dets), len(table), len(dets))
-
-
-def association_cost(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> np.ndarray:
-    """Dense cost (N tracks, M detections) of the gated pairs; inf elsewhere."""
-    pairs = gated_pairs(config, table, dets)
-    cost = np.full((len(table), len(dets)), np.inf)
-    cost[pairs.track, pairs.det] = pairs.cost
-    return cost
-
-
-def assign_gated(cost: np.ndarray) -> Assignment:
-    """Minimum-cost one-to-one matching among the finite entries of a dense cost (N, M)."""
-    ti, di = np.nonzero(np.isfinite(cost))
-    return assign_pairs(GatedPairs(ti, di, cost[ti, di]), *cost.shape)
+    estimate_mask: int
 
 
 def slot_source(slot: int) -> int:
@@ -321,7 +167,10 @@ def source_mask_bits(masks: np.ndarray) -> np.ndarray:
 
 
 class Tracker:
-    """Multi-object tracker; see the module docstring for the cycle, gating and life cycle."""
+    """Multi-object tracker; see the module docstring for the cycle, gating and life cycle.
+
+    The tracks live in a ``track_table.TrackStore`` (preallocated rows, updated in place);
+    ``_table`` is the TrackTable of the live rows (views into the store)."""
 
     def __init__(self, config: TrackerConfig = TrackerConfig()):
         self.config = config
@@ -329,11 +178,15 @@ class Tracker:
         self._prior = config.prior()
         self._next_id = 1
         self._t_s: float | None = None
-        self._table = TrackTable.empty(self.model.dim_x)
-        self._estimate_bits = np.zeros(SOURCE_BITS, bool)  # bits that have delivered estimates
+        self._store = TrackStore(self.model.dim_x)
+        self._estimate_mask = 0  # bitmask of the sources that have delivered estimates
+
+    @property
+    def _table(self) -> TrackTable:
+        return self._store.view
 
     def __len__(self) -> int:
-        return len(self._table)
+        return self._store.n
 
     @property
     def time_s(self) -> float | None:
@@ -350,8 +203,9 @@ class Tracker:
     def predict(self, t_s: float) -> None:
         """Predict every track to t_s (x' = f(x), P' = F P F^T + Q); t_s must not precede the filter time."""
         self._check_time(t_s)
-        if self._t_s is not None and t_s > self._t_s and len(self._table):
-            self._table.x, self._table.p = kalman.predict(self._table.x, self._table.p, self.model, t_s - self._t_s)
+        if self._t_s is not None and t_s > self._t_s and self._store.n:
+            tab = self._table
+            tab.x[...], tab.p[...] = kalman.predict(tab.x, tab.p, self.model, t_s - self._t_s)
         self._t_s = t_s
 
     def update(self, dets: ObjectArray, t_s: float, source_mask: int = 0, estimates: bool = False) -> None:
@@ -364,32 +218,47 @@ class Tracker:
         by an estimate are confirmed (another tracker confirmed it).
         """
         self.predict(t_s)
-        bits = source_mask_bits(np.asarray(dets.sources) | int(source_mask))
+        masks = np.asarray(dets.sources, dtype=np.int64) | int(source_mask)  # (M,) source bitmask per detection
+        if len(masks) and masks.min() < 0:
+            raise ValueError(f"source bitmasks must be in [0, 2^{SOURCE_BITS}), got {masks.min()}")
+        cols = self._store.source_columns(masks)  # (M, B): the seen_s columns each detection's bits set
         if estimates:
-            self._estimate_bits |= source_mask_bits(np.array([int(source_mask)]))[0] | bits.any(axis=0)
-        result = associate(self.config, self._table, dets)
+            self._estimate_mask |= int(source_mask) | (int(np.bitwise_or.reduce(masks)) if len(masks) else 0)
+        tab = self._table
+        result = associate(self.config, tab, dets)
         ti, di = result.matches[:, 0], result.matches[:, 1]
-        alone = self._seen_only_by(ti, bits[di], t_s) if estimates else np.zeros(len(ti), bool)
+        known = dets.velocity_known()
+        other = None
+        if estimates and len(ti):  # (K, B) sources outside the estimate's bits that updated the track recently
+            other = ((t_s - tab.seen_s[ti]) <= self.config.max_coast_s) & ~cols[di]
+            alone = ~other.any(axis=1)
+        else:
+            alone = np.zeros(len(ti), bool)
         # one initialisation, from the detection alone, for the tracks an estimate replaces and the new tracks
-        start = np.concatenate([di[alone], result.unmatched_b])
+        k = int(np.count_nonzero(alone))
+        start = np.concatenate([di[alone], result.unmatched_b]) if k else result.unmatched_b
         inputs = filter_inputs(dets, start)
         x0, p0 = self.model.initial(inputs, self._prior)
-        k = int(alone.sum())
-        self._table.x[ti[alone]], self._table.p[ti[alone]] = x0[:k], p0[:k]
-        ti, di = ti[~alone], di[~alone]
-        if estimates and self.config.estimate_fusion != "kf":
-            shared = self._shared_with_estimates(ti, bits[di], t_s)
-            shared |= self.config.estimate_fusion == "ci-all"  # every track another source shares
-            self._intersect(ti[shared], di[shared], dets)
-            ti, di = ti[~shared], di[~shared]
-        pair = self._second_positions(ti, di, dets, t_s)
+        if k:
+            tab.x[ti[alone]], tab.p[ti[alone]] = x0[:k], p0[:k]
+            rest = ~alone
+            ti, di, other = ti[rest], di[rest], other[rest]
+        if estimates and self.config.estimate_fusion != "kf" and len(ti):
+            if self.config.estimate_fusion == "ci-all":  # every track another source shares
+                shared = np.ones(len(ti), bool)
+            else:
+                shared = (other & ((self._store.col_values & self._estimate_mask) != 0)).any(axis=1)
+            if shared.any():
+                self._intersect(ti[shared], di[shared], dets, known)
+                ti, di = ti[~shared], di[~shared]
+        pair = self._second_positions(ti, di, known, t_s)
         if pair.any():
             self._two_point(ti[pair], di[pair], dets, t_s)
             ti, di = ti[~pair], di[~pair]
-        self._correct(ti, di, dets, velocity=not estimates)
-        self._record(result.matches[:, 0], result.matches[:, 1], dets, bits, t_s, estimates)
+        self._correct(ti, di, dets, known, velocity=not estimates)
+        self._record(result.matches[:, 0], result.matches[:, 1], dets, cols, t_s, estimates)
         measured = inputs.velocity_measured(self._prior.speed_std_mps)[k:]
-        self._spawn(dets, result.unmatched_b, bits, t_s, x0[k:], p0[k:], estimates, ~measured)
+        self._spawn(dets, result.unmatched_b, cols, t_s, x0[k:], p0[k:], estimates, ~measured)
 
     def prune(self, t_s: float) -> None:
         """Delete stale tracks (last update older than max_coast_s) and missed tentative tracks."""
@@ -398,7 +267,7 @@ class Tracker:
         tentative = tab.hits < self.config.confirm_hits
         doomed = (since_s > self.config.max_coast_s) | (tentative & (since_s > self.config.tentative_max_coast_s))
         if doomed.any():
-            self._table = tab.take(~doomed)
+            self._store.keep(~doomed)
 
     def tracks(self, t_s: float) -> ObjectArray:
         """Confirmed and coasting tracks at t_s (map frame), predicted on a copy: the filter is not changed
@@ -419,8 +288,7 @@ class Tracker:
             ids=tab.ids, cls=tab.cls, xy=x[:, :2].copy(), z=tab.z, lwh=tab.lwh, yaw=tab.yaw,
             vxy=np.array(self.model.velocity(x)), axy=self.model.acceleration(x), yaw_rate=self.model.yaw_rate(x),
             cov_xy=p[:, :2, :2].copy(), cov_vxy=self.model.velocity_cov(x, p), confidence=tab.confidence,
-            age_s=t_s - tab.born_s,
-            sources=(recent * _BIT_VALUES[None, :]).sum(axis=1).astype(np.int64),
+            age_s=t_s - tab.born_s, sources=tab.source_masks(recent),
         )
 
     def lifecycle(self, t_s: float) -> dict[int, str]:
@@ -433,52 +301,43 @@ class Tracker:
 
     def snapshot(self) -> TrackerSnapshot:
         """Deep copy of the whole filter state."""
-        return TrackerSnapshot(self._t_s, self._next_id, self._table.copy(), self._estimate_bits.copy())
+        return TrackerSnapshot(self._t_s, self._next_id, self._store.snapshot(), self._estimate_mask)
 
     def restore(self, snapshot: TrackerSnapshot) -> None:
         """Return to a snapshot (copied again, so it can be restored more than once)."""
-        self._t_s, self._next_id, self._table = snapshot.t_s, snapshot.next_id, snapshot.table.copy()
-        self._estimate_bits = snapshot.estimate_bits.copy()
+        self._t_s, self._next_id = snapshot.t_s, snapshot.next_id
+        self._store.load(snapshot.table)
+        self._estimate_mask = snapshot.estimate_mask
 
     def _check_time(self, t_s: float) -> None:
         if self._t_s is not None and t_s < self._t_s:
             raise ValueError(f"t_s={t_s} precedes the filter time {self._t_s}; use fusion.oosm.OosmTracker")
 
-    def _seen_only_by(self, ti: np.ndarray, bits: np.ndarray, t_s: float) -> np.ndarray:
-        """(K,) True where tracks ti were updated within max_coast_s by no source outside bits (K, SOURCE_BITS)."""
-        recent = (t_s - self._table.seen_s[ti]) <= self.config.max_coast_s
-        return ~(recent & ~bits).any(axis=1)
-
-    def _shared_with_estimates(self, ti: np.ndarray, bits: np.ndarray, t_s: float) -> np.ndarray:
-        """(K,) True where tracks ti were updated within max_coast_s by a source outside bits
-        (K, SOURCE_BITS) that has delivered estimates (rule 2 of the module docstring)."""
-        recent = (t_s - self._table.seen_s[ti]) <= self.config.max_coast_s
-        return (recent & ~bits & self._estimate_bits[None, :]).any(axis=1)
-
-    def _intersect(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray) -> None:
+    def _intersect(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, known: np.ndarray) -> None:
         """Covariance intersection of tracks ti with estimates di: the position, or the position and
-        velocity where the estimate measured one (CV / CA with velocity_updates), one w per track."""
+        velocity where the estimate measured one (known (M,); CV / CA with velocity_updates), one w per track."""
         tab = self._table
-        if not len(ti):
-            return
         with_v = np.zeros(len(ti), bool)
         if self.config.velocity_updates and self.config.motion in ("cv", "ca"):
-            with_v = dets.velocity_known()[di]
-        for rows, z, r in ((~with_v, dets.xy[di], dets.cov_xy[di]), (with_v, *_position_velocity(dets, di))):
-            t = ti[rows]
-            if len(t):
-                w = ci_weights(tab.p[t], r[rows])
-                tab.x[t], tab.p[t] = ci_update(tab.x[t], tab.p[t], z[rows], r[rows], w)
+            with_v = known[di]
+        for rows, velocity in ((~with_v, False), (with_v, True)):
+            if not rows.any():
+                continue
+            t, d = (ti, di) if rows.all() else (ti[rows], di[rows])
+            z, r = _position_velocity(dets, d) if velocity else (dets.xy[d], dets.cov_xy[d])
+            x, p = tab.x[t], tab.p[t]
+            ci_update_into(x, p, z, r, ci_weights(p, r))
+            tab.x[t], tab.p[t] = x, p
 
-    def _second_positions(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, t_s: float) -> np.ndarray:
+    def _second_positions(self, ti: np.ndarray, di: np.ndarray, known: np.ndarray, t_s: float) -> np.ndarray:
         """(K,) True where the pair (track ti, detection di) is a two-point initialisation: the track
         has one hit, was born without a measured velocity at an earlier time, and the detection
-        measures no velocity either (a measured one is fused by ``_correct``)."""
+        measures no velocity either (known (M,) False; a measured one is fused by ``_correct``)."""
         tab = self._table
         first = tab.hits[ti] == 1
         if not first.any() or not self.config.two_point_init or self.config.motion not in ("cv", "ca"):
             return np.zeros(len(ti), bool)
-        return first & tab.velocity_prior[ti] & (tab.born_s[ti] < t_s) & ~dets.velocity_known()[di]
+        return first & tab.velocity_prior[ti] & (tab.born_s[ti] < t_s) & ~known[di]
 
     def _two_point(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, t_s: float) -> None:
         """Tracks ti take their state from their birth and the second positions di (``kalman.two_point``)."""
@@ -488,37 +347,43 @@ class Tracker:
             tab.x[t], tab.p[t] = kalman.two_point(self.model, tab.birth_x[t], tab.birth_p[t], dets.xy[d],
                                                   dets.cov_xy[d], t_s - born_s)
 
-    def _correct(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, velocity: bool = True) -> None:
+    def _correct(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, known: np.ndarray,
+                 velocity: bool = True) -> None:
         """Kalman update of tracks ti with detections di: position, then the measured velocity
-        unless ``velocity`` is off. It is off for another tracker's estimates fused into a track
-        other sources update too: an estimate's velocity is its filter's, built from the same
+        (known (M,)) unless ``velocity`` is off. It is off for another tracker's estimates fused into a
+        track other sources update too: an estimate's velocity is its filter's, built from the same
         measurements list after list, so fusing it every list as if independent would count them
         again and again (measured: NEES 4-5 on LiDAR+RSU tracks on highway-merge)."""
         tab = self._table
         if not len(ti):
             return
-        tab.x[ti], tab.p[ti], _ = kalman.update(tab.x[ti], tab.p[ti], dets.xy[di], dets.cov_xy[di])
+        x, p, _ = kalman.update(tab.x[ti], tab.p[ti], dets.xy[di], dets.cov_xy[di])
         if velocity and self.config.velocity_updates and self.config.motion in ("cv", "ca"):
             # sources that estimate velocity (tracking RSUs, CenterPoint) update it too:
             # H = [0 I_2 0], R = the detection's velocity covariance
-            known = dets.velocity_known()[di]
-            vt, v = ti[known], di[known]
-            if len(vt):
-                tab.x[vt], tab.p[vt], _ = kalman.update(tab.x[vt], tab.p[vt], dets.vxy[v], dets.cov_vxy[v], first=2)
+            v = known[di]
+            if v.all():
+                x, p, _ = kalman.update(x, p, dets.vxy[di], dets.cov_vxy[di], first=2)
+            elif v.any():
+                x[v], p[v], _ = kalman.update(x[v], p[v], dets.vxy[di[v]], dets.cov_vxy[di[v]], first=2)
+        tab.x[ti], tab.p[ti] = x, p
 
-    def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, bits: np.ndarray, t_s: float,
+    def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, cols: np.ndarray, t_s: float,
                 estimates: bool) -> None:
-        """Bookkeeping of matched tracks ti: class, shape, confidence, hits, confirmation and update times."""
+        """Bookkeeping of matched tracks ti: class, shape, confidence, hits, confirmation and update
+        times; cols (M, B) the seen_s columns of each detection's sources."""
         tab = self._table
-        tab.cls[ti] = np.where(tab.cls[ti] == 0, dets.cls[di], tab.cls[ti])  # UNKNOWN adopts a class
+        if not len(ti):
+            return
+        cls = tab.cls[ti]
+        tab.cls[ti] = np.where(cls == 0, dets.cls[di], cls)  # UNKNOWN adopts a class
         self._take_shape(ti, dets, di, t_s)
         tab.confidence[ti] = dets.confidence[di]
-        tab.hits[ti] += 1
-        tab.confirmed[ti] |= (tab.hits[ti] >= self.config.confirm_hits) | estimates
+        hits = tab.hits[ti] + 1
+        tab.hits[ti] = hits
+        tab.confirmed[ti] = True if estimates else tab.confirmed[ti] | (hits >= self.config.confirm_hits)
         tab.updated_s[ti] = t_s
-        seen = tab.seen_s[ti]
-        seen[bits[di]] = t_s
-        tab.seen_s[ti] = seen
+        tab.seen_s[ti] = np.where(cols[di], t_s, tab.seen_s[ti])
 
     def _take_shape(self, ti: np.ndarray, dets: ObjectArray, di: np.ndarray, t_s: float) -> None:
         """Box size, height and heading come from the most precise recent detection: a
@@ -526,36 +391,37 @@ class Tracker:
         when the shape is older than ``shape_hold_s`` (a coarse RSU box never overwrites the
         fresh LiDAR box of the same cycle)."""
         tab = self._table
-        var = _trace2(dets.cov_xy[di])
+        c = dets.cov_xy
+        var = c[di, 0, 0] + c[di, 1, 1]  # trace of the position covariance
         take = (var <= tab.shape_var[ti] * 1.01) | (t_s - tab.shape_s[ti] > self.config.shape_hold_s)
         t, d = ti[take], di[take]
         tab.z[t], tab.lwh[t], tab.yaw[t] = dets.z[d], dets.lwh[d], wrap_angle(dets.yaw[d])
         tab.shape_var[t], tab.shape_s[t] = var[take], t_s
 
-    def _spawn(self, dets: ObjectArray, index: np.ndarray, bits: np.ndarray, t_s: float, x: np.ndarray,
+    def _spawn(self, dets: ObjectArray, index: np.ndarray, cols: np.ndarray, t_s: float, x: np.ndarray,
                p: np.ndarray, estimates: bool, velocity_prior: np.ndarray) -> None:
         """New tracks from the detections dets[index], initial state x (n, dim), P (n, dim, dim): tentative,
-        or confirmed when they are another tracker's estimates; velocity_prior (n,) as in TrackTable."""
+        or confirmed when they are another tracker's estimates; velocity_prior (n,) as in TrackTable;
+        cols (M, B) the seen_s columns of each detection's sources."""
         n = len(index)
         if not n:
             return
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
         born = np.full(n, t_s)
-        new = TrackTable(x, p, ids, dets.cls[index].astype(np.int64), dets.z[index].astype(float),
-                         dets.lwh[index].astype(float), wrap_angle(dets.yaw[index]),
-                         dets.confidence[index].astype(float),
-                         np.ones(n, np.int64), born, born.copy(), np.where(bits[index], t_s, -np.inf),
-                         _trace2(dets.cov_xy[index]), born.copy(),
-                         np.full(n, estimates or self.config.confirm_hits <= 1), x, p, velocity_prior)
-        self._table = self._table.append(new)
+        c = dets.cov_xy
+        new = TrackTable(x, p, ids, dets.cls[index], dets.z[index], dets.lwh[index], wrap_angle(dets.yaw[index]),
+                         dets.confidence[index], np.ones(n, np.int64), born, born, np.where(cols[index], t_s, -np.inf),
+                         c[index, 0, 0] + c[index, 1, 1], born, estimates or self.config.confirm_hits <= 1, x, p,
+                         velocity_prior)
+        self._store.append(new)
 
 
 def _position_velocity(dets: ObjectArray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """z (K, 4) = [x, y, vx, vy] and R (K, 4, 4) = blockdiag(cov_xy, cov_vxy) of dets[index]."""
     r = np.zeros((len(index), 4, 4))
     r[:, :2, :2], r[:, 2:, 2:] = dets.cov_xy[index], dets.cov_vxy[index]
-    return np.column_stack([dets.xy[index], dets.vxy[index]]), r
+    return np.concatenate([dets.xy[index], dets.vxy[index]], axis=1), r
 
 
 def filter_inputs(dets: ObjectArray, index: np.ndarray) -> kalman.Measured:

@@ -1,0 +1,161 @@
+"""The tracker's table of tracks: columns of N tracks, and a store that keeps them in preallocated rows.
+
+``TrackTable`` holds one array per column, first dimension N. Its ``seen_s`` column keeps the last
+update time of each source bit *in use*: column j stands for source bit ``seen_bits[j]`` (an OBU
+with 8 RSUs uses 9 of the 63 bits, so the table carries 9 columns, not 63); a table built
+without ``seen_bits`` has one column per bit, 0 .. SOURCE_BITS - 1.
+
+``TrackStore`` is the table a ``fusion.tracking.Tracker`` updates in place: the columns are
+allocated for ``capacity`` rows (doubled when full, so N spawns cost O(N) copies in all, not one
+copy of the whole table per spawn), the first ``n`` rows are the live tracks and ``view`` is the
+TrackTable of those rows (views into the store: writing into it writes the store). Deleting
+tracks moves the kept rows down in place; a source bit seen for the first time adds a column.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+SOURCE_BITS = 63  # source bitmasks are int64: bit 0 own vehicle, bits 1..62 one per RSU / peer slot
+_ALL_BITS = np.arange(SOURCE_BITS)
+_MIN_CAPACITY = 64
+
+
+@dataclass
+class TrackTable:
+    """Columns of N tracks: filter state x (N, n), P (N, n, n); ids, cls (N,); z (N,) m,
+    lwh (N, 3) m, yaw (N,) rad, confidence (N,) of the last detection; hits (N,);
+    born_s, updated_s (N,) s; seen_s (N, B) s, last update per source bit in use (-inf never), column j
+    for source bit seen_bits[j]; shape_var (N,) m^2, shape_s (N,) s: position variance and time of the
+    detection the box shape came from; confirmed (N,) bool (see the life cycle); birth_x (N, n),
+    birth_p (N, n, n): the state the track was born with; velocity_prior (N,) bool: born without a
+    measured velocity (two-point initialisation). seen_bits (B,) int64 is not a row column (default:
+    every bit, B = SOURCE_BITS)."""
+
+    x: np.ndarray
+    p: np.ndarray
+    ids: np.ndarray
+    cls: np.ndarray
+    z: np.ndarray
+    lwh: np.ndarray
+    yaw: np.ndarray
+    confidence: np.ndarray
+    hits: np.ndarray
+    born_s: np.ndarray
+    updated_s: np.ndarray
+    seen_s: np.ndarray
+    shape_var: np.ndarray
+    shape_s: np.ndarray
+    confirmed: np.ndarray
+    birth_x: np.ndarray
+    birth_p: np.ndarray
+    velocity_prior: np.ndarray
+    seen_bits: np.ndarray = field(default_factory=lambda: _ALL_BITS.copy())
+
+    @classmethod
+    def empty(cls, dim_x: int, rows: int = 0, seen_bits: np.ndarray | None = None) -> TrackTable:
+        """A table of ``rows`` zeroed rows (seen_s -inf), one seen column per entry of seen_bits (default: all)."""
+        bits = _ALL_BITS.copy() if seen_bits is None else np.asarray(seen_bits, np.int64)
+        z1, no, count = np.zeros(rows), np.zeros(rows, bool), np.zeros(rows, np.int64)
+        x, p = np.zeros((rows, dim_x)), np.zeros((rows, dim_x, dim_x))
+        return cls(x, p, count, count.copy(), z1, np.zeros((rows, 3)), z1.copy(), z1.copy(), count.copy(),
+                   z1.copy(), z1.copy(), np.full((rows, len(bits)), -np.inf), z1.copy(), z1.copy(), no,
+                   x.copy(), p.copy(), no.copy(), bits)
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def take(self, index) -> TrackTable:
+        return TrackTable(*(column[index] for column in self.columns()), seen_bits=self.seen_bits.copy())
+
+    def copy(self) -> TrackTable:
+        return TrackTable(*(column.copy() for column in self.columns()), seen_bits=self.seen_bits.copy())
+
+    def append(self, other: TrackTable) -> TrackTable:
+        """Rows of self, then of other (both with the same seen_bits)."""
+        if not np.array_equal(self.seen_bits, other.seen_bits):
+            raise ValueError("TrackTable.append needs tables with the same seen_bits")
+        return TrackTable(*(np.concatenate([a, b]) for a, b in zip(self.columns(), other.columns())),
+                          seen_bits=self.seen_bits.copy())
+
+    def columns(self) -> list[np.ndarray]:
+        """The row column arrays in field order (every field but seen_bits)."""
+        return [getattr(self, name) for name in _ROW_COLUMNS]
+
+    def source_masks(self, recent: np.ndarray) -> np.ndarray:
+        """(N,) int64 bitmasks of the sources marked in recent (N, B) bool (columns as seen_s)."""
+        return (recent * (np.int64(1) << self.seen_bits)).sum(axis=1).astype(np.int64)
+
+
+_ROW_COLUMNS = tuple(f.name for f in fields(TrackTable) if f.name != "seen_bits")
+
+
+class TrackStore:
+    """Live tracks in the first n rows of preallocated columns (module docstring)."""
+
+    def __init__(self, dim_x: int):
+        self._dim_x = dim_x
+        self._rows = TrackTable.empty(dim_x, 0, np.zeros(0, np.int64))
+        self.n = 0
+        self.col_values = np.zeros(0, np.int64)  # (B,) the bit value 1 << seen_bits[j] of each seen column
+        self.view = self._rows
+
+    def load(self, table: TrackTable) -> None:
+        """Replace the contents by a copy of table."""
+        n = len(table)
+        self._rows = TrackTable.empty(self._dim_x, max(_MIN_CAPACITY, 2 * n), table.seen_bits)
+        for dst, src in zip(self._rows.columns(), table.columns()):
+            dst[:n] = src
+        self.n = n
+        self._refresh()
+
+    def snapshot(self) -> TrackTable:
+        """A compact copy of the live rows."""
+        return self.view.copy()
+
+    def source_columns(self, masks: np.ndarray) -> np.ndarray:
+        """(K, B) bool: which seen columns each of K int64 bitmasks sets; bits not yet in use get a column."""
+        union = int(np.bitwise_or.reduce(masks)) if len(masks) else 0
+        known = int(np.bitwise_or.reduce(self.col_values)) if len(self.col_values) else 0
+        if union & ~known:
+            self._add_seen_bits([b for b in range(SOURCE_BITS) if (union >> b) & 1 and not (known >> b) & 1])
+        return (masks[:, None] & self.col_values) != 0
+
+    def append(self, new: TrackTable) -> None:
+        """Add the rows of new (its seen_s columns as this store's seen_bits) after the live ones."""
+        k = len(new)
+        if self.n + k > len(self._rows):
+            self._grow(self.n + k)
+        n = self.n
+        for dst, src in zip(self._rows.columns(), new.columns()):
+            dst[n:n + k] = src
+        self.n = n + k
+        self._refresh()
+
+    def keep(self, mask: np.ndarray) -> None:
+        """Keep the live rows where mask (n,) is True, in order (moved down in place)."""
+        m = int(np.count_nonzero(mask))
+        for column in self._rows.columns():
+            column[:m] = column[:self.n][mask]
+        self.n = m
+        self._refresh()
+
+    def _grow(self, rows: int) -> None:
+        old, n = self._rows, self.n
+        self._rows = TrackTable.empty(self._dim_x, max(_MIN_CAPACITY, 2 * rows), old.seen_bits)
+        for dst, src in zip(self._rows.columns(), old.columns()):
+            dst[:n] = src[:n]
+
+    def _add_seen_bits(self, bits: list[int]) -> None:
+        old = self._rows
+        seen = np.full((len(old), old.seen_s.shape[1] + len(bits)), -np.inf)
+        seen[:, :old.seen_s.shape[1]] = old.seen_s
+        old.seen_s, old.seen_bits = seen, np.concatenate([old.seen_bits, np.asarray(bits, np.int64)])
+        self._refresh()
+
+    def _refresh(self) -> None:
+        n, rows = self.n, self._rows
+        self.view = TrackTable(*(column[:n] for column in rows.columns()), seen_bits=rows.seen_bits)
+        self.col_values = np.int64(1) << rows.seen_bits
