@@ -309,7 +309,7 @@ class Demo(InboxScoring):
                            "--wire", s.wire]
         if name == "obu":
             return base + ["--listen", self.obu_ep, *common, "--fusion", s.fusion, "--compensation", s.compensation,
-                           "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms)]
+                           "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms), "--wires", s.wire]
         return base + ["--config", str(self.link_config), "--link-id", LINK_ID, "--rsu-connect", self.rsu_ep,
                        "--vehicle-connect", self.obu_ep, "--control-listen", self.control_ep,
                        "--profile", s.profile, "--seed", str(s.seed), "--vehicle-id", s.obu_config().vehicle_id]

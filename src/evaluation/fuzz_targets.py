@@ -41,6 +41,8 @@ from sim.scenario import load_scenario
 from .fuzz import LINK_ID, MS, RSU_ID, VEHICLE_ID, FuzzRun
 from .fuzz_standard import StandardHostile
 
+STANDARD_WIRES = "v2i,cpm,sdsm"  # the OBU takes every encoding: hostile CPM / SDSM reach it too
+
 CLOCK_OFFSET_MS = 250.0  # the RSU's injected clock offset: the truth the OBU's estimate is scored against
 FORGED_SHIFT_NS = 245_000_000  # forged time replies claim the RSU clock is this much further ahead
 RSU_LATE_NS = 250 * MS  # an RSU list is late when published this long after its capture
@@ -59,7 +61,8 @@ class ObuFuzz(FuzzRun):
         self.eps = {"rsu": free_tcp_endpoint(), "obu": free_tcp_endpoint()}
         base, common = [sys.executable, "-m", "v2i"], ["--start-at-ns", str(start_ns), "--duration", str(duration_s)]
         return {"rsu": [*base, "rsu", "--listen", self.eps["rsu"], *common, "--clock-offset-ms", str(CLOCK_OFFSET_MS)],
-                "obu": [*base, "obu", "--listen", self.eps["obu"], "--connect", self.eps["rsu"], *common]}
+                "obu": [*base, "obu", "--listen", self.eps["obu"], "--connect", self.eps["rsu"], *common,
+                        "--wires", STANDARD_WIRES]}
 
     def open(self) -> None:
         self.metrics: dict | None = None
@@ -270,7 +273,7 @@ class LinkFuzz(ObuFuzz):
         self.eps = {name: free_tcp_endpoint() for name in names}
         base, common = [sys.executable, "-m", "v2i"], ["--start-at-ns", str(start_ns), "--duration", str(duration_s)]
         return {"rsu": [*base, "rsu", "--listen", self.eps["rsu"], *common, "--clock-offset-ms", str(CLOCK_OFFSET_MS)],
-                "obu": [*base, "obu", "--listen", self.eps["obu"], *common],
+                "obu": [*base, "obu", "--listen", self.eps["obu"], *common, "--wires", STANDARD_WIRES],
                 "link": [*base, "link", "--link-id", LINK_ID, "--profile", "ideal",
                          "--rsu-connect", self.eps["rsu"], "--rsu-connect", self.eps["attacker_rsu_side"],
                          "--vehicle-connect", self.eps["obu"], "--vehicle-connect", self.eps["attacker_vehicle_side"]]}

@@ -50,6 +50,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="V2V: share what the own sensors perceive with peer vehicles on v2x/v2v/{id}/objects, "
                         "answer and send peer time requests, fuse peers' lists (each peer its own source slot)")
     p.add_argument("--max-peers", type=int, help="V2V peers given a fusion source slot (default 8)")
+    p.add_argument("--wires", type=lambda v: tuple(w.strip() for w in v.split(",") if w.strip()), metavar="LIST",
+                   help="RSU list encodings to take, comma-separated, of v2i, cpm (ETSI CPM), sdsm (SAE J3224 SDSM); "
+                        "the standard ones compile their ASN.1 at start-up (default v2i)")
 
 
 def run(args: argparse.Namespace) -> int:

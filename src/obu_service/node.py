@@ -92,11 +92,16 @@ class ObuNode:
             self._pub = {name: session.declare_publisher(key, **(critical if name in ("objects", "planning") else {}))
                          for name, key in (("objects", keys.obu_objects(vid)), ("metrics", keys.obu_metrics(vid)),
                                            ("pose", keys.obu_pose(vid)), ("planning", keys.obu_planning(vid)))}
-            entities = [*self._pub.values(), session.declare_subscriber(keys.RSU_OBJECTS_ALL, self._on_rsu_sample),
-                        session.declare_subscriber(keys.RSU_PREDICTIONS_ALL, self._on_predictions_sample),
-                        # object lists in a standard encoding (RSU --wire cpm|sdsm), fused the same way
-                        session.declare_subscriber(keys.RSU_CPM_ALL, lambda sample: self._put("cpm", sample)),
-                        session.declare_subscriber(keys.RSU_SDSM_ALL, lambda sample: self._put("sdsm", sample))]
+            entities = [*self._pub.values(),
+                        session.declare_subscriber(keys.RSU_PREDICTIONS_ALL, self._on_predictions_sample)]
+            if "v2i" in self.config.wires:
+                entities.append(session.declare_subscriber(keys.RSU_OBJECTS_ALL, self._on_rsu_sample))
+            # object lists in a standard encoding (RSU --wire cpm|sdsm), fused the same way; their ASN.1 is
+            # compiled now: on a thread it held the GIL long enough to make the first cycles late
+            for wire, key in (("cpm", keys.RSU_CPM_ALL), ("sdsm", keys.RSU_SDSM_ALL)):
+                if wire in self.config.wires:
+                    list_wire.prepare(wire)
+                    entities.append(session.declare_subscriber(key, lambda sample, w=wire: self._put(w, sample)))
             if self.vehicle is None:
                 entities += [session.declare_subscriber(keys.sensor_vehicle_objects(vid),
                                                         lambda sample: self._put("sensor_objects", sample)),
@@ -107,7 +112,6 @@ class ObuNode:
             self._session = session
             self._schedule()
             announce("ready", "obu", vehicle_id=vid, listen=self.config.listen)
-            list_wire.warm_up()  # CPM / SDSM ASN.1 compiled on a thread now, not when the first one arrives
             self._loop(stop)
         finally:
             for entity in entities:
@@ -196,9 +200,6 @@ class ObuNode:
     def _handle_standard(self, item: Item) -> None:
         """An RSU object list as a CPM or SDSM (``schemas.list_wire``): decoded whole (the RSU named
         by its key), then screened and fused as a v2i list."""
-        if not list_wire.ready(item.kind):  # the ASN.1 compiles on a thread (~0.3 s) instead of stalling a cycle
-            list_wire.warm_up((item.kind,))
-            raise list_wire.NotReady(f"{item.kind} refused while its ASN.1 compiles")
         msg = list_wire.decode_list(item.payload, item.kind, keys.rsu_id_or_none(item.source),
                                     self.config.max_message_bytes)
         if self.pipeline.screen_list(msg.header, len(msg.objects), item.receive_ns):

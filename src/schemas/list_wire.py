@@ -19,7 +19,7 @@ import numpy as np
 
 from . import keys
 from . import standard_wire as sw
-from .codec import MAX_MESSAGE_BYTES, CodecError, decode, encode
+from .codec import MAX_MESSAGE_BYTES, decode, encode
 from .messages import ObjectList
 
 Wire = Literal["v2i", "cpm", "sdsm"]
@@ -72,32 +72,10 @@ def encode_list(msg: ObjectList, wire: str) -> bytes | None:
     return _module(wire).encode(msg.header, cols)
 
 
-class NotReady(CodecError):
-    """A standard message arrived while its ASN.1 was still being compiled (``warm_up``)."""
-
-    reason = "asn1_not_ready"
-
-
-def warm_up(wires: tuple[str, ...] = ("cpm", "sdsm")) -> None:
-    """Compile the standard encodings' ASN.1 on a thread (idempotent; ~0.3 s of CPU, once)."""
-    new = [w for w in wires if w != "v2i" and w not in _warming]
-    if new:
-        _warming.update(new)
-        sw.warm_up(tuple(_module(w).ASN1_FILE for w in new))
-
-
-_warming: set[str] = set()
-
-
 def prepare(wire: str) -> None:
     """Compile ``wire``'s ASN.1 now (a publisher does it before its first message)."""
     if wire != "v2i":
         sw.compiled(_module(wire).ASN1_FILE)
-
-
-def ready(wire: str) -> bool:
-    """Whether ``decode_list`` of ``wire`` runs without first compiling its ASN.1."""
-    return wire == "v2i" or sw.is_compiled(_module(wire).ASN1_FILE)
 
 
 def decode_list(data: bytes, wire: str, rsu_id: str | None = None, max_bytes: int = MAX_MESSAGE_BYTES) -> ObjectList:

@@ -12,7 +12,6 @@ from such a dict; ``object_list`` builds the validated ``ObjectList`` the OBU ac
 from __future__ import annotations
 
 import math
-import threading
 from collections.abc import Callable, Sequence
 from functools import cache
 from pathlib import Path
@@ -38,43 +37,13 @@ SITE_ORIGIN_E7 = (0, 0)
 Z95 = 1.959963984540054  # two-sided 95 % quantile of the normal law: confidence = Z95 * sigma
 
 
-_compile_lock = threading.Lock()
-
-
-def compiled(filename: str) -> Any:
-    """The UPER codec of an ASN.1 file in ``asn1/``, compiled once per process (the first call
-    takes ~0.3 s: ``warm_up`` does it on a thread)."""
-    with _compile_lock:
-        spec = _compiled(filename)
-    _warm.add(filename)
-    return spec
-
-
 @cache
-def _compiled(filename: str) -> Any:
+def compiled(filename: str) -> Any:
+    """The UPER codec of an ASN.1 file in ``asn1/``, compiled once per process (~0.3 s of CPU:
+    a service does it before it is ready, ``list_wire.prepare``)."""
     import asn1tools  # imported on first use: a v2i-only process never pays for it
 
     return asn1tools.compile_files(str(ASN1_DIR / filename), "uper")
-
-
-_warm: set[str] = set()  # files compiled so far
-
-
-def is_compiled(filename: str) -> bool:
-    """Whether ``compiled(filename)`` returns at once."""
-    return filename in _warm
-
-
-def warm_up(filenames: tuple[str, ...]) -> threading.Thread:
-    """Compile ``filenames`` on a daemon thread (a service loop must not stall ~0.3 s on the first message)."""
-
-    def work() -> None:
-        for name in filenames:
-            compiled(name)
-
-    thread = threading.Thread(target=work, name="asn1-warm-up", daemon=True)
-    thread.start()
-    return thread
 
 
 def asn1_decode(spec: Any, type_name: str, data: bytes, what: str) -> dict:
@@ -84,7 +53,8 @@ def asn1_decode(spec: Any, type_name: str, data: bytes, what: str) -> dict:
     try:
         return spec.decode(type_name, bytes(data), check_constraints=True)
     except Exception as exc:  # noqa: BLE001 - see the docstring
-        raise MalformedMessage(f"{what}: not a valid UPER {type_name} ({type(exc).__name__}: {str(exc)[:80]})") from None
+        detail = f"{type(exc).__name__}: {str(exc)[:80]}"
+        raise MalformedMessage(f"{what}: not a valid UPER {type_name} ({detail})") from None
 
 
 def asn1_encode(spec: Any, type_name: str, value: dict, what: str) -> bytes:
@@ -172,7 +142,8 @@ def object_list(header: ObjectListHeader, columns: dict[str, np.ndarray]) -> Obj
         raise InvalidMessage(f"decoded standard message breaks a v2i rule: {loc}: {err['msg']}", loc) from None
 
 
-def header(rsu_id: str, seq: int, capture_ns: int, publish_ns: int, prediction_ns: int, sensor: str) -> ObjectListHeader:
+def header(rsu_id: str, seq: int, capture_ns: int, publish_ns: int, prediction_ns: int,
+           sensor: str) -> ObjectListHeader:
     """The validated v2i header of a decoded standard message."""
     try:
         return ObjectListHeader(rsu_id=rsu_id, seq=seq, capture_time_ns=capture_ns, publish_time_ns=publish_ns,
@@ -180,7 +151,8 @@ def header(rsu_id: str, seq: int, capture_ns: int, publish_ns: int, prediction_n
     except ValidationError as exc:
         err = exc.errors(include_url=False)[0]
         loc = ".".join(map(str, err["loc"]))
-        raise InvalidMessage(f"decoded standard header breaks a v2i rule: {loc}: {err['msg']}", f"header.{loc}") from None
+        raise InvalidMessage(f"decoded standard header breaks a v2i rule: {loc}: {err['msg']}",
+                             f"header.{loc}") from None
 
 
 def empty_columns(n: int) -> dict[str, np.ndarray]:
