@@ -44,22 +44,12 @@ class ObjectArray:
 
     def __post_init__(self) -> None:
         n = len(self.ids)
-        defaults = {
-            "axy": _col(n, 2),
-            "yaw_rate": _col(n),
-            "cov_xy": np.tile(np.eye(2), (n, 1, 1)),
-            "confidence": np.ones(n),
-            "cov_vxy": np.tile(np.eye(2) * UNKNOWN_VELOCITY_VAR, (n, 1, 1)),
-            "age_s": _col(n),
-            "sources": _col(n, dtype=np.int64),
-        }
-        for name, default in defaults.items():
+        for name, default in _DEFAULTS:  # built only for the columns left out
             if getattr(self, name) is None:
-                object.__setattr__(self, name, default)
-        for f in fields(self):
-            arr = getattr(self, f.name)
-            if len(arr) != n:
-                raise ValueError(f"ObjectArray.{f.name} has {len(arr)} rows, ids has {n}")
+                object.__setattr__(self, name, default(n))
+        for name in _FIELDS:
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"ObjectArray.{name} has {len(getattr(self, name))} rows, ids has {n}")
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -80,14 +70,36 @@ class ObjectArray:
         """Rows selected by an index, index array or boolean mask (always an ObjectArray)."""
         if np.ndim(index) == 0:
             index = [index]
-        return ObjectArray(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+        return ObjectArray(**{name: getattr(self, name)[index] for name in _FIELDS})
 
     def with_(self, **changes) -> "ObjectArray":
-        return replace(self, **changes)
+        """A copy with some columns replaced (``dataclasses.replace``). Fast path: when the ids stay
+        and every new column is an array of N rows, only those are checked (the rest were at __init__)."""
+        n = len(self.ids)
+        if "ids" in changes or not all(name in _FIELD_SET and value is not None and len(value) == n
+                                       for name, value in changes.items()):
+            return replace(self, **changes)  # new ids, a default or a bad column: validate everything
+        out = object.__new__(ObjectArray)
+        out.__dict__.update(self.__dict__)
+        out.__dict__.update(changes)
+        return out
 
     @staticmethod
     def concat(parts: "list[ObjectArray]") -> "ObjectArray":
         parts = [p for p in parts if len(p)]
         if not parts:
             return ObjectArray.empty()
-        return ObjectArray(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(ObjectArray)})
+        return ObjectArray(**{name: np.concatenate([getattr(p, name) for p in parts]) for name in _FIELDS})
+
+
+_DEFAULTS = (  # (column, rows -> default) for the columns that may be left out
+    ("axy", lambda n: _col(n, 2)),
+    ("yaw_rate", _col),
+    ("cov_xy", lambda n: np.tile(np.eye(2), (n, 1, 1))),
+    ("confidence", np.ones),
+    ("cov_vxy", lambda n: np.tile(np.eye(2) * UNKNOWN_VELOCITY_VAR, (n, 1, 1))),
+    ("age_s", _col),
+    ("sources", lambda n: _col(n, dtype=np.int64)),
+)
+_FIELDS = tuple(f.name for f in fields(ObjectArray))
+_FIELD_SET = frozenset(_FIELDS)
