@@ -63,13 +63,22 @@ def _greedy_match(dist: np.ndarray, rank: np.ndarray, threshold_m: float) -> np.
     dist (P, G) centre distances (m); rank (P,) global confidence rank (0 = most confident).
     In rank order each prediction takes its nearest not-yet-taken truth (first index on a
     tie) and is a true positive iff that distance < threshold_m; otherwise a false positive.
+
+    A prediction with no truth closer than threshold_m takes nothing, so only the others
+    (candidates) are walked; when the candidates' nearest truths are all different, none
+    takes another's and each is a true positive without the walk.
     """
     n_pred, n_truth = dist.shape
     tp = np.zeros(n_pred, dtype=bool)
-    if n_truth == 0:
+    if n_truth == 0 or n_pred == 0:
+        return tp
+    candidates = np.flatnonzero(dist.min(axis=1) < threshold_m)
+    nearest = dist[candidates].argmin(axis=1)
+    if len(np.unique(nearest)) == len(candidates):
+        tp[candidates] = True
         return tp
     taken = np.zeros(n_truth, dtype=bool)
-    for p in np.argsort(rank, kind="stable"):
+    for p in candidates[np.argsort(rank[candidates], kind="stable")]:
         row = np.where(taken, np.inf, dist[p])
         g = int(np.argmin(row))
         if row[g] < threshold_m:

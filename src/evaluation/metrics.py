@@ -17,7 +17,7 @@ import numpy as np
 
 from fusion.association import assign, center_distance_cost
 from fusion.frames import map_to_base
-from fusion.geometry import bev_boxes, bev_iou_matrix
+from fusion.geometry import bev_iou_matrix
 from fusion.objects import ObjectArray
 from fusion.wire import objects_from_states
 from schemas.messages import FusedObjectList, PredictionList
@@ -68,11 +68,21 @@ def match_target(truth: ObjectArray, output: ObjectArray, target_id: int) -> int
     """Index of the output object assigned to the target, by a global centre-distance
     assignment of all true actors to all output objects (so a neighbour cannot be
     mistaken for the target); None when the target is not detected."""
-    if not len(output) or not len(truth):
+    return _match_target_xy(truth.xy, truth.ids, output.xy, target_id)
+
+
+def _match_target_xy(truth_xy: np.ndarray, truth_ids: np.ndarray, out_xy: np.ndarray, target_id: int) -> int | None:
+    """``match_target`` on arrays: truth centres (G, 2) and ids (G,), output centres (P, 2)."""
+    if not len(out_xy) or not len(truth_xy):
         return None
-    result = assign(center_distance_cost(truth.xy, output.xy), MATCH_GATE_M)
-    rows = result.matches[truth.ids[result.matches[:, 0]] == target_id]
+    result = assign(center_distance_cost(truth_xy, out_xy), MATCH_GATE_M)
+    rows = result.matches[truth_ids[result.matches[:, 0]] == target_id]
     return int(rows[0, 1]) if len(rows) else None
+
+
+def _bev_box(objs: ObjectArray, i: int) -> np.ndarray:
+    """(1, 5) ``bev_boxes`` row of object ``i`` alone: [x, y, length, width, yaw]."""
+    return np.concatenate([objs.xy[i], objs.lwh[i, :2], [objs.yaw[i]]])[None]
 
 
 @dataclass(frozen=True)
@@ -104,14 +114,14 @@ class TargetTally:
 
     def add(self, frame: CycleFrame) -> None:
         truth, out = frame.truth, frame.out
-        if self.sources_mask is not None:
-            out = out.take((out.sources & self.sources_mask) != 0)
-        k = match_target(truth, out, self.target_id)
+        kept = np.arange(len(out)) if self.sources_mask is None else np.flatnonzero(out.sources & self.sources_mask)
+        k = _match_target_xy(truth.xy, truth.ids, out.xy[kept], self.target_id)
         if k is None:
             return
+        k = int(kept[k])  # the index in the whole output
         i = int(np.flatnonzero(truth.ids == self.target_id)[0])
         err = out.xy[k] - truth.xy[i]
-        values = {"t_s": frame.t_s, "iou": bev_iou_matrix(bev_boxes(truth.take([i])), bev_boxes(out.take([k])))[0, 0],
+        values = {"t_s": frame.t_s, "iou": bev_iou_matrix(_bev_box(truth, i), _bev_box(out, k))[0, 0],
                   "sq_err": np.sum(np.square(err)), "eps": nees_values(err[None], out.cov_xy[k][None])[0],
                   "dist": np.linalg.norm(truth.xy[i])}
         self._cycle_ns.append(frame.cycle_ns)
@@ -299,10 +309,11 @@ class DetectionTally:
         self.ap, self.mot = CenterDistanceAp(range_bins_m=RANGE_BINS_M), MotTally()
 
     def add(self, frame: CycleFrame) -> None:
-        truth = frame.truth.take(np.linalg.norm(frame.truth.xy, axis=1) <= MAX_RANGE_M)
-        out = frame.out.take(np.linalg.norm(frame.out.xy, axis=1) <= MAX_RANGE_M)
-        self.ap.add_frame(truth.xy, out.xy, out.confidence)
-        self.mot.add_frame(truth.ids, truth.xy, out.ids, out.xy)
+        truth, out = frame.truth, frame.out
+        t = np.linalg.norm(truth.xy, axis=1) <= MAX_RANGE_M
+        o = np.linalg.norm(out.xy, axis=1) <= MAX_RANGE_M
+        self.ap.add_frame(truth.xy[t], out.xy[o], out.confidence[o])
+        self.mot.add_frame(truth.ids[t], truth.xy[t], out.ids[o], out.xy[o])
 
     def scores(self) -> dict:
         mot = self.mot.result()

@@ -273,3 +273,24 @@ def test_honest_covariance_passes_overconfident_fails():
     over = nees(errors, cov / 4.0)  # filter claims half the true standard deviation
     assert over["mean"] == pytest.approx(8.0, rel=0.1) and not over["consistent"]
     assert over["fraction_inside"] < 0.8
+
+
+def _greedy_match_walk(dist, rank, threshold_m):
+    """The devkit's greedy matching as a plain walk over every prediction (the reference)."""
+    tp, taken = np.zeros(dist.shape[0], dtype=bool), np.zeros(dist.shape[1], dtype=bool)
+    for p in np.argsort(rank, kind="stable"):
+        row = np.where(taken, np.inf, dist[p])
+        if dist.shape[1] and row[int(np.argmin(row))] < threshold_m:
+            taken[int(np.argmin(row))] = tp[p] = True
+    return tp
+
+
+def test_greedy_match_equals_the_plain_walk():
+    rng = np.random.default_rng(7)
+    for _ in range(3000):
+        n_pred, n_truth = rng.integers(0, 9), rng.integers(0, 9)
+        # coarse values: many ties, shared nearest truths and distances at the threshold
+        dist = rng.integers(0, 6, size=(n_pred, n_truth)) * 0.5
+        rank = rng.permutation(n_pred)
+        for threshold_m in (0.5, 1.0, 2.0, 4.0):
+            assert _greedy_match(dist, rank, threshold_m).tolist() == _greedy_match_walk(dist, rank, threshold_m).tolist()

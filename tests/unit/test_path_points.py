@@ -14,7 +14,14 @@ from hypothesis import strategies as st
 from pydantic import Field, ValidationError, model_validator
 
 from schemas import quantize as q
-from schemas.messages import MAX_PATH_POINTS, Message, Position, PredictedPath, Yaw, _yaw
+from schemas.messages import (
+    MAX_PATH_POINTS,
+    Message,
+    Position,
+    PredictedPath,
+    Yaw,
+    _yaw,
+)
 from schemas.path_points import grid_positions, grid_yaws
 
 
@@ -27,7 +34,7 @@ class PerPointPath(Message):
     yaw: Annotated[tuple[Yaw, ...], Field(max_length=MAX_PATH_POINTS)] = ()
 
     @model_validator(mode="after")
-    def _same_lengths(self) -> "PerPointPath":
+    def _same_lengths(self) -> PerPointPath:
         if not len(self.x) == len(self.y) == len(self.yaw):
             raise ValueError(f"x, y and yaw must have one entry per step, got {len(self.x)}, {len(self.y)}, {len(self.yaw)}")
         return self
