@@ -26,7 +26,7 @@ from fusion.motion import predict_ca, trajectories_cv
 from fusion.objects import ObjectArray
 from fusion.tracking import Tracker, TrackerConfig
 from fusion.wire import fit_to_wire, states_from_objects
-from schemas.messages import ObjectList, ObjectListHeader, PredictedPath, PredictionList, TimeReply, TimeRequest
+from schemas.messages import ObjectList, ObjectListHeader, PredictionList, TimeReply, TimeRequest, predicted_paths
 
 # (objects (N), horizon_s, step_s) -> (N, K, 3) [x, y, yaw] at t0 + k step, k = 1..K
 TrajectoryPredictor = Callable[[ObjectArray, float, float], np.ndarray]
@@ -101,8 +101,7 @@ class RsuPipeline:
         self._prediction_seq += 1
         return PredictionList(
             header=header, step_ns=round(self.config.path_step_s * 1e9), objects=states_from_objects(tracks),
-            paths=tuple(PredictedPath(id=int(i), x=p[:, 0].tolist(), y=p[:, 1].tolist(), yaw=p[:, 2].tolist())
-                        for i, p in zip(tracks.ids, paths)),
+            paths=predicted_paths(tracks.ids, paths),
         )
 
     def _message(self, capture: Stamp, tracks: ObjectArray, ahead_ns: int, publish: Stamp) -> ObjectList:

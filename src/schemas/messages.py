@@ -9,14 +9,15 @@ from __future__ import annotations
 import math
 from typing import Annotated, ClassVar, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PlainSerializer, PlainValidator, model_validator
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, PlainSerializer, PlainValidator,
+                      ValidatorFunctionWrapHandler, WrapValidator, model_validator)
 
 from . import quantize as q
 from .classes import ObjectClass
 from .columns import ObjectColumns, objects_field
 from .limits import (ACCEL_MAX_MPS2, AGE_MAX_S, HEIGHT_MAX_M, MAX_OBJECTS, POSITION_MAX_M, SIZE_MAX_M,  # noqa: F401
                      SOURCE_RSU, SOURCE_VEHICLE, SPEED_MAX_MPS, UNKNOWN_VELOCITY_VAR, VARIANCE_MAX, YAW_RATE_MAX)
-from .path_points import grid_positions, grid_yaws, points_validator
+from .path_points import grid_positions, grid_yaws, paths_from_array, paths_from_dicts, points_validator
 
 # 2: velocity covariance cov_vxx, cov_vxy, cov_vyy on objects
 # 3: header schema_version checked; RsuMetrics; ObuMetrics.output_dropped; RsuLinkStatus.sync_outliers
@@ -148,7 +149,8 @@ class ObjectList(Message):
 
 MAX_PATH_POINTS = 128  # 12.8 s at 0.1 s steps
 _PATH_POSITIONS = points_validator(-POSITION_MAX_M, POSITION_MAX_M, MAX_PATH_POINTS, grid_positions)
-_PATH_YAWS = points_validator(-100.0, 100.0, MAX_PATH_POINTS, grid_yaws)  # Yaw's range
+_YAW_LIMIT = 100.0  # Yaw's range: [-100, 100]
+_PATH_YAWS = points_validator(-_YAW_LIMIT, _YAW_LIMIT, MAX_PATH_POINTS, grid_yaws)
 
 
 class PredictedPath(Message):
@@ -168,6 +170,28 @@ class PredictedPath(Message):
         return self
 
 
+def _path(path_id: int, x: tuple, y: tuple, yaw: tuple) -> PredictedPath:
+    """A PredictedPath of values already checked and gridded (schemas.path_points)."""
+    return PredictedPath.model_construct(id=path_id, x=x, y=y, yaw=yaw)
+
+
+def predicted_paths(ids, points) -> tuple[PredictedPath, ...]:
+    """One PredictedPath per object: ids (N,), points (N, K, 3) [x, y, yaw] (map); checked and
+    gridded as one array, or path by path by the model when something is out of range."""
+    fast = paths_from_array(ids, points, MAX_PATH_POINTS, POSITION_MAX_M, _YAW_LIMIT)
+    if fast is not None:
+        return tuple(_path(*p) for p in fast)
+    return tuple(PredictedPath(id=int(i), x=p[:, 0].tolist(), y=p[:, 1].tolist(), yaw=p[:, 2].tolist())
+                 for i, p in zip(ids, points))
+
+
+def _paths(value, handler: ValidatorFunctionWrapHandler) -> tuple[PredictedPath, ...]:
+    """PredictionList.paths: decoded ``{id, x, y, yaw}`` dicts checked in one pass when plain
+    and in range (schemas.path_points), anything else by the model (its errors)."""
+    fast = paths_from_dicts(value, MAX_OBJECTS, MAX_PATH_POINTS, POSITION_MAX_M, _YAW_LIMIT)
+    return handler(value) if fast is None else tuple(_path(*p) for p in fast)
+
+
 class PredictionList(Message):
     """RSU -> vehicles on ``v2x/rsu/{rsu_id}/predictions``: long-horizon trajectories.
 
@@ -180,7 +204,7 @@ class PredictionList(Message):
     header: ObjectListHeader
     step_ns: Annotated[int, Field(ge=1_000_000, le=10_000_000_000)] = 100_000_000
     objects: Objects = EMPTY_OBJECTS
-    paths: Annotated[tuple[PredictedPath, ...], Field(max_length=MAX_OBJECTS)] = ()
+    paths: Annotated[tuple[PredictedPath, ...], Field(max_length=MAX_OBJECTS), WrapValidator(_paths)] = ()
 
     @model_validator(mode="after")
     def _one_path_per_object(self) -> "PredictionList":

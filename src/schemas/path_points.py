@@ -55,3 +55,66 @@ def points_validator(low: float, high: float, max_points: int,
         return handler(value)
 
     return WrapValidator(validate)
+
+
+_PATH_KEYS = frozenset({"id", "x", "y", "yaw"})
+_ID_END = 2**32
+
+
+def _gridded(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, position_max_m: float,
+             yaw_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """x, y, yaw (M,) gridded, or None when a value is out of range or NaN."""
+    if not (bool(np.all(np.abs(x) <= position_max_m)) and bool(np.all(np.abs(y) <= position_max_m))
+            and bool(np.all(np.abs(yaw) <= yaw_max))):
+        return None
+    return grid_positions(x), grid_positions(y), grid_yaws(yaw)
+
+
+def paths_from_dicts(value: Any, max_paths: int, max_points: int, position_max_m: float,
+                     yaw_max: float) -> list[tuple[int, tuple, tuple, tuple]] | None:
+    """(id, x, y, yaw) per path of a list of ``{"id", "x", "y", "yaw"}`` dicts (a decoded
+    ``PredictionList.paths``) whose ids are plain ints in [0, 2^32) and points plain floats in
+    range, equal lengths of at most ``max_points``: all points checked and gridded in one pass.
+    None for anything else (the models then validate it and name the problem)."""
+    if type(value) not in (list, tuple) or len(value) > max_paths:
+        return None
+    ids, lengths, xs, ys, yaws = [], [], [], [], []
+    for item in value:
+        if type(item) is not dict or item.keys() != _PATH_KEYS:
+            return None
+        i, x, y, yaw = item["id"], item["x"], item["y"], item["yaw"]
+        if type(i) is not int or not 0 <= i < _ID_END or type(x) not in (list, tuple):
+            return None
+        if type(y) not in (list, tuple) or type(yaw) not in (list, tuple) or not len(x) == len(y) == len(yaw) <= max_points:
+            return None
+        ids.append(i)
+        lengths.append(len(x))
+        xs.extend(x)
+        ys.extend(y)
+        yaws.extend(yaw)
+    if not set(map(type, xs)).union(map(type, ys), map(type, yaws)) <= _FLOAT_ONLY:
+        return None
+    gridded = _gridded(np.array(xs, dtype=np.float64), np.array(ys, dtype=np.float64),
+                       np.array(yaws, dtype=np.float64), position_max_m, yaw_max)
+    if gridded is None:
+        return None
+    ends = np.cumsum(lengths).tolist()
+    spans = list(zip([0, *ends[:-1]], ends))
+    columns = [[tuple(flat[a:b]) for a, b in spans] for flat in (g.tolist() for g in gridded)]
+    return list(zip(ids, *columns))
+
+
+def paths_from_array(ids: np.ndarray, points: np.ndarray, max_points: int, position_max_m: float,
+                     yaw_max: float) -> list[tuple[int, tuple, tuple, tuple]] | None:
+    """(id, x, y, yaw) per path of ids (N,) and points (N, K, 3) [x, y, yaw], gridded in one
+    pass; None when an id or a value is out of range or K > max_points (the models then name it)."""
+    ids, points = np.asarray(ids), np.asarray(points, dtype=np.float64)
+    if ids.ndim != 1 or points.ndim != 3 or points.shape[0] != len(ids) or points.shape[2] != 3 or points.shape[1] > max_points:
+        return None
+    if len(ids) and not (bool(np.all(ids >= 0)) and bool(np.all(ids < _ID_END))):
+        return None
+    gridded = _gridded(points[..., 0], points[..., 1], points[..., 2], position_max_m, yaw_max)
+    if gridded is None:
+        return None
+    columns = [[tuple(row) for row in g.tolist()] for g in gridded]
+    return list(zip(ids.tolist(), *columns))

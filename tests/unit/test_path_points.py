@@ -11,18 +11,21 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, TypeAdapter, ValidationError, model_validator
 
 from schemas import quantize as q
+from schemas.limits import MAX_OBJECTS, POSITION_MAX_M
 from schemas.messages import (
     MAX_PATH_POINTS,
     Message,
     Position,
     PredictedPath,
+    PredictionList,
     Yaw,
     _yaw,
+    predicted_paths,
 )
-from schemas.path_points import grid_positions, grid_yaws
+from schemas.path_points import grid_positions, grid_yaws, paths_from_dicts
 
 
 class PerPointPath(Message):
@@ -91,3 +94,63 @@ def test_a_bad_point_still_names_its_index(bad) -> None:
     with pytest.raises(ValidationError) as info:
         PredictedPath(id=1, x=[1.0, 2.0, bad], y=[0.0] * 3, yaw=[0.0] * 3)
     assert info.value.errors()[0]["loc"] == ("x", 2)
+
+
+_PATHS_FIELD = PredictionList.model_fields["paths"]
+_paths_adapter = TypeAdapter(Annotated[(_PATHS_FIELD.annotation, *_PATHS_FIELD.metadata)])  # the field's validation
+
+
+def _path_bits(paths) -> list:
+    return [(p.id, _bits(p.x), _bits(p.y), _bits(p.yaw), sorted(p.model_fields_set)) for p in paths]
+
+
+@st.composite
+def _path_dicts(draw) -> list:
+    n_paths, n_points = draw(st.integers(0, 5)), draw(st.integers(0, 6))
+    dicts = []
+    for _ in range(n_paths):
+        d = {"id": draw(st.one_of(st.integers(0, 2**32 - 1), st.sampled_from([-1, 2**32, True, 1.0]))),
+             **{k: draw(st.lists(_POINT, min_size=n_points, max_size=n_points)) for k in ("x", "y", "yaw")}}
+        if draw(st.integers(0, 9)) == 0:
+            d[draw(st.sampled_from(["x", "y", "yaw"]))].append(0.0)  # unequal lengths
+        if draw(st.integers(0, 19)) == 0:
+            del d["yaw"]
+        dicts.append(d)
+    return dicts
+
+
+@settings(max_examples=300, deadline=None)
+@given(_path_dicts())
+def test_decoded_paths_fast_path_equals_path_by_path(dicts) -> None:
+    """A PredictionList's paths from dicts: the one-pass check accepts only what the model
+    accepts, with bit-equal values and the same fields set."""
+    fast = paths_from_dicts(dicts, MAX_OBJECTS, MAX_PATH_POINTS, POSITION_MAX_M, 100.0)
+    try:
+        reference = [PredictedPath.model_validate(d) for d in dicts]
+    except ValidationError:
+        assert fast is None
+        return
+    validated = _paths_adapter.validate_python(dicts)
+    assert _path_bits(validated) == _path_bits(reference)
+    if fast is not None:
+        assert [(i, _bits(x), _bits(y), _bits(yaw)) for i, x, y, yaw in fast] == [r[:4] for r in _path_bits(reference)]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 6), st.integers(0, 8), st.data())
+def test_predicted_paths_equal_path_by_path_construction(n, k, data) -> None:
+    values = st.one_of(st.floats(-2e6, 2e6), st.floats(-150.0, 150.0))
+    points = np.array(data.draw(st.lists(values, min_size=n * k * 3, max_size=n * k * 3)), dtype=float).reshape(n, k, 3)
+    ids = np.array(data.draw(st.lists(st.integers(0, 2**32 - 1), min_size=n, max_size=n)), dtype=np.int64)
+
+    def one_by_one():
+        return tuple(PredictedPath(id=int(i), x=p[:, 0].tolist(), y=p[:, 1].tolist(), yaw=p[:, 2].tolist())
+                     for i, p in zip(ids, points))
+    try:
+        reference = one_by_one()
+    except ValidationError as exc:
+        with pytest.raises(ValidationError) as info:
+            predicted_paths(ids, points)
+        assert info.value.errors(include_url=False) == exc.errors(include_url=False)
+        return
+    assert _path_bits(predicted_paths(ids, points)) == _path_bits(reference)
