@@ -72,10 +72,24 @@ def match_target(truth: ObjectArray, output: ObjectArray, target_id: int) -> int
 
 
 def _match_target_xy(truth_xy: np.ndarray, truth_ids: np.ndarray, out_xy: np.ndarray, target_id: int) -> int | None:
-    """``match_target`` on arrays: truth centres (G, 2) and ids (G,), output centres (P, 2)."""
+    """``match_target`` on arrays: truth centres (G, 2) and ids (G,), output centres (P, 2).
+
+    Shortcut, exact for the minimum-cost matching of ``assign``: a target with no output inside
+    the gate is not detected; when its only output inside the gate has no other truth inside
+    the gate, the two form a component of their own and every optimum matches them.
+    """
     if not len(out_xy) or not len(truth_xy):
         return None
-    result = assign(center_distance_cost(truth_xy, out_xy), MATCH_GATE_M)
+    cost = center_distance_cost(truth_xy, out_xy)  # (G, P) m
+    rows = np.flatnonzero(truth_ids == target_id)
+    if len(rows) == 1:
+        allowed = np.isfinite(cost) & (cost <= MATCH_GATE_M)
+        near = np.flatnonzero(allowed[rows[0]])
+        if not len(near):
+            return None
+        if len(near) == 1 and np.count_nonzero(allowed[:, near[0]]) == 1:
+            return int(near[0])
+    result = assign(cost, MATCH_GATE_M)
     rows = result.matches[truth_ids[result.matches[:, 0]] == target_id]
     return int(rows[0, 1]) if len(rows) else None
 

@@ -4,7 +4,8 @@ the target is scored in cycle order, whatever order the outputs arrive in."""
 import numpy as np
 import pytest
 
-from evaluation.metrics import score_target
+from evaluation.metrics import MATCH_GATE_M, _match_target_xy, score_target
+from fusion.association import assign, center_distance_cost
 from fusion.frames import Pose2D
 from fusion.objects import ObjectArray
 from fusion.wire import states_from_objects
@@ -64,3 +65,16 @@ def test_target_is_scored_in_cycle_order_whatever_the_arrival_order():
     assert in_order.detected_cycles == CYCLES - 50
     assert in_order.first_detection_time_s == 5.0
     assert in_order.first_detection_distance_m == pytest.approx(np.hypot(60.0, 2.0))
+
+
+def test_target_match_shortcut_equals_the_full_assignment():
+    """metrics._match_target_xy's isolated-pair shortcut gives the index of the full matching."""
+    rng = np.random.default_rng(3)
+    for _ in range(2000):
+        n_truth, n_out = rng.integers(1, 7), rng.integers(1, 7)
+        truth_xy = rng.uniform(0.0, 12.0, (n_truth, 2)).round(0)  # coarse: shared and tied neighbours
+        out_xy = truth_xy[rng.integers(0, n_truth, n_out)] + rng.normal(0.0, 2.5, (n_out, 2))
+        ids = rng.permutation(n_truth) + 10
+        result = assign(center_distance_cost(truth_xy, out_xy), MATCH_GATE_M)
+        rows = result.matches[ids[result.matches[:, 0]] == 10]
+        assert _match_target_xy(truth_xy, ids, out_xy, 10) == (int(rows[0, 1]) if len(rows) else None)
