@@ -108,6 +108,7 @@ class OfflineRun:
         self.start_ns = start_ns
         self.clock = SimClock(start_ns)
         self.queue = EventQueue(self.clock)
+        self._ego_now: dict[str, tuple[int, tuple[float, float]]] = {}  # vehicle -> (t_ns, true x, y at t)
         self.rsu_config = spec.rsu_config()
         self.obu_config = spec.obu_config()
         self.rsus = [self._new_rsu_site(k, cfg) for k, cfg in enumerate(self.scenario.rsus)]
@@ -269,10 +270,19 @@ class OfflineRun:
         if not self._up("link"):
             return
         channel = getattr(vehicle.links[rsu.index], direction)
-        ego = vehicle.world.ego_at((self.clock.t_ns - self.start_ns) * 1e-9)
-        distance_m = float(np.hypot(ego.x - rsu.xy[0], ego.y - rsu.xy[1]))
+        x, y = self._ego_xy(vehicle)
+        distance_m = float(np.hypot(x - rsu.xy[0], y - rsu.xy[1]))
         for arrival_ns in channel.transmit_all(self.clock.t_ns, len(data), distance_m=distance_m):
             self.queue.at(arrival_ns, self._arrive, deliver, vehicle, rsu, data)
+
+    def _ego_xy(self, vehicle: _Vehicle) -> tuple[float, float]:
+        """The vehicle's true position (map, m) now; kept for the instant (a broadcast asks for it
+        once per channel, and the true trajectory is a pure function of time)."""
+        cached = self._ego_now.get(vehicle.name)
+        if cached is None or cached[0] != self.clock.t_ns:
+            ego = vehicle.world.ego_at((self.clock.t_ns - self.start_ns) * 1e-9)
+            cached = self._ego_now[vehicle.name] = (self.clock.t_ns, (ego.x, ego.y))
+        return cached[1]
 
     def _arrive(self, deliver: Callable, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         """A message in flight is lost when the emulator relaying it was killed meanwhile."""
@@ -338,10 +348,9 @@ class OfflineRun:
 
     def _v2v_send(self, sender: _Vehicle, receiver: _Vehicle, data: bytes, deliver: Callable) -> None:
         """Through the (sender, receiver) channel at their distance now; duplicates arrive twice."""
-        t_s = (self.clock.t_ns - self.start_ns) * 1e-9
-        a, b = sender.world.ego_at(t_s), receiver.world.ego_at(t_s)
+        (ax, ay), (bx, by) = self._ego_xy(sender), self._ego_xy(receiver)
         channel = self.v2v_links[(sender.name, receiver.name)].downlink
-        for arrival_ns in channel.transmit_all(self.clock.t_ns, len(data), distance_m=float(np.hypot(a.x - b.x, a.y - b.y))):
+        for arrival_ns in channel.transmit_all(self.clock.t_ns, len(data), distance_m=float(np.hypot(ax - bx, ay - by))):
             self.queue.at(arrival_ns, deliver, sender, receiver, data)
 
     def _peer_list(self, sender: _Vehicle, receiver: _Vehicle, data: bytes) -> None:
