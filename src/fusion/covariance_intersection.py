@@ -85,8 +85,12 @@ def _newton_root(a: np.ndarray, lam: np.ndarray, free: int) -> np.ndarray:
     w = np.full(len(a), 0.5)
     for _ in range(_MAX_STEPS):
         q = a / (a * w[:, None] + lam)
-        g = free / w + q.sum(axis=1)
-        dg = -free / (w * w) - (q * q).sum(axis=1)
+        if free:
+            g = free / w + q.sum(axis=1)
+            dg = -free / (w * w) - (q * q).sum(axis=1)
+        else:  # full observation: the same numbers without the zero terms (0 / w + s == s, -0 - s == -s)
+            g = q.sum(axis=1)
+            dg = -(q * q).sum(axis=1)
         above = g > 0  # the root lies above w
         lo, hi = np.where(above, w, lo), np.where(above, hi, w)
         nxt = w - g / dg  # dg < 0: g(1) < 0 < g(W_MIN) leaves some a != 0

@@ -76,8 +76,9 @@ def _near(config: TrackerConfig, table: TrackTable, dets: ObjectArray):
         if config.gate == "either":
             near = (r2 <= config.gate_m**2) | (near & (r2 <= config.gate_max_m**2))
     near &= compatible_classes(table.cls[rows][:, None], dets.cls[None, :])
-    tl, di = np.nonzero(near)
-    return rows, tl, di, dx[tl, di], dy[tl, di]
+    flat = np.flatnonzero(near)  # row-major, as np.nonzero (which is slower on 2-D arrays)
+    tl, di = np.divmod(flat, near.shape[1])
+    return rows, tl, di, dx.ravel()[flat], dy.ravel()[flat]
 
 
 def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> GatedPairs:

@@ -127,8 +127,17 @@ def _diag_prior(m: Measured, variances: list[float]) -> np.ndarray:
 def _linear_prior(m: Measured, prior: StatePrior, variances: list[float]) -> np.ndarray:
     """P of the CV / CA state [x, y, vx, vy, ...]: measured position and velocity
     covariances (prior speed std where no velocity was measured), then prior variances."""
-    p = _diag_prior(m, [0.0, 0.0] + variances)
-    p[:, 2:4, 2:4] = m.velocity_prior(prior.speed_std_mps)
+    k, n = len(m.xy), 2 * POSITION_DIM + len(variances)
+    p = np.zeros((k, n, n))
+    p[:, :2, :2] = m.cov_xy
+    if variances:
+        idx = np.arange(2 * POSITION_DIM, n)
+        p[:, idx, idx] = variances
+    if m.cov_vxy is None:  # as velocity_prior: the measured velocity covariance where tighter than the prior
+        p[:, 2:4, 2:4] = np.eye(2) * prior.speed_std_mps**2
+    else:
+        p[:, 2:4, 2:4] = m.cov_vxy
+        p[~m.velocity_measured(prior.speed_std_mps), 2:4, 2:4] = np.eye(2) * prior.speed_std_mps**2
     return p
 
 

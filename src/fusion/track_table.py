@@ -99,8 +99,8 @@ class TrackStore:
         self._dim_x = dim_x
         self._rows = TrackTable.empty(dim_x, 0, np.zeros(0, np.int64))
         self.n = 0
-        self.col_values = np.zeros(0, np.int64)  # (B,) the bit value 1 << seen_bits[j] of each seen column
         self.view = self._rows
+        self._bits_changed()
 
     def load(self, table: TrackTable) -> None:
         """Replace the contents by a copy of table."""
@@ -110,29 +110,32 @@ class TrackStore:
             dst[:n] = src
         self.n = n
         self._refresh()
+        self._bits_changed()
 
     def snapshot(self) -> TrackTable:
         """A compact copy of the live rows."""
         return self.view.copy()
 
-    def source_columns(self, masks: np.ndarray) -> np.ndarray:
-        """(K, B) bool: which seen columns each of K int64 bitmasks sets; bits not yet in use get a column."""
+    def source_columns(self, masks: np.ndarray) -> tuple[np.ndarray, int]:
+        """(K, B) bool: which seen columns each of K int64 bitmasks sets, and the OR of the masks;
+        bits not yet in use get a column."""
         union = int(np.bitwise_or.reduce(masks)) if len(masks) else 0
-        known = int(np.bitwise_or.reduce(self.col_values)) if len(self.col_values) else 0
-        if union & ~known:
-            self._add_seen_bits([b for b in range(SOURCE_BITS) if (union >> b) & 1 and not (known >> b) & 1])
-        return (masks[:, None] & self.col_values) != 0
+        if union & ~self._known:
+            self._add_seen_bits([b for b in range(SOURCE_BITS) if (union >> b) & 1 and not (self._known >> b) & 1])
+        return (masks[:, None] & self.col_values) != 0, union
 
     def append(self, new: TrackTable) -> None:
         """Add the rows of new (its seen_s columns as this store's seen_bits) after the live ones."""
-        k = len(new)
+        for dst, src in zip(self.extend(len(new)).columns(), new.columns()):
+            dst[...] = src
+
+    def extend(self, k: int) -> TrackTable:
+        """Make k more rows live (after the others) and return them (views) for the caller to fill."""
         if self.n + k > len(self._rows):
             self._grow(self.n + k)
-        n = self.n
-        for dst, src in zip(self._rows.columns(), new.columns()):
-            dst[n:n + k] = src
-        self.n = n + k
+        n, self.n = self.n, self.n + k
         self._refresh()
+        return TrackTable(*(column[n:n + k] for column in self._rows.columns()), seen_bits=self._rows.seen_bits)
 
     def keep(self, mask: np.ndarray) -> None:
         """Keep the live rows where mask (n,) is True, in order (moved down in place)."""
@@ -154,8 +157,12 @@ class TrackStore:
         seen[:, :old.seen_s.shape[1]] = old.seen_s
         old.seen_s, old.seen_bits = seen, np.concatenate([old.seen_bits, np.asarray(bits, np.int64)])
         self._refresh()
+        self._bits_changed()
+
+    def _bits_changed(self) -> None:
+        self.col_values = np.int64(1) << self._rows.seen_bits  # (B,) the bit value of each seen column
+        self._known = int(np.bitwise_or.reduce(self.col_values)) if len(self.col_values) else 0  # bits with a column
 
     def _refresh(self) -> None:
         n, rows = self.n, self._rows
         self.view = TrackTable(*(column[:n] for column in rows.columns()), seen_bits=rows.seen_bits)
-        self.col_values = np.int64(1) << rows.seen_bits

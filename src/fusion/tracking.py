@@ -221,9 +221,9 @@ class Tracker:
         masks = np.asarray(dets.sources, dtype=np.int64) | int(source_mask)  # (M,) source bitmask per detection
         if len(masks) and masks.min() < 0:
             raise ValueError(f"source bitmasks must be in [0, 2^{SOURCE_BITS}), got {masks.min()}")
-        cols = self._store.source_columns(masks)  # (M, B): the seen_s columns each detection's bits set
+        cols, union = self._store.source_columns(masks)  # (M, B): the seen_s columns each detection's bits set
         if estimates:
-            self._estimate_mask |= int(source_mask) | (int(np.bitwise_or.reduce(masks)) if len(masks) else 0)
+            self._estimate_mask |= int(source_mask) | union
         tab = self._table
         result = associate(self.config, tab, dets)
         ti, di = result.matches[:, 0], result.matches[:, 1]
@@ -376,7 +376,8 @@ class Tracker:
         if not len(ti):
             return
         cls = tab.cls[ti]
-        tab.cls[ti] = np.where(cls == 0, dets.cls[di], cls)  # UNKNOWN adopts a class
+        if not cls.all():
+            tab.cls[ti] = np.where(cls == 0, dets.cls[di], cls)  # UNKNOWN adopts a class
         self._take_shape(ti, dets, di, t_s)
         tab.confidence[ti] = dets.confidence[di]
         hits = tab.hits[ti] + 1
@@ -406,15 +407,17 @@ class Tracker:
         n = len(index)
         if not n:
             return
-        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        new = self._store.extend(n)  # views of the n new rows
+        new.ids[:] = np.arange(self._next_id, self._next_id + n)
         self._next_id += n
-        born = np.full(n, t_s)
+        new.x[:], new.p[:], new.birth_x[:], new.birth_p[:] = x, p, x, p
+        new.cls[:], new.z[:], new.lwh[:] = dets.cls[index], dets.z[index], dets.lwh[index]
+        new.yaw[:], new.confidence[:] = wrap_angle(dets.yaw[index]), dets.confidence[index]
+        new.hits[:], new.born_s[:], new.updated_s[:], new.shape_s[:] = 1, t_s, t_s, t_s
+        new.seen_s[:] = np.where(cols[index], t_s, -np.inf)
         c = dets.cov_xy
-        new = TrackTable(x, p, ids, dets.cls[index], dets.z[index], dets.lwh[index], wrap_angle(dets.yaw[index]),
-                         dets.confidence[index], np.ones(n, np.int64), born, born, np.where(cols[index], t_s, -np.inf),
-                         c[index, 0, 0] + c[index, 1, 1], born, estimates or self.config.confirm_hits <= 1, x, p,
-                         velocity_prior)
-        self._store.append(new)
+        new.shape_var[:] = c[index, 0, 0] + c[index, 1, 1]
+        new.confirmed[:], new.velocity_prior[:] = estimates or self.config.confirm_hits <= 1, velocity_prior
 
 
 def _position_velocity(dets: ObjectArray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -48,11 +48,13 @@ def test_store_appends_keeps_and_loads_like_concatenation_and_masking():
 
 def test_store_adds_a_column_for_a_source_bit_seen_for_the_first_time():
     store = TrackStore(4)
-    cols = store.source_columns(np.array([1, 1], np.int64))
+    cols, union = store.source_columns(np.array([1, 1], np.int64))
+    assert union == 1
     assert cols.tolist() == [[True], [True]] and store.view.seen_bits.tolist() == [0]
     store.append(TrackTable.empty(4, 2, store.view.seen_bits))
     store.view.seen_s[:, 0] = [1.0, 2.0]
-    cols = store.source_columns(np.array([1 | slot_source(3), slot_source(3)], np.int64))
+    cols, union = store.source_columns(np.array([1 | slot_source(3), slot_source(3)], np.int64))
+    assert union == 1 | slot_source(3)
     assert store.view.seen_bits.tolist() == [0, 4]
     assert cols.tolist() == [[True, True], [False, True]]
     np.testing.assert_array_equal(store.view.seen_s, [[1.0, -np.inf], [2.0, -np.inf]])
