@@ -118,8 +118,10 @@ class TrackStore:
 
     def source_columns(self, masks: np.ndarray) -> tuple[np.ndarray, int]:
         """(K, B) bool: which seen columns each of K int64 bitmasks sets, and the OR of the masks;
-        bits not yet in use get a column."""
+        bits not yet in use get a column; negative masks (bit 63) are refused (ValueError)."""
         union = int(np.bitwise_or.reduce(masks)) if len(masks) else 0
+        if union < 0:  # the OR has bit 63 (the sign) exactly when some mask has it
+            raise ValueError(f"source bitmasks must be in [0, 2^{SOURCE_BITS}), got {masks.min()}")
         if union & ~self._known:
             self._add_seen_bits([b for b in range(SOURCE_BITS) if (union >> b) & 1 and not (self._known >> b) & 1])
         return (masks[:, None] & self.col_values) != 0, union

@@ -218,12 +218,13 @@ class Tracker:
         by an estimate are confirmed (another tracker confirmed it).
         """
         self.predict(t_s)
-        masks = np.asarray(dets.sources, dtype=np.int64) | int(source_mask)  # (M,) source bitmask per detection
-        if len(masks) and masks.min() < 0:
-            raise ValueError(f"source bitmasks must be in [0, 2^{SOURCE_BITS}), got {masks.min()}")
+        source_mask = int(source_mask)
+        if source_mask < 0:
+            raise ValueError(f"source bitmasks must be in [0, 2^{SOURCE_BITS}), got {source_mask}")
+        masks = np.asarray(dets.sources, dtype=np.int64) | source_mask  # (M,) source bitmask per detection
         cols, union = self._store.source_columns(masks)  # (M, B): the seen_s columns each detection's bits set
         if estimates:
-            self._estimate_mask |= int(source_mask) | union
+            self._estimate_mask |= source_mask | union
         tab = self._table
         result = associate(self.config, tab, dets)
         ti, di = result.matches[:, 0], result.matches[:, 1]

@@ -278,3 +278,14 @@ def test_two_point_needs_a_linear_model_with_a_velocity_state():
     x0, p0 = start(Ctrv(), rng)
     with pytest.raises(ValueError, match="linear"):
         kalman.two_point(Ctrv(), x0, p0, x0[:, :2], p0[:, :2, :2], 0.1)
+
+
+@pytest.mark.parametrize("n_tracks", [0, 1, 7, 300])
+def test_shared_transition_sandwich_equals_the_stacked_product(n_tracks):
+    """kalman.predict's F P F^T as two whole-batch products equals F @ P_i @ F^T track by track."""
+    rng = np.random.default_rng(n_tracks)
+    a = rng.normal(size=(n_tracks, 6, 6))
+    p = a @ np.swapaxes(a, -1, -2)
+    _, f = kalman.ConstantAcceleration(2.0).transition(np.zeros((n_tracks, 6)), 0.1)
+    expected = np.array([f @ p_i @ f.T for p_i in p]).reshape(n_tracks, 6, 6)
+    np.testing.assert_allclose(kalman._sandwich(f, p), expected, rtol=1e-14, atol=1e-12)
