@@ -40,6 +40,7 @@ from sim.scenario import RsuCameraConfig, V2vConfig, load_scenario
 from sim.world import World
 
 from .chaos import SERVICES, ChaosTimeline
+from .decode_memo import DecodeMemo
 from .spec import EVAL_EPOCH_NS, RunRecord, RunSpec, site_report
 
 RSU_REPLY_NS = 50_000  # RSU time between receiving a time query and answering it
@@ -109,6 +110,7 @@ class OfflineRun:
         self.clock = SimClock(start_ns)
         self.queue = EventQueue(self.clock)
         self._ego_now: dict[str, tuple[int, tuple[float, float]]] = {}  # vehicle -> (t_ns, true x, y at t)
+        self._memo = DecodeMemo()  # a broadcast's bytes are decoded once for all its receivers
         self.rsu_config = spec.rsu_config()
         self.obu_config = spec.obu_config()
         self.rsus = [self._new_rsu_site(k, cfg) for k, cfg in enumerate(self.scenario.rsus)]
@@ -292,7 +294,9 @@ class OfflineRun:
     # --- OBU side ----------------------------------------------------------------------
     def _obu_receive(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         try:
-            vehicle.obu.on_rsu_message(decode_list(data, self.spec.wire, rsu.pipeline.config.rsu_id), self.clock.t_ns)
+            rsu_id = rsu.pipeline.config.rsu_id
+            msg = self._memo.decoded(data, ("list", self.spec.wire, rsu_id), lambda: decode_list(data, self.spec.wire, rsu_id))
+            vehicle.obu.on_rsu_message(msg, self.clock.t_ns)
             vehicle.record.rsu_messages += 1
         except CodecError as exc:
             vehicle.obu.reject(exc.reason)
@@ -300,7 +304,8 @@ class OfflineRun:
 
     def _obu_predictions(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         try:
-            vehicle.obu.on_predictions(decode(data, PredictionList), self.clock.t_ns)
+            vehicle.obu.on_predictions(self._memo.decoded(data, PredictionList, lambda: decode(data, PredictionList)),
+                                       self.clock.t_ns)
         except CodecError as exc:
             vehicle.obu.reject(exc.reason)
 
@@ -355,7 +360,8 @@ class OfflineRun:
 
     def _peer_list(self, sender: _Vehicle, receiver: _Vehicle, data: bytes) -> None:
         try:
-            receiver.obu.peers.on_list(decode(data, FusedObjectList), sender.name, self.clock.t_ns)
+            msg = self._memo.decoded(data, FusedObjectList, lambda: decode(data, FusedObjectList))
+            receiver.obu.peers.on_list(msg, sender.name, self.clock.t_ns)
         except CodecError as exc:
             receiver.obu.reject(f"v2v_{exc.reason}")
 

@@ -1,0 +1,44 @@
+"""DecodeMemo: one decode per bytes object and key; errors raised again; no id confusion."""
+
+from __future__ import annotations
+
+import pytest
+
+from evaluation.decode_memo import DecodeMemo
+from schemas.codec import CodecError, MalformedMessage
+
+
+def test_each_bytes_object_and_key_is_decoded_once() -> None:
+    memo, calls = DecodeMemo(size=4), []
+
+    def decode(tag):
+        calls.append(tag)
+        return {"decoded": tag}
+
+    data = bytes(range(8))
+    first = memo.decoded(data, "a", lambda: decode(1))
+    assert memo.decoded(data, "a", lambda: decode(2)) is first  # shared by every receiver
+    assert memo.decoded(data, "b", lambda: decode(3)) == {"decoded": 3}  # another decoder
+    equal_but_other = bytes(range(8))
+    assert memo.decoded(equal_but_other, "a", lambda: decode(4)) == {"decoded": 4}  # by identity, not value
+    assert calls == [1, 3, 4] and memo.hits == 1
+
+
+def test_a_codec_error_is_raised_again_for_every_receiver() -> None:
+    memo, data = DecodeMemo(), b"\xc1"
+
+    def bad():
+        raise MalformedMessage("not msgpack")
+    for _ in range(2):
+        with pytest.raises(CodecError, match="not msgpack"):
+            memo.decoded(data, "a", bad)
+    assert memo.hits == 1
+
+
+def test_oldest_entries_are_dropped() -> None:
+    memo, calls = DecodeMemo(size=2), []
+    blobs = [bytes([i]) * 4 for i in range(3)]
+    for b in blobs:
+        memo.decoded(b, "k", lambda b=b: calls.append(b) or b)
+    memo.decoded(blobs[0], "k", lambda: calls.append("again") or blobs[0])  # evicted: decoded again
+    assert calls[-1] == "again"
