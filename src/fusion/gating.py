@@ -55,9 +55,8 @@ def _trace2(c: np.ndarray) -> np.ndarray:
 
 
 def _near(config: TrackerConfig, table: TrackTable, dets: ObjectArray):
-    """Candidate pairs (module docstring): rows (R,) of the tracks in the bounding box, the local row
-    tl (K,) and detection di (K,) of each class-compatible pair inside the bound, and the offsets
-    dx, dy (K,) = track - detection of those pairs."""
+    """Candidate pairs (module docstring): track ti (K,) and detection di (K,) of each class-compatible
+    pair inside the bound (ordered by track, then detection), and their offsets dx, dy (K,) = track - detection."""
     px, py, dxy = table.x[:, 0], table.x[:, 1], dets.xy
     reach_m, lam_p = config.gate_m, None
     if config.gate != "distance":
@@ -75,19 +74,21 @@ def _near(config: TrackerConfig, table: TrackTable, dets: ObjectArray):
         near = r2 <= config.gate_chi2 * np.add.outer(lam_p[rows], lam_r)
         if config.gate == "either":
             near = (r2 <= config.gate_m**2) | (near & (r2 <= config.gate_max_m**2))
-    near &= compatible_classes(table.cls[rows][:, None], dets.cls[None, :])
     flat = np.flatnonzero(near)  # row-major, as np.nonzero (which is slower on 2-D arrays)
     tl, di = np.divmod(flat, near.shape[1])
-    return rows, tl, di, dx.ravel()[flat], dy.ravel()[flat]
+    ti = rows[tl]
+    keep = compatible_classes(table.cls[ti], dets.cls[di])
+    flat = flat[keep]
+    return ti[keep], di[keep], dx.ravel()[flat], dy.ravel()[flat]
 
 
 def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> GatedPairs:
     """Class-compatible pairs inside the configured gate with the configured cost (module docstring)."""
     if not len(table) or not len(dets):
         return GatedPairs(_NO_INDEX, _NO_INDEX, np.zeros(0))
-    rows, tl, di, dx, dy = _near(config, table, dets)
-    ti = rows[tl]
-    dist = np.hypot(dx, dy)  # |y|, y = z - H x = -(dx, dy)
+    ti, di, dx, dy = _near(config, table, dets)
+    if config.gate != "mahalanobis" or config.cost == "distance":
+        dist = np.hypot(dx, dy)  # |y|, y = z - H x = -(dx, dy)
     if config.gate != "distance" or config.cost == "mahalanobis":
         s = table.p[ti, :2, :2] + dets.cov_xy[di]  # S = H P H^T + R per pair, d2 = y^T S^-1 y (sign of y immaterial)
         d2 = kalman._quadratic_form(dx, dy, s[:, 0, 0], s[:, 0, 1], s[:, 1, 0], s[:, 1, 1])

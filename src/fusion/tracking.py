@@ -396,9 +396,10 @@ class Tracker:
         c = dets.cov_xy
         var = c[di, 0, 0] + c[di, 1, 1]  # trace of the position covariance
         take = (var <= tab.shape_var[ti] * 1.01) | (t_s - tab.shape_s[ti] > self.config.shape_hold_s)
-        t, d = ti[take], di[take]
-        tab.z[t], tab.lwh[t], tab.yaw[t] = dets.z[d], dets.lwh[d], wrap_angle(dets.yaw[d])
-        tab.shape_var[t], tab.shape_s[t] = var[take], t_s
+        if not take.all():
+            ti, di, var = ti[take], di[take], var[take]
+        tab.z[ti], tab.lwh[ti], tab.yaw[ti] = dets.z[di], dets.lwh[di], wrap_angle(dets.yaw[di])
+        tab.shape_var[ti], tab.shape_s[ti] = var, t_s
 
     def _spawn(self, dets: ObjectArray, index: np.ndarray, cols: np.ndarray, t_s: float, x: np.ndarray,
                p: np.ndarray, estimates: bool, velocity_prior: np.ndarray) -> None:
