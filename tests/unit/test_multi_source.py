@@ -137,6 +137,26 @@ def test_newton_weight_equals_the_bisection(n, m):
     np.testing.assert_allclose(p_new[same], p[same], rtol=1e-6)
 
 
+@pytest.mark.parametrize("free", [0, 1, 2])
+def test_scalar_newton_on_few_rows_gives_the_batched_weights_bit_for_bit(free):
+    """Few rows (a CI batch of 1-3 pairs) take the Python-float iteration; it must be the vectorised one's
+    numbers exactly (same operations, same order, every row stepped until all are done)."""
+    from fusion import covariance_intersection as ci
+
+    rng = np.random.default_rng(20 + free)
+    cases = 0
+    for _ in range(3000):
+        k, m = int(rng.integers(1, ci._SCALAR_ROWS + 1)), int(rng.integers(1, 7))
+        lam = np.exp(rng.normal(0.0, 2.0, (k, m)))
+        a = 1.0 - lam
+        inner = (free + a.sum(1) < 0) & (free / W_MIN + (a / (a * W_MIN + lam)).sum(1) > 0)
+        if inner.any():
+            cases += 1
+            batched = ci._newton_root_batched(a[inner], lam[inner], free)
+            np.testing.assert_array_equal(ci._newton_root(a[inner], lam[inner], free), batched)
+    assert cases > 500
+
+
 def test_ci_weights_refuse_broken_covariances_without_raising():
     p = np.tile(np.eye(4), (3, 1, 1))
     r = np.stack([np.full((2, 2), np.nan), np.array([[1.0, 2.0], [2.0, 1.0]]), np.eye(2) * 0.1])
