@@ -199,7 +199,9 @@ def ci_update_into(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w
     if every:
         xu, pu, zu, ru, wu = x, p, z, r, w[:, None, None]
     else:
-        xu, pu, zu, ru, wu = x[use], p[use], z[use], r[use], w[use][:, None, None]
+        use = np.flatnonzero(use)  # (row gathers by .take: cheaper than boolean indexing on small batches)
+        xu, pu, zu, ru = x.take(use, axis=0), p.take(use, axis=0), z.take(use, axis=0), r.take(use, axis=0)
+        wu = w[use][:, None, None]
     pw, rw = pu / wu, ru / (1.0 - wu)
     sel = slice(first, first + r.shape[-1])
     s = pw[:, sel, sel] + rw  # S = H P H^T / w + R / (1 - w)

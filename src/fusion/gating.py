@@ -90,7 +90,7 @@ def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
     if config.gate != "mahalanobis" or config.cost == "distance":
         dist = np.hypot(dx, dy)  # |y|, y = z - H x = -(dx, dy)
     if config.gate != "distance" or config.cost == "mahalanobis":
-        s = table.p[ti, :2, :2] + dets.cov_xy[di]  # S = H P H^T + R per pair, d2 = y^T S^-1 y (sign of y immaterial)
+        s = table.p.take(ti, axis=0)[:, :2, :2] + dets.cov_xy.take(di, axis=0)  # S = H P H^T + R per pair, d2 = y^T S^-1 y
         d2 = kalman._quadratic_form(dx, dy, s[:, 0, 0], s[:, 0, 1], s[:, 1, 0], s[:, 1, 1])
     if config.gate == "distance":
         inside = dist <= config.gate_m

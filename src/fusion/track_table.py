@@ -141,9 +141,10 @@ class TrackStore:
 
     def keep(self, mask: np.ndarray) -> None:
         """Keep the live rows where mask (n,) is True, in order (moved down in place)."""
-        m = int(np.count_nonzero(mask))
+        index = np.flatnonzero(mask)
+        m = len(index)
         for column in self._rows.columns():
-            column[:m] = column[:self.n][mask]
+            column[:m] = column.take(index, axis=0)
         self.n = m
         self._refresh()
 

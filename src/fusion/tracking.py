@@ -231,7 +231,8 @@ class Tracker:
         known = dets.velocity_known()
         other = None
         if estimates and len(ti):  # (K, B) sources outside the estimate's bits that updated the track recently
-            other = ((t_s - tab.seen_s[ti]) <= self.config.max_coast_s) & ~cols[di]
+            # (multi-column gathers as .take(index, axis=0): a fraction of fancy indexing's cost on small batches)
+            other = ((t_s - tab.seen_s.take(ti, axis=0)) <= self.config.max_coast_s) & ~cols.take(di, axis=0)
             alone = ~other.any(axis=1)
         else:
             alone = np.zeros(len(ti), bool)
@@ -325,8 +326,8 @@ class Tracker:
             if not rows.any():
                 continue
             t, d = (ti, di) if rows.all() else (ti[rows], di[rows])
-            z, r = _position_velocity(dets, d) if velocity else (dets.xy[d], dets.cov_xy[d])
-            x, p = tab.x[t], tab.p[t]
+            z, r = _position_velocity(dets, d) if velocity else (dets.xy.take(d, axis=0), dets.cov_xy.take(d, axis=0))
+            x, p = tab.x.take(t, axis=0), tab.p.take(t, axis=0)
             ci_update_into(x, p, z, r, ci_weights(p, r))
             tab.x[t], tab.p[t] = x, p
 
@@ -358,15 +359,17 @@ class Tracker:
         tab = self._table
         if not len(ti):
             return
-        x, p, _ = kalman.update(tab.x[ti], tab.p[ti], dets.xy[di], dets.cov_xy[di])
+        x, p, _ = kalman.update(tab.x.take(ti, axis=0), tab.p.take(ti, axis=0), dets.xy.take(di, axis=0),
+                                dets.cov_xy.take(di, axis=0))
         if velocity and self.config.velocity_updates and self.config.motion in ("cv", "ca"):
             # sources that estimate velocity (tracking RSUs, CenterPoint) update it too:
             # H = [0 I_2 0], R = the detection's velocity covariance
             v = known[di]
             if v.all():
-                x, p, _ = kalman.update(x, p, dets.vxy[di], dets.cov_vxy[di], first=2)
+                x, p, _ = kalman.update(x, p, dets.vxy.take(di, axis=0), dets.cov_vxy.take(di, axis=0), first=2)
             elif v.any():
-                x[v], p[v], _ = kalman.update(x[v], p[v], dets.vxy[di[v]], dets.cov_vxy[di[v]], first=2)
+                d = di[v]
+                x[v], p[v], _ = kalman.update(x[v], p[v], dets.vxy.take(d, axis=0), dets.cov_vxy.take(d, axis=0), first=2)
         tab.x[ti], tab.p[ti] = x, p
 
     def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, cols: np.ndarray, t_s: float,
@@ -385,7 +388,7 @@ class Tracker:
         tab.hits[ti] = hits
         tab.confirmed[ti] = True if estimates else tab.confirmed[ti] | (hits >= self.config.confirm_hits)
         tab.updated_s[ti] = t_s
-        tab.seen_s[ti] = np.where(cols[di], t_s, tab.seen_s[ti])
+        tab.seen_s[ti] = np.where(cols.take(di, axis=0), t_s, tab.seen_s.take(ti, axis=0))
 
     def _take_shape(self, ti: np.ndarray, dets: ObjectArray, di: np.ndarray, t_s: float) -> None:
         """Box size, height and heading come from the most precise recent detection: a
@@ -398,7 +401,7 @@ class Tracker:
         take = (var <= tab.shape_var[ti] * 1.01) | (t_s - tab.shape_s[ti] > self.config.shape_hold_s)
         if not take.all():
             ti, di, var = ti[take], di[take], var[take]
-        tab.z[ti], tab.lwh[ti], tab.yaw[ti] = dets.z[di], dets.lwh[di], wrap_angle(dets.yaw[di])
+        tab.z[ti], tab.lwh[ti], tab.yaw[ti] = dets.z[di], dets.lwh.take(di, axis=0), wrap_angle(dets.yaw[di])
         tab.shape_var[ti], tab.shape_s[ti] = var, t_s
 
     def _spawn(self, dets: ObjectArray, index: np.ndarray, cols: np.ndarray, t_s: float, x: np.ndarray,
@@ -413,10 +416,10 @@ class Tracker:
         new.ids[:] = np.arange(self._next_id, self._next_id + n)
         self._next_id += n
         new.x[:], new.p[:], new.birth_x[:], new.birth_p[:] = x, p, x, p
-        new.cls[:], new.z[:], new.lwh[:] = dets.cls[index], dets.z[index], dets.lwh[index]
+        new.cls[:], new.z[:], new.lwh[:] = dets.cls[index], dets.z[index], dets.lwh.take(index, axis=0)
         new.yaw[:], new.confidence[:] = wrap_angle(dets.yaw[index]), dets.confidence[index]
         new.hits[:], new.born_s[:], new.updated_s[:], new.shape_s[:] = 1, t_s, t_s, t_s
-        new.seen_s[:] = np.where(cols[index], t_s, -np.inf)
+        new.seen_s[:] = np.where(cols.take(index, axis=0), t_s, -np.inf)
         c = dets.cov_xy
         new.shape_var[:] = c[index, 0, 0] + c[index, 1, 1]
         new.confirmed[:], new.velocity_prior[:] = estimates or self.config.confirm_hits <= 1, velocity_prior
@@ -425,11 +428,15 @@ class Tracker:
 def _position_velocity(dets: ObjectArray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """z (K, 4) = [x, y, vx, vy] and R (K, 4, 4) = blockdiag(cov_xy, cov_vxy) of dets[index]."""
     r = np.zeros((len(index), 4, 4))
-    r[:, :2, :2], r[:, 2:, 2:] = dets.cov_xy[index], dets.cov_vxy[index]
-    return np.concatenate([dets.xy[index], dets.vxy[index]], axis=1), r
+    r[:, :2, :2], r[:, 2:, 2:] = dets.cov_xy.take(index, axis=0), dets.cov_vxy.take(index, axis=0)
+    return np.concatenate([dets.xy.take(index, axis=0), dets.vxy.take(index, axis=0)], axis=1), r
 
 
 def filter_inputs(dets: ObjectArray, index: np.ndarray) -> kalman.Measured:
-    """Filter inputs of the detections dets[index]."""
-    return kalman.Measured(dets.xy[index], dets.cov_xy[index], dets.vxy[index], dets.axy[index], dets.yaw[index],
-                           dets.yaw_rate[index], dets.cov_vxy[index])
+    """Filter inputs of the detections dets[index] (an index array, or a boolean mask)."""
+    index = np.asarray(index)
+    if index.dtype == bool:
+        index = np.flatnonzero(index)
+    return kalman.Measured(dets.xy.take(index, axis=0), dets.cov_xy.take(index, axis=0), dets.vxy.take(index, axis=0),
+                           dets.axy.take(index, axis=0), dets.yaw[index], dets.yaw_rate[index],
+                           dets.cov_vxy.take(index, axis=0))
