@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from .fastnp import all_true, filled, true_index
+
 _BIG = 1e12
 
 
@@ -68,7 +70,7 @@ def assign_sparse(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n_a: int, n_b:
     a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
     single = (np.bincount(a, minlength=n_a)[a] == 1) & (np.bincount(b, minlength=n_b)[b] == 1)
     ma, mb = a[single], b[single]
-    if not single.all():
+    if not all_true(single):
         rest = ~single
         rows, ri = _compact(a[rest], n_a)
         cols, ci = _compact(b[rest], n_b)
@@ -79,16 +81,16 @@ def assign_sparse(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n_a: int, n_b:
         ma, mb = np.concatenate([ma, rows[r[ok]]]), np.concatenate([mb, cols[c[ok]]])
     order = np.argsort(ma, kind="stable")
     ma, mb = ma[order], mb[order]
-    free_a, free_b = np.ones(n_a, bool), np.ones(n_b, bool)
+    free_a, free_b = filled(n_a, True, bool), filled(n_b, True, bool)
     free_a[ma], free_b[mb] = False, False
-    return Assignment(np.column_stack([ma, mb]), np.flatnonzero(free_a), np.flatnonzero(free_b))
+    return Assignment(np.column_stack([ma, mb]), true_index(free_a), true_index(free_b))
 
 
 def _compact(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     """The distinct values of index (sorted) in [0, size) and the position of each entry among them."""
     present = np.zeros(size, bool)
     present[index] = True
-    values = np.flatnonzero(present)
+    values = true_index(present)
     lookup = np.empty(size, np.int64)
     lookup[values] = np.arange(len(values))
     return values, lookup[index]

@@ -44,6 +44,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .fastnp import all_true, any_true, filled, true_index
+
 W_MIN = 1e-6  # smallest weight of the track (full observations: w -> 0 takes the estimate)
 W_TOL = 1e-12  # Newton stops once every step is below this (module docstring)
 _MAX_STEPS = 60  # safeguard: each step at least halves the bracket where Newton fails, 2^-60 < W_TOL
@@ -73,7 +75,7 @@ def det_minimising_weight(lam: np.ndarray, free: int) -> np.ndarray:
     g_min = free / W_MIN + (a / (a * W_MIN + lam)).sum(axis=1)
     w = np.where(g_min <= 0, W_MIN, 1.0)  # the bounds: at W_MIN where g(W_MIN) <= 0, else at 1 where g(1) >= 0
     inner = (g_one < 0) & (g_min > 0)  # the root lies strictly inside (W_MIN, 1)
-    if inner.any():
+    if any_true(inner):
         w[inner] = _newton_root(a[inner], lam[inner], free)
     return w
 
@@ -157,7 +159,7 @@ def ci_weights(p: np.ndarray, r: np.ndarray, first: int = 0) -> np.ndarray:
     k, n, m = len(p), p.shape[-1], r.shape[-1]
     sel = slice(first, first + m)
     p_obs = p[:, sel, sel]
-    if np.isfinite(p_obs.sum() + r.sum()):  # every pair finite (a sum is finite only if each term is)
+    if np.isfinite(np.add.reduce(p_obs, axis=None) + np.add.reduce(r, axis=None)):  # all finite (a sum is finite only if each term is)
         rows = None
     else:
         rows = np.flatnonzero(np.isfinite(p_obs).all(axis=(1, 2)) & np.isfinite(r).all(axis=(1, 2)))
@@ -166,13 +168,14 @@ def ci_weights(p: np.ndarray, r: np.ndarray, first: int = 0) -> np.ndarray:
     if factored is not None:
         rows = np.flatnonzero(factored) if rows is None else rows[factored]
         p_obs = p_obs[factored]
-    w = np.ones(k)
+    w = filled(k, 1.0)
     if not len(p_obs):
         return w
-    lam = np.linalg.eigvalsh(inv_l @ (0.5 * (p_obs + np.swapaxes(p_obs, -1, -2))) @ np.swapaxes(inv_l, -1, -2))
+    # (.transpose(0, 2, 1) rather than np.swapaxes: the method skips a Python-level wrapper)
+    lam = np.linalg.eigvalsh(inv_l @ (0.5 * (p_obs + p_obs.transpose(0, 2, 1))) @ inv_l.transpose(0, 2, 1))
     # H P H^T positive definite: R^-1 S has positive eigenvalues, none below 1e-12 of the largest
     pd = lam[:, 0] > 1e-12 * np.abs(lam[:, -1])
-    if rows is None and pd.all():
+    if rows is None and all_true(pd):
         return det_minimising_weight(lam, n - m)
     rows = np.arange(k) if rows is None else rows
     w[rows[pd]] = det_minimising_weight(lam[pd], n - m)
@@ -193,23 +196,23 @@ def ci_update_into(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w
                    first: int = 0) -> None:
     """``ci_update`` written into x (K, n) and P (K, n, n)."""
     use = w < 1.0
-    every = use.all()
-    if not every and not use.any():
+    every = all_true(use)
+    if not every and not any_true(use):
         return
     if every:
         xu, pu, zu, ru, wu = x, p, z, r, w[:, None, None]
     else:
-        use = np.flatnonzero(use)  # (row gathers by .take: cheaper than boolean indexing on small batches)
+        use = true_index(use)  # (row gathers by .take: cheaper than boolean indexing on small batches)
         xu, pu, zu, ru = x.take(use, axis=0), p.take(use, axis=0), z.take(use, axis=0), r.take(use, axis=0)
         wu = w[use][:, None, None]
     pw, rw = pu / wu, ru / (1.0 - wu)
     sel = slice(first, first + r.shape[-1])
     s = pw[:, sel, sel] + rw  # S = H P H^T / w + R / (1 - w)
-    gain = np.swapaxes(np.linalg.solve(s, np.swapaxes(pw[:, :, sel], -1, -2)), -1, -2)  # K = (P / w) H^T S^-1
+    gain = np.linalg.solve(s, pw[:, :, sel].transpose(0, 2, 1)).transpose(0, 2, 1)  # K = (P / w) H^T S^-1
     x_new = xu + (gain @ (zu - xu[:, sel])[:, :, None])[:, :, 0]
     # Joseph form with A = (I - K H) P / w: P+ = A + (K R' - A H^T) K^T (as kalman.update)
     a = pw - gain @ pw[:, sel, :]
-    p_new = a + (gain @ rw - a[:, :, sel]) @ np.swapaxes(gain, -1, -2)
+    p_new = a + (gain @ rw - a[:, :, sel]) @ gain.transpose(0, 2, 1)
     if every:
         x[...], p[...] = x_new, p_new
     else:

@@ -25,6 +25,7 @@ import shapely
 
 from . import kalman
 from .association import Assignment, assign_sparse
+from .fastnp import true_index
 from .geometry import box_polygons
 from .objects import ObjectArray
 
@@ -65,7 +66,7 @@ def _near(config: TrackerConfig, table: TrackTable, dets: ObjectArray):
         if config.gate == "either":
             reach_m = min(max(reach_m, config.gate_m), config.gate_max_m)
     (x_lo, y_lo), (x_hi, y_hi) = dxy.min(axis=0) - reach_m, dxy.max(axis=0) + reach_m
-    rows = np.flatnonzero((px >= x_lo) & (px <= x_hi) & (py >= y_lo) & (py <= y_hi))
+    rows = true_index((px >= x_lo) & (px <= x_hi) & (py >= y_lo) & (py <= y_hi))
     dx, dy = np.subtract.outer(px[rows], dxy[:, 0]), np.subtract.outer(py[rows], dxy[:, 1])
     r2 = dx * dx + dy * dy
     if config.gate == "distance":
@@ -74,7 +75,7 @@ def _near(config: TrackerConfig, table: TrackTable, dets: ObjectArray):
         near = r2 <= config.gate_chi2 * np.add.outer(lam_p[rows], lam_r)
         if config.gate == "either":
             near = (r2 <= config.gate_m**2) | (near & (r2 <= config.gate_max_m**2))
-    flat = np.flatnonzero(near)  # row-major, as np.nonzero (which is slower on 2-D arrays)
+    flat = true_index(near)  # row-major, as np.nonzero (which is slower on 2-D arrays)
     tl, di = np.divmod(flat, near.shape[1])
     ti = rows[tl]
     keep = compatible_classes(table.cls[ti], dets.cls[di])

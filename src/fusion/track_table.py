@@ -18,6 +18,8 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from .fastnp import true_index
+
 SOURCE_BITS = 63  # source bitmasks are int64: bit 0 own vehicle, bits 1..62 one per RSU / peer slot
 _ALL_BITS = np.arange(SOURCE_BITS)
 _MIN_CAPACITY = 64
@@ -128,20 +130,22 @@ class TrackStore:
 
     def append(self, new: TrackTable) -> None:
         """Add the rows of new (its seen_s columns as this store's seen_bits) after the live ones."""
-        for dst, src in zip(self.extend(len(new)).columns(), new.columns()):
-            dst[...] = src
+        rows, added = self.extend(len(new))
+        for dst, src in zip(rows.columns(), new.columns()):
+            dst[added] = src
 
-    def extend(self, k: int) -> TrackTable:
-        """Make k more rows live (after the others) and return them (views) for the caller to fill."""
+    def extend(self, k: int) -> tuple[TrackTable, slice]:
+        """Make k more rows live (after the others): the store's columns (every allocated row) and the
+        slice of the k new rows in them, for the caller to fill."""
         if self.n + k > len(self._rows):
             self._grow(self.n + k)
         n, self.n = self.n, self.n + k
         self._refresh()
-        return TrackTable(*(column[n:n + k] for column in self._rows.columns()), seen_bits=self._rows.seen_bits)
+        return self._rows, slice(n, n + k)
 
     def keep(self, mask: np.ndarray) -> None:
         """Keep the live rows where mask (n,) is True, in order (moved down in place)."""
-        index = np.flatnonzero(mask)
+        index = true_index(mask)
         m = len(index)
         for column in self._rows.columns():
             column[:m] = column.take(index, axis=0)

@@ -83,6 +83,7 @@ import numpy as np
 
 from . import kalman
 from .covariance_intersection import ci_update_into, ci_weights
+from .fastnp import all_true, any_true, filled
 from .frames import wrap_angle
 from .gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
     GatedPairs,
@@ -247,14 +248,14 @@ class Tracker:
             ti, di, other = ti[rest], di[rest], other[rest]
         if estimates and self.config.estimate_fusion != "kf" and len(ti):
             if self.config.estimate_fusion == "ci-all":  # every track another source shares
-                shared = np.ones(len(ti), bool)
+                shared = filled(len(ti), True, bool)
             else:
                 shared = (other & ((self._store.col_values & self._estimate_mask) != 0)).any(axis=1)
-            if shared.any():
+            if any_true(shared):
                 self._intersect(ti[shared], di[shared], dets, known)
                 ti, di = ti[~shared], di[~shared]
         pair = self._second_positions(ti, di, known, t_s)
-        if pair.any():
+        if any_true(pair):
             self._two_point(ti[pair], di[pair], dets, t_s)
             ti, di = ti[~pair], di[~pair]
         self._correct(ti, di, dets, known, velocity=not estimates)
@@ -268,7 +269,7 @@ class Tracker:
         since_s = t_s - tab.updated_s
         tentative = tab.hits < self.config.confirm_hits
         doomed = (since_s > self.config.max_coast_s) | (tentative & (since_s > self.config.tentative_max_coast_s))
-        if doomed.any():
+        if any_true(doomed):
             self._store.keep(~doomed)
 
     def tracks(self, t_s: float) -> ObjectArray:
@@ -323,9 +324,9 @@ class Tracker:
         if self.config.velocity_updates and self.config.motion in ("cv", "ca"):
             with_v = known[di]
         for rows, velocity in ((~with_v, False), (with_v, True)):
-            if not rows.any():
+            if not any_true(rows):
                 continue
-            t, d = (ti, di) if rows.all() else (ti[rows], di[rows])
+            t, d = (ti, di) if all_true(rows) else (ti[rows], di[rows])
             z, r = _position_velocity(dets, d) if velocity else (dets.xy.take(d, axis=0), dets.cov_xy.take(d, axis=0))
             x, p = tab.x.take(t, axis=0), tab.p.take(t, axis=0)
             ci_update_into(x, p, z, r, ci_weights(p, r))
@@ -337,7 +338,7 @@ class Tracker:
         measures no velocity either (known (M,) False; a measured one is fused by ``_correct``)."""
         tab = self._table
         first = tab.hits[ti] == 1
-        if not first.any() or not self.config.two_point_init or self.config.motion not in ("cv", "ca"):
+        if not any_true(first) or not self.config.two_point_init or self.config.motion not in ("cv", "ca"):
             return np.zeros(len(ti), bool)
         return first & tab.velocity_prior[ti] & (tab.born_s[ti] < t_s) & ~known[di]
 
@@ -365,9 +366,9 @@ class Tracker:
             # sources that estimate velocity (tracking RSUs, CenterPoint) update it too:
             # H = [0 I_2 0], R = the detection's velocity covariance
             v = known[di]
-            if v.all():
+            if all_true(v):
                 x, p, _ = kalman.update(x, p, dets.vxy.take(di, axis=0), dets.cov_vxy.take(di, axis=0), first=2)
-            elif v.any():
+            elif any_true(v):
                 d = di[v]
                 x[v], p[v], _ = kalman.update(x[v], p[v], dets.vxy.take(d, axis=0), dets.cov_vxy.take(d, axis=0), first=2)
         tab.x[ti], tab.p[ti] = x, p
@@ -380,7 +381,7 @@ class Tracker:
         if not len(ti):
             return
         cls = tab.cls[ti]
-        if not cls.all():
+        if not all_true(cls):
             tab.cls[ti] = np.where(cls == 0, dets.cls[di], cls)  # UNKNOWN adopts a class
         self._take_shape(ti, dets, di, t_s)
         tab.confidence[ti] = dets.confidence[di]
@@ -399,7 +400,7 @@ class Tracker:
         c = dets.cov_xy
         var = c[di, 0, 0] + c[di, 1, 1]  # trace of the position covariance
         take = (var <= tab.shape_var[ti] * 1.01) | (t_s - tab.shape_s[ti] > self.config.shape_hold_s)
-        if not take.all():
+        if not all_true(take):
             ti, di, var = ti[take], di[take], var[take]
         tab.z[ti], tab.lwh[ti], tab.yaw[ti] = dets.z[di], dets.lwh.take(di, axis=0), wrap_angle(dets.yaw[di])
         tab.shape_var[ti], tab.shape_s[ti] = var, t_s
@@ -412,17 +413,17 @@ class Tracker:
         n = len(index)
         if not n:
             return
-        new = self._store.extend(n)  # views of the n new rows
-        new.ids[:] = np.arange(self._next_id, self._next_id + n)
+        rows, new = self._store.extend(n)  # the store's columns, and the slice of the n new rows in them
+        rows.ids[new] = np.arange(self._next_id, self._next_id + n)
         self._next_id += n
-        new.x[:], new.p[:], new.birth_x[:], new.birth_p[:] = x, p, x, p
-        new.cls[:], new.z[:], new.lwh[:] = dets.cls[index], dets.z[index], dets.lwh.take(index, axis=0)
-        new.yaw[:], new.confidence[:] = wrap_angle(dets.yaw[index]), dets.confidence[index]
-        new.hits[:], new.born_s[:], new.updated_s[:], new.shape_s[:] = 1, t_s, t_s, t_s
-        new.seen_s[:] = np.where(cols.take(index, axis=0), t_s, -np.inf)
+        rows.x[new], rows.p[new], rows.birth_x[new], rows.birth_p[new] = x, p, x, p
+        rows.cls[new], rows.z[new], rows.lwh[new] = dets.cls[index], dets.z[index], dets.lwh.take(index, axis=0)
+        rows.yaw[new], rows.confidence[new] = wrap_angle(dets.yaw[index]), dets.confidence[index]
+        rows.hits[new], rows.born_s[new], rows.updated_s[new], rows.shape_s[new] = 1, t_s, t_s, t_s
+        rows.seen_s[new] = np.where(cols.take(index, axis=0), t_s, -np.inf)
         c = dets.cov_xy
-        new.shape_var[:] = c[index, 0, 0] + c[index, 1, 1]
-        new.confirmed[:], new.velocity_prior[:] = estimates or self.config.confirm_hits <= 1, velocity_prior
+        rows.shape_var[new] = c[index, 0, 0] + c[index, 1, 1]
+        rows.confirmed[new], rows.velocity_prior[new] = estimates or self.config.confirm_hits <= 1, velocity_prior
 
 
 def _position_velocity(dets: ObjectArray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,23 @@
+"""fusion.fastnp gives what the usual numpy spelling gives."""
+
+import numpy as np
+import pytest
+
+from fusion.fastnp import all_true, any_true, filled, true_index
+
+
+@pytest.mark.parametrize("shape", [(0,), (1,), (7,), (40,), (3, 5), (0, 4)])
+def test_the_cheap_spellings_equal_numpy(shape):
+    rng = np.random.default_rng(sum(shape))
+    for p in (0.0, 0.3, 1.0):
+        mask = rng.random(shape) < p
+        ints = np.where(mask, rng.integers(1, 9, shape), 0)
+        for a in (mask, ints):
+            assert any_true(a) == a.any() and all_true(a) == a.all()
+            np.testing.assert_array_equal(true_index(a), np.flatnonzero(a))
+            assert true_index(a).dtype == np.flatnonzero(a).dtype
+    n = shape[0]
+    for value, dtype in ((True, bool), (1.0, float), (-np.inf, float), (3, np.int64)):
+        out = filled(n, value, dtype)
+        np.testing.assert_array_equal(out, np.full(n, value, dtype))
+        assert out.dtype == np.full(n, value, dtype).dtype
