@@ -62,10 +62,11 @@ def _near(config: TrackerConfig, table: TrackTable, dets: ObjectArray):
     reach_m, lam_p = config.gate_m, None
     if config.gate != "distance":
         lam_p, lam_r = _trace2(table.p), _trace2(dets.cov_xy)
-        reach_m = np.sqrt(config.gate_chi2 * (lam_p.max() + lam_r.max()))
+        reach_m = np.sqrt(config.gate_chi2 * (np.maximum.reduce(lam_p) + np.maximum.reduce(lam_r)))
         if config.gate == "either":
             reach_m = min(max(reach_m, config.gate_m), config.gate_max_m)
-    (x_lo, y_lo), (x_hi, y_hi) = dxy.min(axis=0) - reach_m, dxy.max(axis=0) + reach_m
+    # (ufunc reductions: the array methods add a Python-level wrapper)
+    (x_lo, y_lo), (x_hi, y_hi) = np.minimum.reduce(dxy) - reach_m, np.maximum.reduce(dxy) + reach_m
     rows = true_index((px >= x_lo) & (px <= x_hi) & (py >= y_lo) & (py <= y_hi))
     dx, dy = np.subtract.outer(px[rows], dxy[:, 0]), np.subtract.outer(py[rows], dxy[:, 1])
     r2 = dx * dx + dy * dy
