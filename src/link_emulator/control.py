@@ -2,10 +2,29 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
+from schemas.codec import CodecError, decode
 from schemas.messages import LinkControl
 
 from .channel import LinkModel
 from .profile import bundled_profiles, load_profile
+
+Reject = Callable[[str, "int | None", str], object]  # reason, control seq (None: undecodable), error
+
+
+def admitted_control(payload: bytes, link_id: str, reject: Reject) -> LinkControl | None:
+    """The LinkControl in ``payload`` if it decodes and names ``link_id``; else None, after
+    ``reject(reason, seq, error)`` (``codec_<reason>`` or ``wrong_link_id``)."""
+    try:
+        control = decode(payload, LinkControl)
+    except CodecError as exc:
+        reject(f"codec_{exc.reason}", None, str(exc))
+        return None
+    if control.link_id != link_id:
+        reject("wrong_link_id", control.seq, f"link_id {control.link_id!r}, this emulator is {link_id!r}")
+        return None
+    return control
 
 
 def apply_control(model: LinkModel, control: LinkControl, now_ns: int) -> str:

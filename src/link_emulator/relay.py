@@ -57,13 +57,14 @@ from schemas.keys import (
     link_control,
     link_stats,
 )
-from schemas.messages import EgoPose, LinkControl
+from schemas.messages import EgoPose
 from schemas.runtime import MemoryTrim
 from schemas.transport import open_session
 from sim.clock import Clock
 
 from .channel import NS_PER_MS
 from .config import LinkConfig
+from .control import admitted_control
 from .gate import Gate
 from .pair import Delivery, VehiclePair, apply_to_pairs, control_targets, pairs_summary
 from .profile import LinkProfile, load_profile
@@ -232,14 +233,8 @@ class LinkRelay:
     def _control_arrival(self, payload: bytes, receive_ns: int) -> None:
         """Apply one LinkControl as of its receipt; a bad one is counted and logged once per reason."""
         self._gate.done()
-        try:
-            control = decode(payload, LinkControl)
-        except CodecError as exc:
-            self._reject_control(f"codec_{exc.reason}", None, str(exc))
-            return
-        if control.link_id != self.config.link_id:
-            self._reject_control("wrong_link_id", control.seq,
-                                 f"link_id {control.link_id!r}, this emulator is {self.config.link_id!r}")
+        control = admitted_control(payload, self.config.link_id, self._reject_control)
+        if control is None:
             return
         targets = control_targets(self._pairs, control)
         if not targets:

@@ -41,14 +41,14 @@ import zenoh
 
 from schemas.codec import CodecError, decode
 from schemas.keys import link_control, link_stats, obu_pose, v2v_from
-from schemas.messages import EgoPose, LinkControl
+from schemas.messages import EgoPose
 from schemas.runtime import MemoryTrim
 from schemas.transport import open_session
 from sim.clock import Clock
 
 from .channel import NS_PER_MS, LinkModel
 from .config import LinkConfig
-from .control import apply_control
+from .control import admitted_control, apply_control
 from .gate import Gate, InFlight, VehiclePosition
 from .pair import Delivery, merged_direction, pair_seed
 from .profile import load_profile
@@ -222,13 +222,8 @@ class V2vRelay:
     def _control_arrival(self, payload: bytes, receive_ns: int) -> None:
         """Apply one LinkControl to every pair, or to the pairs of the vehicle it names."""
         self._gate.done()
-        try:
-            control = decode(payload, LinkControl)
-        except CodecError as exc:
-            self._control.reject(f"codec_{exc.reason}", None, str(exc))
-            return
-        if control.link_id != self.config.link_id:
-            self._control.reject("wrong_link_id", control.seq, f"link_id {control.link_id!r}")
+        control = admitted_control(payload, self.config.link_id, self._control.reject)
+        if control is None:
             return
         vid = control.vehicle_id
         targets = [p for p in self._pairs.values() if vid is None or vid in (p.sender, p.receiver)]
