@@ -106,7 +106,8 @@ class KalmanFusion:
     one identity switch at first acquisition)."""
 
     def __init__(self, compensation: str, use_own: bool = True, use_rsu: bool = True,
-                 tracker: TrackerConfig = TrackerConfig(accel_std_mps2=1.0, gate="either"), motion: Motion = predict_ca):
+                 tracker: TrackerConfig = TrackerConfig(accel_std_mps2=1.0, gate="either"),
+                 motion: Motion = predict_ca):
         self.compensation, self.use_own, self.use_rsu, self.motion = compensation, use_own, use_rsu, motion
         self._ego_map = EgoMapTracker(tracker)  # a Tracker in the map of the drifting pose estimate
         self.tracker = OosmTracker(self._ego_map) if compensation == "oosm" else self._ego_map
