@@ -86,9 +86,14 @@ class TimeRequests:
         return out
 
 
+SYNC_LEAD_NS = 1_000_000_000  # queries start this long before a run (a reply is held 150 ms first)
+
+
 def sync_times_ns(now_ns: int, start_ns: int, duration_s: float, rate_hz: float) -> list[int]:
-    """Times (ns) of a run's time queries: every 1 / ``rate_hz`` from two periods before the
-    run's start (so the clock is synchronised when it begins), none in the past, until its end."""
+    """Times (ns) of a run's time queries: every 1 / ``rate_hz`` from ``SYNC_LEAD_NS`` (at least
+    two periods) before the run's start, so that the clock is synchronised when it begins (two
+    periods were not enough: with the 150 ms hold the first RSU frame often found no estimate),
+    none in the past, until its end."""
     period_ns = round(1e9 / rate_hz)
-    first_ns = max(now_ns, start_ns - 2 * period_ns)
+    first_ns = max(now_ns, start_ns - max(2 * period_ns, SYNC_LEAD_NS))
     return [int(t) for t in np.arange(first_ns, start_ns + duration_s * 1e9, period_ns)]

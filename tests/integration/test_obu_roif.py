@@ -43,7 +43,10 @@ def test_obu_fuses_images_live_and_refuses_bad_features():
     ep = free_tcp_endpoint()
     start_ns = time.time_ns() + 12_000_000_000
     node = ImageFusionNode(ObuConfig(listen=[ep], scenario=SCENARIO, fusion="roif", start_at_ns=start_ns,
-                                     duration_s=FRAMES / RATE_HZ, roif_threads=1, sync_rate_hz=20.0))
+                                     duration_s=FRAMES / RATE_HZ, roif_threads=1, sync_rate_hz=20.0,
+                                     # this process renders and detects for both cameras on 2 shared cores and
+                                     # one GIL: RSU frames arrive up to ~320 ms after capture at start-up
+                                     roif_wait_ms=400.0))
     outputs, metrics = queue.Queue(), queue.Queue()
     rsu = open_session(connect=[ep])
     declared = [rsu.declare_queryable(keys.rsu_time(RSU_ID), _answer_time),
@@ -64,7 +67,8 @@ def test_obu_fuses_images_live_and_refuses_bad_features():
             publisher.put(encode(RsuImageFeatures.from_view(RSU_ID, k, t_ns, features)))
             if k == 5:  # hostile: truncated, from an unknown RSU
                 publisher.put(encode(RsuImageFeatures.from_view(RSU_ID, 99, t_ns, features))[:-9])
-                rsu.put(keys.rsu_image_features("stranger"), encode(RsuImageFeatures.from_view("stranger", 1, t_ns, features)))
+                stranger = RsuImageFeatures.from_view("stranger", 1, t_ns, features)
+                rsu.put(keys.rsu_image_features("stranger"), encode(stranger))
         got, deadline = [], time.monotonic() + 10.0
         while len(got) < FRAMES and time.monotonic() < deadline:
             try:

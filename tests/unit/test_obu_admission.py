@@ -308,3 +308,17 @@ def test_the_rsu_detection_of_the_ego_itself_is_dropped_and_counted():
     # (13.2, 0) is 3.2 m to its right (beyond 2 m) and (10, 5) 5 m ahead (beyond 3 m) -> kept
     out = cycle(p, t + 50 * MS, own_xy=((60.0, 60.0),))
     assert len(out.objects) == 3  # its own far object and the two RSU objects that are not itself
+
+
+def test_time_queries_start_early_enough_to_sync_before_the_run():
+    """Queries begin a second before the run (the first reply is held 150 ms before the clock
+    filter sees it), never in the past, and stop at the run's end."""
+    from obu_service.time_requests import sync_times_ns
+
+    start = T0 + 20_000 * MS
+    early = sync_times_ns(T0, start, 2.0, 10.0)
+    assert early[0] == start - 1_000 * MS and early[-1] < start + 2_000 * MS
+    assert np.all(np.diff(early) == 100 * MS) and len(early) == 30
+    late = sync_times_ns(start - 300 * MS, start, 2.0, 10.0)
+    assert late[0] == start - 300 * MS
+    assert sync_times_ns(T0, start, 2.0, 0.5)[0] == start - 4_000 * MS  # at least two periods
