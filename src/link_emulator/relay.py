@@ -61,6 +61,7 @@ from schemas.messages import EgoPose
 from schemas.runtime import MemoryTrim
 from schemas.transport import open_session
 from sim.clock import Clock
+from telemetry.latency import StageLatency
 
 from .channel import NS_PER_MS
 from .config import LinkConfig
@@ -107,6 +108,8 @@ class LinkRelay:
                                        self._distance_m)
         self._declared: list[Any] = []  # subscribers and queryables to undeclare
         self._observer = observer  # benchmarks and tests: sees every delivery, in the scheduler thread
+        self.latency = StageLatency()  # relay_hold, relay_late (telemetry.latency); read by other threads
+        self.last_stats: dict[str, Any] | None = None  # the latest published stats; one assignment
         self._rsu: zenoh.Session | None = None
         self._control_session: zenoh.Session | None = None
         self._vehicles: list[zenoh.Session] = []  # one per pair, in pair order
@@ -204,7 +207,9 @@ class LinkRelay:
 
         def publish(fired_ns: int) -> None:
             self._scheduler.push(fired_ns + period_ns, publish)
-            payload = json.dumps(self.stats_snapshot(fired_ns)).encode()
+            stats = self.stats_snapshot(fired_ns)
+            self.last_stats = stats
+            payload = json.dumps(stats).encode()
             for session in self._sessions():
                 session.put(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
             self._trim.maybe()

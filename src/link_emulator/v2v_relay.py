@@ -45,6 +45,7 @@ from schemas.messages import EgoPose
 from schemas.runtime import MemoryTrim
 from schemas.transport import open_session
 from sim.clock import Clock
+from telemetry.latency import StageLatency
 
 from .channel import NS_PER_MS, LinkModel
 from .config import LinkConfig
@@ -100,6 +101,8 @@ class V2vRelay:
         self._control = ControlStats()
         self._trim = MemoryTrim()
         self._observer = observer  # tests and benchmarks: every delivery, in the scheduler thread
+        self.latency = StageLatency()  # relay_hold, relay_late (telemetry.latency); read by other threads
+        self.last_stats: dict[str, Any] | None = None  # the latest published stats; one assignment
         self._declared: list[Any] = []
         self._sessions: dict[str, zenoh.Session] = {}
         self._control_session: zenoh.Session | None = None
@@ -257,7 +260,9 @@ class V2vRelay:
 
         def publish(fired_ns: int) -> None:
             self._scheduler.push(fired_ns + period_ns, publish)
-            payload = json.dumps(self.stats_snapshot(fired_ns)).encode()
+            stats = self.stats_snapshot(fired_ns)
+            self.last_stats = stats
+            payload = json.dumps(stats).encode()
             for session in self._all_sessions():
                 session.put(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
             self._trim.maybe()

@@ -28,13 +28,14 @@ from schemas import keys
 from schemas.codec import CodecError, decode, encode, from_body, header_of, object_count, open_body, path_point_count
 from schemas.intake import Intake, Item
 from schemas import list_wire
-from schemas.messages import EgoPose, ObjectList, PredictionList, TimeReply
+from schemas.messages import EgoPose, ObjectList, ObuMetrics, PredictionList, TimeReply
 from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
 from schemas.sensor_screen import InputRefused, SensorLimits, SensorScreen
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 from sim.world import World
+from telemetry.latency import StageLatency
 
 from .config import ObuConfig
 from .pipeline import ObuPipeline
@@ -80,6 +81,8 @@ class ObuNode:
         self._details: dict[str, str] = {}  # first codec error message per reason
         self._events: list = []
         self._held: Item | None = None  # a large input held until after the next event
+        self.latency = StageLatency()  # per-stage durations (telemetry.latency); read by other threads
+        self.last_metrics: ObuMetrics | None = None  # the latest published; one assignment, read by other threads
 
     def run(self, stop: threading.Event) -> None:
         session = open_session(self.config.listen, self.config.connect)
@@ -267,7 +270,9 @@ class ObuNode:
         if self.pipeline.last_planning is not None:
             self._pub["planning"].put(encode(self.pipeline.last_planning))
         self._count_refusals()
-        self._pub["metrics"].put(encode(self.pipeline.metrics(self.clock.now_ns())))
+        metrics = self.pipeline.metrics(self.clock.now_ns())
+        self._pub["metrics"].put(encode(metrics))
+        self.last_metrics = metrics
         self._trim.maybe()  # just published: the next deadline is a cycle away
 
     def _count_refusals(self) -> None:

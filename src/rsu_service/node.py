@@ -37,6 +37,7 @@ from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 from sim.world import World
+from telemetry.latency import StageLatency
 
 from .config import RsuConfig
 from .pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
@@ -78,6 +79,8 @@ class RsuNode:
         self._trim = MemoryTrim()
         self._details: dict[str, str] = {}
         self._reported_ns = 0  # true clock of the last metrics
+        self.latency = StageLatency()  # per-stage durations (telemetry.latency); read by other threads
+        self.last_metrics: RsuMetrics | None = None  # the latest published; one assignment, read by other threads
         # scored when the source knows the truth (simulated world)
         rsu = self.world.scenario.rsus[self.world.scenario.rsu_index(config.rsu_id)]
         self.perception = PerceptionTally.of_source(self.source, (rsu.position.x, rsu.position.y))
@@ -210,10 +213,11 @@ class RsuNode:
         with self._lock:
             replies = self.time_replies
         self._log.totals(rejected, self._details)
-        self._metrics.put(encode(RsuMetrics(rsu_id=self.config.rsu_id, t_ns=self.clock.now_ns(),
-                                            published=self.published, skipped=self.skipped,
-                                            time_replies=replies, rejected=dict(rejected),
-                                            perception=self._perception())))
+        metrics = RsuMetrics(rsu_id=self.config.rsu_id, t_ns=self.clock.now_ns(), published=self.published,
+                             skipped=self.skipped, time_replies=replies, rejected=dict(rejected),
+                             perception=self._perception())
+        self._metrics.put(encode(metrics))
+        self.last_metrics = metrics
         self._trim.maybe()
 
     def _perception(self) -> RsuPerception | None:
