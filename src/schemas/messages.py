@@ -23,7 +23,8 @@ from .path_points import grid_positions, grid_yaws, paths_from_array, paths_from
 # 3: header schema_version checked; RsuMetrics; ObuMetrics.output_dropped; RsuLinkStatus.sync_outliers
 # 4: object lists as one msgpack array [v, tag, fields, objects]: positional fields (nil: default),
 #    objects as bit-packed rows of per-message column widths (schemas.object_wire)
-SCHEMA_VERSION = 4
+# 5: indexed object columns (a table of the column's distinct values, schemas.object_wire)
+SCHEMA_VERSION = 5
 
 # Plausible wall-clock range: 2000-01-01 .. 2100-01-01. Anything outside is a broken clock.
 MIN_TIME_NS = 946_684_800 * 10**9
@@ -300,6 +301,31 @@ class RsuLinkStatus(Message):
     loss_ratio: Annotated[float | None, Field(ge=0.0, le=1.0, allow_inf_nan=False)] = None
 
 
+StageName = Annotated[str, Field(pattern=r"^[a-z0-9_]{1,32}$")]
+LatencyMsValue = Annotated[float, Field(ge=0.0, le=1e9, allow_inf_nan=False)]
+
+
+class StageLatencyMs(Message):
+    """One pipeline stage's durations (``telemetry.latency.StageLatency.summary_ms``): observations
+    since start, and p50 <= p95 <= p99 in ms over the latest ones."""
+
+    TYPE: ClassVar[str] = "stage_latency"
+    count: Count
+    p50: LatencyMsValue
+    p95: LatencyMsValue
+    p99: LatencyMsValue
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "StageLatencyMs":
+        if not self.p50 <= self.p95 <= self.p99:
+            raise ValueError(f"quantiles out of order: p50 {self.p50}, p95 {self.p95}, p99 {self.p99}")
+        return self
+
+
+# per-stage latency of a service, by stage name (``latency_ms`` of the metrics); bounded like telemetry.latency
+LatencyMs = Annotated[dict[StageName, StageLatencyMs], Field(max_length=32)]
+
+
 class ObuMetrics(Message):
     """Periodic OBU health on ``v2x/obu/{vehicle_id}/metrics``."""
 
@@ -318,6 +344,7 @@ class ObuMetrics(Message):
     )
     # output objects dropped (or clipped) to fit the wire, by reason
     output_dropped: dict[Annotated[str, Field(max_length=64)], Count] = Field(default_factory=dict, max_length=16)
+    latency_ms: LatencyMs = Field(default_factory=dict)  # per stage (telemetry.latency): queue, decode, fuse, ...
 
 
 Ratio = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
@@ -350,6 +377,7 @@ class RsuMetrics(Message):
     time_replies: Count = 0
     rejected: dict[Annotated[str, Field(max_length=64)], Count] = Field(default_factory=dict, max_length=64)
     perception: RsuPerception | None = None  # simulated sources: detections scored against the truth
+    latency_ms: LatencyMs = Field(default_factory=dict)  # per stage (telemetry.latency): detect, encode, put, ...
 
 
 class LinkControl(Message):

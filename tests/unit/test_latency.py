@@ -126,3 +126,68 @@ def test_two_threads_lose_no_observation():
     assert count == 2 * n and cumulative[-1] == 2 * n
     assert sum_s == pytest.approx(n * 3e-3)
     assert latency.summary_ms()["shared"]["count"] == 2 * n
+
+
+# ---- the wire: latency_ms in ObuMetrics / RsuMetrics ------------------------------------------
+
+T_NS = 1_700_000_000_000_000_000
+
+
+def _metrics_with(latency_ms):
+    from schemas.messages import ObuMetrics
+
+    return ObuMetrics(vehicle_id="ego", t_ns=T_NS, latency_ms=latency_ms)
+
+
+def test_summary_round_trips_in_obu_and_rsu_metrics():
+    from schemas.codec import decode, encode
+    from schemas.messages import ObuMetrics, RsuMetrics
+
+    latency = StageLatency()
+    for v in (1e-3, 2e-3, 4e-3):
+        latency.observe("fuse", v)
+        latency.observe("put", v / 10)
+    summary = latency.summary_ms()
+    obu = decode(encode(ObuMetrics(vehicle_id="ego", t_ns=T_NS, latency_ms=summary)), ObuMetrics)
+    rsu = decode(encode(RsuMetrics(rsu_id="rsu1", t_ns=T_NS, latency_ms=summary)), RsuMetrics)
+    for msg in (obu, rsu):
+        assert {k: v.model_dump() for k, v in msg.latency_ms.items()} == summary
+
+
+def test_messages_without_latency_still_decode():
+    import msgpack
+
+    from schemas.codec import decode
+    from schemas.messages import SCHEMA_VERSION, ObuMetrics, RsuMetrics
+
+    for model, body in ((ObuMetrics, {"vehicle_id": "ego", "t_ns": T_NS, "cycles": 3}),
+                        (RsuMetrics, {"rsu_id": "rsu1", "t_ns": T_NS, "published": 2})):
+        data = msgpack.packb({"v": SCHEMA_VERSION, "t": model.TYPE, "d": body}, use_bin_type=True)
+        assert decode(data, model).latency_ms == {}
+
+
+@pytest.mark.parametrize("latency_ms", [
+    {"fuse": {"count": 1, "p50": 2.0, "p95": 1.0, "p99": 3.0}},  # out of order
+    {"fuse": {"count": 1, "p50": -1.0, "p95": 1.0, "p99": 3.0}},  # negative
+    {"fuse": {"count": 1, "p50": float("nan"), "p95": 1.0, "p99": 3.0}},
+    {"fuse": {"count": -1, "p50": 1.0, "p95": 1.0, "p99": 1.0}},
+    {"fuse": {"count": 1, "p50": 1.0, "p95": 1.0, "p99": 1.0, "extra": 1}},
+    {"Bad Name": {"count": 1, "p50": 1.0, "p95": 1.0, "p99": 1.0}},
+    {f"s{i}": {"count": 1, "p50": 1.0, "p95": 1.0, "p99": 1.0} for i in range(MAX_STAGES + 1)},  # unbounded
+])
+def test_bad_latency_fields_are_refused(latency_ms):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError):
+        _metrics_with(latency_ms)
+
+
+def test_bad_latency_on_the_wire_is_a_codec_error():
+    import msgpack
+
+    from schemas.codec import CodecError, decode
+    from schemas.messages import SCHEMA_VERSION, ObuMetrics
+
+    body = {"vehicle_id": "ego", "t_ns": T_NS, "latency_ms": {"fuse": {"count": 1, "p50": 5.0, "p95": 1.0, "p99": 1.0}}}
+    with pytest.raises(CodecError):
+        decode(msgpack.packb({"v": SCHEMA_VERSION, "t": "obu_metrics", "d": body}, use_bin_type=True), ObuMetrics)
