@@ -23,7 +23,8 @@ from .path_points import grid_positions, grid_yaws, paths_from_array, paths_from
 # 3: header schema_version checked; RsuMetrics; ObuMetrics.output_dropped; RsuLinkStatus.sync_outliers
 # 4: object lists as one msgpack array [v, tag, fields, objects]: positional fields (nil: default),
 #    objects as bit-packed rows of per-message column widths (schemas.object_wire)
-SCHEMA_VERSION = 4
+# 5: indexed object columns (a table of the column's distinct values, schemas.object_wire)
+SCHEMA_VERSION = 5
 
 # Plausible wall-clock range: 2000-01-01 .. 2100-01-01. Anything outside is a broken clock.
 MIN_TIME_NS = 946_684_800 * 10**9

@@ -3,7 +3,7 @@
 ``unpack_view(data)`` gives every envelope as ``{"v": version, "t": tag, "d": body}``: for an
 object list (``schemas.codec`` array envelope) ``body`` maps field names to values, a nested
 header is a map too, and ``body["objects"]`` is ``{"n", "present", "widths", "refs", "scales",
-"rows"}`` (``schemas.object_wire``). ``pack_view`` is its inverse, mutations included: a key no
+"rows", "tables"}`` (``schemas.object_wire``). ``pack_view`` is its inverse, mutations included: a key no
 field has becomes an extra positional entry (the decoder calls that malformed), so a mutated
 view is still a faithful hostile message. No validation here.
 """
@@ -18,7 +18,7 @@ from .codec import LIST_TAGS, _layout
 from .messages import FusedObjectList, Message, ObjectList, PredictionList
 from .sensor_messages import GroundTruth, SensorObjects
 
-SECTION_KEYS = ("n", "present", "widths", "refs", "scales", "rows")
+SECTION_KEYS = ("n", "present", "widths", "refs", "scales", "rows", "tables")
 _MODELS: dict[int, type[Message]] = {LIST_TAGS[m.TYPE]: m for m in
                                      (ObjectList, FusedObjectList, PredictionList, SensorObjects, GroundTruth)}
 
