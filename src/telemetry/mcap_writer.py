@@ -1,0 +1,150 @@
+"""``RunWriter``: recorded samples into an MCAP file (``mcap`` library), raw plus derived channels.
+
+One raw channel per (side, key expression, kind), topic ``/<side>/<key>`` (a second kind on
+the same key gets ``/<side>/<key>~<kind>``), with the channel metadata ``side``, ``key`` and
+``kind`` that ``v2i replay`` reads; the kinds, encodings and derived channels are described in
+``telemetry.mcap_channels``. A message's ``log_time`` is its receive time and ``publish_time``
+the sender's publish stamp where the message has one (else the receive time), both ns.
+
+Bounded: a payload over ``derive_max_bytes``, or one that does not decode, is still written raw,
+but no derived message is made; both are counted in ``skipped`` by reason. The file is chunked
+(zstd) and ``close()`` writes the summary and index, so a recording stopped by Ctrl-C / SIGTERM
+is a valid MCAP. Not thread-safe: one thread writes (``v2i.record`` has a queue in front).
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+from typing import BinaryIO
+
+from mcap.writer import CompressionType, Writer
+
+from schemas.codec import CodecError, decode
+from schemas.messages import Message
+
+from . import mcap_channels as mc
+
+DERIVE_MAX_BYTES = 256 * 1024  # larger payloads are recorded raw only
+CHUNK_BYTES = 1 << 20
+LIBRARY = "v2i record"
+
+
+def publish_stamp(msg: Message | None) -> int | None:
+    """The sender's publish stamp of a decoded message (ns, its clock), where it has one."""
+    if msg is None:
+        return None
+    header = getattr(msg, "header", None)
+    for holder in (header, msg):
+        stamp = getattr(holder, "publish_time_ns", None) if holder is not None else None
+        if isinstance(stamp, int):
+            return stamp
+    stamp = getattr(msg, "t_ns", None)
+    return stamp if isinstance(stamp, int) else None
+
+
+class RunWriter:
+    """Writes samples to ``path`` (or an open binary stream) until ``close()``."""
+
+    def __init__(self, path: str | Path | BinaryIO, derive_max_bytes: int = DERIVE_MAX_BYTES):
+        self._own = not hasattr(path, "write")
+        self._stream = open(path, "wb") if self._own else path  # noqa: SIM115 - closed by close()
+        self._writer = Writer(self._stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library=LIBRARY)
+        self.derive_max_bytes = derive_max_bytes
+        self._schemas: dict[tuple[str, str], int] = {}
+        self._channels: dict[tuple, int] = {}
+        self._topics: set[str] = set()
+        self._topic_of: dict[tuple, str] = {}
+        self._sequence = Counter()
+        self.messages = 0  # raw messages written
+        self.bytes = 0  # raw payload bytes written
+        self.derived = 0
+        self.skipped: Counter = Counter()  # derived messages not made, by reason
+        self.closed = False
+
+    # ------------------------------------------------------------------ public
+    def write(self, side: str, key: str, payload: bytes, log_time_ns: int) -> mc.Kind:
+        """Record one received sample (raw, and its derived message when it can be made)."""
+        kind = mc.classify(key, payload)
+        msg = self._decoded(kind, payload)
+        publish_ns = publish_stamp(msg) or log_time_ns
+        topic = self._raw_topic(side, key, kind)
+        self._add(self._raw_channel(side, key, kind, topic), payload, log_time_ns, publish_ns)
+        self.messages += 1
+        self.bytes += len(payload)
+        if msg is not None:
+            self._write_derived(topic, msg, log_time_ns, publish_ns)
+        return kind
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """An MCAP metadata record (e.g. the run's spec as ``run``); values must be strings."""
+        self._writer.add_metadata(name, {k: str(v) for k, v in data.items()})
+
+    def close(self) -> None:
+        """Write the summary and index and close the file (idempotent)."""
+        if self.closed:
+            return
+        self.closed = True
+        self._writer.finish()
+        if self._own:
+            self._stream.close()
+
+    # ------------------------------------------------------------------ internals
+    def _decoded(self, kind: mc.Kind, payload: bytes) -> Message | None:
+        if kind.model is None:
+            return None
+        if len(payload) > self.derive_max_bytes:
+            self.skipped["oversized"] += 1
+            return None
+        try:
+            return decode(payload, kind.model)
+        except CodecError as exc:
+            self.skipped[f"undecodable_{exc.reason}"] += 1
+            return None
+
+    def _write_derived(self, raw_topic: str, msg: Message, log_time_ns: int, publish_ns: int) -> None:
+        try:
+            schema_name, body = mc.derived_message(msg, log_time_ns)
+            data = json.dumps(body, separators=(",", ":")).encode()
+        except (ValueError, TypeError) as exc:  # e.g. a value JSON cannot hold
+            self.skipped[f"derive_{type(exc).__name__}"] += 1
+            return
+        topic = mc.derived_topic(raw_topic, msg)
+        key = ("derived", topic)
+        if key not in self._channels:
+            schema_id = self._schema(schema_name, "jsonschema", lambda: mc.derived_schema(schema_name, type(msg)))
+            self._channels[key] = self._writer.register_channel(topic, "json", schema_id, {"derived_from": raw_topic})
+        self._add(self._channels[key], data, log_time_ns, publish_ns)
+        self.derived += 1
+
+    def _raw_topic(self, side: str, key: str, kind: mc.Kind) -> str:
+        channel = (side, key, kind.name)
+        if channel in self._channels:
+            return self._topic_of[channel]
+        topic = f"/{side}/{key}"
+        if topic in self._topics:
+            topic = f"{topic}~{kind.name}"
+        return topic
+
+    def _raw_channel(self, side: str, key: str, kind: mc.Kind, topic: str) -> int:
+        channel = (side, key, kind.name)
+        if channel not in self._channels:
+            schema = mc.schema_of(kind)
+            schema_id = 0 if schema is None else self._schema(schema[0], schema[1], lambda: schema[2])
+            self._channels[channel] = self._writer.register_channel(
+                topic, kind.message_encoding, schema_id, {"side": side, "key": key, "kind": kind.name})
+            self._topics.add(topic)
+            self._topic_of[channel] = topic
+        return self._channels[channel]
+
+    def _schema(self, name: str, encoding: str, data) -> int:
+        if (name, encoding) not in self._schemas:
+            self._schemas[(name, encoding)] = self._writer.register_schema(name, encoding, data())
+        return self._schemas[(name, encoding)]
+
+    def _add(self, channel_id: int, data: bytes, log_time_ns: int, publish_ns: int) -> None:
+        self._sequence[channel_id] += 1
+        self._writer.add_message(channel_id, log_time=log_time_ns, data=data, publish_time=publish_ns,
+                                 sequence=self._sequence[channel_id])

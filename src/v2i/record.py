@@ -1,0 +1,197 @@
+"""``v2i record``: every ``v2x/**`` sample heard at one or more endpoints, into an MCAP file.
+
+One Zenoh session per endpoint, in *client* mode: a peer forwards what its other peers publish
+to its clients (a Zenoh 1.x peer session would hear only the endpoint's own publications), and
+separate sessions never bridge two endpoints (an RSU and an OBU side must stay apart: the link
+emulator is the only path between them). Each endpoint is a *side* (``--connect rsu=tcp/...``;
+default ``ep0``, ``ep1``, ...), and a sample is recorded on topic ``/<side>/<key>`` with its
+receive time (``telemetry.mcap_writer``).
+
+Time replies are not samples, so no subscriber hears the OBU's exchanges. To carry the RSU clock
+into a recording, the recorder runs its own four-timestamp exchanges (``TimeRequest`` as querier
+``recorder``, ``--sync-rate-hz``) on the ``--time-from`` side (default: the first; best the RSU
+side, where they bypass the link and do not draw from its channel model) and records each reply
+on ``/<side>/v2x/rsu/<id>/time``, log time = t4 (the reply carries t1, t2, t3). ``v2i replay``
+rebuilds the RSU clock from them (``telemetry.time_shift.RsuClockTrack``). Host clocks: t1 and t4
+are this host's wall clock; the replay is faithful where the recorded OBU ran on the same host
+(``v2i demo``) or on one synchronised with it.
+
+Zenoh callbacks only enqueue (bounded; a full queue drops, counted); one writer thread writes.
+Ctrl-C / SIGTERM / ``--duration`` end it with the MCAP summary written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import queue
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+QUEUE_ITEMS = 20_000
+PROGRESS_S = 1.0
+RECORDER_ID = "recorder"
+TIME_QUERY_TIMEOUT_S = 2.0
+
+
+def parse_endpoint(text: str, index: int) -> tuple[str, str]:
+    """``[LABEL=]ENDPOINT`` -> (label, endpoint); label default ``ep<index>``."""
+    label, sep, endpoint = text.partition("=")
+    if not sep:
+        return f"ep{index}", text
+    from schemas.keys import check_id
+
+    return check_id(label), endpoint
+
+
+class Recorder:
+    """Records from ``endpoints`` [(side, endpoint)] into ``out`` between ``start()`` and ``stop()``."""
+
+    def __init__(self, endpoints: list[tuple[str, str]], out: str | Path, time_from: str | None = "",
+                 sync_rate_hz: float = 10.0, metadata: dict[str, dict[str, str]] | None = None):
+        from telemetry.mcap_writer import RunWriter
+
+        if not endpoints:
+            raise ValueError("v2i record needs at least one --connect endpoint")
+        self.endpoints = endpoints
+        self.time_from = endpoints[0][0] if time_from == "" else time_from
+        if self.time_from is not None and self.time_from not in dict(endpoints):
+            raise ValueError(f"--time-from {self.time_from}: no endpoint has that label")
+        self.sync_period_s = 1.0 / sync_rate_hz
+        self.writer = RunWriter(out)
+        for name, data in (metadata or {}).items():
+            self.writer.add_metadata(name, data)
+        self.dropped: Counter = Counter()
+        self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_ITEMS)
+        self._stop = threading.Event()
+        self._sessions, self._entities, self._threads = [], [], []
+        self._seq = 0
+        self.started_ns = 0
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        from schemas.transport import open_session
+
+        self.started_ns = time.time_ns()
+        self.writer.add_metadata("recording", {"started_ns": str(self.started_ns),
+                                               "endpoints": ",".join(f"{s}={e}" for s, e in self.endpoints),
+                                               "time_from": self.time_from or ""})
+        for side, endpoint in self.endpoints:
+            session = open_session(connect=[endpoint], mode="client")
+            self._sessions.append((side, session))
+            self._entities.append(session.declare_subscriber(
+                "v2x/**", lambda sample, s=side: self._keep(s, str(sample.key_expr), sample.payload.to_bytes())))
+        self._threads = [threading.Thread(target=self._write_loop, name="record-writer", daemon=True)]
+        if self.time_from is not None:
+            self._threads.append(threading.Thread(target=self._sync_loop, name="record-sync", daemon=True))
+        for thread in self._threads:
+            thread.start()
+
+    def stop(self) -> None:
+        """Stop hearing, write what is queued, write the summary (idempotent)."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        for entity in self._entities:
+            entity.undeclare()
+        for _, session in self._sessions:
+            session.close()
+        self._queue.put(None)
+        for thread in self._threads:
+            thread.join()
+        self.writer.close()
+        print(self.progress(final=True), file=sys.stderr, flush=True)
+
+    def run(self, stop: threading.Event, duration_s: float | None) -> None:
+        """Record until ``stop`` is set or ``duration_s`` passed, a progress line on stderr each second."""
+        end = None if duration_s is None else time.monotonic() + duration_s
+        self.start()
+        try:
+            while not stop.wait(PROGRESS_S if end is None else max(min(PROGRESS_S, end - time.monotonic()), 0)):
+                print(self.progress(), file=sys.stderr, flush=True)
+                if end is not None and time.monotonic() >= end:
+                    break
+        finally:
+            self.stop()
+
+    def progress(self, final: bool = False) -> str:
+        w = self.writer
+        elapsed_s = (time.time_ns() - self.started_ns) * 1e-9
+        skipped = f", derived skipped {dict(w.skipped)}" if w.skipped else ""
+        dropped = f", dropped {dict(self.dropped)}" if self.dropped else ""
+        head = "v2i record: wrote" if final else "v2i record:"
+        return f"{head} {w.messages} messages, {w.bytes / 1e6:.2f} MB, {elapsed_s:.1f} s{skipped}{dropped}"
+
+    # ------------------------------------------------------------------ threads and callbacks
+    def _keep(self, side: str, key: str, payload: bytes) -> None:
+        """Zenoh callback: stamp and enqueue (a full queue drops, counted)."""
+        try:
+            self._queue.put_nowait((side, key, payload, time.time_ns()))
+        except queue.Full:
+            self.dropped[side] += 1
+
+    def _write_loop(self) -> None:
+        while (item := self._queue.get()) is not None:
+            try:
+                self.writer.write(*item)
+            except Exception as exc:  # noqa: BLE001 - one bad sample must not end the recording
+                self.dropped[f"write_{type(exc).__name__}"] += 1
+
+    def _sync_loop(self) -> None:
+        """A time request to every RSU on the ``time_from`` side each period; replies recorded."""
+        import zenoh
+
+        from schemas import keys
+        from schemas.codec import encode
+        from schemas.messages import TimeRequest
+
+        session = dict(self._sessions)[self.time_from]
+        while not self._stop.wait(self.sync_period_s):
+            self._seq += 1
+            request = TimeRequest(obu_id=RECORDER_ID, seq=self._seq, t1_ns=time.time_ns())
+            try:
+                session.get(keys.RSU_TIME_ALL, self._on_reply, payload=encode(request),
+                            timeout=TIME_QUERY_TIMEOUT_S, consolidation=zenoh.ConsolidationMode.NONE)
+            except zenoh.ZError:  # the session closed under us at stop
+                return
+
+    def _on_reply(self, reply) -> None:
+        if reply.ok is not None:
+            self._keep(self.time_from, str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+
+
+# ---------------------------------------------------------------------- CLI
+
+
+def configure_parser(p: argparse.ArgumentParser) -> None:
+    p.description = ("Record every v2x/** sample heard at the given endpoints into an MCAP file: one channel per "
+                     "key expression and side, the wire bytes with receive (log) and publish times, schemas, plus "
+                     "Foxglove channels (foxglove.SceneUpdate cubes for object lists, JSON for metrics). Also runs "
+                     "time exchanges with the RSUs (--time-from) so that v2i replay can rebuild their clocks.")
+    p.add_argument("--connect", action="append", required=True, metavar="[LABEL=]EP",
+                   help="endpoint to record, as a Zenoh client (repeatable), e.g. rsu=tcp/127.0.0.1:7447 "
+                        "vehicle=tcp/127.0.0.1:7448; the label names the side in topics (default ep0, ep1, ...)")
+    p.add_argument("--out", required=True, metavar="FILE", help="the MCAP file to write (replaced)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: Ctrl-C / SIGTERM)")
+    p.add_argument("--time-from", metavar="LABEL", help="side whose RSUs get the recorder's time exchanges "
+                   "(default: the first endpoint's; 'none': no exchanges)")
+    p.add_argument("--sync-rate-hz", type=float, default=10.0, help="time exchanges per second (default %(default)s)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from schemas.runtime import stop_on_signals
+
+    if args.duration is not None and not args.duration > 0:
+        raise ValueError(f"--duration must be > 0, got {args.duration:g}")
+    if not args.sync_rate_hz > 0:
+        raise ValueError(f"--sync-rate-hz must be > 0, got {args.sync_rate_hz:g}")
+    out = Path(args.out)
+    if out.is_dir() or not out.parent.is_dir():
+        raise ValueError(f"--out {out}: not a file in an existing folder")
+    endpoints = [parse_endpoint(text, i) for i, text in enumerate(args.connect)]
+    time_from = "" if args.time_from is None else (None if args.time_from == "none" else args.time_from)
+    recorder = Recorder(endpoints, out, time_from, args.sync_rate_hz)
+    recorder.run(stop_on_signals(), args.duration)
+    return 0

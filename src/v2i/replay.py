@@ -1,0 +1,231 @@
+"""``v2i replay``: a ``v2i record`` file republished on its keys, for re-running an OBU on recorded RSU traffic.
+
+Design: what a replayed OBU must see to behave as the recorded one did.
+
+- **One time translation for everything.** The recording starts at ``L0`` (the recorded run's
+  scenario start, MCAP metadata ``run.start_ns``, else the first replayed sample's log time).
+  The replay maps it to ``T0`` (the new OBU's ``--start-at-ns``; standalone: now + ``--lead``)
+  and moves every clock by ``shift = T0 - L0``, rounded to a whole millisecond
+  (``telemetry.time_shift``): a sample logged at ``l`` is published at ``T0 + (l - L0) / speed``,
+  and each stamp it carries (``capture_time_ns``, ``publish_time_ns``, ... in the RSU's clock)
+  moves by ``shift`` (decoded and encoded with ``schemas.codec``; a CPM / SDSM through
+  ``schemas.list_wire``, exact because the shift is whole ms). The fresh OBU simulates its own
+  LiDAR from the scenario at ``T0``, so its own detections, the RSU lists' capture times and
+  their ages on arrival are those of the recording, up to the replay's real-time jitter
+  (measured and reported as ``lateness_ms``). The alternative, an OBU at the recorded start with
+  a clock offset, keeps the bytes but needs a clock option in the OBU and a shifted scorer; the
+  shift needs neither and keeps the RSU's offset and drift against the OBU exactly.
+- **The RSU clock.** The recorder's own time exchanges with each RSU (``v2i record
+  --time-from``) give theta(h) = rsu - host over the run (``RsuClockTrack``). The replay
+  declares ``v2x/rsu/<id>/time`` for each recorded RSU and answers a request at replay time t
+  with t2 = t3 = t + theta(L0 + (t - T0) * speed), so the OBU's clock filter finds the recorded
+  offset and drift (a running median over 9 exchanges: a step keeps its edge). Replies come back over
+  loopback, not through the recorded link: the replayed OBU's clock estimate is at least as good
+  as the live one (its error bound, half the delay asymmetry, was set by the link live).
+- **What is replayed.** Samples of one side (``--side``; default ``vehicle`` when recorded, i.e.
+  as they arrived at the OBU, after the link) whose key matches ``--keys`` (default
+  ``v2x/rsu/**``), the recorder's own time replies excepted. A sample that does not decode is
+  published unchanged (counted ``unshifted``): a hostile input stays hostile.
+- ``--speed`` other than 1 scales the spacing; a sample's stamps then move by (its publish time -
+  its log time), so each keeps its recorded age at publication. An OBU runs in real time only at 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+LATE_NS = 5_000_000  # a sample published this late is counted as late
+DEFAULT_LEAD_S = 2.0
+
+
+class Replayer:
+    """Publishes ``recording``'s samples of ``side`` matching ``pattern`` on a Zenoh session."""
+
+    def __init__(self, recording, side: str | None = None, pattern: str = "v2x/rsu/**", speed: float = 1.0):
+        from telemetry.time_shift import RsuClockTrack
+
+        if not speed > 0:
+            raise ValueError(f"--speed must be > 0, got {speed:g}")
+        sides = recording.sides
+        if side is None:
+            side = "vehicle" if "vehicle" in sides else sides[0] if len(sides) == 1 else None
+            if side is None:
+                raise ValueError(f"{recording.path}: several sides {sides}; choose one with --side")
+        elif side not in sides:
+            raise ValueError(f"--side {side}: the recording has {', '.join(sides) or 'none'}")
+        self.recording, self.side, self.pattern, self.speed = recording, side, pattern, speed
+        self.clocks = {rsu: RsuClockTrack(ex) for rsu, ex in recording.exchanges().items()}
+        run = recording.metadata.get("run", {})
+        self.recorded_start_ns = int(run["start_ns"]) if "start_ns" in run else None
+        self.counts: Counter = Counter()
+        self.lateness_ns: list[int] = []
+        self.t0_ns = self.l0_ns = 0
+
+    def reference_ns(self) -> int:
+        """L0: the recorded run's start, else the first replayed sample's log time."""
+        if self.recorded_start_ns is not None:
+            return self.recorded_start_ns
+        first = next(self.recording.samples(self.side, self.pattern), None)
+        if first is None:
+            raise ValueError(f"{self.recording.path}: no sample of side {self.side} matches {self.pattern}")
+        return first.log_time_ns
+
+    def align(self, t0_ns: int) -> int:
+        """Fix the mapping L0 -> ``t0_ns`` (moved to a whole ms of shift); returns the T0 used."""
+        from telemetry.time_shift import round_shift_ns
+
+        self.l0_ns = self.reference_ns()
+        self.t0_ns = self.l0_ns + round_shift_ns(t0_ns - self.l0_ns)
+        return self.t0_ns
+
+    def recorded_time_ns(self, t_ns: int) -> int:
+        """Recorded host time of replay time ``t_ns``: L0 + (t - T0) * speed."""
+        return self.l0_ns + round((t_ns - self.t0_ns) * self.speed)
+
+    # ------------------------------------------------------------------ Zenoh shell
+    def declare_clocks(self, session) -> list:
+        """A time queryable per recorded RSU (answered in the callback, like the RSU)."""
+        from schemas import keys
+
+        return [session.declare_queryable(keys.rsu_time(rsu), lambda q, r=rsu: self._answer(q, r))
+                for rsu, track in self.clocks.items() if track]
+
+    def _answer(self, query, rsu_id: str) -> None:
+        from schemas import keys
+        from schemas.codec import CodecError, decode, encode
+        from schemas.messages import TimeReply, TimeRequest
+
+        now_ns = time.time_ns()
+        try:
+            request = decode(query.payload.to_bytes() if query.payload is not None else b"", TimeRequest, 4096)
+        except CodecError:
+            self.counts["time_query_refused"] += 1
+            return
+        rsu_ns = now_ns + self.clocks[rsu_id].offset_at(self.recorded_time_ns(now_ns))
+        query.reply(keys.rsu_time(rsu_id), encode(TimeReply(rsu_id=rsu_id, seq=request.seq, t1_ns=request.t1_ns,
+                                                            t2_ns=rsu_ns, t3_ns=rsu_ns)))
+        self.counts["time_replies"] += 1
+
+    def play(self, session, stop: threading.Event) -> None:
+        """Publish every selected sample at its time (``align`` first); returns at the end or on ``stop``."""
+        from telemetry.time_shift import shift_payload
+
+        publishers = {}
+        for sample in self.recording.samples(self.side, self.pattern):
+            due_ns = self.t0_ns + round((sample.log_time_ns - self.l0_ns) / self.speed)
+            payload = self._shifted(sample, due_ns, shift_payload)
+            if stop.wait(max(due_ns - time.time_ns(), 0) * 1e-9):
+                return
+            if sample.key not in publishers:
+                publishers[sample.key] = session.declare_publisher(sample.key)
+            publishers[sample.key].put(payload)
+            late_ns = time.time_ns() - due_ns
+            self.lateness_ns.append(late_ns)
+            self.counts["published"] += 1
+            self.counts["late"] += late_ns > LATE_NS
+        for publisher in publishers.values():
+            publisher.undeclare()
+
+    def _shifted(self, sample, due_ns: int, shift_payload) -> bytes:
+        from schemas.codec import CodecError
+        from schemas.keys import rsu_id_or_none
+        from telemetry.time_shift import round_shift_ns
+
+        shift_ns = (self.t0_ns - self.l0_ns) if self.speed == 1.0 else round_shift_ns(due_ns - sample.log_time_ns)
+        try:
+            return shift_payload(sample.kind, sample.model, sample.payload, shift_ns, rsu_id_or_none(sample.key))
+        except (CodecError, ValueError):
+            self.counts["unshifted"] += 1
+            return sample.payload
+
+    def stats(self) -> dict:
+        """Counts, lateness percentiles (ms) and the RSU clocks used."""
+        late = np.array(self.lateness_ns, dtype=float) * 1e-6
+        pct = {f"p{q}": round(float(np.percentile(late, q)), 3) for q in (50, 95, 99)} if len(late) else {}
+        return {"side": self.side, "keys": self.pattern, "speed": self.speed, "shift_ns": self.t0_ns - self.l0_ns,
+                **{k: int(v) for k, v in sorted(self.counts.items())},
+                "lateness_ms": {**pct, "max": round(float(late.max()), 3) if len(late) else None},
+                "rsu_clocks": {rsu: {"exchanges_used": t.used, "exchanges_dropped": t.dropped}
+                               for rsu, t in self.clocks.items()}}
+
+
+# ---------------------------------------------------------------------- CLI
+
+
+def configure_parser(p: argparse.ArgumentParser) -> None:
+    p.description = ("Republish a v2i record MCAP file on its original keys with the recorded spacing (scaled by "
+                     "--speed), every stamp moved to now, and answer the recorded RSUs' time queries from their "
+                     "recorded clocks; or, with --score, start a fresh OBU with the recorded run's spec and score "
+                     "it on the replayed RSU traffic (the v2i demo report). Design: v2i/replay.py.")
+    p.add_argument("recording", metavar="FILE", help="MCAP file written by v2i record or v2i demo --record")
+    p.add_argument("--connect", action="append", metavar="EP", help="endpoint of the OBU to feed (repeatable; "
+                   "not with --score)")
+    p.add_argument("--speed", type=float, default=1.0, help="replay speed (default %(default)s; an OBU needs 1)")
+    p.add_argument("--keys", default="v2x/rsu/**", help="key expression of the samples to replay (default %(default)s)")
+    p.add_argument("--side", help="recorded side to replay (default: vehicle, i.e. after the link, when recorded)")
+    p.add_argument("--lead", type=float, default=DEFAULT_LEAD_S,
+                   help="seconds between start-up and the recording's start (default %(default)s)")
+    p.add_argument("--score", action="store_true", help="start a fresh OBU (the recording's scenario, seed and "
+                   "options, from its run metadata: v2i demo --record) and score it like v2i demo")
+    p.add_argument("--startup", type=float, default=4.0, help="with --score: seconds given to the OBU to start "
+                   "(default %(default)s)")
+    p.add_argument("--json", metavar="PATH", help="with --score: write the report JSON to PATH ('-' for stdout)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from schemas.runtime import stop_on_signals
+    from telemetry.mcap_reader import Recording
+
+    if not Path(args.recording).is_file():
+        raise ValueError(f"{args.recording}: no such file")
+    if args.score:
+        return run_scored(args)
+    if not args.connect:
+        raise ValueError("v2i replay needs --connect EP (the OBU's endpoint), or --score")
+    replayer = Replayer(Recording(args.recording), args.side, args.keys, args.speed)
+    return play_standalone(replayer, args.connect, args.lead, stop_on_signals())
+
+
+def play_standalone(replayer: Replayer, connect: list[str], lead_s: float, stop: threading.Event) -> int:
+    """Replay into the OBU at ``connect`` starting ``lead_s`` from now; a summary on stderr."""
+    from schemas.transport import open_session
+
+    session = open_session(connect=connect)
+    try:
+        queryables = replayer.declare_clocks(session)
+        t0_ns = replayer.align(time.time_ns() + round(lead_s * 1e9))
+        print(f"v2i replay: {replayer.recording.path} side {replayer.side} from {t0_ns} ns "
+              f"(stamps moved by {(t0_ns - replayer.l0_ns) / 1e9:.3f} s)", file=sys.stderr)
+        replayer.play(session, stop)
+        for q in queryables:
+            q.undeclare()
+    finally:
+        session.close()
+    print(f"v2i replay: {replayer.stats()}", file=sys.stderr)
+    return 0
+
+
+def run_scored(args: argparse.Namespace) -> int:
+    """``--score``: a fresh OBU on the replayed traffic, reported like ``v2i demo``."""
+    from evaluation.replay_demo import ReplayDemo
+    from v2i.cli import _check_writable, _emit, _live
+
+    if args.connect:
+        raise ValueError("--score starts its own OBU: leave out --connect")
+    if args.speed != 1.0:
+        raise ValueError("--score runs the OBU in real time: --speed must be 1")
+    if args.json not in (None, "-"):
+        _check_writable(Path(args.json), "--json")
+    report = _live(ReplayDemo(args.recording, startup_s=args.startup, keys_pattern=args.keys).run, "v2i replay")
+    if isinstance(report, int):
+        return report
+    _emit(report, args.json)
+    print(f"v2i replay: {report['replay']}", file=sys.stderr)
+    return 0
