@@ -41,6 +41,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -199,6 +200,7 @@ class LinkRelay:
             "lateness_ms": self._lateness_ms.as_dict(),
             "refused": self._gate.snapshot(),
             "control": self._control.as_dict(),
+            "latency_ms": self.latency.summary_ms(),
         }
 
     def _stats_action(self, period_ns: int) -> Action:
@@ -298,6 +300,7 @@ class LinkRelay:
     def _sample_arrival(self, key: str, payload: bytes, encoding: zenoh.Encoding, receive_ns: int) -> None:
         """Transmit one RSU sample on every pair's downlink channel independently."""
         self._gate.done()
+        self.latency.observe_ns("relay_intake", receive_ns, self._clock.now_ns())  # callback -> scheduler thread
         for index, pair in enumerate(self._pairs):
             self._transmit_down(index, pair, key, payload, encoding, receive_ns)
 
@@ -313,10 +316,14 @@ class LinkRelay:
             self._gate.count("in_flight_full")
             return
         session = self._vehicles[index]
+        self.latency.observe_ns("relay_hold", receive_ns, due_ns)
 
         def deliver(fired_ns: int) -> None:
             pair.in_flight["downlink"].release(len(payload))
+            t0_ns = time.perf_counter_ns()
             session.put(key, payload, encoding=encoding)
+            self.latency.observe_ns("relay_put", t0_ns, time.perf_counter_ns())
+            self.latency.observe_ns("relay_late", due_ns, fired_ns)
             self._record_delivery(pair, Delivery("downlink", key, payload, receive_ns, due_ns, fired_ns,
                                                  pair.vehicle_id))
 

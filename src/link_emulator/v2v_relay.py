@@ -34,6 +34,7 @@ import json
 import logging
 import math
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -166,6 +167,7 @@ class V2vRelay:
     def _arrival(self, sender: str, key: str, payload: bytes, encoding: zenoh.Encoding, receive_ns: int) -> None:
         """Transmit one message on the channel of every other vehicle independently."""
         self._gate.done()
+        self.latency.observe_ns("relay_intake", receive_ns, self._clock.now_ns())  # callback -> scheduler thread
         for receiver in self._ids:
             if receiver != sender:
                 self._transmit(self._pairs[(sender, receiver)], key, payload, encoding, receive_ns)
@@ -180,10 +182,14 @@ class V2vRelay:
             self._gate.count("in_flight_full")
             return
         session = self._sessions[pair.receiver]
+        self.latency.observe_ns("relay_hold", receive_ns, due_ns)
 
         def deliver(fired_ns: int) -> None:
             pair.in_flight.release(len(payload))
+            t0_ns = time.perf_counter_ns()
             session.put(key, payload, encoding=encoding)
+            self.latency.observe_ns("relay_put", t0_ns, time.perf_counter_ns())
+            self.latency.observe_ns("relay_late", due_ns, fired_ns)
             pair.stats.delivered += 1
             pair.stats.delay_ms.add((fired_ns - receive_ns) / NS_PER_MS)
             self._lateness_ms.add((fired_ns - due_ns) / NS_PER_MS)
@@ -253,6 +259,7 @@ class V2vRelay:
             "lateness_ms": self._lateness_ms.as_dict(),
             "refused": self._gate.snapshot(),
             "control": self._control.as_dict(),
+            "latency_ms": self.latency.summary_ms(),
         }
 
     def _stats_action(self, period_ns: int):

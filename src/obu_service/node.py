@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import heapq
 import threading
+import time
 
 import zenoh
 
@@ -35,7 +36,7 @@ from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 from sim.world import World
-from telemetry.latency import StageLatency
+from telemetry.latency import PeriodicSummary, StageLatency
 
 from .config import ObuConfig
 from .pipeline import ObuPipeline
@@ -82,6 +83,7 @@ class ObuNode:
         self._events: list = []
         self._held: Item | None = None  # a large input held until after the next event
         self.latency = StageLatency()  # per-stage durations (telemetry.latency); read by other threads
+        self._latency_summary = PeriodicSummary(self.latency)  # into the metrics, recomputed once a second
         self.last_metrics: ObuMetrics | None = None  # the latest published; one assignment, read by other threads
 
     def run(self, stop: threading.Event) -> None:
@@ -175,6 +177,10 @@ class ObuNode:
             getattr(self, f"_do_{kind}")(due_ns, arg)
 
     def _handle_input(self, item: Item) -> None:
+        """One input off the intake. Stages: ``queue`` (Zenoh callback -> taken here), and for an RSU
+        object list ``decode`` (envelope, header, admission, objects), ``ingest`` (into the pipeline)
+        and ``rsu_to_obu`` (RSU publish stamp -> callback, in OBU time through the clock estimate)."""
+        self.latency.observe_ns("queue", item.receive_ns, self.clock.now_ns())
         max_bytes = self.config.max_message_bytes
         try:
             if item.kind == "time":
@@ -188,13 +194,15 @@ class ObuNode:
             else:
                 lists = item.kind == "rsu"
                 model = ObjectList if lists else PredictionList
+                t0_ns = time.perf_counter_ns()
                 body = open_body(item.payload, model, max_bytes)
                 header, n = header_of(body), object_count(body)
                 admitted = (self.pipeline.screen_list(header, n, item.receive_ns) if lists else
                             self.pipeline.screen_paths(header, n, path_point_count(body), item.receive_ns))
-                if admitted:
-                    accept = self.pipeline.on_rsu_message if lists else self.pipeline.on_predictions
-                    accept(from_body(body, model), item.receive_ns)
+                if admitted and lists:
+                    self._ingest_list(from_body(body, model), item.receive_ns, t0_ns)
+                elif admitted:
+                    self.pipeline.on_predictions(from_body(body, model), item.receive_ns)
         except CodecError as exc:  # InputRefused included
             self.pipeline.reject(exc.reason)
             self._details.setdefault(exc.reason, f"{item.kind} on {item.source}: {exc}")
@@ -203,10 +211,20 @@ class ObuNode:
     def _handle_standard(self, item: Item) -> None:
         """An RSU object list as a CPM or SDSM (``schemas.list_wire``): decoded whole (the RSU named
         by its key), then screened and fused as a v2i list."""
+        t0_ns = time.perf_counter_ns()
         msg = list_wire.decode_list(item.payload, item.kind, keys.rsu_id_or_none(item.source),
                                     self.config.max_message_bytes)
         if self.pipeline.screen_list(msg.header, len(msg.objects), item.receive_ns):
-            self.pipeline.on_rsu_message(msg, item.receive_ns)
+            self._ingest_list(msg, item.receive_ns, t0_ns)
+
+    def _ingest_list(self, msg: ObjectList, receive_ns: int, decode_start_ns: int) -> None:
+        """A decoded, admitted RSU list into the pipeline; its decode, ingest and rsu_to_obu stages."""
+        t1_ns = time.perf_counter_ns()
+        publish_obu_ns = self.pipeline.on_rsu_message(msg, receive_ns)
+        self.latency.observe_ns("decode", decode_start_ns, t1_ns)
+        self.latency.observe_ns("ingest", t1_ns, time.perf_counter_ns())
+        if publish_obu_ns is not None:
+            self.latency.observe_ns("rsu_to_obu", publish_obu_ns, receive_ns)
 
     def _handle_sensor(self, item: Item) -> None:
         """--source zenoh: a pose goes to the pipeline (and out as the vehicle's pose); a detection
@@ -263,14 +281,20 @@ class ObuNode:
             self._publish(now_ns)
 
     def _publish(self, now_ns: int) -> None:
+        """Fuse and publish one cycle. Stages: ``fuse``, ``publish`` (encode and put of the fused list)."""
+        t0_ns = time.perf_counter_ns()
         out = self.pipeline.fuse(now_ns)
+        t1_ns = time.perf_counter_ns()
         self._pub["objects"].put(encode(out))
+        self.latency.observe_ns("fuse", t0_ns, t1_ns)
+        self.latency.observe_ns("publish", t1_ns, time.perf_counter_ns())
         if self._v2v is not None:
             self._v2v.share(out)
         if self.pipeline.last_planning is not None:
             self._pub["planning"].put(encode(self.pipeline.last_planning))
         self._count_refusals()
-        metrics = self.pipeline.metrics(self.clock.now_ns())
+        metrics_ns = self.clock.now_ns()
+        metrics = self.pipeline.metrics(metrics_ns, self._latency_summary.get(metrics_ns))
         self._pub["metrics"].put(encode(metrics))
         self.last_metrics = metrics
         self._trim.maybe()  # just published: the next deadline is a cycle away

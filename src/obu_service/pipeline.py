@@ -197,12 +197,14 @@ class ObuPipeline:
     def on_pose(self, t_ns: int, pose: Pose2D) -> None:
         self.poses.add(t_ns, pose)
 
-    def on_rsu_message(self, msg: ObjectList, receive_ns: int) -> None:
+    def on_rsu_message(self, msg: ObjectList, receive_ns: int) -> int | None:
+        """Take one RSU object list received at ``receive_ns`` (OBU clock). Returns its publish time
+        in OBU time through this RSU's clock estimate (None: refused, or no estimate yet)."""
         header = msg.header
         self._sync(receive_ns)
         state = self._admission.lists(header, len(msg.objects), receive_ns)
         if state is None:
-            return
+            return None
         state.lists_seen.add((header.seq, header.capture_time_ns))
         objects = self._admission.on_site(state, objects_from_states(msg.objects), self.poses.at(receive_ns))
         est = state.sync.estimate_at(receive_ns)
@@ -213,11 +215,12 @@ class ObuPipeline:
         state.frames.append(Received(header.capture_time_ns, header.valid_time_ns, header.seq, objects, receive_ns))
         state.accepted += 1
         state.last_receive_ns = receive_ns
+        publish_obu_ns = None if est is None else est.to_obu_ns(header.publish_time_ns)
         if est is not None:
-            state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns),
-                                     est.to_obu_ns(header.publish_time_ns), receive_ns)
+            state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns), publish_obu_ns, receive_ns)
         while len(state.frames) > self.config.frames_kept:
             state.frames.popleft()
+        return publish_obu_ns
 
     def on_predictions(self, msg: PredictionList, receive_ns: int) -> None:
         """The RSU's long-horizon paths (planning fusion); the newest t0 is kept."""
@@ -353,13 +356,14 @@ class ObuPipeline:
         return RSU_ID_BASE * (state.index + 1) + np.mod(ids, RSU_ID_BASE)
 
     # --- reporting -------------------------------------------------------------------
-    def metrics(self, now_ns: int) -> ObuMetrics:
+    def metrics(self, now_ns: int, latency_ms: dict | None = None) -> ObuMetrics:
+        """The counters at ``now_ns``; ``latency_ms``: the node's per-stage latency (telemetry.latency)."""
         return ObuMetrics(
             vehicle_id=self.config.vehicle_id, t_ns=now_ns, cycles=self.cycles,
             output_deadline_misses=self.deadline_misses, rsu_deadline_misses=self.rsu_deadline_misses,
             covered_cycles=self.covered_cycles, mode=self.last_mode, mode_counts=dict(self.modes),
             rsus=tuple(self._rsu_status(s, now_ns) for s in self._rsus), rejected=dict(self.rejected),
-            output_dropped=dict(self.output_dropped),
+            output_dropped=dict(self.output_dropped), latency_ms=latency_ms or {},
         )
 
     @staticmethod

@@ -19,7 +19,9 @@ receipt exactly as a simulated camera's frame at its ready time.
 from __future__ import annotations
 
 import threading
+import time
 from collections import Counter
+from collections.abc import Callable
 
 import numpy as np
 
@@ -30,7 +32,7 @@ from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode,
 from schemas.list_wire import encode_list, list_key, prepare
 from schemas.intake import Intake, KeyedBuckets, TokenBucket
 from schemas.image_messages import RsuImageFeatures
-from schemas.messages import SOURCE_RSU, RsuMetrics, RsuPerception, TimeRequest
+from schemas.messages import SOURCE_RSU, ObjectList, RsuMetrics, RsuPerception, TimeRequest
 from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
 from schemas.sensor_screen import InputRefused, SensorLimits, SensorScreen
 from schemas.transport import open_session
@@ -159,26 +161,46 @@ class RsuNode:
 
     def _publish(self, publisher, frame: Frame, stop: threading.Event) -> bool:
         """Process one frame whose detections are ready now and publish its list(s); False when
-        stopped meanwhile."""
+        stopped meanwhile. Stages: ``detect`` (capture -> detections ready), ``wake`` (ready ->
+        processing starts), ``track``, then ``_put_list``'s."""
+        start_ns = self.true_clock.now_ns()
+        self.latency.observe_ns("detect", frame.capture_true_ns, frame.ready_true_ns)
+        self.latency.observe_ns("wake", frame.ready_true_ns, start_ns)
         self.perception.add_frame(frame)
         capture = Stamp(self.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
-        self._put_list(publisher, self.pipeline.on_frame(frame.detections, capture, self._now()))
+        t0_ns = time.perf_counter_ns()
+        self.pipeline.track(frame.detections, capture)
+        self.latency.observe_ns("track", t0_ns, time.perf_counter_ns())
+        self._put_list(publisher, self.pipeline.message)  # the publish stamp after tracking, right before encoding
         self._predictions.put(encode(self.pipeline.predictions(self._now())))
         if frame.image_features is not None:  # ROIF: the frame's boxes + ORB features, stamped at capture
             self._features.put(encode(RsuImageFeatures.from_view(self.config.rsu_id, self.published,
                                                                  capture.wall_ns, frame.image_features)))
         self.published += 1
         if self.config.predict_ahead and self._sleep_until(frame.ready_true_ns + self._upsample_offset_ns, stop):
-            self._put_list(publisher, self.pipeline.upsampled(self._now()))
+            self._put_list(publisher, self.pipeline.upsampled)
             self.published += 1
         self._report()
         return not stop.is_set()
 
-    def _put_list(self, publisher, msg) -> None:
-        """An object list in the configured encoding (--wire); an SDSM has none for an empty list."""
-        data = encode_list(msg, self.config.wire)
-        if data is not None:
-            publisher.put(data)
+    def _put_list(self, publisher, message: Callable[[Stamp], ObjectList | None]) -> None:
+        """Stamp the publish time, build the list (``message(stamp)``), encode it (--wire; an SDSM has
+        none for an empty list) and put it. Stages: ``message``, ``encode``, ``put`` and ``stamp_to_put``
+        (the header's publish stamp -> put returned: the RSU's share of the OBU's one-way delay)."""
+        stamp = self._now()
+        t0_ns = time.perf_counter_ns()
+        msg = message(stamp)
+        t1_ns = time.perf_counter_ns()
+        data = None if msg is None else encode_list(msg, self.config.wire)
+        t2_ns = time.perf_counter_ns()
+        if data is None:
+            return
+        publisher.put(data)
+        t3_ns = time.perf_counter_ns()
+        self.latency.observe_ns("message", t0_ns, t1_ns)
+        self.latency.observe_ns("encode", t1_ns, t2_ns)
+        self.latency.observe_ns("put", t2_ns, t3_ns)
+        self.latency.observe_ns("stamp_to_put", stamp.mono_ns, self.true_clock.now_ns())
 
     def _now(self) -> Stamp:
         """Now on the RSU's wall clock and on its monotonic clock (the simulation's true
@@ -215,7 +237,7 @@ class RsuNode:
         self._log.totals(rejected, self._details)
         metrics = RsuMetrics(rsu_id=self.config.rsu_id, t_ns=self.clock.now_ns(), published=self.published,
                              skipped=self.skipped, time_replies=replies, rejected=dict(rejected),
-                             perception=self._perception())
+                             perception=self._perception(), latency_ms=self.latency.summary_ms())
         self._metrics.put(encode(metrics))
         self.last_metrics = metrics
         self._trim.maybe()

@@ -74,11 +74,25 @@ class RsuPipeline:
 
     def on_frame(self, dets: ObjectArray, capture: Stamp | int, publish: Stamp | int) -> ObjectList:
         """One processed camera frame (detections in map) captured at ``capture``, published at ``publish``."""
-        capture, publish = Stamp.of(capture), Stamp.of(publish)
+        self.track(dets, capture)
+        return self.message(publish)
+
+    def track(self, dets: ObjectArray, capture: Stamp | int) -> None:
+        """Step the tracker on one frame's detections (map) captured at ``capture``; ``message`` then
+        lists the tracks. Apart so that a live node stamps the publish time after tracking."""
+        capture = Stamp.of(capture)
         if self._t_ref_ns is None:
             self._t_ref_ns = capture.mono_ns
         tracks = self._tracker.step(dets, (capture.mono_ns - self._t_ref_ns) * 1e-9)
         self._last = (capture, tracks)
+
+    def message(self, publish: Stamp | int) -> ObjectList:
+        """The last tracked frame's list, published at ``publish`` (its tracks predicted to it with
+        ``predict_ahead``); ``track`` first."""
+        if self._last is None:
+            raise RuntimeError("message() before any track()")
+        capture, tracks = self._last
+        publish = Stamp.of(publish)
         ahead_ns = max(publish.mono_ns - capture.mono_ns, 0) if self.config.predict_ahead else 0
         return self._message(capture, tracks, ahead_ns, publish)
 

@@ -15,7 +15,9 @@ Two views of the same observations:
 
 NaN, infinite and negative durations are not recorded; they are counted per stage in
 ``invalid()`` (a negative one means a clock stepped or two clocks disagree: worth seeing).
-Cost per observation: a lock, a bisect over ~21 bounds and a deque append (~1-2 us).
+Cost per observation: a lock, a bisect over ~21 bounds and a deque append (~0.4 us here);
+``summary_ms`` over full rings costs ~0.08 ms per stage, so a service that publishes metrics
+every cycle takes it through ``PeriodicSummary`` (at most once a second).
 """
 
 from __future__ import annotations
@@ -115,3 +117,19 @@ class StageLatency:
         """Refused observations by stage (NaN, infinite, negative), and ``TOO_MANY_STAGES``."""
         with self._lock:
             return dict(self._invalid)
+
+
+class PeriodicSummary:
+    """``latency.summary_ms()`` recomputed at most once per ``period_ns`` (clock ns given by the
+    caller); the previous one in between. For metrics published every cycle."""
+
+    def __init__(self, latency: StageLatency, period_ns: int = 1_000_000_000) -> None:
+        self._latency = latency
+        self._period_ns = period_ns
+        self._at_ns: int | None = None
+        self._summary: dict[str, dict[str, float | int]] = {}
+
+    def get(self, now_ns: int) -> dict[str, dict[str, float | int]]:
+        if self._at_ns is None or now_ns - self._at_ns >= self._period_ns or now_ns < self._at_ns:
+            self._summary, self._at_ns = self._latency.summary_ms(), now_ns
+        return self._summary

@@ -58,6 +58,16 @@ def test_obu_rejects_garbage_keeps_publishing_and_syncs_with_a_direct_rsu():
         assert abs(offset - 250_000_000) < 5_000_000  # direct loopback: error well under 5 ms
         fused = wait_for(outputs, lambda o: o.mode == "inter", 10.0)
         assert fused.cycle_time_ns >= start_ns
+        # per-stage latency (telemetry.latency) in the metrics: the RSU's 250 ms clock offset is taken out
+        m = wait_for(metrics, lambda m: {"rsu_to_obu", "queue", "decode", "ingest", "fuse", "publish"} <= set(m.latency_ms),
+                     10.0)
+        for stage, q in m.latency_ms.items():
+            assert q.count >= 1 and 0.0 <= q.p50 <= q.p95 <= q.p99 < 100.0, (stage, q)
+        assert m.latency_ms["rsu_to_obu"].p50 < 50.0  # direct loopback: a few ms, not the offset
+        assert m.latency_ms["fuse"].count <= m.cycles
+        assert obu.last_metrics is not None and obu.latency.histogram("fuse")[2] >= m.latency_ms["fuse"].count
+        rsu_stages = set(rsu.last_metrics.latency_ms)
+        assert {"detect", "track", "message", "encode", "put", "stamp_to_put"} <= rsu_stages
     finally:
         for s in subs:
             s.undeclare()

@@ -191,3 +191,17 @@ def test_bad_latency_on_the_wire_is_a_codec_error():
     body = {"vehicle_id": "ego", "t_ns": T_NS, "latency_ms": {"fuse": {"count": 1, "p50": 5.0, "p95": 1.0, "p99": 1.0}}}
     with pytest.raises(CodecError):
         decode(msgpack.packb({"v": SCHEMA_VERSION, "t": "obu_metrics", "d": body}, use_bin_type=True), ObuMetrics)
+
+
+def test_periodic_summary_recomputes_once_per_period():
+    from telemetry.latency import PeriodicSummary
+
+    latency = StageLatency()
+    latency.observe("fuse", 1e-3)
+    periodic = PeriodicSummary(latency, period_ns=1_000)
+    first = periodic.get(10_000)
+    latency.observe("fuse", 1e-3)
+    assert periodic.get(10_999) is first and first["fuse"]["count"] == 1
+    assert periodic.get(11_000)["fuse"]["count"] == 2
+    latency.observe("fuse", 1e-3)
+    assert periodic.get(5_000)["fuse"]["count"] == 3  # the clock went back: recomputed
