@@ -215,15 +215,17 @@ class InboxScoring:
 
 class Demo(InboxScoring):
     def __init__(self, spec: RunSpec, startup_s: float = 4.0, outage: LinkOutage | None = None,
-                 chaos: ChaosTimeline | None = None):
+                 chaos: ChaosTimeline | None = None, record_to: str | None = None):
         """``chaos``: a timeline to play; its RSU clock step must already be in ``spec`` (``with_chaos``).
-        ``outage`` (``--kill-link-at``) is played as its generated timeline; not with ``chaos``."""
+        ``outage`` (``--kill-link-at``) is played as its generated timeline; not with ``chaos``.
+        ``record_to``: an MCAP file recording both sides of the link (``evaluation.replay_demo``)."""
         if outage is not None and chaos is not None:
             raise ValueError("a link outage and a chaos timeline together: put the kill and restart in the timeline")
         self.spec = spec
         self.world = World(load_scenario(spec.scenario))
         self.duration_s = spec.duration_s or self.world.scenario.duration_s
         self.startup_s = startup_s
+        self.record_to = record_to
         self.outage = outage
         self.chaos = outage.timeline() if outage else chaos
         self.rsu_ep, self.obu_ep, self.control_ep = free_tcp_endpoint(), free_tcp_endpoint(), free_tcp_endpoint()
@@ -248,6 +250,7 @@ class Demo(InboxScoring):
         start_ns = time.time_ns() + round(self.startup_s * 1e9)
         cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
         self.record = RunRecord(self.world, start_ns, self.duration_s, cycles)
+        recorder = None  # --record: evaluation.replay_demo.demo_recorder
         scorer = threading.Thread(target=self._score_inbox, name="demo-scorer", daemon=True)
         scorer.start()
         monitor, rsu_monitor, subs = None, None, []
@@ -257,6 +260,10 @@ class Demo(InboxScoring):
             deadline = time.monotonic() + (start_ns - time.time_ns()) * 1e-9
             for child in self.children.values():
                 child.wait_ready(deadline)
+            if self.record_to:  # once the services listen, before the first time query
+                from .replay_demo import demo_recorder
+
+                recorder = demo_recorder(self, start_ns, self.record_to)
             # Connect once the OBU listens: a session whose first attempt fails retries only after 1, 2, 4 s.
             monitor = open_session(connect=[self.obu_ep])
             vid = self.spec.obu_config().vehicle_id
@@ -276,6 +283,8 @@ class Demo(InboxScoring):
         finally:
             for child in self.children.values():
                 child.stop()
+            if recorder is not None:
+                recorder.stop()
             self._control.close()
             for sub in subs:
                 sub.undeclare()
