@@ -118,13 +118,14 @@ class CycleFrame:
 
 class TargetTally:
     """``world.target_id`` in a stream of outputs. Per cycle where it is detected: cycle time,
-    BEV IoU, squared error, NEES eps, ego distance and the output id (56 bytes); scored in
-    cycle order."""
+    BEV IoU, squared error, NEES eps, ego distance and the output id (56 bytes), and for the run
+    report the output's position in base_link and its source class (17 bytes); scored in cycle order."""
 
     def __init__(self, target_id: int, sources_mask: int | None = None):
         self.target_id, self.sources_mask = target_id, sources_mask
         self._cycle_ns, self._cols = array("q"), {k: array("d") for k in ("t_s", "iou", "sq_err", "eps", "dist")}
         self._ids = array("q")
+        self._out_xy, self._sources = array("d"), array("B")  # x, y interleaved (base_link, m); source class
 
     def add(self, frame: CycleFrame) -> None:
         truth, out = frame.truth, frame.out
@@ -140,6 +141,9 @@ class TargetTally:
                   "dist": np.linalg.norm(truth.xy[i])}
         self._cycle_ns.append(frame.cycle_ns)
         self._ids.append(int(out.ids[k]))
+        self._out_xy.extend(float(v) for v in out.xy[k])
+        mask = int(out.sources[k])  # bit 0 the own vehicle, bits 1..62 the RSU / peer slots
+        self._sources.append((mask & 1) | (2 if mask >> 1 else 0))
         for name, value in values.items():
             self._cols[name].append(float(value))
 
@@ -159,6 +163,27 @@ class TargetTally:
             nees_mean=consistency["mean"], nees_fraction_inside=consistency["fraction_inside"],
             track_ids=len(np.unique(ids)), id_switches=int(np.count_nonzero(np.diff(ids))),
         )
+
+    def series(self) -> TargetSeries:
+        """The detected cycles in cycle order (``TargetSeries``)."""
+        order = np.argsort(np.array(self._cycle_ns, dtype=np.int64), kind="stable")
+        t_s = np.array(self._cols["t_s"], dtype=float)[order]
+        error_m = np.sqrt(np.array(self._cols["sq_err"], dtype=float))[order]
+        xy = np.array(self._out_xy, dtype=float).reshape(-1, 2)[order]
+        return TargetSeries(t_s, error_m, xy, np.array(self._sources, dtype=np.int64)[order])
+
+
+@dataclass(frozen=True)
+class TargetSeries:
+    """Per detected cycle: t_s (K,) run seconds, error_m (K,) |output - truth|, out_xy (K, 2) the
+    output's position in that cycle's true base_link (m), sources (K,) its source class: bit 0 the
+    own vehicle's sensors, bit 1 any cooperative source (RSU or peer); 1 vehicle-only, 2 cooperative
+    only, 3 fused."""
+
+    t_s: np.ndarray
+    error_m: np.ndarray
+    out_xy: np.ndarray
+    sources: np.ndarray
 
 
 def score_target(world, outputs: Iterable[FusedObjectList], start_ns: int, sources_mask: int | None = None) -> TargetScore:

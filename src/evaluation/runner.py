@@ -98,10 +98,13 @@ class OfflineRun:
     ``records`` holds every vehicle's, ``report()`` scores them all."""
 
     def __init__(self, spec: RunSpec, start_ns: int = EVAL_EPOCH_NS, link_profile: LinkProfile | None = None,
-                 chaos: ChaosTimeline | None = None):
+                 chaos: ChaosTimeline | None = None, link_series: bool = False):
         """``chaos``: timed faults; its RSU clock step must already be in ``spec`` (``with_chaos``).
-        ``link_profile``: every pair's profile (default: the RSU's ``link_profile``, else ``spec.profile``)."""
+        ``link_profile``: every pair's profile (default: the RSU's ``link_profile``, else ``spec.profile``).
+        ``link_series``: after each cycle, each record keeps the OBU's RSU link status (the metrics
+        a live OBU publishes per cycle) for the run report (``RunRecord.links``; ~5 % slower)."""
         self.spec = spec
+        self.link_series = link_series
         self.chaos = chaos
         self.scenario = load_scenario(spec.scenario)
         self.site = World(self.scenario, site=True)
@@ -338,6 +341,8 @@ class OfflineRun:
             return
         out = obu.fuse(self.clock.t_ns)
         vehicle.record.add_output(out, obu.last_planning)
+        if self.link_series:  # what the live OBU publishes after each cycle
+            vehicle.record.links.add(self.clock.t_ns, obu.metrics(self.clock.t_ns).rsus)
         if self.v2v is not None:
             self._v2v_broadcast(vehicle, encode(shared_list(out)), self._peer_list)
         rsu_id = self.rsus[0].cfg.id  # every RSU runs the same clock model: the first one is scored

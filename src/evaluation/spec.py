@@ -15,6 +15,7 @@ from rsu_service.config import RsuConfig
 from sim.clock import SystemClock
 from sim.world import World
 
+from .link_series import LinkSeries
 from .metrics import (CycleFrame, CycleLog, DetectionTally, DisplacementTally, TargetTally, clock_errors,
                       deadline_miss_ratio, mode_share)
 
@@ -62,7 +63,9 @@ class RunRecord:
     Nothing grows with the run but compact per-cycle numbers: per output 17 bytes
     (``CycleLog``) and 10 bytes per predicted object in range (``CenterDistanceAp``), 48
     bytes per cycle the target is detected (twice: fused and vehicle-only), 32 bytes per
-    clock-offset sample; plus counts per track id for IDF1.
+    clock-offset sample; plus counts per track id for IDF1. For the run report
+    (``evaluation.run_report``): 17 more bytes per cycle the target is detected (twice), and
+    41 bytes per RSU per OBU metrics sample (one per cycle; ``link_series.LinkSeries``).
     """
 
     def __init__(self, world: World, start_ns: int, duration_s: float, cycle_times_ns: Sequence[int] = ()):
@@ -77,13 +80,11 @@ class RunRecord:
         # clock-offset samples: t_ns, estimated theta_ns, naive theta_ns, estimated drift ppm
         self._offsets = (array("q"), array("q"), array("q"), array("d"))
         self.perception = PerceptionTally()  # the RSU's raw detections against the truth it could see
-        # live runs: each service's latest per-stage latency ("rsu", "link", "obu": {stage: {count, p50, p95,
-        # p99}} in ms, telemetry.latency); offline none (its clock is simulated)
-        self.latency_ms: dict[str, dict] = {}
         self.rsu_perception: dict | None = None  # or the RSU's own scores (live: from its metrics)
         self.rsu_messages = 0
         self.covered_cycles = 0  # the OBU's own count: cycles with an RSU heard recently
         self.rsu_deadline_misses = 0
+        self.links = LinkSeries()  # per-cycle RSU link samples (live: ObuMetrics; offline: link_series=True)
 
     def add_output(self, output: FusedObjectList, planning: PredictionList | None = None) -> None:
         """One published cycle (and the RSU paths it handed to the planner, if any)."""
@@ -110,8 +111,7 @@ class RunRecord:
                 self.add_offset_sample(metrics.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm)
         self.rsu_messages = sum(r.messages_accepted for r in metrics.rsus)  # every RSU's, as offline
         self.covered_cycles, self.rsu_deadline_misses = metrics.covered_cycles, metrics.rsu_deadline_misses
-        if metrics.latency_ms:
-            self.latency_ms["obu"] = {stage: q.model_dump() for stage, q in metrics.latency_ms.items()}
+        self.links.add(metrics.t_ns, metrics.rsus)
 
     def offset_samples(self) -> np.ndarray:
         """(K, 4) float64: t_ns, theta_ns, naive theta_ns, drift ppm."""
@@ -144,7 +144,6 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
         **clock_errors(record.offset_samples(), truth_clock, record.start_ns, step_ns),
         **record.detection.scores(),
         "rsu_perception": record.rsu_perception or record.perception.scores(),
-        "latency_ms": dict(record.latency_ms),
     }
 
 

@@ -162,13 +162,21 @@ def cmd_eval(args: argparse.Namespace) -> int:
         chaos = load_chaos(args.chaos)
     from evaluation.chaos import with_chaos
 
-    run = OfflineRun(with_chaos(_spec(args), chaos), chaos=chaos)
+    run = OfflineRun(with_chaos(_spec(args), chaos), chaos=chaos, link_series=bool(args.report))
     run.execute()
     report = run.report(driver="eval")
     if chaos:
         report["chaos"] = chaos.name
     _emit(report, args.json)
+    if args.report:
+        from evaluation.run_report import write_offline_report
+
+        _wrote(write_offline_report(Path(args.report), report, run), "v2i eval")
     return 0
+
+
+def _wrote(paths: list[Path], prog: str) -> None:
+    print(f"{prog}: wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
 
 
 def cmd_eval_roif(args: argparse.Namespace) -> int:
@@ -180,6 +188,7 @@ def cmd_eval_roif(args: argparse.Namespace) -> int:
     _check_numbers(args)
     if args.json not in (None, "-"):
         _check_writable(Path(args.json), "--json")
+    _no_run_report(args)
     report = run_image_fusion(args.scenario, seed=args.seed, duration_s=args.duration)
     _emit(report, args.json, summary)
     return 0
@@ -208,7 +217,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.fusion == "roif":
         return _run_roif_demo(args)
     outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
-    return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage), args.json, "v2i demo")
+    return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage), args.json, "v2i demo", args.report)
 
 
 def _is_site(scenario: str) -> bool:
@@ -228,7 +237,7 @@ def _run_site_demo(args: argparse.Namespace) -> int:
         raise ValueError(f"{flag} runs a single RSU and vehicle; scenario {args.scenario!r} has several "
                          "(v2i demo runs every node of it, without chaos or image fusion)")
     startup_s = max(args.startup, SITE_STARTUP_S)  # every node of the site starts at once
-    return _run_demo(SiteDemo(_spec(args), startup_s=startup_s), args.json, "v2i demo")
+    return _run_demo(SiteDemo(_spec(args), startup_s=startup_s), args.json, "v2i demo", args.report)
 
 
 def _run_roif_demo(args: argparse.Namespace) -> int:
@@ -237,11 +246,17 @@ def _run_roif_demo(args: argparse.Namespace) -> int:
 
     if args.kill_link_at is not None:
         raise ValueError("--kill-link-at is not supported with --fusion roif")
+    _no_run_report(args)
     report = _live(ImageFusionDemo(_spec(args), startup_s=args.startup).run, "v2i demo")
     if isinstance(report, int):
         return report
     _emit(report, args.json, summary)
     return 0
+
+
+def _no_run_report(args: argparse.Namespace) -> None:
+    if getattr(args, "report", None) and not getattr(args, "table", None):
+        raise ValueError("--report (the run's timeline and bird's-eye PNGs) is not supported with --fusion roif")
 
 
 def cmd_chaos_run(args: argparse.Namespace) -> int:
@@ -259,7 +274,7 @@ def cmd_chaos_run(args: argparse.Namespace) -> int:
         raise ValueError(f"chaos timeline {args.timeline}: profile {unknown[0]!r} is not bundled (the emulator "
                          f"switches to bundled profiles only): {', '.join(bundled_profiles())}")
     return _run_demo(Demo(with_chaos(_spec(args), chaos), startup_s=args.startup, chaos=chaos), args.json,
-                     "v2i chaos run")
+                     "v2i chaos run", args.report)
 
 
 def cmd_fuzz(args: argparse.Namespace) -> int:
@@ -304,8 +319,9 @@ def _live(run, prog: str) -> dict | int:
         return 130
 
 
-def _run_demo(demo, json_path: str | None, prog: str) -> int:
-    """Run a live demo and emit its report; 1 when it failed, 130 when interrupted."""
+def _run_demo(demo, json_path: str | None, prog: str, report_dir: str | None = None) -> int:
+    """Run a live demo and emit its report (and its PNGs into ``report_dir``); 1 when it failed,
+    130 when interrupted."""
     from evaluation.demo import format_chaos
 
     report = _live(demo.run, prog)
@@ -314,6 +330,10 @@ def _run_demo(demo, json_path: str | None, prog: str) -> int:
     _emit(report, json_path)
     if chaos := format_chaos(report):
         print(chaos, file=sys.stderr if json_path == "-" else sys.stdout)
+    if report_dir:
+        from evaluation.run_report import write_demo_report
+
+        _wrote(write_demo_report(Path(report_dir), report, demo), prog)
     return 0
 
 
@@ -346,11 +366,18 @@ def _eval_options(ev: argparse.ArgumentParser) -> None:
     ev.add_argument("--table", choices=["seeds"], help="run the experiment tables (seed 000 Tables I-III, "
                     "seed 001 Table 1, OTVIC Table IV) instead of one run")
     ev.add_argument("--seeds", type=int, default=5, help="with --table: seeds --seed .. --seed+N-1 (default %(default)s)")
-    ev.add_argument("--report", metavar="DIR", help="with --table: write tables.md, tables.json and PNG plots here")
+    ev.add_argument("--report", metavar="DIR", help="write pictures of the run here: timeline.png (modes, latency and "
+                    "misses, RSU delay and data age, clock error, target error; chaos shaded), bev.png (truth vs "
+                    "fused target) and report.json; with --table: tables.md, tables.json and PNG plots instead")
     ev.add_argument("--workers", type=int, default=2, help="with --table: parallel runs (default %(default)s)")
     ev.add_argument("--chaos", metavar="FILE", help="chaos timeline YAML: timed link faults, service kills and "
                     "restarts, an RSU clock step (see evaluation/chaos.py)")
     ev.set_defaults(func=cmd_eval)
+
+
+_REPORT_HELP = ("after the run, write pictures of it here: timeline.png (timeline-<vehicle>.png per vehicle of a "
+                "site: modes, latency and misses, RSU delay and data age, clock error, target error; chaos "
+                "faults shaded), bev.png (truth vs the fused target) and report.json")
 
 
 def _demo_options(demo: argparse.ArgumentParser) -> None:
@@ -358,6 +385,7 @@ def _demo_options(demo: argparse.ArgumentParser) -> None:
     demo.add_argument("--startup", type=float, default=4.0, help="seconds given to the services to start (default %(default)s)")
     demo.add_argument("--kill-link-at", type=float, metavar="S", help="chaos: kill the link emulator S seconds into the run")
     demo.add_argument("--link-down-s", type=float, default=3.0, help="chaos: restart it this many seconds later (default %(default)s)")
+    demo.add_argument("--report", metavar="DIR", help=_REPORT_HELP)
     demo.set_defaults(func=cmd_demo)
 
 
@@ -373,6 +401,7 @@ def _chaos_options(chaos: argparse.ArgumentParser) -> None:
     _run_options(chaos_run)
     chaos_run.add_argument("--startup", type=float, default=4.0,
                            help="seconds given to the services to start (default %(default)s)")
+    chaos_run.add_argument("--report", metavar="DIR", help=_REPORT_HELP)
     chaos_run.set_defaults(func=cmd_chaos_run)
 
 

@@ -7,20 +7,42 @@ output must see the red-light runner far earlier than the vehicle alone.
 
 from __future__ import annotations
 
+import json
+
+import numpy as np
 import pytest
 
 from evaluation.demo import Demo, LinkOutage
+from evaluation.run_report import chaos_spans, write_demo_report
 from evaluation.spec import RunSpec
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
 
 @pytest.fixture(scope="module")
-def report() -> dict:
+def finished() -> tuple[Demo, dict]:
     demo = Demo(RunSpec(profile="lte-v2x", seed=1, duration_s=12.0), startup_s=5.0, outage=LinkOutage(at_s=1.5, down_s=3.0))
     result = demo.run()
     assert all(child.proc.poll() is not None for child in demo.children.values()), "a child outlived the demo"
-    return result
+    return demo, result
+
+
+@pytest.fixture(scope="module")
+def report(finished) -> dict:
+    return finished[1]
+
+
+def test_run_report_pictures(finished, tmp_path):
+    """What ``v2i demo --report DIR`` writes after this run: the PNGs, the report, the kill shaded."""
+    demo, result = finished
+    written = write_demo_report(tmp_path / "report", result, demo)
+    assert [p.name for p in written] == ["timeline.png", "bev.png", "report.json"]
+    assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in written[:2])
+    assert json.loads(written[2].read_text()) == result
+    spans = chaos_spans(demo.chaos, demo.duration_s, [(p.fired_s, p.event) for p in demo.played])
+    assert [s.kind for s in spans] == ["kill", "restart"] and spans[0].to_s == spans[1].from_s
+    (rsu,) = demo.record.links.per_rsu()  # one sample per OBU metrics message (one per cycle)
+    assert len(rsu.t_ns) >= 100 and np.isfinite(rsu.offset_ns).sum() >= 100
 
 
 def test_every_cycle_is_published(report):
