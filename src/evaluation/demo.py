@@ -253,7 +253,7 @@ class Demo(InboxScoring):
         recorder = None  # --record: evaluation.replay_demo.demo_recorder
         scorer = threading.Thread(target=self._score_inbox, name="demo-scorer", daemon=True)
         scorer.start()
-        monitor, rsu_monitor, subs = None, None, []
+        monitor, rsu_monitor, link_monitor, subs = None, None, None, []
         try:
             for name in ("rsu", "obu", "link"):
                 self.children[name] = Child(name, self._argv(name, start_ns))
@@ -274,6 +274,10 @@ class Demo(InboxScoring):
             rsu_monitor = open_session(connect=[self.rsu_ep])  # the RSU's metrics stay on its side of the link
             subs.append(rsu_monitor.declare_subscriber(keys.rsu_metrics(self.spec.rsu_config().rsu_id),
                                                        lambda s: self._keep("rsu_metrics", s)))
+            # the emulator's stats (their latency_ms) on its control side: the OBU does not forward them
+            link_monitor = open_session(connect=[self.control_ep])
+            subs.append(link_monitor.declare_subscriber(keys.link_stats(LINK_ID),
+                                                        lambda s: self._keep("link_stats", s)))
             if not list(monitor.info.peers_zid()):
                 raise DemoError(f"cannot connect to the OBU at {self.obu_ep}")
             if self._has_link_controls():
@@ -288,7 +292,7 @@ class Demo(InboxScoring):
             self._control.close()
             for sub in subs:
                 sub.undeclare()
-            for session in (monitor, rsu_monitor):
+            for session in (monitor, rsu_monitor, link_monitor):
                 if session is not None:
                     session.close()
             self._tmp.cleanup()
@@ -329,9 +333,18 @@ class Demo(InboxScoring):
         elif kind == "planning":
             self.record.add_planning(decode(data, PredictionList))
         elif kind == "rsu_metrics":
-            perception = decode(data, RsuMetrics).perception
-            if perception is not None:  # each message holds the run's totals so far
-                self.record.rsu_perception = perception.model_dump()
+            metrics = decode(data, RsuMetrics)
+            if metrics.perception is not None:  # each message holds the run's totals so far
+                self.record.rsu_perception = metrics.perception.model_dump()
+            if metrics.latency_ms:
+                self.record.latency_ms["rsu"] = {stage: q.model_dump() for stage, q in metrics.latency_ms.items()}
+        elif kind == "link_stats":  # the emulator's JSON stats: its latency_ms as it is
+            try:
+                latency_ms = json.loads(data).get("latency_ms")
+            except (ValueError, AttributeError):
+                return
+            if isinstance(latency_ms, dict) and latency_ms:
+                self.record.latency_ms["link"] = latency_ms
         else:
             self.record.add_obu_metrics(decode(data, ObuMetrics))
 

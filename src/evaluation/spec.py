@@ -80,6 +80,9 @@ class RunRecord:
         # clock-offset samples: t_ns, estimated theta_ns, naive theta_ns, estimated drift ppm
         self._offsets = (array("q"), array("q"), array("q"), array("d"))
         self.perception = PerceptionTally()  # the RSU's raw detections against the truth it could see
+        # live runs: each service's latest per-stage latency ("rsu", "link", "obu": {stage: {count, p50, p95,
+        # p99}} in ms, telemetry.latency); offline none (its clock is simulated)
+        self.latency_ms: dict[str, dict] = {}
         self.rsu_perception: dict | None = None  # or the RSU's own scores (live: from its metrics)
         self.rsu_messages = 0
         self.covered_cycles = 0  # the OBU's own count: cycles with an RSU heard recently
@@ -111,6 +114,8 @@ class RunRecord:
                 self.add_offset_sample(metrics.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm)
         self.rsu_messages = sum(r.messages_accepted for r in metrics.rsus)  # every RSU's, as offline
         self.covered_cycles, self.rsu_deadline_misses = metrics.covered_cycles, metrics.rsu_deadline_misses
+        if metrics.latency_ms:
+            self.latency_ms["obu"] = {stage: q.model_dump() for stage, q in metrics.latency_ms.items()}
         self.links.add(metrics.t_ns, metrics.rsus)
 
     def offset_samples(self) -> np.ndarray:
@@ -144,6 +149,7 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
         **clock_errors(record.offset_samples(), truth_clock, record.start_ns, step_ns),
         **record.detection.scores(),
         "rsu_perception": record.rsu_perception or record.perception.scores(),
+        "latency_ms": dict(record.latency_ms),
     }
 
 
