@@ -22,6 +22,8 @@ SUBCOMMANDS = {
     "router": "run a Zenoh router for sites with many RSUs and vehicles (the services attach as clients)",
     "camera": "camera tools: render a scenario's frames with ground-truth boxes, calibrate a camera from points",
     "fuzz": "send hostile messages to a live service and report what it refused, crashes, late outputs and memory",
+    "record": "record every v2x/** message heard at Zenoh endpoints into an MCAP file (Foxglove opens it)",
+    "replay": "republish a recording on its keys in real or scaled time, or re-run a fresh OBU on it (--score)",
 }
 
 
@@ -118,6 +120,8 @@ def _check_inputs(args: argparse.Namespace) -> None:
         _check_writable(Path(args.json), "--json")
     if getattr(args, "report", None):
         _check_folder(Path(args.report), "--report")
+    if getattr(args, "record", None):
+        _check_writable(Path(args.record), "--record")
 
 
 def _check_numbers(args: argparse.Namespace) -> None:
@@ -212,12 +216,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from evaluation.demo import Demo, LinkOutage
 
     _check_inputs(args)
+    if args.record and (args.fusion == "roif" or _is_site(args.scenario)):
+        raise ValueError("--record records a single RSU and vehicle demo (not a site, not --fusion roif)")
     if _is_site(args.scenario):
         return _run_site_demo(args)
     if args.fusion == "roif":
         return _run_roif_demo(args)
     outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
-    return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage), args.json, "v2i demo", args.report)
+    return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage, record_to=args.record), args.json,
+                     "v2i demo", args.report)
 
 
 def _is_site(scenario: str) -> bool:
@@ -273,8 +280,8 @@ def cmd_chaos_run(args: argparse.Namespace) -> int:
     if unknown:
         raise ValueError(f"chaos timeline {args.timeline}: profile {unknown[0]!r} is not bundled (the emulator "
                          f"switches to bundled profiles only): {', '.join(bundled_profiles())}")
-    return _run_demo(Demo(with_chaos(_spec(args), chaos), startup_s=args.startup, chaos=chaos), args.json,
-                     "v2i chaos run", args.report)
+    return _run_demo(Demo(with_chaos(_spec(args), chaos), startup_s=args.startup, chaos=chaos,
+                          record_to=args.record), args.json, "v2i chaos run", args.report)
 
 
 def cmd_fuzz(args: argparse.Namespace) -> int:
@@ -380,11 +387,16 @@ _REPORT_HELP = ("after the run, write pictures of it here: timeline.png (timelin
                 "faults shaded), bev.png (truth vs the fused target) and report.json")
 
 
+_RECORD_HELP = ("record both sides of the link (RSU, vehicle after the link, link stats) with the run's spec into "
+                "this MCAP file while the run goes; v2i replay FILE --score re-runs a fresh OBU on it")
+
+
 def _demo_options(demo: argparse.ArgumentParser) -> None:
     _run_options(demo)
     demo.add_argument("--startup", type=float, default=4.0, help="seconds given to the services to start (default %(default)s)")
     demo.add_argument("--kill-link-at", type=float, metavar="S", help="chaos: kill the link emulator S seconds into the run")
     demo.add_argument("--link-down-s", type=float, default=3.0, help="chaos: restart it this many seconds later (default %(default)s)")
+    demo.add_argument("--record", metavar="FILE", help=_RECORD_HELP)
     demo.add_argument("--report", metavar="DIR", help=_REPORT_HELP)
     demo.set_defaults(func=cmd_demo)
 
@@ -402,6 +414,7 @@ def _chaos_options(chaos: argparse.ArgumentParser) -> None:
     chaos_run.add_argument("--startup", type=float, default=4.0,
                            help="seconds given to the services to start (default %(default)s)")
     chaos_run.add_argument("--report", metavar="DIR", help=_REPORT_HELP)
+    chaos_run.add_argument("--record", metavar="FILE", help=_RECORD_HELP)
     chaos_run.set_defaults(func=cmd_chaos_run)
 
 
@@ -457,6 +470,7 @@ _OPTIONS = {
     "obu": _service_options("obu_service.cli"), "link": _service_options("link_emulator.cli"),
     "world": _service_options("v2i.world_node"), "router": _service_options("v2i.router"),
     "camera": _camera_options, "fuzz": _fuzz_options,
+    "record": _service_options("v2i.record"), "replay": _service_options("v2i.replay"),
 }
 
 
