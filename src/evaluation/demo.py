@@ -41,6 +41,7 @@ from schemas.runtime import log
 from schemas.transport import free_tcp_endpoint, open_session
 from sim.scenario import load_scenario
 from sim.world import World
+from telemetry.live_line import LiveLine
 
 from .chaos import ChaosEvent, ChaosTimeline
 from .metrics import mode_share
@@ -215,7 +216,8 @@ class InboxScoring:
 
 class Demo(InboxScoring):
     def __init__(self, spec: RunSpec, startup_s: float = 4.0, outage: LinkOutage | None = None,
-                 chaos: ChaosTimeline | None = None, record_to: str | None = None):
+                 chaos: ChaosTimeline | None = None, record_to: str | None = None,
+                 progress: str | None = None):
         """``chaos``: a timeline to play; its RSU clock step must already be in ``spec`` (``with_chaos``).
         ``outage`` (``--kill-link-at``) is played as its generated timeline; not with ``chaos``.
         ``record_to``: an MCAP file recording both sides of the link (``evaluation.replay_demo``)."""
@@ -232,6 +234,8 @@ class Demo(InboxScoring):
         self.children: dict[str, Child] = {}
         self.played: list[PlayedEvent] = []
         self.record: RunRecord | None = None  # scored as messages arrive, from run()
+        self.progress = progress  # the live line's name (v2i demo; telemetry.live_line); None: no line
+        self._live: LiveLine | None = None  # the live line while the run goes
         self._init_inbox()
         self._down: set[str] = set()  # services killed on purpose and not yet restarted
         self._restarting: dict[str, float] = {}  # service -> monotonic deadline of its ready line
@@ -346,9 +350,26 @@ class Demo(InboxScoring):
             if isinstance(latency_ms, dict) and latency_ms:
                 self.record.latency_ms["link"] = latency_ms
         else:
-            self.record.add_obu_metrics(decode(data, ObuMetrics))
+            metrics = decode(data, ObuMetrics)
+            self.record.add_obu_metrics(metrics)
+            if self._live is not None:
+                self._live.feed(metrics)
 
     def _supervise(self, start_ns: int) -> None:
+        """Log the endpoints (for ``v2i monitor``); show the live line (``progress``) while ``_watch`` runs."""
+        log("demo", f"endpoints: OBU {self.obu_ep}, RSU {self.rsu_ep}, link {self.control_ep} "
+                    f"(v2i monitor --connect {self.obu_ep} --connect {self.rsu_ep} --connect {self.control_ep})")
+        if self.progress:
+            events = len(self.chaos.events) if self.chaos else 0
+            self._live = LiveLine(self.progress, start_ns, self.duration_s, lambda: (len(self.played), events))
+            self._live.start()
+        try:
+            self._watch(start_ns)
+        finally:
+            if self._live is not None:
+                self._live.stop()
+
+    def _watch(self, start_ns: int) -> None:
         """Watch the children until the run ends, playing the chaos timeline at scenario time."""
         end_ns = start_ns + round((self.duration_s + 0.5) * 1e9)
         plan = [(start_ns + round(e.at_s * 1e9), e) for e in (self.chaos.sorted_events() if self.chaos else [])]

@@ -45,6 +45,7 @@ from schemas.runtime import log
 from schemas.transport import free_tcp_endpoint, open_session
 from sim.scenario import Scenario, load_scenario
 from sim.world import World
+from telemetry.live_line import LiveLine
 
 from .demo import POLL_S, Child, DemoError, InboxScoring
 from .runner import v2v_config
@@ -72,8 +73,11 @@ def link_id(rsu_id: str) -> str:
 class SiteDemo(InboxScoring):
     """Every node of ``spec.scenario`` as its own process; ``run()`` returns the site report."""
 
-    def __init__(self, spec: RunSpec, startup_s: float = SITE_STARTUP_S):
-        """``startup_s``: launch -> scenario time zero; every service must be ready by then."""
+    def __init__(self, spec: RunSpec, startup_s: float = SITE_STARTUP_S, progress: str | None = None):
+        """``startup_s``: launch -> scenario time zero; every service must be ready by then.
+        ``progress``: the live line's name (``telemetry.live_line``), None for no line."""
+        self.progress = progress
+        self._live: LiveLine | None = None
         self.spec = spec
         self.scenario = load_scenario(spec.scenario)
         self.duration_s = spec.duration_s or self.scenario.duration_s
@@ -111,6 +115,9 @@ class SiteDemo(InboxScoring):
             launched = time.monotonic()
             for child in self.children.values():
                 child.wait_ready(deadline)
+            log("demo", "endpoints (v2i monitor --connect EP ...): OBUs " + ", ".join(
+                f"{n} {ep}" for n, ep in self.obu_eps.items()) + "; RSUs " + ", ".join(
+                f"{r} {ep}" for r, ep in self.rsu_eps.items()))
             log("demo", f"all {len(self.children)} processes ready after {time.monotonic() - launched:.1f} s "
                         f"(start {self.startup_s:g} s after launch)")
             # connect once every service listens: a failed first attempt is retried only after 1, 2, 4 s
@@ -185,6 +192,17 @@ class SiteDemo(InboxScoring):
                 "--seed", str(self.spec.seed)]
 
     def _supervise(self, start_ns: int) -> None:
+        """The live line (``progress``) while ``_watch`` runs."""
+        if self.progress:
+            self._live = LiveLine(self.progress, start_ns, self.duration_s)
+            self._live.start()
+        try:
+            self._watch(start_ns)
+        finally:
+            if self._live is not None:
+                self._live.stop()
+
+    def _watch(self, start_ns: int) -> None:
         """Until the run's end (+0.5 s; the services end at +1 s): any child that exits ends the demo."""
         end_ns = start_ns + round((self.duration_s + 0.5) * 1e9)
         while time.time_ns() < end_ns:
@@ -261,6 +279,8 @@ class SiteDemo(InboxScoring):
             record.add_output(message)
         else:
             record.add_obu_metrics(message)
+            if self._live is not None:
+                self._live.feed(message)
             self.rsu_lists_accepted[message.vehicle_id] = {r.rsu_id: r.messages_accepted for r in message.rsus}
             self.obu_rejected[message.vehicle_id] = dict(message.rejected)
 

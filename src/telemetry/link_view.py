@@ -13,6 +13,7 @@ those seen before it. The start is late by at most one stats period (1 s by defa
 
 from __future__ import annotations
 
+import math
 import re
 from typing import Any
 
@@ -45,7 +46,7 @@ def number(value: Any) -> float | None:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
     value = float(value)
-    return value if value == value and abs(value) != float("inf") else None
+    return value if math.isfinite(value) else None
 
 
 def text(value: Any, limit: int = 64) -> str | None:
@@ -75,6 +76,14 @@ def direction_view(stats: Any) -> dict[str, Any] | None:
     return {"received": received, "delivered": count(stats.get("delivered")), "dropped": dropped,
             "drop_ratio": ratio(dropped or 0, received or 0),
             "delay_mean_ms": number(delay.get("mean")), "delay_max_ms": number(delay.get("max"))}
+
+
+def latency_view(value: Any, limit: int = 32) -> dict[str, dict[str, float | int | None]] | None:
+    """The stats' ``latency_ms`` (stage -> count, p50, p95, p99 in ms; ``telemetry.latency``), or None."""
+    if not isinstance(value, dict) or not value:
+        return None
+    return {stage[:32]: {"count": count(q.get("count")), **{k: number(q.get(k)) for k in ("p50", "p95", "p99")}}
+            for stage, q in list(value.items())[:limit] if isinstance(stage, str) and isinstance(q, dict)}
 
 
 class LinkView:
@@ -107,6 +116,7 @@ class LinkView:
             "lateness_mean_ms": number(lateness.get("mean")), "lateness_max_ms": number(lateness.get("max")),
             "refused": counts(stats.get("refused")), "controls_applied": count(control.get("applied")),
             "controls_rejected": counts(control.get("rejected")),
+            "latency_ms": latency_view(stats.get("latency_ms")),
             "pairs": [{"vehicle_id": text(p.get("vehicle_id")), "profile": text(p.get("profile"))}
                       for p in pairs[:MAX_PAIRS_SHOWN] if isinstance(p, dict)],
         }

@@ -36,7 +36,8 @@ in the names):
   ``directions.{downlink|uplink|v2v}`` (``received``, ``delivered``, ``dropped``,
   ``drop_ratio``, ``delay_mean_ms``, ``delay_max_ms``), ``drop_ratio_window``, ``window_span_s``,
   ``lateness_mean_ms``, ``lateness_max_ms``, ``refused``, ``controls_applied``,
-  ``controls_rejected``, ``pairs``, ``impairments`` (in force: ``effect``, ``left_s``);
+  ``controls_rejected``, ``latency_ms`` (stage -> p50/p95/p99, or None), ``pairs``, ``impairments``
+  (in force: ``effect``, ``left_s``);
 - ``intake``: ``messages`` (obu_metrics / rsu_metrics / link_stats -> count), ``undecodable``
   (kind -> count), ``ignored`` (reason -> count: ``vehicles_over_cap``, ``rsus_over_cap``,
   ``links_over_cap``, ``id_mismatch``, ``other_key``, ``oversized``).
@@ -174,7 +175,7 @@ class TelemetryBoard:
             raise ValueError(f"link stats of {len(payload)} bytes")
         stats = json.loads(payload)  # JSONDecodeError, UnicodeDecodeError: ValueErrors; deep: RecursionError
         if not isinstance(stats, dict):
-            raise ValueError("link stats are not a JSON object")
+            raise ValueError("link stats are not a JSON object")  # noqa: TRY004 - a bad payload, counted as such
         return stats
 
     def _ignore(self, reason: str) -> str:

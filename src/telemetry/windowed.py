@@ -37,8 +37,7 @@ class WindowedCounters:
         """Record the totals ``counters`` as of ``t_ns``; a decrease of any of them restarts the history."""
         if self._points:
             last_t, last = self._points[-1]
-            if t_ns < last_t:
-                t_ns = last_t  # a receive clock that stepped back: keep the order, not the step
+            t_ns = max(t_ns, last_t)  # a receive clock that stepped back: keep the order, not the step
             if any(counters.get(k, 0) < v for k, v in last.items()):
                 self._points.clear()
                 self.resets += 1

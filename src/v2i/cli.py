@@ -22,6 +22,7 @@ SUBCOMMANDS = {
     "router": "run a Zenoh router for sites with many RSUs and vehicles (the services attach as clients)",
     "camera": "camera tools: render a scenario's frames with ground-truth boxes, calibrate a camera from points",
     "fuzz": "send hostile messages to a live service and report what it refused, crashes, late outputs and memory",
+    "monitor": "live dashboard of a running site (deadline misses, modes, delays, clock, link), or one JSON snapshot",
     "record": "record every v2x/** message heard at Zenoh endpoints into an MCAP file (Foxglove opens it)",
     "replay": "republish a recording on its keys in real or scaled time, or re-run a fresh OBU on it (--score)",
 }
@@ -223,8 +224,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.fusion == "roif":
         return _run_roif_demo(args)
     outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
-    return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage, record_to=args.record), args.json,
-                     "v2i demo", args.report)
+    return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage, record_to=args.record,
+                          progress=_progress(args)), args.json, "v2i demo", args.report)
+
+
+def _progress(args: argparse.Namespace) -> str | None:
+    """The live line's name (``v2i demo`` / ``v2i chaos run``), or None with ``--quiet``."""
+    if getattr(args, "quiet", False):
+        return None
+    return "v2i chaos run" if args.command == "chaos" else "v2i demo"
 
 
 def _is_site(scenario: str) -> bool:
@@ -244,7 +252,8 @@ def _run_site_demo(args: argparse.Namespace) -> int:
         raise ValueError(f"{flag} runs a single RSU and vehicle; scenario {args.scenario!r} has several "
                          "(v2i demo runs every node of it, without chaos or image fusion)")
     startup_s = max(args.startup, SITE_STARTUP_S)  # every node of the site starts at once
-    return _run_demo(SiteDemo(_spec(args), startup_s=startup_s), args.json, "v2i demo", args.report)
+    return _run_demo(SiteDemo(_spec(args), startup_s=startup_s, progress=_progress(args)), args.json, "v2i demo",
+                     args.report)
 
 
 def _run_roif_demo(args: argparse.Namespace) -> int:
@@ -281,7 +290,7 @@ def cmd_chaos_run(args: argparse.Namespace) -> int:
         raise ValueError(f"chaos timeline {args.timeline}: profile {unknown[0]!r} is not bundled (the emulator "
                          f"switches to bundled profiles only): {', '.join(bundled_profiles())}")
     return _run_demo(Demo(with_chaos(_spec(args), chaos), startup_s=args.startup, chaos=chaos,
-                          record_to=args.record), args.json, "v2i chaos run", args.report)
+                          record_to=args.record, progress=_progress(args)), args.json, "v2i chaos run", args.report)
 
 
 def cmd_fuzz(args: argparse.Namespace) -> int:
@@ -391,8 +400,13 @@ _RECORD_HELP = ("record both sides of the link (RSU, vehicle after the link, lin
                 "this MCAP file while the run goes; v2i replay FILE --score re-runs a fresh OBU on it")
 
 
+QUIET_HELP = ("no live line on stderr while the run goes (elapsed s, output and RSU deadline misses, mode, RSU "
+              "lists, chaos events: rewritten in place on a terminal, a plain line every 5 s otherwise)")
+
+
 def _demo_options(demo: argparse.ArgumentParser) -> None:
     _run_options(demo)
+    demo.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     demo.add_argument("--startup", type=float, default=4.0, help="seconds given to the services to start (default %(default)s)")
     demo.add_argument("--kill-link-at", type=float, metavar="S", help="chaos: kill the link emulator S seconds into the run")
     demo.add_argument("--link-down-s", type=float, default=3.0, help="chaos: restart it this many seconds later (default %(default)s)")
@@ -411,6 +425,7 @@ def _chaos_options(chaos: argparse.ArgumentParser) -> None:
         "The same timeline runs offline with v2i eval --chaos FILE."))
     chaos_run.add_argument("timeline", metavar="FILE", help="chaos timeline YAML, e.g. examples/chaos/outage-10s.yaml")
     _run_options(chaos_run)
+    chaos_run.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     chaos_run.add_argument("--startup", type=float, default=4.0,
                            help="seconds given to the services to start (default %(default)s)")
     chaos_run.add_argument("--report", metavar="DIR", help=_REPORT_HELP)
@@ -469,7 +484,7 @@ _OPTIONS = {
     "demo": _demo_options, "eval": _eval_options, "chaos": _chaos_options, "rsu": _service_options("rsu_service.cli"),
     "obu": _service_options("obu_service.cli"), "link": _service_options("link_emulator.cli"),
     "world": _service_options("v2i.world_node"), "router": _service_options("v2i.router"),
-    "camera": _camera_options, "fuzz": _fuzz_options,
+    "camera": _camera_options, "fuzz": _fuzz_options, "monitor": _service_options("v2i.monitor"),
     "record": _service_options("v2i.record"), "replay": _service_options("v2i.replay"),
 }
 

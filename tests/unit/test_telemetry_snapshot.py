@@ -128,6 +128,7 @@ def test_link_drop_ratios_and_impairments_in_force():
     assert link["drop_ratio_window"]["downlink"] == 0.5  # 10 of the 20 since the first stats
     assert link["directions"]["uplink"]["drop_ratio"] is None
     assert link["impairments"] == [{"effect": "outage on both", "left_s": 2.0}]
+    assert link["latency_ms"] is None
     board.on_sample("v2x/link/link1/stats", stats(5, 120, 10, [outage]), 5 * S)  # window over at 2 + 3 s
     assert board.snapshot(5 * S)["links"]["link1"]["impairments"] == []
     spike = {"seq": 2, "result": "+200 ms on downlink for 10 s"}
@@ -181,12 +182,14 @@ def test_hostile_fields_in_valid_link_stats_read_as_absent():
                         "control": {"recent": [None, 3, {"seq": "x", "result": "outage on both for nan s"},
                                                {"seq": 9, "result": "loss 1 on both for 1e999 s"},
                                                {"seq": 8, "result": "x for . s"}]},
-                        "pairs": [1, {"vehicle_id": 5}]}).encode()
+                        "pairs": [1, {"vehicle_id": 5}],
+                        "latency_ms": {"relay_hold": {"count": 3, "p50": 1.5, "p95": "x"}, "bad": 4}}).encode()
     assert board.on_sample("v2x/link/l1/stats", weird, S) == "link_stats"
     link = board.snapshot(S)["links"]["l1"]
     assert link["directions"]["downlink"]["received"] is None and "uplink" not in link["directions"]
     assert link["refused"] == {"c": 2} and link["profile"] is None and link["impairments"] == []
     assert link["pairs"] == [{"vehicle_id": None, "profile": None}]
+    assert link["latency_ms"] == {"relay_hold": {"count": 3, "p50": 1.5, "p95": None, "p99": None}}
     json.dumps(link, allow_nan=False)
 
 
