@@ -41,12 +41,11 @@ def format_line(prog: str, totals: dict[str, Any], elapsed_s: float, total_s: fl
         parts.append("waiting for the OBU's metrics")
     else:
         out, rsu = totals["output_miss_ratio"], totals["rsu_miss_ratio"]
-        parts.append(f"output misses {totals['output_deadline_misses']}/{totals['cycles']} {pct(out['run'])} "
-                     f"({window_s:g} s {pct(out['window'])})")
-        parts.append(f"RSU misses {pct(rsu['run'])} ({window_s:g} s {pct(rsu['window'])})")
         modes = totals["modes"]
         mode = next(iter(modes)) if len(modes) == 1 else ", ".join(f"{m} {n}" for m, n in sorted(modes.items()))
         parts.append(f"mode {mode}")
+        parts.append(f"misses: output {totals['output_deadline_misses']}/{totals['cycles']} {pct(out['run'])} "
+                     f"({window_s:g} s {pct(out['window'])}), RSU {pct(rsu['run'])} ({window_s:g} s {pct(rsu['window'])})")
         parts.append(f"RSU lists {totals['rsu_lists_received']}")
         if totals["vehicles"] > 1:
             parts.append(f"{totals['vehicles']} vehicles")

@@ -48,5 +48,5 @@ def test_monitor_snapshot_of_a_live_demo(capfd):
     assert all(s["connected"] and s["metrics_messages"] > 0 for s in snap["sources"])
     assert result["cycles"] == 90  # the demo ran to its end with the monitor attached
     err = capfd.readouterr().err
-    assert "endpoints: OBU" in err and "v2i demo " in err and "output misses" in err
+    assert "endpoints: OBU" in err and "v2i demo " in err and "misses: output" in err
     assert "\r" not in err  # not a terminal: plain lines
