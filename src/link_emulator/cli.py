@@ -34,6 +34,7 @@ from schemas.messages import LinkControl
 from schemas.runtime import limit_malloc_arenas
 from schemas.transport import open_session
 from sim.clock import SystemClock
+from telemetry.metrics_cli import MetricsPortError, add_metrics_options, metrics_server
 
 from .config import MAX_VEHICLES, LinkConfig
 from .profile import DirectionProfile, TraceReplay, bundled_profiles, load_profile
@@ -94,6 +95,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help="exit cleanly after S seconds (default: run until SIGINT or SIGTERM)",
     )
     parser.add_argument("--list-profiles", action="store_true", help="print the bundled profile names and exit")
+    add_metrics_options(parser)
     sub = parser.add_subparsers(dest="link_command", metavar="{validate,set}", required=False)
     text = "push N messages through a profile's channel model and compare with what it declares"
     configure_validate_parser(sub.add_parser("validate", help=text, description=text))
@@ -344,18 +346,23 @@ def run(args: argparse.Namespace) -> int:
     try:
         config = load_config(LinkConfig, args.config, overrides)
         relay = V2vRelay(config, SystemClock()) if config.v2v else LinkRelay(config, SystemClock())
-    except ConfigError as exc:
+        server = metrics_server(relay, "link", args)  # /metrics with --metrics-port
+    except (ConfigError, MetricsPortError) as exc:
         print(f"link emulator: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()
-    with _stop_on_signals(stop), _stop_after(stop, args.duration):
-        try:
-            relay.open()
-        except zenoh.ZError as exc:
-            print(f"link emulator: cannot open Zenoh sessions: {exc}", file=sys.stderr)
-            return 1
-        _print_ready(config.link_id, [side.vehicle_id for side in config.vehicle_sides()])
-        relay.run(stop)
+    try:
+        with _stop_on_signals(stop), _stop_after(stop, args.duration):
+            try:
+                relay.open()
+            except zenoh.ZError as exc:
+                print(f"link emulator: cannot open Zenoh sessions: {exc}", file=sys.stderr)
+                return 1
+            _print_ready(config.link_id, [side.vehicle_id for side in config.vehicle_sides()])
+            relay.run(stop)
+    finally:
+        if server is not None:
+            server.close()
     return 0
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from schemas.runtime import add_service_options, run_service
+from telemetry.metrics_cli import add_metrics_options, export_node
 
 from .config import ObuConfig
 from .pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES
@@ -53,18 +54,24 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--wires", type=lambda v: tuple(w.strip() for w in v.split(",") if w.strip()), metavar="LIST",
                    help="RSU list encodings to take, comma-separated, of v2i, cpm (ETSI CPM), sdsm (SAE J3224 SDSM); "
                         "the standard ones compile their ASN.1 at start-up (default v2i)")
+    add_metrics_options(p)
 
 
 def run(args: argparse.Namespace) -> int:
     def make_node(config: ObuConfig):
-        if config.fusion == "roif":
-            if config.source != "sim":
-                raise ValueError("--source zenoh feeds object-level fusion; --fusion roif renders its own camera")
-            from .image_fusion_node import ImageFusionNode
-
-            return ImageFusionNode(config)
-        from .node import ObuNode
-
-        return ObuNode(config)
+        return export_node(_node(config), "obu", args)
 
     return run_service("obu", ObuConfig, args, make_node)
+
+
+def _node(config: ObuConfig):
+    """The OBU node ``config`` asks for: object-level fusion, or image-level (roif)."""
+    if config.fusion == "roif":
+        if config.source != "sim":
+            raise ValueError("--source zenoh feeds object-level fusion; --fusion roif renders its own camera")
+        from .image_fusion_node import ImageFusionNode
+
+        return ImageFusionNode(config)
+    from .node import ObuNode
+
+    return ObuNode(config)

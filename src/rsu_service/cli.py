@@ -6,6 +6,7 @@ import argparse
 
 from schemas.list_wire import WIRES
 from schemas.runtime import add_service_options, run_service
+from telemetry.metrics_cli import add_metrics_options, export_node
 
 from .config import PREDICTORS, SOURCES, RsuConfig
 
@@ -52,12 +53,13 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--predict-ahead", action="store_true", default=None,
                    help="track-predict compensation: publish tracks predicted to the publish time, "
                         "and once more half a frame later (5 Hz camera -> 10 Hz lists)")
+    add_metrics_options(p)
 
 
 def run(args: argparse.Namespace) -> int:
     def make_node(config: RsuConfig):
         from .node import RsuNode
 
-        return RsuNode(config)
+        return export_node(RsuNode(config), "rsu", args)
 
     return run_service("rsu", RsuConfig, args, make_node)
