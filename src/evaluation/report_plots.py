@@ -151,7 +151,7 @@ def _latency(ax, tl: VehicleTimeline) -> None:
 def _log_ms(ax) -> None:
     """Log axis labelled 1, 2, 5, 10, 20, 50, ... (plain numbers)."""
     ax.set_yscale("log")
-    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0), numticks=30))
     ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     ax.yaxis.set_minor_formatter(NullFormatter())
 
