@@ -53,6 +53,7 @@ CONTROL_MATCH_S = 3.0  # how long a link control waits for the emulator's contro
 POLL_S = 0.02  # supervisor period: chaos events fire within this of their time
 INBOX_MESSAGES = 1000  # received messages waiting to be scored (~35 s of objects, metrics and planning)
 MODE_RUNS_SHOWN = 6  # mode changes printed per chaos event
+METRICS_PORT_OFFSETS = {"rsu": 0, "link": 1, "obu": 2}  # --metrics-ports BASE: each child's /metrics port
 
 
 class DemoError(RuntimeError):
@@ -217,7 +218,7 @@ class InboxScoring:
 class Demo(InboxScoring):
     def __init__(self, spec: RunSpec, startup_s: float = 4.0, outage: LinkOutage | None = None,
                  chaos: ChaosTimeline | None = None, record_to: str | None = None,
-                 progress: str | None = None):
+                 progress: str | None = None, metrics_ports: int | None = None):
         """``chaos``: a timeline to play; its RSU clock step must already be in ``spec`` (``with_chaos``).
         ``outage`` (``--kill-link-at``) is played as its generated timeline; not with ``chaos``.
         ``record_to``: an MCAP file recording both sides of the link (``evaluation.replay_demo``)."""
@@ -228,6 +229,7 @@ class Demo(InboxScoring):
         self.duration_s = spec.duration_s or self.world.scenario.duration_s
         self.startup_s = startup_s
         self.record_to = record_to
+        self.metrics_ports = metrics_ports  # /metrics of the children: rsu BASE, link BASE+1, obu BASE+2; None: off
         self.outage = outage
         self.chaos = outage.timeline() if outage else chaos
         self.rsu_ep, self.obu_ep, self.control_ep = free_tcp_endpoint(), free_tcp_endpoint(), free_tcp_endpoint()
@@ -314,6 +316,13 @@ class Demo(InboxScoring):
         return self.chaos is not None and any(e.link_control(LINK_ID) is not None for e in self.chaos.events)
 
     def _argv(self, name: str, start_ns: int) -> list[str]:
+        """``name``'s command line, with its ``--metrics-port`` when the demo has ``metrics_ports``."""
+        argv = self._service_argv(name, start_ns)
+        if self.metrics_ports is None:
+            return argv
+        return [*argv, "--metrics-port", str(self.metrics_ports + METRICS_PORT_OFFSETS[name])]
+
+    def _service_argv(self, name: str, start_ns: int) -> list[str]:
         s, base = self.spec, [sys.executable, "-m", "v2i", name]
         common = ["--scenario", s.scenario, "--seed", str(s.seed), "--start-at-ns", str(start_ns),
                   "--duration", str(self.duration_s)]

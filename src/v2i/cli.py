@@ -219,13 +219,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _check_inputs(args)
     if args.record and (args.fusion == "roif" or _is_site(args.scenario)):
         raise ValueError("--record records a single RSU and vehicle demo (not a site, not --fusion roif)")
+    if args.metrics_ports is not None and (args.fusion == "roif" or _is_site(args.scenario)):
+        raise ValueError("--metrics-ports serves a single RSU and vehicle demo (not a site, not --fusion roif)")
     if _is_site(args.scenario):
         return _run_site_demo(args)
     if args.fusion == "roif":
         return _run_roif_demo(args)
     outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
     return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage, record_to=args.record,
-                          progress=_progress(args)), args.json, "v2i demo", args.report)
+                          progress=_progress(args), metrics_ports=args.metrics_ports),
+                     args.json, "v2i demo", args.report)
 
 
 def _progress(args: argparse.Namespace) -> str | None:
@@ -412,7 +415,18 @@ def _demo_options(demo: argparse.ArgumentParser) -> None:
     demo.add_argument("--link-down-s", type=float, default=3.0, help="chaos: restart it this many seconds later (default %(default)s)")
     demo.add_argument("--record", metavar="FILE", help=_RECORD_HELP)
     demo.add_argument("--report", metavar="DIR", help=_REPORT_HELP)
+    demo.add_argument("--metrics-ports", type=_metrics_base, metavar="BASE",
+                      help="serve each service's Prometheus /metrics on 127.0.0.1: rsu BASE, link BASE+1, obu BASE+2 "
+                           "(e.g. 9101: the ports of deploy/prometheus/prometheus.yml); default: none")
     demo.set_defaults(func=cmd_demo)
+
+
+def _metrics_base(text: str) -> int:
+    """argparse type of ``--metrics-ports``: a port that leaves room for the two after it."""
+    value = int(text)
+    if not 1 <= value <= 65533:
+        raise argparse.ArgumentTypeError(f"must be a TCP port 1..65533 (three ports from it), got {text}")
+    return value
 
 
 def _chaos_options(chaos: argparse.ArgumentParser) -> None:

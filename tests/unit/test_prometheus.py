@@ -68,7 +68,8 @@ def test_obu_counters_and_gauges_are_the_metrics_message_in_base_units():
     assert one(s, "v2i_obu_output_deadline_misses_total", **car) == 3
     assert one(s, "v2i_obu_rsu_deadline_misses_total", **car) == 7
     assert one(s, "v2i_obu_covered_cycles_total", **car) == 180
-    assert s["v2i_obu_mode_cycles_total"] == {(("mode", k), ("vehicle_id", "car1")): v for k, v in m.mode_counts.items()}
+    modes = {(("mode", k), ("vehicle_id", "car1")): v for k, v in m.mode_counts.items()}
+    assert s["v2i_obu_mode_cycles_total"] == modes
     assert s["v2i_obu_fusion_mode"] == {(("mode", "intra"), ("vehicle_id", "car1")): 1.0}
     assert one(s, "v2i_obu_rejected_total", reason="stale", **car) == 4
     assert one(s, "v2i_obu_output_dropped_total", reason="too_many", **car) == 2
