@@ -39,7 +39,7 @@ from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 from sim.world import World
-from telemetry.latency import StageLatency
+from telemetry.latency import PeriodicSummary, StageLatency
 
 from .config import RsuConfig
 from .pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
@@ -82,6 +82,7 @@ class RsuNode:
         self._details: dict[str, str] = {}
         self._reported_ns = 0  # true clock of the last metrics
         self.latency = StageLatency()  # per-stage durations (telemetry.latency); read by other threads
+        self._latency_summary = PeriodicSummary(self.latency)  # into the metrics, recomputed once a second
         self.last_metrics: RsuMetrics | None = None  # the latest published; one assignment, read by other threads
         # scored when the source knows the truth (simulated world)
         rsu = self.world.scenario.rsus[self.world.scenario.rsu_index(config.rsu_id)]
@@ -237,7 +238,7 @@ class RsuNode:
         self._log.totals(rejected, self._details)
         metrics = RsuMetrics(rsu_id=self.config.rsu_id, t_ns=self.clock.now_ns(), published=self.published,
                              skipped=self.skipped, time_replies=replies, rejected=dict(rejected),
-                             perception=self._perception(), latency_ms=self.latency.summary_ms())
+                             perception=self._perception(), latency_ms=self._latency_summary.get(self._reported_ns))
         self._metrics.put(encode(metrics))
         self.last_metrics = metrics
         self._trim.maybe()
