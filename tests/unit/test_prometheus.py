@@ -4,14 +4,19 @@ capped, and the HTTP exporter's start-up errors."""
 
 from __future__ import annotations
 
+import json
+import re
 import socket
 import urllib.request
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+import yaml
 from prometheus_client import generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
+from evaluation.demo import METRICS_PORT_OFFSETS
 from link_emulator.config import LinkConfig
 from link_emulator.relay import LinkRelay
 from link_emulator.v2v_relay import V2vRelay
@@ -24,6 +29,7 @@ from telemetry.prometheus_collectors import LinkCollector, ObuCollector, RsuColl
 
 T0 = 1_767_225_600_000_000_000
 EP = ["tcp/127.0.0.1:1"]
+DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 
 
 def scrape(collector) -> dict[str, dict[tuple, float]]:
@@ -234,3 +240,33 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def _every_series_name() -> set[str]:
+    """Sample names of a scrape of each collector over nodes with every field and stage filled."""
+    latency = latency_with({"rsu_to_obu": [0.01], "fuse": [0.001], "detect": [0.1], "relay_hold": [0.02]})
+    relay = LinkRelay(LinkConfig(link_id="l1", rsu_connect=EP, vehicle_connect=EP, profile="ideal"), SystemClock())
+    relay.pairs[0].downlink.delay_ms.add(25.0)
+    relay.last_stats, relay.latency = relay.stats_snapshot(T0), latency
+    rsu = RsuMetrics(rsu_id="rsu1", t_ns=T0, rejected={"x": 1})
+    names: set[str] = set()
+    for collector in (ObuCollector(SimpleNamespace(last_metrics=obu_metrics(), latency=latency)),
+                      RsuCollector(SimpleNamespace(last_metrics=rsu, latency=latency)), LinkCollector(relay)):
+        names |= set(scrape(collector))
+    relay._gate.count("rate_limited")
+    relay.last_stats = relay.stats_snapshot(T0)
+    return names | set(scrape(LinkCollector(relay)))
+
+
+def test_the_grafana_dashboard_queries_only_series_the_services_export():
+    dashboard = json.loads((DEPLOY / "grafana" / "v2i-dashboard.json").read_text())
+    exprs = [t["expr"] for p in dashboard["panels"] for t in p.get("targets", [])]
+    used = {name for e in exprs for name in re.findall(r"\bv2i_[a-z0-9_]+", e)}
+    assert len(exprs) >= 20 and {"v2i_obu_rsu_delay_seconds_bucket", "v2i_link_dropped_total"} <= used
+    assert used - _every_series_name() == set()
+
+
+def test_the_prometheus_config_scrapes_the_ports_the_demo_and_compose_use():
+    config = yaml.safe_load((DEPLOY / "prometheus" / "prometheus.yml").read_text())
+    targets = {job["job_name"]: job["static_configs"][0]["targets"] for job in config["scrape_configs"]}
+    assert targets == {f"v2i-{svc}": [f"{svc}:{9101 + offset}"] for svc, offset in METRICS_PORT_OFFSETS.items()}
