@@ -75,8 +75,14 @@ def _all_subclasses(cls: type) -> list[type]:
 
 @cache
 def models_by_type() -> dict[str, type[Message]]:
-    """Every wire message model by its ``TYPE`` (the map envelope's ``t``)."""
-    return {m.TYPE: m for m in _all_subclasses(Message)}
+    """Every wire message model by its ``TYPE`` (the map envelope's ``t``): the models of the
+    ``schemas`` package only (other code may subclass Message with the same TYPE, e.g. a test's
+    legacy codec), each TYPE's first definition."""
+    out: dict[str, type[Message]] = {}
+    for m in _all_subclasses(Message):
+        if m.__module__.startswith("schemas.") and "TYPE" in vars(m):
+            out.setdefault(m.TYPE, m)
+    return out
 
 
 @cache
