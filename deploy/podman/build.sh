@@ -15,6 +15,7 @@
 # pip and the project's dependencies installed (default: the repository's .venv).
 #
 #   sudo deploy/podman/build.sh                      # -> v2i:latest
+#   sudo deploy/podman/build.sh --prometheus         # also v2i-prometheus:latest (Debian's prometheus)
 #   sudo V2I_IMAGE=v2i:dev REBUILD_BASE=1 deploy/podman/build.sh
 set -euo pipefail
 
@@ -22,6 +23,7 @@ REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
 CACHE=${V2I_PODMAN_CACHE:-$HOME/.cache/v2i-podman}
 IMAGE=${V2I_IMAGE:-v2i:latest}
 BASE_IMAGE=${V2I_BASE_IMAGE:-v2i-base:bookworm}
+PROMETHEUS_IMAGE=${V2I_PROMETHEUS_IMAGE:-v2i-prometheus:latest}
 SUITE=${DEBIAN_SUITE:-bookworm}
 MIRROR=${DEBIAN_MIRROR:-http://deb.debian.org/debian}
 PYTHON=${PYTHON:-$REPO/.venv/bin/python}
@@ -32,13 +34,13 @@ ULIMITS=(--ulimit nofile=1024:1024 --ulimit nproc=4096:4096)
 
 log() { printf '[build.sh %(%H:%M:%S)T] %s\n' -1 "$*" >&2; }
 
-# The base root file system as a tarball: debootstrap minbase + python3 (3.11 in bookworm) + venv.
-# Documentation, man pages, locales and apt's lists are dropped: nothing in the image reads them.
-build_base_tarball() {
-    local tarball=$1 rootfs="$CACHE/rootfs.tmp"
+# A root file system as a tarball: debootstrap minbase + PACKAGES (comma-separated). Documentation,
+# man pages, locales and apt's lists are dropped: nothing in the images reads them.
+build_rootfs_tarball() {
+    local tarball=$1 packages=$2 rootfs="$CACHE/rootfs.tmp"
     rm -rf "$rootfs"
-    log "debootstrap $SUITE minbase from $MIRROR"
-    debootstrap --variant=minbase --include=python3,python3-venv "$SUITE" "$rootfs" "$MIRROR" >"$CACHE/debootstrap.log"
+    log "debootstrap $SUITE minbase + $packages from $MIRROR"
+    debootstrap --variant=minbase --include="$packages" "$SUITE" "$rootfs" "$MIRROR" >"$CACHE/debootstrap.log"
     chroot "$rootfs" apt-get clean
     rm -rf "$rootfs"/var/lib/apt/lists/* "$rootfs"/usr/share/doc/* "$rootfs"/usr/share/man/* \
            "$rootfs"/usr/share/info/* "$rootfs"/usr/share/locale/* "$rootfs"/var/log/*.log \
@@ -48,16 +50,20 @@ build_base_tarball() {
     rm -rf "$rootfs"
 }
 
-ensure_base() {
-    local tarball="$CACHE/base-$SUITE.tar"
+# IMAGE from the tarball $CACHE/NAME.tar of minbase + PACKAGES, both made when missing (both again
+# with REBUILD_BASE=1); further arguments are `podman import --change` instructions.
+ensure_imported() {
+    local image=$1 name=$2 packages=$3 tarball="$CACHE/$2.tar" change changes=()
+    shift 3
+    for change in "$@"; do changes+=(--change "$change"); done
     if [ -n "${REBUILD_BASE:-}" ]; then
         rm -f "$tarball"
-        "${PODMAN[@]}" image rm --force "$BASE_IMAGE" >/dev/null 2>&1 || true
+        "${PODMAN[@]}" image rm "$image" >/dev/null 2>&1 || true
     fi
-    [ -f "$tarball" ] || build_base_tarball "$tarball"
-    if ! "${PODMAN[@]}" image exists "$BASE_IMAGE"; then
-        log "podman import $tarball as $BASE_IMAGE"
-        "${PODMAN[@]}" import --change 'CMD ["/bin/bash"]' "$tarball" "$BASE_IMAGE" >/dev/null
+    [ -f "$tarball" ] || build_rootfs_tarball "$tarball" "$packages"
+    if ! "${PODMAN[@]}" image exists "$image"; then
+        log "podman import $tarball as $image"
+        "${PODMAN[@]}" import "${changes[@]}" "$tarball" "$image" >/dev/null
     fi
 }
 
@@ -89,10 +95,24 @@ remove_if_dangling() {
     "${PODMAN[@]}" image rm "$id" >/dev/null
 }
 
+# Debian's prometheus in its own image, the same way (no registry): for the compose file's
+# "prometheus" service. Its configuration is mounted at run time (deploy/prometheus/).
+ensure_prometheus() {
+    ensure_imported "$PROMETHEUS_IMAGE" "prometheus-$SUITE" prometheus \
+        'USER prometheus' 'WORKDIR /var/lib/prometheus' 'EXPOSE 9090' 'ENTRYPOINT ["/usr/bin/prometheus"]' \
+        'CMD ["--config.file=/etc/prometheus/prometheus.yml", "--storage.tsdb.path=/var/lib/prometheus/metrics2"]'
+}
+
 main() {
     local start_s=$SECONDS context="$CACHE/context"
     mkdir -p "$CACHE" "$context"
-    ensure_base
+    case "${1:-}" in
+        "") ;;
+        --prometheus) ensure_prometheus ;;
+        *) echo "usage: $0 [--prometheus]" >&2; exit 2 ;;
+    esac
+    # The services' base: python3 is 3.11 in bookworm; venv brings ensurepip's wheels.
+    ensure_imported "$BASE_IMAGE" "base-$SUITE" python3,python3-venv 'CMD ["/bin/bash"]'
     build_wheels "$context/wheels"
     cp "$REPO/deploy/netns/watch_fused.py" "$context/watch_fused.py"
     local previous_id
