@@ -3,11 +3,14 @@
 The compose file puts the RSU on ``rsu-net`` only, the OBU on ``obu-net`` only and the link
 emulator on both (internal networks, no route out); the ``watch`` service on ``obu-net`` counts
 the OBU's fused lists that hold RSU objects, which only the emulator can have carried across.
+With the ``prometheus`` service (Debian's prometheus, ``build.sh --prometheus``), Prometheus
+scrapes the three services' /metrics across both networks.
 The project name is unique to this run (containers ``NAME_SERVICE_1``, networks ``NAME_rsu-net``,
 ``NAME_obu-net``), and everything it created is removed afterwards, also on failure.
 
 Runs only where it can: root, podman, podman-compose and the image ``$V2I_IMAGE`` (default
-``v2i:latest``, built by ``deploy/podman/build.sh``). CI does not build images: without the image
+``v2i:latest``, built by ``deploy/podman/build.sh``; the Prometheus test also
+``$V2I_PROMETHEUS_IMAGE``, default ``v2i-prometheus:latest``). CI does not build images: without the image
 the test is skipped, unless ``V2I_PODMAN_BUILD=1`` asks this test to run the build first.
 """
 
