@@ -201,6 +201,18 @@ class InboxScoring:
             with self._drop_lock:
                 self.dropped[kind] += 1
 
+    def _watch_with_live_line(self, start_ns: int, events=lambda: (0, 0)) -> None:
+        """``self._watch(start_ns)`` with the live line on stderr (``self.progress`` names it; None: no
+        line); ``events()``: chaos events (played, planned)."""
+        if self.progress:
+            self._live = LiveLine(self.progress, start_ns, self.duration_s, events)
+            self._live.start()
+        try:
+            self._watch(start_ns)
+        finally:
+            if self._live is not None:
+                self._live.stop()
+
     def _score_inbox(self) -> None:
         """Scorer thread: decode and score each message in arrival order until the None that ends the run."""
         while (item := self._inbox.get()) is not None:
@@ -368,15 +380,8 @@ class Demo(InboxScoring):
         """Log the endpoints (for ``v2i monitor``); show the live line (``progress``) while ``_watch`` runs."""
         log("demo", f"endpoints: OBU {self.obu_ep}, RSU {self.rsu_ep}, link {self.control_ep} "
                     f"(v2i monitor --connect {self.obu_ep} --connect {self.rsu_ep} --connect {self.control_ep})")
-        if self.progress:
-            events = len(self.chaos.events) if self.chaos else 0
-            self._live = LiveLine(self.progress, start_ns, self.duration_s, lambda: (len(self.played), events))
-            self._live.start()
-        try:
-            self._watch(start_ns)
-        finally:
-            if self._live is not None:
-                self._live.stop()
+        events = len(self.chaos.events) if self.chaos else 0
+        self._watch_with_live_line(start_ns, lambda: (len(self.played), events))
 
     def _watch(self, start_ns: int) -> None:
         """Watch the children until the run ends, playing the chaos timeline at scenario time."""

@@ -193,14 +193,7 @@ class SiteDemo(InboxScoring):
 
     def _supervise(self, start_ns: int) -> None:
         """The live line (``progress``) while ``_watch`` runs."""
-        if self.progress:
-            self._live = LiveLine(self.progress, start_ns, self.duration_s)
-            self._live.start()
-        try:
-            self._watch(start_ns)
-        finally:
-            if self._live is not None:
-                self._live.stop()
+        self._watch_with_live_line(start_ns)
 
     def _watch(self, start_ns: int) -> None:
         """Until the run's end (+0.5 s; the services end at +1 s): any child that exits ends the demo."""
