@@ -1,13 +1,19 @@
-"""Reading a ``v2i record`` MCAP file back: its sides, samples, metadata and RSU time exchanges."""
+"""Reading a ``v2i record`` MCAP file back: its sides, samples, metadata and RSU time exchanges.
+
+A recording is untrusted input: the file is read once through at open (CRCs checked, records and
+chunks at most ``MAX_CHUNK_BYTES`` compressed or not, every message decoded from its chunk), and
+anything wrong with it is a ``RecordingError`` (a ``ValueError``) naming the file, never a traceback.
+"""
 
 from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from mcap.reader import make_reader
+from mcap.reader import SeekingReader
 
 from schemas.codec import CodecError, decode
 from schemas.messages import TimeReply
@@ -16,6 +22,11 @@ from .mcap_channels import models_by_type
 from .time_shift import Exchange
 
 TIME_REPLY = TimeReply.TYPE
+MAX_CHUNK_BYTES = 64 << 20  # v2i record writes chunks of ~1 MB
+
+
+class RecordingError(ValueError):
+    """The file is not a readable ``v2i record`` recording."""
 
 
 def key_matches(pattern: str, key: str) -> bool:
@@ -58,15 +69,37 @@ class Recording:
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        with open(self.path, "rb") as f:
-            reader = make_reader(f)
+        with self._reader() as reader:
             summary = reader.get_summary()
             if summary is None:
-                raise ValueError(f"{self.path}: no MCAP summary (a recording that was not closed)")
-            self.channels = {cid: RawChannel(c.topic, c.metadata["side"], c.metadata["key"], c.metadata["kind"])
+                raise RecordingError(f"{self.path}: no MCAP summary (a recording that was not closed)")
+            big = [c.uncompressed_size for c in summary.chunk_indexes if c.uncompressed_size > MAX_CHUNK_BYTES]
+            if big:
+                raise RecordingError(f"{self.path}: a chunk of {big[0]} bytes (at most {MAX_CHUNK_BYTES})")
+            self.channels = {cid: RawChannel(str(c.topic), str(c.metadata["side"]), str(c.metadata["key"]),
+                                             str(c.metadata["kind"]))
                              for cid, c in summary.channels.items() if "side" in c.metadata}
             self.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
             self.message_counts = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
+            for _ in reader.iter_messages():  # every chunk decompressed and checked once, here
+                pass
+
+    @contextmanager
+    def _reader(self) -> Iterator[SeekingReader]:
+        """A reader of the file whose every failure is a ``RecordingError`` naming it."""
+        try:
+            with open(self.path, "rb") as f:
+                yield SeekingReader(f, validate_crcs=True, record_size_limit=MAX_CHUNK_BYTES)
+        except (RecordingError, OSError):
+            raise
+        except Exception as exc:  # noqa: BLE001 - mcap, zstd, lz4, struct, unicode, key errors of a bad file
+            raise RecordingError(f"{self.path}: not a readable v2i recording ({type(exc).__name__}: {exc})") from exc
+
+    def _messages(self, topics: list[str]):
+        """(channel, message) of ``topics`` in log-time order."""
+        with self._reader() as reader:
+            for _, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
+                yield channel, message
 
     @property
     def sides(self) -> list[str]:
@@ -80,10 +113,9 @@ class Recording:
         if not topics:
             return
         by_topic = {c.topic: c for c in self.channels.values()}
-        with open(self.path, "rb") as f:
-            for _, channel, message in make_reader(f).iter_messages(topics=topics, log_time_order=True):
-                c = by_topic[channel.topic]
-                yield Sample(c.side, c.key, c.kind, message.log_time, bytes(message.data))
+        for channel, message in self._messages(topics):
+            c = by_topic[channel.topic]
+            yield Sample(c.side, c.key, c.kind, message.log_time, bytes(message.data))
 
     def exchanges(self) -> dict[str, list[Exchange]]:
         """The recorder's time exchanges by RSU id: t1, t2, t3 from each reply, t4 its log time."""
@@ -91,11 +123,10 @@ class Recording:
         out: dict[str, list[Exchange]] = defaultdict(list)
         if not topics:
             return out
-        with open(self.path, "rb") as f:
-            for _, _, message in make_reader(f).iter_messages(topics=topics, log_time_order=True):
-                try:
-                    reply = decode(bytes(message.data), TimeReply)
-                except CodecError:
-                    continue
-                out[reply.rsu_id].append(Exchange(reply.t1_ns, reply.t2_ns, reply.t3_ns, message.log_time))
+        for _, message in self._messages(topics):
+            try:
+                reply = decode(bytes(message.data), TimeReply)
+            except CodecError:
+                continue
+            out[reply.rsu_id].append(Exchange(reply.t1_ns, reply.t2_ns, reply.t3_ns, message.log_time))
         return out

@@ -16,7 +16,7 @@ from schemas.codec import decode, encode
 from schemas.messages import (SCHEMA_VERSION, FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics, PredictedPath,
                               PredictionList, TimeReply)
 from telemetry import mcap_channels as mc
-from telemetry.mcap_reader import Recording, key_matches
+from telemetry.mcap_reader import Recording, RecordingError, key_matches
 from telemetry.mcap_writer import RunWriter
 from telemetry.time_shift import Exchange, RsuClockTrack, round_shift_ns, shift_message, shift_payload
 
@@ -140,7 +140,8 @@ def test_mcap_round_trip(tmp_path):
     hostile = msgpack.packb({"v": SCHEMA_VERSION, "t": "obu_metrics", "d": {"vehicle_id": "ego", "cycles": -5}})
     samples = [("vehicle", "v2x/rsu/rsu1/objects", encode(object_list()), T_NS + 100),
                ("vehicle", "v2x/obu/ego/objects", encode(_fused()), T_NS + 200),
-               ("vehicle", "v2x/obu/ego/metrics", encode(ObuMetrics(vehicle_id="ego", t_ns=T_NS, cycles=9)), T_NS + 300),
+               ("vehicle", "v2x/obu/ego/metrics", encode(ObuMetrics(vehicle_id="ego", t_ns=T_NS, cycles=9)),
+                T_NS + 300),
                ("link", "v2x/link/l/stats", json.dumps({"delivered": 3}).encode(), T_NS + 400),
                ("vehicle", "v2x/rsu/rsu1/objects", encode(big), T_NS + 500),
                ("vehicle", "v2x/obu/ego/metrics", hostile, T_NS + 600),
@@ -173,7 +174,8 @@ def test_mcap_round_trip(tmp_path):
             "/vehicle/v2x/obu/ego/objects/scene", "/vehicle/v2x/obu/ego/metrics/json"])}
     cube = scenes["/vehicle/v2x/obu/ego/objects/scene"]["entities"][0]["cubes"][0]
     # base_link (10, -3) with the ego at (100, 50) heading +y: map (100 + 3, 50 + 10)
-    assert cube["pose"]["position"]["x"] == pytest.approx(103.0) and cube["pose"]["position"]["y"] == pytest.approx(60.0)
+    position = cube["pose"]["position"]
+    assert position["x"] == pytest.approx(103.0) and position["y"] == pytest.approx(60.0)
     assert scenes["/vehicle/v2x/obu/ego/metrics/json"]["cycles"] == 9
     assert topics["/vehicle/v2x/rsu/rsu1/objects"].message_encoding == mc.V2I_ENCODING
 
@@ -181,3 +183,35 @@ def test_mcap_round_trip(tmp_path):
 def test_recording_without_run_metadata_has_no_spec():
     with pytest.raises(ValueError, match="run metadata"):
         spec_of({})
+
+
+def _small_recording(path) -> bytes:
+    writer = RunWriter(path)
+    for i in range(50):
+        writer.write("vehicle", "v2x/rsu/rsu1/objects", encode(object_list(T_NS + i * 100_000_000)), T_NS + i)
+    writer.close()
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize("damage", ["truncated", "random", "bit_flips", "zeros", "empty"])
+def test_a_damaged_recording_is_a_clear_error(tmp_path, damage: str):
+    """A recording is untrusted input: whatever is wrong with it is a RecordingError naming the file."""
+    good = _small_recording(tmp_path / "good.mcap")
+    rng = np.random.default_rng(7)
+    data = bytearray(good)
+    if damage == "truncated":
+        data = data[: len(data) // 2]
+    elif damage == "random":
+        data = bytearray(rng.integers(0, 256, 4000, dtype=np.uint8).tobytes())
+    elif damage == "bit_flips":
+        for i in rng.integers(0, len(data), 40):
+            data[i] ^= 1 << int(rng.integers(0, 8))
+    elif damage == "zeros":
+        data[8:-8] = bytes(len(data) - 16)
+    else:
+        data = bytearray()
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match="bad.mcap"):
+        recording = Recording(path)
+        list(recording.samples("vehicle"))
