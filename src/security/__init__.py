@@ -1,0 +1,6 @@
+"""Signed V2X messages (issue 14): a site PKI, signed envelopes and their verifier.
+
+Pure: no Zenoh, no clock reads (times are arguments). Modules: :mod:`.algorithms` (ECDSA P-256,
+Ed25519), :mod:`.certificates` (certificates, revocation lists), :mod:`.pki` (the directory the CA
+writes and services load), :mod:`.envelope` (sign / verify), :mod:`.replay_window`.
+"""
