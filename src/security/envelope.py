@@ -143,7 +143,8 @@ class Verifier:
 
     ``freshness_ns``: the oldest accepted age ``now_ns - generation_ns``; ``future_ns``: how far
     ahead of ``now_ns`` a generation time may be; ``replay_window_ns`` (>= ``freshness_ns``): how
-    long seen messages are remembered, per signer, in the signer's clock.
+    long seen messages are remembered, per signer, in the signer's clock. Not thread-safe: one
+    owner (the service loop) calls it.
     """
 
     def __init__(self, trust: Trust, policy: str = "strict", freshness_ns: int = 2_000_000_000,
@@ -161,6 +162,13 @@ class Verifier:
         self._cache: OrderedDict[bytes, _Entry] = OrderedDict()
         self.counts: Counter[str] = Counter()
         self.wanted: OrderedDict[bytes, None] = OrderedDict()
+
+    def set_trust(self, trust: Trust) -> None:
+        """Take a reloaded trust directory (e.g. a new revocation list); revocation applies to
+        cached certificates at once, and the cache is emptied if the CA changed."""
+        if trust.ca.encoding != self.trust.ca.encoding:
+            self._cache.clear()
+        self.trust = trust
 
     def _cached(self, digest: bytes) -> _Entry | None:
         entry = self._cache.get(digest)

@@ -255,6 +255,21 @@ def test_key_substitution_is_a_bad_signature(site):
     assert v.verify(env, OBJ, T0) == (PAYLOAD, "ok")
 
 
+def test_revocation_reloaded_at_run_time_applies_to_a_cached_certificate(tmp_path):
+    pki = Pki.init(tmp_path, T0)
+    pki.issue("rsu-0", "rsu", T0)
+    s, v = signer(tmp_path), verifier(tmp_path)
+    assert v.verify(sign(PAYLOAD, s, T0, OBJ), OBJ, T0)[1] == "ok"
+    pki.revoke("rsu-0", T0 + 1)
+    assert v.verify(sign(PAYLOAD, s, T0 + 1, OBJ), OBJ, T0)[1] == "ok", "old trust until reloaded"
+    v.set_trust(load_trust(tmp_path))
+    assert v.verify(sign(PAYLOAD, s, T0 + 2, OBJ), OBJ, T0) == (None, "revoked")
+    other = Pki.init(tmp_path / "other", T0)
+    other.issue("rsu-0", "rsu", T0)
+    v.set_trust(load_trust(tmp_path / "other"))
+    assert v.verify(sign(PAYLOAD, s, T0 + 3, OBJ), OBJ, T0) == (None, "unknown_cert"), "old CA's cache dropped"
+
+
 def test_replay_is_remembered_for_the_window_then_stale(site):
     s = signer(site)
     v = verifier(site, freshness_ns=1000 * MS, replay_window_ns=1000 * MS)
