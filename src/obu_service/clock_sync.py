@@ -86,6 +86,11 @@ class SyncSample:
     def round_trip_ns(self) -> int:
         return (self.t4_ns - self.t1_ns) - (self.t3_ns - self.t2_ns)
 
+    @property
+    def midpoint_ns(self) -> int:
+        """(t1 + t4) / 2: the local time the exchange's offset refers to."""
+        return (self.t1_ns + self.t4_ns) // 2
+
     def brackets(self, theta_ns: float, slack_ns: float = 0.0) -> bool:
         """True when t3 - t4 - slack <= theta <= t2 - t1 + slack (theta is physically possible)."""
         return self.t3_ns - self.t4_ns - slack_ns <= theta_ns <= self.t2_ns - self.t1_ns + slack_ns

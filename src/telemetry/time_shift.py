@@ -13,18 +13,19 @@ The RSU clock in the replay: the recording holds four-timestamp exchanges with t
 theta = ((t2 - t1) + (t3 - t4)) / 2 (NTP; error <= half the path asymmetry), and the round-trip
 delay d = (t4 - t1) - (t3 - t2). ``RsuClockTrack`` keeps the low-delay exchanges, takes a running
 median of their offsets (the jitter of single exchanges goes, a step's edge stays) and
-interpolates theta(h) between them (a drift is followed piecewise). The replayed RSU clock at replay host time t is rsu(t) = t + theta(t - shift_ns).
+interpolates theta(h) between them (a drift is followed piecewise). The replayed RSU clock at
+replay host time t is rsu(t) = t + theta(t - shift_ns). An exchange is ``clock_sync.SyncSample``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import cache
 
 import annotated_types
 import numpy as np
 from scipy.ndimage import median_filter
 
+from obu_service.clock_sync import SyncSample
 from schemas import list_wire
 from schemas.codec import decode, encode
 from schemas.messages import MAX_TIME_NS, MIN_TIME_NS, Message, ObjectList
@@ -82,28 +83,7 @@ def shift_payload(kind: str, model: type[Message] | None, payload: bytes, shift_
     raise ValueError(f"cannot move the stamps of a {kind!r} payload")
 
 
-@dataclass(frozen=True)
-class Exchange:
-    """One recorded time exchange: t1, t4 host clock; t2, t3 RSU clock (ns)."""
-
-    t1_ns: int
-    t2_ns: int
-    t3_ns: int
-    t4_ns: int
-
-    @property
-    def host_ns(self) -> int:
-        return (self.t1_ns + self.t4_ns) // 2
-
-    @property
-    def offset_ns(self) -> int:
-        """theta = ((t2 - t1) + (t3 - t4)) / 2 = rsu - host."""
-        return ((self.t2_ns - self.t1_ns) + (self.t3_ns - self.t4_ns)) // 2
-
-    @property
-    def delay_ns(self) -> int:
-        """Round trip without the RSU's hold: (t4 - t1) - (t3 - t2)."""
-        return (self.t4_ns - self.t1_ns) - (self.t3_ns - self.t2_ns)
+Exchange = SyncSample  # one recorded time exchange: t1, t4 host clock; t2, t3 RSU clock (ns)
 
 
 class RsuClockTrack:
@@ -115,10 +95,10 @@ class RsuClockTrack:
 
     def __init__(self, exchanges: list[Exchange]):
         valid = [e for e in exchanges if e.t4_ns >= e.t1_ns and e.t3_ns >= e.t2_ns]
-        delays = np.array([e.delay_ns for e in valid], dtype=np.int64)
+        delays = np.array([e.round_trip_ns for e in valid], dtype=np.int64)
         limit = DELAY_KEEP_FACTOR * float(np.median(delays)) + DELAY_SLACK_NS if len(delays) else 0.0
-        kept = sorted((e for e in valid if e.delay_ns <= limit), key=lambda e: e.host_ns)
-        self.host_ns = np.array([e.host_ns for e in kept], dtype=np.int64)
+        kept = sorted((e for e in valid if e.round_trip_ns <= limit), key=lambda e: e.midpoint_ns)
+        self.host_ns = np.array([e.midpoint_ns for e in kept], dtype=np.int64)
         raw_ns = np.array([e.offset_ns for e in kept], dtype=np.int64)
         # a running median over MEDIAN_EXCHANGES: removes the per-exchange jitter, keeps a step's edge
         self.offset_ns = median_filter(raw_ns, size=MEDIAN_EXCHANGES, mode="nearest") if len(raw_ns) else raw_ns
