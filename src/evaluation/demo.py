@@ -44,6 +44,7 @@ from sim.world import World
 from telemetry.live_line import LiveLine
 
 from .chaos import ChaosEvent, ChaosTimeline
+from .live_security import run_pki, security_argv
 from .metrics import mode_share
 from .spec import RunRecord, RunSpec, build_report
 
@@ -230,10 +231,12 @@ class InboxScoring:
 class Demo(InboxScoring):
     def __init__(self, spec: RunSpec, startup_s: float = 4.0, outage: LinkOutage | None = None,
                  chaos: ChaosTimeline | None = None, record_to: str | None = None,
-                 progress: str | None = None, metrics_ports: int | None = None):
+                 progress: str | None = None, metrics_ports: int | None = None, pki_dir: str | None = None):
         """``chaos``: a timeline to play; its RSU clock step must already be in ``spec`` (``with_chaos``).
         ``outage`` (``--kill-link-at``) is played as its generated timeline; not with ``chaos``.
-        ``record_to``: an MCAP file recording both sides of the link (``evaluation.replay_demo``)."""
+        ``record_to``: an MCAP file recording both sides of the link (``evaluation.replay_demo``).
+        ``pki_dir``: the site PKI to use and complete (``live_security.run_pki``); default: one in the
+        run's temporary directory."""
         if outage is not None and chaos is not None:
             raise ValueError("a link outage and a chaos timeline together: put the kill and restart in the timeline")
         self.spec = spec
@@ -256,6 +259,7 @@ class Demo(InboxScoring):
         self._control = ControlChannel(self.control_ep, LINK_ID)
         self._tmp = tempfile.TemporaryDirectory(prefix="v2i-demo-")
         self.link_config = self._write_link_config(Path(self._tmp.name))
+        self.pki_dir = run_pki(spec, self.world.scenario, pki_dir or Path(self._tmp.name) / "pki", time.time_ns())
 
     def _write_link_config(self, folder: Path) -> Path:
         """LinkConfig YAML with the RSU position (for distance-dependent channels); no CLI flag has it."""
@@ -344,10 +348,11 @@ class Demo(InboxScoring):
                                                               "--clock-step-at-s", str(s.rsu_clock_step_at_s)]
             return base + ["--listen", self.rsu_ep, *common, "--clock-offset-ms", str(s.rsu_clock_offset_ms),
                            "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead, "--source", s.rsu_source,
-                           "--wire", s.wire]
+                           "--wire", s.wire, *security_argv(s, name, self.pki_dir)]
         if name == "obu":
             return base + ["--listen", self.obu_ep, *common, "--fusion", s.fusion, "--compensation", s.compensation,
-                           "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms), "--wires", s.wire]
+                           "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms), "--wires", s.wire,
+                           *security_argv(s, name, self.pki_dir)]
         return base + ["--config", str(self.link_config), "--link-id", LINK_ID, "--rsu-connect", self.rsu_ep,
                        "--vehicle-connect", self.obu_ep, "--control-listen", self.control_ep,
                        "--profile", s.profile, "--seed", str(s.seed), "--vehicle-id", s.obu_config().vehicle_id]

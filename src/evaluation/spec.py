@@ -41,6 +41,7 @@ class RunSpec:
     rsu_source: str = "sim"  # sim (noise model) or camera (rendered, detector, calibration)
     v2v: bool | None = None  # vehicles share lists (V2V): None as the scenario says, True / False on / off
     wire: str = "v2i"  # RSU object list encoding: v2i, cpm or sdsm (schemas.list_wire)
+    security: str | None = None  # RSUs sign and the OBU verifies: strict, permissive or off; None: nothing signed
 
     def rsu_config(self, **fields) -> RsuConfig:
         """The RSU service configuration this run implies (its clock is the injected truth)."""

@@ -54,6 +54,14 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--wires", type=lambda v: tuple(w.strip() for w in v.split(",") if w.strip()), metavar="LIST",
                    help="RSU list encodings to take, comma-separated, of v2i, cpm (ETSI CPM), sdsm (SAE J3224 SDSM); "
                         "the standard ones compile their ASN.1 at start-up (default v2i)")
+    p.add_argument("--pki", dest="pki_dir", metavar="DIR",
+                   help="site PKI directory (v2i pki): verify RSU object lists, prediction lists and time replies "
+                        "against its CA, revocation list and certificates")
+    p.add_argument("--security", choices=("strict", "permissive", "off"),
+                   help="strict drops, and counts by reason (security_<reason> in the metrics), anything unsigned, "
+                        "forged, from an unknown, revoked or expired certificate, on a key its certificate does not "
+                        "cover, stale or replayed; permissive counts and fuses anyway; off unwraps without checks "
+                        "(default: strict with --pki, off without)")
     add_metrics_options(p)
 
 

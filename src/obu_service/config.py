@@ -62,6 +62,13 @@ class ObuConfig(ServiceConfig):
     inbox_max_bytes: int = Field(4 << 20, ge=1 << 20, le=1 << 30, description="their bytes")
     input_guard_ms: float = Field(15.0, ge=0, le=1000, description="no large input is started this close to "
                                   "the next timed step (the longest decode of an admitted message)")
+    # signed RSU messages (obu_service.inbound_security)
+    pki_dir: str | None = Field(None, description="site PKI directory (v2i pki): the CA, revocation list and "
+                                "known certificates RSU messages are verified against")
+    security: Literal["strict", "permissive", "off"] | None = Field(
+        None, description="strict drops unsigned, forged, unknown, revoked, expired, wrong-key, stale and replayed "
+        "RSU messages; permissive counts them and fuses them anyway; off unwraps without checking "
+        "(default: strict with pki_dir, off without)")
 
     # image-level fusion (fusion roif; obu_service.image_fusion)
     roif_pair_tolerance_ms: float = Field(50.0, ge=0, le=1000, description="an RSU frame pairs with an ego "
@@ -85,6 +92,17 @@ class ObuConfig(ServiceConfig):
     @classmethod
     def _valid_id(cls, v: str) -> str:
         return check_id(v)
+
+    @model_validator(mode="after")
+    def _checks_need_a_pki(self) -> "ObuConfig":
+        if self.security in ("strict", "permissive") and self.pki_dir is None:
+            raise ValueError(f"security {self.security!r} needs pki_dir (--pki DIR): the site CA to verify against")
+        return self
+
+    @property
+    def security_policy(self) -> str:
+        """The policy in force: ``security``, or strict with a PKI and off without."""
+        return self.security or ("strict" if self.pki_dir else "off")
 
     @model_validator(mode="after")
     def _method_fits_compensation(self) -> "ObuConfig":

@@ -18,6 +18,7 @@ capture + deadline - compute margin), a gap cycle without own objects goes out o
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import threading
 import time
@@ -39,6 +40,7 @@ from sim.world import World
 from telemetry.latency import PeriodicSummary, StageLatency
 
 from .config import ObuConfig
+from .inbound_security import InboundSecurity, make_verifier
 from .pipeline import ObuPipeline
 from .source import ExternalCycles, OwnFrame, SimulatedVehicle, detections_of, pose_of
 from .time_requests import sync_times_ns
@@ -50,6 +52,7 @@ CHEAP_INPUT_BYTES = 4096  # decodes in well under 1 ms (schema 4: ~180 objects, 
 # paths are still one model each: 64 objects x 128 points decode in ~5 ms)
 # A CPM / SDSM (asn1tools, pure Python) decodes at ~1 us per byte: 8 objects 0.3 kB 0.3 ms, 255 objects 8 kB 8 ms
 CHEAP_STANDARD_BYTES = 512
+SIGNED_KINDS = ("rsu", "predictions", "time", "cpm", "sdsm")  # what the RSUs sign (obu_service.inbound_security)
 
 
 class ObuNode:
@@ -64,6 +67,8 @@ class ObuNode:
         self.duration_s = config.duration_s or self.world.scenario.duration_s
         self.vehicle = SimulatedVehicle(self.world, config.seed, self.start_ns) if config.source == "sim" else None
         self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
+        verifier = make_verifier(config.pki_dir, config.security_policy, config.planning_max_age_s)
+        self._security = InboundSecurity(verifier, self.pipeline.clock_offset, self.pipeline.reject)
         known = set(self.pipeline.config.known_rsus)
         vid = config.vehicle_id
         self._v2v = (V2vShell(vid, self.pipeline.enable_v2v(config.max_peers), self.clock, config.max_message_bytes)
@@ -182,6 +187,9 @@ class ObuNode:
         and ``rsu_to_obu`` (RSU publish stamp -> callback, in OBU time through the clock estimate)."""
         self.latency.observe_ns("queue", item.receive_ns, self.clock.now_ns())
         max_bytes = self.config.max_message_bytes
+        if item.kind in SIGNED_KINDS and (item := self._verified(item)) is None:
+            self._publish_if_ready()
+            return
         try:
             if item.kind == "time":
                 self.pipeline.on_time_reply(decode(item.payload, TimeReply, max_bytes), item.receive_ns)
@@ -207,6 +215,14 @@ class ObuNode:
             self.pipeline.reject(exc.reason)
             self._details.setdefault(exc.reason, f"{item.kind} on {item.source}: {exc}")
         self._publish_if_ready()
+
+    def _verified(self, item: Item) -> Item | None:
+        """An RSU message with its signed envelope checked and removed, or None when it is dropped
+        (counted as ``security_<reason>``). Stage ``verify``."""
+        t0_ns = time.perf_counter_ns()
+        payload = self._security.open(item.payload, item.source, item.receive_ns, time_reply=item.kind == "time")
+        self.latency.observe_ns("verify", t0_ns, time.perf_counter_ns())
+        return None if payload is None else dataclasses.replace(item, payload=payload)
 
     def _handle_standard(self, item: Item) -> None:
         """An RSU object list as a CPM or SDSM (``schemas.list_wire``): decoded whole (the RSU named

@@ -53,6 +53,11 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--predict-ahead", action="store_true", default=None,
                    help="track-predict compensation: publish tracks predicted to the publish time, "
                         "and once more half a frame later (5 Hz camera -> 10 Hz lists)")
+    p.add_argument("--pki", dest="pki_dir", metavar="DIR",
+                   help="site PKI directory (v2i pki site|issue): sign every object list, prediction list, image "
+                        "features message and time reply (ECDSA P-256 or Ed25519, the certificate's digest, the "
+                        "generation time; the full certificate once a second) as --identity")
+    p.add_argument("--identity", help="certificate subject to sign as (default: the RSU id)")
     add_metrics_options(p)
 
 

@@ -62,6 +62,9 @@ class RsuConfig(ServiceConfig):
                                    "and querier (obu_id), so a flood under one name does not starve the others")
     querier_burst: int = Field(20, ge=1, le=100_000)
     max_query_bytes: int = Field(1024, ge=64, le=1 << 20, description="larger time queries are refused unread")
+    pki_dir: str | None = Field(None, description="site PKI directory (v2i pki): sign object lists, prediction "
+                                "lists, image features and time replies with <identity>.key / .cert from it")
+    identity: str | None = Field(None, description="the certificate subject to sign as (default: rsu_id)")
 
     @field_validator("rsu_id")
     @classmethod

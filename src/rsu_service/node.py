@@ -39,6 +39,8 @@ from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 from sim.world import World
+from security.envelope import Signer
+from security.pki import PkiError, load_signer
 from telemetry.latency import PeriodicSummary, StageLatency
 
 from .config import RsuConfig
@@ -84,6 +86,8 @@ class RsuNode:
         self.latency = StageLatency()  # per-stage durations (telemetry.latency); read by other threads
         self._latency_summary = PeriodicSummary(self.latency)  # into the metrics, recomputed once a second
         self.last_metrics: RsuMetrics | None = None  # the latest published; one assignment, read by other threads
+        # one signer per thread (loop, time-query callback): each decides when its certificate travels
+        self._loop_signer, self._query_signer = _signer(config), _signer(config)
         # scored when the source knows the truth (simulated world)
         rsu = self.world.scenario.rsus[self.world.scenario.rsu_index(config.rsu_id)]
         self.perception = PerceptionTally.of_source(self.source, (rsu.position.x, rsu.position.y))
@@ -173,10 +177,13 @@ class RsuNode:
         self.pipeline.track(frame.detections, capture)
         self.latency.observe_ns("track", t0_ns, time.perf_counter_ns())
         self._put_list(publisher, self.pipeline.message)  # the publish stamp after tracking, right before encoding
-        self._predictions.put(encode(self.pipeline.predictions(self._now())))
+        predictions = self.pipeline.predictions(self._now())
+        self._predictions.put(self._signed(encode(predictions), self._predictions.key_expr,
+                                           predictions.header.publish_time_ns))
         if frame.image_features is not None:  # ROIF: the frame's boxes + ORB features, stamped at capture
-            self._features.put(encode(RsuImageFeatures.from_view(self.config.rsu_id, self.published,
-                                                                 capture.wall_ns, frame.image_features)))
+            features = encode(RsuImageFeatures.from_view(self.config.rsu_id, self.published, capture.wall_ns,
+                                                         frame.image_features))
+            self._features.put(self._signed(features, self._features.key_expr, self.clock.now_ns()))
         self.published += 1
         if self.config.predict_ahead and self._sleep_until(frame.ready_true_ns + self._upsample_offset_ns, stop):
             self._put_list(publisher, self.pipeline.upsampled)
@@ -196,12 +203,17 @@ class RsuNode:
         t2_ns = time.perf_counter_ns()
         if data is None:
             return
-        publisher.put(data)
+        publisher.put(self._signed(data, publisher.key_expr, stamp.wall_ns))
         t3_ns = time.perf_counter_ns()
         self.latency.observe_ns("message", t0_ns, t1_ns)
         self.latency.observe_ns("encode", t1_ns, t2_ns)
         self.latency.observe_ns("put", t2_ns, t3_ns)
         self.latency.observe_ns("stamp_to_put", stamp.mono_ns, self.true_clock.now_ns())
+
+    def _signed(self, data: bytes, key_expr, generation_ns: int) -> bytes:
+        """``data`` in a signed envelope for ``key_expr`` (--pki), else unchanged (loop thread only)."""
+        signer = self._loop_signer
+        return data if signer is None else signer.sign(data, generation_ns, str(key_expr))
 
     def _now(self) -> Stamp:
         """Now on the RSU's wall clock and on its monotonic clock (the simulation's true
@@ -268,9 +280,21 @@ class RsuNode:
                 self._details.setdefault(exc.reason, f"time query on {query.key_expr}: {exc}")
             return
         reply = answer_time_request(request, self.config.rsu_id, t2_ns, self.clock.now_ns())
-        query.reply(keys.rsu_time(self.config.rsu_id), encode(reply))
+        key = keys.rsu_time(self.config.rsu_id)
+        data = encode(reply) if self._query_signer is None else self._query_signer.sign(encode(reply), reply.t3_ns, key)
+        query.reply(key, data)
         with self._lock:
             self.time_replies += 1
+
+
+def _signer(config: RsuConfig) -> Signer | None:
+    """A signer as ``config.identity`` (default the RSU id) from ``config.pki_dir``; None without a PKI."""
+    if config.pki_dir is None:
+        return None
+    try:
+        return Signer(load_signer(config.pki_dir, config.identity or config.rsu_id))
+    except PkiError as exc:
+        raise ValueError(str(exc)) from None
 
 
 class _Refused(Exception):

@@ -139,7 +139,8 @@ class _Entry:
 
 
 class Verifier:
-    """Verifies envelopes against ``trust`` under ``policy``; counts every outcome by reason.
+    """Verifies envelopes against ``trust`` under ``policy``; counts every outcome by reason
+    (``trust`` may be None only under ``off``, which unwraps without checking).
 
     ``freshness_ns``: the oldest accepted age ``now_ns - generation_ns``; ``future_ns``: how far
     ahead of ``now_ns`` a generation time may be; ``replay_window_ns`` (>= ``freshness_ns``): how
@@ -147,11 +148,13 @@ class Verifier:
     owner (the service loop) calls it.
     """
 
-    def __init__(self, trust: Trust, policy: str = "strict", freshness_ns: int = 2_000_000_000,
+    def __init__(self, trust: Trust | None, policy: str = "strict", freshness_ns: int = 2_000_000_000,
                  future_ns: int = 200_000_000, replay_window_ns: int | None = None,
                  cache_size: int = 256) -> None:
         if policy not in POLICIES:
             raise ValueError(f"unknown security policy {policy!r}: expected one of {', '.join(POLICIES)}")
+        if trust is None and policy != "off":
+            raise ValueError(f"security policy {policy!r} needs a trust (a site CA); only 'off' checks nothing")
         window_ns = freshness_ns if replay_window_ns is None else replay_window_ns
         if window_ns < freshness_ns:
             raise ValueError("replay_window_ns must be >= freshness_ns, or a replay could be fresh but forgotten")
@@ -166,7 +169,7 @@ class Verifier:
     def set_trust(self, trust: Trust) -> None:
         """Take a reloaded trust directory (e.g. a new revocation list); revocation applies to
         cached certificates at once, and the cache is emptied if the CA changed."""
-        if trust.ca.encoding != self.trust.ca.encoding:
+        if self.trust is None or trust.ca.encoding != self.trust.ca.encoding:
             self._cache.clear()
         self.trust = trust
 

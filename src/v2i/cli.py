@@ -61,6 +61,11 @@ def _run_options(p: argparse.ArgumentParser) -> None:
                    help="RSU object list encoding: v2i (compact msgpack columns), cpm (ETSI collective perception "
                         "message, UPER) or sdsm (SAE J3224, UPER); the OBU fuses each at its resolution "
                         "(default %(default)s)")
+    p.add_argument("--security", choices=("strict", "permissive", "off", "none"),
+                   help="signed V2X messages (issue 14): the RSUs sign object lists, predictions and time replies "
+                        "with a site PKI's certificates and the OBU verifies them: strict drops what fails (counted "
+                        "as security_<reason>), permissive counts and fuses it, off unwraps unchecked; none: nothing "
+                        "signed (default: strict for demo and chaos run, none for eval)")
     p.add_argument("--json", metavar="PATH", help="write the metrics JSON to PATH ('-' for stdout)")
 
 
@@ -74,7 +79,15 @@ def _spec(args: argparse.Namespace):
         rsu_clock_step_ms=args.rsu_clock_step_ms, rsu_clock_step_at_s=args.rsu_clock_step_at_s,
         deadline_ms=args.deadline_ms, rsu_source=args.rsu_source,
         v2v=None if getattr(args, "v2v", None) is None else args.v2v == "on", wire=getattr(args, "wire", "v2i"),
+        security=_security(args),
     )
+
+
+def _security(args: argparse.Namespace) -> str | None:
+    """RunSpec.security of ``--security``: live runs sign by default (as deployed), eval does not."""
+    policy = getattr(args, "security", None) or ("strict" if getattr(args, "command", None) in ("demo", "chaos")
+                                                 else "none")
+    return None if policy == "none" else policy
 
 
 def _emit(report: dict, json_path: str | None, summary=None) -> None:
@@ -227,7 +240,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return _run_roif_demo(args)
     outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
     return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage, record_to=args.record,
-                          progress=_progress(args), metrics_ports=args.metrics_ports),
+                          progress=_progress(args), metrics_ports=args.metrics_ports, pki_dir=args.pki),
                      args.json, "v2i demo", args.report)
 
 
@@ -293,7 +306,8 @@ def cmd_chaos_run(args: argparse.Namespace) -> int:
         raise ValueError(f"chaos timeline {args.timeline}: profile {unknown[0]!r} is not bundled (the emulator "
                          f"switches to bundled profiles only): {', '.join(bundled_profiles())}")
     return _run_demo(Demo(with_chaos(_spec(args), chaos), startup_s=args.startup, chaos=chaos,
-                          record_to=args.record, progress=_progress(args)), args.json, "v2i chaos run", args.report)
+                          record_to=args.record, progress=_progress(args), pki_dir=args.pki),
+                     args.json, "v2i chaos run", args.report)
 
 
 def cmd_fuzz(args: argparse.Namespace) -> int:
@@ -403,6 +417,11 @@ _RECORD_HELP = ("record both sides of the link (RSU, vehicle after the link, lin
                 "this MCAP file while the run goes; v2i replay FILE --score re-runs a fresh OBU on it")
 
 
+_PKI_HELP = ("the site PKI (v2i pki) the services sign and verify with: created if absent, completed with a "
+             "certificate for every RSU, vehicle and the operator that lacks one (default: a fresh one in the run's "
+             "temporary directory); prepare extra subjects or revocations here before the run")
+
+
 QUIET_HELP = ("no live line on stderr while the run goes (elapsed s, output and RSU deadline misses, mode, RSU "
               "lists, chaos events: rewritten in place on a terminal, a plain line every 5 s otherwise)")
 
@@ -415,6 +434,7 @@ def _demo_options(demo: argparse.ArgumentParser) -> None:
     demo.add_argument("--link-down-s", type=float, default=3.0, help="chaos: restart it this many seconds later (default %(default)s)")
     demo.add_argument("--record", metavar="FILE", help=_RECORD_HELP)
     demo.add_argument("--report", metavar="DIR", help=_REPORT_HELP)
+    demo.add_argument("--pki", metavar="DIR", help=_PKI_HELP)
     demo.add_argument("--metrics-ports", type=_metrics_base, metavar="BASE",
                       help="serve each service's Prometheus /metrics on 127.0.0.1: rsu BASE, link BASE+1, obu BASE+2 "
                            "(e.g. 9101: the ports of deploy/prometheus/prometheus.yml); default: none")
@@ -444,6 +464,7 @@ def _chaos_options(chaos: argparse.ArgumentParser) -> None:
                            help="seconds given to the services to start (default %(default)s)")
     chaos_run.add_argument("--report", metavar="DIR", help=_REPORT_HELP)
     chaos_run.add_argument("--record", metavar="FILE", help=_RECORD_HELP)
+    chaos_run.add_argument("--pki", metavar="DIR", help=_PKI_HELP)
     chaos_run.set_defaults(func=cmd_chaos_run)
 
 

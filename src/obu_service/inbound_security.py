@@ -1,0 +1,66 @@
+"""What the OBU lets through from the RSUs' signed messages (pure; the node and the evaluator share it).
+
+Every RSU object list (any wire), prediction list and time reply is verified
+(``security.envelope.Verifier``) before anything decodes it:
+
+- freshness is judged in the *signer's* clock: ``now_rsu_ns = receive_ns + theta_hat``, theta_hat
+  the OBU's offset estimate of that RSU (theta = rsu - obu) at the receive time. Before the first
+  estimate there is no such clock and only the replay window applies (``now_ns=None``);
+- a time reply is never judged fresh or stale (it carries its own exchange: the pipeline matches
+  it to its request by the echoed t1 and seq), only signed, covered and not replayed.
+
+Outcomes are counted through ``reject(label)``: ``security_<reason>`` for a drop (``strict``, and
+``malformed`` under ``permissive``), ``security_accepted_<reason>`` for a failure ``permissive``
+let through. Under ``off`` (no ``--pki``) envelopes are unwrapped unchecked and unsigned bytes pass
+unchanged, as before signing existed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from schemas.keys import rsu_id_or_none
+from security.envelope import REJECTIONS, Verifier
+
+FUTURE_S = 1.0  # how far ahead of the estimated RSU clock a generation time may be
+ClockOffset = Callable[[str, int], "object | None"]  # (rsu_id, obu t_ns) -> estimate with .offset_ns, or None
+
+
+class InboundSecurity:
+    """Verifies RSU messages for one OBU; ``reject(label)`` counts each failure."""
+
+    def __init__(self, verifier: Verifier, clock_offset: ClockOffset, reject: Callable[[str], None]):
+        self.verifier = verifier
+        self._clock_offset = clock_offset
+        self._reject = reject
+
+    def open(self, data: bytes, key_expr: str, receive_ns: int, time_reply: bool = False) -> bytes | None:
+        """The payload to decode, or None when the message is dropped (counted)."""
+        now_ns = None if time_reply else self._rsu_now_ns(key_expr, receive_ns)
+        payload, reason = self.verifier.verify(data, key_expr, now_ns)
+        if reason in REJECTIONS:
+            self._reject(("security_" if payload is None else "security_accepted_") + reason)
+        return payload
+
+    def _rsu_now_ns(self, key_expr: str, receive_ns: int) -> int | None:
+        """The receive time on the sending RSU's clock, or None before its clock is estimated."""
+        rsu_id = rsu_id_or_none(key_expr)
+        estimate = None if rsu_id is None else self._clock_offset(rsu_id, receive_ns)
+        return None if estimate is None else receive_ns + round(estimate.offset_ns)
+
+
+def make_verifier(pki_dir: str | None, policy: str, freshness_s: float) -> Verifier:
+    """The OBU's verifier: ``pki_dir``'s trust (None: only ``off`` works) under ``policy``.
+
+    Freshness = ``freshness_s``, the oldest RSU data the pipeline would still use (its planning
+    horizon): anything older is refused by the pipeline anyway, so the window costs nothing genuine.
+    A generation time up to FUTURE_S ahead of the estimated RSU clock passes (a clock step not yet
+    tracked); the pipeline's own, finer future check still applies. ValueError naming a bad file.
+    """
+    from security.pki import PkiError, load_trust
+
+    try:
+        trust = load_trust(pki_dir) if pki_dir is not None else None
+    except PkiError as exc:
+        raise ValueError(str(exc)) from None
+    return Verifier(trust, policy, freshness_ns=round(freshness_s * 1e9), future_ns=round(FUTURE_S * 1e9))
