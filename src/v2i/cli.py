@@ -25,6 +25,7 @@ SUBCOMMANDS = {
     "monitor": "live dashboard of a running site (deadline misses, modes, delays, clock, link), or one JSON snapshot",
     "record": "record every v2x/** message heard at Zenoh endpoints into an MCAP file (Foxglove opens it)",
     "replay": "republish a recording on its keys in real or scaled time, or re-run a fresh OBU on it (--score)",
+    "pki": "the site's certificate authority: init, issue, revoke, list, a whole site, Zenoh TLS material",
 }
 
 
@@ -521,6 +522,7 @@ _OPTIONS = {
     "world": _service_options("v2i.world_node"), "router": _service_options("v2i.router"),
     "camera": _camera_options, "fuzz": _fuzz_options, "monitor": _service_options("v2i.monitor"),
     "record": _service_options("v2i.record"), "replay": _service_options("v2i.replay"),
+    "pki": _service_options("security.pki_cli"),
 }
 
 
