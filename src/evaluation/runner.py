@@ -25,6 +25,7 @@ import numpy as np
 from link_emulator.channel import LinkModel
 from link_emulator.control import apply_control
 from link_emulator.profile import LinkProfile, load_profile
+from obu_service.inbound_security import InboundSecurity, make_verifier
 from obu_service.peers import PEER_REPLY_NS, shared_list
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import OwnFrame, SimulatedVehicle
@@ -32,9 +33,12 @@ from perception.scoring import PerceptionTally
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from rsu_service.prediction import make_predictor
 from rsu_service.source import Frame, make_source
+from schemas import keys
 from schemas.codec import CodecError, decode, encode
-from schemas.list_wire import decode_list, encode_list
+from schemas.list_wire import decode_list, encode_list, list_key
 from schemas.messages import FusedObjectList, ObjectList, PredictionList, TimeReply, TimeRequest
+from security.envelope import Signer
+from security.site import memory_site
 from sim.clock import SimClock
 from sim.scenario import RsuCameraConfig, V2vConfig, load_scenario
 from sim.world import World
@@ -73,6 +77,7 @@ class _Rsu:
     camera: object  # a rsu_service.source source
     pipeline: RsuPipeline
     clock: object  # sim.clock.DriftingClock
+    signer: Signer | None  # RunSpec.security: signs what it sends as the live RSU does
 
     @property
     def xy(self) -> tuple[float, float]:
@@ -90,6 +95,7 @@ class _Vehicle:
     obu: ObuPipeline
     record: RunRecord
     links: list[LinkModel]
+    security: InboundSecurity  # verifies RSU messages as the live OBU does (policy off: unsigned pass)
 
 
 class OfflineRun:
@@ -116,6 +122,8 @@ class OfflineRun:
         self._memo = DecodeMemo()  # a broadcast's bytes are decoded once for all its receivers
         self.rsu_config = spec.rsu_config()
         self.obu_config = spec.obu_config()
+        self._site = (memory_site(start_ns, [r.id for r in self.scenario.rsus], [v.name for v in self.scenario.vehicles])
+                      if spec.security is not None else None)  # (trust, identities): RunSpec.security
         self.rsus = [self._new_rsu_site(k, cfg) for k, cfg in enumerate(self.scenario.rsus)]
         profiles = [link_profile or load_profile(cfg.link_profile or spec.profile) for cfg in self.scenario.rsus]
         self.vehicles = [self._new_vehicle(v, profiles) for v in range(len(self.scenario.vehicles))]
@@ -136,7 +144,7 @@ class OfflineRun:
     def _new_rsu_site(self, index: int, cfg: RsuCameraConfig) -> _Rsu:
         config = self.rsu_config.model_copy(update={"rsu_id": cfg.id})
         return _Rsu(index, cfg, make_source(config, self.site, self.start_ns), self._new_pipeline(cfg.id),
-                    config.clock(self.clock, self.start_ns))
+                    config.clock(self.clock, self.start_ns), Signer(self._site[1][cfg.id]) if self._site else None)
 
     def _new_pipeline(self, rsu_id: str) -> RsuPipeline:
         """A freshly started RSU (a restart loses its tracks and restarts its sequence numbers)."""
@@ -151,8 +159,10 @@ class OfflineRun:
         # pair (RSU k, vehicle v) draws from its own stream; the first pair keeps the run's seed
         pair_seed = [self.spec.seed if index == k == 0 else [self.spec.seed, index, k] for k in range(len(profiles))]
         links = [LinkModel(p, seed) for p, seed in zip(profiles, pair_seed)]
+        verifier = make_verifier(self._site and self._site[0], self.spec.security or "off", self.obu_config.planning_max_age_s)
         return _Vehicle(name, world, SimulatedVehicle(world, self.spec.seed, self.start_ns), obu,
-                        RunRecord(world, self.start_ns, self.duration_s), links)
+                        RunRecord(world, self.start_ns, self.duration_s), links,
+                        InboundSecurity(verifier, obu.clock_offset, obu.reject))
 
     def _new_v2v_links(self) -> dict[tuple[str, str], LinkModel]:
         """One channel per ordered vehicle pair (sender, receiver), its own draws; peers enabled."""
@@ -216,6 +226,9 @@ class OfflineRun:
         report = site_report(self.spec, [(v.name, v.world, v.record) for v in self.vehicles],
                              {rid: tally.scores() for rid, tally in self.perception.items()}, driver)
         report["v2v"] = None if self.v2v is None else self.v2v.model_dump()
+        # RunSpec.security: each vehicle's verification outcomes (ok, or a rejection reason) by count
+        report["security_outcomes"] = (None if self.spec.security is None else
+                                       {v.name: dict(sorted(v.security.verifier.counts.items())) for v in self.vehicles})
         end_ns = self.start_ns + round(self.duration_s * 1e9)
         for v in self.vehicles if self.v2v is not None else ():
             report["vehicles"][v.name]["peers"] = v.obu.peers.summary(end_ns)
@@ -236,7 +249,9 @@ class OfflineRun:
         capture = Stamp(rsu.clock.local_from_true(frame.capture_true_ns), frame.capture_true_ns)
         msg = rsu.pipeline.on_frame(frame.detections, capture, self._rsu_now(rsu))
         self._broadcast_list(rsu, msg)
-        self._broadcast(rsu, encode(rsu.pipeline.predictions(self._rsu_now(rsu))), self._obu_predictions)
+        predictions = rsu.pipeline.predictions(self._rsu_now(rsu))
+        data = self._signed(rsu, encode(predictions), keys.rsu_predictions(rsu.cfg.id), predictions.header.publish_time_ns)
+        self._broadcast(rsu, data, self._obu_predictions)
         if rsu.pipeline.config.predict_ahead:
             self.queue.at(self.clock.t_ns + rsu.camera.upsample_offset_ns, self._rsu_upsample, rsu)
 
@@ -249,7 +264,13 @@ class OfflineRun:
         """An object list in the run's encoding (``spec.wire``: v2i, cpm or sdsm; an SDSM has none for no objects)."""
         data = encode_list(msg, self.spec.wire)
         if data is not None:
-            self._broadcast(rsu, data, self._obu_receive)
+            key = list_key(self.spec.wire, rsu.cfg.id)
+            self._broadcast(rsu, self._signed(rsu, data, key, msg.header.publish_time_ns), self._obu_receive)
+
+    @staticmethod
+    def _signed(rsu: _Rsu, data: bytes, key_expr: str, generation_ns: int) -> bytes:
+        """``data`` signed by the RSU for ``key_expr`` at ``generation_ns`` (its clock), if it signs."""
+        return data if rsu.signer is None else rsu.signer.sign(data, generation_ns, key_expr)
 
     def _rsu_now(self, rsu: _Rsu) -> Stamp:
         """Now on the RSU's wall clock (offset, drift, steps) and its monotonic clock (the true one)."""
@@ -261,8 +282,8 @@ class OfflineRun:
         request = decode(data, TimeRequest)
         t2 = rsu.clock.now_ns()
         reply = answer_time_request(request, rsu.pipeline.config.rsu_id, t2, t2 + RSU_REPLY_NS)
-        self.queue.at(self.clock.t_ns + RSU_REPLY_NS, self._send, vehicle, rsu, "downlink", encode(reply),
-                      self._obu_time_reply)
+        data = self._signed(rsu, encode(reply), keys.rsu_time(rsu.cfg.id), reply.t3_ns)
+        self.queue.at(self.clock.t_ns + RSU_REPLY_NS, self._send, vehicle, rsu, "downlink", data, self._obu_time_reply)
 
     # --- link --------------------------------------------------------------------------
     def _broadcast(self, rsu: _Rsu, data: bytes, deliver: Callable) -> None:
@@ -296,9 +317,12 @@ class OfflineRun:
 
     # --- OBU side ----------------------------------------------------------------------
     def _obu_receive(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
-        try:
-            rsu_id = rsu.pipeline.config.rsu_id
-            msg = self._memo.decoded(data, ("list", self.spec.wire, rsu_id), lambda: decode_list(data, self.spec.wire, rsu_id))
+        rsu_id = rsu.pipeline.config.rsu_id
+        payload = vehicle.security.open(data, list_key(self.spec.wire, rsu_id), self.clock.t_ns)
+        if payload is None:
+            return
+        try:  # memoised per wire bytes object: its payload is the same for every receiver
+            msg = self._memo.decoded(data, ("list", self.spec.wire, rsu_id), lambda: decode_list(payload, self.spec.wire, rsu_id))
             vehicle.obu.on_rsu_message(msg, self.clock.t_ns)
             vehicle.record.rsu_messages += 1
         except CodecError as exc:
@@ -306,8 +330,11 @@ class OfflineRun:
         self._obu_fuse_if_ready(vehicle)
 
     def _obu_predictions(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
+        payload = vehicle.security.open(data, keys.rsu_predictions(rsu.cfg.id), self.clock.t_ns)
+        if payload is None:
+            return
         try:
-            vehicle.obu.on_predictions(self._memo.decoded(data, PredictionList, lambda: decode(data, PredictionList)),
+            vehicle.obu.on_predictions(self._memo.decoded(data, PredictionList, lambda: decode(payload, PredictionList)),
                                        self.clock.t_ns)
         except CodecError as exc:
             vehicle.obu.reject(exc.reason)
@@ -322,7 +349,9 @@ class OfflineRun:
                                 self._peer_time_request)
 
     def _obu_time_reply(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
-        vehicle.obu.on_time_reply(decode(data, TimeReply), self.clock.t_ns)
+        payload = vehicle.security.open(data, keys.rsu_time(rsu.cfg.id), self.clock.t_ns, time_reply=True)
+        if payload is not None:
+            vehicle.obu.on_time_reply(decode(payload, TimeReply), self.clock.t_ns)
 
     def _obu_capture(self, vehicle: _Vehicle) -> None:
         frame = vehicle.sensing.capture(self.clock.t_ns)

@@ -21,6 +21,7 @@ from collections.abc import Callable
 
 from schemas.keys import rsu_id_or_none
 from security.envelope import REJECTIONS, Verifier
+from security.pki import PkiError, Trust, load_trust
 
 FUTURE_S = 1.0  # how far ahead of the estimated RSU clock a generation time may be
 ClockOffset = Callable[[str, int], "object | None"]  # (rsu_id, obu t_ns) -> estimate with .offset_ns, or None
@@ -49,18 +50,20 @@ class InboundSecurity:
         return None if estimate is None else receive_ns + round(estimate.offset_ns)
 
 
-def make_verifier(pki_dir: str | None, policy: str, freshness_s: float) -> Verifier:
-    """The OBU's verifier: ``pki_dir``'s trust (None: only ``off`` works) under ``policy``.
+def make_verifier(trust: Trust | None, policy: str, freshness_s: float) -> Verifier:
+    """The OBU's verifier: ``trust`` (None: only ``off`` works) under ``policy``.
 
     Freshness = ``freshness_s``, the oldest RSU data the pipeline would still use (its planning
     horizon): anything older is refused by the pipeline anyway, so the window costs nothing genuine.
     A generation time up to FUTURE_S ahead of the estimated RSU clock passes (a clock step not yet
-    tracked); the pipeline's own, finer future check still applies. ValueError naming a bad file.
+    tracked); the pipeline's own, finer future check still applies.
     """
-    from security.pki import PkiError, load_trust
+    return Verifier(trust, policy, freshness_ns=round(freshness_s * 1e9), future_ns=round(FUTURE_S * 1e9))
 
+
+def trust_of(pki_dir: str | None) -> Trust | None:
+    """The trust a ``--pki`` directory holds (None without one); ValueError naming a bad file."""
     try:
-        trust = load_trust(pki_dir) if pki_dir is not None else None
+        return None if pki_dir is None else load_trust(pki_dir)
     except PkiError as exc:
         raise ValueError(str(exc)) from None
-    return Verifier(trust, policy, freshness_ns=round(freshness_s * 1e9), future_ns=round(FUTURE_S * 1e9))

@@ -40,7 +40,7 @@ from sim.world import World
 from telemetry.latency import PeriodicSummary, StageLatency
 
 from .config import ObuConfig
-from .inbound_security import InboundSecurity, make_verifier
+from .inbound_security import InboundSecurity, make_verifier, trust_of
 from .pipeline import ObuPipeline
 from .source import ExternalCycles, OwnFrame, SimulatedVehicle, detections_of, pose_of
 from .time_requests import sync_times_ns
@@ -67,7 +67,7 @@ class ObuNode:
         self.duration_s = config.duration_s or self.world.scenario.duration_s
         self.vehicle = SimulatedVehicle(self.world, config.seed, self.start_ns) if config.source == "sim" else None
         self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
-        verifier = make_verifier(config.pki_dir, config.security_policy, config.planning_max_age_s)
+        verifier = make_verifier(trust_of(config.pki_dir), config.security_policy, config.planning_max_age_s)
         self._security = InboundSecurity(verifier, self.pipeline.clock_offset, self.pipeline.reject)
         known = set(self.pipeline.config.known_rsus)
         vid = config.vehicle_id
