@@ -1,0 +1,65 @@
+"""obu_service.inbound_security: what the OBU lets through from signed RSU messages."""
+
+from collections import Counter
+from types import SimpleNamespace
+
+from obu_service.inbound_security import InboundSecurity, make_verifier
+from security.envelope import Signer
+from security.site import memory_site
+
+NOW_NS = 1_800_000_000 * 10**9
+OFFSET_NS = 3 * 10**9  # the RSU's clock runs 3 s ahead of the OBU's
+KEY = "v2x/rsu/rsu1/objects"
+TRUST, IDS = memory_site(NOW_NS - 86_400 * 10**9, ["rsu1"], ["ego"])  # valid from a day before
+
+
+def _gate(policy: str = "strict", estimated: bool = True) -> tuple[InboundSecurity, Counter]:
+    counts: Counter = Counter()
+    offset = (lambda rsu_id, t_ns: SimpleNamespace(offset_ns=OFFSET_NS)) if estimated else (lambda rsu_id, t_ns: None)
+    gate = InboundSecurity(make_verifier(TRUST if policy != "off" else None, policy, 5.0), offset,
+                           lambda label: counts.update([label]))
+    return gate, counts
+
+
+def _signed(payload: bytes, rsu_age_s: float, key: str = KEY, who: str = "rsu1") -> bytes:
+    """Signed by ``who`` with a generation time ``rsu_age_s`` before the OBU's receive time, in the RSU's clock."""
+    return Signer(IDS[who]).sign(payload, NOW_NS + OFFSET_NS - round(rsu_age_s * 1e9), key)
+
+
+def test_freshness_is_judged_in_the_rsu_clock_through_the_offset_estimate():
+    gate, counts = _gate()
+    assert gate.open(_signed(b"fresh", 0.05), KEY, NOW_NS) == b"fresh"  # 3 s "ahead" of the OBU, 50 ms old
+    assert gate.open(_signed(b"old", 6.0), KEY, NOW_NS) is None
+    assert gate.open(_signed(b"ahead", -2.0), KEY, NOW_NS) is None
+    assert counts == Counter({"security_stale": 1, "security_future": 1})
+
+
+def test_before_the_clock_is_estimated_only_the_replay_window_applies():
+    gate, counts = _gate(estimated=False)
+    data = _signed(b"x", 6.0)
+    assert gate.open(data, KEY, NOW_NS) == b"x"
+    assert gate.open(data, KEY, NOW_NS) is None
+    assert counts == Counter({"security_replayed": 1})
+
+
+def test_time_replies_skip_freshness_but_not_the_signature():
+    gate, counts = _gate()
+    key = "v2x/rsu/rsu1/time"
+    assert gate.open(_signed(b"reply", 30.0, key), key, NOW_NS, time_reply=True) == b"reply"
+    assert gate.open(_signed(b"forged", 0.0, key, who="ego"), key, NOW_NS, time_reply=True) is None
+    assert gate.open(b"\x85unsigned", key, NOW_NS, time_reply=True) is None
+    assert counts == Counter({"security_wrong_key": 1, "security_unsigned": 1})
+
+
+def test_permissive_counts_under_its_own_label_and_lets_through():
+    gate, counts = _gate("permissive")
+    assert gate.open(b"\x94plain", KEY, NOW_NS) == b"\x94plain"
+    assert gate.open(_signed(b"ghost", 0.0, who="ego"), KEY, NOW_NS) == b"ghost"
+    assert counts == Counter({"security_accepted_unsigned": 1, "security_accepted_wrong_key": 1})
+
+
+def test_off_unwraps_without_counting():
+    gate, counts = _gate("off")
+    assert gate.open(_signed(b"list", 100.0, who="ego"), KEY, NOW_NS) == b"list"
+    assert gate.open(b"\x94plain", KEY, NOW_NS) == b"\x94plain"
+    assert not counts
