@@ -218,6 +218,7 @@ class OfflineRun:
         for vehicle in self.vehicles:
             vehicle.record.covered_cycles = vehicle.obu.covered_cycles
             vehicle.record.rsu_deadline_misses = vehicle.obu.rsu_deadline_misses
+            vehicle.record.rejected = dict(vehicle.obu.rejected)
         return self.record
 
     def report(self, driver: str = "eval") -> dict:

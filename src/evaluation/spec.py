@@ -86,6 +86,7 @@ class RunRecord:
         self.latency_ms: dict[str, dict] = {}
         self.rsu_perception: dict | None = None  # or the RSU's own scores (live: from its metrics)
         self.rsu_messages = 0
+        self.rejected: dict[str, int] = {}  # the OBU's refused inputs by reason (codec, admission, security_*)
         self.covered_cycles = 0  # the OBU's own count: cycles with an RSU heard recently
         self.rsu_deadline_misses = 0
         self.links = LinkSeries()  # per-cycle RSU link samples (live: ObuMetrics; offline: link_series=True)
@@ -115,6 +116,7 @@ class RunRecord:
                 self.add_offset_sample(metrics.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm)
         self.rsu_messages = sum(r.messages_accepted for r in metrics.rsus)  # every RSU's, as offline
         self.covered_cycles, self.rsu_deadline_misses = metrics.covered_cycles, metrics.rsu_deadline_misses
+        self.rejected = dict(metrics.rejected)
         if metrics.latency_ms:
             self.latency_ms["obu"] = {stage: q.model_dump() for stage, q in metrics.latency_ms.items()}
         self.links.add(metrics.t_ns, metrics.rsus)
@@ -145,6 +147,7 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
         "displacement_error_m": record.displacement.value(),
         "planning_handoffs": record.planning_handoffs,
         "rsu_messages_received": record.rsu_messages,
+        "obu_rejected": dict(sorted(record.rejected.items())),
         "target": record.target.score().as_dict(),
         "vehicle_only": record.vehicle_target.score().as_dict(),
         **clock_errors(record.offset_samples(), truth_clock, record.start_ns, step_ns),

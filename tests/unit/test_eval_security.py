@@ -39,5 +39,6 @@ def test_strict_drops_an_rsu_signing_with_a_vehicle_certificate():
     outcomes = report["security_outcomes"]["ego"]
     assert set(outcomes) == {"wrong_key"} and outcomes["wrong_key"] > 100
     assert report["rsu_messages_received"] == 0
+    assert report["obu_rejected"]["security_wrong_key"] == outcomes["wrong_key"]  # what the OBU's metrics count
     permissive = _run(replace(spec, security="permissive"), vehicle_signs_for_the_rsu)
     assert permissive["rsu_messages_received"] > 0  # counted, and fused anyway
