@@ -2,6 +2,13 @@
 
 Multicast scouting and gossip are off so that RSU and OBU never find each other
 behind the link emulator's back; only the endpoints given here are used.
+
+A site configuration file (Zenoh JSON5: TLS, mutual TLS, access control; see ``deploy/zenoh/``)
+is merged into every session when ``$V2I_ZENOH_CONFIG`` names it (``--zenoh-config FILE`` on the
+services sets it). The file is the base; the session's own endpoints replace the file's, and the
+safety settings (no scouting or gossip, no shared memory, the codec's message size bound) are
+applied over it. ``tls/HOST:PORT`` endpoints then work wherever ``tcp/`` ones do. In the file's
+TLS paths ``${V2I_TLS_DIR}`` stands for ``$V2I_TLS_DIR`` (default ``/pki/tls``).
 """
 
 from __future__ import annotations
@@ -10,6 +17,7 @@ import json
 import os
 import socket
 from collections.abc import Sequence
+from pathlib import Path
 
 import zenoh
 
@@ -22,6 +30,13 @@ SESSION_MODES = ("peer", "client", "router")
 CLIENT_CONNECT_TIMEOUT_MS = 10_000  # a client waits this long for its router, then gives up
 
 
+CONFIG_FILE_ENV = "V2I_ZENOH_CONFIG"  # a Zenoh JSON5 file merged into every session
+TLS_DIR_ENV = "V2I_TLS_DIR"
+DEFAULT_TLS_DIR = "/pki/tls"
+TLS_FILE_KEYS = ("root_ca_certificate", "listen_certificate", "listen_private_key", "connect_certificate",
+                 "connect_private_key")
+
+
 def session_mode() -> str:
     """``peer`` or ``client`` from ``$V2I_ZENOH_MODE`` (default peer); ValueError naming it otherwise."""
     mode = os.environ.get(SESSION_MODE_ENV, "").strip() or "peer"
@@ -30,13 +45,62 @@ def session_mode() -> str:
     return mode
 
 
+def _zenoh_reason(exc: Exception) -> str:
+    """Zenoh's error text without the Rust source location it ends with."""
+    return str(exc).split(" at /", 1)[0].strip()
+
+
+def load_config_file(path: str | Path) -> zenoh.Config:
+    """The Zenoh configuration in ``path`` with ``${V2I_TLS_DIR}`` expanded in its TLS file paths.
+    ValueError naming the file when it cannot be read or parsed, or names a TLS file that is missing."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"Zenoh config {path}: no such file")
+    try:
+        conf = zenoh.Config.from_file(str(path))
+    except zenoh.ZError as exc:
+        raise ValueError(f"Zenoh config {path}: {_zenoh_reason(exc)}") from None
+    tls_dir = os.environ.get(TLS_DIR_ENV, "").strip() or DEFAULT_TLS_DIR
+    for key in TLS_FILE_KEYS:
+        value = json.loads(conf.get_json(f"transport/link/tls/{key}"))
+        if not isinstance(value, str):
+            continue
+        value = value.replace("${" + TLS_DIR_ENV + "}", tls_dir)
+        if not Path(value).is_file():
+            raise ValueError(f"Zenoh config {path}: transport/link/tls/{key} {value}: no such file "
+                             f"(${TLS_DIR_ENV}={tls_dir}; v2i pki tls writes them)")
+        conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
+    return conf
+
+
+def use_config_file(path: str | Path) -> None:
+    """Check ``path`` (:func:`load_config_file`) and make it this process's site configuration
+    (``$V2I_ZENOH_CONFIG``, inherited by child processes): ``--zenoh-config FILE``."""
+    load_config_file(path)
+    os.environ[CONFIG_FILE_ENV] = str(Path(path).resolve())
+
+
+def _base_config() -> tuple[zenoh.Config, str | None]:
+    """The site file of ``$V2I_ZENOH_CONFIG`` (or an empty config) and the mode it sets, if any."""
+    path = os.environ.get(CONFIG_FILE_ENV, "").strip()
+    if not path:
+        return zenoh.Config(), None
+    try:
+        conf = load_config_file(path)
+    except ValueError as exc:
+        raise ValueError(f"{CONFIG_FILE_ENV}: {exc}") from None
+    return conf, json.loads(conf.get_json("mode"))
+
+
 def session_config(listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str | None = None) -> zenoh.Config:
-    """A config that listens on and connects to exactly these endpoints; ``mode`` one of
-    ``SESSION_MODES``, default ``session_mode()``."""
-    mode = session_mode() if mode is None else mode
+    """A config that listens on and connects to exactly these endpoints, over the site file of
+    ``$V2I_ZENOH_CONFIG`` if set; ``mode`` one of ``SESSION_MODES``: the argument, else
+    ``$V2I_ZENOH_MODE``, else the file's, else peer."""
+    conf, file_mode = _base_config()
+    if mode is None:
+        mode = session_mode() if os.environ.get(SESSION_MODE_ENV, "").strip() or not file_mode else file_mode
     if mode not in SESSION_MODES:
         raise ValueError(f"Zenoh mode {mode!r}: must be one of {', '.join(SESSION_MODES)}")
-    conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "false")
@@ -52,7 +116,8 @@ def session_config(listen: Sequence[str] = (), connect: Sequence[str] = (), mode
     conf.insert_json5("transport/shared_memory/enabled", "false")
     # Zenoh reassembles a fragmented message of up to 1 GB by default: a peer could make any
     # service allocate that much. Nothing on the wire is larger than the codec's limit.
-    conf.insert_json5("transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES))
+    file_bound = json.loads(conf.get_json("transport/link/rx/max_message_size"))
+    conf.insert_json5("transport/link/rx/max_message_size", str(min(file_bound or MAX_MESSAGE_BYTES, MAX_MESSAGE_BYTES)))
     return conf
 
 

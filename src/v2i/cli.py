@@ -505,14 +505,31 @@ def _camera_options(camera: argparse.ArgumentParser) -> None:
 
 
 def _service_options(module: str):
-    """Options of a service command from its module's ``configure_parser``; runs its ``run``."""
+    """Options of a service command from its module's ``configure_parser`` and ``--zenoh-config``;
+    runs its ``run``."""
 
     def options(p: argparse.ArgumentParser) -> None:
         mod = importlib.import_module(module)
         mod.configure_parser(p)
-        p.set_defaults(func=mod.run)
+        p.add_argument("--zenoh-config", dest="site_zenoh_config", metavar="FILE",
+                       help="Zenoh JSON5 file merged into every session of this command (TLS, mutual TLS, "
+                            "access control: deploy/zenoh/); the same as $V2I_ZENOH_CONFIG")
+        p.set_defaults(func=_with_zenoh_config(mod.run))
 
     return options
+
+
+def _with_zenoh_config(run):
+    """``run`` after ``--zenoh-config FILE`` (if given) became the process's site Zenoh config."""
+
+    def run_with(args: argparse.Namespace) -> int:
+        if getattr(args, "site_zenoh_config", None):
+            from schemas.transport import use_config_file
+
+            use_config_file(args.site_zenoh_config)
+        return run(args)
+
+    return run_with
 
 
 # command -> the function adding its options (and importing its modules: only when it is parsed)
