@@ -47,7 +47,8 @@ class LinkConfig(BaseModel):
     ``control_listen``: endpoints a control session of the emulator listens on, for controllers
     (``v2i link set``, ``v2i chaos run``) that put ``LinkControl`` on ``v2x/link/{link_id}/control``
     and read the stats there; Zenoh peers do not forward, so a controller must reach the
-    emulator directly.
+    emulator directly. Control is authenticated (``pki``), refused (default) or, in the lab,
+    accepted unsigned (``insecure_control``): see ``control_auth``.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -64,6 +65,14 @@ class LinkConfig(BaseModel):
     control_listen: list[Endpoint] = Field(
         default_factory=list, description="extra Zenoh endpoints to listen on for link controllers"
     )
+    pki: str | None = Field(default=None, min_length=1, description="site PKI directory (v2i pki): link control "
+                            "must be signed by an operator certificate of its CA (``control_auth``)")
+    insecure_control: bool = Field(default=False, description="lab only: accept unsigned link control (without "
+                                   "pki and without this, every control is refused)")
+    control_max_age_s: float = Field(default=2.0, gt=0.0, le=60.0, description="signed control generated longer "
+                                     "before its receipt (emulator clock) is refused as stale")
+    control_max_ahead_s: float = Field(default=0.5, ge=0.0, le=60.0, description="signed control generated longer "
+                                       "after its receipt (emulator clock) is refused as future")
     profile: str = Field(default="lte-v2x", min_length=1, description="bundled profile name or YAML path")
     seed: int = Field(default=0, ge=0, description="seed of the channel draws")
     stats_period_s: float = Field(default=1.0, gt=0.0, description="period of the stats publication in s")
@@ -88,6 +97,9 @@ class LinkConfig(BaseModel):
     def _one_vehicle_form(self) -> LinkConfig:
         """Either ``vehicle_connect`` (one vehicle) or ``vehicles`` (up to MAX_VEHICLES, ids unique);
         an RSU side, except in the V2V mode (``vehicles`` only, at least two, no RSU side)."""
+        if self.pki is not None and self.insecure_control:
+            raise ValueError("give either pki (--pki DIR: signed link control) or insecure_control "
+                             "(--insecure-control: unsigned, lab only), not both")
         if self.v2v and (self.rsu_connect or self.vehicle_connect or len(self.vehicles) < 2):
             raise ValueError("v2v (--v2v) relays between vehicles only: give at least two vehicles as vehicles "
                              "(--vehicle ID=EP[,EP]) and no rsu_connect or vehicle_connect")

@@ -8,14 +8,21 @@ from schemas.codec import CodecError, decode
 from schemas.messages import LinkControl
 
 from .channel import LinkModel
+from .control_auth import ControlAuth
 from .profile import bundled_profiles, load_profile
 
 Reject = Callable[[str, "int | None", str], object]  # reason, control seq (None: undecodable), error
 
 
-def admitted_control(payload: bytes, link_id: str, reject: Reject) -> LinkControl | None:
-    """The LinkControl in ``payload`` if it decodes and names ``link_id``; else None, after
-    ``reject(reason, seq, error)`` (``codec_<reason>`` or ``wrong_link_id``)."""
+def admitted_control(data: bytes, link_id: str, reject: Reject, auth: ControlAuth, receive_ns: int) -> LinkControl | None:
+    """The LinkControl in ``data`` if ``auth`` accepts it at ``receive_ns`` (``control_auth``), it
+    decodes and names ``link_id``; else None, after ``reject(reason, seq, error)`` (the
+    authentication's reason, ``codec_<reason>`` or ``wrong_link_id``). Never raises on any bytes."""
+    opened = auth.open(data, receive_ns)
+    if opened.payload is None:
+        reject(opened.reason, _claimed_seq(opened.claimed), auth.explain(opened.reason))
+        return None
+    payload = opened.payload
     try:
         control = decode(payload, LinkControl)
     except CodecError as exc:
@@ -25,6 +32,16 @@ def admitted_control(payload: bytes, link_id: str, reject: Reject) -> LinkContro
         reject("wrong_link_id", control.seq, f"link_id {control.link_id!r}, this emulator is {link_id!r}")
         return None
     return control
+
+
+def _claimed_seq(claimed: bytes | None) -> int | None:
+    """The seq a rejected control claims (so that its sender learns the outcome), None if unreadable."""
+    if claimed is None:
+        return None
+    try:
+        return decode(claimed, LinkControl).seq
+    except CodecError:
+        return None
 
 
 def apply_control(model: LinkModel, control: LinkControl, now_ns: int) -> str:

@@ -21,9 +21,10 @@ the first one heard, seeded by ``seed`` itself, exactly as before pairs existed.
 Runtime control: ``LinkControl`` messages on ``v2x/link/{link_id}/control`` (heard on every
 session, and on the control session listening on ``control_listen`` for controllers) switch
 the profile or add an impairment window (``control.apply_control``) on every pair, or on the
-pair of the vehicle they name (``vehicle_id``). Bad ones are counted by reason in the stats and
-logged once per reason. Stats (``v2x/link/{link_id}/stats``, on every session) carry the
-sums over pairs and, under ``pairs``, each pair's own counters.
+pair of the vehicle they name (``vehicle_id``), once authenticated (``control_auth``: signed by
+an operator with ``pki``, else refused unless ``insecure_control``). Bad ones are counted by
+reason in the stats and logged once per reason. Stats (``v2x/link/{link_id}/stats``, on every
+session) carry the sums over pairs and, under ``pairs``, each pair's own counters.
 
 Zenoh callbacks only stamp the receive time and enqueue. One scheduler thread (the one
 calling ``run``) owns the channel models, the counters and the pending queries, and fires
@@ -67,6 +68,7 @@ from telemetry.latency import StageLatency
 from .channel import NS_PER_MS
 from .config import LinkConfig
 from .control import admitted_control
+from .control_auth import ControlAuth
 from .gate import Gate
 from .pair import Delivery, VehiclePair, apply_to_pairs, control_targets, pairs_summary
 from .profile import LinkProfile, load_profile
@@ -103,6 +105,8 @@ class LinkRelay:
         self._scheduler = EventScheduler(clock)
         self._lateness_ms = RunningStats()
         self._control = ControlStats()
+        self.control_auth = ControlAuth.create(config.link_id, config.pki, config.insecure_control,
+                                        config.control_max_age_s, config.control_max_ahead_s)
         self._gate = Gate(config, clock)
         self._trim = MemoryTrim()
         self._queries = TimeQueryRelay(config, clock, self._scheduler, self._gate, self._record_delivery,
@@ -240,7 +244,7 @@ class LinkRelay:
     def _control_arrival(self, payload: bytes, receive_ns: int) -> None:
         """Apply one LinkControl as of its receipt; a bad one is counted and logged once per reason."""
         self._gate.done()
-        control = admitted_control(payload, self.config.link_id, self._reject_control)
+        control = admitted_control(payload, self.config.link_id, self._reject_control, self.control_auth, receive_ns)
         if control is None:
             return
         targets = control_targets(self._pairs, control)

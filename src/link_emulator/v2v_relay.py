@@ -51,6 +51,7 @@ from telemetry.latency import StageLatency
 from .channel import NS_PER_MS, LinkModel
 from .config import LinkConfig
 from .control import admitted_control, apply_control
+from .control_auth import ControlAuth
 from .gate import Gate, InFlight, VehiclePosition
 from .pair import Delivery, merged_direction, pair_seed
 from .profile import load_profile
@@ -100,6 +101,8 @@ class V2vRelay:
         self._gate = Gate(config, clock)
         self._lateness_ms = RunningStats()
         self._control = ControlStats()
+        self.control_auth = ControlAuth.create(config.link_id, config.pki, config.insecure_control,
+                                        config.control_max_age_s, config.control_max_ahead_s)
         self._trim = MemoryTrim()
         self._observer = observer  # tests and benchmarks: every delivery, in the scheduler thread
         self.latency = StageLatency()  # relay_hold, relay_late (telemetry.latency); read by other threads
@@ -231,7 +234,7 @@ class V2vRelay:
     def _control_arrival(self, payload: bytes, receive_ns: int) -> None:
         """Apply one LinkControl to every pair, or to the pairs of the vehicle it names."""
         self._gate.done()
-        control = admitted_control(payload, self.config.link_id, self._control.reject)
+        control = admitted_control(payload, self.config.link_id, self._control.reject, self.control_auth, receive_ns)
         if control is None:
             return
         vid = control.vehicle_id

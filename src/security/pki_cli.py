@@ -13,7 +13,7 @@ import argparse
 import json
 import sys
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -212,4 +212,4 @@ def _list(args: argparse.Namespace, now_ns: int) -> None:
 def _iso(t_ns: int) -> str:
     """UTC time of ``t_ns`` to the second, e.g. 2026-11-24T10:00:00Z."""
     seconds = min(t_ns // 10**9, 253402300799)  # datetime stops at year 9999
-    return datetime.fromtimestamp(seconds, tz=timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return datetime.fromtimestamp(seconds, tz=UTC).strftime("%Y-%m-%dT%H:%M:%SZ")

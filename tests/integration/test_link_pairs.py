@@ -21,13 +21,15 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from link_emulator.cli import ControlError, send_control
 from link_emulator.config import LinkConfig
+from link_emulator.control_client import ControlError, send_control
 from link_emulator.relay import LinkRelay
 from schemas.codec import encode
 from schemas.keys import link_stats, obu_pose, rsu_objects, rsu_time
 from schemas.messages import EgoPose, LinkControl
 from schemas.transport import free_tcp_endpoint, open_session
+from security.pki import load_signer
+from security.site import write_site
 from sim.clock import SystemClock
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
@@ -84,8 +86,8 @@ def site() -> Iterator[Site]:
 
 @contextmanager
 def running_relay(site: Site, profile: str, control_listen: list[str] = (),
-                  rsu_position: tuple[float, float] | None = None) -> Iterator[LinkRelay]:
-    config = LinkConfig(link_id=LINK_ID, rsu_connect=[site.rsu_endpoint], profile=profile, seed=3,
+                  rsu_position: tuple[float, float] | None = None, pki: str | None = None) -> Iterator[LinkRelay]:
+    config = LinkConfig(link_id=LINK_ID, rsu_connect=[site.rsu_endpoint], profile=profile, seed=3, pki=pki,
                         vehicles=[{"vehicle_id": vid, "connect": [v.endpoint]} for vid, v in site.vehicles.items()],
                         control_listen=list(control_listen), stats_period_s=0.2, rsu_position=rsu_position)
     relay = LinkRelay(config, SystemClock())
@@ -153,19 +155,22 @@ def _pair(stats: dict, vid: str) -> dict:
     return next(p for p in stats["pairs"] if p["vehicle_id"] == vid)
 
 
-def test_a_control_naming_one_vehicle_cuts_only_its_channel(site: Site) -> None:
+def test_a_control_naming_one_vehicle_cuts_only_its_channel(site: Site, tmp_path) -> None:
     control_ep = free_tcp_endpoint()
-    with running_relay(site, "ideal", control_listen=[control_ep]):
+    pki = str(write_site(tmp_path, time.time_ns()))
+    operator = load_signer(pki, "operator")  # the emulator applies only an operator's signed control
+    with running_relay(site, "ideal", control_listen=[control_ep], pki=pki):
         _wait_until_both_receive(site)
         assert all(_answered(site, vid, 2.0) for vid in VEHICLES)
         result = send_control([control_ep], LinkControl(link_id=LINK_ID, seq=11, vehicle_id="car2", outage=True,
-                                                        duration_s=30.0), 5.0)
+                                                        duration_s=30.0), 5.0, operator)
         assert result == "outage on both for 30 s (vehicle car2)"
         got = _put_and_collect(site, 20)
         assert len(got["car1"]) == 20 and got["car2"] == set()
         assert _answered(site, "car1") and not _answered(site, "car2", 0.5)
         with pytest.raises(ControlError, match="rejected it \\(unknown_vehicle\\)"):
-            send_control([control_ep], LinkControl(link_id=LINK_ID, seq=12, vehicle_id="car9", clear=True), 5.0)
+            send_control([control_ep], LinkControl(link_id=LINK_ID, seq=12, vehicle_id="car9", clear=True), 5.0,
+                         operator)
         # a stats message from after car1's reply and car9's rejection (older ones may still be queued)
         stats = _stats_where(site, lambda s: _pair(s, "car2")["uplink"]["dropped"] >= 1 and s["control"]["rejected"])
         car1, car2 = _pair(stats, "car1"), _pair(stats, "car2")
@@ -173,7 +178,7 @@ def test_a_control_naming_one_vehicle_cuts_only_its_channel(site: Site) -> None:
         assert car1["downlink"]["dropped"] == 0
         assert stats["downlink"]["received"] == car1["downlink"]["received"] + car2["downlink"]["received"]
         assert stats["control"]["applied"] == 1 and stats["control"]["rejected"] == {"unknown_vehicle": 1}
-        send_control([control_ep], LinkControl(link_id=LINK_ID, seq=13, clear=True), 5.0)
+        send_control([control_ep], LinkControl(link_id=LINK_ID, seq=13, clear=True), 5.0, operator)
         got = _put_and_collect(site, 5)
         assert len(got["car1"]) == 5 and len(got["car2"]) == 5
 

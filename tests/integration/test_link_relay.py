@@ -20,13 +20,15 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from link_emulator.cli import ControlError, send_control
 from link_emulator.config import LinkConfig
+from link_emulator.control_client import ControlError, send_control
 from link_emulator.relay import LinkRelay
 from schemas.codec import encode
 from schemas.keys import link_stats, obu_pose, rsu_objects, rsu_time
 from schemas.messages import EgoPose, LinkControl
 from schemas.transport import free_tcp_endpoint, open_session
+from security.pki import load_signer
+from security.site import write_site
 from sim.clock import SystemClock
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
@@ -85,11 +87,13 @@ def sides() -> Iterator[Sides]:
 
 @contextmanager
 def running_relay(
-    sides: Sides, profile: str, rsu_position: tuple[float, float] | None = None, control_listen: list[str] = ()
+    sides: Sides, profile: str, rsu_position: tuple[float, float] | None = None, control_listen: list[str] = (),
+    pki: str | None = None,
 ) -> Iterator[LinkRelay]:
     """A LinkRelay running in a thread for the duration of the block; always stopped."""
     config = LinkConfig(
         link_id=LINK_ID,
+        pki=pki,
         rsu_connect=[sides.rsu_endpoint],
         vehicle_connect=[sides.vehicle_endpoint],
         control_listen=list(control_listen),
@@ -281,24 +285,31 @@ def _link_set(control_ep: str, *options: str) -> subprocess.CompletedProcess:
     return subprocess.run(argv, check=False, capture_output=True, text=True, timeout=30)
 
 
-def test_link_set_cuts_and_restores_the_live_link(sides: Sides) -> None:
+def test_link_set_cuts_and_restores_the_live_link(sides: Sides, tmp_path) -> None:
+    """Signed control (--pki) is applied; unsigned control is rejected, and v2i link set says why."""
     control_ep = free_tcp_endpoint()
-    with running_relay(sides, "ideal", control_listen=[control_ep]):
+    pki = str(write_site(tmp_path, time.time_ns(), rsu_ids=[RSU_ID]))
+    with running_relay(sides, "ideal", control_listen=[control_ep], pki=pki):
         _wait_until_objects_flow(sides)
         done = _link_set(control_ep, "--outage", "30")
+        assert done.returncode == 1 and "rejected it (unsigned)" in done.stderr and "--pki DIR" in done.stderr
+        done = _link_set(control_ep, "--pki", pki, "--identity", RSU_ID, "--outage", "30")
+        assert done.returncode == 2 and "link control needs an operator's" in done.stderr
+        done = _link_set(control_ep, "--pki", pki, "--outage", "30")
         assert done.returncode == 0, done.stderr
         assert "outage on both for 30 s" in done.stdout
         for i in range(5):
             sides.rsu.put(rsu_objects(RSU_ID), b"cut-%d" % i)
         assert _wait_for_payload(sides.objects, b"cut-4", 0.5) is None
         with pytest.raises(ControlError, match="rejected it \\(unknown_profile\\)"):
-            send_control([control_ep], LinkControl(link_id=LINK_ID, seq=1, profile="no-such-profile"), 5.0)
-        done = _link_set(control_ep, "--clear")
+            send_control([control_ep], LinkControl(link_id=LINK_ID, seq=1, profile="no-such-profile"), 5.0,
+                         load_signer(pki, "operator"))
+        done = _link_set(control_ep, "--pki", pki, "--clear")
         assert done.returncode == 0, done.stderr
         assert "impairments cleared" in done.stdout
         _wait_until_objects_flow(sides)
         stats = _poll_stats(sides, "ideal", lambda s: s["control"]["applied"] == 2, 2.0)
-        assert stats is not None and stats["control"]["rejected"] == {"unknown_profile": 1}
+        assert stats is not None and stats["control"]["rejected"] == {"unsigned": 1, "unknown_profile": 1}
 
 
 def test_link_set_without_an_emulator_fails_clearly() -> None:

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import pytest
 import zenoh
 
-from link_emulator.cli import send_control
 from link_emulator.config import LinkConfig
+from link_emulator.control_client import send_control
 from link_emulator.v2v_relay import V2vRelay
 from schemas.codec import encode
 from schemas.keys import link_stats, obu_pose, v2v_objects
@@ -63,7 +63,7 @@ def cars() -> Iterator[dict[str, Car]]:
 def running(cars: dict[str, Car], control_listen: list[str] = (), profile: str = "ideal") -> Iterator[V2vRelay]:
     config = LinkConfig(link_id=LINK_ID, v2v=True, profile=profile, seed=5, stats_period_s=0.2,
                         vehicles=[{"vehicle_id": vid, "connect": [c.endpoint]} for vid, c in cars.items()],
-                        control_listen=list(control_listen))
+                        control_listen=list(control_listen), insecure_control=True)  # unsigned control (lab)
     relay = V2vRelay(config, SystemClock())
     stop = threading.Event()
     thread = threading.Thread(target=relay.run, args=(stop,), name="v2v-relay")

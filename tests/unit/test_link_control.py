@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from link_emulator.cli import SetAction, control_from_action
 from link_emulator.config import LinkConfig
+from link_emulator.control_client import SetAction, control_from_action
 from link_emulator.relay import LinkRelay
 from schemas.codec import encode
 from schemas.messages import LinkControl
@@ -54,7 +54,9 @@ def test_wrong_options_are_named(action, message):
 
 @pytest.fixture
 def relay() -> LinkRelay:
-    return LinkRelay(LinkConfig(link_id="l1", rsu_connect=[EP], vehicle_connect=[EP], profile="ideal"), SystemClock())
+    """An emulator applying unsigned control (its authentication: tests/unit/test_link_control_auth.py)."""
+    config = LinkConfig(link_id="l1", rsu_connect=[EP], vehicle_connect=[EP], profile="ideal", insecure_control=True)
+    return LinkRelay(config, SystemClock())
 
 
 def test_relay_applies_a_control_and_reports_it_in_the_stats(relay):

@@ -10,8 +10,9 @@ import pytest
 from pydantic import ValidationError
 
 from link_emulator.channel import LinkModel
-from link_emulator.cli import SetAction, control_from_action, parse_vehicle
+from link_emulator.cli import parse_vehicle
 from link_emulator.config import MAX_VEHICLES, LinkConfig
+from link_emulator.control_client import SetAction, control_from_action
 from link_emulator.pair import pair_seed
 from link_emulator.profile import load_profile
 from link_emulator.relay import LinkRelay
@@ -30,7 +31,7 @@ def vehicles(*ids: str) -> list[dict]:
 
 def relay_for(*ids: str, profile: str = "lte-v2x", seed: int = 7) -> LinkRelay:
     return LinkRelay(LinkConfig(link_id="l1", rsu_connect=EP, vehicles=vehicles(*ids), profile=profile, seed=seed,
-                                rsu_position=(0.0, 0.0)), SystemClock())
+                                rsu_position=(0.0, 0.0), insecure_control=True), SystemClock())  # unsigned control
 
 
 def downlink_draws(model: LinkModel, n: int = 200) -> list[int | None]:

@@ -1,0 +1,190 @@
+"""Who may change a link: authentication of ``LinkControl`` messages (issue 14 §3).
+
+Three modes, chosen at start-up (``LinkConfig.pki`` / ``insecure_control``):
+
+- ``signed`` (``--pki DIR``): a control must be a signed envelope (:mod:`security.envelope`) for
+  the key ``v2x/link/{link_id}/control``, from a certificate of DIR's CA whose role is
+  ``operator`` and whose keys cover that key, generated at most ``max_age`` before and at most
+  ``max_ahead`` after its receipt by the emulator's own clock, and never seen before (a per-signer
+  replay window as long as ``max_age``). Rejections: the envelope verifier's reasons
+  (``unsigned``, ``malformed``, ``bad_signature``, ``unknown_cert``, ``revoked``, ``expired``,
+  ``wrong_key``, ``stale``, ``future``, ``replayed``) and ``wrong_role`` (a valid certificate of
+  another role, e.g. an RSU's issued with control keys).
+- ``refuse`` (the default: no ``--pki``): every control is rejected as ``unauthenticated``.
+- ``insecure`` (``--insecure-control``, lab only): unsigned control is accepted as before issue
+  14; a signed one is unwrapped without any check.
+
+Freshness window (defaults 2 s old, 0.5 s ahead): the controller signs right before it puts the
+message, and the control session is a direct Zenoh hop (milliseconds, not the emulated radio),
+so the window is mostly for the clock offset between the operator's host and the emulator's:
+NTP keeps hosts of one site within tens of milliseconds, and 0.5 s ahead / 2 s old tolerates a
+badly synchronised host while keeping a captured control useless 2 s later (and within those
+2 s the replay window refuses it). Both are ``LinkConfig`` fields.
+
+The revocation list is re-read (at most once per ``reload_s``, on a control's arrival, if its
+file changed) so that revoking an operator needs no restart. Verification runs on the thread
+that calls :meth:`ControlAuth.open` (the relay's scheduler thread) and never raises on any bytes.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+from schemas.codec import encode
+from schemas.keys import link_control
+from schemas.messages import LinkControl
+from security import certificates as certs
+from security.certificates import CertificateError
+from security.envelope import PREFIX, Signer, Verifier, parse
+from security.pki import CRL_FILE, Identity, PkiError, Trust, load_trust
+
+log = logging.getLogger(__name__)
+
+OPERATOR = "operator"
+NS_PER_S = 1_000_000_000
+RELOAD_S = 1.0
+_ROLES_MAX = 256  # certificates whose role is remembered (as the verifier's certificate cache)
+
+
+def sign_control(control: LinkControl, identity: Identity, generation_ns: int) -> bytes:
+    """``control`` in an envelope signed by ``identity`` at ``generation_ns`` (the controller's
+    clock) for ``v2x/link/{link_id}/control``, always carrying the full certificate: controls are
+    rare, and an emulator on another host need not hold the operator's ``.cert`` in advance."""
+    signer = Signer(identity, cert_interval_ns=0)
+    return signer.sign(encode(control), generation_ns, link_control(control.link_id))
+
+
+@dataclass(frozen=True)
+class Opened:
+    """A control message after authentication: ``payload`` (the LinkControl bytes) when accepted,
+    else None; ``reason`` ``ok``, ``unchecked`` (insecure mode) or the rejection; ``claimed``: the
+    inner bytes, accepted or not (to report the message's seq with a rejection), None if unknown."""
+
+    payload: bytes | None
+    reason: str
+    claimed: bytes | None
+
+
+class ControlAuth:
+    """Authenticates the link controls of one link; build with :meth:`create`. One owner thread."""
+
+    def __init__(self, mode: str, link_id: str, directory: Path | None = None, trust: Trust | None = None,
+                 max_age_s: float = 2.0, max_ahead_s: float = 0.5, reload_s: float = RELOAD_S) -> None:
+        if mode not in ("signed", "refuse", "insecure") or (mode == "signed") != (trust is not None):
+            raise ValueError(f"control auth mode {mode!r} needs trust exactly when signed")
+        self.mode, self.key_expr, self.directory = mode, link_control(link_id), directory
+        self.max_age_ns, self.max_ahead_ns = round(max_age_s * NS_PER_S), round(max_ahead_s * NS_PER_S)
+        self._reload_ns, self._next_reload_ns, self._crl_stamp = round(reload_s * NS_PER_S), 0, None
+        self._roles: OrderedDict[bytes, str] = OrderedDict()
+        self.verifier: Verifier | None = None
+        if trust is not None:
+            self.verifier = Verifier(trust, "strict", freshness_ns=self.max_age_ns, future_ns=self.max_ahead_ns)
+            self._crl_stamp = self._stamp()
+            self._learn_known(trust)
+
+    @classmethod
+    def create(cls, link_id: str, pki: str | None, insecure: bool, max_age_s: float = 2.0,
+               max_ahead_s: float = 0.5) -> ControlAuth:
+        """The authenticator of a config: ``signed`` with a PKI directory (PkiError on a bad one),
+        ``insecure`` when asked, else ``refuse``."""
+        if pki is not None:
+            return cls("signed", link_id, Path(pki), load_trust(pki), max_age_s, max_ahead_s)
+        return cls("insecure" if insecure else "refuse", link_id, max_age_s=max_age_s, max_ahead_s=max_ahead_s)
+
+    def describe(self) -> str:
+        """One line for the start-up log."""
+        if self.mode == "signed":
+            return (f"link control must be signed by an operator certificate of the CA in {self.directory} "
+                    f"(generated at most {self.max_age_ns / NS_PER_S:g} s before its receipt and "
+                    f"{self.max_ahead_ns / NS_PER_S:g} s ahead of it; replays refused)")
+        if self.mode == "refuse":
+            return ("link control is refused: no --pki DIR given, so every control is rejected as "
+                    "'unauthenticated' (--insecure-control accepts unsigned control, lab only)")
+        return "link control is NOT authenticated (--insecure-control, lab only): any peer may change the link"
+
+    def open(self, data: bytes, receive_ns: int) -> Opened:
+        """Authenticate the bytes received on the control key at ``receive_ns`` (emulator clock)."""
+        data = bytes(data)
+        env = parse(data)
+        claimed = env.payload if env is not None else (None if data.startswith(PREFIX) else data)
+        if self.mode == "insecure":
+            return Opened(claimed, "unchecked", claimed)
+        if self.mode == "refuse":
+            return Opened(None, "unauthenticated", claimed)
+        self._maybe_reload(receive_ns)
+        if env is not None and len(env.signer) != certs.DIGEST_BYTES:
+            self._learn(env.signer)
+        payload, reason = self.verifier.verify(data, self.key_expr, receive_ns)
+        if reason == "ok":
+            digest = env.signer if len(env.signer) == certs.DIGEST_BYTES else certs.digest(env.signer)
+            role = self._roles.get(digest)
+            if role != OPERATOR:
+                return Opened(None, "wrong_role" if role else "unknown_cert", claimed)
+            return Opened(payload, "ok", claimed)
+        return Opened(None, reason, claimed)
+
+    def explain(self, reason: str) -> str:
+        """Why a control was rejected, for the stats' ``recent`` (what ``v2i link set`` prints)."""
+        return {
+            "unauthenticated": "this emulator was started without --pki, so it accepts no link control",
+            "unsigned": "link control must be signed by an operator certificate (v2i link set --pki DIR)",
+            "wrong_role": "signed by a certificate that is not an operator's",
+            "stale": f"generated more than {self.max_age_ns / NS_PER_S:g} s before its receipt (a replay, or "
+                     "the controller's clock is behind the emulator's)",
+            "future": f"generated more than {self.max_ahead_ns / NS_PER_S:g} s after its receipt (the "
+                      "controller's clock is ahead of the emulator's)",
+            "replayed": "this signed control was already received",
+            "unknown_cert": "signed by a certificate this emulator's CA did not issue",
+            "revoked": "signed by a revoked certificate",
+            "expired": "signed outside its certificate's validity",
+            "wrong_key": f"the signer's certificate does not cover {self.key_expr}",
+            "bad_signature": "the signature does not verify",
+            "malformed": "not a well-formed signed envelope",
+        }.get(reason, reason)
+
+    # ---- certificate roles and the revocation list ----------------------------------------
+
+    def _learn(self, encoding: bytes) -> None:
+        """Remember the role of a certificate by its digest (the verifier decides if it is valid)."""
+        try:
+            cert = certs.decode(encoding)
+        except CertificateError:
+            return
+        self._roles[cert.digest] = cert.role
+        self._roles.move_to_end(cert.digest)
+        while len(self._roles) > max(_ROLES_MAX, len(self.verifier.trust.known)):
+            self._roles.popitem(last=False)
+
+    def _learn_known(self, trust: Trust) -> None:
+        for encoding in trust.known.values():
+            self._learn(encoding)
+
+    def _stamp(self) -> tuple[int, int] | None:
+        """(mtime_ns, size) of the revocation list file, None when absent."""
+        try:
+            st = (self.directory / CRL_FILE).stat()
+        except OSError:
+            return None
+        return st.st_mtime_ns, st.st_size
+
+    def _maybe_reload(self, now_ns: int) -> None:
+        """Reload the trust directory when its revocation list changed (checked once per reload_s)."""
+        if now_ns < self._next_reload_ns:
+            return
+        self._next_reload_ns = now_ns + self._reload_ns
+        stamp = self._stamp()
+        if stamp == self._crl_stamp:
+            return
+        try:
+            trust = load_trust(self.directory)
+        except PkiError as exc:
+            log.warning("kept the previous trust: cannot reload %s (%s)", self.directory, exc)
+            return
+        self._crl_stamp = stamp
+        self.verifier.set_trust(trust)
+        self._learn_known(trust)
+        log.warning("reloaded %s: %d certificate(s) revoked", self.directory / CRL_FILE, len(trust.revoked))
+
