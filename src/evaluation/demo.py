@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from link_emulator.control_auth import OPERATOR, sign_control
 from obu_service.fusion_mode import TRACKING_MODES
 from obu_service.source import SimulatedVehicle
 from schemas import keys
@@ -39,6 +40,7 @@ from schemas.codec import CodecError, decode, encode
 from schemas.messages import FusedObjectList, LinkControl, ObuMetrics, PredictionList, RsuMetrics
 from schemas.runtime import log
 from schemas.transport import free_tcp_endpoint, open_session
+from security.pki import Identity, load_signer
 from sim.scenario import load_scenario
 from sim.world import World
 from telemetry.live_line import LiveLine
@@ -124,8 +126,9 @@ class ControlChannel:
     emulator did with each message comes back in its stats (``control.recent``), kept here.
     """
 
-    def __init__(self, endpoint: str, link_id: str):
+    def __init__(self, endpoint: str, link_id: str, operator: Identity | None = None):
         self.endpoint, self.link_id = endpoint, link_id
+        self.operator = operator  # signs every control (the emulator runs with --pki); None: unsigned
         self.outcomes: dict[int, dict] = {}  # seq -> the emulator's outcome ({"result"} or {"rejected", "error"})
         self._seq = itertools.count(1)
         self._session = self._publisher = self._subscriber = None
@@ -149,7 +152,9 @@ class ControlChannel:
         if not matched and not self.open():
             return None
         seq = next(self._seq)
-        self._publisher.put(encode(control.model_copy(update={"seq": seq})))
+        control = control.model_copy(update={"seq": seq})
+        self._publisher.put(encode(control) if self.operator is None else
+                            sign_control(control, self.operator, time.time_ns()))
         return seq
 
     def _on_stats(self, sample) -> None:
@@ -256,10 +261,10 @@ class Demo(InboxScoring):
         self._init_inbox()
         self._down: set[str] = set()  # services killed on purpose and not yet restarted
         self._restarting: dict[str, float] = {}  # service -> monotonic deadline of its ready line
-        self._control = ControlChannel(self.control_ep, LINK_ID)
         self._tmp = tempfile.TemporaryDirectory(prefix="v2i-demo-")
         self.link_config = self._write_link_config(Path(self._tmp.name))
         self.pki_dir = run_pki(spec, self.world.scenario, pki_dir or Path(self._tmp.name) / "pki", time.time_ns())
+        self._control = ControlChannel(self.control_ep, LINK_ID, load_signer(self.pki_dir, OPERATOR))
 
     def _write_link_config(self, folder: Path) -> Path:
         """LinkConfig YAML with the RSU position (for distance-dependent channels); no CLI flag has it."""
@@ -355,7 +360,7 @@ class Demo(InboxScoring):
                            *security_argv(s, name, self.pki_dir)]
         return base + ["--config", str(self.link_config), "--link-id", LINK_ID, "--rsu-connect", self.rsu_ep,
                        "--vehicle-connect", self.obu_ep, "--control-listen", self.control_ep,
-                       "--profile", s.profile, "--seed", str(s.seed), "--vehicle-id", s.obu_config().vehicle_id]
+                       "--pki", str(self.pki_dir), "--profile", s.profile, "--seed", str(s.seed), "--vehicle-id", s.obu_config().vehicle_id]
 
     def _score(self, kind: str, data: bytes) -> None:
         if kind == "objects":
