@@ -360,7 +360,8 @@ class Demo(InboxScoring):
                            *security_argv(s, name, self.pki_dir)]
         return base + ["--config", str(self.link_config), "--link-id", LINK_ID, "--rsu-connect", self.rsu_ep,
                        "--vehicle-connect", self.obu_ep, "--control-listen", self.control_ep,
-                       "--pki", str(self.pki_dir), "--profile", s.profile, "--seed", str(s.seed), "--vehicle-id", s.obu_config().vehicle_id]
+                       "--pki", str(self.pki_dir), "--profile", s.profile, "--seed", str(s.seed),
+                       "--vehicle-id", s.obu_config().vehicle_id]
 
     def _score(self, kind: str, data: bytes) -> None:
         if kind == "objects":
