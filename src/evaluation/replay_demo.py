@@ -9,6 +9,10 @@ start time, replays the vehicle side's RSU traffic into it (``v2i.replay.Replaye
 moved to the new start, the RSU clock answered from the recorded exchanges) and scores its
 output with the demo's machinery (``InboxScoring``, ``build_report``): the same report keys,
 ``driver: replay``, plus ``replay`` (what was republished, how late) and ``recording``.
+
+A signed recording (the demo's default, ``--security strict``) is replayed unsigned (a shifted
+stamp cannot keep its signature: ``v2i.replay``), so the fresh OBU runs without a PKI (the
+report's ``security`` is None) and ``replay.recorded_security`` says what the recorded run did.
 """
 
 from __future__ import annotations
@@ -68,7 +72,8 @@ class ReplayDemo(Demo):
 
         self.recording = Recording(recording_path)
         spec = spec_of(self.recording.metadata.get(RUN_METADATA, {}))
-        super().__init__(spec, startup_s=startup_s)
+        self.recorded_security = spec.security
+        super().__init__(dataclasses.replace(spec, security=None), startup_s=startup_s)  # replayed unsigned
         self.replayer = Replayer(self.recording, "vehicle" if "vehicle" in self.recording.sides else None, keys_pattern)
 
     def run(self) -> dict:
@@ -127,5 +132,5 @@ class ReplayDemo(Demo):
         report = build_report(self.spec, self.world, self.record, driver="replay")
         report["monitor_messages_dropped"] = dict(self.dropped)
         report["recording"] = str(self.recording.path)
-        report["replay"] = self.replayer.stats()
+        report["replay"] = {**self.replayer.stats(), "recorded_security": self.recorded_security}
         return report

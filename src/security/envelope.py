@@ -132,6 +132,16 @@ def parse(data: bytes) -> _Parsed | None:
     return _Parsed(payload, signer, generation_ns, signature)
 
 
+def unwrap(data: bytes) -> bytes:
+    """The payload of an envelope, else ``data`` unchanged (unsigned or malformed bytes); no check
+    at all and never raises: for readers of recorded or mirrored traffic, not for trust decisions."""
+    data = bytes(data)
+    if not data.startswith(PREFIX):
+        return data
+    env = parse(data)
+    return data if env is None else env.payload
+
+
 @dataclass(frozen=True)
 class _Entry:
     cert: Certificate

@@ -15,6 +15,13 @@ obu_metrics..)
 ``unknown``     ``application/octet-stream`` (none)            anything else, kept byte for byte
 ==============  =========================  ==================  ====================================
 
+Signed messages (an RSU run with ``--pki``: ``security.envelope``) are recorded as they were
+on the wire, envelope and signature included (that is the evidence); their kind is that of the
+payload inside, ``Kind.signed`` is set and the channel's message encoding is ``v2i-signed+``
+followed by the payload's (e.g. ``v2i-signed+v2i-msgpack``): the schema describes the payload,
+``security.envelope.unwrap`` gives it. Readers (derived channels, time exchanges, ``v2i replay``)
+unwrap without checking the signature: the recording is evidence, not a trust decision.
+
 Honest note on ``v2i-msgpack``: the bytes are the project's codec envelope (``schemas.codec``:
 positional fields, bit-packed quantised object columns), *not* a msgpack map that the JSON
 schema describes field by field; the schema describes what ``schemas.codec.decode(data,
@@ -44,8 +51,10 @@ from fusion.frames import Pose2D, base_to_map_points
 from schemas import image_messages, messages, sensor_messages  # noqa: F401 (register every Message type)
 from schemas.codec import LIST_TAGS, MAX_CONTAINER_LEN
 from schemas.messages import FusedObjectList, Message, ObjectList
+from security.envelope import unwrap
 
 V2I_ENCODING = "v2i-msgpack"
+SIGNED_ENCODING = "v2i-signed+"  # prefix of a signed channel's message encoding (+ the payload's)
 STANDARD_WIRES = ("cpm", "sdsm")  # key suffix -> UPER message of that standard
 UNKNOWN = "unknown"
 SCENE_SCHEMA = "foxglove.SceneUpdate"
@@ -59,11 +68,19 @@ ENTITY_LIFETIME_NS = 300_000_000  # an entity not replaced within 3 cycles disap
 @dataclass(frozen=True)
 class Kind:
     """How a recorded payload is read back: ``name`` (a v2i TYPE, a wire, json, unknown),
-    the MCAP message encoding, and the model that decodes it (v2i kinds only)."""
+    the MCAP message encoding, the model that decodes it (v2i kinds only), and whether the bytes
+    are a signed envelope around such a payload (``signed``; then ``name`` and ``model`` are the
+    payload's)."""
 
     name: str
     message_encoding: str
     model: type[Message] | None = None
+    signed: bool = False
+
+    @property
+    def label(self) -> str:
+        """``name``, or ``signed-<name>``: what tells two channels on one key apart."""
+        return f"signed-{self.name}" if self.signed else self.name
 
 
 def _all_subclasses(cls: type) -> list[type]:
@@ -109,7 +126,16 @@ def v2i_type(payload: bytes) -> type[Message] | None:
 
 
 def classify(key: str, payload: bytes) -> Kind:
-    """The kind of one sample on ``key`` (see the module table)."""
+    """The kind of one sample on ``key`` (see the module table); a signed envelope's is its payload's,
+    ``signed`` set and its encoding prefixed with ``SIGNED_ENCODING``."""
+    inner = unwrap(payload)
+    if len(inner) == len(payload):  # not an envelope (one adds >= 92 B around its payload)
+        return _classify_plain(key, payload)
+    kind = _classify_plain(key, inner)
+    return Kind(kind.name, SIGNED_ENCODING + kind.message_encoding, kind.model, signed=True)
+
+
+def _classify_plain(key: str, payload: bytes) -> Kind:
     topic = key.rsplit("/", 1)[-1]
     if key.startswith("v2x/rsu/") and topic in STANDARD_WIRES:
         return Kind(topic, "uper")

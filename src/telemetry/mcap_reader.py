@@ -3,6 +3,10 @@
 A recording is untrusted input: the file is read once through at open (CRCs checked, records and
 chunks at most ``MAX_CHUNK_BYTES`` compressed or not, every message decoded from its chunk), and
 anything wrong with it is a ``RecordingError`` (a ``ValueError``) naming the file, never a traceback.
+
+Signed samples (``telemetry.mcap_channels``: channel metadata ``signed``) keep their envelope in
+``Sample.payload``; ``Sample.content`` is the message inside, and the time exchanges are read
+from it (unchecked: a recording is evidence, not a trust decision).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from mcap.reader import SeekingReader
 
 from schemas.codec import CodecError, decode
 from schemas.messages import TimeReply
+from security.envelope import unwrap
 
 from .mcap_channels import models_by_type
 from .time_shift import Exchange
@@ -49,11 +54,17 @@ class Sample:
     key: str
     kind: str
     log_time_ns: int
-    payload: bytes
+    payload: bytes  # as recorded (a signed envelope included)
+    signed: bool = False
 
     @property
     def model(self):
         return models_by_type().get(self.kind)
+
+    @property
+    def content(self) -> bytes:
+        """The message bytes: a signed sample's payload without its envelope, else ``payload``."""
+        return unwrap(self.payload) if self.signed else self.payload
 
 
 @dataclass(frozen=True)
@@ -62,6 +73,7 @@ class RawChannel:
     side: str
     key: str
     kind: str
+    signed: bool = False
 
 
 class Recording:
@@ -77,7 +89,7 @@ class Recording:
             if big:
                 raise RecordingError(f"{self.path}: a chunk of {big[0]} bytes (at most {MAX_CHUNK_BYTES})")
             self.channels = {cid: RawChannel(str(c.topic), str(c.metadata["side"]), str(c.metadata["key"]),
-                                             str(c.metadata["kind"]))
+                                             str(c.metadata["kind"]), c.metadata.get("signed") == "true")
                              for cid, c in summary.channels.items() if "side" in c.metadata}
             self.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
             self.message_counts = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
@@ -115,7 +127,7 @@ class Recording:
         by_topic = {c.topic: c for c in self.channels.values()}
         for channel, message in self._messages(topics):
             c = by_topic[channel.topic]
-            yield Sample(c.side, c.key, c.kind, message.log_time, bytes(message.data))
+            yield Sample(c.side, c.key, c.kind, message.log_time, bytes(message.data), c.signed)
 
     def exchanges(self) -> dict[str, list[Exchange]]:
         """The recorder's time exchanges by RSU id: t1, t2, t3 from each reply, t4 its log time."""
@@ -125,7 +137,7 @@ class Recording:
             return out
         for _, message in self._messages(topics):
             try:
-                reply = decode(bytes(message.data), TimeReply)
+                reply = decode(unwrap(bytes(message.data)), TimeReply)
             except CodecError:
                 continue
             out[reply.rsu_id].append(Exchange(reply.t1_ns, reply.t2_ns, reply.t3_ns, message.log_time))

@@ -1,8 +1,10 @@
 """``RunWriter``: recorded samples into an MCAP file (``mcap`` library), raw plus derived channels.
 
-One raw channel per (side, key expression, kind), topic ``/<side>/<key>`` (a second kind on
-the same key gets ``/<side>/<key>~<kind>``), with the channel metadata ``side``, ``key`` and
-``kind`` that ``v2i replay`` reads; the kinds, encodings and derived channels are described in
+One raw channel per (side, key expression, kind, signed or not), topic ``/<side>/<key>`` (a
+second kind on the same key gets ``/<side>/<key>~<kind label>``, e.g. ``~signed-object_list``),
+with the channel metadata ``side``, ``key``, ``kind`` and ``signed`` (``true`` / ``false``) that
+``v2i replay`` reads; a signed sample is written as received, envelope included, and its derived
+message is made from the payload inside; the kinds, encodings and derived channels are described in
 ``telemetry.mcap_channels``. A message's ``log_time`` is its receive time and ``publish_time``
 the sender's publish stamp where the message has one (else the receive time), both ns.
 
@@ -23,6 +25,7 @@ from mcap.writer import CompressionType, Writer
 
 from schemas.codec import CodecError, decode
 from schemas.messages import Message
+from security.envelope import unwrap
 
 from . import mcap_channels as mc
 
@@ -99,7 +102,7 @@ class RunWriter:
             self.skipped["oversized"] += 1
             return None
         try:
-            return decode(payload, kind.model)
+            return decode(unwrap(payload) if kind.signed else payload, kind.model)
         except CodecError as exc:
             self.skipped[f"undecodable_{exc.reason}"] += 1
             return None
@@ -120,21 +123,21 @@ class RunWriter:
         self.derived += 1
 
     def _raw_topic(self, side: str, key: str, kind: mc.Kind) -> str:
-        channel = (side, key, kind.name)
+        channel = (side, key, kind.label)
         if channel in self._channels:
             return self._topic_of[channel]
         topic = f"/{side}/{key}"
         if topic in self._topics:
-            topic = f"{topic}~{kind.name}"
+            topic = f"{topic}~{kind.label}"
         return topic
 
     def _raw_channel(self, side: str, key: str, kind: mc.Kind, topic: str) -> int:
-        channel = (side, key, kind.name)
+        channel = (side, key, kind.label)
         if channel not in self._channels:
             schema = mc.schema_of(kind)
             schema_id = 0 if schema is None else self._schema(schema[0], schema[1], lambda: schema[2])
-            self._channels[channel] = self._writer.register_channel(
-                topic, kind.message_encoding, schema_id, {"side": side, "key": key, "kind": kind.name})
+            metadata = {"side": side, "key": key, "kind": kind.name, "signed": "true" if kind.signed else "false"}
+            self._channels[channel] = self._writer.register_channel(topic, kind.message_encoding, schema_id, metadata)
             self._topics.add(topic)
             self._topic_of[channel] = topic
         return self._channels[channel]

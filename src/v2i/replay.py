@@ -26,6 +26,13 @@ Design: what a replayed OBU must see to behave as the recorded one did.
   as they arrived at the OBU, after the link) whose key matches ``--keys`` (default
   ``v2x/rsu/**``), the recorder's own time replies excepted. A sample that does not decode is
   published unchanged (counted ``unshifted``): a hostile input stays hostile.
+- **Signed recordings** (RSUs run with ``--pki``: ``security.envelope``). A signature covers the
+  stamps, so a shifted message cannot keep it, and the replay holds no RSU key to sign anew: a
+  signed sample is republished *unsigned*, its payload taken out of the envelope and shifted
+  (counted ``envelopes_removed``); the recorder's exchanges are read from inside theirs, and
+  the replay's own time replies are unsigned too. The OBU fed must therefore run without
+  ``--pki`` (or ``--security off``); ``--score`` starts it so. (An envelope that does not decode
+  is published as recorded, like any sample that does not decode.)
 - ``--speed`` other than 1 scales the spacing; a sample's stamps then move by (its publish time -
   its log time), so each keeps its recorded age at publication. An OBU runs in real time only at 1.
 """
@@ -140,10 +147,12 @@ class Replayer:
 
         shift_ns = (self.t0_ns - self.l0_ns) if self.speed == 1.0 else round_shift_ns(due_ns - sample.log_time_ns)
         try:
-            return shift_payload(sample.kind, sample.model, sample.payload, shift_ns, rsu_id_or_none(sample.key))
+            shifted = shift_payload(sample.kind, sample.model, sample.content, shift_ns, rsu_id_or_none(sample.key))
         except (CodecError, ValueError):
             self.counts["unshifted"] += 1
             return sample.payload
+        self.counts["envelopes_removed"] += sample.signed
+        return shifted
 
     def stats(self) -> dict:
         """Counts, lateness percentiles (ms) and the RSU clocks used."""
@@ -163,7 +172,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.description = ("Republish a v2i record MCAP file on its original keys with the recorded spacing (scaled by "
                      "--speed), every stamp moved to now, and answer the recorded RSUs' time queries from their "
                      "recorded clocks; or, with --score, start a fresh OBU with the recorded run's spec and score "
-                     "it on the replayed RSU traffic (the v2i demo report). Design: v2i/replay.py.")
+                     "it on the replayed RSU traffic (the v2i demo report). Signed messages (RSUs with --pki) are "
+                     "republished UNSIGNED: a signature covers the stamps, so a time-shifted message cannot keep "
+                     "it; feed an OBU without --pki (or with --security off); --score does. Design: v2i/replay.py.")
     p.add_argument("recording", metavar="FILE", help="MCAP file written by v2i record or v2i demo --record")
     p.add_argument("--connect", action="append", metavar="EP", help="endpoint of the OBU to feed (repeatable; "
                    "not with --score)")

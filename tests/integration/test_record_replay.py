@@ -1,5 +1,7 @@
 """A live demo recorded to MCAP (``Demo(record_to=...)``), then replayed into a fresh OBU
-(``ReplayDemo``): the replayed OBU must see what the live one saw and score alike."""
+(``ReplayDemo``): the replayed OBU must see what the live one saw and score alike. The live run
+signs (``security="strict"``, as ``v2i demo`` does by default): the recording keeps the envelopes
+and the replay republishes their payloads unsigned."""
 
 from __future__ import annotations
 
@@ -16,7 +18,8 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> tuple[dict, dict, Recording]:
     path = tmp_path_factory.mktemp("record") / "run.mcap"
-    live = Demo(RunSpec(profile="lte-v2x", seed=1, duration_s=8.0), startup_s=4.0, record_to=str(path)).run()
+    spec = RunSpec(profile="lte-v2x", seed=1, duration_s=8.0, security="strict")
+    live = Demo(spec, startup_s=4.0, record_to=str(path)).run()
     replayed = ReplayDemo(str(path), startup_s=3.0).run()
     return live, replayed, Recording(path)
 
@@ -29,6 +32,8 @@ def test_the_recording_has_both_sides_the_clock_and_the_spec(runs):
     assert ("vehicle", "v2x/obu/ego/objects") in keys
     assert len(recording.exchanges()["rsu1"]) >= 50  # ~10 Hz from before the start to the end
     assert recording.metadata["run"]["duration_s"] == "8.0"
+    signed = {(c.side, c.key) for c in recording.channels.values() if c.signed}
+    assert ("vehicle", "v2x/rsu/rsu1/objects") in signed and ("rsu", "v2x/rsu/rsu1/time") in signed
 
 
 def test_every_recorded_rsu_message_is_replayed_and_answered(runs):
@@ -37,6 +42,8 @@ def test_every_recorded_rsu_message_is_replayed_and_answered(runs):
     recorded = sum(1 for _ in recording.samples("vehicle", "v2x/rsu/**"))
     assert stats["published"] == recorded > 0
     assert stats.get("unshifted", 0) == 0
+    assert stats["envelopes_removed"] == sum(1 for s in recording.samples("vehicle", "v2x/rsu/**") if s.signed) > 0
+    assert stats["recorded_security"] == "strict" and replayed["security"] is None
     assert stats["time_replies"] > 0
 
 
