@@ -33,6 +33,7 @@ from schemas.messages import ObuMetrics, RsuMetrics
 
 from .demo import Demo
 from .image_fusion import FusionTally, score_frame
+from .live_security import security_argv
 
 PAIRED_KEYS = ("frames", "truths", "detection_accuracy", "rsu_only_detection_accuracy", "vehicle_only_detection_accuracy",
                "mean_iou", "precision")
@@ -43,8 +44,8 @@ MIN_STARTUP_S = 12.0
 class ImageFusionDemo(Demo):
     """The live ROIF demo: ``Demo``'s processes and supervision, its own flags, output and score."""
 
-    def __init__(self, spec, startup_s: float = MIN_STARTUP_S):
-        super().__init__(spec, startup_s=max(startup_s, MIN_STARTUP_S))
+    def __init__(self, spec, startup_s: float = MIN_STARTUP_S, pki_dir: str | None = None):
+        super().__init__(spec, startup_s=max(startup_s, MIN_STARTUP_S), pki_dir=pki_dir)
         sc = self.world.scenario
         if sc.ego_camera is None:
             raise ValueError(f"scenario {sc.name!r} has no ego_camera: --fusion roif needs one (e.g. roif-intersection)")
@@ -54,14 +55,17 @@ class ImageFusionDemo(Demo):
 
     def _argv(self, name: str, start_ns: int) -> list[str]:
         """RSU and OBU argv for ROIF; one detector thread each (two processes render and detect at
-        10 Hz on 2 cores: more threads only contend)."""
+        10 Hz on 2 cores: more threads only contend); the RSU signs its features and time replies and
+        the OBU verifies them as in ``Demo`` (``live_security.security_argv``)."""
         argv = super()._argv(name, start_ns)
         if name == "rsu":  # the camera source at the ego camera's rate, sending its features
             argv = argv[: argv.index("--source")] + ["--source", "camera", "--image-features", "--rsu-id",
                                                       self.world.scenario.rsu.id, "--rate-hz", f"{self.rate_hz:g}",
-                                                      "--detector-threads", "1"]
+                                                      "--detector-threads", "1",
+                                                      *security_argv(self.spec, name, self.pki_dir)]
         elif name == "obu":
-            argv = argv[: argv.index("--fusion")] + ["--fusion", "roif", "--roif-threads", "1"]
+            argv = argv[: argv.index("--fusion")] + ["--fusion", "roif", "--roif-threads", "1",
+                                                      *security_argv(self.spec, name, self.pki_dir)]
         return argv
 
     def _more_subscriptions(self, monitor, vehicle_id: str) -> list:

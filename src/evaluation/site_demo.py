@@ -22,6 +22,12 @@ metrics feed its record, each RSU's metrics give its perception scores. The repo
 ``site_report`` (the keys of ``v2i eval`` on the same scenario), plus the monitor's drops
 and the RSU lists each OBU accepted per RSU. Every child is stopped in ``finally``, by pid;
 nothing else is touched. Chaos timelines are single-link only (``evaluation.demo``).
+
+Security as in ``evaluation.demo``: one site PKI for every node (``live_security.run_pki``: every
+RSU and vehicle of the scenario, the operator), each RSU signs and each OBU verifies under
+``spec.security`` (``live_security.security_argv``). The report's ``security_outcomes`` (the
+offline runner's key) holds, per vehicle, its OBU's verification failures by reason (dropped or,
+under ``permissive``, accepted), from its last metrics; the OBU does not publish its ``ok`` count.
 """
 
 from __future__ import annotations
@@ -48,6 +54,7 @@ from sim.world import World
 from telemetry.live_line import LiveLine
 
 from .demo import POLL_S, Child, DemoError, InboxScoring
+from .live_security import run_pki, security_argv
 from .runner import v2v_config
 from .spec import RunRecord, RunSpec, site_report
 
@@ -73,9 +80,11 @@ def link_id(rsu_id: str) -> str:
 class SiteDemo(InboxScoring):
     """Every node of ``spec.scenario`` as its own process; ``run()`` returns the site report."""
 
-    def __init__(self, spec: RunSpec, startup_s: float = SITE_STARTUP_S, progress: str | None = None):
+    def __init__(self, spec: RunSpec, startup_s: float = SITE_STARTUP_S, progress: str | None = None,
+                 pki_dir: str | None = None):
         """``startup_s``: launch -> scenario time zero; every service must be ready by then.
-        ``progress``: the live line's name (``telemetry.live_line``), None for no line."""
+        ``progress``: the live line's name (``telemetry.live_line``), None for no line.
+        ``pki_dir``: the site PKI to use and complete; default: one in the run's temporary directory."""
         self.progress = progress
         self._live: LiveLine | None = None
         self.spec = spec
@@ -100,6 +109,7 @@ class SiteDemo(InboxScoring):
         self.unknown: Counter = Counter()  # messages naming a vehicle or RSU not in the scenario, by kind
         self._init_inbox()
         self._tmp = tempfile.TemporaryDirectory(prefix="v2i-site-demo-")
+        self.pki_dir = run_pki(spec, self.scenario, pki_dir or Path(self._tmp.name) / "pki", time.time_ns())
 
     def run(self) -> dict:
         start_ns = time.time_ns() + round(self.startup_s * 1e9)
@@ -165,14 +175,16 @@ class SiteDemo(InboxScoring):
                                                           "--clock-step-at-s", str(s.rsu_clock_step_at_s)]
         return [sys.executable, "-m", "v2i", "rsu", "--rsu-id", rsu_id, "--listen", self.rsu_eps[rsu_id],
                 *self._common(start_ns), "--clock-offset-ms", str(s.rsu_clock_offset_ms),
-                "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead, "--source", s.rsu_source]
+                "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead, "--source", s.rsu_source,
+                *security_argv(s, "rsu", self.pki_dir)]
 
     def _obu_argv(self, name: str, start_ns: int) -> list[str]:
         s = self.spec
         v2v = [] if self.v2v is None else ["--v2v", "--max-peers", str(self.v2v.max_peers)]
         return [sys.executable, "-m", "v2i", "obu", "--vehicle-id", name, "--listen", self.obu_eps[name],
                 *self._common(start_ns), "--fusion", s.fusion, "--compensation", s.compensation,
-                "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms), *v2v]
+                "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms), *v2v,
+                *security_argv(s, "obu", self.pki_dir)]
 
     def _v2v_link_argv(self) -> list[str]:
         """The site's V2V emulator: every OBU, a channel per ordered pair, the scenario's V2V profile."""
@@ -288,6 +300,9 @@ class SiteDemo(InboxScoring):
         report["monitor_messages_dropped"] = dict(self.dropped)
         report["rsu_lists_accepted"] = {name: self.rsu_lists_accepted.get(name, {}) for name in self.vehicle_ids}
         report["v2v"] = None if self.v2v is None else self.v2v.model_dump()
+        report["security_outcomes"] = (None if self.spec.security is None else
+                                       {name: _security_failures(self.obu_rejected.get(name, {}))
+                                        for name in self.vehicle_ids})
         if self.v2v is not None:
             report["v2v_link"] = _v2v_link_summary(self.v2v_stats)
             for name in self.vehicle_ids:
@@ -299,6 +314,16 @@ class SiteDemo(InboxScoring):
         if sum(self.unknown.values()):
             log("demo", f"messages naming no vehicle of the scenario: {dict(self.unknown)}")
         return report
+
+
+def _security_failures(rejected: dict[str, int]) -> dict[str, int]:
+    """Verification failures by reason from an OBU's refusals: ``security_<reason>`` (dropped) and
+    ``security_accepted_<reason>`` (let through under permissive) both count as ``<reason>``."""
+    out: Counter = Counter()
+    for label, n in rejected.items():
+        if label.startswith("security_"):
+            out[label.removeprefix("security_").removeprefix("accepted_")] += n
+    return dict(sorted(out.items()))
 
 
 def _v2v_link_summary(stats: dict | None) -> dict:

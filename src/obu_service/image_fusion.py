@@ -47,7 +47,7 @@ from schemas.image_messages import (
 )
 from schemas.messages import ObuMetrics, RsuLinkStatus, TimeReply, TimeRequest
 
-from .clock_sync import ClockSync
+from .clock_sync import ClockSync, OffsetEstimate
 from .time_requests import TimeRequests
 
 NS_PER_MS = 1_000_000
@@ -105,6 +105,11 @@ class ImageFusionPipeline:
                 self.reject("time_reply_unknown_rsu")
             elif not sync.add(sample):
                 self.reject("time_reply_outlier")
+
+    def clock_offset(self, rsu_id: str, t_ns: int) -> OffsetEstimate | None:
+        """Offset estimate (theta = rsu - obu) of one RSU at OBU time ``t_ns`` (None before any)."""
+        sync = self._sync.get(rsu_id)
+        return None if sync is None else sync.estimate_at(t_ns)
 
     def to_obu_ns(self, rsu_id: str, t_rsu_ns: int) -> int | None:
         sync = self._sync.get(rsu_id)

@@ -6,7 +6,10 @@ Zenoh callbacks only stamp the receive time and put the payload into the bounded
 replies. The one loop owns the pipeline: at each ego camera frame's capture time it renders,
 detects and extracts features (``EgoCamera``), queues the frame, and publishes every frame that
 can be fused (``ImageFusedBoxes`` on ``v2x/obu/{id}/image_objects``) as soon as its RSU partner
-is decoded or its wait is over; a frame whose capture time is already a period past when the loop
+is decoded or its wait is over. Every RSU message is verified before it is decoded, as in the
+object-level node (``--pki``, ``--security``: ``inbound_security.InboundSecurity``; features
+judged fresh in the RSU's clock through the offset estimate, time replies bound by their t1):
+a drop is counted as ``security_<reason>``; a frame whose capture time is already a period past when the loop
 gets to it (the loop fell behind) is not rendered but published at once as an empty ego-view
 frame and counted (``camera_frame_skipped``), never silently dropped. Metrics
 (``ObuMetrics``) follow every output.
@@ -35,6 +38,7 @@ from sim.world import World
 from .config import ObuConfig
 from .ego_camera import EgoCamera
 from .image_fusion import ImageFusionConfig, ImageFusionPipeline
+from .inbound_security import InboundSecurity, make_verifier, trust_of
 from .time_requests import sync_times_ns
 
 
@@ -51,6 +55,8 @@ class ImageFusionNode:
             vehicle_id=config.vehicle_id, known_rsus=known, pair_tolerance_ms=config.roif_pair_tolerance_ms,
             wait_ms=config.roif_wait_ms, deadline_ms=config.roif_deadline_ms, max_age_ms=config.roif_max_age_ms,
             future_tolerance_ms=config.future_tolerance_ms))
+        verifier = make_verifier(trust_of(config.pki_dir), config.security_policy, config.roif_max_age_ms * 1e-3)
+        self._security = InboundSecurity(verifier, self.pipeline.clock_offset, self.pipeline.reject)
         self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
                               config.source_burst, max_queued_bytes=config.inbox_max_bytes,
                               preferred=lambda key: keys.rsu_id_or_none(key) in known)
@@ -121,11 +127,15 @@ class ImageFusionNode:
 
     def _handle_input(self, item: Item) -> None:
         max_bytes = self.config.max_message_bytes
+        payload = self._security.open(item.payload, item.source, item.receive_ns, time_reply=item.kind == "time")
+        if payload is None:  # dropped unverified, counted as security_<reason>
+            self._publish_ready()
+            return
         try:
             if item.kind == "time":
-                self.pipeline.on_time_reply(decode(item.payload, TimeReply, max_bytes), item.receive_ns)
+                self.pipeline.on_time_reply(decode(payload, TimeReply, max_bytes), item.receive_ns)
             else:
-                self.pipeline.on_features(decode(item.payload, RsuImageFeatures, max_bytes), item.receive_ns)
+                self.pipeline.on_features(decode(payload, RsuImageFeatures, max_bytes), item.receive_ns)
         except CodecError as exc:
             self.pipeline.reject(f"features_{exc.reason}" if item.kind == "features" else exc.reason)
             self._details.setdefault(exc.reason, f"{item.kind} on {item.source}: {exc}")

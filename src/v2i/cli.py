@@ -269,8 +269,8 @@ def _run_site_demo(args: argparse.Namespace) -> int:
         raise ValueError(f"{flag} runs a single RSU and vehicle; scenario {args.scenario!r} has several "
                          "(v2i demo runs every node of it, without chaos or image fusion)")
     startup_s = max(args.startup, SITE_STARTUP_S)  # every node of the site starts at once
-    return _run_demo(SiteDemo(_spec(args), startup_s=startup_s, progress=_progress(args)), args.json, "v2i demo",
-                     args.report)
+    return _run_demo(SiteDemo(_spec(args), startup_s=startup_s, progress=_progress(args), pki_dir=args.pki),
+                     args.json, "v2i demo", args.report)
 
 
 def _run_roif_demo(args: argparse.Namespace) -> int:
@@ -280,7 +280,7 @@ def _run_roif_demo(args: argparse.Namespace) -> int:
     if args.kill_link_at is not None:
         raise ValueError("--kill-link-at is not supported with --fusion roif")
     _no_run_report(args)
-    report = _live(ImageFusionDemo(_spec(args), startup_s=args.startup).run, "v2i demo")
+    report = _live(ImageFusionDemo(_spec(args), startup_s=args.startup, pki_dir=args.pki).run, "v2i demo")
     if isinstance(report, int):
         return report
     _emit(report, args.json, summary)

@@ -2,7 +2,9 @@
 real OS processes on loopback Zenoh (``evaluation.site_demo``), scored per vehicle.
 
 One short run: every vehicle publishes and is scored, every OBU hears both RSUs through
-its own channels, the report has the offline runner's keys, no child outlives the demo.
+its own channels, the report has the offline runner's keys, no child outlives the demo. The
+site signs as ``v2i demo`` does by default (``security="strict"``): every RSU signs, every OBU
+verifies against the site PKI and drops nothing genuine.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from v2i.cli import main
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(150)]
 
-SPEC = RunSpec(scenario="connected-intersection", profile="lte-v2x", seed=0, duration_s=9.0)
+SPEC = RunSpec(scenario="connected-intersection", profile="lte-v2x", seed=0, duration_s=9.0, security="strict")
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +68,16 @@ def test_every_vehicle_is_scored_with_lists_from_both_rsus(demo):
     assert vehicles["car-3"]["vehicle_only"]["detected_cycles"] > 20
     assert vehicles["ego"]["vehicle_only"]["detected_cycles"] == 0
     assert vehicles["ego"]["target"]["detected_cycles"] > 0  # through the RSUs only
+
+
+def test_every_rsu_signs_and_every_obu_verifies_without_a_drop(demo):
+    for name, child in demo.children.items():
+        if name.startswith(("rsu ", "obu ")):
+            assert child.argv[child.argv.index("--pki") + 1] == str(demo.pki_dir), name
+        if name.startswith("obu "):
+            assert child.argv[child.argv.index("--security") + 1] == "strict", name
+    assert sorted(demo.obu_rejected) == ["car-2", "car-3", "ego"]  # every OBU's metrics were heard
+    assert demo.report["security_outcomes"] == {"car-2": {}, "car-3": {}, "ego": {}}, demo.obu_rejected
 
 
 def test_each_rsu_reports_its_perception(demo):
