@@ -154,8 +154,10 @@ class Verifier:
 
     ``freshness_ns``: the oldest accepted age ``now_ns - generation_ns``; ``future_ns``: how far
     ahead of ``now_ns`` a generation time may be; ``replay_window_ns`` (>= ``freshness_ns``): how
-    long seen messages are remembered, per signer, in the signer's clock. Not thread-safe: one
-    owner (the service loop) calls it.
+    long seen messages are remembered, per signer and key expression (each a stream of its own: a
+    receiver may handle one key's backlog after newer messages of another, and a replay on another
+    key fails its signature), in the signer's clock. Not thread-safe: one owner (the service loop)
+    calls it.
     """
 
     def __init__(self, trust: Trust | None, policy: str = "strict", freshness_ns: int = 2_000_000_000,
@@ -249,7 +251,8 @@ class Verifier:
             return late
         if not alg.verify(entry.key, env.signature, signed_bytes(env.payload, digest, env.generation_ns, key_expr)):
             return "bad_signature"
-        return self.replay.check_and_add(digest, env.generation_ns, hashlib.sha256(env.payload).digest()[:16])
+        stream = digest + key_expr.encode()  # one window per signer and key (class docstring)
+        return self.replay.check_and_add(stream, env.generation_ns, hashlib.sha256(env.payload).digest()[:16])
 
     def _outcome(self, payload: bytes | None, reason: str) -> tuple[bytes | None, str]:
         self.counts[reason] += 1

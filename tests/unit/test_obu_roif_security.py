@@ -101,3 +101,17 @@ def test_roif_node_without_a_pki_takes_envelopes_unchecked(site):
     assert node.pipeline.clock_offset(RSU_ID, t_ns) is not None
     node._handle_input(_features(t_ns + THETA_NS, 1, None))
     assert node.pipeline.accepted == 1 and not any(r.startswith("security") for r in node.pipeline.rejected)
+
+
+def test_a_feature_frame_handled_after_newer_time_replies_is_not_stale(site):
+    """The loop may take an item well after its receipt (it renders its own camera meanwhile) and
+    serves sources in turn: a frame received fresh, handled after 3 s of newer replies from the
+    same RSU certificate, is one stream behind another, not a replay nor stale."""
+    directory, rsu, _ = site
+    node = _node(directory)
+    t0_ns = time.time_ns()
+    t_ns = _synced(node, rsu, t0_ns, n=31)  # replies generated up to t0 + 3 s (RSU clock)
+    frame = _features(t0_ns + 200_000_000 + THETA_NS, 1, rsu)  # generated at t0 + 0.2 s, received 30 ms later
+    assert frame.receive_ns < t_ns - 2_000_000_000
+    node._handle_input(frame)
+    assert node.pipeline.accepted == 1, node.pipeline.rejected
