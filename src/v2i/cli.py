@@ -532,6 +532,11 @@ def _with_zenoh_config(run):
     return run_with
 
 
+def _pki_options(p: argparse.ArgumentParser) -> None:
+    """``v2i pki``: files only, so no --zenoh-config (its configure_parser sets its ``run``)."""
+    importlib.import_module("security.pki_cli").configure_parser(p)
+
+
 # command -> the function adding its options (and importing its modules: only when it is parsed)
 _OPTIONS = {
     "demo": _demo_options, "eval": _eval_options, "chaos": _chaos_options, "rsu": _service_options("rsu_service.cli"),
@@ -539,7 +544,7 @@ _OPTIONS = {
     "world": _service_options("v2i.world_node"), "router": _service_options("v2i.router"),
     "camera": _camera_options, "fuzz": _fuzz_options, "monitor": _service_options("v2i.monitor"),
     "record": _service_options("v2i.record"), "replay": _service_options("v2i.replay"),
-    "pki": _service_options("security.pki_cli"),
+    "pki": _pki_options,
 }
 
 
