@@ -25,7 +25,8 @@ nothing else is touched. Chaos timelines are single-link only (``evaluation.demo
 
 Security as in ``evaluation.demo``: one site PKI for every node (``live_security.run_pki``: every
 RSU and vehicle of the scenario, the operator), each RSU signs and each OBU verifies under
-``spec.security`` (``live_security.security_argv``). The report's ``security_outcomes`` (the
+``spec.security`` (``live_security.security_argv``); every link emulator gets ``--pki`` too, so
+it applies only the operator's signed control (``v2i link set --pki DIR``). The report's ``security_outcomes`` (the
 offline runner's key) holds, per vehicle, its OBU's verification failures by reason (dropped or,
 under ``permissive``, accepted), from its last metrics; the OBU does not publish its ``ok`` count.
 """
@@ -190,7 +191,8 @@ class SiteDemo(InboxScoring):
         """The site's V2V emulator: every OBU, a channel per ordered pair, the scenario's V2V profile."""
         vehicles = [arg for name, ep in self.obu_eps.items() for arg in ("--vehicle", f"{name}={ep}")]
         return [sys.executable, "-m", "v2i", "link", "--v2v", "--link-id", V2V_LINK_ID, *vehicles,
-                "--profile", self.v2v.link_profile, "--seed", str(self.spec.seed), "--control-listen", self.v2v_ep]
+                "--profile", self.v2v.link_profile, "--seed", str(self.spec.seed), "--control-listen", self.v2v_ep,
+                "--pki", str(self.pki_dir)]
 
     def _link_argv(self, rsu_id: str) -> list[str]:
         """Emulator of RSU ``rsu_id``: its position (distance-dependent channels; no CLI flag has
@@ -201,7 +203,7 @@ class SiteDemo(InboxScoring):
         vehicles = [arg for name, ep in self.obu_eps.items() for arg in ("--vehicle", f"{name}={ep}")]
         return [sys.executable, "-m", "v2i", "link", "--config", str(config), "--link-id", link_id(rsu_id),
                 "--rsu-connect", self.rsu_eps[rsu_id], *vehicles, "--profile", rsu.link_profile or self.spec.profile,
-                "--seed", str(self.spec.seed)]
+                "--seed", str(self.spec.seed), "--pki", str(self.pki_dir)]
 
     def _supervise(self, start_ns: int) -> None:
         """The live line (``progress``) while ``_watch`` runs."""
