@@ -25,6 +25,8 @@ SUBCOMMANDS = {
     "monitor": "live dashboard of a running site (deadline misses, modes, delays, clock, link), or one JSON snapshot",
     "record": "record every v2x/** message heard at Zenoh endpoints into an MCAP file (Foxglove opens it)",
     "replay": "republish a recording on its keys in real or scaled time, or re-run a fresh OBU on it (--score)",
+    "attack": "attack a running site near its RSU (ghosts, forgeries, replays, stolen and revoked keys, time, control) "
+              "and report what was rejected and what got through",
     "pki": "the site's certificate authority: init, issue, revoke, list, a whole site, Zenoh TLS material",
 }
 
@@ -544,6 +546,7 @@ _OPTIONS = {
     "world": _service_options("v2i.world_node"), "router": _service_options("v2i.router"),
     "camera": _camera_options, "fuzz": _fuzz_options, "monitor": _service_options("v2i.monitor"),
     "record": _service_options("v2i.record"), "replay": _service_options("v2i.replay"),
+    "attack": _service_options("evaluation.attack"),
     "pki": _pki_options,
 }
 

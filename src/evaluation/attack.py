@@ -1,0 +1,115 @@
+"""``v2i attack``: an attacker near an RSU against a live site, and what got through.
+
+Sessions (one per endpoint: the attacker never bridges the RSU and vehicle sides):
+- ``--sniff EP`` (the RSU's endpoint: its radio broadcast, heard by anyone near it): genuine
+  object lists of ``--rsu-id``, for replays, the RSU's certificate digest and clock (generation
+  time minus local receive time), and the genuine objects the ghost rule must not confuse;
+- ``--connect EP`` (the OBU's): sends the attack lists on ``v2x/rsu/{rsu_id}/objects``, answers
+  the OBU's time queries on ``v2x/rsu/{rsu_id}/time`` with forged replies (kind ``time``: each
+  query gets a burst of ``--time-burst`` replies), and reads ``v2x/obu/{vid}/pose``,
+  ``.../objects`` and ``.../metrics``;
+- ``--control EP`` (the emulator's control endpoint, optional): the link outages (kind
+  ``control``) and the emulator's ``v2x/link/{id}/stats``.
+
+Kinds (``evaluation.attack_messages``) run one after another, ``--count`` each at ``--rate-hz``,
+each followed by ``--settle-s``; the OBU's and the emulator's rejection counters grown over a
+kind's phase are what it caused. Before the first kind, ``--warmup-s`` of genuine traffic with
+*decoy* ghost placements measures the ghost rule's false positives (``evaluation.attack_ghosts``).
+Callbacks only enqueue (a bounded queue; drops counted), except the time queryable, which must
+answer in its callback. Exit 0 when nothing got through, 1 when something did (or the site
+never became ready), 130 on Ctrl-C (a partial report is printed), 2 on bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+
+from .attack_messages import KINDS, STOLEN_RSU, STOLEN_VEHICLE
+
+
+def configure_parser(p: argparse.ArgumentParser) -> None:
+    p.description = ("Attack a running v2i site as someone near the RSU would: ghost pedestrians 8 m ahead of the "
+                     "ego (unsigned, forged, signed with stolen or revoked keys), replays of captured genuine "
+                     "lists, forged time replies and link-control outages; report per kind what the OBU and the "
+                     "link emulator rejected (by reason), what they let through, and whether a ghost reached the "
+                     "fused output. v2i demo logs the endpoints. Exit 1 when anything got through.")
+    p.add_argument("--connect", required=True, metavar="EP", help="the OBU's endpoint (its --listen)")
+    p.add_argument("--sniff", required=True, metavar="EP", help="the RSU's endpoint: its broadcast, captured")
+    p.add_argument("--control", metavar="EP", help="the link emulator's control endpoint (kind control)")
+    p.add_argument("--pki", required=True, metavar="DIR", help="directory holding the attacker's stolen and "
+                   "revoked keys (evaluation.attack_messages.prepare_attacker_pki makes them)")
+    p.add_argument("--stolen", default=f"{STOLEN_RSU},{STOLEN_VEHICLE}", metavar="S1,S2",
+                   help="subjects of the stolen keys in --pki (default %(default)s)")
+    p.add_argument("--rsu-id", default="rsu1", help="the victim RSU (default %(default)s)")
+    p.add_argument("--vehicle-id", default="ego", help="the OBU's vehicle (default %(default)s)")
+    p.add_argument("--link-id", default="link1", help="the emulator's link id (default %(default)s)")
+    p.add_argument("--kinds", default=",".join(KINDS), metavar="K1,K2", help="default: all, in this order: %(default)s")
+    p.add_argument("--count", type=int, default=1000, help="messages per kind (default %(default)s)")
+    p.add_argument("--rate-hz", type=float, default=30.0,
+                   help="messages per second (default %(default)s: the OBU takes 50/s per key, burst 25, and the "
+                        "genuine RSU uses 5-10 of them; faster, its rate limit refuses attack and genuine lists alike)")
+    p.add_argument("--time-burst", type=int, default=3, help="forged replies per time query (the OBU asks 10 times "
+                   "a second; default %(default)s)")
+    p.add_argument("--warmup-s", type=float, default=3.0, help="genuine-only window before the attack (default %(default)s)")
+    p.add_argument("--settle-s", type=float, default=1.5, help="wait after each kind (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the attacker's choices (default %(default)s)")
+    p.add_argument("--json", metavar="PATH", help="write the report JSON to PATH ('-' for stdout)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from schemas.keys import check_id
+    from security.pki import PkiError
+
+    from .attack_messages import load_attacker_keys
+    from .attack_report import format_report, got_through
+
+    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
+    unknown = sorted(set(kinds) - set(KINDS))
+    if unknown or not kinds:
+        raise ValueError(f"--kinds: unknown {', '.join(unknown) or '(none given)'}; kinds: {', '.join(KINDS)}")
+    if "control" in kinds and not args.control:
+        raise ValueError("kind control needs --control EP (the link emulator's control endpoint)")
+    if args.count < 1 or not 0 < args.rate_hz <= 10_000 or args.time_burst < 1:
+        raise ValueError("--count and --time-burst must be >= 1 and --rate-hz in (0, 10000]")
+    for name in (args.rsu_id, args.vehicle_id, args.link_id):
+        check_id(name)
+    try:
+        attacker = load_attacker_keys(args.pki, args.rsu_id, tuple(s for s in args.stolen.split(",") if s))
+    except PkiError as exc:
+        raise ValueError(f"--pki: {exc}") from None
+    from .attack_live import AttackRun, NotReady
+
+    attack = AttackRun(args, kinds, attacker)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _interrupt)
+    code = 0
+    try:
+        report = attack.run()
+    except NotReady as exc:
+        print(f"v2i attack: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("v2i attack: interrupted; the report so far:", file=sys.stderr)
+        report, code = attack.report(), 130
+    finally:
+        attack.close()
+    _emit(report, args.json, format_report(report))
+    return code or (1 if got_through(report) else 0)
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def _emit(report: dict, json_path: str | None, table: str) -> None:
+    if json_path == "-":
+        print(json.dumps(report, indent=2))
+        print(table, file=sys.stderr)
+        return
+    print(table)
+    if json_path:
+        with open(json_path, "w") as out:
+            out.write(json.dumps(report, indent=2) + "\n")
