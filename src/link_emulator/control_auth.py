@@ -7,9 +7,8 @@ Three modes, chosen at start-up (``LinkConfig.pki`` / ``insecure_control``):
   ``operator`` and whose keys cover that key, generated at most ``max_age`` before and at most
   ``max_ahead`` after its receipt by the emulator's own clock, and never seen before (a per-signer
   replay window as long as ``max_age``). Rejections: the envelope verifier's reasons
-  (``unsigned``, ``malformed``, ``bad_signature``, ``unknown_cert``, ``revoked``, ``expired``,
-  ``wrong_key``, ``stale``, ``future``, ``replayed``) and ``wrong_role`` (a valid certificate of
-  another role, e.g. an RSU's issued with control keys).
+  (``security.envelope.REJECTIONS``), ``wrong_role`` among them (a valid certificate of another
+  role, e.g. an RSU's, even one issued with control keys: the verifier takes operators only).
 - ``refuse`` (the default: no ``--pki``): every control is rejected as ``unauthenticated``.
 - ``insecure`` (``--insecure-control``, lab only): unsigned control is accepted as before issue
   14; a signed one is unwrapped without any check.
@@ -29,15 +28,12 @@ that calls :meth:`ControlAuth.open` (the relay's scheduler thread) and never rai
 from __future__ import annotations
 
 import logging
-from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
 from schemas.codec import encode
 from schemas.keys import link_control
 from schemas.messages import LinkControl
-from security import certificates as certs
-from security.certificates import CertificateError
 from security.envelope import PREFIX, Signer, Verifier, parse
 from security.pki import CRL_FILE, Identity, PkiError, Trust, load_trust
 
@@ -46,7 +42,6 @@ log = logging.getLogger(__name__)
 OPERATOR = "operator"
 NS_PER_S = 1_000_000_000
 RELOAD_S = 1.0
-_ROLES_MAX = 256  # certificates whose role is remembered (as the verifier's certificate cache)
 
 
 def sign_control(control: LinkControl, identity: Identity, generation_ns: int) -> bytes:
@@ -78,12 +73,11 @@ class ControlAuth:
         self.mode, self.key_expr, self.directory = mode, link_control(link_id), directory
         self.max_age_ns, self.max_ahead_ns = round(max_age_s * NS_PER_S), round(max_ahead_s * NS_PER_S)
         self._reload_ns, self._next_reload_ns, self._crl_stamp = round(reload_s * NS_PER_S), 0, None
-        self._roles: OrderedDict[bytes, str] = OrderedDict()
         self.verifier: Verifier | None = None
         if trust is not None:
-            self.verifier = Verifier(trust, "strict", freshness_ns=self.max_age_ns, future_ns=self.max_ahead_ns)
+            self.verifier = Verifier(trust, "strict", freshness_ns=self.max_age_ns, future_ns=self.max_ahead_ns,
+                                     roles=(OPERATOR,))
             self._crl_stamp = self._stamp()
-            self._learn_known(trust)
 
     @classmethod
     def create(cls, link_id: str, pki: str | None, insecure: bool, max_age_s: float = 2.0,
@@ -115,16 +109,8 @@ class ControlAuth:
         if self.mode == "refuse":
             return Opened(None, "unauthenticated", claimed)
         self._maybe_reload(receive_ns)
-        if env is not None and len(env.signer) != certs.DIGEST_BYTES:
-            self._learn(env.signer)
         payload, reason = self.verifier.verify(data, self.key_expr, receive_ns)
-        if reason == "ok":
-            digest = env.signer if len(env.signer) == certs.DIGEST_BYTES else certs.digest(env.signer)
-            role = self._roles.get(digest)
-            if role != OPERATOR:
-                return Opened(None, "wrong_role" if role else "unknown_cert", claimed)
-            return Opened(payload, "ok", claimed)
-        return Opened(None, reason, claimed)
+        return Opened(payload, reason, claimed)
 
     def explain(self, reason: str) -> str:
         """Why a control was rejected, for the stats' ``recent`` (what ``v2i link set`` prints)."""
@@ -145,22 +131,7 @@ class ControlAuth:
             "malformed": "not a well-formed signed envelope",
         }.get(reason, reason)
 
-    # ---- certificate roles and the revocation list ----------------------------------------
-
-    def _learn(self, encoding: bytes) -> None:
-        """Remember the role of a certificate by its digest (the verifier decides if it is valid)."""
-        try:
-            cert = certs.decode(encoding)
-        except CertificateError:
-            return
-        self._roles[cert.digest] = cert.role
-        self._roles.move_to_end(cert.digest)
-        while len(self._roles) > max(_ROLES_MAX, len(self.verifier.trust.known)):
-            self._roles.popitem(last=False)
-
-    def _learn_known(self, trust: Trust) -> None:
-        for encoding in trust.known.values():
-            self._learn(encoding)
+    # ---- the revocation list ----------------------------------------------------------------
 
     def _stamp(self) -> tuple[int, int] | None:
         """(mtime_ns, size) of the revocation list file, None when absent."""
@@ -185,6 +156,5 @@ class ControlAuth:
             return
         self._crl_stamp = stamp
         self.verifier.set_trust(trust)
-        self._learn_known(trust)
         log.warning("reloaded %s: %d certificate(s) revoked", self.directory / CRL_FILE, len(trust.revoked))
 

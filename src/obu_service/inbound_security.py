@@ -56,9 +56,11 @@ def make_verifier(trust: Trust | None, policy: str, freshness_s: float) -> Verif
     Freshness = ``freshness_s``, the oldest RSU data the pipeline would still use (its planning
     horizon): anything older is refused by the pipeline anyway, so the window costs nothing genuine.
     A generation time up to FUTURE_S ahead of the estimated RSU clock passes (a clock step not yet
-    tracked); the pipeline's own, finer future check still applies.
+    tracked); the pipeline's own, finer future check still applies. Only RSU certificates are taken
+    (``wrong_role`` otherwise), whatever keys a certificate names.
     """
-    return Verifier(trust, policy, freshness_ns=round(freshness_s * 1e9), future_ns=round(FUTURE_S * 1e9))
+    return Verifier(trust, policy, freshness_ns=round(freshness_s * 1e9), future_ns=round(FUTURE_S * 1e9),
+                    roles=("rsu",))
 
 
 def trust_of(pki_dir: str | None) -> Trust | None:

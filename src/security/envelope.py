@@ -36,7 +36,8 @@ check (reason ``unchecked``) and passes unsigned bytes through. Every call count
 Checks, cheapest first (a forged message costs no signature verification unless it names a
 valid, unrevoked, in-date certificate that covers the key): parse -> signer certificate
 (cache, else CA check) -> revoked -> expired (generation time outside the certificate's
-validity) -> wrong_key -> stale / future (against ``now_ns``) -> signature -> replay window.
+validity) -> wrong_role (not one of the verifier's ``roles``, e.g. only operators may control a
+link) -> wrong_key -> stale / future (against ``now_ns``) -> signature -> replay window.
 ``now_ns`` must be in the signer's clock (the OBU passes its own time plus its estimated offset
 to that RSU), or ``None`` to skip the freshness check (e.g. before clock sync, for time replies,
 which the OBU binds to its request by the echoed t1 instead).
@@ -61,8 +62,8 @@ PREFIX = bytes([0x95, 0xCD, 0x56, 0x01])
 DOMAIN = b"v2i-signed-v1\x00"
 MAX_ENVELOPE_BYTES = (1 << 20) + 2048
 POLICIES = ("strict", "permissive", "off")
-REJECTIONS = ("unsigned", "malformed", "bad_signature", "unknown_cert", "revoked", "expired", "wrong_key",
-              "stale", "future", "replayed")
+REJECTIONS = ("unsigned", "malformed", "bad_signature", "unknown_cert", "revoked", "expired", "wrong_role",
+              "wrong_key", "stale", "future", "replayed")
 _UINT64_MAX = (1 << 64) - 1
 _WANTED_MAX = 64
 
@@ -156,13 +157,13 @@ class Verifier:
     ahead of ``now_ns`` a generation time may be; ``replay_window_ns`` (>= ``freshness_ns``): how
     long seen messages are remembered, per signer and key expression (each a stream of its own: a
     receiver may handle one key's backlog after newer messages of another, and a replay on another
-    key fails its signature), in the signer's clock. Not thread-safe: one owner (the service loop)
-    calls it.
+    key fails its signature), in the signer's clock; ``roles``: the certificate roles this receiver
+    accepts at all. Not thread-safe: one owner (the service loop) calls it.
     """
 
     def __init__(self, trust: Trust | None, policy: str = "strict", freshness_ns: int = 2_000_000_000,
                  future_ns: int = 200_000_000, replay_window_ns: int | None = None,
-                 cache_size: int = 256) -> None:
+                 cache_size: int = 256, roles: tuple[str, ...] = certs.SIGNER_ROLES) -> None:
         if policy not in POLICIES:
             raise ValueError(f"unknown security policy {policy!r}: expected one of {', '.join(POLICIES)}")
         if trust is None and policy != "off":
@@ -170,7 +171,7 @@ class Verifier:
         window_ns = freshness_ns if replay_window_ns is None else replay_window_ns
         if window_ns < freshness_ns:
             raise ValueError("replay_window_ns must be >= freshness_ns, or a replay could be fresh but forgotten")
-        self.trust, self.policy = trust, policy
+        self.trust, self.policy, self.roles = trust, policy, roles
         self.freshness_ns, self.future_ns = freshness_ns, future_ns
         self.replay = ReplayWindow(window_ns)
         self.cache_size = cache_size
@@ -244,6 +245,8 @@ class Verifier:
             return "revoked"
         if not cert.valid_at(env.generation_ns):
             return "expired"
+        if cert.role not in self.roles:
+            return "wrong_role"
         if not certs.covers(cert.keys, key_expr):
             return "wrong_key"
         late = self._check_time(env.generation_ns, now_ns)
@@ -269,7 +272,8 @@ class Verifier:
             return self._outcome(data, "unchecked" if self.policy == "off" else "unsigned")
         env = parse(data)
         if env is None:
-            return self._outcome(data if self.policy == "off" else None, "unchecked" if self.policy == "off" else "malformed")
+            off = self.policy == "off"
+            return self._outcome(data if off else None, "unchecked" if off else "malformed")
         if self.policy == "off":
             return self._outcome(env.payload, "unchecked")
         return self._outcome(env.payload, self._check(env, key_expr, now_ns))

@@ -72,7 +72,7 @@ def test_signed_operator_control_is_applied(site):
     (lambda site: signed(site)[:-1] + bytes([signed(site)[-1] ^ 1]), T0 + S, "bad_signature"),  # forged
     (lambda site: signed(site, link_id="l2").replace(b"l2", b"l1"), T0 + S, "bad_signature"),  # moved to l1
     (lambda site: signed(site, directory=site["other"]), T0 + S, "unknown_cert"),
-    (lambda site: signed(site, "rsu1"), T0 + S, "wrong_key"),
+    (lambda site: signed(site, "rsu1"), T0 + S, "wrong_role"),  # an RSU's certificate, its own keys
     (lambda site: signed(site, "rogue"), T0 + S, "wrong_role"),
     (lambda site: signed(site, "gone"), T0 + S, "revoked"),
     (lambda site: signed(site, "old"), T0 + S, "expired"),

@@ -205,7 +205,7 @@ def _resign_fields(env: bytes, **changes) -> bytes:
 
 
 def test_every_rejection_reason_is_triggered_and_counted(site, tmp_path):
-    s, v = signer(site), verifier(site, freshness_ns=1000 * MS, future_ns=100 * MS)
+    s, v = signer(site), verifier(site, freshness_ns=1000 * MS, future_ns=100 * MS, roles=("rsu",))
     good = sign(PAYLOAD, s, T0, OBJ)
     sig = msgpack.unpackb(good)[4]
     other = Pki.init(tmp_path, T0)
@@ -221,7 +221,8 @@ def test_every_rejection_reason_is_triggered_and_counted(site, tmp_path):
         "revoked": [sign(PAYLOAD, signer(site, "rsu-rev"), T0, "v2x/rsu/rsu-rev/objects")],
         "expired": [sign(PAYLOAD, signer(site, "rsu-old"), T0 + 2 * NS_PER_DAY, "v2x/rsu/rsu-old/objects"),
                     sign(PAYLOAD, s, T0 - 1, OBJ)],
-        "wrong_key": [sign(PAYLOAD, signer(site, "v-0"), T0, OBJ)],
+        "wrong_role": [sign(PAYLOAD, signer(site, "v-0"), T0, OBJ)],  # this receiver takes RSUs only
+        "wrong_key": [sign(PAYLOAD, signer(site, "rsu-1"), T0, OBJ)],  # another RSU on rsu-0's key
         "stale": [sign(PAYLOAD, s, T0 + 10, OBJ)],
         "future": [sign(PAYLOAD, s, T0 + 10**9, OBJ)],
         "replayed": [good],
