@@ -30,15 +30,15 @@ def test_strict_verifies_every_genuine_message_and_changes_no_score():
     assert _run(SPEC)["security_outcomes"] is None
 
 
-def test_strict_drops_an_rsu_signing_with_a_vehicle_certificate():
+def test_strict_drops_an_rsu_signing_with_a_vehicle_certificate_as_wrong_role():
     def vehicle_signs_for_the_rsu(run: OfflineRun) -> None:  # key substitution: a valid cert of the wrong holder
         run.rsus[0].signer = Signer(run._site[1]["ego"])
 
     spec = replace(SPEC, security="strict")
     report = _run(spec, vehicle_signs_for_the_rsu)
     outcomes = report["security_outcomes"]["ego"]
-    assert set(outcomes) == {"wrong_key"} and outcomes["wrong_key"] > 100
+    assert set(outcomes) == {"wrong_role"} and outcomes["wrong_role"] > 100  # the OBU takes RSU certificates only
     assert report["rsu_messages_received"] == 0
-    assert report["obu_rejected"]["security_wrong_key"] == outcomes["wrong_key"]  # what the OBU's metrics count
+    assert report["obu_rejected"]["security_wrong_role"] == outcomes["wrong_role"]  # what the OBU's metrics count
     permissive = _run(replace(spec, security="permissive"), vehicle_signs_for_the_rsu)
     assert permissive["rsu_messages_received"] > 0  # counted, and fused anyway

@@ -10,7 +10,7 @@ from security.site import memory_site
 NOW_NS = 1_800_000_000 * 10**9
 OFFSET_NS = 3 * 10**9  # the RSU's clock runs 3 s ahead of the OBU's
 KEY = "v2x/rsu/rsu1/objects"
-TRUST, IDS = memory_site(NOW_NS - 86_400 * 10**9, ["rsu1"], ["ego"])  # valid from a day before
+TRUST, IDS = memory_site(NOW_NS - 86_400 * 10**9, ["rsu1", "rsu2"], ["ego"])  # valid from a day before
 
 
 def _gate(policy: str = "strict", estimated: bool = True) -> tuple[InboundSecurity, Counter]:
@@ -46,16 +46,16 @@ def test_time_replies_skip_freshness_but_not_the_signature():
     gate, counts = _gate()
     key = "v2x/rsu/rsu1/time"
     assert gate.open(_signed(b"reply", 30.0, key), key, NOW_NS, time_reply=True) == b"reply"
-    assert gate.open(_signed(b"forged", 0.0, key, who="ego"), key, NOW_NS, time_reply=True) is None
+    assert gate.open(_signed(b"forged", 0.0, key, who="rsu2"), key, NOW_NS, time_reply=True) is None
     assert gate.open(b"\x85unsigned", key, NOW_NS, time_reply=True) is None
-    assert counts == Counter({"security_wrong_key": 1, "security_unsigned": 1})
+    assert counts == Counter({"security_wrong_key": 1, "security_unsigned": 1})  # another RSU on rsu1's key
 
 
 def test_permissive_counts_under_its_own_label_and_lets_through():
     gate, counts = _gate("permissive")
     assert gate.open(b"\x94plain", KEY, NOW_NS) == b"\x94plain"
     assert gate.open(_signed(b"ghost", 0.0, who="ego"), KEY, NOW_NS) == b"ghost"
-    assert counts == Counter({"security_accepted_unsigned": 1, "security_accepted_wrong_key": 1})
+    assert counts == Counter({"security_accepted_unsigned": 1, "security_accepted_wrong_role": 1})  # a vehicle's
 
 
 def test_off_unwraps_without_counting():
