@@ -35,14 +35,15 @@ def _roles(rsu_ids: Iterable[str], vehicle_ids: Iterable[str], operators: Iterab
 
 def write_site(directory: str | Path, now_ns: int, rsu_ids: Iterable[str] = (), vehicle_ids: Iterable[str] = (),
                operators: Iterable[str] = ("operator",), days: float = DEFAULT_DAYS) -> Path:
-    """The site PKI in ``directory``: the CA (valid ``days`` from ``now_ns``) if absent, then a key
-    and certificate for every subject that has none. Returns the directory; PkiError on bad files."""
+    """The site PKI in ``directory``: the CA (``Pki.init``'s ten years) if absent, then a key and
+    certificate valid ``days`` from ``now_ns`` for every subject that has none. Returns the directory;
+    PkiError on bad files."""
     directory = Path(directory)
     roles = _roles(rsu_ids, vehicle_ids, operators)
     if (directory / f"{CA_NAME}.cert").exists():
         pki = Pki.load(directory)
     else:
-        pki = Pki.init(directory, now_ns, days=days)
+        pki = Pki.init(directory, now_ns)
     for subject, role in roles.items():
         if not (directory / f"{subject}.cert").exists():
             pki.issue(subject, role, now_ns, days=days)
