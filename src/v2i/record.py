@@ -169,7 +169,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.description = ("Record every v2x/** sample heard at the given endpoints into an MCAP file: one channel per "
                      "key expression and side, the wire bytes with receive (log) and publish times, schemas, plus "
                      "Foxglove channels (foxglove.SceneUpdate cubes for object lists, JSON for metrics). Also runs "
-                     "time exchanges with the RSUs (--time-from) so that v2i replay can rebuild their clocks.")
+                     "time exchanges with the RSUs (--time-from) so that v2i replay can rebuild their clocks. Signed "
+                     "messages (RSUs with --pki) are kept with their envelopes and signatures, as on the wire; the "
+                     "Foxglove channels and v2i replay read the payload inside (unchecked).")
     p.add_argument("--connect", action="append", required=True, metavar="[LABEL=]EP",
                    help="endpoint to record, as a Zenoh client (repeatable), e.g. rsu=tcp/127.0.0.1:7447 "
                         "vehicle=tcp/127.0.0.1:7448; the label names the side in topics (default ep0, ep1, ...)")
