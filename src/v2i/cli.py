@@ -325,6 +325,8 @@ def cmd_fuzz(args: argparse.Namespace) -> int:
         from evaluation.fuzz_frames import FramesFuzz as target
     elif args.target == "obu-v2v":
         from evaluation.fuzz_v2v import ObuV2vFuzz as target
+    elif args.target == "obu-signed":
+        from evaluation.fuzz_signed import ObuSignedFuzz as target
     elif args.fusion == "roif":
         if args.target != "obu":
             raise ValueError("--fusion roif fuzzes the OBU only: v2i fuzz --target obu --fusion roif")
@@ -476,12 +478,16 @@ def _fuzz_options(fuzz: argparse.ArgumentParser) -> None:
                          "ids, floods, replays) and forging time replies; rsu: hostile time queries; link: hostile "
                          "lists, poses, controls and queries on both sides of the emulator. Exit code 1 when the "
                          "target crashed or an output was late or missing.")
-    fuzz.add_argument("--target", required=True, choices=("obu", "rsu", "link", "frames", "obu-inputs", "rsu-inputs", "obu-v2v"),
+    fuzz.add_argument("--target", required=True, choices=("obu", "rsu", "link", "frames", "obu-inputs", "rsu-inputs", "obu-v2v",
+                                                    "obu-signed"),
                       help="the service to attack; frames: hostile image files in the RSU's recording "
                            "(--source video), read at min(--rate, 20) frames/s; obu-inputs / rsu-inputs: the "
                            "service with --source zenoh fed by v2i world, hostile SensorObjects / "
                            "LocalizationPose on its sensor keys; obu-v2v: the OBU with --v2v, hostile peer "
-                           "shared lists, time requests and replies on the V2V keys (evaluation.fuzz_v2v)")
+                           "shared lists, time requests and replies on the V2V keys (evaluation.fuzz_v2v); obu-signed: RSU and "
+                           "OBU with a site PKI and --security strict, hostile signed envelopes (kinds garbage_prefix, "
+                           "truncated, huge_fields, bit_flips, signed_hostile: hostile payloads validly signed, "
+                           "special: replays; evaluation.fuzz_signed)")
     fuzz.add_argument("--fusion", choices=("roif",), help="with --target obu: an OBU fusing images (--fusion roif) "
                       "under hostile RsuImageFeatures (kinds: malformed, wrong_type, unknown_keys, non_finite, "
                       "out_of_image, oversized_counts, wrong_descriptor_length, bad_index, absurd_times, edge_valid, "
