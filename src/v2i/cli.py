@@ -522,22 +522,9 @@ def _service_options(module: str):
         p.add_argument("--zenoh-config", dest="site_zenoh_config", metavar="FILE",
                        help="Zenoh JSON5 file merged into every session of this command (TLS, mutual TLS, "
                             "access control: deploy/zenoh/); the same as $V2I_ZENOH_CONFIG")
-        p.set_defaults(func=_with_zenoh_config(mod.run))
+        p.set_defaults(func=mod.run)
 
     return options
-
-
-def _with_zenoh_config(run):
-    """``run`` after ``--zenoh-config FILE`` (if given) became the process's site Zenoh config."""
-
-    def run_with(args: argparse.Namespace) -> int:
-        if getattr(args, "site_zenoh_config", None):
-            from schemas.transport import use_config_file
-
-            use_config_file(args.site_zenoh_config)
-        return run(args)
-
-    return run_with
 
 
 def _pki_options(p: argparse.ArgumentParser) -> None:
@@ -577,6 +564,10 @@ def main(argv: list[str] | None = None) -> int:
     sub_command = getattr(args, f"{args.command}_command", None)  # chaos run, camera render, ...
     prog = f"v2i {args.command}" + (f" {sub_command}" if sub_command else "")
     try:
+        if getattr(args, "site_zenoh_config", None):  # --zenoh-config: checked, then the process's site config
+            from schemas.transport import use_config_file
+
+            use_config_file(args.site_zenoh_config)
         return args.func(args)
     except (ValueError, OSError) as exc:  # pydantic's ValidationError is a ValueError
         from schemas.config import one_line_error
