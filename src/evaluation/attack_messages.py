@@ -20,13 +20,14 @@ Kinds (``KINDS``) and the :class:`security.envelope.Verifier` reason each is bui
 - ``replayed``: a captured genuine envelope, byte for byte -> ``replayed`` (``stale`` once older
   than the verifier's freshness window);
 - ``wrong_key``: the ghost list signed with a stolen key (rsu-evil or the vehicle), its whole
-  certificate in the envelope (key substitution) -> ``wrong_key``;
+  certificate in the envelope (key substitution) -> ``wrong_key`` (``wrong_role`` for the vehicle's
+  where the verifier takes RSU certificates only, as the OBU does);
 - ``revoked``: the ghost list signed with the revoked former key of the RSU -> ``revoked``;
 - ``time``: answers to the OBU's time queries claiming the RSU's clock is ``shift_ns`` further
-  ahead: unsigned, wrong-key and forged-digest variants -> ``unsigned`` / ``wrong_key`` /
-  ``bad_signature``;
+  ahead: unsigned, wrong-key and forged-digest variants -> ``unsigned`` / ``wrong_key`` (or
+  ``wrong_role``) / ``bad_signature``;
 - ``control``: a LinkControl outage of the whole link for an hour, unsigned and signed by a
-  non-operator (stolen) key -> ``unsigned`` / ``wrong_key`` at the link emulator.
+  non-operator (stolen) key -> ``unsigned`` / ``wrong_role`` at the link emulator.
 
 Generation times are the RSU's clock as the attacker estimates it from captured envelopes
 (``generation_ns`` minus local receive time), so forged messages are fresh and cost the verifier
@@ -54,10 +55,12 @@ from security.pki import CA_NAME, NS_PER_DAY, Identity, Pki, PkiError, load_sign
 
 KINDS = ("unsigned", "forged", "replayed", "wrong_key", "revoked", "time", "control")
 LIST_KINDS = KINDS[:5]  # object lists on v2x/rsu/{rsu_id}/objects
+# the stolen RSU key fails on coverage (wrong_key); the stolen vehicle key already on its role where
+# the verifier takes RSU certificates only (the OBU), and both where only operators may (link control)
 INTENDED: dict[str, tuple[str, ...]] = {
     "unsigned": ("unsigned",), "forged": ("bad_signature",), "replayed": ("replayed", "stale"),
-    "wrong_key": ("wrong_key",), "revoked": ("revoked",), "time": ("unsigned", "wrong_key", "bad_signature"),
-    "control": ("unsigned", "wrong_key"),
+    "wrong_key": ("wrong_key", "wrong_role"), "revoked": ("revoked",),
+    "time": ("unsigned", "wrong_key", "wrong_role", "bad_signature"), "control": ("unsigned", "wrong_role", "wrong_key"),
 }
 TIME_VARIANTS = ("unsigned", "wrong_key", "forged")
 CONTROL_VARIANTS = ("unsigned", "wrong_key")
