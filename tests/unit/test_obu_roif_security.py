@@ -74,7 +74,7 @@ def test_strict_roif_node_unwraps_signed_time_replies_and_features(site):
     assert not [r for r in node.pipeline.rejected if r.startswith("security")], node.pipeline.rejected
 
 
-def test_strict_roif_node_drops_unsigned_forged_wrong_key_and_stale(site):
+def test_strict_roif_node_drops_unsigned_forged_wrong_role_and_stale(site):
     directory, rsu, vehicle = site
     node = _node(directory)
     t0_ns = time.time_ns()
@@ -86,11 +86,11 @@ def test_strict_roif_node_drops_unsigned_forged_wrong_key_and_stale(site):
     node._handle_input(forged)
     assert node.pipeline.rejected["security_bad_signature"] == 1
     t_ns = _synced(node, rsu, t0_ns + 10 * PERIOD_NS)
-    node._handle_input(_features(t_ns + THETA_NS, 1, vehicle))  # a vehicle's certificate on an RSU key
+    node._handle_input(_features(t_ns + THETA_NS, 1, vehicle))  # a vehicle's certificate: RSU messages are RSUs' only
     node._handle_input(_features(t_ns + THETA_NS, 2, None))
     node._handle_input(_features(t_ns + THETA_NS, 3, rsu, generation_ns=t_ns + THETA_NS - 3_000_000_000))  # > 2 s old
     rejected = node.pipeline.rejected
-    assert (rejected["security_wrong_key"], rejected["security_unsigned"], rejected["security_stale"]) == (1, 6, 1)
+    assert (rejected["security_wrong_role"], rejected["security_unsigned"], rejected["security_stale"]) == (1, 6, 1)
     assert node.pipeline.accepted == 0
 
 
