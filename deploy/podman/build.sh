@@ -115,6 +115,7 @@ main() {
     ensure_imported "$BASE_IMAGE" "base-$SUITE" python3,python3-venv 'CMD ["/bin/bash"]'
     build_wheels "$context/wheels"
     cp "$REPO/deploy/netns/watch_fused.py" "$context/watch_fused.py"
+    rm -rf "$context/zenoh" && cp -r "$REPO/deploy/zenoh" "$context/zenoh"
     local previous_id
     previous_id=$("${PODMAN[@]}" image inspect --format '{{.Id}}' "$IMAGE" 2>/dev/null || true)
     # --layers=false: buildah's layer cache keys a RUN step on its text, not on what a --mount

@@ -3,8 +3,14 @@
 The compose file puts the RSU on ``rsu-net`` only, the OBU on ``obu-net`` only and the link
 emulator on both (internal networks, no route out); the ``watch`` service on ``obu-net`` counts
 the OBU's fused lists that hold RSU objects, which only the emulator can have carried across.
+The site is secured (issue 14): the one-shot ``pki`` service writes the signing PKI and the TLS
+material into the project's volume, every session is mutual TLS with the role's access control
+(``deploy/zenoh/*.json5``), the RSU signs and the OBU verifies strictly; the test checks that a
+plain ``tcp/`` session and a site certificate of the wrong name get none of the OBU's output while a
+monitor's does, and that unsigned lists sent with a certificate the ACL admits are all dropped as
+``security_unsigned`` while the genuine RSU's signed lists are accepted.
 With the ``prometheus`` service (Debian's prometheus, ``build.sh --prometheus``), Prometheus
-scrapes the three services' /metrics across both networks.
+scrapes the three services' /metrics (plain HTTP) across both networks.
 The project name is unique to this run (containers ``NAME_SERVICE_1``, networks ``NAME_rsu-net``,
 ``NAME_obu-net``), and everything it created is removed afterwards, also on failure.
 
@@ -166,6 +172,72 @@ def _probe(container: str, host: str, port: int) -> subprocess.CompletedProcess[
     return _podman("exec", container, "python", "-c", _PROBE, host, str(port))
 
 
+# Run inside the emulator's container (on obu-net, the site PKI at /pki): what reaches whom on the
+# secured OBU. Subscribes to the OBU's fused output for WINDOW_S seconds each as (1) a plain tcp/
+# session, (2) a TLS session with a valid site certificate of a name the OBU's ACL does not admit
+# ("operator"), (3) a monitor (the positive control: the same subscription, admitted); then (4)
+# holding the emulator's own certificate (which the ACL lets publish RSU data into the OBU) puts
+# UNSIGNED bytes on the RSU's object key, which the strict OBU must drop as security_unsigned; and
+# reads the OBU's /metrics until that count is reached (deadline). Prints one JSON object.
+_SECURITY_PROBE = """
+import json, os, sys, time, urllib.request
+from prometheus_client.parser import text_string_to_metric_families
+from schemas.keys import obu_objects, rsu_objects
+from schemas.transport import open_session
+window_s, unsigned_puts = float(sys.argv[1]), int(sys.argv[2])
+wrong_name = {"transport": {"link": {"tls": {"root_ca_certificate": "/pki/tls/tls-ca.pem",
+    "connect_certificate": "/pki/tls/operator.pem", "connect_private_key": "/pki/tls/operator.key",
+    "enable_mtls": True, "verify_name_on_connect": True}}}}
+with open("/tmp/wrong-name.json5", "w") as f:
+    json.dump(wrong_name, f)
+def fused_received(config, endpoint):
+    os.environ.pop("V2I_ZENOH_CONFIG", None)
+    if config:
+        os.environ["V2I_ZENOH_CONFIG"] = config
+    received = []
+    session = open_session(connect=[endpoint])
+    subscriber = session.declare_subscriber(obu_objects("ego"), lambda sample: received.append(1))
+    time.sleep(window_s)  # the observation window: counting what arrives in it
+    subscriber.undeclare()
+    session.close()
+    return len(received)
+def obu_metrics():
+    text = urllib.request.urlopen("http://obu:9103/metrics", timeout=3).read().decode()
+    values = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            key = s.name + ("[" + s.labels["reason"] + "]" if "reason" in s.labels else "")
+            values[key] = values.get(key, 0.0) + s.value
+    return values
+result = {"tcp": fused_received(None, "tcp/obu:7448"),
+          "wrong_name": fused_received("/tmp/wrong-name.json5", "tls/obu:7448"),
+          "monitor": fused_received("/etc/v2i/zenoh/monitor.json5", "tls/obu:7448")}
+os.environ["V2I_ZENOH_CONFIG"] = "/etc/v2i/zenoh/link.json5"
+session = open_session(connect=["tls/obu:7448"])
+time.sleep(1.0)  # the TLS handshake and the OBU's subscription reaching this session
+for _ in range(unsigned_puts):
+    session.put(rsu_objects("rsu1"), b"ghost list, not signed")
+    time.sleep(0.05)
+deadline = time.monotonic() + 10.0
+while (metrics := obu_metrics()).get("v2i_obu_rejected_total[security_unsigned]", 0) < unsigned_puts \
+        and time.monotonic() < deadline:
+    time.sleep(0.2)  # polling the OBU's metrics until the deadline
+session.close()
+result["obu_rejected"] = {k.split("[")[1][:-1]: v for k, v in metrics.items() if k.startswith("v2i_obu_rejected_total[")}
+result["obu_rsu_lists_accepted"] = metrics.get("v2i_obu_rsu_lists_accepted_total", 0.0)
+print(json.dumps(result))
+"""
+PROBE_WINDOW_S = 3.0
+UNSIGNED_PUTS = 20
+
+
+def _security_probe(container: str) -> dict:
+    out = _podman("exec", container, "python", "-c", _SECURITY_PROBE, str(PROBE_WINDOW_S), str(UNSIGNED_PUTS),
+                  timeout_s=60.0)
+    assert out.returncode == 0, out.stdout + out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def _wait_exit(container: str, deadline: float) -> int:
     """The container's exit status once it exits; AssertionError at the deadline (monotonic s)."""
     try:
@@ -186,7 +258,7 @@ def _events(log: str) -> list[dict]:
 
 
 def test_fused_output_carries_rsu_objects_across_the_two_networks(project: Project) -> None:
-    _up(project, *SERVICES)
+    _up(project, "pki", *SERVICES)
     rsu, obu, link, watch = (project.container(s) for s in SERVICES)
     rsu_net, obu_net = project.network("rsu-net"), project.network("obu-net")
 
@@ -205,6 +277,9 @@ def test_fused_output_carries_rsu_objects_across_the_two_networks(project: Proje
         assert probe.returncode == 0, f"the emulator did not reach {host}:{port}: {probe.stdout}{probe.stderr}"
 
     status = _wait_exit(watch, time.monotonic() + STARTUP_S + WATCH_TIMEOUT_S + 15.0)
+    # TLS, ACL and signatures in force while the services still run (RUN_S of scenario time).
+    security = _security_probe(link)
+    print("security probe:", security)
     # The emulator first, as `podman-compose down` does (reverse start order): once its peers are
     # gone it retries them by name, and each lookup blocks Zenoh's runtime for the resolver's 5 s
     # timeout (aardvark-dns forwards unknown names upstream, unreachable from internal networks),
@@ -224,7 +299,13 @@ def test_fused_output_carries_rsu_objects_across_the_two_networks(project: Proje
     assert len(fused_with_rsu) == done[0]["lists_with_rsu_objects"]
     # Each service stopped cleanly on SIGTERM (its summary line), the RSU after publishing.
     assert "[rsu] stopped:" in logs[rsu] and "[obu] stopped:" in logs[obu], logs
-    assert [_exit_code(c) for c in (rsu, obu, link)] == [0, 0, 0], logs
+    assert [_exit_code(c) for c in (project.container("pki"), rsu, obu, link)] == [0, 0, 0, 0], logs
+    # A plain tcp/ session and a site certificate of the wrong name get none of the OBU's output, a
+    # monitor's does; the unsigned lists an admitted certificate sent were all dropped, and
+    # nothing else was: the genuine RSU's signed lists were accepted.
+    assert security["tcp"] == 0 and security["wrong_name"] == 0 and security["monitor"] > 0, security
+    assert security["obu_rejected"] == {"security_unsigned": UNSIGNED_PUTS}, security
+    assert security["obu_rsu_lists_accepted"] >= MIN_RSU_LISTS, security
 
 
 def _exit_code(container: str) -> int:
@@ -255,7 +336,7 @@ def test_prometheus_scrapes_the_three_services(project: Project) -> None:
         pytest.skip(f"image {PROMETHEUS_IMAGE} not built (deploy/podman/build.sh --prometheus)")
     if not PROMETHEUS_CONFIG.is_file():
         pytest.skip(f"{PROMETHEUS_CONFIG} missing")
-    _up(project, "rsu", "obu", "link", "prometheus")
+    _up(project, "pki", "rsu", "obu", "link", "prometheus")
     prometheus, rsu_net = project.container("prometheus"), project.network("rsu-net")
     assert _networks(prometheus) == {rsu_net, project.network("obu-net")}
     address = _address(prometheus, rsu_net)
