@@ -312,10 +312,12 @@ class AttackRun:
             return Counter(self.time_sent)
 
     def _progress(self, kind: str, sent: int) -> None:
-        rejected = sum(v for k, v in (self.metrics.rejected if self.metrics else {}).items() if k.startswith("security_"))
+        counts = self.metrics.rejected if self.metrics else {}
+        dropped = sum(v for k, v in counts.items() if k.startswith("security_") and not k.startswith("security_accepted_"))
+        accepted = sum(v for k, v in counts.items() if k.startswith("security_accepted_"))
         ghosts = sum(1 for _, g, _, _ in self.outputs if g)
-        print(f"v2i attack: {kind} {sent}/{self.args.count} sent; OBU security rejections so far {rejected}; "
-              f"outputs with a ghost {ghosts}", file=sys.stderr, flush=True)
+        print(f"v2i attack: {kind} {sent}/{self.args.count} sent; the OBU so far dropped {dropped}, accepted failing "
+              f"{accepted}; outputs with a ghost {ghosts}", file=sys.stderr, flush=True)
 
     # --- the report -------------------------------------------------------------------------------
     def report(self) -> dict:

@@ -115,8 +115,8 @@ class ObuSignedFuzz(ObuFuzz):
     def argv(self, start_ns: int, duration_s: float) -> dict[str, list[str]]:
         argv = super().argv(start_ns, duration_s)
         argv["rsu"] += ["--pki", str(self.pki)]
-        argv["obu"] += ["--pki", str(self.pki), "--security", "strict"]
-        return argv
+        # the victim's process is looked up by the target's name
+        return {"rsu": argv["rsu"], self.name: [*argv["obu"], "--pki", str(self.pki), "--security", "strict"]}
 
     def run(self) -> dict:
         try:
