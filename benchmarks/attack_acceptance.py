@@ -26,9 +26,7 @@ import threading
 import time
 from pathlib import Path
 
-# benchmarks/security.py would shadow the ``security`` package: drop this folder from the path
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
-from evaluation.attack_messages import KINDS, prepare_attacker_pki  # noqa: E402
+from evaluation.attack_messages import KINDS, prepare_attacker_pki
 
 ENDPOINTS = re.compile(r"endpoints: OBU (\S+), RSU (\S+), link (\S+)")
 READY_S = 60.0

@@ -1,7 +1,7 @@
 """Cost of signed V2X messages: sign and verify time per message, bytes added; P-256 and Ed25519.
 
-    python benchmarks/security.py               # 200-object list, 2000 messages per row
-    python benchmarks/security.py --objects 50 --n 5000
+    python benchmarks/signing_cost.py               # 200-object list, 2000 messages per row
+    python benchmarks/signing_cost.py --objects 50 --n 5000
 
 The payload is a real RSU object list of ``--objects`` tracks (``benchmarks/wire.py``'s
 ``rsu_tracks``, encoded by ``schemas.codec``). For each algorithm a fresh site PKI (CA and RSU of
@@ -26,9 +26,7 @@ Targets (issue 14): verify <= 200 us per list, <= 120 B added per message.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -37,21 +35,13 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
-# This file is named like the ``security`` package: drop its folder from the path (Python puts it
-# first) and load the sibling ``wire.py`` by file path instead.
-ROOT = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != ROOT]
-_spec = importlib.util.spec_from_file_location("bench_wire", ROOT / "wire.py")
-wire = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(wire)
-HEADER, rsu_tracks = wire.HEADER, wire.rsu_tracks
-
-from fusion.wire import states_from_objects  # noqa: E402
-from schemas.codec import encode  # noqa: E402
-from schemas.messages import ObjectList  # noqa: E402
-from security import algorithms as alg  # noqa: E402
-from security.envelope import Signer, Verifier, signed_bytes  # noqa: E402
-from security.pki import Pki, load_signer, load_trust  # noqa: E402
+from fusion.wire import states_from_objects
+from schemas.codec import encode
+from schemas.messages import ObjectList
+from security import algorithms as alg
+from security.envelope import Signer, Verifier, signed_bytes
+from security.pki import Pki, load_signer, load_trust
+from wire import HEADER, rsu_tracks  # benchmarks/wire.py: the same list as the wire benchmark
 
 T0 = 1_700_000_000 * 10**9
 KEY = "v2x/rsu/rsu-0/objects"
