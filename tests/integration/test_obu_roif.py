@@ -9,6 +9,7 @@ import threading
 import time
 
 import pytest
+import zenoh
 
 from fusion.roif import RoifConfig
 from fusion.roif_features import view_features
@@ -52,7 +53,9 @@ def test_obu_fuses_images_live_and_refuses_bad_features():
     declared = [rsu.declare_queryable(keys.rsu_time(RSU_ID), _answer_time),
                 rsu.declare_subscriber(keys.obu_image_objects("ego"), lambda s: outputs.put(s.payload.to_bytes())),
                 rsu.declare_subscriber(keys.obu_metrics("ego"), lambda s: metrics.put(s.payload.to_bytes()))]
-    publisher = rsu.declare_publisher(keys.rsu_image_features(RSU_ID))
+    # ~42 kB a frame, three at once at k == 5: a dropping (default) put can lose one in a full TX queue
+    block = zenoh.CongestionControl.BLOCK
+    publisher = rsu.declare_publisher(keys.rsu_image_features(RSU_ID), congestion_control=block)
     stop = threading.Event()
     thread = threading.Thread(target=node.run, args=(stop,))
     thread.start()
@@ -68,7 +71,7 @@ def test_obu_fuses_images_live_and_refuses_bad_features():
             if k == 5:  # hostile: truncated, from an unknown RSU
                 publisher.put(encode(RsuImageFeatures.from_view(RSU_ID, 99, t_ns, features))[:-9])
                 stranger = RsuImageFeatures.from_view("stranger", 1, t_ns, features)
-                rsu.put(keys.rsu_image_features("stranger"), encode(stranger))
+                rsu.put(keys.rsu_image_features("stranger"), encode(stranger), congestion_control=block)
         got, deadline = [], time.monotonic() + 10.0
         while len(got) < FRAMES and time.monotonic() < deadline:
             try:
