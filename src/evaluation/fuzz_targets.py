@@ -274,7 +274,9 @@ class LinkFuzz(ObuFuzz):
         base, common = [sys.executable, "-m", "v2i"], ["--start-at-ns", str(start_ns), "--duration", str(duration_s)]
         return {"rsu": [*base, "rsu", "--listen", self.eps["rsu"], *common, "--clock-offset-ms", str(CLOCK_OFFSET_MS)],
                 "obu": [*base, "obu", "--listen", self.eps["obu"], *common, "--wires", STANDARD_WIRES],
-                "link": [*base, "link", "--link-id", LINK_ID, "--profile", "ideal",
+                # unauthenticated control: the hostile controls reach the decoder, not only the signature check
+                # (that one is fuzzed by tests/unit/test_link_control_auth.py's hostile bytes)
+                "link": [*base, "link", "--link-id", LINK_ID, "--profile", "ideal", "--insecure-control",
                          "--rsu-connect", self.eps["rsu"], "--rsu-connect", self.eps["attacker_rsu_side"],
                          "--vehicle-connect", self.eps["obu"], "--vehicle-connect", self.eps["attacker_vehicle_side"]]}
 
