@@ -193,8 +193,9 @@ class RsuNode:
 
     def _put_list(self, publisher, message: Callable[[Stamp], ObjectList | None]) -> None:
         """Stamp the publish time, build the list (``message(stamp)``), encode it (--wire; an SDSM has
-        none for an empty list) and put it. Stages: ``message``, ``encode``, ``put`` and ``stamp_to_put``
-        (the header's publish stamp -> put returned: the RSU's share of the OBU's one-way delay)."""
+        none for an empty list), sign it (--pki) and put it. Stages: ``message``, ``encode``, ``sign``, ``put``
+        and ``stamp_to_put`` (the header's publish stamp -> put returned: the RSU's share of the OBU's
+        one-way delay)."""
         stamp = self._now()
         t0_ns = time.perf_counter_ns()
         msg = message(stamp)
@@ -203,11 +204,15 @@ class RsuNode:
         t2_ns = time.perf_counter_ns()
         if data is None:
             return
-        publisher.put(self._signed(data, publisher.key_expr, stamp.wall_ns))
+        data = self._signed(data, publisher.key_expr, stamp.wall_ns)
         t3_ns = time.perf_counter_ns()
+        publisher.put(data)
+        t4_ns = time.perf_counter_ns()
         self.latency.observe_ns("message", t0_ns, t1_ns)
         self.latency.observe_ns("encode", t1_ns, t2_ns)
-        self.latency.observe_ns("put", t2_ns, t3_ns)
+        if self._loop_signer is not None:
+            self.latency.observe_ns("sign", t2_ns, t3_ns)
+        self.latency.observe_ns("put", t3_ns, t4_ns)
         self.latency.observe_ns("stamp_to_put", stamp.mono_ns, self.true_clock.now_ns())
 
     def _signed(self, data: bytes, key_expr, generation_ns: int) -> bytes:
