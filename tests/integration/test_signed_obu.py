@@ -76,6 +76,7 @@ def test_strict_obu_fuses_the_signing_rsu_and_counts_every_injection(tmp_path):
         assert abs(rsu1.clock_offset_ns - 250_000_000) < 5_000_000  # the signed replies synchronise, the forged do not
         assert m.output_deadline_misses == 0
         wait_for(outputs, _has_rsu_objects, 5.0)  # and the genuine RSU keeps fusing
+        assert "sign" in rsu.last_metrics.latency_ms and "verify" in m.latency_ms  # both sides' stages
     finally:
         for s in subs:
             s.undeclare()
