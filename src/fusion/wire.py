@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Sequence
+from itertools import accumulate
 
 import numpy as np
 
@@ -84,51 +85,51 @@ def fit_to_wire(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS) -> tuple[Ob
     clipped to the wire's ranges (``clipped``: speeds, accelerations, yaw rates, variances,
     sizes, heights, confidence, age; yaw wrapped; ids modulo 2^32); beyond ``max_objects`` the
     objects farthest from the frame's origin (in base_link: the ego) are dropped (``truncated``).
+    Every check and clip runs once on the (N, 22) table of the real-valued columns (``_LAYOUT``).
     """
-    n = len(objs)
-    finite = np.ones(n, bool)
-    for column in _values(objs):
-        finite &= np.isfinite(_rows(column)).all(axis=1)
+    table = _table(objs)
+    finite = np.isfinite(table).all(axis=1)
     inside = finite & (np.abs(np.where(finite[:, None], objs.xy, 0.0)) <= m.POSITION_MAX_M).all(axis=1)
     counts = Counter(not_finite=int((~finite).sum()), out_of_range=int((finite & ~inside).sum()))
-    objs = objs.take(inside)
-    if len(objs) > max_objects:
-        counts["truncated"] = len(objs) - max_objects
-        nearest = np.argsort(np.hypot(objs.xy[:, 0], objs.xy[:, 1]), kind="stable")[:max_objects]
-        objs = objs.take(np.sort(nearest))
-    clipped = _clipped(objs)
-    changed = objs.ids != clipped.ids
-    for before, after in zip(_values(objs), _values(clipped)):
-        changed |= _rows(before != after).any(axis=1)
-    counts["clipped"] = int(changed.sum())
-    return clipped, +counts
+    keep = np.flatnonzero(inside)
+    if len(keep) > max_objects:
+        counts["truncated"] = len(keep) - max_objects
+        nearest = np.argsort(np.hypot(objs.xy[keep, 0], objs.xy[keep, 1]), kind="stable")[:max_objects]
+        keep = keep[np.sort(nearest)]
+    objs, table = objs.take(keep), table[keep]
+    clipped = np.clip(table, _LO, _HI)
+    clipped[:, _YAW] = wrap_angle(table[:, _YAW])
+    ids = np.mod(objs.ids, 2**32)
+    counts["clipped"] = int(((objs.ids != ids) | (table != clipped).any(axis=1)).sum())
+    return _with_table(objs, ids, clipped), +counts
 
 
-def _rows(a: np.ndarray) -> np.ndarray:
-    """(N, k): each row's values flattened (also for N = 0)."""
-    return a.reshape(len(a), int(np.prod(a.shape[1:], dtype=int)))
+# the real-valued columns of an ObjectArray as one (N, 22) table: (column, width, low, high) with
+# the wire's ranges (``schemas.messages``); positions are not clipped (out of range is dropped),
+# yaw is wrapped instead, a covariance's diagonal (xx, yy of its row-major 2x2) is >= 0
+_LAYOUT = (
+    ("xy", 2, -np.inf, np.inf), ("z", 1, -m.HEIGHT_MAX_M, m.HEIGHT_MAX_M), ("lwh", 3, 0.0, m.SIZE_MAX_M),
+    ("yaw", 1, -np.inf, np.inf), ("vxy", 2, -m.SPEED_MAX_MPS, m.SPEED_MAX_MPS),
+    ("axy", 2, -m.ACCEL_MAX_MPS2, m.ACCEL_MAX_MPS2), ("yaw_rate", 1, -m.YAW_RATE_MAX, m.YAW_RATE_MAX),
+    ("cov_xy", 4, -m.VARIANCE_MAX, m.VARIANCE_MAX), ("cov_vxy", 4, -m.VARIANCE_MAX, m.VARIANCE_MAX),
+    ("confidence", 1, 0.0, 1.0), ("age_s", 1, 0.0, m.AGE_MAX_S),
+)
+_LO = np.concatenate([np.full(w, lo) for _, w, lo, _ in _LAYOUT])
+_HI = np.concatenate([np.full(w, hi) for _, w, _, hi in _LAYOUT])
+_ENDS = list(accumulate(width for _, width, _, _ in _LAYOUT))
+_SPAN = {name: slice(end - width, end) for (name, width, _, _), end in zip(_LAYOUT, _ENDS)}  # column -> slice
+_LO[[_SPAN["cov_xy"].start, _SPAN["cov_xy"].start + 3, _SPAN["cov_vxy"].start, _SPAN["cov_vxy"].start + 3]] = 0.0
+_YAW = _SPAN["yaw"].start
 
 
-def _values(objs: ObjectArray) -> list[np.ndarray]:
-    """The real-valued columns of the objects."""
-    return [objs.xy, objs.z, objs.lwh, objs.yaw, objs.vxy, objs.axy, objs.yaw_rate, objs.cov_xy, objs.cov_vxy,
-            objs.confidence, objs.age_s]
+def _table(objs: ObjectArray) -> np.ndarray:
+    """(N, 22) float64: the real-valued columns side by side in ``_LAYOUT`` order."""
+    n = len(objs)
+    return np.concatenate([getattr(objs, name).reshape(n, width) for name, width, _, _ in _LAYOUT], axis=1,
+                          dtype=np.float64)
 
 
-def _clipped(objs: ObjectArray) -> ObjectArray:
-    """Every value clipped into its wire range (ranges from ``schemas.messages``), yaw wrapped."""
-
-    def cov(c: np.ndarray) -> np.ndarray:
-        out = np.clip(c, -m.VARIANCE_MAX, m.VARIANCE_MAX)
-        out[:, [0, 1], [0, 1]] = np.clip(c[:, [0, 1], [0, 1]], 0.0, m.VARIANCE_MAX)
-        return out
-
-    return objs.with_(
-        ids=np.mod(objs.ids, 2**32), z=np.clip(objs.z, -m.HEIGHT_MAX_M, m.HEIGHT_MAX_M),
-        lwh=np.clip(objs.lwh, 0.0, m.SIZE_MAX_M), yaw=wrap_angle(objs.yaw),
-        vxy=np.clip(objs.vxy, -m.SPEED_MAX_MPS, m.SPEED_MAX_MPS),
-        axy=np.clip(objs.axy, -m.ACCEL_MAX_MPS2, m.ACCEL_MAX_MPS2),
-        yaw_rate=np.clip(objs.yaw_rate, -m.YAW_RATE_MAX, m.YAW_RATE_MAX), cov_xy=cov(objs.cov_xy),
-        cov_vxy=cov(objs.cov_vxy), confidence=np.clip(objs.confidence, 0.0, 1.0),
-        age_s=np.clip(objs.age_s, 0.0, m.AGE_MAX_S),
-    )
+def _with_table(objs: ObjectArray, ids: np.ndarray, table: np.ndarray) -> ObjectArray:
+    """``objs`` with these ids and its real-valued columns read back from ``table`` (N, 22)."""
+    columns = {name: table[:, _SPAN[name]].reshape(getattr(objs, name).shape) for name, _, _, _ in _LAYOUT}
+    return objs.with_(ids=ids, **columns)

@@ -1,0 +1,77 @@
+"""fusion.wire.fit_to_wire (one stacked (N, 22) table) against the per-column reference it replaced."""
+
+from collections import Counter
+
+import numpy as np
+
+from fusion.frames import wrap_angle
+from fusion.objects import ObjectArray
+from fusion.wire import fit_to_wire
+from schemas import messages as m
+
+
+def reference_fit(objs: ObjectArray, max_objects: int) -> tuple[ObjectArray, Counter]:
+    """fit_to_wire before the table (commit 723e2c2): each column checked and clipped on its own."""
+    def rows(a):
+        return a.reshape(len(a), int(np.prod(a.shape[1:], dtype=int)))
+
+    def values(o):
+        return [o.xy, o.z, o.lwh, o.yaw, o.vxy, o.axy, o.yaw_rate, o.cov_xy, o.cov_vxy, o.confidence, o.age_s]
+
+    def cov(c):
+        out = np.clip(c, -m.VARIANCE_MAX, m.VARIANCE_MAX)
+        out[:, [0, 1], [0, 1]] = np.clip(c[:, [0, 1], [0, 1]], 0.0, m.VARIANCE_MAX)
+        return out
+
+    finite = np.ones(len(objs), bool)
+    for column in values(objs):
+        finite &= np.isfinite(rows(column)).all(axis=1)
+    inside = finite & (np.abs(np.where(finite[:, None], objs.xy, 0.0)) <= m.POSITION_MAX_M).all(axis=1)
+    counts = Counter(not_finite=int((~finite).sum()), out_of_range=int((finite & ~inside).sum()))
+    objs = objs.take(inside)
+    if len(objs) > max_objects:
+        counts["truncated"] = len(objs) - max_objects
+        objs = objs.take(np.sort(np.argsort(np.hypot(objs.xy[:, 0], objs.xy[:, 1]), kind="stable")[:max_objects]))
+    clipped = objs.with_(
+        ids=np.mod(objs.ids, 2**32), z=np.clip(objs.z, -m.HEIGHT_MAX_M, m.HEIGHT_MAX_M),
+        lwh=np.clip(objs.lwh, 0.0, m.SIZE_MAX_M), yaw=wrap_angle(objs.yaw),
+        vxy=np.clip(objs.vxy, -m.SPEED_MAX_MPS, m.SPEED_MAX_MPS),
+        axy=np.clip(objs.axy, -m.ACCEL_MAX_MPS2, m.ACCEL_MAX_MPS2),
+        yaw_rate=np.clip(objs.yaw_rate, -m.YAW_RATE_MAX, m.YAW_RATE_MAX), cov_xy=cov(objs.cov_xy),
+        cov_vxy=cov(objs.cov_vxy), confidence=np.clip(objs.confidence, 0.0, 1.0),
+        age_s=np.clip(objs.age_s, 0.0, m.AGE_MAX_S))
+    changed = objs.ids != clipped.ids
+    for before, after in zip(values(objs), values(clipped)):
+        changed |= rows(before != after).any(axis=1)
+    counts["clipped"] = int(changed.sum())
+    return clipped, +counts
+
+
+def hostile_objects(rng: np.random.Generator, n: int) -> ObjectArray:
+    """n objects whose values are mostly in range, some far out of it, some non-finite."""
+    def col(*shape, scale):
+        a = rng.normal(0.0, scale, (n, *shape)) * np.where(rng.random((n, *shape)) < 0.1, 1e4, 1.0)
+        a[rng.random(a.shape) < 0.01] = rng.choice([np.nan, np.inf, -np.inf])
+        return a
+
+    return ObjectArray(
+        ids=rng.integers(-2**40, 2**40, n), cls=rng.integers(0, 5, n), xy=col(2, scale=300.0), z=col(scale=1.0),
+        lwh=col(3, scale=3.0), yaw=col(scale=4.0), vxy=col(2, scale=20.0), axy=col(2, scale=3.0),
+        yaw_rate=col(scale=0.5), cov_xy=col(2, 2, scale=2.0), cov_vxy=col(2, 2, scale=2.0),
+        confidence=col(scale=0.8), age_s=col(scale=5.0), sources=rng.integers(0, 4, n))
+
+
+def test_fit_to_wire_equals_the_per_column_reference_exactly():
+    rng = np.random.default_rng(7)
+    for n, max_objects in [(0, 10), (1, 10), (40, 1000), (300, 50), (300, 0)]:
+        objs = hostile_objects(rng, n)
+        fitted, counts = fit_to_wire(objs, max_objects)
+        ref, ref_counts = reference_fit(objs, max_objects)
+        assert counts == ref_counts
+        assert n < 40 or counts["not_finite"] > 0 and counts["out_of_range"] > 0
+        assert n < 40 or max_objects == 0 or counts["clipped"] > 0
+        for name in ("ids", "cls", "xy", "z", "lwh", "yaw", "vxy", "axy", "yaw_rate", "cov_xy", "cov_vxy",
+                     "confidence", "age_s", "sources"):
+            got, want = getattr(fitted, name), getattr(ref, name)
+            assert got.shape == want.shape and got.dtype == want.dtype, name
+            np.testing.assert_array_equal(got, want, err_msg=name, strict=True)
