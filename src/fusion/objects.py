@@ -43,13 +43,14 @@ class ObjectArray:
     sources: np.ndarray = field(default=None)  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
-        n = len(self.ids)
+        columns = self.__dict__  # the frozen dataclass's fields, read and defaulted in place
+        n = len(columns["ids"])
         for name, default in _DEFAULTS:  # built only for the columns left out
-            if getattr(self, name) is None:
-                object.__setattr__(self, name, default(n))
+            if columns[name] is None:
+                columns[name] = default(n)
         for name in _FIELDS:
-            if len(getattr(self, name)) != n:
-                raise ValueError(f"ObjectArray.{name} has {len(getattr(self, name))} rows, ids has {n}")
+            if len(columns[name]) != n:
+                raise ValueError(f"ObjectArray.{name} has {len(columns[name])} rows, ids has {n}")
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -70,7 +71,10 @@ class ObjectArray:
         """Rows selected by an index, index array or boolean mask (always an ObjectArray)."""
         if np.ndim(index) == 0:
             index = [index]
-        return ObjectArray(**{name: getattr(self, name)[index] for name in _FIELDS})
+        columns = self.__dict__
+        out = object.__new__(ObjectArray)  # every column indexed alike: rows agree, no __post_init__ needed
+        out.__dict__.update({name: columns[name][index] for name in _FIELDS})
+        return out
 
     def with_(self, **changes) -> "ObjectArray":
         """A copy with some columns replaced (``dataclasses.replace``). Fast path: when the ids stay

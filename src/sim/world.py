@@ -56,19 +56,21 @@ class _SpeedProfiles:
         self._rows = np.arange(len(keys))
         self._f0 = self._antiderivative(0.0)[0]
 
-    def _antiderivative(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """F(t), v(t), dv/dt, each (N,)."""
-        k = np.maximum((self._t <= t).sum(axis=1) - 1, 0)
+    def _antiderivative(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """F(t), v(t), dv/dt, each (N,); t a time (s) for every body, or (N,) one per body."""
+        t_col = t[:, None] if np.ndim(t) else t
+        k = np.maximum((self._t <= t_col).sum(axis=1) - 1, 0)
         before = t < self._t[:, 0]
         r = self._rows
         dt = np.where(before, 0.0, t - self._t[r, k])
         a = np.where(before, 0.0, self._a[r, k])
-        v = self._v[r, k] + a * dt
-        f = np.where(before, self._v[:, 0] * (t - self._t[:, 0]), self._f[r, k] + self._v[r, k] * dt + 0.5 * a * dt**2)
+        v_k = self._v[r, k]
+        v = v_k + a * dt
+        f = np.where(before, self._v[:, 0] * (t - self._t[:, 0]), self._f[r, k] + v_k * dt + 0.5 * a * dt**2)
         return f, v, a
 
-    def at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Arc length s (N,) m, speed (N,) m/s, dv/dt (N,) m/s^2 at time t (s)."""
+    def at(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Arc length s (N,) m, speed (N,) m/s, dv/dt (N,) m/s^2 at time t (s; or (N,), one per body)."""
         f, v, a = self._antiderivative(t)
         return f - self._f0, v, a
 
@@ -111,9 +113,9 @@ class Trajectories:
         self._speed = _SpeedProfiles(trajectories)
         self._paths = _Paths(trajectories)
 
-    def at(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """xy (N, 2) m, yaw (N,) rad, vxy (N, 2) m/s, axy (N, 2) m/s^2 at time t_s."""
-        s, v, a = self._speed.at(float(t_s))
+    def at(self, t_s: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """xy (N, 2) m, yaw (N,) rad, vxy (N, 2) m/s, axy (N, 2) m/s^2 at time t_s (s; or (N,), one per body)."""
+        s, v, a = self._speed.at(np.asarray(t_s, dtype=float) if np.ndim(t_s) else float(t_s))
         xy, u = self._paths.at(s)
         moving = (s >= 0.0) & (s < self._paths.length)  # stopped at either end of the path
         yaw = np.arctan2(u[:, 1], u[:, 0])
@@ -179,15 +181,8 @@ class World:
         return out.take(self.present(t_s)) if self._timed else out
 
     def _at_own_clocks(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        out = None
-        for spawn in np.unique(self._spawn_s):
-            rows = self._spawn_s == spawn
-            state = self._actors.at(t_s - spawn)
-            if out is None:
-                out = tuple(np.array(a) for a in state)
-            for full, part in zip(out, state):
-                full[rows] = part[rows]
-        return out
+        """Every actor's state at its own clock t_s - spawn_s, all at once."""
+        return self._actors.at(t_s - self._spawn_s)
 
     def positions_of(self, ids: np.ndarray, t_s: float) -> np.ndarray:
         """(K, 2) map positions (m) at t_s of the bodies ``ids`` (K,): actors present then, or 0 for the ego."""

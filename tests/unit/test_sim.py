@@ -322,3 +322,19 @@ def test_localization_noise_is_small_unbiased_and_slowly_drifting():
     loc = Localization(world.scenario.localization, np.random.default_rng(3))
     x = np.array([loc.measure(world, 0.1 * k).x for k in range(5000)]) - 5.25
     assert np.corrcoef(x[:-1], x[1:])[0, 1] > 0.95
+
+
+def test_actors_on_their_own_clocks_equal_one_evaluation_per_spawn_time():
+    """World.actors_at evaluates every actor at t - spawn_s at once: bit-equal to evaluating the
+    trajectories once per distinct spawn time and keeping each actor's own rows."""
+    world = World(load_scenario("two-rsu-corridor"))
+    spawns = np.unique(world._spawn_s)
+    assert len(spawns) > 1
+    for t_s in np.linspace(0.0, world.duration_s, 37):
+        want = [np.array(a) for a in world._actors.at(t_s - spawns[0])]
+        for spawn in spawns[1:]:
+            rows = world._spawn_s == spawn
+            for full, part in zip(want, world._actors.at(t_s - spawn)):
+                full[rows] = part[rows]
+        for got, ref in zip(world._at_own_clocks(t_s), want):
+            np.testing.assert_array_equal(got, ref, strict=True)
