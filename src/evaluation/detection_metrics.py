@@ -68,16 +68,29 @@ def _greedy_match(dist: np.ndarray, rank: np.ndarray, threshold_m: float) -> np.
     (candidates) are walked; when the candidates' nearest truths are all different, none
     takes another's and each is a true positive without the walk.
     """
+    return _greedy_matches(dist, rank, [threshold_m])[0]
+
+
+def _greedy_matches(dist: np.ndarray, rank: np.ndarray, thresholds_m: Sequence[float]) -> list[np.ndarray]:
+    """``_greedy_match`` at each threshold, (P,) bool each; the rows' nearest truths are found once."""
     n_pred, n_truth = dist.shape
-    tp = np.zeros(n_pred, dtype=bool)
     if n_truth == 0 or n_pred == 0:
-        return tp
-    candidates = np.flatnonzero(dist.min(axis=1) < threshold_m)
-    nearest = dist[candidates].argmin(axis=1)
-    if len(np.unique(nearest)) == len(candidates):
-        tp[candidates] = True
-        return tp
-    taken = np.zeros(n_truth, dtype=bool)
+        return [np.zeros(n_pred, dtype=bool) for _ in thresholds_m]
+    row_min, nearest = dist.min(axis=1), dist.argmin(axis=1)
+    out = []
+    for th in thresholds_m:
+        tp = row_min < th  # the candidates; all true positives when their nearest truths differ
+        taken = nearest[tp].tolist()
+        if len(set(taken)) < len(taken):
+            tp = _greedy_walk(dist, rank, th, np.flatnonzero(tp), np.zeros(n_pred, dtype=bool))
+        out.append(tp)
+    return out
+
+
+def _greedy_walk(dist: np.ndarray, rank: np.ndarray, threshold_m: float, candidates: np.ndarray,
+                 tp: np.ndarray) -> np.ndarray:
+    """``_greedy_match``'s walk over the candidates (indices) in rank order; sets and returns tp (P,)."""
+    taken = np.zeros(dist.shape[1], dtype=bool)
     for p in candidates[np.argsort(rank[candidates], kind="stable")]:
         row = np.where(taken, np.inf, dist[p])
         g = int(np.argmin(row))
@@ -194,14 +207,15 @@ class CenterDistanceAp:
         rank[_confidence_order(confidence)] = np.arange(len(confidence))
         flags = np.zeros(len(confidence), dtype=np.uint64)
         stride = 1 + len(self.thresholds_m)
+        d_truth, d_pred = np.hypot(truth_xy[:, 0], truth_xy[:, 1]), np.hypot(pred_xy[:, 0], pred_xy[:, 1])
         for b, (lo, hi) in enumerate(self.range_bins_m):
-            keep_t, keep_p = _in_range(truth_xy, lo, hi), _in_range(pred_xy, lo, hi)
+            keep_t, keep_p = (d_truth >= lo) & (d_truth < hi), (d_pred >= lo) & (d_pred < hi)  # _in_range
             self._num_truth[b] += int(keep_t.sum())
             t, p = truth_xy[keep_t], pred_xy[keep_p]
             dist = cdist(p, t) if len(p) and len(t) else np.zeros((len(p), len(t)))
             word = np.full(len(p), 1 << (b * stride), dtype=np.uint64)
-            for k, th in enumerate(self.thresholds_m):
-                word |= _greedy_match(dist, rank[keep_p], th).astype(np.uint64) << np.uint64(b * stride + 1 + k)
+            for k, tp in enumerate(_greedy_matches(dist, rank[keep_p], self.thresholds_m)):
+                word |= tp.astype(np.uint64) << np.uint64(b * stride + 1 + k)
             flags[keep_p] |= word
         self._confidence.extend(confidence.tolist())
         self._flags.extend(flags.tolist())
