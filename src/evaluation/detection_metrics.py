@@ -335,10 +335,13 @@ class MotTally:
     def _match(self, oids: list[int], hids: list[int], dist: np.ndarray) -> list[tuple[int, int]]:
         """Steps (1) and (2): matched (truth index, hyp index) pairs; counts matches and switches."""
         pairs, free_h = [], np.ones(len(hids), dtype=bool)
+        columns: dict[int, list[int]] = {}  # hypothesis id -> its indices in hids, ascending
+        for j, h in enumerate(hids):
+            columns.setdefault(h, []).append(j)
         for i, o in enumerate(oids):
             if o not in self._last:
                 continue
-            j = next((j for j, h in enumerate(hids) if free_h[j] and h == self._last[o]), None)
+            j = next((j for j in columns.get(self._last[o], ()) if free_h[j]), None)  # the first free one
             if j is not None and np.isfinite(dist[i, j]):
                 pairs.append((i, j))
                 free_h[j] = False
