@@ -54,19 +54,22 @@ class _SpeedProfiles:
         self._a = _pad(slopes, fill_last=False, fill=0.0)
         self._f = _pad(integrals, fill_last=True)
         self._rows = np.arange(len(keys))
+        self._tavf = np.stack([self._t, self._a, self._v, self._f], axis=-1)  # (N, K, 4): one gather per call
         self._f0 = self._antiderivative(0.0)[0]
 
     def _antiderivative(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """F(t), v(t), dv/dt, each (N,); t a time (s) for every body, or (N,) one per body."""
         t_col = t[:, None] if np.ndim(t) else t
         k = np.maximum((self._t <= t_col).sum(axis=1) - 1, 0)
+        t_k, a_k, v_k, f_k = self._tavf[self._rows, k].T  # each (N,)
         before = t < self._t[:, 0]
-        r = self._rows
-        dt = np.where(before, 0.0, t - self._t[r, k])
-        a = np.where(before, 0.0, self._a[r, k])
-        v_k = self._v[r, k]
+        if not before.any():  # the common case: np.where below would pick the second branch everywhere
+            dt = t - t_k
+            return f_k + v_k * dt + 0.5 * a_k * dt**2, v_k + a_k * dt, a_k
+        dt = np.where(before, 0.0, t - t_k)
+        a = np.where(before, 0.0, a_k)
         v = v_k + a * dt
-        f = np.where(before, self._v[:, 0] * (t - self._t[:, 0]), self._f[r, k] + v_k * dt + 0.5 * a * dt**2)
+        f = np.where(before, self._v[:, 0] * (t - self._t[:, 0]), f_k + v_k * dt + 0.5 * a * dt**2)
         return f, v, a
 
     def at(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -96,14 +99,16 @@ class _Paths:
         self.length = np.array([c[-1] for c in cum])  # (N,) m
         self._last_seg = np.array([max(len(p) - 2, 0) for p in pts])
         self._rows = np.arange(len(pts))
+        k_seg = self._u.shape[1]  # segment j <= _last_seg < k_seg: point, tangent and arc length at its start
+        self._puc = np.concatenate([self._p[:, :k_seg], self._u, self._cum[:, :k_seg, None]], axis=-1)  # (N, k_seg, 5)
 
     def at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Point (N, 2) m and unit tangent (N, 2) at arc lengths s (N,), clamped to [0, L]."""
         s = np.clip(s, 0.0, self.length)
         j = np.minimum(np.maximum((self._cum <= s[:, None]).sum(axis=1) - 1, 0), self._last_seg)
-        r = self._rows
-        u = self._u[r, j]
-        return self._p[r, j] + (s - self._cum[r, j])[:, None] * u, u
+        puc = self._puc[self._rows, j]  # (N, 5): point, tangent, arc length at segment j's start
+        u = puc[:, 2:4]
+        return puc[:, 0:2] + (s - puc[:, 4])[:, None] * u, u
 
 
 class Trajectories:
