@@ -52,11 +52,12 @@ def bin_tail_means(bins: np.ndarray, t: np.ndarray, r: np.ndarray, q: float) -> 
     """
     order = np.lexsort((r, bins))  # by bin, then by r: each bin's lower tail comes first
     b, t_s, r_s = bins[order], t[order], r[order]
-    starts = np.flatnonzero(np.r_[True, b[1:] != b[:-1]])
-    ends = np.r_[starts[1:], len(b)]
+    # (np.concatenate, not np.r_: the same arrays without np.r_'s parsing, this runs per clock fit)
+    starts = np.flatnonzero(np.concatenate(([True], b[1:] != b[:-1])))
+    ends = np.append(starts[1:], len(b))
     counts = ends - starts
     k = np.maximum(1, np.ceil(q * counts).astype(int))  # lower-tail size per bin
-    t_cum, r_cum = np.r_[0.0, np.cumsum(t_s)], np.r_[0.0, np.cumsum(r_s)]
+    t_cum, r_cum = np.concatenate(([0.0], np.cumsum(t_s))), np.concatenate(([0.0], np.cumsum(r_s)))
     keep = counts >= 0.5 * np.median(counts)
     t_bin = (t_cum[ends] - t_cum[starts]) / counts
     r_bin = (r_cum[starts + k] - r_cum[starts]) / k
@@ -223,8 +224,9 @@ def consensus(up: Leg, down: Leg, drift: float, slack_ns: np.ndarray, among: np.
     forged or stepped reply among agreeing ones) is not.
     """
     lo, hi = _allowed(up, down, drift, slack_ns)
-    points = np.r_[lo[among], hi[among]]
-    kinds = np.r_[np.ones(np.sum(among)), -np.ones(np.sum(among))]  # +1 opens, -1 closes
+    points = np.concatenate((lo[among], hi[among]))
+    voters = int(np.count_nonzero(among))
+    kinds = np.concatenate((np.ones(voters), -np.ones(voters)))  # +1 opens, -1 closes
     order = np.lexsort((-kinds, points))  # by value, an opening before a closing at the same value
     theta = points[order][int(np.argmax(np.cumsum(kinds[order])))]  # start of a most-covered segment
     return (lo <= theta) & (theta <= hi)
