@@ -37,7 +37,7 @@ from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.list_wire import decode_list, encode_list, list_key
 from schemas.messages import FusedObjectList, ObjectList, PredictionList, TimeReply, TimeRequest
-from security.envelope import Signer
+from security.envelope import Signer, sign
 from security.site import memory_site
 from sim.clock import SimClock
 from sim.scenario import RsuCameraConfig, V2vConfig, load_scenario
@@ -122,8 +122,10 @@ class OfflineRun:
         self._memo = DecodeMemo()  # a broadcast's bytes are decoded once for all its receivers
         self.rsu_config = spec.rsu_config()
         self.obu_config = spec.obu_config()
-        self._site = (memory_site(start_ns, [r.id for r in self.scenario.rsus], [v.name for v in self.scenario.vehicles])
-                      if spec.security is not None else None)  # (trust, identities): RunSpec.security
+        # RunSpec.security: an in-memory site PKI (the CA's trust, each RSU's and vehicle's identity)
+        self.trust, self.identities = (memory_site(start_ns, [r.id for r in self.scenario.rsus],
+                                                   [v.name for v in self.scenario.vehicles])
+                                       if spec.security is not None else (None, {}))
         self.rsus = [self._new_rsu_site(k, cfg) for k, cfg in enumerate(self.scenario.rsus)]
         profiles = [link_profile or load_profile(cfg.link_profile or spec.profile) for cfg in self.scenario.rsus]
         self.vehicles = [self._new_vehicle(v, profiles) for v in range(len(self.scenario.vehicles))]
@@ -144,7 +146,7 @@ class OfflineRun:
     def _new_rsu_site(self, index: int, cfg: RsuCameraConfig) -> _Rsu:
         config = self.rsu_config.model_copy(update={"rsu_id": cfg.id})
         return _Rsu(index, cfg, make_source(config, self.site, self.start_ns), self._new_pipeline(cfg.id),
-                    config.clock(self.clock, self.start_ns), Signer(self._site[1][cfg.id]) if self._site else None)
+                    config.clock(self.clock, self.start_ns), Signer(self.identities[cfg.id]) if self.trust else None)
 
     def _new_pipeline(self, rsu_id: str) -> RsuPipeline:
         """A freshly started RSU (a restart loses its tracks and restarts its sequence numbers)."""
@@ -159,7 +161,7 @@ class OfflineRun:
         # pair (RSU k, vehicle v) draws from its own stream; the first pair keeps the run's seed
         pair_seed = [self.spec.seed if index == k == 0 else [self.spec.seed, index, k] for k in range(len(profiles))]
         links = [LinkModel(p, seed) for p, seed in zip(profiles, pair_seed)]
-        verifier = make_verifier(self._site and self._site[0], self.spec.security or "off", self.obu_config.planning_max_age_s)
+        verifier = make_verifier(self.trust, self.spec.security or "off", self.obu_config.planning_max_age_s)
         return _Vehicle(name, world, SimulatedVehicle(world, self.spec.seed, self.start_ns), obu,
                         RunRecord(world, self.start_ns, self.duration_s), links,
                         InboundSecurity(verifier, obu.clock_offset, obu.reject))
@@ -251,7 +253,7 @@ class OfflineRun:
         msg = rsu.pipeline.on_frame(frame.detections, capture, self._rsu_now(rsu))
         self._broadcast_list(rsu, msg)
         predictions = rsu.pipeline.predictions(self._rsu_now(rsu))
-        data = self._signed(rsu, encode(predictions), keys.rsu_predictions(rsu.cfg.id), predictions.header.publish_time_ns)
+        data = sign(encode(predictions), rsu.signer, predictions.header.publish_time_ns, keys.rsu_predictions(rsu.cfg.id))
         self._broadcast(rsu, data, self._obu_predictions)
         if rsu.pipeline.config.predict_ahead:
             self.queue.at(self.clock.t_ns + rsu.camera.upsample_offset_ns, self._rsu_upsample, rsu)
@@ -266,12 +268,7 @@ class OfflineRun:
         data = encode_list(msg, self.spec.wire)
         if data is not None:
             key = list_key(self.spec.wire, rsu.cfg.id)
-            self._broadcast(rsu, self._signed(rsu, data, key, msg.header.publish_time_ns), self._obu_receive)
-
-    @staticmethod
-    def _signed(rsu: _Rsu, data: bytes, key_expr: str, generation_ns: int) -> bytes:
-        """``data`` signed by the RSU for ``key_expr`` at ``generation_ns`` (its clock), if it signs."""
-        return data if rsu.signer is None else rsu.signer.sign(data, generation_ns, key_expr)
+            self._broadcast(rsu, sign(data, rsu.signer, msg.header.publish_time_ns, key), self._obu_receive)
 
     def _rsu_now(self, rsu: _Rsu) -> Stamp:
         """Now on the RSU's wall clock (offset, drift, steps) and its monotonic clock (the true one)."""
@@ -283,7 +280,7 @@ class OfflineRun:
         request = decode(data, TimeRequest)
         t2 = rsu.clock.now_ns()
         reply = answer_time_request(request, rsu.pipeline.config.rsu_id, t2, t2 + RSU_REPLY_NS)
-        data = self._signed(rsu, encode(reply), keys.rsu_time(rsu.cfg.id), reply.t3_ns)
+        data = sign(encode(reply), rsu.signer, reply.t3_ns, keys.rsu_time(rsu.cfg.id))
         self.queue.at(self.clock.t_ns + RSU_REPLY_NS, self._send, vehicle, rsu, "downlink", data, self._obu_time_reply)
 
     # --- link --------------------------------------------------------------------------
@@ -323,7 +320,8 @@ class OfflineRun:
         if payload is None:
             return
         try:  # memoised per wire bytes object: its payload is the same for every receiver
-            msg = self._memo.decoded(data, ("list", self.spec.wire, rsu_id), lambda: decode_list(payload, self.spec.wire, rsu_id))
+            msg = self._memo.decoded(data, ("list", self.spec.wire, rsu_id),
+                                     lambda: decode_list(payload, self.spec.wire, rsu_id))
             vehicle.obu.on_rsu_message(msg, self.clock.t_ns)
             vehicle.record.rsu_messages += 1
         except CodecError as exc:

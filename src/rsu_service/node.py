@@ -39,7 +39,7 @@ from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 from sim.world import World
-from security.envelope import Signer
+from security.envelope import Signer, sign
 from security.pki import PkiError, load_signer
 from telemetry.latency import PeriodicSummary, StageLatency
 
@@ -178,12 +178,12 @@ class RsuNode:
         self.latency.observe_ns("track", t0_ns, time.perf_counter_ns())
         self._put_list(publisher, self.pipeline.message)  # the publish stamp after tracking, right before encoding
         predictions = self.pipeline.predictions(self._now())
-        self._predictions.put(self._signed(encode(predictions), self._predictions.key_expr,
-                                           predictions.header.publish_time_ns))
+        self._predictions.put(sign(encode(predictions), self._loop_signer, predictions.header.publish_time_ns,
+                                   str(self._predictions.key_expr)))
         if frame.image_features is not None:  # ROIF: the frame's boxes + ORB features, stamped at capture
             features = encode(RsuImageFeatures.from_view(self.config.rsu_id, self.published, capture.wall_ns,
                                                          frame.image_features))
-            self._features.put(self._signed(features, self._features.key_expr, self.clock.now_ns()))
+            self._features.put(sign(features, self._loop_signer, self.clock.now_ns(), str(self._features.key_expr)))
         self.published += 1
         if self.config.predict_ahead and self._sleep_until(frame.ready_true_ns + self._upsample_offset_ns, stop):
             self._put_list(publisher, self.pipeline.upsampled)
@@ -204,7 +204,7 @@ class RsuNode:
         t2_ns = time.perf_counter_ns()
         if data is None:
             return
-        data = self._signed(data, publisher.key_expr, stamp.wall_ns)
+        data = sign(data, self._loop_signer, stamp.wall_ns, str(publisher.key_expr))
         t3_ns = time.perf_counter_ns()
         publisher.put(data)
         t4_ns = time.perf_counter_ns()
@@ -214,11 +214,6 @@ class RsuNode:
             self.latency.observe_ns("sign", t2_ns, t3_ns)
         self.latency.observe_ns("put", t3_ns, t4_ns)
         self.latency.observe_ns("stamp_to_put", stamp.mono_ns, self.true_clock.now_ns())
-
-    def _signed(self, data: bytes, key_expr, generation_ns: int) -> bytes:
-        """``data`` in a signed envelope for ``key_expr`` (--pki), else unchanged (loop thread only)."""
-        signer = self._loop_signer
-        return data if signer is None else signer.sign(data, generation_ns, str(key_expr))
 
     def _now(self) -> Stamp:
         """Now on the RSU's wall clock and on its monotonic clock (the simulation's true
@@ -286,8 +281,7 @@ class RsuNode:
             return
         reply = answer_time_request(request, self.config.rsu_id, t2_ns, self.clock.now_ns())
         key = keys.rsu_time(self.config.rsu_id)
-        data = encode(reply) if self._query_signer is None else self._query_signer.sign(encode(reply), reply.t3_ns, key)
-        query.reply(key, data)
+        query.reply(key, sign(encode(reply), self._query_signer, reply.t3_ns, key))
         with self._lock:
             self.time_replies += 1
 

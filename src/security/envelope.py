@@ -99,9 +99,10 @@ class Signer:
         return msgpack.packb([MAGIC, payload, self._signer_field(generation_ns), generation_ns, signature])
 
 
-def sign(payload: bytes, signer: Signer, generation_ns: int, key_expr: str) -> bytes:
-    """``payload`` wrapped in an envelope signed by ``signer`` at ``generation_ns`` for ``key_expr``."""
-    return signer.sign(payload, generation_ns, key_expr)
+def sign(payload: bytes, signer: Signer | None, generation_ns: int, key_expr: str) -> bytes:
+    """``payload`` wrapped in an envelope signed by ``signer`` at ``generation_ns`` for ``key_expr``;
+    unchanged without a signer (a node started without ``--pki``)."""
+    return payload if signer is None else signer.sign(payload, generation_ns, key_expr)
 
 
 @dataclass(frozen=True)

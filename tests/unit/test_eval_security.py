@@ -32,7 +32,7 @@ def test_strict_verifies_every_genuine_message_and_changes_no_score():
 
 def test_strict_drops_an_rsu_signing_with_a_vehicle_certificate_as_wrong_role():
     def vehicle_signs_for_the_rsu(run: OfflineRun) -> None:  # key substitution: a valid cert of the wrong holder
-        run.rsus[0].signer = Signer(run._site[1]["ego"])
+        run.rsus[0].signer = Signer(run.identities["ego"])
 
     spec = replace(SPEC, security="strict")
     report = _run(spec, vehicle_signs_for_the_rsu)
