@@ -5,6 +5,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
+from contextlib import contextmanager
 
 import pytest
 
@@ -33,20 +34,44 @@ def wait_for(q: queue.Queue, predicate, timeout_s: float):
     pytest.fail("expected message did not arrive in time")
 
 
+@contextmanager
+def running(*nodes):
+    """Each node's ``run`` on a thread of its own for the block; every thread has ended after it."""
+    stop = threading.Event()
+    threads = [threading.Thread(target=n.run, args=(stop,)) for n in nodes]
+    for t in threads:
+        t.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(10.0)
+    assert not any(t.is_alive() for t in threads)
+
+
+@contextmanager
+def probe_session(endpoint: str):
+    """A session connected to ``endpoint`` and the list its entities go in; all undeclared, then closed."""
+    session, entities = open_session(connect=[endpoint]), []
+    try:
+        yield session, entities
+    finally:
+        for entity in entities:
+            entity.undeclare()
+        session.close()
+
+
 def test_obu_rejects_garbage_keeps_publishing_and_syncs_with_a_direct_rsu():
     rsu_ep, obu_ep = free_tcp_endpoint(), free_tcp_endpoint()
     start_ns = time.time_ns() + 1_000_000_000
     rsu = RsuNode(RsuConfig(listen=[rsu_ep], start_at_ns=start_ns, duration_s=6.0, clock_offset_ms=250.0))
     obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], start_at_ns=start_ns, duration_s=6.0))
-    stop = threading.Event()
-    threads = [threading.Thread(target=n.run, args=(stop,)) for n in (rsu, obu)]
-    for t in threads:
-        t.start()
-    probe = open_session(connect=[obu_ep])
     outputs, metrics = queue.Queue(), queue.Queue()
-    subs = [probe.declare_subscriber(keys.obu_objects("ego"), lambda s: outputs.put(decode(s.payload.to_bytes(), FusedObjectList))),
+    with running(rsu, obu), probe_session(obu_ep) as (probe, entities):
+        entities += [
+            probe.declare_subscriber(keys.obu_objects("ego"), lambda s: outputs.put(decode(s.payload.to_bytes(), FusedObjectList))),
             probe.declare_subscriber(keys.obu_metrics("ego"), lambda s: metrics.put(decode(s.payload.to_bytes(), ObuMetrics)))]
-    try:
         wait_for(outputs, lambda m: True, 10.0)
         valid_but_absurd = ObjectList(header=ObjectListHeader(rsu_id="evil", seq=1, capture_time_ns=start_ns,
                                                               publish_time_ns=start_ns))
@@ -68,14 +93,6 @@ def test_obu_rejects_garbage_keeps_publishing_and_syncs_with_a_direct_rsu():
         assert obu.last_metrics is not None and obu.latency.histogram("fuse")[2] >= m.latency_ms["fuse"].count
         rsu_stages = set(rsu.last_metrics.latency_ms)
         assert {"detect", "track", "message", "encode", "put", "stamp_to_put"} <= rsu_stages
-    finally:
-        for s in subs:
-            s.undeclare()
-        probe.close()
-        stop.set()
-        for t in threads:
-            t.join(10.0)
-    assert not any(t.is_alive() for t in threads)
 
 
 def test_a_restarted_rsu_publishes_only_what_is_current():

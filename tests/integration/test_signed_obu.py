@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import queue
-import threading
 import time
 
 import pytest
@@ -16,12 +15,12 @@ from schemas import keys
 from schemas.codec import decode, encode
 from schemas.limits import SOURCE_RSU
 from schemas.messages import FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics, TimeReply, TimeRequest
-from schemas.transport import free_tcp_endpoint, open_session
+from schemas.transport import free_tcp_endpoint
 from security.envelope import Signer
 from security.pki import load_signer
 from security.site import write_site
 
-from test_obu_node import wait_for  # tests/integration is on sys.path (rootdir-less import)
+from test_obu_node import probe_session, running, wait_for  # tests/integration is on sys.path (rootdir-less import)
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 INJECTED = 8  # of each kind
@@ -48,18 +47,12 @@ def test_strict_obu_fuses_the_signing_rsu_and_counts_every_injection(tmp_path):
                             pki_dir=str(pki)))
     obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], start_at_ns=start_ns, duration_s=8.0, pki_dir=str(pki)))
     assert obu.config.security_policy == "strict"
-    stop = threading.Event()
-    threads = [threading.Thread(target=n.run, args=(stop,)) for n in (rsu, obu)]
-    for t in threads:
-        t.start()
-    probe = open_session(connect=[obu_ep])
-    outputs, metrics = queue.Queue(), queue.Queue()
-    forged_replies = []
-    subs = [probe.declare_queryable(keys.rsu_time("rsu1"), lambda q: forged_replies.append(_forge_reply(q))),
-            probe.declare_subscriber(keys.obu_objects("ego"),
-                                     lambda s: outputs.put(decode(s.payload.to_bytes(), FusedObjectList))),
+    outputs, metrics, forged_replies = queue.Queue(), queue.Queue(), []
+    with running(rsu, obu), probe_session(obu_ep) as (probe, entities):
+        entities += [
+            probe.declare_queryable(keys.rsu_time("rsu1"), lambda q: forged_replies.append(_forge_reply(q))),
+            probe.declare_subscriber(keys.obu_objects("ego"), lambda s: outputs.put(decode(s.payload.to_bytes(), FusedObjectList))),
             probe.declare_subscriber(keys.obu_metrics("ego"), lambda s: metrics.put(decode(s.payload.to_bytes(), ObuMetrics)))]
-    try:
         wait_for(outputs, _has_rsu_objects, 15.0)
         ghost = encode(ObjectList(header=ObjectListHeader(rsu_id="rsu1", seq=10_000, capture_time_ns=time.time_ns(),
                                                           publish_time_ns=time.time_ns())))
@@ -77,11 +70,3 @@ def test_strict_obu_fuses_the_signing_rsu_and_counts_every_injection(tmp_path):
         assert m.output_deadline_misses == 0
         wait_for(outputs, _has_rsu_objects, 5.0)  # and the genuine RSU keeps fusing
         assert "sign" in rsu.last_metrics.latency_ms and "verify" in m.latency_ms  # both sides' stages
-    finally:
-        for s in subs:
-            s.undeclare()
-        probe.close()
-        stop.set()
-        for t in threads:
-            t.join(10.0)
-    assert not any(t.is_alive() for t in threads)
