@@ -36,7 +36,7 @@ from link_emulator.control_auth import OPERATOR, sign_control
 from obu_service.fusion_mode import TRACKING_MODES
 from obu_service.source import SimulatedVehicle
 from schemas import keys
-from schemas.codec import CodecError, decode, encode
+from schemas.codec import CodecError, decode
 from schemas.messages import FusedObjectList, LinkControl, ObuMetrics, PredictionList, RsuMetrics
 from schemas.runtime import log
 from schemas.transport import free_tcp_endpoint, open_session
@@ -153,8 +153,7 @@ class ControlChannel:
             return None
         seq = next(self._seq)
         control = control.model_copy(update={"seq": seq})
-        self._publisher.put(encode(control) if self.operator is None else
-                            sign_control(control, self.operator, time.time_ns()))
+        self._publisher.put(sign_control(control, self.operator, time.time_ns()))
         return seq
 
     def _on_stats(self, sample) -> None:

@@ -34,7 +34,7 @@ from pathlib import Path
 from schemas.codec import encode
 from schemas.keys import link_control
 from schemas.messages import LinkControl
-from security.envelope import PREFIX, Signer, Verifier, parse
+from security.envelope import PREFIX, Signer, Verifier, parse, sign
 from security.pki import CRL_FILE, Identity, PkiError, Trust, load_trust
 
 log = logging.getLogger(__name__)
@@ -44,12 +44,13 @@ NS_PER_S = 1_000_000_000
 RELOAD_S = 1.0
 
 
-def sign_control(control: LinkControl, identity: Identity, generation_ns: int) -> bytes:
+def sign_control(control: LinkControl, identity: Identity | None, generation_ns: int) -> bytes:
     """``control`` in an envelope signed by ``identity`` at ``generation_ns`` (the controller's
     clock) for ``v2x/link/{link_id}/control``, always carrying the full certificate: controls are
-    rare, and an emulator on another host need not hold the operator's ``.cert`` in advance."""
-    signer = Signer(identity, cert_interval_ns=0)
-    return signer.sign(encode(control), generation_ns, link_control(control.link_id))
+    rare, and an emulator on another host need not hold the operator's ``.cert`` in advance.
+    Without an identity, the bare encoding (an emulator with ``--insecure-control`` takes it)."""
+    signer = None if identity is None else Signer(identity, cert_interval_ns=0)
+    return sign(encode(control), signer, generation_ns, link_control(control.link_id))
 
 
 @dataclass(frozen=True)

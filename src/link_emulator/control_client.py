@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import zenoh
 from pydantic import ValidationError
 
-from schemas.codec import encode
 from schemas.keys import check_id, link_control, link_stats
 from schemas.messages import LinkControl
 from schemas.transport import open_session
@@ -180,7 +179,7 @@ def send_control(connect: list[str], control: LinkControl, timeout_s: float, ide
             if not _wait_until(lambda: pub.matching_status.matching, timeout_s):
                 raise ControlError(f"no link emulator {control.link_id!r} reachable at {', '.join(connect)} "
                                    f"within {timeout_s:g} s (is it running with --control-listen there?)")
-            pub.put(encode(control) if identity is None else sign_control(control, identity, time.time_ns()))
+            pub.put(sign_control(control, identity, time.time_ns()))
             return _confirmation(stats, control.seq, timeout_s)
         finally:
             pub.undeclare()
