@@ -371,3 +371,22 @@ def test_trajectories_equal_the_per_branch_reference_bit_for_bit(name):
         for t_s in np.r_[-3.0, np.linspace(-0.5, world.duration_s + 5.0, 53)]:
             for got, want in zip(traj.at(t_s), _reference_state(traj, t_s)):
                 np.testing.assert_array_equal(got, want, strict=True)
+
+
+@pytest.mark.parametrize("name", bundled_scenarios())
+def test_one_body_in_floats_equals_the_vectorised_rows_bit_for_bit(name):
+    """Trajectories.body(i).at (plain floats, World.ego_at) gives the bits of Trajectories.at row i:
+    every actor and the ego of every bundled scenario, before the first key and after the path's end
+    included, signed zeros too (compared as raw float64 bytes)."""
+    world = World(load_scenario(name))
+    times = np.r_[-3.0, 0.0, np.linspace(-0.5, world.duration_s + 5.0, 97), world.duration_s + 60.0]
+    for traj in (world._actors, world._ego):
+        bodies = [traj.body(i) for i in range(len(traj._paths.length))]
+        for t_s in times:
+            xy, yaw, vxy, _ = traj.at(t_s)
+            want = np.column_stack([xy, yaw, vxy])  # (N, 5): x, y, yaw, vx, vy
+            got = np.array([b.at(t_s) for b in bodies], dtype=np.float64)
+            assert got.tobytes() == want.tobytes(), (name, t_s)
+    pose = world.ego_at(7.3)
+    xy, yaw, vxy, _ = world._ego.at(7.3)
+    assert (pose.x, pose.y, pose.yaw, pose.vx, pose.vy) == (xy[0, 0], xy[0, 1], yaw[0], vxy[0, 0], vxy[0, 1])
