@@ -28,6 +28,7 @@ so the random stream of message k never depends on the fate of earlier messages.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -146,9 +147,36 @@ class Channel:
 
     def transmit_all(self, send_time_ns: int, size_bytes: int, distance_m: float | None = None) -> list[int]:
         """Every delivery of one message in ns, ascending: [] lost, two entries when duplicated."""
+        if self._plain():
+            return self._transmit_one(int(send_time_ns), size_bytes, distance_m)
         out = self.transmit_batch(np.array([send_time_ns]), size_bytes, distance_m)
         times = [int(t) for t in (out.deliver_ns[0], out.duplicate_ns[0]) if t != NONE_NS]
         return sorted(times)
+
+    def _plain(self) -> bool:
+        """No impairment window, outage schedule, trace replay or rate cap: stages 1, 2 and the
+        trace pass every message through unchanged."""
+        return not self._impairments and self._outages is None and self._trace is None \
+            and self.direction.bandwidth_kbps is None
+
+    def _transmit_one(self, send_ns: int, size_bytes: int, distance_m: float | None) -> list[int]:
+        """``transmit_all`` on a plain channel (``_plain``) without the batch's arrays: the same
+        variates, the same state steps (loss chain, AR(1), fifo) in the same order and the same
+        float64 delay arithmetic (``_delay_ns``), so the same deliveries (test_link_emulator)."""
+        if size_bytes < 0:
+            raise ValueError(f"size_bytes must be >= 0, got {size_bytes}")
+        normal, uniform = self._draws.take(1)
+        if self._origin_ns is None:
+            self._origin_ns = send_ns
+        d = self.direction
+        lost = bool(self._ge.step(uniform[:, _U_LOSS])[0])
+        u_pdr, u_dup = float(uniform[0, _U_PDR]), float(uniform[0, _U_DUP])
+        if distance_m is not None and not math.isnan(distance_m):
+            lost = (u_pdr >= float(d.pdr_at(distance_m))) or lost  # delivered with probability PDR(d)
+        dup = not lost and u_dup < d.duplicate_probability
+        prop_ns = int(self._delay_ns(normal, uniform, 0, None)[0])  # steps the AR(1) for every message
+        copy_ns = send_ns + int(self._copy_delay_ns(normal[:, _Z_DUP], 0, None)[0]) if dup else NONE_NS
+        return sorted(t for t in self._one_in_order(NONE_NS if lost else send_ns + prop_ns, copy_ns) if t != NONE_NS)
 
     def transmit_batch(
         self, send_ns: np.ndarray, size_bytes: np.ndarray | int, distance_m: np.ndarray | float | None = None
@@ -264,7 +292,7 @@ class Channel:
     def _in_order(self, deliver: np.ndarray, copy: np.ndarray) -> Deliveries:
         """Apply ``fifo`` over messages and copies in send order; track the latest delivery."""
         if deliver.size == 1:  # the live per-message path; the same rule as below
-            return self._one_in_order(int(deliver[0]), int(copy[0]))
+            return Deliveries(*(np.array([t], dtype=np.int64) for t in self._one_in_order(int(deliver[0]), int(copy[0]))))
         seq = np.column_stack((deliver, copy)).reshape(-1)
         valid = seq != NONE_NS
         latest = np.maximum.accumulate(np.concatenate(([self._last_ns], np.where(valid, seq, _INT64_MIN))))[1:]
@@ -274,14 +302,15 @@ class Channel:
             return Deliveries(seq[:, 0].copy(), seq[:, 1].copy())
         return Deliveries(deliver, copy)
 
-    def _one_in_order(self, deliver_ns: int, copy_ns: int) -> Deliveries:
+    def _one_in_order(self, deliver_ns: int, copy_ns: int) -> tuple[int, int]:
+        """``_in_order`` of one message and its copy (NONE_NS: none), as ints."""
         out = []
         for t_ns in (deliver_ns, copy_ns):
             if t_ns != NONE_NS:
                 self._last_ns = max(self._last_ns, t_ns)
                 t_ns = self._last_ns if self.direction.fifo else t_ns
-            out.append(np.array([t_ns], dtype=np.int64))
-        return Deliveries(*out)
+            out.append(t_ns)
+        return out[0], out[1]
 
 
 def _extra_ms(fx: Effects | None) -> np.ndarray | float:

@@ -476,3 +476,23 @@ def test_random_stream_of_a_message_does_not_depend_on_earlier_fates() -> None:
     a, _ = _batch_delays_ms(lossless, 2000, seed=9)
     b, lost = _batch_delays_ms(lossy, 2000, seed=9)
     assert lost.any() and np.array_equal(a[~lost], b[~lost])
+
+
+@pytest.mark.parametrize("fifo", [True, False])
+@pytest.mark.parametrize("dup", [0.0, 0.3])
+def test_plain_channel_single_transmits_equal_the_batch(fifo: bool, dup: float) -> None:
+    """transmit_all's scalar path (no impairment, outage, trace or rate cap: ``_plain``) gives what
+    one batch of every message gives: loss chain, distance PDR (unknown, in range, beyond range_m),
+    correlated jitter, spikes, duplicates and fifo."""
+    fields = {k: v for k, v in FULL.items() if k not in ("bandwidth_kbps", "queue_limit_ms", "outage")}
+    direction = _direction(**{**fields, "fifo": fifo, "duplicate_probability": dup})
+    send_ns = _send_times(2000, 5 * NS_PER_MS)
+    distance = np.where(np.arange(send_ns.size) % 7 == 0, np.nan, np.linspace(0.0, 200.0, send_ns.size))
+    singles = Channel(direction, np.random.default_rng(11))
+    assert singles._plain()
+    expected = [singles.transmit_all(int(t), 100, None if np.isnan(d) else float(d)) for t, d in zip(send_ns, distance)]
+    out = Channel(direction, np.random.default_rng(11)).transmit_batch(send_ns, 100, distance)
+    got = [sorted(int(t) for t in pair if t != NONE_NS) for pair in zip(out.deliver_ns, out.duplicate_ns)]
+    assert got == expected
+    assert 0 < sum(not times for times in expected) < send_ns.size  # some lost, not all
+    assert any(len(times) == 2 for times in expected) == (dup > 0)
