@@ -9,7 +9,9 @@ theta(0). With sign s = +1 (up) or -1 (down): z - s d t is the detrended reading
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -40,8 +42,13 @@ class Leg:
 
 def lowest(values: np.ndarray, q: float) -> np.ndarray:
     """Indices of the lowest max(1, ceil(q n)) entries of a (n,) array (the lower tail)."""
-    k = min(len(values), max(1, int(np.ceil(q * len(values)))))
+    k = _tail_size(len(values), q)
     return np.argpartition(values, k - 1)[:k]
+
+
+def _tail_size(n: int, q: float) -> int:
+    """max(1, ceil(q n)), at most n: how many readings make the lower tail of n."""
+    return min(n, max(1, math.ceil(q * n)))
 
 
 def bin_tail_means(bins: np.ndarray, t: np.ndarray, r: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray]:
@@ -51,17 +58,47 @@ def bin_tail_means(bins: np.ndarray, t: np.ndarray, r: np.ndarray, q: float) -> 
     left out: their lower tail is a weaker lower bound.
     """
     order = np.lexsort((r, bins))  # by bin, then by r: each bin's lower tail comes first
-    b, t_s, r_s = bins[order], t[order], r[order]
+    b = bins[order]
     # (np.concatenate, not np.r_: the same arrays without np.r_'s parsing, this runs per clock fit)
     starts = np.flatnonzero(np.concatenate(([True], b[1:] != b[:-1])))
-    ends = np.append(starts[1:], len(b))
+    ends = np.concatenate((starts[1:], [len(b)]))
     counts = ends - starts
     k = np.maximum(1, np.ceil(q * counts).astype(int))  # lower-tail size per bin
-    t_cum, r_cum = np.concatenate(([0.0], np.cumsum(t_s))), np.concatenate(([0.0], np.cumsum(r_s)))
-    keep = counts >= 0.5 * np.median(counts)
+    t_cum, r_cum = _prefix_sums(t[order]), _prefix_sums(r[order])
+    keep = counts >= 0.5 * median_of_ints(counts.tolist())
     t_bin = (t_cum[ends] - t_cum[starts]) / counts
     r_bin = (r_cum[starts + k] - r_cum[starts]) / k
+    if keep.all():
+        return t_bin, r_bin
     return t_bin[keep], r_bin[keep]
+
+
+def _prefix_sums(x: np.ndarray) -> np.ndarray:
+    """[0, x0, x0 + x1, ...], shape (n + 1,): np.concatenate(([0.0], np.cumsum(x))) without the copy."""
+    out = np.empty(len(x) + 1)
+    out[0] = 0.0
+    np.cumsum(x, out=out[1:])
+    return out
+
+
+def median_of_ints(values: list[int]) -> float:
+    """np.median of a few integers (exact: the middle one, or the mean of the middle two, as a float)."""
+    s = sorted(values)
+    h = len(s) // 2
+    return float(s[h]) if len(s) % 2 else (s[h - 1] + s[h]) / 2
+
+
+def lower_quartile(values: list[float]) -> float:
+    """np.percentile(values, 25) of a few finite floats, bit for bit: the linear method's virtual
+    index v = 0.25 (n - 1), a = s[floor v], b = s[floor v + 1], g = v - floor v, and numpy's lerp
+    a + (b - a) g (b - (b - a)(1 - g) when g >= 0.5)."""
+    s = sorted(values)
+    v = 0.25 * (len(s) - 1)
+    i = int(v)
+    g = v - i
+    a, b = s[i], s[min(i + 1, len(s) - 1)]
+    diff = b - a
+    return b - diff * (1 - g) if g >= 0.5 else a + diff * g
 
 
 def shared_slope(groups: list[tuple[np.ndarray, np.ndarray]], min_resid: float) -> tuple[float, float] | None:
@@ -74,13 +111,13 @@ def shared_slope(groups: list[tuple[np.ndarray, np.ndarray]], min_resid: float) 
     groups = [(t, y) for t, y in groups if len(t) >= 2]
     if sum(len(t) >= 3 for t, _ in groups) < 2:
         return None
-    tc = [t - t.mean() for t, _ in groups]
-    yc = [y - y.mean() for _, y in groups]
+    tc = [t - t.sum() / len(t) for t, _ in groups]  # (x.sum() / n: the very division np.mean makes)
+    yc = [y - y.sum() / len(y) for _, y in groups]
     sxx = float(sum(a @ a for a in tc))
     if sxx <= 0.0:
         return None
     d = float(sum(a @ b for a, b in zip(tc, yc))) / sxx
-    rss = float(sum(np.sum((b - d * a) ** 2) for a, b in zip(tc, yc)))
+    rss = float(sum(((b - d * a) ** 2).sum() for a, b in zip(tc, yc)))
     dof = max(1, sum(len(a) for a in tc) - len(tc) - 1)
     return d, float(np.sqrt(max(rss / dof, min_resid**2) / sxx))
 
@@ -91,19 +128,23 @@ def tail_mean_sd(r: np.ndarray, q: float) -> float:
     L = (1/q) int_0^q Q(p) dp,  IF(x) = min(x - Q_q, 0) / q + const, so
     var = E[(x - Q_q)^2 | tail] / q - (mean_tail - Q_q)^2.
     """
-    tail = np.sort(r[lowest(r, q)])
+    k = _tail_size(len(r), q)
+    tail = np.sort(np.partition(r, k - 1)[:k])  # the k lowest values, ascending
     dev = tail - tail[-1]  # tail[-1] ~ Q_q
-    return float(np.sqrt(max(np.mean(dev**2) / q - np.mean(dev) ** 2, 0.0)))
+    # (sum / k: the very division np.mean makes)
+    return float(np.sqrt(max((dev**2).sum() / k / q - (dev.sum() / k) ** 2, 0.0)))
 
 
-def _bin_envelopes(leg: Leg, bin_s: float, phase_s: float, drift: float, q: float) -> tuple[np.ndarray, np.ndarray]:
+def _bin_envelopes(leg: Leg, bins: np.ndarray, r: np.ndarray, drift: float, q: float) -> tuple[np.ndarray, np.ndarray]:
     """(t, sign * (envelope + sign d t)) per bin of a leg: points on a line of slope d, shapes (m,).
 
-    Bin edges sit at t = k bin_s - phase_s (fixed in absolute time as the reference time moves)."""
-    r = leg.detrended(drift)
+    ``bins``: each reading's bin floor((t + phase_s) / bin_s) (edges at t = k bin_s - phase_s, fixed
+    in absolute time as the reference time moves); ``r``: the readings detrended with ``drift``."""
+    t = leg.t_s
     unqueued = r <= r.min() + QUEUED_NS  # buffered readings say nothing about the envelope's slope
-    t = leg.t_s[unqueued]
-    t_bin, e_bin = bin_tail_means(np.floor((t + phase_s) / bin_s), t, r[unqueued], q)
+    if not unqueued.all():
+        bins, t, r = bins[unqueued], t[unqueued], r[unqueued]
+    t_bin, e_bin = bin_tail_means(bins, t, r, q)
     return t_bin, leg.sign * e_bin + drift * t_bin
 
 
@@ -128,11 +169,13 @@ def fit_drift(legs: list[Leg], bin_s: float, phase_s: float, q: float, prior: tu
     if not legs:
         return d0, sd0
     n = sum(len(leg.t_s) for leg in legs)
+    bins = [np.floor((leg.t_s + phase_s) / bin_s) for leg in legs]  # the drift moves no reading across bins
     for _ in range(iters):
-        points = [_bin_envelopes(leg, bin_s, phase_s, d, q) for leg in legs]
+        detrended = [leg.detrended(d) for leg in legs]  # once per leg and drift: envelopes and their noise
+        points = [_bin_envelopes(leg, b, r, d, q) for leg, b, r in zip(legs, bins, detrended)]
         # a bin envelope scatters at least by the lower-tail-mean noise of its samples
         n_bins = sum(len(t) for t, _ in points)
-        per_bin = max(tail_mean_sd(leg.detrended(d), q) for leg in legs) / np.sqrt(max(1.0, n / max(n_bins, 1)))
+        per_bin = max(tail_mean_sd(r, q) for r in detrended) / np.sqrt(max(1.0, n / max(n_bins, 1)))
         floor = max(min_resid, per_bin)
         robust = theil_sen_slope(points)
         if robust is not None:
@@ -150,12 +193,20 @@ def theil_sen_slope(groups: list[tuple[np.ndarray, np.ndarray]]) -> float | None
     grouped so that each group keeps its own intercept); None without a pair."""
     slopes = []
     for t, y in groups:
-        i, j = np.triu_indices(len(t), 1)
+        i, j = _pairs(len(t))
         dt = t[j] - t[i]
         ok = dt != 0.0
-        slopes.append((y[j] - y[i])[ok] / dt[ok])
+        slopes.append((y[j] - y[i]) / dt if ok.all() else (y[j] - y[i])[ok] / dt[ok])
     slopes = np.concatenate(slopes) if slopes else np.empty(0)
     return float(np.median(slopes)) if len(slopes) else None
+
+
+@lru_cache(maxsize=128)
+def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """np.triu_indices(n, 1), read-only: a pure function of n (a fit has a few dozen bins per group)."""
+    i, j = np.triu_indices(n, 1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
 
 
 def _below_line(t: np.ndarray, y: np.ndarray, sign: int, d: float, limit: float) -> tuple[np.ndarray, np.ndarray]:
@@ -164,8 +215,8 @@ def _below_line(t: np.ndarray, y: np.ndarray, sign: int, d: float, limit: float)
     if len(t) < 4:
         return t, y
     excess = sign * (y - d * t)
-    keep = excess <= np.percentile(excess, 25) + limit
-    return t[keep], y[keep]
+    keep = excess <= lower_quartile(excess.tolist()) + limit
+    return (t, y) if keep.all() else (t[keep], y[keep])
 
 
 @dataclass(frozen=True)
@@ -178,9 +229,13 @@ class TailMean:
 
 def tail_mean(leg: Leg, drift: float, q: float) -> TailMean:
     """E = mean of the lowest fraction q of the detrended readings, and their mean age -t."""
-    r = leg.detrended(drift)
+    return _tail_mean(leg.detrended(drift), leg.t_s, q)
+
+
+def _tail_mean(r: np.ndarray, t_s: np.ndarray, q: float) -> TailMean:
+    """tail_mean of readings already detrended (r) at times t_s, shapes (n,)."""
     low = lowest(r, q)
-    return TailMean(float(r[low].mean()), float(max(0.0, -leg.t_s[low].mean())))
+    return TailMean(float(r[low].mean()), float(max(0.0, -t_s[low].mean())))
 
 
 def leg_envelope(leg: Leg, drift: float, drift_bound: float, q: float, horizon_s: float, margin_ns: float,
@@ -200,7 +255,7 @@ def leg_envelope(leg: Leg, drift: float, drift_bound: float, q: float, horizon_s
     best, best_bound, h = None, np.inf, horizon_s
     while True:
         count = max(min(min_readings, len(order)), int(np.searchsorted(ages, h, side="right")))
-        env = tail_mean(leg.take(order[:count]), drift, q)
+        env = _tail_mean(r[order[:count]], leg.t_s[order[:count]], q)  # = tail_mean(leg.take(...), drift, q)
         bound = env.value_ns + drift_bound * env.age_s
         if best is None or bound < best_bound - margin_ns:
             best, best_bound = env, bound

@@ -59,6 +59,7 @@ envelope* of each reading is where the information is (clock_envelope):
 
 from __future__ import annotations
 
+import math
 from bisect import insort
 from dataclasses import dataclass, field
 
@@ -252,9 +253,9 @@ class ClockSync:
         dt_s = (t_obu_ns - fit.t_ref_ns) / NS_PER_S
         offset = fit.theta_ref_ns + round(fit.theta_rel_ns + fit.drift * dt_s)
         bound = fit.bound_ns + self.bound_sigmas * fit.drift_sd * abs(dt_s)
-        # while a step is suspected, the clock may have stepped by anything in its [low, high]
-        bound += max((max(abs(h.low), abs(h.high)) for h in self._hypotheses), default=0.0)
-        return OffsetEstimate(offset, int(np.ceil(bound)), self._total, fit.drift / PPM_NS_PER_S, t_obu_ns,
+        if self._hypotheses:  # while a step is suspected, the clock may have stepped by anything in its [low, high]
+            bound += max(max(abs(h.low), abs(h.high)) for h in self._hypotheses)
+        return OffsetEstimate(offset, math.ceil(bound), self._total, fit.drift / PPM_NS_PER_S, t_obu_ns,
                               self._segment, fit.drift_sd / PPM_NS_PER_S)
 
     def naive(self) -> OffsetEstimate | None:

@@ -55,6 +55,7 @@ from fusion.frames import Pose2D, base_to_map
 from fusion.pose_history import PoseHistory
 from fusion.tracking import slot_source
 from fusion.wire import objects_from_states
+from schemas.columns import ObjectColumns
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObjectListHeader, TimeReply, TimeRequest
 
 from .admission import Admission
@@ -71,11 +72,12 @@ PEER_REPLY_NS = 50_000  # an OBU's time between receiving a peer's time request 
 def shared_list(out: FusedObjectList) -> FusedObjectList:
     """What a vehicle shares of its fused output ``out``: the objects its own sensors perceive
     (``SOURCE_VEHICLE`` in ``sources``), same header (sender clock, base_link, ego pose)."""
-    own = [o for o in out.objects if o.sources & SOURCE_VEHICLE]
-    if len(own) == len(out.objects):
+    cols = out.objects
+    own = (cols.column("sources") & SOURCE_VEHICLE) != 0  # (N,) bool, one mask over the sources column
+    if own.all():
         return out
-    fields = {name: getattr(out, name) for name in type(out).model_fields}
-    return type(out).model_validate({**fields, "objects": own})  # validated: the wire's own container
+    # a row subset of validated, canonical codes is itself valid: no per-object model, no re-validation
+    return out.model_copy(update={"objects": ObjectColumns(cols.codes[own], fused=True)})
 
 
 def answer(request: TimeRequest, me: str, t2_ns: int, t3_ns: int) -> TimeReply:

@@ -12,6 +12,7 @@ from fusion.tracking import slot_source
 from fusion.wire import states_from_objects
 from obu_service.peers import MAX_PEERS, shared_list
 from obu_service.pipeline import MAX_RSUS, RSU_ID_BASE, ObuPipeline, ObuPipelineConfig
+from schemas.codec import decode, encode
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList
 
 T0 = 1_767_225_600 * 10**9
@@ -79,6 +80,27 @@ def test_shared_list_keeps_only_own_perception():
     out = FusedObjectList(vehicle_id="car-a", seq=1, cycle_time_ns=T0, publish_time_ns=T0 + 40 * MS,
                           objects=states_from_objects(objs, fused=True))
     assert [o.x for o in shared_list(out).objects] == [5.0, 15.0]
+
+
+def test_shared_list_is_the_per_object_filter_of_the_output():
+    """The columnar filter equals filtering the output's object models one by one and validating
+    the list again (the wire bytes are the same), and a list of own objects only is passed through."""
+    rng = np.random.default_rng(3)
+    n = 40
+    objs = dets(rng.uniform(-60.0, 60.0, (n, 2))).with_(
+        vxy=rng.normal(0.0, 5.0, (n, 2)), yaw=rng.uniform(-np.pi, np.pi, n),
+        sources=rng.choice([SOURCE_VEHICLE, SOURCE_RSU, SOURCE_VEHICLE | SOURCE_RSU], n))
+    out = FusedObjectList(vehicle_id="car-a", seq=7, cycle_time_ns=T0, publish_time_ns=T0 + 40 * MS, ego_x=3.0,
+                          ego_yaw=0.5, fusion="kf", mode="inter", objects=states_from_objects(objs, fused=True))
+    fields = {name: getattr(out, name) for name in FusedObjectList.model_fields}
+    reference = FusedObjectList.model_validate(
+        {**fields, "objects": [o for o in out.objects if o.sources & SOURCE_VEHICLE]})
+    shared = shared_list(out)
+    assert 0 < len(shared.objects) < n
+    assert encode(shared) == encode(reference)
+    assert decode(encode(shared), FusedObjectList) == reference
+    own_only = shared_list(shared)
+    assert own_only is shared
 
 
 def test_a_peer_list_gives_the_receiver_what_only_the_sender_sees():
