@@ -26,6 +26,7 @@ from fusion.motion import predict_ca, trajectories_cv
 from fusion.objects import ObjectArray
 from fusion.tracking import Tracker, TrackerConfig
 from fusion.wire import fit_to_wire, states_from_objects
+from schemas.columns import ObjectColumns
 from schemas.messages import ObjectList, ObjectListHeader, PredictionList, TimeReply, TimeRequest, predicted_paths
 
 # (objects (N), horizon_s, step_s) -> (N, K, 3) [x, y, yaw] at t0 + k step, k = 1..K
@@ -59,6 +60,17 @@ class RsuPipelineConfig:
     path_step_s: float = 0.1
 
 
+@dataclass(frozen=True)
+class _Frame:
+    """One tracked camera frame: its capture stamp, the confirmed tracks (map), the tracks fitted
+    to the wire (``RsuPipeline._fit``) and their wire columns, derived once per frame."""
+
+    capture: Stamp
+    tracks: ObjectArray
+    fitted: ObjectArray
+    columns: ObjectColumns
+
+
 class RsuPipeline:
     """Tracks camera detections (map frame) and publishes confirmed tracks with velocity."""
 
@@ -69,7 +81,7 @@ class RsuPipeline:
         self._t_ref_ns: int | None = None  # monotonic origin of the tracker's time
         self._seq = 0
         self._prediction_seq = 0  # predictions are numbered apart, so list seq gaps still mean loss
-        self._last: tuple[Stamp, ObjectArray] | None = None  # (capture, confirmed tracks)
+        self._last: _Frame | None = None  # the last tracked frame
         self.wire_fixes: Counter[str] = Counter()  # tracks clipped or dropped to fit the wire, by reason
 
     def on_frame(self, dets: ObjectArray, capture: Stamp | int, publish: Stamp | int) -> ObjectList:
@@ -84,46 +96,45 @@ class RsuPipeline:
         if self._t_ref_ns is None:
             self._t_ref_ns = capture.mono_ns
         tracks = self._tracker.step(dets, (capture.mono_ns - self._t_ref_ns) * 1e-9)
-        self._last = (capture, tracks)
+        fitted = self._fit(tracks)  # once per frame: the list (at capture) and the predictions both carry them
+        self._last = _Frame(capture, tracks, fitted, states_from_objects(fitted))
 
     def message(self, publish: Stamp | int) -> ObjectList:
         """The last tracked frame's list, published at ``publish`` (its tracks predicted to it with
         ``predict_ahead``); ``track`` first."""
         if self._last is None:
             raise RuntimeError("message() before any track()")
-        capture, tracks = self._last
         publish = Stamp.of(publish)
-        ahead_ns = max(publish.mono_ns - capture.mono_ns, 0) if self.config.predict_ahead else 0
-        return self._message(capture, tracks, ahead_ns, publish)
+        ahead_ns = max(publish.mono_ns - self._last.capture.mono_ns, 0) if self.config.predict_ahead else 0
+        return self._message(self._last, ahead_ns, publish)
 
     def upsampled(self, publish: Stamp | int) -> ObjectList | None:
         """The last frame's tracks predicted to ``publish`` (Algorithm 1's second pose)."""
         if self._last is None or not self.config.predict_ahead:
             return None
-        capture, tracks = self._last
         publish = Stamp.of(publish)
-        return self._message(capture, tracks, max(publish.mono_ns - capture.mono_ns, 0), publish)
+        return self._message(self._last, max(publish.mono_ns - self._last.capture.mono_ns, 0), publish)
 
     def predictions(self, publish: Stamp | int) -> PredictionList | None:
         """The last frame's tracks with their predicted paths over ``horizon_s`` (t0 = capture)."""
         if self._last is None:
             return None
-        capture, tracks = self._last
-        tracks = self._fit(tracks)
-        paths = self.predictor(tracks, self.config.horizon_s, self.config.path_step_s)  # (N, K, 3)
-        header = self._header(self._prediction_seq, capture, 0, Stamp.of(publish))
+        frame = self._last
+        paths = self.predictor(frame.fitted, self.config.horizon_s, self.config.path_step_s)  # (N, K, 3)
+        header = self._header(self._prediction_seq, frame.capture, 0, Stamp.of(publish))
         self._prediction_seq += 1
         return PredictionList(
-            header=header, step_ns=round(self.config.path_step_s * 1e9), objects=states_from_objects(tracks),
-            paths=predicted_paths(tracks.ids, paths),
+            header=header, step_ns=round(self.config.path_step_s * 1e9), objects=frame.columns,
+            paths=predicted_paths(frame.fitted.ids, paths),
         )
 
-    def _message(self, capture: Stamp, tracks: ObjectArray, ahead_ns: int, publish: Stamp) -> ObjectList:
-        # p(t + dt) = p + v dt + a dt^2 / 2 over the prediction horizon
-        objs = self._fit(predict_ca(tracks, ahead_ns * 1e-9) if ahead_ns else tracks)
-        header = self._header(self._seq, capture, ahead_ns, publish)
+    def _message(self, frame: _Frame, ahead_ns: int, publish: Stamp) -> ObjectList:
+        header = self._header(self._seq, frame.capture, ahead_ns, publish)
         self._seq += 1
-        return ObjectList(header=header, objects=states_from_objects(objs))
+        if not ahead_ns:
+            return ObjectList(header=header, objects=frame.columns)
+        # p(t + dt) = p + v dt + a dt^2 / 2 over the prediction horizon
+        return ObjectList(header=header, objects=states_from_objects(self._fit(predict_ca(frame.tracks, ahead_ns * 1e-9))))
 
     def _fit(self, objs: ObjectArray) -> ObjectArray:
         """The tracks as the wire carries them: a far camera track's velocity variance can pass

@@ -59,3 +59,21 @@ def test_a_far_camera_track_fits_the_wire():
         assert rsu.predictions(T0 + k * 100_000_000 + 60_000_000) is not None
     assert msg.objects and all(o.cov_vxx <= 1e4 for o in msg.objects)
     assert rsu.wire_fixes["clipped"] > 0
+
+
+@pytest.mark.parametrize("predict_ahead", [False, True])
+def test_predictions_carry_the_frames_tracks_as_the_list_does(predict_ahead):
+    """A frame's tracks are fitted to the wire once: the prediction list carries the tracks at
+    capture (t0), equal to the object list's without predict_ahead; with it the list's objects
+    are those tracks predicted to the publish time (a car at 14 m/s moves 1.4 m in 100 ms)."""
+    rsu = RsuPipeline(RsuPipelineConfig(predict_ahead=predict_ahead))
+    for k in range(8):
+        t = T0 + k * PERIOD_NS
+        msg = rsu.on_frame(car_at(14.0 * k * 0.2), t, t + 100_000_000)
+    pred = rsu.predictions(t + 120_000_000)
+    assert len(pred.objects) == len(msg.objects) == 1
+    if predict_ahead:
+        assert msg.objects[0].x - pred.objects[0].x == pytest.approx(1.4, abs=0.1)
+    else:
+        assert np.array_equal(msg.objects.codes, pred.objects.codes)
+    assert pred.objects[0].x == pytest.approx(14.0 * 7 * 0.2, abs=0.2)
