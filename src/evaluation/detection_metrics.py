@@ -89,13 +89,22 @@ def _greedy_matches(dist: np.ndarray, rank: np.ndarray, thresholds_m: Sequence[f
 
 def _greedy_walk(dist: np.ndarray, rank: np.ndarray, threshold_m: float, candidates: np.ndarray,
                  tp: np.ndarray) -> np.ndarray:
-    """``_greedy_match``'s walk over the candidates (indices) in rank order; sets and returns tp (P,)."""
-    taken = np.zeros(dist.shape[1], dtype=bool)
-    for p in candidates[np.argsort(rank[candidates], kind="stable")]:
-        row = np.where(taken, np.inf, dist[p])
-        g = int(np.argmin(row))
-        if row[g] < threshold_m:
-            taken[g] = tp[p] = True
+    """``_greedy_match``'s walk over the candidates (indices) in rank order; sets and returns tp (P,).
+
+    A prediction's nearest free truth counts only when closer than the threshold, so the walk
+    needs only the pairs (p, g) closer than it: ordered by (rank of p, distance, g), each
+    prediction takes its first pair whose truth is still free (argmin's first index on a tie).
+    """
+    rows, g_all = np.nonzero(dist[candidates] < threshold_m)
+    p_all = candidates[rows]
+    order = np.lexsort((g_all, dist[p_all, g_all], rank[p_all]))  # last key first: rank, distance, truth
+    taken: set[int] = set()
+    done: set[int] = set()
+    for p, g in zip(p_all[order].tolist(), g_all[order].tolist()):
+        if p not in done and g not in taken:
+            taken.add(g)
+            done.add(p)
+    tp[list(done)] = True
     return tp
 
 
@@ -326,29 +335,33 @@ class MotTally:
         dist = _distance_matrix(truth_xy, hyp_xy, self.max_distance_m)
         self.frames += 1
         self.num_truth, self.num_predictions = self.num_truth + len(oids), self.num_predictions + len(hids)
-        for i, j in zip(*np.nonzero(np.isfinite(dist))):
-            self._pairs[oids[i], hids[j]] += 1
+        rows, cols = np.nonzero(np.isfinite(dist))
+        self._pairs.update(zip([oids[i] for i in rows.tolist()], [hids[j] for j in cols.tolist()]))
         pairs = self._match(oids, hids, dist) if oids and hids else []
         self.misses += len(oids) - len(pairs)
         self.false_positives += len(hids) - len(pairs)
 
     def _match(self, oids: list[int], hids: list[int], dist: np.ndarray) -> list[tuple[int, int]]:
         """Steps (1) and (2): matched (truth index, hyp index) pairs; counts matches and switches."""
-        pairs, free_h = [], np.ones(len(hids), dtype=bool)
+        pairs, free_h = [], [True] * len(hids)
         columns: dict[int, list[int]] = {}  # hypothesis id -> its indices in hids, ascending
         for j, h in enumerate(hids):
             columns.setdefault(h, []).append(j)
+        finite = np.isfinite(dist)
         for i, o in enumerate(oids):
-            if o not in self._last:
+            h = self._last.get(o)
+            if h is None or h not in columns:
                 continue
-            j = next((j for j in columns.get(self._last[o], ()) if free_h[j]), None)  # the first free one
-            if j is not None and np.isfinite(dist[i, j]):
-                pairs.append((i, j))
-                free_h[j] = False
+            for j in columns[h]:  # the first free one
+                if free_h[j]:
+                    if finite[i, j]:
+                        pairs.append((i, j))
+                        free_h[j] = False
+                    break
         self.matches += len(pairs)
         rest = dist.copy()
         rest[[i for i, _ in pairs], :] = np.nan
-        rest[:, ~free_h] = np.nan
+        rest[:, [not free for free in free_h]] = np.nan
         for i, j in _lsa_nan(rest):
             o, h = oids[i], hids[j]
             if o in self._last and self._last[o] != h:
@@ -357,7 +370,10 @@ class MotTally:
                 self.matches += 1
             self._last[o] = h
             pairs.append((i, j))
-        self._distance_sum_m += float(sum(dist[i, j] for i, j in pairs))
+        total_m = 0  # summed in pair order, as before
+        for d_m in dist[[i for i, _ in pairs], [j for _, j in pairs]].tolist() if pairs else ():
+            total_m += d_m
+        self._distance_sum_m += float(total_m)
         return pairs
 
     def result(self) -> dict:

@@ -80,16 +80,17 @@ def _match_target_xy(truth_xy: np.ndarray, truth_ids: np.ndarray, out_xy: np.nda
     """
     if not len(out_xy) or not len(truth_xy):
         return None
-    cost = center_distance_cost(truth_xy, out_xy)  # (G, P) m
     rows = np.flatnonzero(truth_ids == target_id)
-    if len(rows) == 1:
-        allowed = np.isfinite(cost) & (cost <= MATCH_GATE_M)
-        near = np.flatnonzero(allowed[rows[0]])
+    if len(rows) == 1:  # the target's row of the (G, P) cost, and the one column it may need
+        row = center_distance_cost(truth_xy[rows], out_xy)[0]  # (P,) m, the full matrix's row bit for bit
+        near = np.flatnonzero(np.isfinite(row) & (row <= MATCH_GATE_M))
         if not len(near):
             return None
-        if len(near) == 1 and np.count_nonzero(allowed[:, near[0]]) == 1:
-            return int(near[0])
-    result = assign(cost, MATCH_GATE_M)
+        if len(near) == 1:
+            column = center_distance_cost(truth_xy, out_xy[near])[:, 0]  # (G,) m
+            if np.count_nonzero(np.isfinite(column) & (column <= MATCH_GATE_M)) == 1:
+                return int(near[0])
+    result = assign(center_distance_cost(truth_xy, out_xy), MATCH_GATE_M)  # (G, P) m
     rows = result.matches[truth_ids[result.matches[:, 0]] == target_id]
     return int(rows[0, 1]) if len(rows) else None
 
