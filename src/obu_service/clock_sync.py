@@ -60,7 +60,7 @@ envelope* of each reading is where the information is (clock_envelope):
 from __future__ import annotations
 
 import math
-from bisect import insort
+from bisect import bisect_right
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -191,6 +191,10 @@ class ClockSync:
         self.step_armed_after = step_armed_after
         self.refit_every, self.refit_interval_ns = refit_every, refit_interval_ns
         self._samples: list[tuple[int, int, SyncSample]] = []  # (t4, clock segment, sample), by t4
+        # the same window as columns, kept beside it by _insert and _relabel (a fit reads them as arrays
+        # without touching each sample): t1, t2, t3, t4 of each sample in turn, and each one's segment
+        self._times: list[int] = []
+        self._segments: list[int] = []
         self._segment = 0  # current clock segment (steps detected so far)
         self._hypotheses: list[_Hypothesis] = []  # competing suspected steps (disjoint suspect clusters)
         self._last_step = (0.0, 0.0)  # feasible sizes (ns) of the last confirmed step
@@ -278,13 +282,22 @@ class ClockSync:
     # --- window -----------------------------------------------------------------------------
     def _insert(self, sample: SyncSample, segment: int) -> None:
         """Insert by t4 (replies may complete out of order); drop what is past the horizon or the window."""
-        insort(self._samples, (sample.t4_ns, segment, sample), key=lambda e: e[0])
+        i = bisect_right(self._samples, sample.t4_ns, key=lambda e: e[0])  # where insort puts it
+        self._samples.insert(i, (sample.t4_ns, segment, sample))
+        self._times[4 * i:4 * i] = (sample.t1_ns, sample.t2_ns, sample.t3_ns, sample.t4_ns)
+        self._segments.insert(i, segment)
         newest_ns = self._samples[-1][0]
         cut = 0
         while cut < len(self._samples) and newest_ns - self._samples[cut][0] > self.horizon_ns:
             cut += 1
-        del self._samples[:max(cut, len(self._samples) - self.max_samples)]
+        cut = max(cut, len(self._samples) - self.max_samples)
+        del self._samples[:cut], self._times[:4 * cut], self._segments[:cut]
         self._unfitted += 1
+
+    def _relabel(self, moved: set[int]) -> None:
+        """The samples whose id is in ``moved`` join the current segment."""
+        self._samples = [(t4, self._segment if id(s) in moved else seg, s) for t4, seg, s in self._samples]
+        self._segments = [seg for _, seg, _ in self._samples]
 
     # --- steps and outliers -----------------------------------------------------------------
     def _suspect(self, sample: SyncSample, interval: tuple[float, float]) -> None:
@@ -328,7 +341,7 @@ class ClockSync:
             self._reject(other)
         moved = {id(s) for s, interval in hyp.since if hyp.overlaps(interval)}
         self._segment += 1
-        self._samples = [(t4, self._segment if id(s) in moved else seg, s) for t4, seg, s in self._samples]
+        self._relabel(moved)
         for _, s in hyp.suspects:
             self._insert(s, self._segment)
         self._last_step, self._step_first_t4_ns = (hyp.low, hyp.high), hyp.first_t4_ns
@@ -345,21 +358,22 @@ class ClockSync:
         return self._fit
 
     def _compute_fit(self) -> _Fit:
-        seg = np.array([e[1] for e in self._samples])
-        t1, t2, t3, t4 = np.array([(s.t1_ns, s.t2_ns, s.t3_ns, s.t4_ns) for _, _, s in self._samples],
-                                  dtype=np.int64).T
-        segment = self._segment if np.any(seg == self._segment) else int(seg.max())
+        seg, segments = np.array(self._segments), sorted(set(self._segments))  # (n,), the segments present
+        t1, t2, t3, t4 = np.array(self._times, dtype=np.int64).reshape(-1, 4).T
+        segment = self._segment if self._segment in segments else segments[-1]
+        current = seg == segment
         t_ref = int(t4[-1])
-        theta_ref = self._samples[int(np.flatnonzero(seg == segment)[-1])][2].offset_ns
+        theta_ref = self._samples[int(np.flatnonzero(current)[-1])][2].offset_ns
         up = Leg((t1 - t_ref) / NS_PER_S, (t2 - t1 - theta_ref).astype(float), +1)  # up + theta - theta_ref
         down = Leg((t4 - t_ref) / NS_PER_S, (t4 - t3 + theta_ref).astype(float), -1)  # down - (theta - theta_ref)
-        current, slack = seg == segment, self._consensus_slack(up, down)
+        slack = self._consensus_slack(up, down)
         agree = current & consensus(up, down, self._drift[0], slack, current)
-        self._count_disagreeing(current & ~agree)
-        legs = [leg.take(agree if g == segment else seg == g) for g in np.unique(seg) for leg in (up, down)]
+        outside = current & ~agree
+        self._count_disagreeing(outside)
+        legs = [leg.take(agree if g == segment else seg == g) for g in segments for leg in (up, down)]
         drift, sd = fit_drift(legs, self.bin_ns / NS_PER_S, (t_ref % self.bin_ns) / NS_PER_S, self.quantile,
                               self._prior, MIN_RESID_NS)
-        drift = float(np.clip(drift, -self.max_drift, self.max_drift))
+        drift = float(min(max(drift, -self.max_drift), self.max_drift))  # (np.clip of a scalar, NaN kept)
         self._drift = (drift, sd)
         cur_up, cur_down = up.take(agree), down.take(agree)
         drift_bound, h = self.bound_sigmas * sd, self.offset_horizon_ns / NS_PER_S
@@ -367,9 +381,10 @@ class ClockSync:
         e_down = leg_envelope(cur_down, drift, drift_bound, self.quantile, h, float(self.step_threshold_ns))
         theta_rel = 0.5 * (e_up.value_ns - e_down.value_ns)
         bound = 0.5 * (e_up.value_ns + e_down.value_ns) + drift_bound * 0.5 * (e_up.age_s + e_down.age_s)
-        contested = 2 * np.sum(current & ~agree) >= np.sum(agree)  # no clear majority: the others may be right
+        # no clear majority: the others may be right
+        contested = 2 * np.count_nonzero(outside) >= np.count_nonzero(agree)
         if contested:
-            bound = max(bound, disputed_ns(up, down, drift, slack, current & ~agree, theta_rel))
+            bound = max(bound, disputed_ns(up, down, drift, slack, outside, theta_rel))
         settled = max(1, len(cur_up.t_s) - self.step_span)  # the newest step_span are on probation
         return _Fit(t_ref, theta_ref, theta_rel, drift, sd, max(0.0, bound), _least(cur_up, drift, settled, t_ref),
                     _least(cur_down, drift, settled, t_ref),

@@ -278,6 +278,28 @@ def test_a_reply_stamped_before_a_step_and_delivered_after_it_is_no_step_back():
     assert abs(sync.estimate_at(t).offset_ns - clock.offset_at(t)) < 1 * MS
 
 
+def test_the_window_s_columns_follow_its_samples_through_steps_late_replies_and_cuts():
+    """The (t1, t2, t3, t4) and segment columns a fit reads stay those of the window's samples
+    through out-of-order inserts, window and horizon cuts, a confirmed step and late pre-step replies."""
+    step_ns = T0 + 15 * S
+    clock, samples = lte_run(0, 20.0, 7, duration_s=40, steps=(ClockStep(step_ns, 500 * MS),))
+    pre = [s for s in samples if s.t1_ns < step_ns - 300 * MS]
+    delayed = [SyncSample(s.t1_ns, s.t2_ns, s.t3_ns, step_ns + 8 * S + k * MS) for k, s in enumerate(pre[-5:])]
+    feed = sorted([s for s in samples if s not in pre[-5:]] + delayed, key=lambda s: s.t4_ns)
+    rng = np.random.default_rng(2)
+    for i in range(0, len(feed) - 3, 4):  # some replies overtaken by the next ones
+        if rng.random() < 0.5:
+            feed[i], feed[i + 2] = feed[i + 2], feed[i]
+    sync = ClockSync(window=250, horizon_ns=30 * S)
+    for k, s in enumerate(feed):
+        sync.add(s)
+        if k % 17 == 0 or k == len(feed) - 1:
+            assert sync._times == [t for w in sync.window() for t in (w.t1_ns, w.t2_ns, w.t3_ns, w.t4_ns)]
+            assert sync._segments == [seg for _, seg, _ in sync._samples]
+    assert sync.steps_detected == 1 and len(sync.window()) == 250
+    assert set(sync._segments) == {0, 1}
+
+
 # --- forged replies and outliers against a converged fit ------------------------------------------
 
 def forged_mix(seed, shift_ns, every, start_s, rtt_ns, duration_s=40):
