@@ -57,20 +57,41 @@ def bin_tail_means(bins: np.ndarray, t: np.ndarray, r: np.ndarray, q: float) -> 
     Bins holding fewer than half the median count (half-filled bins at the window edges) are
     left out: their lower tail is a weaker lower bound.
     """
-    order = np.lexsort((r, bins))  # by bin, then by r: each bin's lower tail comes first
-    b = bins[order]
-    # (np.concatenate, not np.r_: the same arrays without np.r_'s parsing, this runs per clock fit)
-    starts = np.flatnonzero(np.concatenate(([True], b[1:] != b[:-1])))
-    ends = np.concatenate((starts[1:], [len(b)]))
-    counts = ends - starts
-    k = np.maximum(1, np.ceil(q * counts).astype(int))  # lower-tail size per bin
-    t_cum, r_cum = _prefix_sums(t[order]), _prefix_sums(r[order])
-    keep = counts >= 0.5 * median_of_ints(counts.tolist())
-    t_bin = (t_cum[ends] - t_cum[starts]) / counts
-    r_bin = (r_cum[starts + k] - r_cum[starts]) / k
-    if keep.all():
-        return t_bin, r_bin
-    return t_bin[keep], r_bin[keep]
+    return _Bins.of(bins, q).tail_means(bins, t, r)
+
+
+@dataclass(frozen=True)
+class _Bins:
+    """Where each bin starts and ends in readings sorted by bin, its count, the end of its lower
+    tail and whether it is kept, shapes (m,): they depend on the bins only, not on the readings'
+    order within a bin, so a fit finds them once per leg for both drift iterations."""
+
+    starts: np.ndarray
+    ends: np.ndarray
+    counts: np.ndarray
+    tails: np.ndarray  # lower-tail size per bin, max(1, ceil(q counts))
+    keep: np.ndarray | None  # None: every bin is kept
+
+    @staticmethod
+    def of(bins: np.ndarray, q: float) -> _Bins:
+        b = np.sort(bins)  # = bins[np.lexsort((r, bins))] for any r
+        # (np.concatenate, not np.r_: the same arrays without np.r_'s parsing, this runs per clock fit)
+        starts = np.flatnonzero(np.concatenate(([True], b[1:] != b[:-1])))
+        ends = np.concatenate((starts[1:], [len(b)]))
+        counts = ends - starts
+        k = np.maximum(1, np.ceil(q * counts).astype(int))  # lower-tail size per bin
+        keep = counts >= 0.5 * median_of_ints(counts.tolist())
+        return _Bins(starts, ends, counts, k, None if keep.all() else keep)
+
+    def tail_means(self, bins: np.ndarray, t: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """bin_tail_means of readings (t, r) in these bins, shapes (n,) -> (m,)."""
+        order = np.lexsort((r, bins))  # by bin, then by r: each bin's lower tail comes first
+        t_cum, r_cum = _prefix_sums(t[order]), _prefix_sums(r[order])
+        t_bin = (t_cum[self.ends] - t_cum[self.starts]) / self.counts
+        r_bin = (r_cum[self.starts + self.tails] - r_cum[self.starts]) / self.tails
+        if self.keep is None:
+            return t_bin, r_bin
+        return t_bin[self.keep], r_bin[self.keep]
 
 
 def _prefix_sums(x: np.ndarray) -> np.ndarray:
@@ -135,16 +156,19 @@ def tail_mean_sd(r: np.ndarray, q: float) -> float:
     return float(np.sqrt(max((dev**2).sum() / k / q - (dev.sum() / k) ** 2, 0.0)))
 
 
-def _bin_envelopes(leg: Leg, bins: np.ndarray, r: np.ndarray, drift: float, q: float) -> tuple[np.ndarray, np.ndarray]:
+def _bin_envelopes(leg: Leg, bins: np.ndarray, layout: _Bins, r: np.ndarray, drift: float,
+                   q: float) -> tuple[np.ndarray, np.ndarray]:
     """(t, sign * (envelope + sign d t)) per bin of a leg: points on a line of slope d, shapes (m,).
 
     ``bins``: each reading's bin floor((t + phase_s) / bin_s) (edges at t = k bin_s - phase_s, fixed
-    in absolute time as the reference time moves); ``r``: the readings detrended with ``drift``."""
+    in absolute time as the reference time moves), ``layout`` their _Bins; ``r``: the readings
+    detrended with ``drift``."""
     t = leg.t_s
     unqueued = r <= r.min() + QUEUED_NS  # buffered readings say nothing about the envelope's slope
     if not unqueued.all():
         bins, t, r = bins[unqueued], t[unqueued], r[unqueued]
-    t_bin, e_bin = bin_tail_means(bins, t, r, q)
+        layout = _Bins.of(bins, q)
+    t_bin, e_bin = layout.tail_means(bins, t, r)
     return t_bin, leg.sign * e_bin + drift * t_bin
 
 
@@ -170,9 +194,10 @@ def fit_drift(legs: list[Leg], bin_s: float, phase_s: float, q: float, prior: tu
         return d0, sd0
     n = sum(len(leg.t_s) for leg in legs)
     bins = [np.floor((leg.t_s + phase_s) / bin_s) for leg in legs]  # the drift moves no reading across bins
+    layouts = [_Bins.of(b, q) for b in bins]
     for _ in range(iters):
         detrended = [leg.detrended(d) for leg in legs]  # once per leg and drift: envelopes and their noise
-        points = [_bin_envelopes(leg, b, r, d, q) for leg, b, r in zip(legs, bins, detrended)]
+        points = [_bin_envelopes(leg, b, layout, r, d, q) for leg, b, layout, r in zip(legs, bins, layouts, detrended)]
         # a bin envelope scatters at least by the lower-tail-mean noise of its samples
         n_bins = sum(len(t) for t, _ in points)
         per_bin = max(tail_mean_sd(r, q) for r in detrended) / np.sqrt(max(1.0, n / max(n_bins, 1)))
@@ -198,7 +223,17 @@ def theil_sen_slope(groups: list[tuple[np.ndarray, np.ndarray]]) -> float | None
         ok = dt != 0.0
         slopes.append((y[j] - y[i]) / dt if ok.all() else (y[j] - y[i])[ok] / dt[ok])
     slopes = np.concatenate(slopes) if slopes else np.empty(0)
-    return float(np.median(slopes)) if len(slopes) else None
+    return median_of_floats(slopes) if len(slopes) else None
+
+
+def median_of_floats(x: np.ndarray) -> float:
+    """np.median of a (n,) array of finite floats, bit for bit: the middle value, or (a + b) / 2 of
+    the middle two (np.median's mean of two), from a partition instead of its generic reduction."""
+    h = len(x) // 2
+    if len(x) % 2:
+        return float(np.partition(x, h)[h])
+    part = np.partition(x, (h - 1, h))
+    return (float(part[h - 1]) + float(part[h])) / 2
 
 
 @lru_cache(maxsize=128)

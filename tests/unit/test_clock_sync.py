@@ -9,7 +9,7 @@ from scipy.stats import theilslopes
 
 from link_emulator.channel import LinkModel
 from link_emulator.profile import load_profile
-from obu_service.clock_envelope import _pairs, lower_quartile, median_of_ints, shared_slope, theil_sen_slope
+from obu_service.clock_envelope import _pairs, lower_quartile, median_of_floats, median_of_ints, shared_slope, theil_sen_slope
 from obu_service.clock_sync import ClockSync, SyncSample
 from obu_service.sync_sim import (LTE_DOWNLINK, LTE_UPLINK, BufferedLeg, buffer_episodes, exchanges, forged,
                                   run_sync)
@@ -392,13 +392,14 @@ def test_shared_slope_and_theil_sen_equal_the_library_fits():
 
 
 def test_the_fit_s_small_order_statistics_equal_numpy_bit_for_bit():
-    """The pure-Python quartile and median of the fit's few bins are np.percentile / np.median
+    """The quartile and medians of the fit's few bins and slopes are np.percentile / np.median
     exactly (the clock estimates of a run do not move by a bit), and the pair indices of the
     Theil-Sen slope are np.triu_indices."""
     rng = np.random.default_rng(5)
     for n in range(1, 70):
         for values in (rng.normal(0.0, 1e6, n), rng.integers(-5, 5, n).astype(float), np.full(n, 2.5e5)):
             assert lower_quartile(values.tolist()) == np.percentile(values, 25)
+            assert median_of_floats(values) == np.median(values)
         counts = rng.integers(1, 40, n)
         assert median_of_ints(counts.tolist()) == np.median(counts)
         assert all(np.array_equal(a, b) for a, b in zip(_pairs(n), np.triu_indices(n, 1)))
