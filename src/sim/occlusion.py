@@ -168,11 +168,14 @@ def visible_fraction(
     polygons: Sequence[np.ndarray] = (),
     samples: int = 9,
     targets_occlude: bool = True,
+    sampled: np.ndarray | None = None,
 ) -> np.ndarray:
     """Fraction (N,) in [0, 1] of each target's sample points seen from ``origin_xy`` (2,) m.
 
     occluder_boxes (M, 5) [x, y, l, w, yaw rad] and polygons (each (K, 2)) are static
     occluders; with ``targets_occlude`` every other target's box occludes too.
+    ``sampled`` (N,) bool: only these targets' points are tested (their fractions are the ones
+    testing all would give: each point is tested on its own); the others get 0 and still occlude.
     """
     n = len(targets)
     if n == 0:
@@ -180,6 +183,9 @@ def visible_fraction(
     origin = np.asarray(origin_xy, dtype=float)
     pts = box_points(targets.xy, targets.lwh[:, :2], targets.yaw, samples).reshape(-1, 2)  # (N S, 2)
     owner = np.repeat(np.arange(n), samples)  # target of each sample point
+    if sampled is not None:
+        rows = np.repeat(np.asarray(sampled, dtype=bool), samples)
+        pts, owner = pts[rows], owner[rows]
     boxes = np.zeros((0, 5)) if occluder_boxes is None else np.asarray(occluder_boxes, dtype=float).reshape(-1, 5)
     if targets_occlude and n > 1:
         boxes = np.concatenate([boxes, np.column_stack([targets.xy, targets.lwh[:, :2], targets.yaw])])
@@ -188,7 +194,11 @@ def visible_fraction(
         box_owner = np.full(len(boxes), -1)
     blocked_by = _blocked_pruned if PRUNE else _blocked_all
     blocked = blocked_by(origin, pts, owner, boxes, box_owner, polygons)
-    return 1.0 - blocked.reshape(n, samples).mean(axis=1)
+    if sampled is None:
+        return 1.0 - blocked.reshape(n, samples).mean(axis=1)
+    out = np.zeros(n)
+    out[np.asarray(sampled, dtype=bool)] = 1.0 - blocked.reshape(-1, samples).mean(axis=1)
+    return out
 
 
 def _blocked_all(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarray:

@@ -65,20 +65,26 @@ class Lidar:
         """Per actor (N,): distance from the sensor (m) and visible fraction seen from it."""
         return self._visibility(world, world.actors_at(t_s), world.ego_at(t_s))
 
-    def _visibility(self, world: World, gt: ObjectArray, ego: Pose2D) -> tuple[np.ndarray, np.ndarray]:
+    def _visibility(self, world: World, gt: ObjectArray, ego: Pose2D,
+                    wanted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``visibility``; with ``wanted`` (N,) bool, the visible fraction of only those actors
+        within range (0 for the rest, which still occlude)."""
         # occluders: buildings + every other actor's box (the ego carries the sensor)
         origin = self.origin(ego)
-        vis = visible_fraction(origin, gt, world.building_boxes, world.building_polygons, samples=9)
-        return np.hypot(*(gt.xy - origin).T), vis
+        dist = np.hypot(*(gt.xy - origin).T)
+        sampled = None if wanted is None else wanted & (dist <= self.cfg.range_m)
+        vis = visible_fraction(origin, gt, world.building_boxes, world.building_polygons, samples=9, sampled=sampled)
+        return dist, vis
 
     def detect(self, world: World, t_s: float) -> ObjectArray:
         """Detections at capture time t_s (s) in the true base_link; ids -1, sources 1."""
         c, rng = self.cfg, self.rng
         ego, gt = world.ego_at(t_s), world.actors_at(t_s)
-        dist, vis = self._visibility(world, gt, ego)
+        n = len(gt)
+        detected = rng.random(n) < c.detection_probability  # the first draw, as ever
+        # only a detected actor in range can be kept: the others' visibility is never read
+        dist, vis = self._visibility(world, gt, ego, wanted=detected)
         truth = map_to_base(gt, ego)  # over-ground velocity, rotated into base_link
-        n = len(truth)
-        detected = rng.random(n) < c.detection_probability
         xy = truth.xy + rng.normal(0.0, c.position_noise_std_m, (n, 2))
         z = truth.z + rng.normal(0.0, c.position_noise_std_m, n)
         yaw = wrap_angle(truth.yaw + rng.normal(0.0, c.yaw_noise_std_rad, n))
@@ -141,7 +147,8 @@ class RsuCamera:
         rng_m = np.hypot(rel[:, 0], rel[:, 1])
         off_axis = wrap_angle(np.arctan2(rel[:, 1], rel[:, 0]) - np.deg2rad(c.yaw_deg))
         in_view = (rng_m <= c.range_m) & (np.abs(off_axis) <= np.deg2rad(c.fov_deg) / 2.0)
-        vis = visible_fraction(self.position, gt, world.building_boxes, world.building_polygons, targets_occlude=False)
+        vis = visible_fraction(self.position, gt, world.building_boxes, world.building_polygons, targets_occlude=False,
+                               sampled=in_view)  # an actor out of view is not observable, however visible
         return rng_m, in_view & (vis >= c.min_visible_fraction)
 
     def detect(self, world: World, t_s: float) -> tuple[ObjectArray, float]:

@@ -390,3 +390,24 @@ def test_one_body_in_floats_equals_the_vectorised_rows_bit_for_bit(name):
     pose = world.ego_at(7.3)
     xy, yaw, vxy, _ = world._ego.at(7.3)
     assert (pose.x, pose.y, pose.yaw, pose.vx, pose.vy) == (xy[0, 0], xy[0, 1], yaw[0], vxy[0, 0], vxy[0, 1])
+
+
+@pytest.mark.parametrize("name", bundled_scenarios())
+def test_visible_fraction_of_sampled_targets_equals_sampling_all(name):
+    """visible_fraction(..., sampled=mask) gives the sampled targets the very fractions of the
+    full test (each point is tested on its own; the unsampled targets still occlude) and 0 to the
+    rest: from the ego with the actors occluding, and from each RSU pole without."""
+    scenario = load_scenario(name)
+    world, site = World(scenario), World(scenario, site=True)
+    rng = np.random.default_rng(5)
+    for t_s in np.linspace(0.0, world.duration_s, 23):
+        ego = world.ego_at(t_s)
+        views = [(np.array([ego.x, ego.y]), world.actors_at(t_s), True)]
+        views += [(np.array([r.position.x, r.position.y]), site.actors_at(t_s), False) for r in scenario.rsus]
+        for origin, gt, occlude in views:
+            full = visible_fraction(origin, gt, world.building_boxes, world.building_polygons, targets_occlude=occlude)
+            mask = rng.random(len(gt)) < 0.6
+            part = visible_fraction(origin, gt, world.building_boxes, world.building_polygons, targets_occlude=occlude,
+                                    sampled=mask)
+            assert part[mask].tobytes() == full[mask].tobytes()
+            assert not part[~mask].any()
