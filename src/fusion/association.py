@@ -66,24 +66,35 @@ def assign_sparse(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n_a: int, n_b:
 
     A pair whose a and b are in no other pair is a component of its own and is matched; the
     other pairs are solved together over their distinct rows and columns (module docstring).
+    The matches are collected in ``mate`` (n_a,), the b matched to each a (-1: none), which
+    sorts them by a without a sort.
     """
     a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
-    single = (np.bincount(a, minlength=n_a)[a] == 1) & (np.bincount(b, minlength=n_b)[b] == 1)
-    ma, mb = a[single], b[single]
-    if not all_true(single):
-        rest = ~single
-        rows, ri = _compact(a[rest], n_a)
-        cols, ci = _compact(b[rest], n_b)
-        sub = np.full((len(rows), len(cols)), _BIG)
-        sub[ri, ci] = cost[rest]
+    # every pair counts once for its a and once for its b: the counts sum to 2 exactly when both are 1
+    single = (np.bincount(a, minlength=n_a).take(a) + np.bincount(b, minlength=n_b).take(b)) == 2
+    mate = np.empty(n_a, np.int64)
+    mate.fill(-1)
+    if all_true(single):
+        mate[a] = b
+    else:
+        one, rest = true_index(single), true_index(~single)
+        mate[a.take(one)] = b.take(one)
+        rows, ri = _compact(a.take(rest), n_a)
+        cols, ci = _compact(b.take(rest), n_b)
+        sub = np.empty((len(rows), len(cols)))
+        sub.fill(_BIG)
+        sub[ri, ci] = cost.take(rest)
         r, c = linear_sum_assignment(sub)
-        ok = sub[r, c] < _BIG
-        ma, mb = np.concatenate([ma, rows[r[ok]]]), np.concatenate([mb, cols[c[ok]]])
-    order = np.argsort(ma, kind="stable")
-    ma, mb = ma[order], mb[order]
-    free_a, free_b = filled(n_a, True, bool), filled(n_b, True, bool)
-    free_a[ma], free_b[mb] = False, False
-    return Assignment(np.column_stack([ma, mb]), true_index(free_a), true_index(free_b))
+        ok = true_index(sub[r, c] < _BIG)
+        mate[rows.take(r.take(ok))] = cols.take(c.take(ok))
+    matched = mate >= 0
+    ma = true_index(matched)
+    matches = np.empty((len(ma), 2), np.int64)
+    matches[:, 0] = ma
+    matches[:, 1] = mb = mate.take(ma)
+    free_b = filled(n_b, True, bool)
+    free_b[mb] = False
+    return Assignment(matches, true_index(~matched), true_index(free_b))
 
 
 def _compact(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:

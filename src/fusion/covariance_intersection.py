@@ -71,8 +71,9 @@ def det_minimising_weight(lam: np.ndarray, free: int) -> np.ndarray:
     """w (K,) in [W_MIN, 1] maximising free log w + sum_i log(w (1 - lambda_i) + lambda_i) for
     generalised eigenvalues lam (K, m) > 0 and free = n - m unobserved state entries (module docstring)."""
     a = 1.0 - lam  # g(w) = free / w + sum a / (a w + lambda)
-    g_one = free + a.sum(axis=1)  # g(1): a + lambda = 1
-    g_min = free / W_MIN + (a / (a * W_MIN + lam)).sum(axis=1)
+    # (np.add.reduce: the same sums as .sum without its Python-level wrapper)
+    g_one = free + np.add.reduce(a, axis=1)  # g(1): a + lambda = 1
+    g_min = free / W_MIN + np.add.reduce(a / (a * W_MIN + lam), axis=1)
     w = np.where(g_min <= 0, W_MIN, 1.0)  # the bounds: at W_MIN where g(W_MIN) <= 0, else at 1 where g(1) >= 0
     inner = (g_one < 0) & (g_min > 0)  # the root lies strictly inside (W_MIN, 1)
     if any_true(inner):

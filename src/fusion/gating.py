@@ -17,6 +17,7 @@ fails. The exact test then runs on the few pairs left, with the offsets of the b
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -25,7 +26,7 @@ import shapely
 
 from . import kalman
 from .association import Assignment, assign_sparse
-from .fastnp import true_index
+from .fastnp import all_true, true_index
 from .geometry import box_polygons
 from .objects import ObjectArray
 
@@ -46,8 +47,9 @@ class GatedPairs:
 
 
 def compatible_classes(track_cls: np.ndarray, det_cls: np.ndarray) -> np.ndarray:
-    """True where classes are equal or either is UNKNOWN (0); paired arrays or broadcast (N, 1), (1, M)."""
-    return (track_cls == det_cls) | (track_cls == 0) | (det_cls == 0)
+    """True where classes are equal or either is UNKNOWN (0); paired arrays or broadcast (N, 1), (1, M).
+    Either is 0 exactly when the product is (integer class codes, far from overflowing: ObjectClass < 256)."""
+    return (track_cls == det_cls) | (track_cls * det_cls == 0)
 
 
 def _trace2(c: np.ndarray) -> np.ndarray:
@@ -58,30 +60,34 @@ def _trace2(c: np.ndarray) -> np.ndarray:
 def _near(config: TrackerConfig, table: TrackTable, dets: ObjectArray):
     """Candidate pairs (module docstring): track ti (K,) and detection di (K,) of each class-compatible
     pair inside the bound (ordered by track, then detection), and their offsets dx, dy (K,) = track - detection."""
-    px, py, dxy = table.x[:, 0], table.x[:, 1], dets.xy
+    x, dxy = table.x, dets.xy
+    px, py, zx, zy = x[:, 0], x[:, 1], dxy[:, 0], dxy[:, 1]
     reach_m, lam_p = config.gate_m, None
+    # (ufunc reductions on columns, Python floats: the array methods and (M, 2) reductions cost more)
     if config.gate != "distance":
         lam_p, lam_r = _trace2(table.p), _trace2(dets.cov_xy)
-        reach_m = np.sqrt(config.gate_chi2 * (np.maximum.reduce(lam_p) + np.maximum.reduce(lam_r)))
+        reach_m = math.sqrt(config.gate_chi2 * (float(np.maximum.reduce(lam_p)) + float(np.maximum.reduce(lam_r))))
         if config.gate == "either":
             reach_m = min(max(reach_m, config.gate_m), config.gate_max_m)
-    # (ufunc reductions: the array methods add a Python-level wrapper)
-    (x_lo, y_lo), (x_hi, y_hi) = np.minimum.reduce(dxy) - reach_m, np.maximum.reduce(dxy) + reach_m
+    x_lo, x_hi = float(np.minimum.reduce(zx)) - reach_m, float(np.maximum.reduce(zx)) + reach_m
+    y_lo, y_hi = float(np.minimum.reduce(zy)) - reach_m, float(np.maximum.reduce(zy)) + reach_m
     rows = true_index((px >= x_lo) & (px <= x_hi) & (py >= y_lo) & (py <= y_hi))
-    dx, dy = np.subtract.outer(px[rows], dxy[:, 0]), np.subtract.outer(py[rows], dxy[:, 1])
-    r2 = dx * dx + dy * dy
+    dx, dy = np.subtract.outer(px.take(rows), zx), np.subtract.outer(py.take(rows), zy)
+    r2 = dx * dx
+    r2 += dy * dy
     if config.gate == "distance":
         near = r2 <= config.gate_m**2
     else:
-        near = r2 <= config.gate_chi2 * np.add.outer(lam_p[rows], lam_r)
+        near = r2 <= config.gate_chi2 * np.add.outer(lam_p.take(rows), lam_r)
         if config.gate == "either":
             near = (r2 <= config.gate_m**2) | (near & (r2 <= config.gate_max_m**2))
     flat = true_index(near)  # row-major, as np.nonzero (which is slower on 2-D arrays)
     tl, di = np.divmod(flat, near.shape[1])
-    ti = rows[tl]
-    keep = compatible_classes(table.cls[ti], dets.cls[di])
-    flat = flat[keep]
-    return ti[keep], di[keep], dx.ravel()[flat], dy.ravel()[flat]
+    ti = rows.take(tl)
+    keep = compatible_classes(table.cls.take(ti), dets.cls.take(di))
+    if not all_true(keep):
+        flat, ti, di = flat[keep], ti[keep], di[keep]
+    return ti, di, dx.ravel().take(flat), dy.ravel().take(flat)
 
 
 def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> GatedPairs:
@@ -100,11 +106,12 @@ def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
         inside = d2 <= config.gate_chi2
     else:
         inside = (dist <= config.gate_m) | ((d2 <= config.gate_chi2) & (dist <= config.gate_max_m))
-    ti, di = ti[inside], di[inside]
+    inside = true_index(inside)
+    ti, di = ti.take(inside), di.take(inside)
     if config.cost == "distance":
-        cost = dist[inside]
+        cost = dist.take(inside)
     elif config.cost == "mahalanobis":
-        cost = d2[inside]
+        cost = d2.take(inside)
     else:  # 1 - BEV IoU of the predicted box (last detected size and yaw) and the detected box
         a = np.column_stack([table.x[ti, :2], table.lwh[ti, :2], table.yaw[ti]])
         cost = 1.0 - paired_bev_iou(a, np.column_stack([dets.xy[di], dets.lwh[di, :2], dets.yaw[di]]))

@@ -83,7 +83,7 @@ import numpy as np
 
 from . import kalman
 from .covariance_intersection import ci_update_into, ci_weights
-from .fastnp import all_true, any_true, filled
+from .fastnp import all_true, any_true, true_index
 from .frames import wrap_angle
 from .gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
     GatedPairs,
@@ -230,38 +230,52 @@ class Tracker:
         result = associate(self.config, tab, dets)
         ti, di = result.matches[:, 0], result.matches[:, 1]
         known = dets.velocity_known()
-        other = None
+        k, other = 0, None
         if estimates and len(ti):  # (K, B) sources outside the estimate's bits that updated the track recently
-            # (multi-column gathers as .take(index, axis=0): a fraction of fancy indexing's cost on small batches)
+            # (multi-column gathers as .take(index, axis=0): a fraction of fancy indexing's cost on small batches;
+            # ufunc reductions: the array methods add a Python-level wrapper)
             other = ((t_s - tab.seen_s.take(ti, axis=0)) <= self.config.max_coast_s) & ~cols.take(di, axis=0)
-            alone = ~other.any(axis=1)
-        else:
-            alone = np.zeros(len(ti), bool)
+            shared_any = np.logical_or.reduce(other, axis=1)
+            k = len(ti) - int(np.count_nonzero(shared_any))  # alone: no other source
         # one initialisation, from the detection alone, for the tracks an estimate replaces and the new tracks
-        k = int(np.count_nonzero(alone))
-        start = np.concatenate([di[alone], result.unmatched_b]) if k else result.unmatched_b
+        start = result.unmatched_b
+        if k:
+            alone, rest = true_index(~shared_any), true_index(shared_any)
+            start = np.concatenate([di.take(alone), start])
         inputs = filter_inputs(dets, start)
         x0, p0 = self.model.initial(inputs, self._prior)
         if k:
-            tab.x[ti[alone]], tab.p[ti[alone]] = x0[:k], p0[:k]
-            rest = ~alone
-            ti, di, other = ti[rest], di[rest], other[rest]
-        if estimates and self.config.estimate_fusion != "kf" and len(ti):
+            replaced = ti.take(alone)
+            tab.x[replaced], tab.p[replaced] = x0[:k], p0[:k]
+            ti, di, other = ti.take(rest), di.take(rest), other.take(rest, axis=0)
+        if len(ti):
+            self._fuse(ti, di, other, dets, known, t_s, estimates)
+        shape = _Shape(dets)
+        self._record(result.matches[:, 0], result.matches[:, 1], dets, cols, shape, t_s, estimates)
+        measured = inputs.velocity_measured(self._prior.speed_std_mps)[k:]
+        self._spawn(dets, result.unmatched_b, cols, shape, t_s, x0[k:], p0[k:], estimates, ~measured)
+
+    def _fuse(self, ti: np.ndarray, di: np.ndarray, other: np.ndarray | None, dets: ObjectArray, known: np.ndarray,
+              t_s: float, estimates: bool) -> None:
+        """Matched pairs (ti, di) that no estimate replaced: covariance intersection where another estimate
+        source shares the track (other (K, B) as in ``update``), two-point initialisation, else a Kalman update."""
+        if estimates and self.config.estimate_fusion != "kf":
             if self.config.estimate_fusion == "ci-all":  # every track another source shares
-                shared = filled(len(ti), True, bool)
-            else:
-                shared = (other & ((self._store.col_values & self._estimate_mask) != 0)).any(axis=1)
-            if any_true(shared):
+                self._intersect(ti, di, dets, known)
+                return
+            shared = np.logical_or.reduce(other & ((self._store.col_values & self._estimate_mask) != 0), axis=1)
+            n_shared = int(np.count_nonzero(shared))
+            if n_shared == len(ti):
+                self._intersect(ti, di, dets, known)
+                return
+            if n_shared:
                 self._intersect(ti[shared], di[shared], dets, known)
                 ti, di = ti[~shared], di[~shared]
         pair = self._second_positions(ti, di, known, t_s)
-        if any_true(pair):
+        if pair is not None:
             self._two_point(ti[pair], di[pair], dets, t_s)
             ti, di = ti[~pair], di[~pair]
         self._correct(ti, di, dets, known, velocity=not estimates)
-        self._record(result.matches[:, 0], result.matches[:, 1], dets, cols, t_s, estimates)
-        measured = inputs.velocity_measured(self._prior.speed_std_mps)[k:]
-        self._spawn(dets, result.unmatched_b, cols, t_s, x0[k:], p0[k:], estimates, ~measured)
 
     def prune(self, t_s: float) -> None:
         """Delete stale tracks (last update older than max_coast_s) and missed tentative tracks."""
@@ -320,27 +334,33 @@ class Tracker:
         """Covariance intersection of tracks ti with estimates di: the position, or the position and
         velocity where the estimate measured one (known (M,); CV / CA with velocity_updates), one w per track."""
         tab = self._table
-        with_v = np.zeros(len(ti), bool)
+        n_v = 0
         if self.config.velocity_updates and self.config.motion in ("cv", "ca"):
-            with_v = known[di]
-        for rows, velocity in ((~with_v, False), (with_v, True)):
-            if not any_true(rows):
-                continue
-            t, d = (ti, di) if all_true(rows) else (ti[rows], di[rows])
+            with_v = known.take(di)
+            n_v = int(np.count_nonzero(with_v))
+        if n_v in (0, len(ti)):  # one group: position only, or position and velocity
+            groups = ((ti, di, n_v > 0),)
+        else:
+            groups = ((ti[~with_v], di[~with_v], False), (ti[with_v], di[with_v], True))
+        for t, d, velocity in groups:
             z, r = _position_velocity(dets, d) if velocity else (dets.xy.take(d, axis=0), dets.cov_xy.take(d, axis=0))
             x, p = tab.x.take(t, axis=0), tab.p.take(t, axis=0)
             ci_update_into(x, p, z, r, ci_weights(p, r))
             tab.x[t], tab.p[t] = x, p
 
-    def _second_positions(self, ti: np.ndarray, di: np.ndarray, known: np.ndarray, t_s: float) -> np.ndarray:
+    def _second_positions(self, ti: np.ndarray, di: np.ndarray, known: np.ndarray, t_s: float) -> np.ndarray | None:
         """(K,) True where the pair (track ti, detection di) is a two-point initialisation: the track
         has one hit, was born without a measured velocity at an earlier time, and the detection
-        measures no velocity either (known (M,) False; a measured one is fused by ``_correct``)."""
+        measures no velocity either (known (M,) False; a measured one is fused by ``_correct``).
+        None where no pair is one."""
+        if not self.config.two_point_init or self.config.motion not in ("cv", "ca"):
+            return None
         tab = self._table
-        first = tab.hits[ti] == 1
-        if not any_true(first) or not self.config.two_point_init or self.config.motion not in ("cv", "ca"):
-            return np.zeros(len(ti), bool)
-        return first & tab.velocity_prior[ti] & (tab.born_s[ti] < t_s) & ~known[di]
+        first = tab.hits.take(ti) == 1
+        if not any_true(first):
+            return None
+        pair = first & tab.velocity_prior.take(ti) & (tab.born_s.take(ti) < t_s) & ~known.take(di)
+        return pair if any_true(pair) else None
 
     def _two_point(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, t_s: float) -> None:
         """Tracks ti take their state from their birth and the second positions di (``kalman.two_point``)."""
@@ -365,47 +385,49 @@ class Tracker:
         if velocity and self.config.velocity_updates and self.config.motion in ("cv", "ca"):
             # sources that estimate velocity (tracking RSUs, CenterPoint) update it too:
             # H = [0 I_2 0], R = the detection's velocity covariance
-            v = known[di]
-            if all_true(v):
+            v = known.take(di)
+            n_v = int(np.count_nonzero(v))
+            if n_v == len(v):
                 x, p, _ = kalman.update(x, p, dets.vxy.take(di, axis=0), dets.cov_vxy.take(di, axis=0), first=2)
-            elif any_true(v):
+            elif n_v:
                 d = di[v]
                 x[v], p[v], _ = kalman.update(x[v], p[v], dets.vxy.take(d, axis=0), dets.cov_vxy.take(d, axis=0), first=2)
         tab.x[ti], tab.p[ti] = x, p
 
-    def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, cols: np.ndarray, t_s: float,
-                estimates: bool) -> None:
+    def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, cols: np.ndarray, shape: _Shape,
+                t_s: float, estimates: bool) -> None:
         """Bookkeeping of matched tracks ti: class, shape, confidence, hits, confirmation and update
         times; cols (M, B) the seen_s columns of each detection's sources."""
         tab = self._table
         if not len(ti):
             return
-        cls = tab.cls[ti]
+        cls = tab.cls.take(ti)
         if not all_true(cls):
-            tab.cls[ti] = np.where(cls == 0, dets.cls[di], cls)  # UNKNOWN adopts a class
-        self._take_shape(ti, dets, di, t_s)
-        tab.confidence[ti] = dets.confidence[di]
-        hits = tab.hits[ti] + 1
+            tab.cls[ti] = np.where(cls == 0, dets.cls.take(di), cls)  # UNKNOWN adopts a class
+        self._take_shape(ti, dets, di, shape, t_s)
+        tab.confidence[ti] = dets.confidence.take(di)
+        hits = tab.hits.take(ti)
+        hits += 1
         tab.hits[ti] = hits
-        tab.confirmed[ti] = True if estimates else tab.confirmed[ti] | (hits >= self.config.confirm_hits)
+        tab.confirmed[ti] = True if estimates else tab.confirmed.take(ti) | (hits >= self.config.confirm_hits)
         tab.updated_s[ti] = t_s
         tab.seen_s[ti] = np.where(cols.take(di, axis=0), t_s, tab.seen_s.take(ti, axis=0))
 
-    def _take_shape(self, ti: np.ndarray, dets: ObjectArray, di: np.ndarray, t_s: float) -> None:
+    def _take_shape(self, ti: np.ndarray, dets: ObjectArray, di: np.ndarray, shape: _Shape, t_s: float) -> None:
         """Box size, height and heading come from the most precise recent detection: a
         detection replaces the track's shape when its position variance is no larger, or
         when the shape is older than ``shape_hold_s`` (a coarse RSU box never overwrites the
         fresh LiDAR box of the same cycle)."""
         tab = self._table
-        c = dets.cov_xy
-        var = c[di, 0, 0] + c[di, 1, 1]  # trace of the position covariance
-        take = (var <= tab.shape_var[ti] * 1.01) | (t_s - tab.shape_s[ti] > self.config.shape_hold_s)
+        var = shape.var_m2.take(di)
+        take = (var <= tab.shape_var.take(ti) * 1.01) | (t_s - tab.shape_s.take(ti) > self.config.shape_hold_s)
         if not all_true(take):
-            ti, di, var = ti[take], di[take], var[take]
-        tab.z[ti], tab.lwh[ti], tab.yaw[ti] = dets.z[di], dets.lwh.take(di, axis=0), wrap_angle(dets.yaw[di])
+            take = true_index(take)
+            ti, di, var = ti.take(take), di.take(take), var.take(take)
+        tab.z[ti], tab.lwh[ti], tab.yaw[ti] = dets.z.take(di), dets.lwh.take(di, axis=0), shape.yaw_rad.take(di)
         tab.shape_var[ti], tab.shape_s[ti] = var, t_s
 
-    def _spawn(self, dets: ObjectArray, index: np.ndarray, cols: np.ndarray, t_s: float, x: np.ndarray,
+    def _spawn(self, dets: ObjectArray, index: np.ndarray, cols: np.ndarray, shape: _Shape, t_s: float, x: np.ndarray,
                p: np.ndarray, estimates: bool, velocity_prior: np.ndarray) -> None:
         """New tracks from the detections dets[index], initial state x (n, dim), P (n, dim, dim): tentative,
         or confirmed when they are another tracker's estimates; velocity_prior (n,) as in TrackTable;
@@ -417,13 +439,23 @@ class Tracker:
         rows.ids[new] = np.arange(self._next_id, self._next_id + n)
         self._next_id += n
         rows.x[new], rows.p[new], rows.birth_x[new], rows.birth_p[new] = x, p, x, p
-        rows.cls[new], rows.z[new], rows.lwh[new] = dets.cls[index], dets.z[index], dets.lwh.take(index, axis=0)
-        rows.yaw[new], rows.confidence[new] = wrap_angle(dets.yaw[index]), dets.confidence[index]
+        rows.cls[new], rows.z[new], rows.lwh[new] = dets.cls.take(index), dets.z.take(index), dets.lwh.take(index, axis=0)
+        rows.yaw[new], rows.confidence[new] = shape.yaw_rad.take(index), dets.confidence.take(index)
         rows.hits[new], rows.born_s[new], rows.updated_s[new], rows.shape_s[new] = 1, t_s, t_s, t_s
         rows.seen_s[new] = np.where(cols.take(index, axis=0), t_s, -np.inf)
-        c = dets.cov_xy
-        rows.shape_var[new] = c[index, 0, 0] + c[index, 1, 1]
+        rows.shape_var[new] = shape.var_m2.take(index)
         rows.confirmed[new], rows.velocity_prior[new] = estimates or self.config.confirm_hits <= 1, velocity_prior
+
+
+class _Shape:
+    """Per-detection shape inputs of one update, computed once for the matched and the new tracks:
+    var_m2 (M,) the trace of the position covariance, yaw_rad (M,) the heading wrapped to [-pi, pi)."""
+
+    __slots__ = ("var_m2", "yaw_rad")
+
+    def __init__(self, dets: ObjectArray):
+        c = dets.cov_xy
+        self.var_m2, self.yaw_rad = c[:, 0, 0] + c[:, 1, 1], wrap_angle(dets.yaw)
 
 
 def _position_velocity(dets: ObjectArray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

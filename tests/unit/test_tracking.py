@@ -5,7 +5,7 @@ from fusion.association import assign, center_distance_cost
 from fusion.geometry import bev_iou_matrix
 from fusion.objects import ObjectArray
 from fusion.oosm import OosmTracker
-from fusion.tracking import Tracker, TrackerConfig, assign_gated, association_cost
+from fusion.tracking import Tracker, TrackerConfig, assign_gated, association_cost, compatible_classes
 
 
 def dets(xy, cls=1, std=0.5):
@@ -22,6 +22,14 @@ def test_assign_respects_gate_and_classes():
     assert result.unmatched_a.tolist() == [1] and result.unmatched_b.tolist() == [1]
     cross = center_distance_cost(np.array([[0, 0]]), np.array([[0.1, 0]]), [1], [5])
     assert len(assign(cross, gate=2.0).matches) == 0
+
+
+def test_compatible_classes_is_equal_or_either_unknown_for_every_class_code():
+    """The product form (either is 0 exactly when the product is) against the rule as written."""
+    codes = np.arange(256, dtype=np.int64)
+    a, b = codes[:, None], codes[None, :]
+    assert np.array_equal(compatible_classes(a, b), (a == b) | (a == 0) | (b == 0))
+    assert np.array_equal(compatible_classes(codes, codes[::-1]), (codes == codes[::-1]) | (codes == 0) | (codes[::-1] == 0))
 
 
 def test_tracker_estimates_velocity_and_keeps_ids():
