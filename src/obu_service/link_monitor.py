@@ -24,6 +24,7 @@ Memory is bounded: at most ``max_records`` arrivals and cycles are kept.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,14 +41,18 @@ class Arrival:
     delay_ms: float | None  # receive - publish (OBU time)
 
 
-def gap_loss(seqs: np.ndarray, epochs: np.ndarray) -> tuple[int, int]:
-    """(lost, expected) over distinct (epoch, seq) pairs: expected = sum over epochs of max - min + 1."""
+def gap_loss(seqs: Iterable[int], epochs: Iterable[int]) -> tuple[int, int]:
+    """(lost, expected) over distinct (epoch, seq) pairs: expected = sum over epochs of max - min + 1.
+
+    (Sets, not np.unique: a window holds tens of arrivals and the OBU asks at every cycle.)"""
+    by_epoch: dict[int, set[int]] = {}
+    for epoch, seq in zip(epochs, seqs):
+        by_epoch.setdefault(int(epoch), set()).add(int(seq))
     lost = expected = 0
-    for epoch in np.unique(epochs):
-        s = np.unique(seqs[epochs == epoch])
-        span = int(s[-1] - s[0]) + 1
+    for distinct in by_epoch.values():
+        span = max(distinct) - min(distinct) + 1
         expected += span
-        lost += span - len(s)
+        lost += span - len(distinct)
     return lost, expected
 
 
@@ -133,11 +138,7 @@ class LinkMonitor:
 
     def loss(self) -> tuple[int, int]:
         """(lost, expected) messages in the window, from sequence gaps."""
-        if not self._arrivals:
-            return 0, 0
-        seqs = np.array([a.seq for a in self._arrivals], dtype=np.int64)
-        epochs = np.array([a.epoch for a in self._arrivals], dtype=np.int64)
-        return gap_loss(seqs, epochs)
+        return gap_loss([a.seq for a in self._arrivals], [a.epoch for a in self._arrivals])
 
     def loss_ratio(self) -> float | None:
         lost, expected = self.loss()
@@ -146,10 +147,10 @@ class LinkMonitor:
     def arrival_probability(self, within_ms: float) -> float:
         """P(a frame arrives within ``within_ms`` of its capture) = (1 - loss) * P(l <= W);
         0.0 with no latency measured yet (nothing known: do not count on it)."""
-        latencies = self.latencies_ms()
-        if not len(latencies):
+        latencies = [a.latency_ms for a in self._arrivals if a.latency_ms is not None]  # a few tens: no array
+        if not latencies:
             return 0.0
-        on_time = float(np.count_nonzero(latencies <= within_ms)) / len(latencies)
+        on_time = float(sum(latency <= within_ms for latency in latencies)) / len(latencies)
         return (1.0 - (self.loss_ratio() or 0.0)) * on_time
 
     def summary(self, now_obu_ns: int | None = None) -> dict[str, float | int | None]:

@@ -47,6 +47,7 @@ def test_rsu_restart_starts_a_new_sequence_epoch():
 def test_gap_loss_helper():
     seqs, epochs = np.array([5, 7, 8, 0, 2]), np.array([0, 0, 0, 1, 1])
     assert gap_loss(seqs, epochs) == (2, 7)
+    assert gap_loss([5, 5, 7, 3], [0, 0, 0, 2]) == (1, 4)  # lists too; a repeated (epoch, seq) counts once
 
 
 def test_quantiles_and_arrival_probability():
