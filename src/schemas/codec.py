@@ -29,7 +29,7 @@ from .columns import OBJECT_SPECS
 from .errors import (CodecError, InvalidMessage, MalformedMessage, MessageTooLarge,  # noqa: F401 (re-exported)
                      SchemaVersionError, WrongMessageType)
 from .messages import SCHEMA_VERSION, FusedObjectList, Message, ObjectList, ObjectListHeader, PredictionList
-from .object_wire import EMPTY_SECTION, pack_objects, unpack_objects
+from .object_wire import EMPTY_SECTION, unpack_objects
 from .object_wire import object_count as _section_count
 from .sensor_messages import GroundTruth, SensorObjects
 
@@ -114,7 +114,7 @@ def encode(msg: Message, max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
     if tag is None:
         envelope: Any = {"v": SCHEMA_VERSION, "t": msg.TYPE, "d": msg.model_dump(mode="python")}
     else:
-        envelope = [SCHEMA_VERSION, tag, _positional(msg), pack_objects(msg.objects)]
+        envelope = [SCHEMA_VERSION, tag, _positional(msg), msg.objects.wire_section]  # = pack_objects(msg.objects)
     try:
         data = msgpack.packb(envelope, use_bin_type=True)
     except (TypeError, ValueError, OverflowError) as exc:

@@ -259,6 +259,14 @@ class ObjectColumns:
         out.flags.writeable = False
         return out
 
+    @cached_property
+    def wire_section(self) -> tuple:
+        """The msgpack-ready objects section (``object_wire.pack_objects``), packed once: a list
+        and a prediction list carrying the same (immutable) columns share it."""
+        from .object_wire import pack_objects
+
+        return tuple(pack_objects(self))
+
     @property
     def names(self) -> tuple[str, ...]:
         return layout_of(self.fused).names

@@ -567,3 +567,19 @@ def test_velocity_covariance_round_trips_and_defaults_to_unknown() -> None:
     back = objects_from_states(decode(encode(msg), ObjectList).objects)
     np.testing.assert_allclose(back.cov_vxy, tracked.cov_vxy, atol=1e-12)
     assert back.velocity_known()[0]
+
+
+def test_an_object_section_is_packed_once_and_encodes_as_packed() -> None:
+    """encode writes the columns' wire_section (packed once per immutable ObjectColumns): the very
+    bytes of the envelope with a fresh pack_objects, and a prediction list carrying a list's
+    columns shares that list's section."""
+    from schemas.codec import _positional
+    from schemas.object_wire import pack_objects
+
+    msg = object_list(40)
+    fresh = [SCHEMA_VERSION, LIST_TAGS[ObjectList.TYPE], _positional(msg), pack_objects(msg.objects)]
+    assert encode(msg) == msgpack.packb(fresh, use_bin_type=True)
+    pred = PredictionList(header=msg.header, objects=msg.objects,
+                          paths=tuple(PredictedPath(id=o.id) for o in msg.objects))
+    assert pred.objects.wire_section is msg.objects.wire_section
+    assert decode(encode(pred), PredictionList).objects == msg.objects
