@@ -44,27 +44,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fastnp import all_true, any_true, filled, true_index
+from .fastnp import all_true, any_true, cholesky_or_nan, eigvalsh_or_nan, filled, inv_or_nan, true_index
 
 W_MIN = 1e-6  # smallest weight of the track (full observations: w -> 0 takes the estimate)
 W_TOL = 1e-12  # Newton stops once every step is below this (module docstring)
 _MAX_STEPS = 60  # safeguard: each step at least halves the bracket where Newton fails, 2^-60 < W_TOL
-
-
-def _whitening(r: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
-    """(ok, L^-1 (K', m, m) of the K' rows where ok): R = L L^T for the R (K, m, m) that have a
-    Cholesky factor (positive definite to rounding); ok is None when every row has one (K' = K).
-    One batched call, then one per row only when the batch holds a matrix that has none (broken input)."""
-    try:
-        return None, np.linalg.inv(np.linalg.cholesky(r))
-    except np.linalg.LinAlgError:
-        ok = np.ones(len(r), bool)
-        for i in range(len(r)):
-            try:
-                np.linalg.cholesky(r[i])
-            except np.linalg.LinAlgError:
-                ok[i] = False
-        return ok, np.linalg.inv(np.linalg.cholesky(r[ok]))
 
 
 def det_minimising_weight(lam: np.ndarray, free: int) -> np.ndarray:
@@ -165,16 +149,18 @@ def ci_weights(p: np.ndarray, r: np.ndarray, first: int = 0) -> np.ndarray:
     else:
         rows = np.flatnonzero(np.isfinite(p_obs).all(axis=(1, 2)) & np.isfinite(r).all(axis=(1, 2)))
         p_obs, r = p_obs[rows], r[rows]
-    factored, inv_l = _whitening(r)
-    if factored is not None:
+    lower = cholesky_or_nan(r)  # R = L L^T, NaN where R has no factor (positive definite to rounding)
+    factored = ~np.isnan(lower[:, 0, 0])
+    if not all_true(factored):
         rows = np.flatnonzero(factored) if rows is None else rows[factored]
-        p_obs = p_obs[factored]
+        p_obs, lower = p_obs[factored], lower[factored]
+    inv_l = inv_or_nan(lower)
     w = filled(k, 1.0)
     if not len(p_obs):
         return w
     # (.transpose(0, 2, 1) rather than np.swapaxes: the method skips a Python-level wrapper)
-    lam = np.linalg.eigvalsh(inv_l @ (0.5 * (p_obs + p_obs.transpose(0, 2, 1))) @ inv_l.transpose(0, 2, 1))
-    # H P H^T positive definite: R^-1 S has positive eigenvalues, none below 1e-12 of the largest
+    lam = eigvalsh_or_nan(inv_l @ (0.5 * (p_obs + p_obs.transpose(0, 2, 1))) @ inv_l.transpose(0, 2, 1))
+    # H P H^T positive definite: R^-1 S has positive eigenvalues, none below 1e-12 of the largest (NaN: no)
     pd = lam[:, 0] > 1e-12 * np.abs(lam[:, -1])
     if rows is None and all_true(pd):
         return det_minimising_weight(lam, n - m)

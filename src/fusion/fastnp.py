@@ -4,8 +4,9 @@ On arrays of tens of elements numpy's per-call overhead is the whole cost, and s
 a Python-level wrapper the others skip (numpy 2.4, this machine, 40-260 elements):
 ``mask.any()`` / ``.all()`` ~0.7 us against ``np.count_nonzero`` ~0.17 us; ``np.flatnonzero``
 ~0.8 us against ``mask.nonzero()[0]`` ~0.2 us; ``np.ones`` ~0.65 us against ``np.empty`` + ``fill``
-~0.25 us. The functions here give the same results as the usual spelling
-(tests/unit/test_fastnp.py).
+~0.25 us; ``np.linalg.cholesky`` / ``inv`` / ``eigvalsh`` ~2.5 us of checks around the LAPACK gufunc
+they call (``cholesky_or_nan`` ...: the gufunc itself; NaN for a failed matrix instead of an error).
+The functions here give the same results as the usual spelling (tests/unit/test_fastnp.py).
 """
 
 from __future__ import annotations
@@ -33,3 +34,44 @@ def filled(n: int, value, dtype=float) -> np.ndarray:
     out = np.empty(n, dtype)
     out.fill(value)
     return out
+
+
+# Batched LAPACK: np.linalg.cholesky / inv / eigvalsh call these gufuncs after ~2.5 us of Python-level checks
+# and an errstate that turns a failure into a LinAlgError for the whole batch. Called directly (float64
+# only), a matrix without a result comes back as NaN and the others are unaffected (the same LAPACK calls,
+# so the same numbers). A numpy without the module gets the public functions.
+try:
+    from numpy.linalg import _umath_linalg as _lapack
+except ImportError:  # pragma: no cover
+    _lapack = None
+
+
+def cholesky_or_nan(a: np.ndarray) -> np.ndarray:
+    """``np.linalg.cholesky`` (lower) of each float64 matrix a (K, m, m); all NaN for a matrix without a factor."""
+    if _lapack is not None:
+        with np.errstate(all="ignore"):
+            return _lapack.cholesky_lo(a, signature="d->d")
+    out = np.full(a.shape, np.nan)  # pragma: no cover
+    for i in range(len(a)):  # pragma: no cover
+        try:
+            out[i] = np.linalg.cholesky(a[i])
+        except np.linalg.LinAlgError:
+            pass
+    return out  # pragma: no cover
+
+
+def inv_or_nan(a: np.ndarray) -> np.ndarray:
+    """``np.linalg.inv`` of each float64 matrix a (K, m, m); all NaN for a singular one."""
+    if _lapack is None:  # pragma: no cover
+        return np.linalg.inv(a)
+    with np.errstate(all="ignore"):
+        return _lapack.inv(a, signature="d->d")
+
+
+def eigvalsh_or_nan(a: np.ndarray) -> np.ndarray:
+    """``np.linalg.eigvalsh`` (lower triangle, ascending) of each float64 symmetric matrix a (K, m, m);
+    NaN where LAPACK does not converge."""
+    if _lapack is None:  # pragma: no cover
+        return np.linalg.eigvalsh(a)
+    with np.errstate(all="ignore"):
+        return _lapack.eigvalsh_lo(a, signature="d->d")
