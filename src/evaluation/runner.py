@@ -368,7 +368,7 @@ class OfflineRun:
         if not obu.ready(self.clock.t_ns):
             return
         out = obu.fuse(self.clock.t_ns)
-        vehicle.record.add_output(out, obu.last_planning)
+        vehicle.record.add_output(out, obu.last_planning, vehicle.sensing.lidar.last_truth)  # truth derived at capture
         if self.link_series:  # what the live OBU publishes after each cycle
             vehicle.record.links.add(self.clock.t_ns, obu.metrics(self.clock.t_ns).rsus)
         if self.v2v is not None:

@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from fusion.objects import ObjectArray
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObuMetrics, PredictionList
 from obu_service.config import ObuConfig
 from perception.scoring import PerceptionTally
@@ -91,10 +92,12 @@ class RunRecord:
         self.rsu_deadline_misses = 0
         self.links = LinkSeries()  # per-cycle RSU link samples (live: ObuMetrics; offline: link_series=True)
 
-    def add_output(self, output: FusedObjectList, planning: PredictionList | None = None) -> None:
-        """One published cycle (and the RSU paths it handed to the planner, if any)."""
+    def add_output(self, output: FusedObjectList, planning: PredictionList | None = None,
+                   truth: tuple[float, ObjectArray] | None = None) -> None:
+        """One published cycle (and the RSU paths it handed to the planner, if any); ``truth``:
+        (t_s, the truth in base_link) derived at the cycle's capture (``CycleFrame.of``)."""
         self.cycles.add(output)
-        frame = CycleFrame.of(self.world, output, self.start_ns)
+        frame = CycleFrame.of(self.world, output, self.start_ns, truth)
         for tally in (self.target, self.vehicle_target, self.detection):
             tally.add(frame)
         if planning is not None:

@@ -56,6 +56,8 @@ class Lidar:
     def __init__(self, cfg: LidarConfig, rng: np.random.Generator):
         self.cfg = cfg
         self.rng = rng
+        # (t_s, every actor's truth in the true base_link at t_s) of the last frame (scoring)
+        self.last_truth: tuple[float, ObjectArray] | None = None
 
     def origin(self, ego: Pose2D) -> np.ndarray:
         """Sensor position (2,) in map for the ego pose."""
@@ -85,6 +87,7 @@ class Lidar:
         # only a detected actor in range can be kept: the others' visibility is never read
         dist, vis = self._visibility(world, gt, ego, wanted=detected)
         truth = map_to_base(gt, ego)  # over-ground velocity, rotated into base_link
+        self.last_truth = (t_s, truth)
         xy = truth.xy + rng.normal(0.0, c.position_noise_std_m, (n, 2))
         z = truth.z + rng.normal(0.0, c.position_noise_std_m, n)
         yaw = wrap_angle(truth.yaw + rng.normal(0.0, c.yaw_noise_std_rad, n))

@@ -162,3 +162,28 @@ def test_rsu_clock_steps_of_either_sign_keep_the_run_going_and_the_obu_recovers(
     assert out["output_deadline_miss_ratio"] == 0.0
     assert out["clock_step_recovery_s"] is not None and out["clock_step_recovery_s"] <= 3.0
     assert out["mode_share"]["vehicle_only"] < 0.1  # fusion resumed after the step
+
+
+def test_the_lidar_frames_truth_is_the_cycles_truth_and_a_stale_one_is_not_taken():
+    """RunRecord.add_output(..., truth=lidar.last_truth): the truth the LiDAR derived at the
+    cycle's capture equals, array for array, the one CycleFrame.of derives itself; the scores of a
+    record fed it equal those of one that is not; a truth of another time is not used."""
+    from evaluation.metrics import CycleFrame
+    from obu_service.source import SimulatedVehicle
+
+    world = World(load_scenario("red-light-runner"))
+    sensing = SimulatedVehicle(world, 0, EVAL_EPOCH_NS)
+    fed, plain = RunRecord(world, EVAL_EPOCH_NS, 40.0), RunRecord(world, EVAL_EPOCH_NS, 40.0)
+    for k in range(60, 160):
+        out = true_output(world, k)
+        sensing.capture(out.cycle_time_ns)
+        got = CycleFrame.of(world, out, EVAL_EPOCH_NS, sensing.lidar.last_truth).truth
+        want = CycleFrame.of(world, out, EVAL_EPOCH_NS).truth
+        assert got is sensing.lidar.last_truth[1]
+        for name in ("ids", "xy", "yaw", "vxy", "lwh"):
+            assert getattr(got, name).tobytes() == getattr(want, name).tobytes()
+        fed.add_output(out, truth=sensing.lidar.last_truth)
+        plain.add_output(out)
+    assert fed.target.score() == plain.target.score() and fed.detection.scores() == plain.detection.scores()
+    stale = (sensing.lidar.last_truth[0] - 0.1, sensing.lidar.last_truth[1])
+    assert CycleFrame.of(world, true_output(world, 159), EVAL_EPOCH_NS, stale).truth is not stale[1]
