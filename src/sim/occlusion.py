@@ -215,19 +215,25 @@ def _blocked_all(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarray:
 
 
 def _blocked_pruned(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarray:
-    """``_blocked_all``, testing exactly only the pairs whose bounding circles ``cone_pairs`` keeps."""
+    """``_blocked_all``, testing exactly only the pairs whose bounding circles ``cone_pairs`` keeps
+    (one ``cone_pairs`` over the boxes' and the polygons' circles: a pair's fate is its own)."""
     blocked = np.zeros(len(pts), dtype=bool)
+    polys = [np.asarray(poly, dtype=float) for poly in polygons]
+    if not len(boxes) and not polys:
+        return blocked
+    centres = [(poly.min(axis=0) + poly.max(axis=0)) / 2.0 for poly in polys]
+    radii = [np.hypot(*(poly - centre).T).max() for poly, centre in zip(polys, centres)]
+    q_all, k_all = cone_pairs(origin, pts, np.concatenate([boxes[:, :2], np.reshape(centres, (-1, 2))]),
+                              np.concatenate([np.hypot(boxes[:, 2], boxes[:, 3]) / 2.0, radii]))
     if len(boxes):
-        q, k = cone_pairs(origin, pts, boxes[:, :2], np.hypot(boxes[:, 2], boxes[:, 3]) / 2.0)
+        is_box = k_all < len(boxes)
+        q, k = q_all[is_box], k_all[is_box]
         other = box_owner[k] != owner[q]  # a target never hides itself
         q, k = q[other], k[other]
         hit = pair_hits_boxes(origin, pts, boxes, q, k)
         blocked[q[hit]] = True
-    for poly in polygons:
-        poly = np.asarray(poly, dtype=float)
-        centre = (poly.min(axis=0) + poly.max(axis=0)) / 2.0
-        radius = np.hypot(*(poly - centre).T).max()
-        q, _ = cone_pairs(origin, pts, centre[None], np.array([radius]))
+    for j, poly in enumerate(polys):
+        q = q_all[k_all == len(boxes) + j]
         q = q[~blocked[q]]
         blocked[q[segments_hit_polygons(np.broadcast_to(origin, (len(q), 2)), pts[q], [poly])[:, 0]]] = True
     return blocked
