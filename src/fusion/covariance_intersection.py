@@ -180,18 +180,23 @@ def ci_update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w: np.
 
 
 def ci_update_into(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w: np.ndarray,
-                   first: int = 0) -> None:
-    """``ci_update`` written into x (K, n) and P (K, n, n)."""
+                   first: int = 0, rows: np.ndarray | None = None) -> None:
+    """``ci_update`` written into x (K, n) and P (K, n, n); with ``rows`` (K,), into the rows rows[k]
+    of larger x, P (a track table), pair k being (x[rows[k]], P[rows[k]]) with (z[k], R[k], w[k])."""
     use = w < 1.0
     every = all_true(use)
     if not every and not any_true(use):
         return
     if every:
-        xu, pu, zu, ru, wu = x, p, z, r, w[:, None, None]
+        zu, ru, wu, target = z, r, w[:, None, None], rows
     else:
         use = true_index(use)  # (row gathers by .take: cheaper than boolean indexing on small batches)
-        xu, pu, zu, ru = x.take(use, axis=0), p.take(use, axis=0), z.take(use, axis=0), r.take(use, axis=0)
-        wu = w[use][:, None, None]
+        zu, ru, wu = z.take(use, axis=0), r.take(use, axis=0), w[use][:, None, None]
+        target = use if rows is None else rows.take(use)
+    if target is None:
+        xu, pu = x, p
+    else:
+        xu, pu = x.take(target, axis=0), p.take(target, axis=0)
     pw, rw = pu / wu, ru / (1.0 - wu)
     sel = slice(first, first + r.shape[-1])
     s = pw[:, sel, sel] + rw  # S = H P H^T / w + R / (1 - w)
@@ -200,10 +205,10 @@ def ci_update_into(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w
     # Joseph form with A = (I - K H) P / w: P+ = A + (K R' - A H^T) K^T (as kalman.update)
     a = pw - gain @ pw[:, sel, :]
     p_new = a + (gain @ rw - a[:, :, sel]) @ gain.transpose(0, 2, 1)
-    if every:
+    if target is None:
         x[...], p[...] = x_new, p_new
     else:
-        x[use], p[use] = x_new, p_new
+        x[target], p[target] = x_new, p_new
 
 
 def covariance_intersection(x1: np.ndarray, p1: np.ndarray, x2: np.ndarray, p2: np.ndarray,

@@ -344,9 +344,7 @@ class Tracker:
             groups = ((ti[~with_v], di[~with_v], False), (ti[with_v], di[with_v], True))
         for t, d, velocity in groups:
             z, r = _position_velocity(dets, d) if velocity else (dets.xy.take(d, axis=0), dets.cov_xy.take(d, axis=0))
-            x, p = tab.x.take(t, axis=0), tab.p.take(t, axis=0)
-            ci_update_into(x, p, z, r, ci_weights(p, r))
-            tab.x[t], tab.p[t] = x, p
+            ci_update_into(tab.x, tab.p, z, r, ci_weights(tab.p.take(t, axis=0), r), rows=t)
 
     def _second_positions(self, ti: np.ndarray, di: np.ndarray, known: np.ndarray, t_s: float) -> np.ndarray | None:
         """(K,) True where the pair (track ti, detection di) is a two-point initialisation: the track

@@ -111,3 +111,14 @@ def test_ci_update_into_writes_what_ci_update_returns():
         ci_update_into(x_in, p_in, z, r, w)
         np.testing.assert_array_equal(x_in, x_ref)
         np.testing.assert_array_equal(p_in, p_ref)
+        # into rows of a larger table (the tracker's store): the same rows, the others untouched
+        rows = np.array([7, 2, 5, 0, 3])
+        table_x, table_p = rng.normal(size=(9, 4)), spd(rng, 9, 4)
+        table_x[rows], table_p[rows] = x, p
+        before_x, before_p = table_x.copy(), table_p.copy()
+        ci_update_into(table_x, table_p, z, r, w, rows=rows)
+        np.testing.assert_array_equal(table_x[rows], x_ref)
+        np.testing.assert_array_equal(table_p[rows], p_ref)
+        others = np.setdiff1d(np.arange(9), rows)
+        np.testing.assert_array_equal(table_x[others], before_x[others])
+        np.testing.assert_array_equal(table_p[others], before_p[others])
