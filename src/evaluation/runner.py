@@ -320,21 +320,26 @@ class OfflineRun:
         if payload is None:
             return
         try:  # memoised per wire bytes object: its payload is the same for every receiver
-            msg = self._memo.decoded(data, ("list", self.spec.wire, rsu_id),
-                                     lambda: decode_list(payload, self.spec.wire, rsu_id))
+            msg = self._memo.decoded(data, ("list", self.spec.wire, rsu_id), lambda: self._decode_list(payload, rsu_id))
             vehicle.obu.on_rsu_message(msg, self.clock.t_ns)
             vehicle.record.rsu_messages += 1
         except CodecError as exc:
             vehicle.obu.reject(exc.reason)
         self._obu_fuse_if_ready(vehicle)
 
+    def _decode_list(self, payload: bytes, rsu_id: str) -> ObjectList:
+        """``decode_list``; the v2i wire's section through the memo (its prediction list repeats it)."""
+        if self.spec.wire == "v2i":  # decode_list's v2i case, the section decoded once per content
+            return decode(payload, ObjectList, unpack=self._memo.unpack)
+        return decode_list(payload, self.spec.wire, rsu_id)
+
     def _obu_predictions(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         payload = vehicle.security.open(data, keys.rsu_predictions(rsu.cfg.id), self.clock.t_ns)
         if payload is None:
             return
         try:
-            vehicle.obu.on_predictions(self._memo.decoded(data, PredictionList, lambda: decode(payload, PredictionList)),
-                                       self.clock.t_ns)
+            vehicle.obu.on_predictions(self._memo.decoded(
+                data, PredictionList, lambda: decode(payload, PredictionList, unpack=self._memo.unpack)), self.clock.t_ns)
         except CodecError as exc:
             vehicle.obu.reject(exc.reason)
 

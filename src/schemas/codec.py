@@ -19,13 +19,14 @@ for a rejection counter.
 from __future__ import annotations
 
 import reprlib
+from collections.abc import Callable
 from functools import cache
 from typing import Any, TypeVar
 
 import msgpack
 from pydantic import ValidationError
 
-from .columns import OBJECT_SPECS
+from .columns import OBJECT_SPECS, ObjectColumns
 from .errors import (CodecError, InvalidMessage, MalformedMessage, MessageTooLarge,  # noqa: F401 (re-exported)
                      SchemaVersionError, WrongMessageType)
 from .messages import SCHEMA_VERSION, FusedObjectList, Message, ObjectList, ObjectListHeader, PredictionList
@@ -235,10 +236,11 @@ def path_point_count(body: dict[str, Any]) -> int:
     return sum(len(p["x"]) for p in paths if isinstance(p, dict) and isinstance(p.get("x"), list))
 
 
-def from_body(body: dict[str, Any], model: type[M]) -> M:
-    """The validated ``model`` instance of an opened body (every model rule)."""
+def from_body(body: dict[str, Any], model: type[M], unpack: Callable[[Any, bool], ObjectColumns] = unpack_objects) -> M:
+    """The validated ``model`` instance of an opened body (every model rule). ``unpack``: the
+    objects section's decoder, ``object_wire.unpack_objects`` or one giving its very result."""
     if model.TYPE in LIST_TAGS:
-        objects = unpack_objects(body.get("objects", list(EMPTY_SECTION)), model is FusedObjectList)
+        objects = unpack(body.get("objects", list(EMPTY_SECTION)), model is FusedObjectList)
         body = {**body, "objects": objects}
     try:
         return model.model_validate(body)
@@ -248,9 +250,10 @@ def from_body(body: dict[str, Any], model: type[M]) -> M:
         raise MalformedMessage(f"{model.TYPE} body is nested too deeply") from None
 
 
-def decode(data: bytes, model: type[M], max_bytes: int = MAX_MESSAGE_BYTES) -> M:
-    """Validated ``model`` instance from wire bytes: ``open_body`` then ``from_body``.
+def decode(data: bytes, model: type[M], max_bytes: int = MAX_MESSAGE_BYTES,
+           unpack: Callable[[Any, bool], ObjectColumns] = unpack_objects) -> M:
+    """Validated ``model`` instance from wire bytes: ``open_body`` then ``from_body`` (``unpack``: as there).
 
     Any failure raises a :class:`CodecError` subclass.
     """
-    return from_body(open_body(data, model, max_bytes), model)
+    return from_body(open_body(data, model, max_bytes), model, unpack)

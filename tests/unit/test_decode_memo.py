@@ -42,3 +42,29 @@ def test_oldest_entries_are_dropped() -> None:
         memo.decoded(b, "k", lambda b=b: calls.append(b) or b)
     memo.decoded(blobs[0], "k", lambda: calls.append("again") or blobs[0])  # evicted: decoded again
     assert calls[-1] == "again"
+
+
+def test_an_objects_section_is_unpacked_once_per_exact_content() -> None:
+    """DecodeMemo.unpack: unpack_objects' result, shared by equal sections (an RSU's prediction
+    list repeats its object list's); a section equal only loosely (1.0 for 1) is decoded on its own
+    and refused as unpack_objects refuses it; a refusal is raised every time."""
+    import msgpack
+    import numpy as np
+
+    from schemas.columns import ObjectColumns
+    from schemas.object_wire import pack_objects, unpack_objects
+
+    codes = np.zeros((3, len(ObjectColumns.empty().names)), dtype=np.int64)
+    codes[:, 0] = [4, 5, 6]
+    codes[:, 2:4] = [[100, -20], [300, 40], [-500, 60]]
+    codes[:, 5:7] = [[450, 180]] * 3
+    section = msgpack.unpackb(msgpack.packb(pack_objects(ObjectColumns(codes, False))), raw=False)
+    memo = DecodeMemo()
+    first = memo.unpack(section, False)
+    assert first == unpack_objects(section, False)
+    assert memo.unpack(list(section), False) is first  # equal content: the same columns
+    loose = [float(section[0])] + section[1:]  # == section in Python, not on the wire
+    for _ in range(2):
+        with pytest.raises(CodecError):
+            memo.unpack(loose, False)
+    assert memo.unpack(section, True) is not first  # the fused layout is another decode
