@@ -133,12 +133,14 @@ def _linear_prior(m: Measured, prior: StatePrior, variances: list[float]) -> np.
     if variances:
         idx = np.arange(2 * POSITION_DIM, n)
         p[:, idx, idx] = variances
-    unknown = np.eye(2) * prior.speed_std_mps**2
+    var = prior.speed_std_mps**2
+    unknown = np.array([[var, 0.0], [0.0, var]])  # the prior speed variance on each axis
     if m.cov_vxy is None:  # as velocity_prior: the measured velocity covariance where tighter than the prior
         p[:, 2:4, 2:4] = unknown
     else:
         measured = m.velocity_measured(prior.speed_std_mps)
-        p[:, 2:4, 2:4] = m.cov_vxy if np.count_nonzero(measured) == k else np.where(measured[:, None, None], m.cov_vxy, unknown)
+        every = np.count_nonzero(measured) == k
+        p[:, 2:4, 2:4] = m.cov_vxy if every else np.where(measured[:, None, None], m.cov_vxy, unknown)
     return p
 
 

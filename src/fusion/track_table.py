@@ -15,6 +15,7 @@ tracks moves the kept rows down in place; a source bit seen for the first time a
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
+from operator import itemgetter
 
 import numpy as np
 
@@ -171,5 +172,10 @@ class TrackStore:
         self._known = int(np.bitwise_or.reduce(self.col_values)) if len(self.col_values) else 0  # bits with a column
 
     def _refresh(self) -> None:
-        n, rows = self.n, self._rows
-        self.view = TrackTable(*(column[:n] for column in rows.columns()), seen_bits=rows.seen_bits)
+        # the TrackTable of views built in C (map / itemgetter / dict update) rather than through the dataclass
+        # __init__ and a generator: this runs on every spawn and prune
+        rows, view = self._rows, TrackTable.__new__(TrackTable)
+        live = map(itemgetter(slice(0, self.n)), map(rows.__dict__.__getitem__, _ROW_COLUMNS))
+        view.__dict__.update(zip(_ROW_COLUMNS, live))
+        view.seen_bits = rows.seen_bits
+        self.view = view
