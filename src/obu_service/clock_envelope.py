@@ -195,6 +195,10 @@ def fit_drift(legs: list[Leg], bin_s: float, phase_s: float, q: float, prior: tu
     n = sum(len(leg.t_s) for leg in legs)
     bins = [np.floor((leg.t_s + phase_s) / bin_s) for leg in legs]  # the drift moves no reading across bins
     layouts = [_Bins.of(b, q) for b in bins]
+    # shared_slope needs two groups of >= 3 bins, and leaving out queued readings or congested
+    # bins never adds a bin: without two legs of >= 3 bins (a young window) the fit is the prior
+    if sum(len(layout.starts) >= 3 for layout in layouts) < 2:
+        return d0, sd0
     for _ in range(iters):
         detrended = [leg.detrended(d) for leg in legs]  # once per leg and drift: envelopes and their noise
         points = [_bin_envelopes(leg, b, layout, r, d, q) for leg, b, layout, r in zip(legs, bins, layouts, detrended)]

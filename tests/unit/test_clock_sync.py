@@ -9,7 +9,8 @@ from scipy.stats import theilslopes
 
 from link_emulator.channel import LinkModel
 from link_emulator.profile import load_profile
-from obu_service.clock_envelope import _pairs, lower_quartile, median_of_floats, median_of_ints, shared_slope, theil_sen_slope
+from obu_service.clock_envelope import (Leg, _pairs, fit_drift, lower_quartile, median_of_floats, median_of_ints,
+                                        shared_slope, theil_sen_slope)
 from obu_service.clock_sync import ClockSync, SyncSample
 from obu_service.sync_sim import (LTE_DOWNLINK, LTE_UPLINK, BufferedLeg, buffer_episodes, exchanges, forged,
                                   run_sync)
@@ -403,6 +404,23 @@ def test_the_fit_s_small_order_statistics_equal_numpy_bit_for_bit():
         counts = rng.integers(1, 40, n)
         assert median_of_ints(counts.tolist()) == np.median(counts)
         assert all(np.array_equal(a, b) for a, b in zip(_pairs(n), np.triu_indices(n, 1)))
+
+
+def test_a_young_window_fits_the_prior_and_three_bins_on_two_legs_fit_the_readings():
+    """fit_drift needs two legs with >= 3 bins (a shared slope with an intercept per leg): with
+    fewer it is the prior exactly; from then on the readings' slope (40 ppm = 40 us/s) shows."""
+    rng = np.random.default_rng(4)
+    prior = (0.0, 100_000.0)
+
+    def legs(duration_s):
+        t = np.sort(rng.uniform(-duration_s, 0.0, 10 * round(duration_s)))
+        delay = rng.exponential(2e6, len(t)) + 1e6
+        return [Leg(t, 40_000.0 * t + delay, +1), Leg(t, -40_000.0 * t + delay[::-1], -1)]
+
+    young = legs(3.9)  # at most 2 bins of 2 s per leg (edges at multiples of 2 s)
+    assert fit_drift(young, 2.0, 0.0, 0.1, prior, 50_000.0) == prior
+    drift, sd = fit_drift(legs(20.0), 2.0, 0.0, 0.1, prior, 50_000.0)
+    assert sd < prior[1] and abs(drift - 40_000.0) < 3 * sd
 
 
 def test_a_converged_filter_refits_every_refit_every_exchanges_not_each_one(monkeypatch):
