@@ -208,6 +208,7 @@ class World:
         self._ego = None if ego_spec is None else Trajectories([ego_spec.trajectory])
         self._ego_body = None if ego_spec is None else self._ego.body(0)
         self.ego_size = None if ego_spec is None else np.array(ego_spec.size, dtype=float)  # (3,) l, w, h (m)
+        self._static = self._static_truth()
 
     @property
     def duration_s(self) -> float:
@@ -225,13 +226,21 @@ class World:
             xy, yaw, vxy, axy = self._at_own_clocks(t_s)
         else:
             xy, yaw, vxy, axy = self._actors.at(t_s)
+        out = self._static.with_(xy=xy, yaw=yaw, vxy=vxy, axy=axy)
+        return out.take(self.present(t_s)) if self._timed else out
+
+    def _static_truth(self) -> ObjectArray:
+        """Every actor's time-independent columns (ids, class, size, z = h / 2, zero covariance,
+        confidence 1, no sources), built once and read-only: ``actors_at`` adds the kinematics."""
         n = len(self.ids)
         out = ObjectArray(
-            ids=self.ids.copy(), cls=self.cls.copy(), xy=xy, z=self.lwh[:, 2] / 2.0, lwh=self.lwh.copy(),
-            yaw=yaw, vxy=vxy, axy=axy, cov_xy=np.zeros((n, 2, 2)), confidence=np.ones(n),
-            sources=np.zeros(n, dtype=np.int64),
+            ids=self.ids.copy(), cls=self.cls.copy(), xy=np.zeros((n, 2)), z=self.lwh[:, 2] / 2.0,
+            lwh=self.lwh.copy(), yaw=np.zeros(n), vxy=np.zeros((n, 2)), cov_xy=np.zeros((n, 2, 2)),
+            confidence=np.ones(n), sources=np.zeros(n, dtype=np.int64),
         )
-        return out.take(self.present(t_s)) if self._timed else out
+        for name in ("ids", "cls", "z", "lwh", "yaw_rate", "cov_xy", "confidence", "cov_vxy", "age_s", "sources"):
+            getattr(out, name).flags.writeable = False  # shared by every state: never written
+        return out
 
     def _at_own_clocks(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every actor's state at its own clock t_s - spawn_s, all at once."""

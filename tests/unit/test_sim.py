@@ -411,3 +411,25 @@ def test_visible_fraction_of_sampled_targets_equals_sampling_all(name):
                                     sampled=mask)
             assert part[mask].tobytes() == full[mask].tobytes()
             assert not part[~mask].any()
+
+
+@pytest.mark.parametrize("name", ["two-rsu-corridor", "dense-intersection"])
+def test_actors_at_adds_the_kinematics_to_read_only_static_columns(name):
+    """World.actors_at = the per-call construction it replaced (every column, bit for bit, spawned
+    actors only), its time-independent columns shared read-only, its kinematics fresh per call."""
+    world = World(load_scenario(name))
+    for t_s in (0.0, 3.7, 11.2, world.duration_s - 0.1):
+        got = world.actors_at(t_s)
+        xy, yaw, vxy, axy = world._actors.at(t_s - world._spawn_s if world._timed else t_s)
+        n = len(world.ids)
+        want = ObjectArray(ids=world.ids.copy(), cls=world.cls.copy(), xy=xy, z=world.lwh[:, 2] / 2.0,
+                           lwh=world.lwh.copy(), yaw=yaw, vxy=vxy, axy=axy, cov_xy=np.zeros((n, 2, 2)),
+                           confidence=np.ones(n), sources=np.zeros(n, dtype=np.int64)).take(world.present(t_s))
+        for column in ("ids", "cls", "xy", "z", "lwh", "yaw", "vxy", "axy", "yaw_rate", "cov_xy", "confidence",
+                       "cov_vxy", "age_s", "sources"):
+            a, b = getattr(got, column), getattr(want, column)
+            assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), column
+    untimed = World(load_scenario("dense-intersection"))
+    first, second = untimed.actors_at(1.0), untimed.actors_at(2.0)
+    assert first.ids is second.ids and not first.ids.flags.writeable
+    assert first.xy is not second.xy and first.xy.flags.writeable
