@@ -117,6 +117,8 @@ class Channel:
         Time-based processes (outage schedule, trace replay) restart at the next message.
         """
         self.direction = direction
+        self._pdr_curve = None if direction.pdr_curve is None else tuple(np.array(c, dtype=float)
+                                                                          for c in zip(*direction.pdr_curve))
         self._ar = GaussianAR1(direction.correlation, self._ar.z if self._ar else self._z0)
         bad0 = self._ge.bad if self._ge else self._u_bad0 < direction.loss_probability
         self._ge = GilbertElliott(direction.loss_probability, direction.mean_burst_len, bad0)
@@ -172,7 +174,7 @@ class Channel:
         lost = bool(self._ge.step(uniform[:, _U_LOSS])[0])
         u_pdr, u_dup = float(uniform[0, _U_PDR]), float(uniform[0, _U_DUP])
         if distance_m is not None and not math.isnan(distance_m):
-            lost = (u_pdr >= float(d.pdr_at(distance_m))) or lost  # delivered with probability PDR(d)
+            lost = (u_pdr >= self._pdr_one(float(distance_m))) or lost  # delivered with probability PDR(d)
         dup = not lost and u_dup < d.duplicate_probability
         prop_ns = int(self._delay_ns(normal, uniform, 0, None)[0])  # steps the AR(1) for every message
         copy_ns = send_ns + int(self._copy_delay_ns(normal[:, _Z_DUP], 0, None)[0]) if dup else NONE_NS
@@ -301,6 +303,14 @@ class Channel:
             seq = np.where(valid, latest, NONE_NS).reshape(-1, 2)
             return Deliveries(seq[:, 0].copy(), seq[:, 1].copy())
         return Deliveries(deliver, copy)
+
+    def _pdr_one(self, distance_m: float) -> float:
+        """``direction.pdr_at`` of one distance (m): the same interpolation (np.interp) on the curve's
+        arrays, taken apart once per profile (``set_direction``)."""
+        d = self.direction
+        if d.range_m is not None and distance_m > d.range_m:
+            return 0.0
+        return 1.0 if self._pdr_curve is None else float(np.interp(distance_m, *self._pdr_curve))
 
     def _one_in_order(self, deliver_ns: int, copy_ns: int) -> tuple[int, int]:
         """``_in_order`` of one message and its copy (NONE_NS: none), as ints."""

@@ -496,3 +496,16 @@ def test_plain_channel_single_transmits_equal_the_batch(fifo: bool, dup: float) 
     assert got == expected
     assert 0 < sum(not times for times in expected) < send_ns.size  # some lost, not all
     assert any(len(times) == 2 for times in expected) == (dup > 0)
+
+
+@pytest.mark.parametrize("name", bundled_profiles())
+def test_one_distance_pdr_equals_the_profiles_curve(name: str) -> None:
+    """Channel._pdr_one (transmit_all's scalar path) equals DirectionProfile.pdr_at, bit for bit,
+    from 0 m to past range_m, at the curve's own knots and between them."""
+    for channel in (LinkModel(load_profile(name), 0).uplink, LinkModel(load_profile(name), 0).downlink):
+        d = channel.direction
+        knots = [x for x, _ in d.pdr_curve or []] + ([d.range_m] if d.range_m is not None else [])
+        for distance_m in [*np.linspace(0.0, 1500.0, 301), *knots, *(np.nextafter(k, np.inf) for k in knots)]:
+            want = float(d.pdr_at(distance_m))
+            got = channel._pdr_one(float(distance_m))
+            assert np.float64(got).tobytes() == np.float64(want).tobytes(), (name, distance_m)
