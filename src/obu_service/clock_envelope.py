@@ -62,7 +62,7 @@ def bin_tail_means(bins: np.ndarray, t: np.ndarray, r: np.ndarray, q: float) -> 
 
 @dataclass(frozen=True)
 class _Bins:
-    """Where each bin starts and ends in readings sorted by bin, its count, the end of its lower
+    """Where each bin starts and ends in readings sorted by bin, its count, the size of its lower
     tail and whether it is kept, shapes (m,): they depend on the bins only, not on the readings'
     order within a bin, so a fit finds them once per leg for both drift iterations."""
 
