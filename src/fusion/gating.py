@@ -26,7 +26,7 @@ import shapely
 
 from . import kalman
 from .association import Assignment, assign_sparse
-from .fastnp import all_true, true_index
+from .fastnp import true_index
 from .geometry import box_polygons
 from .objects import ObjectArray
 
@@ -58,8 +58,9 @@ def _trace2(c: np.ndarray) -> np.ndarray:
 
 
 def _near(config: TrackerConfig, table: TrackTable, dets: ObjectArray):
-    """Candidate pairs (module docstring): track ti (K,) and detection di (K,) of each class-compatible
-    pair inside the bound (ordered by track, then detection), and their offsets dx, dy (K,) = track - detection."""
+    """Candidate pairs (module docstring): track ti (K,) and detection di (K,) of each pair inside the
+    bound (ordered by track, then detection; classes not yet compared), and their offsets dx, dy (K,) =
+    track - detection."""
     x, dxy = table.x, dets.xy
     px, py, zx, zy = x[:, 0], x[:, 1], dxy[:, 0], dxy[:, 1]
     reach_m, lam_p = config.gate_m, None
@@ -83,11 +84,7 @@ def _near(config: TrackerConfig, table: TrackTable, dets: ObjectArray):
             near = (r2 <= config.gate_m**2) | (near & (r2 <= config.gate_max_m**2))
     flat = true_index(near)  # row-major, as np.nonzero (which is slower on 2-D arrays)
     tl, di = np.divmod(flat, near.shape[1])
-    ti = rows.take(tl)
-    keep = compatible_classes(table.cls.take(ti), dets.cls.take(di))
-    if not all_true(keep):
-        flat, ti, di = flat[keep], ti[keep], di[keep]
-    return ti, di, dx.ravel().take(flat), dy.ravel().take(flat)
+    return rows.take(tl), di, dx.ravel().take(flat), dy.ravel().take(flat)
 
 
 def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> GatedPairs:
@@ -106,7 +103,7 @@ def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
         inside = d2 <= config.gate_chi2
     else:
         inside = (dist <= config.gate_m) | ((d2 <= config.gate_chi2) & (dist <= config.gate_max_m))
-    inside = true_index(inside)
+    inside = true_index(inside & compatible_classes(table.cls.take(ti), dets.cls.take(di)))
     ti, di = ti.take(inside), di.take(inside)
     if config.cost == "distance":
         cost = dist.take(inside)
