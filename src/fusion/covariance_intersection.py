@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fastnp import all_true, any_true, cholesky_or_nan, eigvalsh_or_nan, filled, inv_or_nan, true_index
+from .fastnp import all_true, any_true, eigvalsh_or_nan, filled, inverse_cholesky_or_nan, true_index
 
 W_MIN = 1e-6  # smallest weight of the track (full observations: w -> 0 takes the estimate)
 W_TOL = 1e-12  # Newton stops once every step is below this (module docstring)
@@ -149,12 +149,11 @@ def ci_weights(p: np.ndarray, r: np.ndarray, first: int = 0) -> np.ndarray:
     else:
         rows = np.flatnonzero(np.isfinite(p_obs).all(axis=(1, 2)) & np.isfinite(r).all(axis=(1, 2)))
         p_obs, r = p_obs[rows], r[rows]
-    lower = cholesky_or_nan(r)  # R = L L^T, NaN where R has no factor (positive definite to rounding)
-    factored = ~np.isnan(lower[:, 0, 0])
+    inv_l = inverse_cholesky_or_nan(r)  # L^-1, R = L L^T; NaN where R has no factor (positive definite to rounding)
+    factored = ~np.isnan(inv_l[:, 0, 0])
     if not all_true(factored):
         rows = np.flatnonzero(factored) if rows is None else rows[factored]
-        p_obs, lower = p_obs[factored], lower[factored]
-    inv_l = inv_or_nan(lower)
+        p_obs, inv_l = p_obs[factored], inv_l[factored]
     w = filled(k, 1.0)
     if not len(p_obs):
         return w

@@ -60,6 +60,15 @@ def cholesky_or_nan(a: np.ndarray) -> np.ndarray:
     return out  # pragma: no cover
 
 
+def inverse_cholesky_or_nan(a: np.ndarray) -> np.ndarray:
+    """``np.linalg.inv(np.linalg.cholesky(a))`` of each float64 matrix a (K, m, m): L^-1 with a = L L^T (a
+    whitening transform, L^-1 a L^-T = I); all NaN for a matrix without a factor. One errstate for both."""
+    if _lapack is None:  # pragma: no cover
+        return inv_or_nan(cholesky_or_nan(a))
+    with np.errstate(all="ignore"):
+        return _lapack.inv(_lapack.cholesky_lo(a, signature="d->d"), signature="d->d")
+
+
 def inv_or_nan(a: np.ndarray) -> np.ndarray:
     """``np.linalg.inv`` of each float64 matrix a (K, m, m); all NaN for a singular one."""
     if _lapack is None:  # pragma: no cover

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from fusion.fastnp import all_true, any_true, cholesky_or_nan, eigvalsh_or_nan, filled, inv_or_nan, true_index
+from fusion.fastnp import (all_true, any_true, cholesky_or_nan, eigvalsh_or_nan, filled, inv_or_nan,
+                           inverse_cholesky_or_nan, true_index)
 
 
 @pytest.mark.parametrize("shape", [(0,), (1,), (7,), (40,), (3, 5), (0, 4)])
@@ -40,6 +41,9 @@ def test_batched_lapack_equals_numpy_linalg_and_marks_failures_nan(m):
     chol = cholesky_or_nan(broken)
     assert np.isnan(chol[[2, 4]]).all()
     np.testing.assert_array_equal(chol[[0, 1, 3, 5]], np.linalg.cholesky(spd[[0, 1, 3, 5]]))
+    whitening = inverse_cholesky_or_nan(broken)
+    assert np.isnan(whitening[[2, 4]]).all()
+    np.testing.assert_array_equal(whitening[[0, 1, 3, 5]], np.linalg.inv(np.linalg.cholesky(spd[[0, 1, 3, 5]])))
     singular = a.copy()
     singular[1] = 0.0
     inv = inv_or_nan(singular)
