@@ -20,6 +20,10 @@ import numpy as np
 from fusion.objects import ObjectArray
 
 PRUNE = True  # False: every segment against every occluder (the reference the pruned test equals)
+# At most this many (point, box) pairs: every pair through the pruned path's own exact tests
+# (pair_hits_boxes, segments_hit_polygons) without the bearing search, cheaper for a few targets
+# and occluders (a pair the search would drop cannot hit: the same answers).
+SMALL_PAIRS = 1024
 _MARGIN_M = 1e-6  # bounding circles grow by this, and
 _MARGIN_RAD = 1e-9  # bearing spans by this, so that rounding never prunes a true hit
 
@@ -192,7 +196,8 @@ def visible_fraction(
         box_owner = np.concatenate([np.full(len(boxes) - n, -1), np.arange(n)])  # a target never hides itself
     else:
         box_owner = np.full(len(boxes), -1)
-    blocked_by = _blocked_pruned if PRUNE else _blocked_all
+    blocked_by = _blocked_all if not PRUNE else _blocked_every_pair if len(pts) * len(boxes) <= SMALL_PAIRS \
+        else _blocked_pruned
     blocked = blocked_by(origin, pts, owner, boxes, box_owner, polygons)
     if sampled is None:
         return 1.0 - blocked.reshape(n, samples).mean(axis=1)
@@ -211,6 +216,21 @@ def _blocked_all(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarray:
         blocked |= hits.any(axis=1)
     if len(polygons):
         blocked |= segments_hit_polygons(a, pts, polygons).any(axis=1)
+    return blocked
+
+
+def _blocked_every_pair(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarray:
+    """``_blocked_pruned`` without the pruning: the same exact tests on every (point, occluder) pair."""
+    blocked = np.zeros(len(pts), dtype=bool)
+    if len(boxes):
+        q, k = np.repeat(np.arange(len(pts)), len(boxes)), np.tile(np.arange(len(boxes)), len(pts))
+        other = box_owner[k] != owner[q]  # a target never hides itself
+        q, k = q[other], k[other]
+        blocked[q[pair_hits_boxes(origin, pts, boxes, q, k)]] = True
+    for poly in polygons:
+        q = np.flatnonzero(~blocked)
+        poly = np.asarray(poly, dtype=float)
+        blocked[q[segments_hit_polygons(np.broadcast_to(origin, (len(q), 2)), pts[q], [poly])[:, 0]]] = True
     return blocked
 
 

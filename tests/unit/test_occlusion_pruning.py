@@ -86,3 +86,28 @@ def test_target_behind_a_wall_is_hidden_either_way(prune):
     wall = np.array([[-15.0, 0.0, 1.0, 20.0, 0.0]])  # across the -x axis: bearing +-pi from the origin
     assert _fractions(prune, np.zeros(2), target, wall)[0] == 0.0
     assert _fractions(prune, np.zeros(2), target, wall + [0, 30.0, 0, 0, 0])[0] == 1.0
+
+
+def test_every_pair_path_equals_the_pruned_path_on_random_scenes():
+    """visible_fraction's small-input path (every (point, occluder) pair through the pruned path's
+    own exact tests, up to SMALL_PAIRS pairs) gives the pruned path's fractions on random scenes."""
+    rng = np.random.default_rng(23)
+    saved = occlusion.SMALL_PAIRS
+    try:
+        for it in range(300):
+            n, span_m = int(rng.integers(0, 30)), float(rng.choice([5.0, 20.0, 60.0]))
+            targets = _targets(rng, n, span_m)
+            m = int(rng.integers(0, 6))
+            boxes = np.column_stack([rng.uniform(-span_m, span_m, (m, 2)), rng.uniform(0.5, 10, (m, 2)),
+                                     rng.uniform(-4, 4, m)]) if m else None
+            polys = [_star(rng, rng.uniform(-span_m, span_m, 2)) for _ in range(int(rng.integers(0, 3)))]
+            origin = targets.xy[0].copy() if it % 3 == 0 and n else rng.uniform(-span_m, span_m, 2)
+            for targets_occlude in (True, False):
+                kw = {"samples": 9, "targets_occlude": targets_occlude}
+                occlusion.SMALL_PAIRS = 0
+                pruned = visible_fraction(origin, targets, boxes, polys, **kw)
+                occlusion.SMALL_PAIRS = 10**9
+                every = visible_fraction(origin, targets, boxes, polys, **kw)
+                np.testing.assert_array_equal(every, pruned)
+    finally:
+        occlusion.SMALL_PAIRS = saved
