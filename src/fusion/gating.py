@@ -11,8 +11,8 @@ Candidates first (``_near``): tracks inside the detections' bounding box grown b
 largest reach any pair can have, then a bound per pair on the (rows, M) block:
 distance gate |y| <= gate_m; Mahalanobis gate d2 = y^T S^-1 y >= |y|^2 / lambda_max(S) and
 lambda_max(S) <= tr(S) = tr(H P H^T) + tr(R), so a pair with |y|^2 > chi2 (tr P_xy + tr R)
-fails. The exact test then runs on the few pairs left, with the offsets of the bound
-(y = -(x_track - z), exactly) and the 2 x 2 entries of S gathered per pair.
+fails. The exact test (and the class check, in the same pass) then runs on the few pairs left,
+with the offsets of the bound (y = -(x_track - z), exactly) and the 2 x 2 entries of S gathered per pair.
 """
 
 from __future__ import annotations
