@@ -29,7 +29,8 @@ from pydantic import ValidationError
 from .columns import OBJECT_SPECS, ObjectColumns
 from .errors import (CodecError, InvalidMessage, MalformedMessage, MessageTooLarge,  # noqa: F401 (re-exported)
                      SchemaVersionError, WrongMessageType)
-from .messages import SCHEMA_VERSION, FusedObjectList, Message, ObjectList, ObjectListHeader, PredictionList
+from .messages import (SCHEMA_VERSION, FusedObjectList, Message, ObjectList, ObjectListHeader, PredictedPath,
+                       PredictionList)
 from .object_wire import EMPTY_SECTION, unpack_objects
 from .object_wire import object_count as _section_count
 from .sensor_messages import GroundTruth, SensorObjects
@@ -78,12 +79,19 @@ def _positional(msg: Message) -> list[Any]:
         elif nested is not None:
             out.append(_positional(value))
         elif isinstance(value, tuple):
-            out.append([v.model_dump(mode="python") if isinstance(v, Message) else v for v in value])
+            out.append([_path_dump(v) if type(v) is PredictedPath else v.model_dump(mode="python")
+                        if isinstance(v, Message) else v for v in value])
         else:
             out.append(value)
     while out and out[-1] is None:
         out.pop()
     return out
+
+
+def _path_dump(path: PredictedPath) -> dict[str, Any]:
+    """``path.model_dump(mode="python")`` of a predicted path (plain fields: its id and three tuples
+    of floats, in declaration order) without pydantic's serializer, ~4x faster (~40 per prediction list)."""
+    return {"id": path.id, "x": path.x, "y": path.y, "yaw": path.yaw}
 
 
 def _named(values: Any, model: type[Message], where: str) -> dict[str, Any]:

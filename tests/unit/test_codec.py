@@ -583,3 +583,29 @@ def test_an_object_section_is_packed_once_and_encodes_as_packed() -> None:
                           paths=tuple(PredictedPath(id=o.id) for o in msg.objects))
     assert pred.objects.wire_section is msg.objects.wire_section
     assert decode(encode(pred), PredictionList).objects == msg.objects
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(prediction_lists())
+def test_predicted_paths_encode_as_their_model_dump(msg) -> None:
+    """encode writes each predicted path as a plain {id, x, y, yaw} map: the very bytes of the
+    envelope built with pydantic's model_dump (the path model has exactly those fields)."""
+    from schemas.codec import _layout, _positional
+    from schemas.object_wire import pack_objects
+
+    assert list(PredictedPath.model_fields) == ["id", "x", "y", "yaw"]
+    want = []
+    for name, default, nested in _layout(PredictionList):
+        value = getattr(msg, name)
+        if value == default and type(value) is type(default):
+            want.append(None)
+        elif nested is not None:
+            want.append(_positional(value))
+        elif isinstance(value, tuple):
+            want.append([v.model_dump(mode="python") for v in value])
+        else:
+            want.append(value)
+    while want and want[-1] is None:
+        want.pop()
+    envelope = [SCHEMA_VERSION, LIST_TAGS[PredictionList.TYPE], want, pack_objects(msg.objects)]
+    assert encode(msg) == msgpack.packb(envelope, use_bin_type=True)
