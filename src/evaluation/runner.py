@@ -277,7 +277,7 @@ class OfflineRun:
     def _rsu_time_query(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         if not self._up("rsu"):
             return
-        request = decode(data, TimeRequest)
+        request = self._memo.decoded(data, TimeRequest, lambda: decode(data, TimeRequest))  # one per broadcast
         t2 = rsu.clock.now_ns()
         reply = answer_time_request(request, rsu.pipeline.config.rsu_id, t2, t2 + RSU_REPLY_NS)
         data = sign(encode(reply), rsu.signer, reply.t3_ns, keys.rsu_time(rsu.cfg.id))
@@ -406,7 +406,8 @@ class OfflineRun:
     def _peer_time_request(self, sender: _Vehicle, receiver: _Vehicle, data: bytes) -> None:
         """The receiver answers PEER_REPLY_NS later, back through its own channel to the sender."""
         t2_ns = self.clock.t_ns
-        reply = receiver.obu.peers.answer(decode(data, TimeRequest), sender.name, t2_ns, t2_ns + PEER_REPLY_NS)
+        request = self._memo.decoded(data, TimeRequest, lambda: decode(data, TimeRequest))  # one per broadcast
+        reply = receiver.obu.peers.answer(request, sender.name, t2_ns, t2_ns + PEER_REPLY_NS)
         if reply is not None:
             self.queue.at(t2_ns + PEER_REPLY_NS, self._v2v_send, receiver, sender, encode(reply), self._peer_time_reply)
 
