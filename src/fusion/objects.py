@@ -77,12 +77,12 @@ class ObjectArray:
         return out
 
     def with_(self, **changes) -> "ObjectArray":
-        """A copy with some columns replaced (``dataclasses.replace``). Fast path: when the ids stay
-        and every new column is an array of N rows, only those are checked (the rest were at __init__)."""
+        """A copy with some columns replaced (``dataclasses.replace``). Fast path: when every new
+        column (new ids included) is an array of the N rows the others have, only those are checked
+        (the rest were at __init__: rows still agree)."""
         n = len(self.ids)
-        if "ids" in changes or not all(name in _FIELD_SET and value is not None and len(value) == n
-                                       for name, value in changes.items()):
-            return replace(self, **changes)  # new ids, a default or a bad column: validate everything
+        if not all(name in _FIELD_SET and value is not None and len(value) == n for name, value in changes.items()):
+            return replace(self, **changes)  # a default, a bad column or other row counts: validate everything
         out = object.__new__(ObjectArray)
         out.__dict__.update(self.__dict__)
         out.__dict__.update(changes)

@@ -88,20 +88,56 @@ def fit_to_wire(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS) -> tuple[Ob
     Every check and clip runs once on the (N, 22) table of the real-valued columns (``_LAYOUT``).
     """
     table = _table(objs)
-    finite = np.isfinite(table).all(axis=1)
-    inside = finite & (np.abs(np.where(finite[:, None], objs.xy, 0.0)) <= m.POSITION_MAX_M).all(axis=1)
-    counts = Counter(not_finite=int((~finite).sum()), out_of_range=int((finite & ~inside).sum()))
-    keep = np.flatnonzero(inside)
-    if len(keep) > max_objects:
-        counts["truncated"] = len(keep) - max_objects
-        nearest = np.argsort(np.hypot(objs.xy[keep, 0], objs.xy[keep, 1]), kind="stable")[:max_objects]
-        keep = keep[np.sort(nearest)]
+    keep, counts = _kept_rows(table, objs.xy, max_objects)
     objs, table = objs.take(keep), table[keep]
     clipped = np.clip(table, _LO, _HI)
     clipped[:, _YAW] = wrap_angle(table[:, _YAW])
     ids = np.mod(objs.ids, 2**32)
     counts["clipped"] = int(((objs.ids != ids) | (table != clipped).any(axis=1)).sum())
     return _with_table(objs, ids, clipped), +counts
+
+
+def wire_columns(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS, fused: bool = False
+                 ) -> tuple[ObjectColumns, Counter[str]]:
+    """``states_from_objects(fit_to_wire(objs, max_objects)[0], fused)`` and fit_to_wire's counts,
+    from one table: the (N, 24) table of the wire's columns id .. age_s and each covariance's
+    lower off-diagonal (which fit_to_wire checks and clips as well; the slot ``sources`` takes
+    once they are counted) is checked and clipped in place of the (N, 22) ``_LAYOUT`` table and
+    handed to ``ObjectColumns.from_values`` (no fitted ObjectArray, no second table). The same
+    values in the same columns: the same codes."""
+    n = len(objs)
+    table = np.empty((n, _W_WIDTH))
+    real = table[:, _W_REAL]  # (N, 22) view: x .. age_s, cov_xy[1, 0], cov_vxy[1, 0]
+    for name, start, width in _W_SPANS:
+        real[:, start:start + width] = getattr(objs, name).reshape(n, width)
+    real[:, _W_COV] = objs.cov_xy.reshape(n, 4)[:, [0, 1, 3, 2]]
+    real[:, _W_VCOV] = objs.cov_vxy.reshape(n, 4)[:, [0, 1, 3, 2]]
+    keep, counts = _kept_rows(real, objs.xy, max_objects)
+    rows = keep if len(keep) < n else slice(None)  # every row kept (the usual case): views, no copies
+    table, old_ids = table[rows], objs.ids[rows]
+    ids, real = np.mod(old_ids, 2**32), table[:, _W_REAL]
+    clipped = np.clip(real, _W_LO, _W_HI)
+    clipped[:, _W_YAW] = wrap_angle(real[:, _W_YAW])
+    counts["clipped"] = int(((old_ids != ids) | (real != clipped).any(axis=1)).sum())
+    table[:, _W_REAL] = clipped
+    table[:, _C["id"]], table[:, _C["cls"]] = ids, objs.cls[rows]
+    if fused:
+        table[:, _C["sources"]] = wire_sources(objs.sources[rows])  # over cov_xy[1, 0], counted above
+    return ObjectColumns.from_values(table[:, :len(COLUMN) if fused else len(COLUMN) - 1], fused), +counts
+
+
+def _kept_rows(real: np.ndarray, xy: np.ndarray, max_objects: int) -> tuple[np.ndarray, Counter[str]]:
+    """(indices of the rows kept, counts): rows of ``real`` (N, M) with a non-finite value dropped,
+    then those whose position ``xy`` (N, 2) is out of range, then the farthest beyond max_objects."""
+    finite = np.isfinite(real).all(axis=1)
+    inside = finite & (np.abs(np.where(finite[:, None], xy, 0.0)) <= m.POSITION_MAX_M).all(axis=1)
+    counts = Counter(not_finite=int((~finite).sum()), out_of_range=int((finite & ~inside).sum()))
+    keep = np.flatnonzero(inside)
+    if len(keep) > max_objects:
+        counts["truncated"] = len(keep) - max_objects
+        nearest = np.argsort(np.hypot(xy[keep, 0], xy[keep, 1]), kind="stable")[:max_objects]
+        keep = keep[np.sort(nearest)]
+    return keep, counts
 
 
 # the real-valued columns of an ObjectArray as one (N, 22) table: (column, width, low, high) with
@@ -120,6 +156,26 @@ _ENDS = list(accumulate(width for _, width, _, _ in _LAYOUT))
 _SPAN = {name: slice(end - width, end) for (name, width, _, _), end in zip(_LAYOUT, _ENDS)}  # column -> slice
 _LO[[_SPAN["cov_xy"].start, _SPAN["cov_xy"].start + 3, _SPAN["cov_vxy"].start, _SPAN["cov_vxy"].start + 3]] = 0.0
 _YAW = _SPAN["yaw"].start
+
+# wire_columns' table: the wire's columns id .. age_s (COLUMN order), then cov_xy[1, 0] (where a
+# fused list's sources go once it is counted) and cov_vxy[1, 0]; _W_REAL: its real-valued columns,
+# in _LAYOUT's bounds (_W_FROM: their _LAYOUT columns); _W_SPANS: (ObjectArray column, start, width)
+_W_WIDTH = _C["age_s"] + 3
+_W_REAL = slice(_C["x"], _W_WIDTH)
+_W_SPANS = tuple((name, _C[first] - _C["x"], width) for name, first, width in (
+    ("xy", "x", 2), ("z", "z", 1), ("lwh", "length", 3), ("yaw", "yaw", 1), ("vxy", "vx", 2), ("axy", "ax", 2),
+    ("yaw_rate", "yaw_rate", 1), ("confidence", "confidence", 1), ("age_s", "age_s", 1)))
+_W_YX = _C["age_s"] + 1 - _C["x"]  # cov_xy[1, 0] in _W_REAL, cov_vxy[1, 0] after it
+_W_COV = [_C["cov_xx"] - _C["x"], _C["cov_xy"] - _C["x"], _C["cov_yy"] - _C["x"], _W_YX]  # row-major 0, 1, 3, 2
+_W_VCOV = [_C["cov_vxx"] - _C["x"], _C["cov_vxy"] - _C["x"], _C["cov_vyy"] - _C["x"], _W_YX + 1]
+_W_YAW = _C["yaw"] - _C["x"]
+_W_FROM = np.empty(_W_YX + 2, np.int64)
+for _name, _start, _width in _W_SPANS:
+    _W_FROM[_start:_start + _width] = range(_SPAN[_name].start, _SPAN[_name].stop)
+_W_FROM[_W_COV] = _SPAN["cov_xy"].start + np.array([0, 1, 3, 2])
+_W_FROM[_W_VCOV] = _SPAN["cov_vxy"].start + np.array([0, 1, 3, 2])
+_W_LO, _W_HI = _LO[_W_FROM], _HI[_W_FROM]
+del _name, _start, _width
 
 
 def _table(objs: ObjectArray) -> np.ndarray:

@@ -33,7 +33,7 @@ from fusion.merger import iou_merge
 from fusion.objects import ObjectArray
 from fusion.pose_history import PoseHistory
 from fusion.tracking import SOURCE_BITS, slot_source
-from fusion.wire import fit_to_wire, objects_from_states, states_from_objects
+from fusion.wire import objects_from_states, wire_columns
 from schemas.messages import (MAX_OBJECTS, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics,
                               PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
 
@@ -302,12 +302,11 @@ class ObuPipeline:
             fused = self._with_planning(fused, planning, t_c, ego, now_ns)
         self._account(t_c, mode, now_ns)
         self._out_seq += 1
-        fused, dropped = fit_to_wire(fused, MAX_OBJECTS)
+        objects, dropped = wire_columns(fused, MAX_OBJECTS, fused=True)  # fit_to_wire, then its wire columns
         self.output_dropped.update(dropped)
         return FusedObjectList(
             vehicle_id=self.config.vehicle_id, seq=self._out_seq, cycle_time_ns=t_c, publish_time_ns=now_ns,
-            fusion=self.config.fusion, mode=mode, ego_x=ego.x, ego_y=ego.y, ego_yaw=ego.yaw,
-            objects=states_from_objects(fused, fused=True),
+            fusion=self.config.fusion, mode=mode, ego_x=ego.x, ego_y=ego.y, ego_yaw=ego.yaw, objects=objects,
         )
 
     def _within_budget(self, frames: list[RsuFrame]) -> list[RsuFrame]:

@@ -1,13 +1,16 @@
-"""fusion.wire.fit_to_wire (one stacked (N, 22) table) against the per-column reference it replaced."""
+"""fusion.wire.fit_to_wire (one stacked (N, 22) table) against the per-column reference it replaced, and
+wire_columns (fit and wire columns from one table) against fit_to_wire then states_from_objects."""
 
 from collections import Counter
 
 import numpy as np
+import pytest
 
 from fusion.frames import wrap_angle
 from fusion.objects import ObjectArray
-from fusion.wire import fit_to_wire
+from fusion.wire import fit_to_wire, states_from_objects, wire_columns
 from schemas import messages as m
+from schemas.errors import InvalidMessage
 
 
 def reference_fit(objs: ObjectArray, max_objects: int) -> tuple[ObjectArray, Counter]:
@@ -75,3 +78,40 @@ def test_fit_to_wire_equals_the_per_column_reference_exactly():
             got, want = getattr(fitted, name), getattr(ref, name)
             assert got.shape == want.shape and got.dtype == want.dtype, name
             np.testing.assert_array_equal(got, want, err_msg=name, strict=True)
+
+
+def test_wire_columns_equals_fit_to_wire_then_states_from_objects():
+    """One table (wire_columns) gives the codes and counts of fit_to_wire followed by
+    states_from_objects, plain and fused, hostile values and truncation included; an object
+    the wire refuses after fitting (a class code out of range) raises the same error."""
+    rng = np.random.default_rng(11)
+    for n, max_objects in [(0, 10), (1, 10), (40, 1000), (300, 50), (300, 0), (200, 1024)]:
+        objs = hostile_objects(rng, n)
+        if n == 200:  # symmetric covariances, as a tracker's: nothing but lower off-diagonals differ
+            objs = objs.with_(cov_xy=objs.cov_xy + objs.cov_xy.transpose(0, 2, 1),
+                              cov_vxy=objs.cov_vxy + objs.cov_vxy.transpose(0, 2, 1))
+        fitted, counts = fit_to_wire(objs, max_objects)
+        for fused in (False, True):
+            cols, got_counts = wire_columns(objs, max_objects, fused)
+            want = states_from_objects(fitted, fused)
+            assert got_counts == counts and cols.fused == fused
+            np.testing.assert_array_equal(cols.codes, want.codes, strict=True)
+    bad = hostile_objects(rng, 30)
+    bad = bad.with_(cls=np.where(np.arange(30) == 7, 999, bad.cls))
+    fitted, _ = fit_to_wire(bad)
+    with pytest.raises(InvalidMessage) as want:
+        states_from_objects(fitted, True)
+    with pytest.raises(InvalidMessage) as got:
+        wire_columns(bad, fused=True)
+    assert str(got.value) == str(want.value) and "cls" in str(got.value)
+
+
+def test_wire_columns_counts_a_clip_of_the_lower_off_diagonal_alone():
+    """fit_to_wire clips (and counts) all four covariance entries; the wire carries three, so a
+    row whose cov_xy[1, 0] alone is out of range is counted clipped by both."""
+    objs = hostile_objects(np.random.default_rng(3), 1)
+    objs = objs.with_(xy=np.zeros((1, 2)), z=np.zeros(1), lwh=np.ones((1, 3)), yaw=np.zeros(1), vxy=np.zeros((1, 2)),
+                      axy=np.zeros((1, 2)), yaw_rate=np.zeros(1), confidence=np.ones(1), age_s=np.zeros(1),
+                      ids=np.ones(1, np.int64), cov_xy=np.array([[[1.0, 0.0], [2 * m.VARIANCE_MAX, 1.0]]]),
+                      cov_vxy=np.tile(np.eye(2), (1, 1, 1)))
+    assert fit_to_wire(objs)[1] == wire_columns(objs)[1] == Counter(clipped=1)

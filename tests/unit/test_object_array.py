@@ -33,7 +33,11 @@ def test_with_replaces_columns_and_still_refuses_a_wrong_row_count():
     with pytest.raises(ValueError, match="xy has 2 rows"):
         objs.with_(xy=np.ones((2, 2)))
     with pytest.raises(ValueError, match="has 3 rows, ids has 2"):
-        objs.with_(ids=np.arange(2))  # new ids: every column is checked against them
+        objs.with_(ids=np.arange(2))  # new ids of another length: every column is checked against them
+    renamed = objs.with_(ids=np.arange(10, 13), xy=np.ones((3, 2)))  # new ids of N rows: the fast path
+    assert renamed.ids.tolist() == [10, 11, 12] and renamed.lwh is objs.lwh and objs.ids.tolist() == [0, 1, 2]
+    with pytest.raises(ValueError, match="has 3 rows, ids has 2"):
+        objs.with_(ids=np.arange(2), xy=np.ones((2, 2)))
     with pytest.raises(TypeError):
         objs.with_(colour=np.ones(3))
     assert objs.with_(confidence=None).confidence.tolist() == [1.0, 1.0, 1.0]  # None: the default again
