@@ -207,6 +207,7 @@ class ClockSync:
         self._inconsistent: set[SyncSample] = set()  # window samples outside the consensus (counted once)
         self._fit: _Fit | None = None  # cache, None when it must be refitted
         self._unfitted = 0  # exchanges inserted since the cached fit
+        self._last_estimate: tuple | None = None  # estimate_at's last (fit, (t, type, total, segment), answer)
 
     @property
     def steps_detected(self) -> int:
@@ -254,13 +255,21 @@ class ClockSync:
         fit = self._current_fit()
         if fit is None:
             return None
+        key = (t_obu_ns, type(t_obu_ns), self._total, self._segment)
+        last = self._last_estimate  # a cycle asks for the same instant several times
+        if last is not None and last[0] is fit and last[1] == key and not self._hypotheses:
+            return last[2]
         dt_s = (t_obu_ns - fit.t_ref_ns) / NS_PER_S
         offset = fit.theta_ref_ns + round(fit.theta_rel_ns + fit.drift * dt_s)
         bound = fit.bound_ns + self.bound_sigmas * fit.drift_sd * abs(dt_s)
         if self._hypotheses:  # while a step is suspected, the clock may have stepped by anything in its [low, high]
             bound += max(max(abs(h.low), abs(h.high)) for h in self._hypotheses)
-        return OffsetEstimate(offset, math.ceil(bound), self._total, fit.drift / PPM_NS_PER_S, t_obu_ns,
-                              self._segment, fit.drift_sd / PPM_NS_PER_S)
+        est = OffsetEstimate(offset, math.ceil(bound), self._total, fit.drift / PPM_NS_PER_S, t_obu_ns,
+                             self._segment, fit.drift_sd / PPM_NS_PER_S)
+        # while no step is suspected the answer is a function of (fit, t, total, segment) alone: kept
+        # with exactly those (the fit object held, so its identity cannot pass to another one)
+        self._last_estimate = None if self._hypotheses else (fit, key, est)
+        return est
 
     def naive(self) -> OffsetEstimate | None:
         """The latest single exchange, as a plain NTP client without filtering would use."""

@@ -446,3 +446,24 @@ def test_a_converged_filter_refits_every_refit_every_exchanges_not_each_one(monk
     assert fits[id(every)] == len(samples)
     unarmed = len(samples) - armed
     assert unarmed < 0.3 * len(samples) and fits[id(throttled)] <= unarmed + armed / 5 + 2
+
+
+def test_an_estimate_asked_again_is_the_one_computed_afresh():
+    """estimate_at keeps its last answer for (fit, t, exchanges, segment) while no step is suspected:
+    through a step among forged replies (hypotheses open and close) every answer, repeated or not,
+    equals the one computed without the kept answer, at the same and at other instants."""
+    step_ns = T0 + 25 * S
+    clock, samples = lte_run(350 * MS, 60.0, 3, duration_s=40, steps=(ClockStep(step_ns, -700 * MS),))
+    mixed = sorted([forged(s.t1_ns, clock.offset_at(s.t1_ns), 245 * MS, 10 * MS) if T0 + 10 * S <= s.t1_ns and k % 3 == 0
+                    else s for k, s in enumerate(samples)], key=lambda s: s.t4_ns)
+    sync, kept, suspected = ClockSync(), 0, 0
+    for sample in mixed:
+        sync.add(sample)
+        suspected += bool(sync._hypotheses)
+        for t_ns in (sample.t4_ns, sample.t4_ns, sample.t4_ns + 50 * MS, sample.t4_ns, float(sample.t4_ns)):
+            got = sync.estimate_at(t_ns)
+            kept += got is not None and sync.estimate_at(t_ns) is got
+            sync._last_estimate = None
+            want = sync.estimate_at(t_ns)
+            assert got == want and type(got.at_ns) is type(t_ns)
+    assert sync.steps_detected == 1 and suspected > 0 and kept > 0

@@ -5,13 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from fusion.objects import ObjectArray
-from obu_service.clock_sync import SyncSample
+from obu_service.clock_sync import OffsetEstimate, SyncSample
 from obu_service.mode_inputs import ModeInputs, Received, rsu_period_ns
 from obu_service.pipeline import ObuPipelineConfig
 from obu_service.rsu_table import RsuTable
 
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000
+S = 1_000_000_000
 OFFSET_NS = 3 * MS  # rsu clock - obu clock
 
 
@@ -77,3 +78,28 @@ def test_rsu_period_is_the_median_capture_interval():
     _receive(state, int(captures[-1]), 99)  # a repeated capture counts once
     expected = int(np.median(np.diff(np.unique(captures))))
     assert rsu_period_ns(state) == expected
+
+
+def test_placed_times_are_the_estimate_s_own_conversion():
+    """_place converts RSU stamps with est.to_obu_ns's arithmetic (inlined): the same integers for a
+    drifting, offset estimate, frames by valid time, each linked to the one before; a frame valid
+    later than its arrival beyond the tolerance is left out."""
+    table = RsuTable()
+    inputs = ModeInputs(ObuPipelineConfig(), table)
+    state = table.admit("rsu-a", T0)
+    rng = np.random.default_rng(5)
+    for seq in rng.permutation(40):
+        capture = T0 + int(seq) * 97 * MS + int(rng.integers(0, MS))
+        state.frames.append(Received(capture + 1234567, capture + 1234567 + 80 * MS + 13, int(seq), _objects(2),
+                                     capture + int(rng.integers(-40, 400)) * MS))
+    for est in (OffsetEstimate(1234567, 2 * MS, 9, 37.3, T0 + 2 * S, 0), OffsetEstimate(-7654321, 0, 9, -412.9, T0, 1),
+                OffsetEstimate(1234567, 5 * MS, 9, 0.0, T0 + 5 * S, 0)):
+        placed = inputs._place(state, est)
+        tolerance_ns = est.uncertainty_ns + ObuPipelineConfig().future_tolerance_ms * 1e6
+        want = [raw for raw in sorted(state.frames, key=lambda f: f.valid_rsu_ns)
+                if est.to_obu_ns(raw.valid_rsu_ns) - raw.receive_ns <= tolerance_ns]
+        assert 0 < len(placed) == len(want) < 40 and [raw for raw, _ in placed] == want
+        for k, (raw, frame) in enumerate(placed):
+            assert frame.valid_ns == est.to_obu_ns(raw.valid_rsu_ns) and type(frame.valid_ns) is int
+            assert frame.capture_ns == est.to_obu_ns(raw.capture_rsu_ns) and frame.seq == raw.seq
+            assert frame.previous is (placed[k - 1][1] if k else None) and frame.objects is raw.objects
