@@ -156,8 +156,7 @@ class _Body:
         t = float(t_s)
         s, v = self._s_v(t)
         # _Paths.at: s clipped to [0, L] (np.clip: max then min), segment j = #(cum <= s) - 1 in [0, last]
-        sc = s if s > 0.0 else 0.0
-        sc = sc if sc < self._length else self._length
+        sc = min(self._length, max(0.0, s))  # np.clip(s, 0, L): max(0.0, -0.0) is 0.0 as there
         j = min(max(bisect_right(self._cum, sc) - 1, 0), self._last_seg)
         px, py, ux, uy, c = self._puc[j]
         moving = 0.0 <= s < self._length
