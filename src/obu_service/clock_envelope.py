@@ -274,7 +274,8 @@ def tail_mean(leg: Leg, drift: float, q: float) -> TailMean:
 def _tail_mean(r: np.ndarray, t_s: np.ndarray, q: float) -> TailMean:
     """tail_mean of readings already detrended (r) at times t_s, shapes (n,)."""
     low = lowest(r, q)
-    return TailMean(float(r[low].mean()), float(max(0.0, -t_s[low].mean())))
+    k = len(low)  # (sum / k: the very division np.mean makes, without its generic reduction)
+    return TailMean(float(r[low].sum() / k), float(max(0.0, -(t_s[low].sum() / k))))
 
 
 def leg_envelope(leg: Leg, drift: float, drift_bound: float, q: float, horizon_s: float, margin_ns: float,
@@ -318,11 +319,13 @@ def consensus(up: Leg, down: Leg, drift: float, slack_ns: np.ndarray, among: np.
     forged or stepped reply among agreeing ones) is not.
     """
     lo, hi = _allowed(up, down, drift, slack_ns)
-    points = np.concatenate((lo[among], hi[among]))
-    voters = int(np.count_nonzero(among))
-    kinds = np.concatenate((np.ones(voters), -np.ones(voters)))  # +1 opens, -1 closes
-    order = np.lexsort((-kinds, points))  # by value, an opening before a closing at the same value
-    theta = points[order][int(np.argmax(np.cumsum(kinds[order])))]  # start of a most-covered segment
+    points = np.concatenate((lo, hi) if among.all() else (lo[among], hi[among]))  # the voters' openings, closings
+    voters = len(points) // 2
+    # by value, an opening before a closing at the same value: a stable sort of points whose openings
+    # come first (= np.lexsort((-kinds, points)), kinds +1 opening, -1 closing)
+    order = np.argsort(points, kind="stable")
+    kinds = np.where(order < voters, 1.0, -1.0)  # of the sorted points
+    theta = points[order[int(np.argmax(np.cumsum(kinds)))]]  # start of a most-covered segment
     return (lo <= theta) & (theta <= hi)
 
 

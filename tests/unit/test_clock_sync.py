@@ -9,8 +9,8 @@ from scipy.stats import theilslopes
 
 from link_emulator.channel import LinkModel
 from link_emulator.profile import load_profile
-from obu_service.clock_envelope import (Leg, _pairs, fit_drift, lower_quartile, median_of_floats, median_of_ints,
-                                        shared_slope, theil_sen_slope)
+from obu_service.clock_envelope import (Leg, _pairs, consensus, fit_drift, lower_quartile, median_of_floats,
+                                        median_of_ints, shared_slope, theil_sen_slope)
 from obu_service.clock_sync import ClockSync, SyncSample
 from obu_service.sync_sim import (LTE_DOWNLINK, LTE_UPLINK, BufferedLeg, buffer_episodes, exchanges, forged,
                                   run_sync)
@@ -467,3 +467,31 @@ def test_an_estimate_asked_again_is_the_one_computed_afresh():
             want = sync.estimate_at(t_ns)
             assert got == want and type(got.at_ns) is type(t_ns)
     assert sync.steps_detected == 1 and suspected > 0 and kept > 0
+
+
+def _consensus_by_lexsort(up, down, drift, slack_ns, among):
+    """consensus as written before the stable argsort (np.lexsort of (-kinds, points))."""
+    lo, hi = -down.detrended(drift) - slack_ns, up.detrended(drift) + slack_ns
+    points = np.concatenate((lo[among], hi[among]))
+    voters = int(np.count_nonzero(among))
+    kinds = np.concatenate((np.ones(voters), -np.ones(voters)))
+    order = np.lexsort((-kinds, points))
+    theta = points[order][int(np.argmax(np.cumsum(kinds[order])))]
+    return (lo <= theta) & (theta <= hi)
+
+
+def test_consensus_by_a_stable_sort_equals_the_lexsort_of_openings_before_closings():
+    """Ties everywhere (integer readings: an opening and a closing at the same value, equal
+    openings), every exchange or a subset voting, a few exchanges or many: the same agreement."""
+    rng = np.random.default_rng(21)
+    for _ in range(400):
+        n = int(rng.integers(1, 60))
+        t1 = np.sort(rng.integers(-60, 1, n)).astype(float)
+        up = Leg(t1, rng.integers(-5, 6, n).astype(float), +1)
+        down = Leg(t1 + 0.01, rng.integers(-5, 6, n).astype(float), -1)
+        slack = rng.integers(0, 3, n).astype(float)
+        among = np.ones(n, bool) if rng.random() < 0.5 else rng.random(n) < 0.7
+        if not among.any():
+            among[0] = True
+        drift = float(rng.choice([0.0, 0.5, -1.25]))
+        assert np.array_equal(consensus(up, down, drift, slack, among), _consensus_by_lexsort(up, down, drift, slack, among))
