@@ -86,7 +86,7 @@ class Admission:
         if not own.any():
             return objects  # the usual case: no copy
         self.rejected["ego_self_detection"] += int(own.sum())
-        return objects.take(~own)
+        return objects.take(np.flatnonzero(~own))  # (the rows of ~own: one mask scan, not one per column)
 
     def _screen(self, header: ObjectListHeader, n_objects: int, receive_ns: int, paths: bool) -> RsuState | None:
         lim = self.limits

@@ -137,7 +137,7 @@ class KalmanFusion:
 
     def _update(self, dets: ObjectArray, t_s: float, sources, estimates: bool = False) -> None:
         """One batch into the tracker; ``sources``: the batch's bitmask, or its objects' (K,) masks."""
-        mask = int(np.bitwise_or.reduce(np.atleast_1d(sources)))
+        mask = sources if isinstance(sources, int) else int(np.bitwise_or.reduce(np.atleast_1d(sources)))
         if isinstance(self.tracker, OosmTracker):
             self.tracker.update(dets, t_s, mask, estimates)
         else:
