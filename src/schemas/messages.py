@@ -171,9 +171,21 @@ class PredictedPath(Message):
         return self
 
 
+_new_path = PredictedPath.__new__
+_set_slot = object.__setattr__
+
+
 def _path(path_id: int, x: tuple, y: tuple, yaw: tuple) -> PredictedPath:
-    """A PredictedPath of values already checked and gridded (schemas.path_points)."""
-    return PredictedPath.model_construct(id=path_id, x=x, y=y, yaw=yaw)
+    """A PredictedPath of values already checked and gridded (schemas.path_points): what
+    ``PredictedPath.model_construct(id=path_id, x=x, y=y, yaw=yaw)`` builds (its fields and every
+    field set; no extra, no private attributes, no post-init), without its generic per-field loop
+    over aliases and defaults (test_path_points compares the two)."""
+    path = _new_path(PredictedPath)
+    _set_slot(path, "__dict__", {"id": path_id, "x": x, "y": y, "yaw": yaw})
+    _set_slot(path, "__pydantic_fields_set__", {"id", "x", "y", "yaw"})
+    _set_slot(path, "__pydantic_extra__", None)
+    _set_slot(path, "__pydantic_private__", None)
+    return path
 
 
 def predicted_paths(ids, points) -> tuple[PredictedPath, ...]:

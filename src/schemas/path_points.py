@@ -61,13 +61,30 @@ _PATH_KEYS = frozenset({"id", "x", "y", "yaw"})
 _ID_END = 2**32
 
 
-def _gridded(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, position_max_m: float,
-             yaw_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """x, y, yaw (M,) gridded, or None when a value is out of range or NaN."""
-    if not (bool(np.all(np.abs(x) <= position_max_m)) and bool(np.all(np.abs(y) <= position_max_m))
-            and bool(np.all(np.abs(yaw) <= yaw_max))):
+def _gridded(points: np.ndarray, m: int, position_max_m: float, yaw_max: float) -> np.ndarray | None:
+    """points (3 M,) [x of every point, then y, then yaw] gridded (positions on the first 2 M,
+    yaws on the last M), or None when a value is out of range or NaN. Element-wise operations
+    only: each value is gridded exactly as alone (``grid_positions`` / ``grid_yaws``)."""
+    xy, yaw = points[:2 * m], points[2 * m:]
+    if not (bool(np.all(np.abs(xy) <= position_max_m)) and bool(np.all(np.abs(yaw) <= yaw_max))):
         return None
-    return grid_positions(x), grid_positions(y), grid_yaws(yaw)
+    out = np.empty_like(points)
+    out[:2 * m], out[2 * m:] = grid_positions(xy), grid_yaws(yaw)
+    return out
+
+
+def _split(gridded: np.ndarray, lengths: list[int]) -> tuple[list[tuple], list[tuple], list[tuple]]:
+    """Per-path x, y, yaw tuples of ``gridded`` (3 M,) [x..., y..., yaw...] for paths of ``lengths``
+    (N,), M = sum(lengths): one (3 N, K) ``tolist`` when every path has the same length K."""
+    n = len(lengths)
+    if n and lengths.count(lengths[0]) == n:
+        rows = list(map(tuple, gridded.reshape(3 * n, lengths[0]).tolist()))
+        return rows[:n], rows[n:2 * n], rows[2 * n:]
+    flat, m = gridded.tolist(), len(gridded) // 3
+    ends = np.cumsum(lengths, dtype=np.int64).tolist()
+    spans = list(zip([0, *ends[:-1]], ends))
+    xs, ys, yaws = ([tuple(flat[c * m + a:c * m + b]) for a, b in spans] for c in range(3))
+    return xs, ys, yaws
 
 
 def paths_from_dicts(value: Any, max_paths: int, max_points: int, position_max_m: float,
@@ -92,16 +109,13 @@ def paths_from_dicts(value: Any, max_paths: int, max_points: int, position_max_m
         xs.extend(x)
         ys.extend(y)
         yaws.extend(yaw)
-    if not set(map(type, xs)).union(map(type, ys), map(type, yaws)) <= _FLOAT_ONLY:
+    points = xs + ys + yaws  # (3 M,): every path's x, then y, then yaw
+    if not set(map(type, points)) <= _FLOAT_ONLY:
         return None
-    gridded = _gridded(np.array(xs, dtype=np.float64), np.array(ys, dtype=np.float64),
-                       np.array(yaws, dtype=np.float64), position_max_m, yaw_max)
+    gridded = _gridded(np.array(points, dtype=np.float64), len(xs), position_max_m, yaw_max)
     if gridded is None:
         return None
-    ends = np.cumsum(lengths).tolist()
-    spans = list(zip([0, *ends[:-1]], ends))
-    columns = [[tuple(flat[a:b]) for a, b in spans] for flat in (g.tolist() for g in gridded)]
-    return list(zip(ids, *columns))
+    return list(zip(ids, *_split(gridded, lengths)))
 
 
 def paths_from_array(ids: np.ndarray, points: np.ndarray, max_points: int, position_max_m: float,
@@ -113,8 +127,8 @@ def paths_from_array(ids: np.ndarray, points: np.ndarray, max_points: int, posit
         return None
     if len(ids) and not (bool(np.all(ids >= 0)) and bool(np.all(ids < _ID_END))):
         return None
-    gridded = _gridded(points[..., 0], points[..., 1], points[..., 2], position_max_m, yaw_max)
+    n, k = points.shape[:2]
+    gridded = _gridded(np.moveaxis(points, 2, 0).reshape(-1), n * k, position_max_m, yaw_max)  # (3 N K,)
     if gridded is None:
         return None
-    columns = [[tuple(row) for row in g.tolist()] for g in gridded]
-    return list(zip(ids.tolist(), *columns))
+    return list(zip(ids.tolist(), *_split(gridded, [k] * n)))

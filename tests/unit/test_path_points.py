@@ -22,6 +22,7 @@ from schemas.messages import (
     PredictedPath,
     PredictionList,
     Yaw,
+    _path,
     _yaw,
     predicted_paths,
 )
@@ -154,3 +155,38 @@ def test_predicted_paths_equal_path_by_path_construction(n, k, data) -> None:
         assert info.value.errors(include_url=False) == exc.errors(include_url=False)
         return
     assert _path_bits(predicted_paths(ids, points)) == _path_bits(reference)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(0, 7), max_size=6), st.data())
+def test_decoded_paths_of_different_lengths_equal_path_by_path(lengths, data) -> None:
+    """Paths of unequal lengths (each path's x, y, yaw alike) take the sliced split, equal
+    lengths the reshaped one: both give each path's own values, bit for bit."""
+    values = st.one_of(st.floats(-2e6, 2e6, allow_nan=False), st.floats(-150.0, 150.0))
+    dicts = [{"id": j, **{k: data.draw(st.lists(values, min_size=n, max_size=n)) for k in ("x", "y", "yaw")}}
+             for j, n in enumerate(lengths)]
+    fast = paths_from_dicts(dicts, MAX_OBJECTS, MAX_PATH_POINTS, POSITION_MAX_M, 100.0)
+    try:
+        reference = [PredictedPath.model_validate(d) for d in dicts]
+    except ValidationError:
+        assert fast is None
+        return
+    assert fast is not None
+    assert [(i, _bits(x), _bits(y), _bits(yaw)) for i, x, y, yaw in fast] == [r[:4] for r in _path_bits(reference)]
+
+
+def test_fast_path_object_is_model_construct() -> None:
+    """messages._path builds what PredictedPath.model_construct builds: fields, fields set,
+    no extra, no private attributes; equal, hashed alike, dumped alike, still frozen."""
+    x, y, yaw = (1.0, 2.5), (0.0, -3.25), (0.1, 3.0)
+    fast, reference = _path(7, x, y, yaw), PredictedPath.model_construct(id=7, x=x, y=y, yaw=yaw)
+    assert type(fast) is PredictedPath
+    assert fast.__dict__ == reference.__dict__ and list(fast.__dict__) == list(reference.__dict__)
+    assert fast.model_fields_set == reference.model_fields_set == {"id", "x", "y", "yaw"}
+    assert fast.__pydantic_extra__ is reference.__pydantic_extra__ is None
+    assert fast.__pydantic_private__ is reference.__pydantic_private__ is None
+    assert fast == reference and hash(fast) == hash(reference)
+    assert fast.model_dump() == reference.model_dump() and fast.model_dump_json() == reference.model_dump_json()
+    with pytest.raises(ValidationError):
+        fast.id = 8
+    assert fast.__pydantic_fields_set__ is not _path(7, x, y, yaw).__pydantic_fields_set__  # not shared
