@@ -11,13 +11,13 @@ from __future__ import annotations
 from array import array
 from collections import OrderedDict
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from fusion.association import assign, center_distance_cost
 from fusion.frames import map_to_base
-from fusion.geometry import bev_iou_matrix
+from fusion.geometry import bev_iou_pair
 from fusion.objects import ObjectArray
 from fusion.wire import objects_from_states
 from schemas.messages import FusedObjectList, PredictionList
@@ -95,9 +95,9 @@ def _match_target_xy(truth_xy: np.ndarray, truth_ids: np.ndarray, out_xy: np.nda
     return int(rows[0, 1]) if len(rows) else None
 
 
-def _bev_box(objs: ObjectArray, i: int) -> np.ndarray:
-    """(1, 5) ``bev_boxes`` row of object ``i`` alone: [x, y, length, width, yaw]."""
-    return np.concatenate([objs.xy[i], objs.lwh[i, :2], [objs.yaw[i]]])[None]
+def _bev_row(objs: ObjectArray, i: int) -> np.ndarray:
+    """(5,) ``bev_boxes`` row of object ``i`` alone: [x, y, length, width, yaw]."""
+    return np.concatenate([objs.xy[i], objs.lwh[i, :2], [objs.yaw[i]]])
 
 
 @dataclass(frozen=True)
@@ -109,6 +109,21 @@ class CycleFrame:
     t_s: float
     truth: ObjectArray
     out: ObjectArray
+    # (truth row, output row) -> TargetTally's numbers of that pair: a function of this frame's
+    # arrays alone, kept so that the run's two tallies (all sources, vehicle only) score a pair once
+    _pair_values: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def pair_values(self, i: int, k: int) -> tuple[float, float, float, float]:
+        """BEV IoU, squared error |e|^2, NEES eps and ego distance |truth xy| (m) of truth row i
+        scored against output row k, e = out xy - truth xy (base_link)."""
+        values = self._pair_values.get((i, k))
+        if values is None:
+            truth, out = self.truth, self.out
+            err = out.xy[k] - truth.xy[i]
+            values = self._pair_values[i, k] = (
+                bev_iou_pair(_bev_row(truth, i), _bev_row(out, k)), float(np.sum(np.square(err))),
+                float(nees_values(err[None], out.cov_xy[k][None])[0]), float(np.linalg.norm(truth.xy[i])))
+        return values
 
     @classmethod
     def of(cls, world, msg: FusedObjectList, start_ns: int, truth: tuple[float, ObjectArray] | None = None) -> CycleFrame:
@@ -140,10 +155,8 @@ class TargetTally:
             return
         k = int(kept[k])  # the index in the whole output
         i = int(np.flatnonzero(truth.ids == self.target_id)[0])
-        err = out.xy[k] - truth.xy[i]
-        values = {"t_s": frame.t_s, "iou": bev_iou_matrix(_bev_box(truth, i), _bev_box(out, k))[0, 0],
-                  "sq_err": np.sum(np.square(err)), "eps": nees_values(err[None], out.cov_xy[k][None])[0],
-                  "dist": np.linalg.norm(truth.xy[i])}
+        iou, sq_err, eps, dist = frame.pair_values(i, k)
+        values = {"t_s": frame.t_s, "iou": iou, "sq_err": sq_err, "eps": eps, "dist": dist}
         self._cycle_ns.append(frame.cycle_ns)
         self._ids.append(int(out.ids[k]))
         self._out_xy.extend(float(v) for v in out.xy[k])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import shapely
 
@@ -55,3 +57,20 @@ def bev_iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def bev_iou(a, b) -> float:
     """IoU of two BEV boxes [x, y, l, w, yaw]."""
     return float(bev_iou_matrix(np.asarray(a)[None], np.asarray(b)[None])[0, 0])
+
+
+def bev_iou_pair(a: np.ndarray, b: np.ndarray) -> float:
+    """``bev_iou_matrix(a[None], b[None])[0, 0]`` of two boxes a, b (5,), bit for bit: the same
+    skip test (|c_a - c_b| = sqrt(dx^2 + dy^2) >= the half diagonals' sum: 0) and the same shapely
+    intersection, both polygons from one ``box_polygons`` call, without the (N, M) bookkeeping."""
+    boxes = np.vstack([a, b]).astype(float, copy=False)  # (2, 5)
+    half_diagonal = np.hypot(boxes[:, 2], boxes[:, 3])
+    ax, ay, al, aw, _ = boxes[0].tolist()
+    bx, by, bl, bw, _ = boxes[1].tolist()
+    dx, dy = ax - bx, ay - by
+    if not math.sqrt(dx * dx + dy * dy) < 0.5 * float(half_diagonal[0] + half_diagonal[1]):  # NaN: skipped too
+        return 0.0
+    pa, pb = box_polygons(boxes)
+    inter = float(shapely.area(shapely.intersection(pa, pb)))
+    union = al * aw + bl * bw - inter
+    return inter / max(union, 1e-12) if union > 0 else 0.0

@@ -187,3 +187,36 @@ def test_the_lidar_frames_truth_is_the_cycles_truth_and_a_stale_one_is_not_taken
     assert fed.target.score() == plain.target.score() and fed.detection.scores() == plain.detection.scores()
     stale = (sensing.lidar.last_truth[0] - 0.1, sensing.lidar.last_truth[1])
     assert CycleFrame.of(world, true_output(world, 159), EVAL_EPOCH_NS, stale).truth is not stale[1]
+
+
+def test_the_two_target_tallies_score_a_shared_frame_as_their_own_frames():
+    """RunRecord's tallies (all sources, vehicle only) share each CycleFrame and its pair numbers
+    (CycleFrame.pair_values): scores and series equal those of tallies each given a fresh frame,
+    and a pair's numbers equal the ones computed from the arrays (IoU: bev_iou_matrix)."""
+    from evaluation.metrics import CycleFrame, TargetTally
+    from fusion.geometry import bev_iou_matrix
+
+    def box(objs, r):
+        return np.r_[objs.xy[r], objs.lwh[r, :2], objs.yaw[r]][None]
+
+    world = World(load_scenario("red-light-runner"))
+    shared = TargetTally(world.target_id), TargetTally(world.target_id, sources_mask=SOURCE_VEHICLE)
+    alone = TargetTally(world.target_id), TargetTally(world.target_id, sources_mask=SOURCE_VEHICLE)
+    pairs = 0
+    for k in range(60, 200):
+        out = true_output(world, k)
+        frame = CycleFrame.of(world, out, EVAL_EPOCH_NS)
+        for tally in shared:
+            tally.add(frame)
+        for tally in alone:
+            tally.add(CycleFrame.of(world, out, EVAL_EPOCH_NS))
+        for (i, j), (iou, sq_err, eps, dist) in frame._pair_values.items():
+            assert iou == bev_iou_matrix(box(frame.truth, i), box(frame.out, j))[0, 0]
+            assert sq_err == np.sum(np.square(frame.out.xy[j] - frame.truth.xy[i]))
+            assert dist == np.linalg.norm(frame.truth.xy[i])
+            pairs += 1
+    assert pairs > 50
+    for a, b in zip(shared, alone):
+        assert a.score() == b.score()
+        sa, sb = a.series(), b.series()
+        assert all(np.array_equal(getattr(sa, f), getattr(sb, f)) for f in ("t_s", "error_m", "out_xy", "sources"))

@@ -2,7 +2,13 @@ import numpy as np
 import pytest
 import shapely
 
-from fusion.geometry import bev_iou, bev_iou_matrix, box_corners, box_polygons
+from fusion.geometry import (
+    bev_iou,
+    bev_iou_matrix,
+    bev_iou_pair,
+    box_corners,
+    box_polygons,
+)
 from fusion.merger import iou_merge
 from fusion.objects import ObjectArray
 
@@ -38,6 +44,31 @@ def test_bev_iou_matrix_equals_pairwise_shapely():
         for j in range(len(b)):
             inter = pa[i].intersection(pb[j]).area
             assert iou[i, j] == pytest.approx(inter / (pa[i].area + pb[j].area - inter), abs=1e-9)
+
+
+def test_bev_iou_pair_equals_the_matrix_bit_for_bit():
+    """bev_iou_pair(a, b) is bev_iou_matrix(a[None], b[None])[0, 0] as float64 bits: overlapping,
+    nested, equal and far boxes, and pairs at the skip test's boundary (centre distance = the half
+    diagonals' sum, to the last bit on either side)."""
+    rng = np.random.default_rng(11)
+    a = np.column_stack([rng.uniform(-6, 6, (3000, 2)), rng.uniform(0.1, 8, (3000, 2)), rng.uniform(-4, 4, 3000)])
+    b = np.column_stack([rng.uniform(-6, 6, (3000, 2)), rng.uniform(0.1, 8, (3000, 2)), rng.uniform(-4, 4, 3000)])
+    b[:300] = a[:300]  # equal boxes
+    b[300:600, :2] = a[300:600, :2]  # the same centre, other sizes and yaws
+    reach = 0.5 * (np.hypot(a[:, 2], a[:, 3]) + np.hypot(b[:, 2], b[:, 3]))
+    b[600:900, 0] = a[600:900, 0] + reach[600:900]  # on the boundary along x
+    b[600:900, 1] = a[600:900, 1]
+    b[900:1000, 0] = np.nextafter(b[600:700, 0], -np.inf)
+    b[900:1000, 1] = a[600:700, 1]
+    b[900:1000, 2:] = b[600:700, 2:]
+    a[900:1000] = a[600:700]
+    overlapping = 0
+    for x, y in zip(a, b):
+        want = bev_iou_matrix(x[None], y[None])[0, 0]
+        got = bev_iou_pair(x, y)
+        assert type(got) is float and np.float64(got).tobytes() == want.tobytes(), (x, y, got, want)
+        overlapping += got > 0
+    assert 1000 < overlapping < 3000  # both branches taken
 
 
 def test_box_corners_rotate_about_centre():
