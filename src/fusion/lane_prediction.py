@@ -168,6 +168,11 @@ class _Segments:
     half_w: np.ndarray  # (S, 2) [left, right] m
     first: np.ndarray  # (S,) bool: first segment of its lane
     last: np.ndarray  # (S,) bool
+    mid: np.ndarray  # (S, 2) midpoint a + t length / 2, m
+    reach_sq: np.ndarray  # (S,) m^2: (length / 2 + the wider half width + REACH_SLACK_M)^2 (``LanePredictor.match``)
+
+
+REACH_SLACK_M = 1.0  # beyond rounding: a segment's candidate disc is a bound, not a test
 
 
 def _segments(geometry: LaneGeometry) -> _Segments:
@@ -177,7 +182,8 @@ def _segments(geometry: LaneGeometry) -> _Segments:
         n = len(length)
         parts.append((c[:-1], t, length, np.full(n, i), cum[:-1], hw, np.arange(n) == 0, np.arange(n) == n - 1))
     a, t, length, lane, s0, hw, first, last = (np.concatenate(col) for col in zip(*parts))
-    return _Segments(a, t, length, np.arctan2(t[:, 1], t[:, 0]), lane, s0, hw, first, last)
+    return _Segments(a, t, length, np.arctan2(t[:, 1], t[:, 0]), lane, s0, hw, first, last,
+                     a + 0.5 * length[:, None] * t, (0.5 * length + hw.max(axis=1) + REACH_SLACK_M) ** 2)
 
 
 @dataclass(frozen=True)
@@ -288,29 +294,44 @@ class LanePredictor:
         return cls.from_lanelet_map(lanelet2.io.load(str(path), proj), config)
 
     def match(self, objs: ObjectArray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Lane index (N,) (-1: unmatched), arc length s0 (N,) m and lateral offset d0 (N,) m."""
+        """Lane index (N,) (-1: unmatched), arc length s0 (N,) m and lateral offset d0 (N,) m.
+
+        The lowest cost over every (object, segment) pair, first segment on a tie. Only pairs whose
+        object lies within sqrt(``reach_sq``) of the segment's midpoint can pass the lateral test
+        (distance to the segment <= half width + margin, and |p - mid| <= that distance + length / 2):
+        the others cost inf without being computed; the candidates cost what the full (N, S) arrays
+        gave, element for element.
+        """
         cfg, seg = self.config, self._seg
         n = len(objs)
         if n == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
         moving = np.hypot(objs.vxy[:, 0], objs.vxy[:, 1]) > cfg.min_speed_for_heading_mps
         heading = np.where(moving, np.arctan2(objs.vxy[:, 1], objs.vxy[:, 0]), objs.yaw)
-        rel = objs.xy[:, None, :] - seg.a[None]  # (N, S, 2)
-        along = rel[..., 0] * seg.t[:, 0] + rel[..., 1] * seg.t[:, 1]
-        lateral = seg.t[:, 0] * rel[..., 1] - seg.t[:, 1] * rel[..., 0]  # t x rel: left positive
-        dist = np.hypot(along - np.clip(along, 0.0, seg.length), lateral)
-        half_w = np.where(lateral >= 0.0, seg.half_w[:, 0], seg.half_w[:, 1])
-        dpsi = wrap_angle(heading[:, None] - seg.psi)
+        off_x, off_y = np.subtract.outer(objs.xy[:, 0], seg.mid[:, 0]), np.subtract.outer(objs.xy[:, 1], seg.mid[:, 1])
+        row, k = np.nonzero(off_x * off_x + off_y * off_y <= seg.reach_sq)  # candidate pairs (K,), by object then segment
+        if not len(row):
+            return np.full(n, -1, dtype=seg.lane.dtype), np.zeros(n), np.zeros(n)
+        rel = objs.xy[row] - seg.a[k]  # (K, 2)
+        t, length, hw = seg.t[k], seg.length[k], seg.half_w[k]
+        along = rel[:, 0] * t[:, 0] + rel[:, 1] * t[:, 1]
+        lateral = t[:, 0] * rel[:, 1] - t[:, 1] * rel[:, 0]  # t x rel: left positive
+        dist = np.hypot(along - np.clip(along, 0.0, length), lateral)
+        half_w = np.where(lateral >= 0.0, hw[:, 0], hw[:, 1])
+        dpsi = wrap_angle(heading[row] - seg.psi[k])
         ok = (dist <= half_w + cfg.lateral_margin_m) & (np.abs(dpsi) <= cfg.heading_tolerance_rad)
-        ok &= ~(seg.first & (along < -1e-6)) & ~(seg.last & (along > seg.length + 1e-6))
-        ok &= np.isin(objs.cls, self._map_classes)[:, None]
-        cost = np.where(ok, (dist / half_w) ** 2 + (dpsi / cfg.heading_scale_rad) ** 2, np.inf)
+        ok &= ~(seg.first[k] & (along < -1e-6)) & ~(seg.last[k] & (along > length + 1e-6))
+        ok &= np.isin(objs.cls, self._map_classes)[row]
+        cost = np.full((n, len(seg.lane)), np.inf)
+        cost[row, k] = np.where(ok, (dist / half_w) ** 2 + (dpsi / cfg.heading_scale_rad) ** 2, np.inf)
         best = np.argmin(cost, axis=1)
         rows = np.arange(n)
         matched = np.isfinite(cost[rows, best])
+        key = row * len(seg.lane) + k  # sorted: the pairs' order
+        at = np.minimum(np.searchsorted(key, rows * len(seg.lane) + best), len(key) - 1)  # a matched row's best pair
         lane = np.where(matched, seg.lane[best], -1)
-        s0 = seg.s0[best] + np.clip(along[rows, best], 0.0, seg.length[best])
-        return lane, np.where(matched, s0, 0.0), np.where(matched, lateral[rows, best], 0.0)
+        s0 = seg.s0[best] + np.clip(along[at], 0.0, seg.length[best])
+        return lane, np.where(matched, s0, 0.0), np.where(matched, lateral[at], 0.0)
 
     def _frenet(self, objs: ObjectArray, chain: np.ndarray, s0, d0, t: np.ndarray) -> dict[str, np.ndarray]:
         """Predicted xy (P, T, 2), yaw (P, T), vxy (P, T, 2) and lane heading change dpsi (P, T) for

@@ -223,6 +223,57 @@ def test_off_map_objects_fall_back_to_cv_exactly(intersection):
     np.testing.assert_array_equal(traj[..., 2], np.repeat(objs.yaw[:, None], 4, axis=1))
 
 
+def _match_every_pair(pred: LanePredictor, objs: ObjectArray):
+    """LanePredictor.match as it was: the cost of every (object, segment) pair as (N, S) arrays."""
+    cfg, seg = pred.config, pred._seg
+    n = len(objs)
+    moving = np.hypot(objs.vxy[:, 0], objs.vxy[:, 1]) > cfg.min_speed_for_heading_mps
+    heading = np.where(moving, np.arctan2(objs.vxy[:, 1], objs.vxy[:, 0]), objs.yaw)
+    rel = objs.xy[:, None, :] - seg.a[None]  # (N, S, 2)
+    along = rel[..., 0] * seg.t[:, 0] + rel[..., 1] * seg.t[:, 1]
+    lateral = seg.t[:, 0] * rel[..., 1] - seg.t[:, 1] * rel[..., 0]
+    dist = np.hypot(along - np.clip(along, 0.0, seg.length), lateral)
+    half_w = np.where(lateral >= 0.0, seg.half_w[:, 0], seg.half_w[:, 1])
+    dpsi = wrap_angle(heading[:, None] - seg.psi)
+    ok = (dist <= half_w + cfg.lateral_margin_m) & (np.abs(dpsi) <= cfg.heading_tolerance_rad)
+    ok &= ~(seg.first & (along < -1e-6)) & ~(seg.last & (along > seg.length + 1e-6))
+    ok &= np.isin(objs.cls, pred._map_classes)[:, None]
+    cost = np.where(ok, (dist / half_w) ** 2 + (dpsi / cfg.heading_scale_rad) ** 2, np.inf)
+    best = np.argmin(cost, axis=1)
+    rows = np.arange(n)
+    matched = np.isfinite(cost[rows, best])
+    lane = np.where(matched, seg.lane[best], -1)
+    s0 = seg.s0[best] + np.clip(along[rows, best], 0.0, seg.length[best])
+    return lane, np.where(matched, s0, 0.0), np.where(matched, lateral[rows, best], 0.0)
+
+
+@pytest.mark.parametrize("name", ["dense-intersection", "highway-merge"])
+def test_match_over_candidate_pairs_equals_every_pair(name, intersection, highway):
+    """match scores only the pairs near a segment's midpoint: lanes, s0 and d0 equal, as bytes,
+    those of every pair's cost, for objects on lanes, beside them, off the map, of every class,
+    moving or not, at and around lane ends; none, one or many at once."""
+    pred = intersection if name == "dense-intersection" else highway
+    rng = np.random.default_rng(5)
+    seg = pred._seg
+    matched = 0
+    for n in (0, 1, 2, 7, 40, 200):
+        on = rng.integers(0, len(seg.lane), n)  # near a segment: anywhere along it, up to 4 m aside
+        u = rng.uniform(-0.3, 1.3, n)[:, None]
+        xy = seg.a[on] + u * seg.length[on, None] * seg.t[on] + rng.normal(0.0, 2.0, (n, 1)) * seg.t[on][:, ::-1] * [-1, 1]
+        far = rng.random(n) < 0.2
+        xy[far] = rng.uniform(-300.0, 300.0, (int(far.sum()), 2))
+        speed = rng.choice([0.0, 0.2, 8.0], n)
+        angle = seg.psi[on] + rng.normal(0.0, 0.6, n) + rng.choice([0.0, np.pi], n, p=[0.85, 0.15])
+        objs = _objs(xy, speed[:, None] * np.column_stack([np.cos(angle), np.sin(angle)]),
+                     yaw=seg.psi[on] + rng.normal(0.0, 0.6, n))
+        objs = objs.with_(cls=rng.choice([int(c) for c in ObjectClass], n))
+        got, want = pred.match(objs), _match_every_pair(pred, objs)
+        for g, w in zip(got, want):
+            assert g.dtype == w.dtype and g.shape == w.shape and g.tobytes() == w.tobytes()
+        matched += int(np.count_nonzero(got[0] >= 0))
+    assert matched > 50
+
+
 def test_branch_hypotheses_straight_first(intersection):
     objs = _objs([[5.25, -20.0]], [[0.0, 10.0]])  # outer lane, 6 m before the right turn starts
     traj, prob = intersection.predict_hypotheses(objs, 5.0, 0.1)
