@@ -129,10 +129,14 @@ def wire_columns(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS, fused: boo
 def _kept_rows(real: np.ndarray, xy: np.ndarray, max_objects: int) -> tuple[np.ndarray, Counter[str]]:
     """(indices of the rows kept, counts): rows of ``real`` (N, M) with a non-finite value dropped,
     then those whose position ``xy`` (N, 2) is out of range, then the farthest beyond max_objects."""
-    finite = np.isfinite(real).all(axis=1)
-    inside = finite & (np.abs(np.where(finite[:, None], xy, 0.0)) <= m.POSITION_MAX_M).all(axis=1)
-    counts = Counter(not_finite=int((~finite).sum()), out_of_range=int((finite & ~inside).sum()))
-    keep = np.flatnonzero(inside)
+    finite = np.isfinite(real)
+    if finite.all() and (np.abs(xy) <= m.POSITION_MAX_M).all():  # the usual case: every row kept, in one pass
+        counts, keep = Counter(), np.arange(len(real))
+    else:
+        finite = finite.all(axis=1)
+        inside = finite & (np.abs(np.where(finite[:, None], xy, 0.0)) <= m.POSITION_MAX_M).all(axis=1)
+        counts = Counter(not_finite=int((~finite).sum()), out_of_range=int((finite & ~inside).sum()))
+        keep = np.flatnonzero(inside)
     if len(keep) > max_objects:
         counts["truncated"] = len(keep) - max_objects
         nearest = np.argsort(np.hypot(xy[keep, 0], xy[keep, 1]), kind="stable")[:max_objects]

@@ -115,3 +115,24 @@ def test_wire_columns_counts_a_clip_of_the_lower_off_diagonal_alone():
                       ids=np.ones(1, np.int64), cov_xy=np.array([[[1.0, 0.0], [2 * m.VARIANCE_MAX, 1.0]]]),
                       cov_vxy=np.tile(np.eye(2), (1, 1, 1)))
     assert fit_to_wire(objs)[1] == wire_columns(objs)[1] == Counter(clipped=1)
+
+
+def test_every_row_kept_fast_path_equals_the_reference():
+    """Finite objects inside the position range (every row kept: the one-pass check), with and
+    without truncation, some still clipped (speeds, yaw): the reference's rows, values and counts."""
+    rng = np.random.default_rng(5)
+    for n, max_objects in [(1, 10), (50, 1000), (50, 20), (50, 0)]:
+        objs = hostile_objects(rng, n)
+        objs = objs.with_(**{name: np.nan_to_num(getattr(objs, name), nan=0.5, posinf=2.0, neginf=-2.0)
+                             for name in ("xy", "z", "lwh", "yaw", "vxy", "axy", "yaw_rate", "cov_xy", "cov_vxy",
+                                          "confidence", "age_s")})
+        objs = objs.with_(xy=np.clip(objs.xy, -m.POSITION_MAX_M, m.POSITION_MAX_M))
+        fitted, counts = fit_to_wire(objs, max_objects)
+        ref, ref_counts = reference_fit(objs, max_objects)
+        assert counts == ref_counts and "not_finite" not in counts and "out_of_range" not in counts
+        assert n < 50 or max_objects == 0 or counts["clipped"] > 0
+        assert counts["truncated"] == max(0, n - max_objects)
+        for name in ("ids", "xy", "yaw", "vxy", "cov_xy", "sources"):
+            np.testing.assert_array_equal(getattr(fitted, name), getattr(ref, name), err_msg=name, strict=True)
+        cols, cols_counts = wire_columns(objs, max_objects, fused=True)
+        assert cols_counts == counts and np.array_equal(cols.codes, states_from_objects(fitted, True).codes)
