@@ -14,7 +14,7 @@ from __future__ import annotations
 import itertools
 import statistics
 from dataclasses import dataclass
-from operator import attrgetter
+from operator import attrgetter, is_
 
 from fusion.objects import ObjectArray
 from schemas.messages import PredictionList
@@ -49,7 +49,7 @@ class Placement:
 
     def holds(self, est, frames) -> bool:
         return ((self.estimate is est or self.estimate == est) and len(self.frames) == len(frames)
-                and all(a is b for a, b in zip(self.frames, frames)))
+                and all(map(is_, self.frames, frames)))  # (each frame the very same object)
 
 
 class ModeInputs:

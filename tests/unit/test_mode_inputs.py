@@ -103,3 +103,17 @@ def test_placed_times_are_the_estimate_s_own_conversion():
             assert frame.valid_ns == est.to_obu_ns(raw.valid_rsu_ns) and type(frame.valid_ns) is int
             assert frame.capture_ns == est.to_obu_ns(raw.capture_rsu_ns) and frame.seq == raw.seq
             assert frame.previous is (placed[k - 1][1] if k else None) and frame.objects is raw.objects
+
+
+def test_placement_is_not_reused_when_a_frame_is_another_object_of_the_same_count():
+    table = RsuTable()
+    inputs = ModeInputs(ObuPipelineConfig(), table)
+    state = _synced_state(table, T0)
+    t_ns = T0 + 1000 * MS
+    for seq in range(3):
+        _receive(state, T0 + 700 * MS + seq * 100 * MS, seq)
+    first = inputs.placed(state, t_ns)
+    old = state.frames[1]
+    state.frames[1] = Received(old.capture_rsu_ns, old.valid_rsu_ns, old.seq, old.objects, old.receive_ns)  # equal, not it
+    again = inputs.placed(state, t_ns)
+    assert again[1][0] is state.frames[1] and first[1][0] is old and _same(again, inputs._place(state, state.sync.estimate_at(t_ns)))
