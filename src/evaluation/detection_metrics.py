@@ -77,6 +77,9 @@ def _greedy_matches(dist: np.ndarray, rank: np.ndarray, thresholds_m: Sequence[f
     if n_truth == 0 or n_pred == 0:
         return [np.zeros(n_pred, dtype=bool) for _ in thresholds_m]
     row_min, nearest = dist.min(axis=1), dist.argmin(axis=1)
+    widest = nearest[row_min < max(thresholds_m)].tolist()
+    if len(set(widest)) == len(widest):  # no two candidates share a truth at the widest threshold: nor at a narrower
+        return [row_min < th for th in thresholds_m]
     out = []
     for th in thresholds_m:
         tp = row_min < th  # the candidates; all true positives when their nearest truths differ
@@ -207,6 +210,9 @@ class CenterDistanceAp:
         self._confidence = array("d")
         self._flags = array(next(code for code, width in (("B", 8), ("H", 16), ("I", 32), ("Q", 64)) if bits <= width))
         self._num_truth = [0] * len(self.range_bins_m)
+        stride = 1 + len(self.thresholds_m)  # (bins, T) uint64: the flag bit of a true positive per bin and threshold
+        self._tp_bits = np.array([[1 << (b * stride + 1 + k) for k in range(len(self.thresholds_m))]
+                                  for b in range(len(self.range_bins_m))], dtype=np.uint64).reshape(len(self.range_bins_m), -1)
 
     def add_frame(self, truth_xy: np.ndarray, pred_xy: np.ndarray, confidence: np.ndarray) -> None:
         """One frame: truth centres (G, 2), prediction centres (P, 2) m, confidences (P,)."""
@@ -222,10 +228,8 @@ class CenterDistanceAp:
             self._num_truth[b] += int(keep_t.sum())
             t, p = truth_xy[keep_t], pred_xy[keep_p]
             dist = cdist(p, t) if len(p) and len(t) else np.zeros((len(p), len(t)))
-            word = np.full(len(p), 1 << (b * stride), dtype=np.uint64)
-            for k, tp in enumerate(_greedy_matches(dist, rank[keep_p], self.thresholds_m)):
-                word |= tp.astype(np.uint64) << np.uint64(b * stride + 1 + k)
-            flags[keep_p] |= word
+            tp = np.array(_greedy_matches(dist, rank[keep_p], self.thresholds_m), dtype=np.uint64).reshape(len(self.thresholds_m), len(p))
+            flags[keep_p] |= (tp.T @ self._tp_bits[b]) | np.uint64(1 << (b * stride))  # disjoint bits: sum = OR
         self._confidence.extend(confidence.tolist())
         self._flags.extend(flags.tolist())
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from evaluation.detection_metrics import (
-    CenterDistanceAp, MotTally, _greedy_match, average_precision, bin_label, center_distance_ap, mot_metrics, nees,
+    CenterDistanceAp, MotTally, _greedy_match, _greedy_matches, average_precision, bin_label, center_distance_ap, mot_metrics, nees,
     nees_values,
 )
 from fusion.objects import ObjectArray
@@ -294,3 +294,16 @@ def test_greedy_match_equals_the_plain_walk():
         rank = rng.permutation(n_pred)
         for threshold_m in (0.5, 1.0, 2.0, 4.0):
             assert _greedy_match(dist, rank, threshold_m).tolist() == _greedy_match_walk(dist, rank, threshold_m).tolist()
+
+
+def test_greedy_matches_at_every_threshold_equal_the_plain_walk():
+    """_greedy_matches (one call for all thresholds, shared nearest truths checked once at the
+    widest) gives each threshold's walk; unsorted thresholds too."""
+    rng = np.random.default_rng(8)
+    for _ in range(2000):
+        n_pred, n_truth = rng.integers(0, 9), rng.integers(0, 9)
+        dist = rng.integers(0, 10, size=(n_pred, n_truth)) * rng.choice([0.25, 0.5, 1.0])
+        rank = rng.permutation(n_pred)
+        thresholds = tuple(rng.permutation([0.5, 1.0, 2.0, 4.0]))
+        got = _greedy_matches(dist, rank, thresholds)
+        assert [g.tolist() for g in got] == [_greedy_match_walk(dist, rank, th).tolist() for th in thresholds]
