@@ -249,9 +249,10 @@ def chain_frame(chains: _Chains, chain: np.ndarray, s: np.ndarray) -> tuple[np.n
     straights and circles, and smooth across a sampled arc's vertices (a segment's own heading
     would jump by the sampling step there).
     """
-    ahead = chain_points(chains, chain, s + HEADING_BASE_M)
-    behind = chain_points(chains, chain, s - HEADING_BASE_M)
-    return chain_points(chains, chain, s), np.arctan2(ahead[..., 1] - behind[..., 1], ahead[..., 0] - behind[..., 0])
+    t = s.shape[1]  # the three sets of points in one lookup (element-wise: each point as alone)
+    points = chain_points(chains, chain, np.concatenate([s, s + HEADING_BASE_M, s - HEADING_BASE_M], axis=1))
+    ahead, behind = points[:, t:2 * t], points[:, 2 * t:]
+    return points[:, :t], np.arctan2(ahead[..., 1] - behind[..., 1], ahead[..., 0] - behind[..., 0])
 
 
 def propagate_along(s0, v0, a0, t, use_acceleration: bool) -> tuple[np.ndarray, np.ndarray]:

@@ -8,10 +8,13 @@ import pytest
 
 from fusion.frames import wrap_angle
 from fusion.lane_prediction import (
+    HEADING_BASE_M,
     LaneGeometry,
     LanePredictionConfig,
     LanePredictor,
     branch_priors,
+    chain_frame,
+    chain_points,
     lane_sequences,
     propagate_along,
 )
@@ -272,6 +275,23 @@ def test_match_over_candidate_pairs_equals_every_pair(name, intersection, highwa
             assert g.dtype == w.dtype and g.shape == w.shape and g.tobytes() == w.tobytes()
         matched += int(np.count_nonzero(got[0] >= 0))
     assert matched > 50
+
+
+def test_chain_frame_in_one_lookup_equals_three(intersection):
+    """chain_frame looks the points at s, s + b and s - b up in one chain_points call: points and
+    headings equal, as bytes, those of three calls (any chains, arc lengths past either end)."""
+    chains = intersection._chains
+    rng = np.random.default_rng(2)
+    for p, t in ((1, 1), (5, 1), (17, 51), (3, 7)):
+        chain = rng.integers(0, len(chains.first), p)
+        s = rng.uniform(-20.0, 400.0, (p, t))
+        points, psi = chain_frame(chains, chain, s)
+        ahead = chain_points(chains, chain, s + HEADING_BASE_M)
+        behind = chain_points(chains, chain, s - HEADING_BASE_M)
+        want = np.arctan2(ahead[..., 1] - behind[..., 1], ahead[..., 0] - behind[..., 0])
+        assert points.shape == (p, t, 2) and psi.shape == (p, t)
+        assert np.ascontiguousarray(points).tobytes() == chain_points(chains, chain, s).tobytes()
+        assert psi.tobytes() == want.tobytes()
 
 
 def test_branch_hypotheses_straight_first(intersection):
