@@ -334,9 +334,10 @@ class LanePredictor:
         s0 = seg.s0[best] + np.clip(along[at], 0.0, seg.length[best])
         return lane, np.where(matched, s0, 0.0), np.where(matched, lateral[at], 0.0)
 
-    def _frenet(self, objs: ObjectArray, chain: np.ndarray, s0, d0, t: np.ndarray) -> dict[str, np.ndarray]:
-        """Predicted xy (P, T, 2), yaw (P, T), vxy (P, T, 2) and lane heading change dpsi (P, T) for
-        objects (already restricted to P rows) on ``chain`` (P,) at times t (P, T) s."""
+    def _frenet(self, objs: ObjectArray, chain: np.ndarray, s0, d0, t: np.ndarray,
+                motion: bool = True) -> dict[str, np.ndarray]:
+        """Predicted xy (P, T, 2), yaw (P, T), and with ``motion`` vxy (P, T, 2) and lane heading
+        change dpsi (P, T), for objects (already restricted to P rows) on ``chain`` (P,) at times t (P, T) s."""
         cfg = self.config
         _, psi0 = chain_frame(self._chains, chain, s0[:, None])
         t0 = np.stack([np.cos(psi0[:, 0]), np.sin(psi0[:, 0])], axis=1)
@@ -349,14 +350,15 @@ class LanePredictor:
         tan = np.stack([np.cos(psi), np.sin(psi)], axis=-1)
         normal = np.stack([-tan[..., 1], tan[..., 0]], axis=-1)
         f = c + d[..., None] * normal  # F(s, d) = c(s) + d n(s)
-        dpsi = wrap_angle(psi - psi[:, :1])
         offset = wrap_angle(objs.yaw - psi[:, 0])[:, None] * np.exp(-tt / cfg.heading_decay_s)
-        return {
+        out = {
             "xy": objs.xy[:, None, :] + (f - f[:, :1])[:, 1:],
             "yaw": wrap_angle(psi + offset)[:, 1:],  # yaw = psi(s) + (yaw0 - psi(s0)) exp(-t / tau_psi)
-            "vxy": (v[..., None] * tan + (-d / cfg.lateral_decay_s)[..., None] * normal)[:, 1:],
-            "dpsi": dpsi[:, 1:],
         }
+        if motion:
+            out["vxy"] = (v[..., None] * tan + (-d / cfg.lateral_decay_s)[..., None] * normal)[:, 1:]
+            out["dpsi"] = wrap_angle(psi - psi[:, :1])[:, 1:]
+        return out
 
     def predict_objects(self, objs: ObjectArray, dt_s) -> ObjectArray:
         """Objects dt_s (scalar or (N,) s) later along their lanes; a drop-in for ``predict_cv``.
@@ -395,7 +397,7 @@ class LanePredictor:
         obj, hyp = np.nonzero(chains >= 0)
         if len(obj):
             p = self._frenet(objs.take(obj), chains[obj, hyp], s0[obj], d0[obj],
-                             np.broadcast_to(times, (len(obj), len(times))))
+                             np.broadcast_to(times, (len(obj), len(times))), motion=False)
             traj[obj, hyp] = np.concatenate([p["xy"], p["yaw"][..., None]], axis=2)
             prob[obj, hyp] = self._chains.prob[lane[obj], hyp]
             prob /= prob.sum(axis=1, keepdims=True)  # renormalise over the H kept

@@ -294,6 +294,23 @@ def test_chain_frame_in_one_lookup_equals_three(intersection):
         assert psi.tobytes() == want.tobytes()
 
 
+def test_frenet_without_motion_gives_the_same_positions_and_yaws(intersection):
+    """_frenet(..., motion=False) (the trajectories' call) leaves out vxy and dpsi only: xy and
+    yaw equal, as bytes, those of the full call."""
+    rng = np.random.default_rng(4)
+    seg = intersection._seg
+    on = rng.integers(0, len(seg.lane), 30)
+    objs = _objs(seg.a[on] + rng.normal(0.0, 0.5, (30, 2)), 8.0 * np.column_stack([np.cos(seg.psi[on]), np.sin(seg.psi[on])]))
+    lane, s0, d0 = intersection.match(objs)
+    idx = np.flatnonzero(lane >= 0)
+    assert len(idx) > 10
+    args = (objs.take(idx), intersection._chains.of_lane[lane[idx], 0], s0[idx], d0[idx],
+            np.broadcast_to(0.1 * np.arange(1, 51), (len(idx), 50)))
+    full, lean = intersection._frenet(*args), intersection._frenet(*args, motion=False)
+    assert set(lean) == {"xy", "yaw"} and set(full) == {"xy", "yaw", "vxy", "dpsi"}
+    assert all(full[k].tobytes() == lean[k].tobytes() for k in ("xy", "yaw"))
+
+
 def test_branch_hypotheses_straight_first(intersection):
     objs = _objs([[5.25, -20.0]], [[0.0, 10.0]])  # outer lane, 6 m before the right turn starts
     traj, prob = intersection.predict_hypotheses(objs, 5.0, 0.1)
