@@ -39,14 +39,19 @@ def _same(a, b) -> bool:
     return len(a) == len(b) and all(ra is rb and fa == fb for (ra, fa), (rb, fb) in zip(a, b))
 
 
-def test_placement_is_reused_only_while_estimate_and_frames_are_unchanged():
+def _three_placed():
+    """(inputs, the synced RSU's state, t_ns, its three frames placed at t_ns)."""
     table = RsuTable()
     inputs = ModeInputs(ObuPipelineConfig(), table)
     state = _synced_state(table, T0)
     t_ns = T0 + 1000 * MS
     for seq in range(3):
         _receive(state, T0 + 700 * MS + seq * 100 * MS, seq)
-    first = inputs.placed(state, t_ns)
+    return inputs, state, t_ns, inputs.placed(state, t_ns)
+
+
+def test_placement_is_reused_only_while_estimate_and_frames_are_unchanged():
+    inputs, state, t_ns, first = _three_placed()
     assert len(first) == 3 and inputs.placed(state, t_ns) == first
     assert inputs.placed(state, t_ns) is not first  # callers get their own list
 
@@ -106,13 +111,7 @@ def test_placed_times_are_the_estimate_s_own_conversion():
 
 
 def test_placement_is_not_reused_when_a_frame_is_another_object_of_the_same_count():
-    table = RsuTable()
-    inputs = ModeInputs(ObuPipelineConfig(), table)
-    state = _synced_state(table, T0)
-    t_ns = T0 + 1000 * MS
-    for seq in range(3):
-        _receive(state, T0 + 700 * MS + seq * 100 * MS, seq)
-    first = inputs.placed(state, t_ns)
+    inputs, state, t_ns, first = _three_placed()
     old = state.frames[1]
     state.frames[1] = Received(old.capture_rsu_ns, old.valid_rsu_ns, old.seq, old.objects, old.receive_ns)  # equal, not it
     again = inputs.placed(state, t_ns)

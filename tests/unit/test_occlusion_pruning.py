@@ -23,6 +23,19 @@ def _star(rng, centre, k: int = 7) -> np.ndarray:
     return centre + np.column_stack([rad * np.cos(ang), rad * np.sin(ang)])
 
 
+def _scene(rng, max_targets: int, origin_on_target: bool):
+    """A random scene: (n, n targets, up to 5 boxes (or None), up to 2 star polygons, the sensor origin:
+    the first target's centre where origin_on_target and there is one, else anywhere)."""
+    n, span_m = int(rng.integers(0, max_targets)), float(rng.choice([5.0, 20.0, 60.0]))
+    targets = _targets(rng, n, span_m)
+    m = int(rng.integers(0, 6))
+    boxes = np.column_stack([rng.uniform(-span_m, span_m, (m, 2)), rng.uniform(0.5, 10, (m, 2)),
+                             rng.uniform(-4, 4, m)]) if m else None
+    polys = [_star(rng, rng.uniform(-span_m, span_m, 2)) for _ in range(int(rng.integers(0, 3)))]
+    origin = targets.xy[0].copy() if origin_on_target and n else rng.uniform(-span_m, span_m, 2)
+    return n, targets, boxes, polys, origin
+
+
 def _fractions(prune: bool, *args, **kwargs) -> np.ndarray:
     saved, occlusion.PRUNE = occlusion.PRUNE, prune
     try:
@@ -35,14 +48,8 @@ def test_pruned_equals_every_pair_on_random_scenes():
     rng = np.random.default_rng(11)
     checked = partly = 0
     for it in range(400):
-        n, span_m = int(rng.integers(0, 50)), float(rng.choice([5.0, 20.0, 60.0]))
-        targets = _targets(rng, n, span_m)
-        m = int(rng.integers(0, 6))
-        boxes = np.column_stack([rng.uniform(-span_m, span_m, (m, 2)), rng.uniform(0.5, 10, (m, 2)),
-                                 rng.uniform(-4, 4, m)]) if m else None
-        polys = [_star(rng, rng.uniform(-span_m, span_m, 2)) for _ in range(int(rng.integers(0, 3)))]
         # origins: anywhere, inside a target's box (its own centre), on the row of every target (bearing +-pi)
-        origin = targets.xy[0].copy() if it % 3 == 0 and n else rng.uniform(-span_m, span_m, 2)
+        n, targets, boxes, polys, origin = _scene(rng, 50, it % 3 == 0)
         if it % 5 == 0 and n:
             targets.xy[:, 1] = origin[1]
         for samples in (1, 5, 9):
@@ -95,13 +102,7 @@ def test_every_pair_path_equals_the_pruned_path_on_random_scenes():
     saved = occlusion.SMALL_PAIRS
     try:
         for it in range(300):
-            n, span_m = int(rng.integers(0, 30)), float(rng.choice([5.0, 20.0, 60.0]))
-            targets = _targets(rng, n, span_m)
-            m = int(rng.integers(0, 6))
-            boxes = np.column_stack([rng.uniform(-span_m, span_m, (m, 2)), rng.uniform(0.5, 10, (m, 2)),
-                                     rng.uniform(-4, 4, m)]) if m else None
-            polys = [_star(rng, rng.uniform(-span_m, span_m, 2)) for _ in range(int(rng.integers(0, 3)))]
-            origin = targets.xy[0].copy() if it % 3 == 0 and n else rng.uniform(-span_m, span_m, 2)
+            n, targets, boxes, polys, origin = _scene(rng, 30, it % 3 == 0)
             for targets_occlude in (True, False):
                 kw = {"samples": 9, "targets_occlude": targets_occlude}
                 occlusion.SMALL_PAIRS = 0
