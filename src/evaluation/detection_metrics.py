@@ -212,7 +212,8 @@ class CenterDistanceAp:
         self._num_truth = [0] * len(self.range_bins_m)
         stride = 1 + len(self.thresholds_m)  # (bins, T) uint64: the flag bit of a true positive per bin and threshold
         self._tp_bits = np.array([[1 << (b * stride + 1 + k) for k in range(len(self.thresholds_m))]
-                                  for b in range(len(self.range_bins_m))], dtype=np.uint64).reshape(len(self.range_bins_m), -1)
+                                  for b in range(len(self.range_bins_m))],
+                                 dtype=np.uint64).reshape(len(self.range_bins_m), -1)
 
     def add_frame(self, truth_xy: np.ndarray, pred_xy: np.ndarray, confidence: np.ndarray) -> None:
         """One frame: truth centres (G, 2), prediction centres (P, 2) m, confidences (P,)."""
@@ -228,7 +229,8 @@ class CenterDistanceAp:
             self._num_truth[b] += int(keep_t.sum())
             t, p = truth_xy[keep_t], pred_xy[keep_p]
             dist = cdist(p, t) if len(p) and len(t) else np.zeros((len(p), len(t)))
-            tp = np.array(_greedy_matches(dist, rank[keep_p], self.thresholds_m), dtype=np.uint64).reshape(len(self.thresholds_m), len(p))
+            tp = np.array(_greedy_matches(dist, rank[keep_p], self.thresholds_m),
+                          dtype=np.uint64).reshape(len(self.thresholds_m), len(p))
             flags[keep_p] |= (tp.T @ self._tp_bits[b]) | np.uint64(1 << (b * stride))  # disjoint bits: sum = OR
         self._confidence.extend(confidence.tolist())
         self._flags.extend(flags.tolist())

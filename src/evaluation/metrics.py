@@ -126,7 +126,8 @@ class CycleFrame:
         return values
 
     @classmethod
-    def of(cls, world, msg: FusedObjectList, start_ns: int, truth: tuple[float, ObjectArray] | None = None) -> CycleFrame:
+    def of(cls, world, msg: FusedObjectList, start_ns: int,
+           truth: tuple[float, ObjectArray] | None = None) -> CycleFrame:
         """``truth``: (t_s, the truth in the true base_link at t_s) already derived in this step
         (the LiDAR's frame, ``sim.sensors.Lidar.last_truth``); taken when t_s is this cycle's."""
         t_s = (msg.cycle_time_ns - start_ns) * 1e-9
@@ -204,7 +205,8 @@ class TargetSeries:
     sources: np.ndarray
 
 
-def score_target(world, outputs: Iterable[FusedObjectList], start_ns: int, sources_mask: int | None = None) -> TargetScore:
+def score_target(world, outputs: Iterable[FusedObjectList], start_ns: int,
+                 sources_mask: int | None = None) -> TargetScore:
     """Score ``world.target_id`` in the outputs; with ``sources_mask`` only objects whose
     sources intersect it count (SOURCE_VEHICLE gives the vehicle-only view)."""
     tally = TargetTally(world.target_id, sources_mask)

@@ -310,7 +310,8 @@ class LanePredictor:
         moving = np.hypot(objs.vxy[:, 0], objs.vxy[:, 1]) > cfg.min_speed_for_heading_mps
         heading = np.where(moving, np.arctan2(objs.vxy[:, 1], objs.vxy[:, 0]), objs.yaw)
         off_x, off_y = np.subtract.outer(objs.xy[:, 0], seg.mid[:, 0]), np.subtract.outer(objs.xy[:, 1], seg.mid[:, 1])
-        row, k = np.nonzero(off_x * off_x + off_y * off_y <= seg.reach_sq)  # candidate pairs (K,), by object then segment
+        # candidate pairs (K,), by object then segment
+        row, k = np.nonzero(off_x * off_x + off_y * off_y <= seg.reach_sq)
         if not len(row):
             return np.full(n, -1, dtype=seg.lane.dtype), np.zeros(n), np.zeros(n)
         rel = objs.xy[row] - seg.a[k]  # (K, 2)

@@ -437,7 +437,8 @@ class Tracker:
         rows.ids[new] = np.arange(self._next_id, self._next_id + n)
         self._next_id += n
         rows.x[new], rows.p[new], rows.birth_x[new], rows.birth_p[new] = x, p, x, p
-        rows.cls[new], rows.z[new], rows.lwh[new] = dets.cls.take(index), dets.z.take(index), dets.lwh.take(index, axis=0)
+        rows.cls[new], rows.z[new] = dets.cls.take(index), dets.z.take(index)
+        rows.lwh[new] = dets.lwh.take(index, axis=0)
         rows.yaw[new], rows.confidence[new] = shape.yaw_rad.take(index), dets.confidence.take(index)
         rows.hits[new], rows.born_s[new], rows.updated_s[new], rows.shape_s[new] = 1, t_s, t_s, t_s
         rows.seen_s[new] = np.where(cols.take(index, axis=0), t_s, -np.inf)

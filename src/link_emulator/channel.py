@@ -294,7 +294,8 @@ class Channel:
     def _in_order(self, deliver: np.ndarray, copy: np.ndarray) -> Deliveries:
         """Apply ``fifo`` over messages and copies in send order; track the latest delivery."""
         if deliver.size == 1:  # the live per-message path; the same rule as below
-            return Deliveries(*(np.array([t], dtype=np.int64) for t in self._one_in_order(int(deliver[0]), int(copy[0]))))
+            times = self._one_in_order(int(deliver[0]), int(copy[0]))
+            return Deliveries(*(np.array([t], dtype=np.int64) for t in times))
         seq = np.column_stack((deliver, copy)).reshape(-1)
         valid = seq != NONE_NS
         latest = np.maximum.accumulate(np.concatenate(([self._last_ns], np.where(valid, seq, _INT64_MIN))))[1:]
