@@ -40,7 +40,7 @@ def _answer_time(query) -> None:
 
 def test_obu_fuses_images_live_and_refuses_bad_features():
     """One retry, with the first failure shown as a warning: on this 2-core machine one run in about
-    eight fails at HEAD and at 3bc33d8 alike (measured 2 of 14 and 1 of 13), either frames 2-6 left
+    eight fails at HEAD and at 3bc33d8 alike (measured 2 of 13 and 1 of 13), either frames 2-6 left
     unpaired or the stranger's frame never counted; the cause is not found (see the session note)."""
     try:
         _fuse_images_live()
