@@ -39,31 +39,37 @@ def filled(n: int, value, dtype=float) -> np.ndarray:
 # Batched LAPACK: np.linalg.cholesky / inv / eigvalsh call these gufuncs after ~2.5 us of Python-level checks
 # and an errstate that turns a failure into a LinAlgError for the whole batch. Called directly (float64
 # only), a matrix without a result comes back as NaN and the others are unaffected (the same LAPACK calls,
-# so the same numbers). A numpy without the module gets the public functions.
+# so the same numbers). A numpy without the (private) module gets the public functions matrix by matrix.
 try:
     from numpy.linalg import _umath_linalg as _lapack
-except ImportError:  # pragma: no cover
+except ImportError:  # pragma: no cover (numpy 1.26 - 2.4 have it; tests run both paths)
     _lapack = None
+
+
+def _each_or_nan(fn, a: np.ndarray) -> np.ndarray:
+    """fn (a public np.linalg function) of each matrix a[k] (K, m, m); all NaN where it raises LinAlgError."""
+    rows = []
+    for matrix in a:
+        try:
+            rows.append(fn(matrix))
+        except np.linalg.LinAlgError:
+            rows.append(None)
+    shape = next((r.shape for r in rows if r is not None), fn(np.eye(a.shape[-1])).shape)
+    return np.array([np.full(shape, np.nan) if r is None else r for r in rows]).reshape(len(a), *shape)
 
 
 def cholesky_or_nan(a: np.ndarray) -> np.ndarray:
     """``np.linalg.cholesky`` (lower) of each float64 matrix a (K, m, m); all NaN for a matrix without a factor."""
-    if _lapack is not None:
-        with np.errstate(all="ignore"):
-            return _lapack.cholesky_lo(a, signature="d->d")
-    out = np.full(a.shape, np.nan)  # pragma: no cover
-    for i in range(len(a)):  # pragma: no cover
-        try:
-            out[i] = np.linalg.cholesky(a[i])
-        except np.linalg.LinAlgError:
-            pass
-    return out  # pragma: no cover
+    if _lapack is None:
+        return _each_or_nan(np.linalg.cholesky, a)
+    with np.errstate(all="ignore"):
+        return _lapack.cholesky_lo(a, signature="d->d")
 
 
 def inverse_cholesky_or_nan(a: np.ndarray) -> np.ndarray:
     """``np.linalg.inv(np.linalg.cholesky(a))`` of each float64 matrix a (K, m, m): L^-1 with a = L L^T (a
     whitening transform, L^-1 a L^-T = I); all NaN for a matrix without a factor. One errstate for both."""
-    if _lapack is None:  # pragma: no cover
+    if _lapack is None:
         return inv_or_nan(cholesky_or_nan(a))
     with np.errstate(all="ignore"):
         return _lapack.inv(_lapack.cholesky_lo(a, signature="d->d"), signature="d->d")
@@ -71,8 +77,8 @@ def inverse_cholesky_or_nan(a: np.ndarray) -> np.ndarray:
 
 def inv_or_nan(a: np.ndarray) -> np.ndarray:
     """``np.linalg.inv`` of each float64 matrix a (K, m, m); all NaN for a singular one."""
-    if _lapack is None:  # pragma: no cover
-        return np.linalg.inv(a)
+    if _lapack is None:
+        return _each_or_nan(np.linalg.inv, a)
     with np.errstate(all="ignore"):
         return _lapack.inv(a, signature="d->d")
 
@@ -80,7 +86,7 @@ def inv_or_nan(a: np.ndarray) -> np.ndarray:
 def eigvalsh_or_nan(a: np.ndarray) -> np.ndarray:
     """``np.linalg.eigvalsh`` (lower triangle, ascending) of each float64 symmetric matrix a (K, m, m);
     NaN where LAPACK does not converge."""
-    if _lapack is None:  # pragma: no cover
-        return np.linalg.eigvalsh(a)
+    if _lapack is None:
+        return _each_or_nan(np.linalg.eigvalsh, a)
     with np.errstate(all="ignore"):
         return _lapack.eigvalsh_lo(a, signature="d->d")

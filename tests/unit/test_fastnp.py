@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from fusion import fastnp
 from fusion.fastnp import (all_true, any_true, cholesky_or_nan, eigvalsh_or_nan, filled, inv_or_nan,
                            inverse_cholesky_or_nan, true_index)
 
@@ -24,9 +25,13 @@ def test_the_cheap_spellings_equal_numpy(shape):
         assert out.dtype == np.full(n, value, dtype).dtype
 
 
+@pytest.mark.parametrize("private", [True, False], ids=["gufuncs", "public-fallback"])
 @pytest.mark.parametrize("m", [2, 4])
-def test_batched_lapack_equals_numpy_linalg_and_marks_failures_nan(m):
-    """The same LAPACK calls as np.linalg (bit for bit); a matrix without a result is NaN, the others unaffected."""
+def test_batched_lapack_equals_numpy_linalg_and_marks_failures_nan(m, private, monkeypatch):
+    """The same LAPACK calls as np.linalg (bit for bit); a matrix without a result is NaN, the others
+    unaffected; the same through the public functions when numpy lacks the private gufunc module."""
+    if not private:
+        monkeypatch.setattr(fastnp, "_lapack", None)
     rng = np.random.default_rng(m)
     a = rng.normal(size=(6, m, m))
     spd = a @ a.transpose(0, 2, 1) + 0.1 * np.eye(m)
