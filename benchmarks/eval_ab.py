@@ -6,7 +6,9 @@
 The revision's ``src/`` and ``benchmarks/`` are extracted (``git archive``) into a temporary
 directory. Each round runs ``benchmarks/eval_speed.py --repeats 1`` once per scenario and tree
 (``PYTHONPATH=<tree>/src``), base first in even rounds, head first in odd ones; one line per
-scenario: median x real time of each, head / base, and the runs. ``--check-json`` compares
+scenario: median x real time of each, head / base, and the runs; then the median ``import_s`` of
+each tree (imports and compiled kernels, paid once per ``v2i eval`` process, outside x real
+time: what a single short run feels on top of it). ``--check-json`` compares
 ``v2i eval --scenario S --seed 0 --json -`` of both trees, byte for byte.
 """
 
@@ -43,15 +45,20 @@ def _run(tree: Path, args: list[str]) -> str:
     return out.stdout
 
 
-def x_real(tree: Path, scenario: str, seed: int) -> float:
-    """Simulated / wall seconds of one run of the scenario in that tree."""
+def x_real(tree: Path, scenario: str, seed: int) -> tuple[float, float]:
+    """Simulated / wall seconds of one run of the scenario in that tree, and its process's import_s."""
     text = _run(tree, [str(tree / "benchmarks" / "eval_speed.py"), "--scenarios", scenario, "--repeats", "1",
                        "--seed", str(seed)])
+    x, start_s = None, None
     for line in text.splitlines():
         parts = line.split()
         if parts and parts[0] == scenario:
-            return float(parts[3])
-    raise RuntimeError(f"no line for {scenario} in:\n{text}")
+            x = float(parts[3])
+        elif parts and parts[0] == "import_s":
+            start_s = float(parts[1])
+    if x is None or start_s is None:
+        raise RuntimeError(f"no line for {scenario} or import_s in:\n{text}")
+    return x, start_s
 
 
 def report(tree: Path, scenario: str) -> str:
@@ -71,17 +78,23 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="v2i-eval-ab-") as tmp:
         base = extract(args.base, Path(tmp))
         runs: dict[tuple[str, str], list[float]] = {(t, s): [] for t in ("base", "head") for s in names}
+        start_s: dict[str, list[float]] = {"base": [], "head": []}
         for r in range(args.rounds):
             for s in names:
                 trees = [("base", base), ("head", HEAD)]
                 for label, tree in trees if r % 2 == 0 else trees[::-1]:
-                    runs[label, s].append(x_real(tree, s, args.seed))
+                    x, seconds = x_real(tree, s, args.seed)
+                    runs[label, s].append(x)
+                    start_s[label].append(seconds)
         if args.rounds:
             print(f"{'scenario':26s} {'base x':>7s} {'head x':>7s} {'ratio':>6s}  (median of {args.rounds}, "
                   f"seed {args.seed}, base {args.base})")
         for s in names if args.rounds else ():
             b, h = statistics.median(runs["base", s]), statistics.median(runs["head", s])
             print(f"{s:26s} {b:7.1f} {h:7.1f} {h / b:6.2f}  base {runs['base', s]} head {runs['head', s]}")
+        if args.rounds:
+            b, h = statistics.median(start_s["base"]), statistics.median(start_s["head"])
+            print(f"{'import_s (per process)':26s} {b:7.2f} {h:7.2f} {h / b:6.2f}  (median of {len(start_s['head'])})")
         same = True
         for s in names if args.check_json else ():
             equal = report(base, s) == report(HEAD, s)

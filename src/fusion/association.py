@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .fastnp import all_true, filled, true_index
+from .jit import I64, IN_F1, IN_F2, IN_I1, OUT_I1, kernel
+
 
 _BIG = 1e12
 
@@ -67,41 +68,70 @@ def assign_sparse(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n_a: int, n_b:
     A pair whose a and b are in no other pair is a component of its own and is matched; the
     other pairs are solved together over their distinct rows and columns (module docstring).
     The matches are collected in ``mate`` (n_a,), the b matched to each a (-1: none), which
-    sorts them by a without a sort.
+    sorts them by a without a sort. The bookkeeping around the solver runs compiled (numba).
     """
     a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
-    # every pair counts once for its a and once for its b: the counts sum to 2 exactly when both are 1
-    single = (np.bincount(a, minlength=n_a).take(a) + np.bincount(b, minlength=n_b).take(b)) == 2
-    mate = np.empty(n_a, np.int64)
-    mate.fill(-1)
-    if all_true(single):
-        mate[a] = b
-    else:
-        one, rest = true_index(single), true_index(~single)
-        mate[a.take(one)] = b.take(one)
-        rows, ri = _compact(a.take(rest), n_a)
-        cols, ci = _compact(b.take(rest), n_b)
-        sub = np.empty((len(rows), len(cols)))
-        sub.fill(_BIG)
-        sub[ri, ci] = cost.take(rest)
+    mate, rest = _single_pairs(a, b, n_a, n_b)
+    if len(rest):
+        rows, cols, sub = _sub_problem(a, b, np.asarray(cost, dtype=float), rest, n_a, n_b)
         r, c = linear_sum_assignment(sub)
-        ok = true_index(sub[r, c] < _BIG)
-        mate[rows.take(r.take(ok))] = cols.take(c.take(ok))
+        _take_solution(mate, rows, cols, sub, r, c)
+    return Assignment(*_matching(mate, n_b))
+
+
+@kernel(IN_I1, IN_I1, I64, I64)
+def _single_pairs(a: np.ndarray, b: np.ndarray, n_a: int, n_b: int) -> tuple[np.ndarray, np.ndarray]:
+    """mate (n_a,) with the pairs that are a component of their own (their a and b in no other pair)
+    matched, -1 elsewhere; rest (R,) the indices of the other pairs."""
+    count_a, count_b = np.zeros(n_a, np.int64), np.zeros(n_b, np.int64)
+    for k in range(len(a)):
+        count_a[a[k]] += 1
+        count_b[b[k]] += 1
+    mate = np.full(n_a, -1, np.int64)
+    rest = np.empty(len(a), np.int64)
+    n_rest = 0
+    for k in range(len(a)):
+        if count_a[a[k]] == 1 and count_b[b[k]] == 1:
+            mate[a[k]] = b[k]
+        else:
+            rest[n_rest] = k
+            n_rest += 1
+    return mate, rest[:n_rest]
+
+
+@kernel(IN_I1, IN_I1, IN_F1, IN_I1, I64, I64)
+def _sub_problem(a: np.ndarray, b: np.ndarray, cost: np.ndarray, rest: np.ndarray, n_a: int,
+                 n_b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs rest (R,) as a dense problem over their distinct rows (sorted, (r,)) and columns ((c,)):
+    sub (r, c) their cost, _BIG elsewhere."""
+    row_of, col_of = np.full(n_a, -1, np.int64), np.full(n_b, -1, np.int64)
+    for k in rest:
+        row_of[a[k]], col_of[b[k]] = 0, 0
+    rows, cols = np.flatnonzero(row_of == 0), np.flatnonzero(col_of == 0)
+    row_of[rows], col_of[cols] = np.arange(len(rows)), np.arange(len(cols))
+    sub = np.full((len(rows), len(cols)), _BIG)
+    for k in rest:
+        sub[row_of[a[k]], col_of[b[k]]] = cost[k]
+    return rows, cols, sub
+
+
+@kernel(OUT_I1, IN_I1, IN_I1, IN_F2, IN_I1, IN_I1)
+def _take_solution(mate: np.ndarray, rows: np.ndarray, cols: np.ndarray, sub: np.ndarray, r: np.ndarray,
+                   c: np.ndarray) -> None:
+    """The solver's pairs (r, c) of sub that are allowed (cost below _BIG) into mate."""
+    for k in range(len(r)):
+        if sub[r[k], c[k]] < _BIG:
+            mate[rows[r[k]]] = cols[c[k]]
+
+
+@kernel(IN_I1, I64)
+def _matching(mate: np.ndarray, n_b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """matches (K, 2) sorted by a, unmatched a, unmatched b from mate (n_a,)."""
     matched = mate >= 0
-    ma = true_index(matched)
+    ma = np.flatnonzero(matched)
     matches = np.empty((len(ma), 2), np.int64)
-    matches[:, 0] = ma
-    matches[:, 1] = mb = mate.take(ma)
-    free_b = filled(n_b, True, bool)
-    free_b[mb] = False
-    return Assignment(matches, true_index(~matched), true_index(free_b))
-
-
-def _compact(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct values of index (sorted) in [0, size) and the position of each entry among them."""
-    present = np.zeros(size, bool)
-    present[index] = True
-    values = true_index(present)
-    lookup = np.empty(size, np.int64)
-    lookup[values] = np.arange(len(values))
-    return values, lookup[index]
+    free_b = np.ones(n_b, np.bool_)
+    for k in range(len(ma)):
+        matches[k, 0], matches[k, 1] = ma[k], mate[ma[k]]
+        free_b[mate[ma[k]]] = False
+    return matches, np.flatnonzero(~matched), np.flatnonzero(free_b)

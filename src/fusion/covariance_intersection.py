@@ -26,111 +26,37 @@ concave in w, so the minimiser is the root of its derivative
 
 which decreases in w (g'(w) = -(n - m) / w^2 - sum_i (1 - lambda_i)^2 / (w (1 - lambda_i) + lambda_i)^2):
 w = 1 where g(1) >= 0 (the estimate would only loosen the track; no update), W_MIN where
-g(W_MIN) <= 0, else the root in between, found by safeguarded Newton vectorised over the
-tracks: w <- w - g(w) / g'(w), a bisection step of the bracket [lo, hi] (g(lo) > 0 > g(hi))
-wherever Newton would leave it. It stops when every Newton step is below ``W_TOL`` = 1e-12:
+g(W_MIN) <= 0, else the root in between, found by safeguarded Newton:
+w <- w - g(w) / g'(w), a bisection step of the bracket [lo, hi] (g(lo) > 0 > g(hi))
+wherever Newton would leave it. It stops when a Newton step is below ``W_TOL`` = 1e-12:
 Newton converges quadratically, so the error after such a step is O(1e-24), below the
 rounding of g itself; the weight is the 52-halving bisection's to ~1e-15 (both are exact to
 rounding) at about 5 iterations instead of 52 (tests/unit/test_multi_source.py compares them).
 Why not a grid (its resolution limits the optimum) or the improved fast CI of
 Franken & Hupper (a closed-form approximation for full-rank pairs): the exact optimum costs
-K x m eigenvalues and a few Newton steps on (K, m) arrays. For a partial observation (m < n) the
+m eigenvalues and a few Newton steps per track. For a partial observation (m < n) the
 (n - m) log w term keeps w > 0: scaling the track's information down loses the unobserved
 entries too, so the track keeps its weight unless the estimate is markedly better
 (sum_i (lambda_i - 1) > n - m at w = 1).
+
+The tracker fuses a few estimates per list, so the cost is per call, not per pair: the weights
+and the update run as compiled kernels (numba), one pair at a time, with a Cholesky factor and
+the eigenvalues in closed form for m = 2 (position) and LAPACK's for m = 4 (position and velocity).
+``covariance_intersection`` (the information form, numpy) is the reference they are tested against.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from .fastnp import all_true, any_true, eigvalsh_or_nan, filled, inverse_cholesky_or_nan, true_index
+from .jit import I64, IN_F1, IN_F2, IN_F3, IN_I1, OUT_F2, OUT_F3, helper, kernel
 
 W_MIN = 1e-6  # smallest weight of the track (full observations: w -> 0 takes the estimate)
-W_TOL = 1e-12  # Newton stops once every step is below this (module docstring)
+W_TOL = 1e-12  # Newton stops once a step is below this (module docstring)
 _MAX_STEPS = 60  # safeguard: each step at least halves the bracket where Newton fails, 2^-60 < W_TOL
-
-
-def det_minimising_weight(lam: np.ndarray, free: int) -> np.ndarray:
-    """w (K,) in [W_MIN, 1] maximising free log w + sum_i log(w (1 - lambda_i) + lambda_i) for
-    generalised eigenvalues lam (K, m) > 0 and free = n - m unobserved state entries (module docstring)."""
-    a = 1.0 - lam  # g(w) = free / w + sum a / (a w + lambda)
-    # (np.add.reduce: the same sums as .sum without its Python-level wrapper)
-    g_one = free + np.add.reduce(a, axis=1)  # g(1): a + lambda = 1
-    g_min = free / W_MIN + np.add.reduce(a / (a * W_MIN + lam), axis=1)
-    w = np.where(g_min <= 0, W_MIN, 1.0)  # the bounds: at W_MIN where g(W_MIN) <= 0, else at 1 where g(1) >= 0
-    inner = (g_one < 0) & (g_min > 0)  # the root lies strictly inside (W_MIN, 1)
-    if any_true(inner):
-        w[inner] = _newton_root(a[inner], lam[inner], free)
-    return w
-
-
-_SCALAR_ROWS = 3  # up to this many rows the Newton iteration runs on Python floats (_newton_root_scalar)
-
-
-def _newton_root(a: np.ndarray, lam: np.ndarray, free: int) -> np.ndarray:
-    """Root (K,) in (W_MIN, 1) of the decreasing g(w) = free / w + sum a / (a w + lam), a, lam (K, m),
-    g(W_MIN) > 0 > g(1): safeguarded Newton (module docstring)."""
-    if len(a) <= _SCALAR_ROWS:
-        try:
-            return _newton_root_scalar(a.tolist(), lam.tolist(), free)
-        except ZeroDivisionError:  # numpy would carry an inf or nan on; let it
-            pass
-    return _newton_root_batched(a, lam, free)
-
-
-def _newton_root_scalar(a: list[list[float]], lam: list[list[float]], free: int) -> np.ndarray:
-    """``_newton_root_batched`` on a few rows in Python floats: the same operations in the same order
-    (sums from the first term, every row stepped until all are done), so the same weights, without
-    numpy's per-call cost (a single row took ~50 us in numpy, 4-5 steps of ~20 array operations)."""
-    k = len(a)
-    lo, hi, w = [W_MIN] * k, [1.0] * k, [0.5] * k
-    for _ in range(_MAX_STEPS):
-        done = True
-        for i in range(k):
-            wi, g, s2 = w[i], 0.0, 0.0
-            for j, (aj, lj) in enumerate(zip(a[i], lam[i])):
-                q = aj / (aj * wi + lj)
-                g, s2 = (q, q * q) if j == 0 else (g + q, s2 + q * q)
-            if free:
-                g, dg = free / wi + g, -free / (wi * wi) - s2
-            else:
-                dg = -s2
-            if g > 0:  # the root lies above w
-                lo[i] = wi
-            else:
-                hi[i] = wi
-            nxt = wi - g / dg
-            if not (nxt >= lo[i] and nxt <= hi[i]):  # bisect where Newton leaves the bracket (or is nan)
-                nxt = 0.5 * (lo[i] + hi[i])
-            done = done and abs(nxt - wi) <= W_TOL
-            w[i] = nxt
-        if done:
-            break
-    return np.array(w)
-
-
-def _newton_root_batched(a: np.ndarray, lam: np.ndarray, free: int) -> np.ndarray:
-    """``_newton_root`` vectorised over the rows."""
-    lo, hi = np.full(len(a), W_MIN), np.ones(len(a))
-    w = np.full(len(a), 0.5)
-    for _ in range(_MAX_STEPS):
-        q = a / (a * w[:, None] + lam)
-        if free:
-            g = free / w + q.sum(axis=1)
-            dg = -free / (w * w) - (q * q).sum(axis=1)
-        else:  # full observation: the same numbers without the zero terms (0 / w + s == s, -0 - s == -s)
-            g = q.sum(axis=1)
-            dg = -(q * q).sum(axis=1)
-        above = g > 0  # the root lies above w
-        lo, hi = np.where(above, w, lo), np.where(above, hi, w)
-        nxt = w - g / dg  # dg < 0: g(1) < 0 < g(W_MIN) leaves some a != 0
-        nxt = np.where((nxt >= lo) & (nxt <= hi), nxt, 0.5 * (lo + hi))  # bisect where Newton leaves the bracket
-        done = np.abs(nxt - w) <= W_TOL
-        w = nxt
-        if done.all():
-            break
-    return w
+_PD_RATIO = 1e-12  # R^-1 H P H^T counts as positive definite when its smallest eigenvalue is above this of the largest
 
 
 def ci_weights(p: np.ndarray, r: np.ndarray, first: int = 0) -> np.ndarray:
@@ -141,31 +67,7 @@ def ci_weights(p: np.ndarray, r: np.ndarray, first: int = 0) -> np.ndarray:
     estimate is not used): R must have a Cholesky factor, and the eigenvalues of R^-1 H P H^T
     must be positive, the smallest above 1e-12 of the largest.
     """
-    k, n, m = len(p), p.shape[-1], r.shape[-1]
-    sel = slice(first, first + m)
-    p_obs = p[:, sel, sel]
-    if np.isfinite(np.add.reduce(p_obs, axis=None) + np.add.reduce(r, axis=None)):  # all finite (a sum is finite only if each term is)
-        rows = None
-    else:
-        rows = np.flatnonzero(np.isfinite(p_obs).all(axis=(1, 2)) & np.isfinite(r).all(axis=(1, 2)))
-        p_obs, r = p_obs[rows], r[rows]
-    inv_l = inverse_cholesky_or_nan(r)  # L^-1, R = L L^T; NaN where R has no factor (positive definite to rounding)
-    factored = ~np.isnan(inv_l[:, 0, 0])
-    if not all_true(factored):
-        rows = np.flatnonzero(factored) if rows is None else rows[factored]
-        p_obs, inv_l = p_obs[factored], inv_l[factored]
-    w = filled(k, 1.0)
-    if not len(p_obs):
-        return w
-    # (.transpose(0, 2, 1) rather than np.swapaxes: the method skips a Python-level wrapper)
-    lam = eigvalsh_or_nan(inv_l @ (0.5 * (p_obs + p_obs.transpose(0, 2, 1))) @ inv_l.transpose(0, 2, 1))
-    # H P H^T positive definite: R^-1 S has positive eigenvalues, none below 1e-12 of the largest (NaN: no)
-    pd = lam[:, 0] > 1e-12 * np.abs(lam[:, -1])
-    if rows is None and all_true(pd):
-        return det_minimising_weight(lam, n - m)
-    rows = np.arange(k) if rows is None else rows
-    w[rows[pd]] = det_minimising_weight(lam[pd], n - m)
-    return w
+    return _weights(np.ascontiguousarray(p, dtype=float), np.ascontiguousarray(r, dtype=float), first)
 
 
 def ci_update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w: np.ndarray,
@@ -173,41 +75,201 @@ def ci_update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w: np.
     """CI of K tracks x (K, n), P (K, n, n) with estimates z (K, m), R (K, m, m) of the state
     entries first .. first + m - 1, weights w (K,): the Kalman update with P / w and
     R / (1 - w) (module docstring). Rows with w = 1 are returned unchanged. New arrays."""
-    x, p = x.copy(), p.copy()
+    x, p = np.array(x, dtype=float), np.array(p, dtype=float)
     ci_update_into(x, p, z, r, w, first)
     return x, p
 
 
 def ci_update_into(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w: np.ndarray,
                    first: int = 0, rows: np.ndarray | None = None) -> None:
-    """``ci_update`` written into x (K, n) and P (K, n, n); with ``rows`` (K,), into the rows rows[k]
-    of larger x, P (a track table), pair k being (x[rows[k]], P[rows[k]]) with (z[k], R[k], w[k])."""
-    use = w < 1.0
-    every = all_true(use)
-    if not every and not any_true(use):
-        return
-    if every:
-        zu, ru, wu, target = z, r, w[:, None, None], rows
-    else:
-        use = true_index(use)  # (row gathers by .take: cheaper than boolean indexing on small batches)
-        zu, ru, wu = z.take(use, axis=0), r.take(use, axis=0), w[use][:, None, None]
-        target = use if rows is None else rows.take(use)
-    if target is None:
-        xu, pu = x, p
-    else:
-        xu, pu = x.take(target, axis=0), p.take(target, axis=0)
-    pw, rw = pu / wu, ru / (1.0 - wu)
-    sel = slice(first, first + r.shape[-1])
-    s = pw[:, sel, sel] + rw  # S = H P H^T / w + R / (1 - w)
-    gain = np.linalg.solve(s, pw[:, :, sel].transpose(0, 2, 1)).transpose(0, 2, 1)  # K = (P / w) H^T S^-1
-    x_new = xu + (gain @ (zu - xu[:, sel])[:, :, None])[:, :, 0]
-    # Joseph form with A = (I - K H) P / w: P+ = A + (K R' - A H^T) K^T (as kalman.update)
-    a = pw - gain @ pw[:, sel, :]
-    p_new = a + (gain @ rw - a[:, :, sel]) @ gain.transpose(0, 2, 1)
-    if target is None:
-        x[...], p[...] = x_new, p_new
-    else:
-        x[target], p[target] = x_new, p_new
+    """``ci_update`` written into x (K, n) and P (K, n, n) (float64); with ``rows`` (K,), into the rows
+    rows[k] of larger x, P (a track table), pair k being (x[rows[k]], P[rows[k]]) with (z[k], R[k], w[k])."""
+    rows = np.arange(len(z)) if rows is None else np.asarray(rows, dtype=np.int64)
+    _update_rows(x, p, rows, np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(r, dtype=float),
+                 np.ascontiguousarray(w, dtype=float), first)
+
+
+def ci_fuse_rows(x: np.ndarray, p: np.ndarray, rows: np.ndarray, z: np.ndarray, r: np.ndarray) -> None:
+    """CI of the tracks rows (K,) of a table x (N, n), P (N, n, n) with estimates z (K, m), R (K, m, m)
+    of their first m state entries, in place: ``ci_weights`` of the K pairs, then ``ci_update_into``."""
+    _fuse_rows(x, p, rows, z, r)
+
+
+# --- compiled kernels (numba; the equations of the module docstring, one pair at a time) ------------
+
+
+@helper
+def _inverse_cholesky(r: np.ndarray, out: np.ndarray) -> bool:
+    """out (m, m) = L^-1 with r = L L^T (lower); False where r has no factor (not positive definite, NaN)."""
+    m = r.shape[0]
+    chol = np.zeros((m, m))
+    for j in range(m):
+        d = r[j, j]
+        for k in range(j):
+            d -= chol[j, k] * chol[j, k]
+        if not d > 0.0:
+            return False
+        chol[j, j] = math.sqrt(d)
+        for i in range(j + 1, m):
+            s = r[i, j]
+            for k in range(j):
+                s -= chol[i, k] * chol[j, k]
+            chol[i, j] = s / chol[j, j]
+    for c in range(m):  # forward substitution L out = I (out lower triangular)
+        for i in range(m):
+            s = 1.0 if i == c else 0.0
+            for k in range(c, i):
+                s -= chol[i, k] * out[k, c]
+            out[i, c] = s / chol[i, i] if i >= c else 0.0
+    return True
+
+
+@helper
+def _generalised_eigenvalues(p: np.ndarray, inv_l: np.ndarray, first: int) -> np.ndarray:
+    """Ascending eigenvalues (m,) of L^-1 sym(H P H^T) L^-T = those of R^-1 H P H^T (R = L L^T)."""
+    m = inv_l.shape[0]
+    a = np.zeros((m, m))  # L^-1 sym(P_obs) L^-T
+    for i in range(m):
+        for j in range(m):
+            s = 0.0
+            for k in range(m):
+                pk = 0.0
+                for q in range(m):
+                    pk += 0.5 * (p[first + k, first + q] + p[first + q, first + k]) * inv_l[j, q]
+                s += inv_l[i, k] * pk
+            a[i, j] = s
+    if m == 2:  # closed form: mean -+ sqrt(half difference^2 + off-diagonal^2)
+        mid, half = 0.5 * (a[0, 0] + a[1, 1]), math.hypot(0.5 * (a[0, 0] - a[1, 1]), a[1, 0])
+        out = np.empty(2)
+        out[0], out[1] = mid - half, mid + half
+        return out
+    return np.linalg.eigvalsh(a)
+
+
+@helper
+def _weight(p: np.ndarray, r: np.ndarray, first: int) -> float:
+    """w of one track P (n, n) and estimate R (m, m) of entries first .. first + m - 1 (``ci_weights``)."""
+    n, m = p.shape[0], r.shape[0]
+    for i in range(m):
+        for j in range(m):
+            if not (math.isfinite(p[first + i, first + j]) and math.isfinite(r[i, j])):
+                return 1.0
+    inv_l = np.empty((m, m))
+    if not _inverse_cholesky(r, inv_l):
+        return 1.0
+    lam = _generalised_eigenvalues(p, inv_l, first)
+    if not lam[0] > _PD_RATIO * abs(lam[m - 1]):  # H P H^T not positive definite (or NaN)
+        return 1.0
+    return _det_minimising_weight(lam, n - m)
+
+
+@helper
+def _g(w: float, lam: np.ndarray, free: int) -> tuple[float, float]:
+    """g(w) = free / w + sum a / (a w + lambda), a = 1 - lambda, and g'(w) (module docstring)."""
+    g, dg = 0.0, 0.0
+    for lam_i in lam:
+        a = 1.0 - lam_i
+        q = a / (a * w + lam_i)
+        g += q
+        dg -= q * q
+    if free:
+        g += free / w
+        dg -= free / (w * w)
+    return g, dg
+
+
+@helper
+def _det_minimising_weight(lam: np.ndarray, free: int) -> float:
+    """w in [W_MIN, 1] maximising free log w + sum_i log(w (1 - lambda_i) + lambda_i), eigenvalues lam (m,) > 0,
+    free = n - m unobserved state entries: a bound, or the root of the decreasing g by safeguarded Newton."""
+    if _g(W_MIN, lam, free)[0] <= 0:
+        return W_MIN
+    if _g(1.0, lam, free)[0] >= 0:  # the estimate would only loosen the track
+        return 1.0
+    lo, hi, w = W_MIN, 1.0, 0.5  # g(lo) > 0 > g(hi)
+    for _ in range(_MAX_STEPS):
+        g, dg = _g(w, lam, free)
+        if g > 0:  # the root lies above w
+            lo = w
+        else:
+            hi = w
+        nxt = w - g / dg
+        if not (nxt >= lo and nxt <= hi):  # bisect where Newton leaves the bracket (or is NaN)
+            nxt = 0.5 * (lo + hi)
+        step = abs(nxt - w)
+        w = nxt
+        if step <= W_TOL:
+            break
+    return w
+
+
+@helper
+def _update_pair(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w: float, first: int) -> None:
+    """CI of one track x (n,), P (n, n) with z (m,), R (m, m) and weight w < 1, in place (Joseph form):
+    S = H P H^T / w + R / (1 - w), K = (P / w) H^T S^-1, x+ = x + K (z - H x),
+    A = (I - K H) P / w, P+ = A + (K R / (1 - w) - A H^T) K^T (as kalman.update)."""
+    n, m = p.shape[0], r.shape[0]
+    pw, rw = p / w, r / (1.0 - w)
+    s = np.empty((m, m))
+    for i in range(m):
+        for j in range(m):
+            s[i, j] = pw[first + i, first + j] + rw[i, j]
+    gain = np.linalg.solve(s, np.ascontiguousarray(pw[first:first + m, :])).T  # (n, m); S symmetric
+    y = z - x[first:first + m]  # innovation, before x changes
+    for i in range(n):
+        dx = 0.0
+        for j in range(m):
+            dx += gain[i, j] * y[j]
+        x[i] += dx
+    a = pw.copy()  # A = P / w - K (H P / w)
+    for i in range(n):
+        for j in range(n):
+            for k in range(m):
+                a[i, j] -= gain[i, k] * pw[first + k, j]
+    b = np.empty((n, m))  # K R' - A H^T
+    for i in range(n):
+        for j in range(m):
+            s_ij = -a[i, first + j]
+            for k in range(m):
+                s_ij += gain[i, k] * rw[k, j]
+            b[i, j] = s_ij
+    for i in range(n):
+        for j in range(n):
+            s_ij = a[i, j]
+            for k in range(m):
+                s_ij += b[i, k] * gain[j, k]
+            p[i, j] = s_ij
+
+
+@helper
+def _update_each(x: np.ndarray, p: np.ndarray, rows: np.ndarray, z: np.ndarray, r: np.ndarray, w: np.ndarray,
+                 first: int) -> None:
+    """``_update_pair`` of rows[k] of x, P with z[k], R[k], w[k], wherever w[k] < 1."""
+    for k in range(rows.shape[0]):
+        if w[k] < 1.0:
+            _update_pair(x[rows[k]], p[rows[k]], z[k], r[k], w[k], first)
+
+
+@kernel(IN_F3, IN_F3, I64)
+def _weights(p: np.ndarray, r: np.ndarray, first: int) -> np.ndarray:
+    w = np.empty(p.shape[0])
+    for k in range(p.shape[0]):
+        w[k] = _weight(p[k], r[k], first)
+    return w
+
+
+@kernel(OUT_F2, OUT_F3, IN_I1, IN_F2, IN_F3, IN_F1, I64)
+def _update_rows(x: np.ndarray, p: np.ndarray, rows: np.ndarray, z: np.ndarray, r: np.ndarray, w: np.ndarray,
+                 first: int) -> None:
+    _update_each(x, p, rows, z, r, w, first)
+
+
+@kernel(OUT_F2, OUT_F3, IN_I1, IN_F2, IN_F3)
+def _fuse_rows(x: np.ndarray, p: np.ndarray, rows: np.ndarray, z: np.ndarray, r: np.ndarray) -> None:
+    w = np.empty(rows.shape[0])
+    for k in range(rows.shape[0]):  # every weight from the prior covariances before any update
+        w[k] = _weight(p[rows[k]], r[k], 0)
+    _update_each(x, p, rows, z, r, w, 0)
 
 
 def covariance_intersection(x1: np.ndarray, p1: np.ndarray, x2: np.ndarray, p2: np.ndarray,

@@ -7,12 +7,10 @@ S = H P H^T + R; ``either``: one of the two, within gate_max_m. Among allowed pa
 minimum-cost one-to-one assignment (``association.assign_sparse``) with cost ``distance``
 (m), ``mahalanobis`` (d2) or ``iou`` (1 - BEV IoU of the predicted and the detected box).
 
-Candidates first (``_near``): tracks inside the detections' bounding box grown by the
-largest reach any pair can have, then a bound per pair on the (rows, M) block:
-distance gate |y| <= gate_m; Mahalanobis gate d2 = y^T S^-1 y >= |y|^2 / lambda_max(S) and
+Each pair is tested in one compiled loop over tracks and detections (``_gate``, numba): a bound
+first, distance gate |y| <= gate_m; Mahalanobis gate d2 = y^T S^-1 y >= |y|^2 / lambda_max(S) and
 lambda_max(S) <= tr(S) = tr(H P H^T) + tr(R), so a pair with |y|^2 > chi2 (tr P_xy + tr R)
-fails. The exact test (and the class check, in the same pass) then runs on the few pairs left,
-with the offsets of the bound (y = -(x_track - z), exactly) and the 2 x 2 entries of S gathered per pair.
+fails. The exact test and the class check run on the pairs the bound leaves.
 """
 
 from __future__ import annotations
@@ -24,10 +22,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import shapely
 
-from . import kalman
 from .association import Assignment, assign_sparse
-from .fastnp import true_index
 from .geometry import box_polygons
+from .jit import F64, I64, IN_F2, IN_F3, IN_I1, kernel
 from .objects import ObjectArray
 
 if TYPE_CHECKING:
@@ -52,67 +49,80 @@ def compatible_classes(track_cls: np.ndarray, det_cls: np.ndarray) -> np.ndarray
     return (track_cls == det_cls) | (track_cls * det_cls == 0)
 
 
-def _trace2(c: np.ndarray) -> np.ndarray:
-    """Trace of 2 x 2 covariances (K, 2, 2): an upper bound of their largest eigenvalue."""
-    return c[:, 0, 0] + c[:, 1, 1]
-
-
-def _near(config: TrackerConfig, table: TrackTable, dets: ObjectArray):
-    """Candidate pairs (module docstring): track ti (K,) and detection di (K,) of each pair inside the
-    bound (ordered by track, then detection; classes not yet compared), and their offsets dx, dy (K,) =
-    track - detection."""
-    x, dxy = table.x, dets.xy
-    px, py, zx, zy = x[:, 0], x[:, 1], dxy[:, 0], dxy[:, 1]
-    reach_m, lam_p = config.gate_m, None
-    # (ufunc reductions on columns, Python floats: the array methods and (M, 2) reductions cost more)
-    if config.gate != "distance":
-        lam_p, lam_r = _trace2(table.p), _trace2(dets.cov_xy)
-        reach_m = math.sqrt(config.gate_chi2 * (float(np.maximum.reduce(lam_p)) + float(np.maximum.reduce(lam_r))))
-        if config.gate == "either":
-            reach_m = min(max(reach_m, config.gate_m), config.gate_max_m)
-    x_lo, x_hi = float(np.minimum.reduce(zx)) - reach_m, float(np.maximum.reduce(zx)) + reach_m
-    y_lo, y_hi = float(np.minimum.reduce(zy)) - reach_m, float(np.maximum.reduce(zy)) + reach_m
-    rows = true_index((px >= x_lo) & (px <= x_hi) & (py >= y_lo) & (py <= y_hi))
-    dx, dy = np.subtract.outer(px.take(rows), zx), np.subtract.outer(py.take(rows), zy)
-    r2 = dx * dx
-    r2 += dy * dy
-    if config.gate == "distance":
-        near = r2 <= config.gate_m**2
-    else:
-        near = r2 <= config.gate_chi2 * np.add.outer(lam_p.take(rows), lam_r)
-        if config.gate == "either":
-            near = (r2 <= config.gate_m**2) | (near & (r2 <= config.gate_max_m**2))
-    flat = true_index(near)  # row-major, as np.nonzero (which is slower on 2-D arrays)
-    tl, di = np.divmod(flat, near.shape[1])
-    return rows.take(tl), di, dx.ravel().take(flat), dy.ravel().take(flat)
+_GATES = {"distance": 0, "mahalanobis": 1, "either": 2}  # the kernel's codes of TrackerConfig.gate
+_COSTS = {"distance": 0, "mahalanobis": 1, "iou": 2}  # ... and of TrackerConfig.cost (iou: computed afterwards)
 
 
 def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> GatedPairs:
-    """Class-compatible pairs inside the configured gate with the configured cost (module docstring)."""
+    """Class-compatible pairs inside the configured gate with the configured cost (module docstring),
+    ordered by track, then detection."""
     if not len(table) or not len(dets):
         return GatedPairs(_NO_INDEX, _NO_INDEX, np.zeros(0))
-    ti, di, dx, dy = _near(config, table, dets)
-    if config.gate != "mahalanobis" or config.cost == "distance":
-        dist = np.hypot(dx, dy)  # |y|, y = z - H x = -(dx, dy)
-    if config.gate != "distance" or config.cost == "mahalanobis":
-        s = table.p.take(ti, axis=0)[:, :2, :2] + dets.cov_xy.take(di, axis=0)  # S = H P H^T + R per pair, d2 = y^T S^-1 y
-        d2 = kalman._quadratic_form(dx, dy, s[:, 0, 0], s[:, 0, 1], s[:, 1, 0], s[:, 1, 1])
-    if config.gate == "distance":
-        inside = dist <= config.gate_m
-    elif config.gate == "mahalanobis":
-        inside = d2 <= config.gate_chi2
-    else:
-        inside = (dist <= config.gate_m) | ((d2 <= config.gate_chi2) & (dist <= config.gate_max_m))
-    inside = true_index(inside & compatible_classes(table.cls.take(ti), dets.cls.take(di)))
-    ti, di = ti.take(inside), di.take(inside)
-    if config.cost == "distance":
-        cost = dist.take(inside)
-    elif config.cost == "mahalanobis":
-        cost = d2.take(inside)
-    else:  # 1 - BEV IoU of the predicted box (last detected size and yaw) and the detected box
+    ti, di, cost = _gate(table.x, table.p, table.cls, dets.xy, dets.cov_xy, dets.cls, _GATES[config.gate],
+                         _COSTS[config.cost], config.gate_m, config.gate_chi2, config.gate_max_m)
+    if config.cost == "iou":  # 1 - BEV IoU of the predicted box (last detected size and yaw) and the detected box
         a = np.column_stack([table.x[ti, :2], table.lwh[ti, :2], table.yaw[ti]])
         cost = 1.0 - paired_bev_iou(a, np.column_stack([dets.xy[di], dets.lwh[di, :2], dets.yaw[di]]))
     return GatedPairs(ti, di, cost)
+
+
+@kernel(IN_F2, IN_F3, IN_I1, IN_F2, IN_F3, IN_I1, I64, I64, F64, F64, F64)
+def _gate(x: np.ndarray, p: np.ndarray, track_cls: np.ndarray, z: np.ndarray, r: np.ndarray, det_cls: np.ndarray,
+          gate: int, cost: int, gate_m: float, gate_chi2: float, gate_max_m: float):
+    """Pairs (ti, di, cost) of tracks x (N, n), P (N, n, n) and detections z (M, 2), R (M, 2, 2) inside the gate
+    (``_GATES`` code) and class-compatible, ordered by track then detection, cost by ``_COSTS`` code (0 for iou).
+
+    Per pair, the bound of the module docstring first (|y|^2 against gate_m^2, or against
+    chi2 (tr P_xy + tr R) for the Mahalanobis gate, which bounds d2 = y^T S^-1 y <= chi2 from outside),
+    then the exact test: |y| = hypot(y) and d2 with S = H P H^T + R in closed form
+    (d2 = (s11 y0^2 - (s01 + s10) y0 y1 + s00 y1^2) / det S, ``kalman._quadratic_form``).
+    """
+    n_t, n_d = x.shape[0], z.shape[0]
+    size = 4 * (n_t + n_d)  # doubled when full: a gate passes a few pairs per track, not N x M
+    ti, di, out = np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size)
+    m2, max2, k = gate_m * gate_m, gate_max_m * gate_max_m, 0
+    x_lo, x_hi, y_lo, y_hi = z[0, 0], z[0, 0], z[0, 1], z[0, 1]  # the detections' bounding box
+    tr_r_max = 0.0
+    for j in range(n_d):
+        x_lo, x_hi = min(x_lo, z[j, 0]), max(x_hi, z[j, 0])
+        y_lo, y_hi = min(y_lo, z[j, 1]), max(y_hi, z[j, 1])
+        tr_r_max = max(tr_r_max, r[j, 0, 0] + r[j, 1, 1])
+    for i in range(n_t):
+        px, py, tr_p, ct = x[i, 0], x[i, 1], p[i, 0, 0] + p[i, 1, 1], track_cls[i]
+        # a track farther from the box than any pair's bound can reach pairs with no detection
+        reach = math.sqrt(m2 if gate == 0 else (gate_chi2 * (tr_p + tr_r_max) if gate == 1 else
+                                                 max(m2, min(gate_chi2 * (tr_p + tr_r_max), max2))))
+        if not (px >= x_lo - reach and px <= x_hi + reach and py >= y_lo - reach and py <= y_hi + reach):
+            continue
+        for j in range(n_d):
+            dx, dy = px - z[j, 0], py - z[j, 1]  # y = -(dx, dy); every form below is even in y
+            r2 = dx * dx + dy * dy
+            if gate == 0:
+                near = r2 <= m2
+            else:
+                near = r2 <= gate_chi2 * (tr_p + (r[j, 0, 0] + r[j, 1, 1]))
+                if gate == 2:
+                    near = (r2 <= m2) or (near and r2 <= max2)
+            cd = det_cls[j]
+            if not near or not (ct == cd or ct * cd == 0):
+                continue
+            dist = math.hypot(dx, dy)
+            s00, s01 = p[i, 0, 0] + r[j, 0, 0], p[i, 0, 1] + r[j, 0, 1]
+            s10, s11 = p[i, 1, 0] + r[j, 1, 0], p[i, 1, 1] + r[j, 1, 1]
+            d2 = (s11 * dx * dx - (s01 + s10) * dx * dy + s00 * dy * dy) / (s00 * s11 - s01 * s10)
+            if gate == 0:
+                inside = dist <= gate_m
+            elif gate == 1:
+                inside = d2 <= gate_chi2
+            else:
+                inside = dist <= gate_m or (d2 <= gate_chi2 and dist <= gate_max_m)
+            if inside:
+                if k == len(out):  # full: twice the room
+                    ti, di, out = np.concatenate((ti, ti)), np.concatenate((di, di)), np.concatenate((out, out))
+                ti[k], di[k] = i, j
+                out[k] = dist if cost == 0 else (d2 if cost == 1 else 0.0)
+                k += 1
+    return ti[:k].copy(), di[:k].copy(), out[:k].copy()
 
 
 def paired_bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:

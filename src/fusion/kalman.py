@@ -32,6 +32,7 @@ from typing import Protocol
 import numpy as np
 
 from .frames import wrap_angle
+from .jit import I64, IN_F2, IN_F3, IN_I1, OUT_F2, OUT_F3, kernel
 
 POSITION_DIM = 2
 CHI2_2DOF_99 = 9.21  # chi-square 99 % quantile, 2 degrees of freedom
@@ -355,17 +356,54 @@ def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, first: in
     -> posterior x (K, n), P (K, n, n) and the innovation covariance S (K, 2, 2).
     Inputs are not modified.
     """
-    sel = slice(first, first + 2)
-    s = p[:, sel, sel] + r  # S = H P H^T + R
-    k = p[:, :, sel] @ inv2(s)  # K = P H^T S^-1, (K, n, 2)
-    y = z - x[:, sel]  # y = z - H x
-    x_post = x + (k @ y[:, :, None])[:, :, 0]  # x+ = x + K y
-    # Joseph form P+ = (I - K H) P (I - K H)^T + K R K^T (symmetric and positive for any gain),
-    # expanded so that only (n, 2) products remain: with A = (I - K H) P = P - K (H P),
-    # A (I - K H)^T = A - (A H^T) K^T, so P+ = A + (K R - A H^T) K^T
-    a = p - k @ p[:, sel, :]
-    p_post = a + (k @ r - a[:, :, sel]) @ k.transpose(0, 2, 1)
+    x_post, p_post = np.array(x, dtype=float), np.array(p, dtype=float)
+    z, r = np.asarray(z, dtype=float), np.asarray(r, dtype=float)
+    pairs = np.arange(len(x_post))
+    s = p_post[:, first:first + 2, first:first + 2] + r  # S = H P H^T + R
+    update_rows(x_post, p_post, pairs, z, r, pairs, first)
     return x_post, p_post, s
+
+
+@kernel(OUT_F2, OUT_F3, IN_I1, IN_F2, IN_F3, IN_I1, I64)
+def update_rows(x: np.ndarray, p: np.ndarray, rows: np.ndarray, z: np.ndarray, r: np.ndarray, cols: np.ndarray,
+                first: int) -> None:
+    """In place, the paired update of the tracks rows (K,) of x (N, n), P (N, n, n) with the measurements
+    cols (K,) of z (M, 2), R (M, 2, 2) of the state entries first, first + 1 (a compiled loop, ``update``):
+
+        S = H P H^T + R,  K = P H^T S^-1 (S^-1 = [[d, -b], [-c, a]] / (a d - b c)),  x+ = x + K (z - H x),
+        Joseph form P+ = (I - K H) P (I - K H)^T + K R K^T, expanded so that only (n, 2) products
+        remain: with A = (I - K H) P = P - K (H P), A (I - K H)^T = A - (A H^T) K^T, so
+        P+ = A + (K R - A H^T) K^T.
+    """
+    n = x.shape[1]
+    gain, b = np.empty((n, 2)), np.empty((n, 2))
+    for k in range(rows.shape[0]):
+        i, j = rows[k], cols[k]
+        xi, pi, rj = x[i], p[i], r[j]
+        a00, a01 = pi[first, first] + rj[0, 0], pi[first, first + 1] + rj[0, 1]
+        a10, a11 = pi[first + 1, first] + rj[1, 0], pi[first + 1, first + 1] + rj[1, 1]
+        det = a00 * a11 - a01 * a10
+        i00, i01, i10, i11 = a11 / det, -a01 / det, -a10 / det, a00 / det
+        for q in range(n):
+            gain[q, 0] = pi[q, first] * i00 + pi[q, first + 1] * i10
+            gain[q, 1] = pi[q, first] * i01 + pi[q, first + 1] * i11
+        y0, y1 = z[j, 0] - xi[first], z[j, 1] - xi[first + 1]
+        for q in range(n):
+            xi[q] += gain[q, 0] * y0 + gain[q, 1] * y1
+        for q in range(n):  # A = P - K (H P), in place: row q of K H P needs only rows first, first + 1 of P,
+            for c in range(n):  # which are overwritten last
+                if q != first and q != first + 1:
+                    pi[q, c] -= gain[q, 0] * pi[first, c] + gain[q, 1] * pi[first + 1, c]
+        for c in range(n):
+            h0, h1 = pi[first, c], pi[first + 1, c]
+            pi[first, c] = h0 - (gain[first, 0] * h0 + gain[first, 1] * h1)
+            pi[first + 1, c] = h1 - (gain[first + 1, 0] * h0 + gain[first + 1, 1] * h1)
+        for q in range(n):  # B = K R - A H^T
+            b[q, 0] = gain[q, 0] * rj[0, 0] + gain[q, 1] * rj[1, 0] - pi[q, first]
+            b[q, 1] = gain[q, 0] * rj[0, 1] + gain[q, 1] * rj[1, 1] - pi[q, first + 1]
+        for q in range(n):  # P+ = A + B K^T
+            for c in range(n):
+                pi[q, c] += b[q, 0] * gain[c, 0] + b[q, 1] * gain[c, 1]
 
 
 def _quadratic_form(y0, y1, a, b, c, d):

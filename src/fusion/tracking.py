@@ -82,7 +82,7 @@ from typing import Literal
 import numpy as np
 
 from . import kalman
-from .covariance_intersection import ci_update_into, ci_weights
+from .covariance_intersection import ci_fuse_rows
 from .fastnp import all_true, any_true, true_index
 from .frames import wrap_angle
 from .gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
@@ -228,7 +228,7 @@ class Tracker:
             self._estimate_mask |= source_mask | union
         tab = self._table
         result = associate(self.config, tab, dets)
-        ti, di = result.matches[:, 0], result.matches[:, 1]
+        ti, di = result.matches.T.copy()  # contiguous: the compiled kernels take one array layout
         known = dets.velocity_known()
         k, other = 0, None
         if estimates and len(ti):  # (K, B) sources outside the estimate's bits that updated the track recently
@@ -344,7 +344,7 @@ class Tracker:
             groups = ((ti[~with_v], di[~with_v], False), (ti[with_v], di[with_v], True))
         for t, d, velocity in groups:
             z, r = _position_velocity(dets, d) if velocity else (dets.xy.take(d, axis=0), dets.cov_xy.take(d, axis=0))
-            ci_update_into(tab.x, tab.p, z, r, ci_weights(tab.p.take(t, axis=0), r), rows=t)
+            ci_fuse_rows(tab.x, tab.p, t, z, r)
 
     def _second_positions(self, ti: np.ndarray, di: np.ndarray, known: np.ndarray, t_s: float) -> np.ndarray | None:
         """(K,) True where the pair (track ti, detection di) is a two-point initialisation: the track
@@ -378,19 +378,16 @@ class Tracker:
         tab = self._table
         if not len(ti):
             return
-        x, p, _ = kalman.update(tab.x.take(ti, axis=0), tab.p.take(ti, axis=0), dets.xy.take(di, axis=0),
-                                dets.cov_xy.take(di, axis=0))
+        kalman.update_rows(tab.x, tab.p, ti, dets.xy, dets.cov_xy, di, 0)
         if velocity and self.config.velocity_updates and self.config.motion in ("cv", "ca"):
             # sources that estimate velocity (tracking RSUs, CenterPoint) update it too:
             # H = [0 I_2 0], R = the detection's velocity covariance
             v = known.take(di)
             n_v = int(np.count_nonzero(v))
             if n_v == len(v):
-                x, p, _ = kalman.update(x, p, dets.vxy.take(di, axis=0), dets.cov_vxy.take(di, axis=0), first=2)
+                kalman.update_rows(tab.x, tab.p, ti, dets.vxy, dets.cov_vxy, di, 2)
             elif n_v:
-                d = di[v]
-                x[v], p[v], _ = kalman.update(x[v], p[v], dets.vxy.take(d, axis=0), dets.cov_vxy.take(d, axis=0), first=2)
-        tab.x[ti], tab.p[ti] = x, p
+                kalman.update_rows(tab.x, tab.p, ti[v], dets.vxy, dets.cov_vxy, di[v], 2)
 
     def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, cols: np.ndarray, shape: _Shape,
                 t_s: float, estimates: bool) -> None:

@@ -25,6 +25,7 @@ import time
 
 import zenoh
 
+from fusion.jit import load_kernels
 from fusion.objects import ObjectArray
 from schemas import keys
 from schemas.codec import CodecError, decode, encode, from_body, header_of, object_count, open_body, path_point_count
@@ -92,6 +93,7 @@ class ObuNode:
         self.last_metrics: ObuMetrics | None = None  # the latest published; one assignment, read by other threads
 
     def run(self, stop: threading.Event) -> None:
+        load_kernels()  # the tracker's compiled loops load now (~0.3 s; compiled once per machine), not in a cycle
         session = open_session(self.config.listen, self.config.connect)
         vid = self.config.vehicle_id
         entities = []

@@ -137,24 +137,27 @@ def test_newton_weight_equals_the_bisection(n, m):
     np.testing.assert_allclose(p_new[same], p[same], rtol=1e-6)
 
 
-@pytest.mark.parametrize("free", [0, 1, 2])
-def test_scalar_newton_on_few_rows_gives_the_batched_weights_bit_for_bit(free):
-    """Few rows (a CI batch of 1-3 pairs) take the Python-float iteration; it must be the vectorised one's
-    numbers exactly (same operations, same order, every row stepped until all are done)."""
-    from fusion import covariance_intersection as ci
+def test_ci_fuse_rows_is_weights_then_update_on_the_table_rows():
+    """The tracker's in-place kernel on rows of a larger table equals ci_weights + ci_update on the
+    gathered rows, leaves the other rows alone, and skips pairs whose weight is 1 (position, and
+    position with velocity)."""
+    from fusion.covariance_intersection import ci_fuse_rows
 
-    rng = np.random.default_rng(20 + free)
-    cases = 0
-    for _ in range(3000):
-        k, m = int(rng.integers(1, ci._SCALAR_ROWS + 1)), int(rng.integers(1, 7))
-        lam = np.exp(rng.normal(0.0, 2.0, (k, m)))
-        a = 1.0 - lam
-        inner = (free + a.sum(1) < 0) & (free / W_MIN + (a / (a * W_MIN + lam)).sum(1) > 0)
-        if inner.any():
-            cases += 1
-            batched = ci._newton_root_batched(a[inner], lam[inner], free)
-            np.testing.assert_array_equal(ci._newton_root(a[inner], lam[inner], free), batched)
-    assert cases > 500
+    rng = np.random.default_rng(7)
+    for m in (2, 4):
+        x, p = rng.normal(size=(30, 4)), spd(rng, 30, 4)
+        rows = rng.choice(30, 12, replace=False)
+        z, r = rng.normal(size=(12, m)), spd(rng, 12, m) * 10.0 ** rng.uniform(-2, 2, (12, 1, 1))
+        w = ci_weights(p[rows], r)
+        assert (w == 1.0).any() and (w < 1.0).any()
+        x_ref, p_ref = ci_update(x[rows], p[rows], z, r, w)
+        x_new, p_new = x.copy(), p.copy()
+        ci_fuse_rows(x_new, p_new, rows, z, r)
+        np.testing.assert_array_equal(x_new[rows], x_ref)
+        np.testing.assert_array_equal(p_new[rows], p_ref)
+        others = np.setdiff1d(np.arange(30), rows)
+        np.testing.assert_array_equal(x_new[others], x[others])
+        np.testing.assert_array_equal(p_new[others], p[others])
 
 
 def test_ci_weights_refuse_broken_covariances_without_raising():

@@ -1,0 +1,68 @@
+"""Compiled kernels of the tracker's per-update loops (numba).
+
+The tracker updates a few hundred tracks with lists of a few to a few hundred objects, ten
+times a second per source: numpy's fixed cost per call (~1 us, some 200 calls per update) was
+the whole cost, so association, the Kalman updates and covariance intersection are loops over
+the pairs, compiled by numba (``benchmarks/cycle_compute.py``; the numpy and filterpy
+references are in the tests).
+
+``kernel(*argument_types)`` compiles a function for exactly those argument types (and no
+others) at its first call, or when ``load_kernels`` loads every kernel: the services do that
+before they report ready, so that no cycle ever waits for the compiler. The machine code is
+cached under ``__pycache__`` (or the user's cache directory where the package is not
+writable): compiled once per machine, ~10 s for all kernels, then loaded in ~0.3 s per
+process. Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
+arrays convert to them), the arrays a kernel writes ``OUT_*``; an array of another dtype is a
+``TypeError`` (callers pass float64 and int64). ``helper`` is for the functions the kernels
+call (compiled into them).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+from numba import njit, types
+
+IN_F1, IN_F2, IN_F3 = (types.Array(types.float64, n, "A", readonly=True) for n in (1, 2, 3))
+IN_I1 = types.Array(types.int64, 1, "A", readonly=True)
+OUT_F2, OUT_F3 = (types.Array(types.float64, n, "A") for n in (2, 3))
+OUT_I1 = types.Array(types.int64, 1, "A")
+I64, F64 = types.int64, types.float64
+
+helper = njit(cache=True, nogil=True)
+
+
+class Kernel:
+    """A function compiled by numba for one tuple of argument types, on its first call or ``load``."""
+
+    _all: list[Kernel] = []
+
+    def __init__(self, fn: Callable, argument_types: tuple):
+        self.fn, self.argument_types = fn, argument_types
+        self._compiled: Callable | None = None
+        Kernel._all.append(self)
+
+    def __call__(self, *args):
+        return (self._compiled or self.load())(*args)
+
+    def load(self) -> Callable:
+        """The compiled function (loaded from the cache, or compiled and cached)."""
+        if self._compiled is None:
+            self._compiled = njit(self.argument_types, cache=True, nogil=True)(self.fn)
+        return self._compiled
+
+
+def kernel(*argument_types) -> Callable[[Callable], Kernel]:
+    """Decorator: the function as a ``Kernel`` for these argument types."""
+    return lambda fn: Kernel(fn, argument_types)
+
+
+def load_kernels() -> float:
+    """Load (or compile) every kernel of the tracker; seconds taken."""
+    from . import tracking  # noqa: F401  (imports every module that declares kernels)
+
+    t0 = time.perf_counter()
+    for k in Kernel._all:
+        k.load()
+    return time.perf_counter() - t0

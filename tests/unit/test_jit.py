@@ -1,0 +1,35 @@
+"""fusion.jit: kernels compile for their declared argument types only, take read-only and strided
+inputs, refuse other dtypes, and load_kernels loads every kernel of the tracker."""
+
+import numpy as np
+import pytest
+
+from fusion import kalman
+from fusion.jit import Kernel, load_kernels
+
+
+def test_load_kernels_loads_every_kernel_of_the_tracker():
+    load_kernels()
+    names = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all}
+    assert {"fusion.kalman.update_rows", "fusion.gating._gate", "fusion.association._single_pairs",
+            "fusion.covariance_intersection._fuse_rows"} <= names
+    for k in Kernel._all:
+        assert k.load().signatures == [k.argument_types]  # one compiled signature, no other
+
+
+def test_a_kernel_takes_read_only_and_strided_inputs_and_refuses_other_dtypes():
+    rng = np.random.default_rng(0)
+    x, p = rng.normal(size=(5, 4)), np.tile(np.eye(4), (5, 1, 1))
+    z, r = rng.normal(size=(3, 4))[:, ::2], np.tile(np.eye(2), (3, 1, 1))  # strided measurements
+    r.flags.writeable = False
+    rows, cols = np.array([4, 0, 2]), np.arange(3)
+    x_ref, p_ref, _ = kalman.update(x[rows], p[rows], np.ascontiguousarray(z), r)
+    kalman.update_rows(x, p, rows, z, r, cols, 0)
+    np.testing.assert_array_equal(x[rows], x_ref)
+    np.testing.assert_array_equal(p[rows], p_ref)
+    assert np.all(p[[1, 3]] == np.eye(4))  # rows not named are not touched
+    with pytest.raises(TypeError):
+        kalman.update_rows(x, p, rows, z.astype(np.float32), r, cols, 0)
+    with pytest.raises(TypeError):  # an output must be writable
+        x.flags.writeable = False
+        kalman.update_rows(x, p, rows, z, r, cols, 0)
