@@ -20,7 +20,6 @@ from scipy.optimize import linear_sum_assignment
 
 from .jit import I64, IN_F1, IN_F2, IN_I1, OUT_I1, kernel
 
-
 _BIG = 1e12
 
 

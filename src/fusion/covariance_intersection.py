@@ -67,7 +67,7 @@ def ci_weights(p: np.ndarray, r: np.ndarray, first: int = 0) -> np.ndarray:
     estimate is not used): R must have a Cholesky factor, and the eigenvalues of R^-1 H P H^T
     must be positive, the smallest above 1e-12 of the largest.
     """
-    return _weights(np.ascontiguousarray(p, dtype=float), np.ascontiguousarray(r, dtype=float), first)
+    return _weights(np.asarray(p, dtype=float), np.asarray(r, dtype=float), first)
 
 
 def ci_update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w: np.ndarray,
@@ -85,8 +85,8 @@ def ci_update_into(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w
     """``ci_update`` written into x (K, n) and P (K, n, n) (float64); with ``rows`` (K,), into the rows
     rows[k] of larger x, P (a track table), pair k being (x[rows[k]], P[rows[k]]) with (z[k], R[k], w[k])."""
     rows = np.arange(len(z)) if rows is None else np.asarray(rows, dtype=np.int64)
-    _update_rows(x, p, rows, np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(r, dtype=float),
-                 np.ascontiguousarray(w, dtype=float), first)
+    _update_rows(x, p, rows, np.asarray(z, dtype=float), np.asarray(r, dtype=float),
+                 np.asarray(w, dtype=float), first)
 
 
 def ci_fuse_rows(x: np.ndarray, p: np.ndarray, rows: np.ndarray, z: np.ndarray, r: np.ndarray) -> None:

@@ -228,7 +228,7 @@ class Tracker:
             self._estimate_mask |= source_mask | union
         tab = self._table
         result = associate(self.config, tab, dets)
-        ti, di = result.matches.T.copy()  # contiguous: the compiled kernels take one array layout
+        ti, di = result.matches[:, 0], result.matches[:, 1]
         known = dets.velocity_known()
         k, other = 0, None
         if estimates and len(ti):  # (K, B) sources outside the estimate's bits that updated the track recently
