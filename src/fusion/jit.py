@@ -14,7 +14,9 @@ writable): compiled once per machine, ~10 s for all kernels, then loaded in ~0.3
 process. Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
 arrays convert to them), the arrays a kernel writes ``OUT_*``; an array of another dtype is a
 ``TypeError`` (callers pass float64 and int64). ``helper`` is for the functions the kernels
-call (compiled into them).
+call (compiled into them). numba checks a cached kernel against its own source file only: the
+helpers a kernel calls live in its module, and after a change to ``OPTIONS`` here the cached
+files (``__pycache__/*.nbi``, ``*.nbc``) must be deleted.
 """
 
 from __future__ import annotations
@@ -30,7 +32,9 @@ OUT_F2, OUT_F3 = (types.Array(types.float64, n, "A") for n in (2, 3))
 OUT_I1 = types.Array(types.int64, 1, "A")
 I64, F64 = types.int64, types.float64
 
-helper = njit(cache=True, nogil=True)
+# error_model="numpy": a division by zero gives inf / NaN as in numpy (the callers test for them), not an exception
+OPTIONS = dict(cache=True, nogil=True, error_model="numpy")
+helper = njit(**OPTIONS)
 
 
 class Kernel:
@@ -49,7 +53,7 @@ class Kernel:
     def load(self) -> Callable:
         """The compiled function (loaded from the cache, or compiled and cached)."""
         if self._compiled is None:
-            self._compiled = njit(self.argument_types, cache=True, nogil=True)(self.fn)
+            self._compiled = njit(self.argument_types, **OPTIONS)(self.fn)
         return self._compiled
 
 

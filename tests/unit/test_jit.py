@@ -33,3 +33,10 @@ def test_a_kernel_takes_read_only_and_strided_inputs_and_refuses_other_dtypes():
     with pytest.raises(TypeError):  # an output must be writable
         x.flags.writeable = False
         kalman.update_rows(x, p, rows, z, r, cols, 0)
+
+
+def test_a_division_by_zero_in_a_kernel_gives_nan_as_numpy_does():
+    """A zero innovation covariance (a zero track and measurement covariance): NaN, not ZeroDivisionError."""
+    x, p = np.zeros((1, 4)), np.zeros((1, 4, 4))
+    kalman.update_rows(x, p, np.array([0]), np.zeros((1, 2)), np.zeros((1, 2, 2)), np.array([0]), 0)
+    assert np.isnan(x).all() and np.isnan(p[0, :2, :2]).all()
