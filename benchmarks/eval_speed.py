@@ -6,8 +6,8 @@ Each scenario runs in this process exactly as ``v2i eval --scenario NAME --seed 
 (the same parser, spec and ``OfflineRun``; imports are paid once, before the first timing, and
 reported apart as ``import_s``, with the loading of the tracker's compiled kernels). One line per scenario: simulated seconds, the median wall
 seconds of ``--repeats`` runs (spec -> execute -> report) and their ratio. ``--reference``
-also times each scenario with the unpruned occlusion test (``sim.occlusion.PRUNE = False``,
-the code before pruning) in the same run, prints the speed-up and whether the two reports
+also times each scenario with the numpy reference of the occlusion test
+(``sim.occlusion.COMPILED = False``) in the same run, prints the speed-up and whether the two reports
 (the JSON of ``v2i eval --json``) are equal. ``--profile N`` runs each
 scenario once more under cProfile and prints its N costliest functions (cumulative).
 ``--stages`` runs each scenario once more with a timer around each function of ``STAGES``
@@ -122,13 +122,14 @@ def run_once(name: str, seed: int) -> tuple[float, float, dict]:
     return run.duration_s, wall_s, report
 
 
-def median_wall(name: str, seed: int, repeats: int, prune: bool) -> tuple[float, float, str]:
-    """(simulated s, median wall s of ``repeats`` runs, the report as JSON) with occlusion pruning on or off."""
-    occlusion.PRUNE = prune
+def median_wall(name: str, seed: int, repeats: int, compiled: bool) -> tuple[float, float, str]:
+    """(simulated s, median wall s of ``repeats`` runs, the report as JSON) with the compiled occlusion test
+    or its numpy reference."""
+    occlusion.COMPILED = compiled
     try:
         runs = [run_once(name, seed) for _ in range(repeats)]
     finally:
-        occlusion.PRUNE = True
+        occlusion.COMPILED = True
     return runs[0][0], statistics.median(w for _, w, _ in runs), json.dumps(runs[0][2], sort_keys=True)
 
 
@@ -146,7 +147,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per scenario; the median is printed")
     parser.add_argument("--reference", action="store_true",
-                        help="also time the unpruned occlusion test and compare the two runs' reports")
+                        help="also time the numpy reference of the occlusion test and compare the two runs' reports")
     parser.add_argument("--profile", type=int, metavar="N", help="print cProfile's N costliest functions per scenario")
     parser.add_argument("--stages", action="store_true", help="print exclusive wall seconds per stage (STAGES)")
     args = parser.parse_args()
@@ -155,10 +156,10 @@ def main() -> None:
     head = f"{'scenario':24s} {'sim_s':>6s} {'wall_s':>7s} {'x_real':>7s}"
     print(head + (f" {'ref_wall_s':>10s} {'ref_x':>6s} {'speedup':>7s} same_report" if args.reference else ""))
     for name in names:
-        sim_s, wall_s, report = median_wall(name, args.seed, args.repeats, prune=True)
+        sim_s, wall_s, report = median_wall(name, args.seed, args.repeats, compiled=True)
         line = f"{name:24s} {sim_s:6.1f} {wall_s:7.2f} {sim_s / wall_s:7.1f}"
         if args.reference:
-            _, ref_s, ref_report = median_wall(name, args.seed, args.repeats, prune=False)
+            _, ref_s, ref_report = median_wall(name, args.seed, args.repeats, compiled=False)
             line += f" {ref_s:10.2f} {sim_s / ref_s:6.1f} {ref_s / wall_s:7.2f} {'yes' if ref_report == report else 'NO'}"
         print(line, flush=True)
     for name in names if args.stages else ():

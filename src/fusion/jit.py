@@ -1,10 +1,10 @@
-"""Compiled kernels of the tracker's per-update loops (numba).
+"""Compiled kernels (numba) of the per-pair loops: the tracker's and the simulator's line of sight.
 
 The tracker updates a few hundred tracks with lists of a few to a few hundred objects, ten
 times a second per source: numpy's fixed cost per call (~1 us, some 200 calls per update) was
 the whole cost, so association, the Kalman updates and covariance intersection are loops over
 the pairs, compiled by numba (``benchmarks/cycle_compute.py``; the numpy and filterpy
-references are in the tests).
+references are in the tests); so is ``sim.occlusion``'s test of sample points against occluders.
 
 ``kernel(*argument_types)`` compiles a function for exactly those argument types (and no
 others) at its first call, or when ``load_kernels`` loads every kernel: the services do that
@@ -21,6 +21,7 @@ files (``__pycache__/*.nbi``, ``*.nbc``) must be deleted.
 
 from __future__ import annotations
 
+import importlib
 import time
 from typing import Callable
 
@@ -62,10 +63,14 @@ def kernel(*argument_types) -> Callable[[Callable], Kernel]:
     return lambda fn: Kernel(fn, argument_types)
 
 
-def load_kernels() -> float:
-    """Load (or compile) every kernel of the tracker; seconds taken."""
-    from . import tracking  # noqa: F401  (imports every module that declares kernels)
+# the modules that declare kernels (with the modules they import): load_kernels imports them
+KERNEL_MODULES = ("fusion.tracking", "sim.occlusion")
 
+
+def load_kernels() -> float:
+    """Load (or compile) every kernel of ``KERNEL_MODULES``; seconds taken."""
+    for name in KERNEL_MODULES:
+        importlib.import_module(name)
     t0 = time.perf_counter()
     for k in Kernel._all:
         k.load()

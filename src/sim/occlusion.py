@@ -5,10 +5,11 @@ visible when the segment origin -> sample crosses no occluder. Occluders are rot
 (slab test in each box's own frame), polygons (edge crossings + containment) and, optionally,
 the other targets' boxes (never the target itself).
 
-Pruning (``PRUNE``): an occluder is tested exactly only against the segments that pass its
-bounding circle, found by bearing and range (points sorted by bearing, one ``searchsorted`` per
-occluder); the rest cannot hit it. ``PRUNE = False`` tests every segment against every
-occluder (the reference, equal to the pruned result; ``benchmarks/eval_speed.py --reference``).
+The test runs compiled (numba, ``_blocked``): per sample point, the occluders one by one until
+one blocks it. ``COMPILED = False`` runs the numpy reference instead, every segment against
+every occluder as (points, occluders) arrays; both give the same answers bit for bit (the same
+operations in the same order; tests/unit/test_occlusion_kernel.py,
+``benchmarks/eval_speed.py --reference``).
 """
 
 from __future__ import annotations
@@ -17,15 +18,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from fusion.jit import IN_F1, IN_F2, IN_I1, helper, kernel
 from fusion.objects import ObjectArray
 
-PRUNE = True  # False: every segment against every occluder (the reference the pruned test equals)
-# At most this many (point, box) pairs: every pair through the pruned path's own exact tests
-# (pair_hits_boxes, segments_hit_polygons) without the bearing search, cheaper for a few targets
-# and occluders (a pair the search would drop cannot hit: the same answers).
-SMALL_PAIRS = 1024
-_MARGIN_M = 1e-6  # bounding circles grow by this, and
-_MARGIN_RAD = 1e-9  # bearing spans by this, so that rounding never prunes a true hit
+_NO_EDGES = np.zeros(0, np.int64)
+
+COMPILED = True  # False: the numpy reference (every segment against every occluder, as arrays)
 
 # Sample offsets in units of (l/2, w/2) in the box frame: centre, corners, edge midpoints.
 _OFFSETS = {
@@ -69,23 +67,6 @@ def segments_hit_boxes(a: np.ndarray, b: np.ndarray, boxes: np.ndarray) -> np.nd
     return _slab_hits(q0, d, boxes[None, :, 2:4] / 2.0)
 
 
-def pair_hits_boxes(origin_xy: np.ndarray, pts: np.ndarray, boxes: np.ndarray, q: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """(K,) bool: segment origin (2,) -> pts[q] (Q, 2) intersects box boxes[k] (B, 5), per pair
-    (q (K,), k (K,)): the slab test of ``segments_hit_boxes``, written out per axis with the
-    same operations (R^T v = (c v_x + s v_y, -s v_x + c v_y)), so the same answers bit for bit."""
-    c, s, half = np.cos(boxes[:, 4])[k], np.sin(boxes[:, 4])[k], boxes[:, 2:4] / 2.0
-    ac, ba = (origin_xy - boxes[:, :2])[k], (pts - origin_xy)[q]  # a - c, b - a
-    entries, exits = [], []
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for q0, d, h in ((c * ac[:, 0] + s * ac[:, 1], c * ba[:, 0] + s * ba[:, 1], half[k, 0]),
-                         (-s * ac[:, 0] + c * ac[:, 1], -s * ba[:, 0] + c * ba[:, 1], half[k, 1])):
-            t1, t2 = (-h - q0) / d, (h - q0) / d
-            entries.append(np.minimum(t1, t2))
-            exits.append(np.maximum(t1, t2))
-    enter, leave = np.maximum(*entries), np.minimum(*exits)
-    return np.maximum(enter, 0.0) <= np.minimum(leave, 1.0)
-
-
 def _slab_hits(q0: np.ndarray, d: np.ndarray, half: np.ndarray) -> np.ndarray:
     """(...) bool from start points q0 (..., 2) and directions d (..., 2) in box frames, half sizes (..., 2)."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -94,40 +75,6 @@ def _slab_hits(q0: np.ndarray, d: np.ndarray, half: np.ndarray) -> np.ndarray:
     enter = np.maximum(lo[..., 0], lo[..., 1])  # the latest entry over the two slabs
     leave = np.minimum(hi[..., 0], hi[..., 1])  # the earliest exit
     return np.maximum(enter, 0.0) <= np.minimum(leave, 1.0)
-
-
-def cone_pairs(origin_xy: np.ndarray, pts: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Candidate pairs: point indices (K,) and circle indices (K,) such that the segment
-    origin (2,) -> pts[k] (Q, 2) may meet the circle (centres (C, 2), radii (C,) m); every
-    segment that meets a circle is among them.
-
-    A circle at distance D > r from the origin spans the bearings theta_c +- asin(r / D) (a ray
-    at angle phi from the centre's bearing passes at D sin(phi) from it), and a segment reaches it
-    only if its length is >= D - r. A circle around the origin (D <= r) keeps every point.
-    Circles grow by ``_MARGIN_M`` and spans by ``_MARGIN_RAD`` so that rounding never drops a hit.
-    """
-    rel, crel = pts - origin_xy, centres - origin_xy
-    bearing, length = np.arctan2(rel[:, 1], rel[:, 0]), np.hypot(rel[:, 0], rel[:, 1])
-    order = np.argsort(bearing, kind="stable")
-    c_bearing, c_dist, r = np.arctan2(crel[:, 1], crel[:, 0]), np.hypot(crel[:, 0], crel[:, 1]), radii + _MARGIN_M
-    around = c_dist <= r
-    with np.errstate(divide="ignore", invalid="ignore"):
-        span = np.where(around, np.inf, np.arcsin(np.minimum(r / c_dist, 1.0)) + _MARGIN_RAD)
-    lo, hi = c_bearing - span, c_bearing + span
-    # bearing intervals in [-pi, pi]: the main one, and the part wrapped past -pi or +pi (span <= pi/2)
-    circle = np.arange(len(centres))
-    wrap_lo, wrap_hi = (lo < -np.pi) & ~around, (hi > np.pi) & ~around
-    starts = np.concatenate([np.maximum(lo, -np.pi), lo[wrap_lo] + 2 * np.pi, np.full(wrap_hi.sum(), -np.pi)])
-    ends = np.concatenate([np.minimum(hi, np.pi), np.full(wrap_lo.sum(), np.pi), hi[wrap_hi] - 2 * np.pi])
-    owner = np.concatenate([circle, circle[wrap_lo], circle[wrap_hi]])
-    sorted_bearing = bearing[order]
-    first = np.searchsorted(sorted_bearing, starts, side="left")
-    count = np.maximum(np.searchsorted(sorted_bearing, ends, side="right") - first, 0)
-    # ranges [first, first + count) of the sorted points -> flat indices
-    offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    point, circ = order[np.repeat(first, count) + offset], np.repeat(owner, count)
-    reach = length[point] >= c_dist[circ] - r[circ] - _MARGIN_M
-    return point[reach], circ[reach]
 
 
 def _edges(polygons: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -196,9 +143,13 @@ def visible_fraction(
         box_owner = np.concatenate([np.full(len(boxes) - n, -1), np.arange(n)])  # a target never hides itself
     else:
         box_owner = np.full(len(boxes), -1)
-    blocked_by = _blocked_all if not PRUNE else _blocked_every_pair if len(pts) * len(boxes) <= SMALL_PAIRS \
-        else _blocked_pruned
-    blocked = blocked_by(origin, pts, owner, boxes, box_owner, polygons)
+    if COMPILED:
+        starts, ends, first = _edges(polygons) if len(polygons) else (np.zeros((0, 2)), np.zeros((0, 2)), _NO_EDGES)
+        # (cos, sin) of the yaws by numpy, as the reference: the kernel's own could differ in the last bit
+        blocked = _blocked(origin, pts, owner, boxes, np.cos(boxes[:, 4]), np.sin(boxes[:, 4]), box_owner, starts,
+                           ends, first)
+    else:
+        blocked = _blocked_all(origin, pts, owner, boxes, box_owner, polygons)
     if sampled is None:
         return 1.0 - blocked.reshape(n, samples).mean(axis=1)
     out = np.zeros(n)
@@ -219,41 +170,56 @@ def _blocked_all(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarray:
     return blocked
 
 
-def _blocked_every_pair(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarray:
-    """``_blocked_pruned`` without the pruning: the same exact tests on every (point, occluder) pair."""
-    blocked = np.zeros(len(pts), dtype=bool)
-    if len(boxes):
-        q, k = np.repeat(np.arange(len(pts)), len(boxes)), np.tile(np.arange(len(boxes)), len(pts))
-        other = box_owner[k] != owner[q]  # a target never hides itself
-        q, k = q[other], k[other]
-        blocked[q[pair_hits_boxes(origin, pts, boxes, q, k)]] = True
-    for poly in polygons:
-        q = np.flatnonzero(~blocked)
-        poly = np.asarray(poly, dtype=float)
-        blocked[q[segments_hit_polygons(np.broadcast_to(origin, (len(q), 2)), pts[q], [poly])[:, 0]]] = True
+@kernel(IN_F1, IN_F2, IN_I1, IN_F2, IN_F1, IN_F1, IN_I1, IN_F2, IN_F2, IN_I1)
+def _blocked(origin: np.ndarray, pts: np.ndarray, owner: np.ndarray, boxes: np.ndarray, cos: np.ndarray,
+             sin: np.ndarray, box_owner: np.ndarray, starts: np.ndarray, ends: np.ndarray,
+             first: np.ndarray) -> np.ndarray:
+    """``_blocked_all`` compiled, point by point: the boxes not owned by owner[q] (slab test; cos, sin (B,) of
+    their yaws), then the polygons (edges starts / ends (E, 2), polygon p's from first[p]), until one blocks."""
+    blocked = np.zeros(len(pts), np.bool_)
+    for q in range(len(pts)):
+        for k in range(len(boxes)):
+            if box_owner[k] != owner[q] and _hits_box(origin, pts[q], boxes[k], cos[k], sin[k]):
+                blocked[q] = True
+                break
+        for p in range(len(first)):
+            if blocked[q]:
+                break
+            blocked[q] = _hits_polygon(origin, pts[q], starts, ends, first[p],
+                                       first[p + 1] if p + 1 < len(first) else len(starts))
     return blocked
 
 
-def _blocked_pruned(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarray:
-    """``_blocked_all``, testing exactly only the pairs whose bounding circles ``cone_pairs`` keeps
-    (one ``cone_pairs`` over the boxes' and the polygons' circles: a pair's fate is its own)."""
-    blocked = np.zeros(len(pts), dtype=bool)
-    polys = [np.asarray(poly, dtype=float) for poly in polygons]
-    if not len(boxes) and not polys:
-        return blocked
-    centres = [(poly.min(axis=0) + poly.max(axis=0)) / 2.0 for poly in polys]
-    radii = [np.hypot(*(poly - centre).T).max() for poly, centre in zip(polys, centres)]
-    q_all, k_all = cone_pairs(origin, pts, np.concatenate([boxes[:, :2], np.reshape(centres, (-1, 2))]),
-                              np.concatenate([np.hypot(boxes[:, 2], boxes[:, 3]) / 2.0, radii]))
-    if len(boxes):
-        is_box = k_all < len(boxes)
-        q, k = q_all[is_box], k_all[is_box]
-        other = box_owner[k] != owner[q]  # a target never hides itself
-        q, k = q[other], k[other]
-        hit = pair_hits_boxes(origin, pts, boxes, q, k)
-        blocked[q[hit]] = True
-    for j, poly in enumerate(polys):
-        q = q_all[k_all == len(boxes) + j]
-        q = q[~blocked[q]]
-        blocked[q[segments_hit_polygons(np.broadcast_to(origin, (len(q), 2)), pts[q], [poly])[:, 0]]] = True
-    return blocked
+@helper
+def _hits_box(a: np.ndarray, b: np.ndarray, box: np.ndarray, c: float, s: float) -> bool:
+    """Segment a -> b meets box [x, y, l, w, yaw] (c, s = cos, sin yaw): ``segments_hit_boxes``' slab test with
+    its operations (R^T v = (c v_x + s v_y, -s v_x + c v_y); np.minimum / np.maximum keep its NaN handling)."""
+    acx, acy, bax, bay = a[0] - box[0], a[1] - box[1], b[0] - a[0], b[1] - a[1]
+    hx, hy = box[2] / 2.0, box[3] / 2.0
+    q0x, q0y = c * acx + s * acy, -s * acx + c * acy  # R^T (a - c)
+    dx, dy = c * bax + s * bay, -s * bax + c * bay  # R^T (b - a)
+    t1x, t2x, t1y, t2y = (-hx - q0x) / dx, (hx - q0x) / dx, (-hy - q0y) / dy, (hy - q0y) / dy
+    enter = np.maximum(np.minimum(t1x, t2x), np.minimum(t1y, t2y))
+    leave = np.minimum(np.maximum(t1x, t2x), np.maximum(t1y, t2y))
+    return np.maximum(enter, 0.0) <= np.minimum(leave, 1.0)
+
+
+@helper
+def _cross_z(ox: float, oy: float, px: float, py: float, qx: float, qy: float) -> float:
+    """z of (p - o) x (q - o)."""
+    return (px - ox) * (qy - oy) - (py - oy) * (qx - ox)
+
+
+@helper
+def _hits_polygon(a: np.ndarray, b: np.ndarray, starts: np.ndarray, ends: np.ndarray, lo: int, hi: int) -> bool:
+    """Segment a -> b meets the polygon of edges lo .. hi - 1: ``segments_hit_polygons``' tests (crosses an
+    edge, or b inside by the crossing number of the ray from b towards +x)."""
+    inside = False
+    for e in range(lo, hi):
+        cx, cy, dx, dy = starts[e, 0], starts[e, 1], ends[e, 0], ends[e, 1]
+        if (_cross_z(a[0], a[1], b[0], b[1], cx, cy) * _cross_z(a[0], a[1], b[0], b[1], dx, dy) <= 0
+                and _cross_z(cx, cy, dx, dy, a[0], a[1]) * _cross_z(cx, cy, dx, dy, b[0], b[1]) <= 0):
+            return True
+        if (cy > b[1]) != (dy > b[1]) and b[0] < cx + (b[1] - cy) * (dx - cx) / (dy - cy):
+            inside = not inside
+    return inside

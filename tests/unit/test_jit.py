@@ -8,11 +8,11 @@ from fusion import kalman
 from fusion.jit import Kernel, load_kernels
 
 
-def test_load_kernels_loads_every_kernel_of_the_tracker():
+def test_load_kernels_loads_every_kernel():
     load_kernels()
     names = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all}
     assert {"fusion.kalman.update_rows", "fusion.gating._gate", "fusion.association._single_pairs",
-            "fusion.covariance_intersection._fuse_rows"} <= names
+            "fusion.covariance_intersection._fuse_rows", "sim.occlusion._blocked"} <= names
     for k in Kernel._all:
         assert k.load().signatures == [k.argument_types]  # one compiled signature, no other
 

@@ -1,4 +1,5 @@
-"""Occlusion pruning by bearing and range: the same visible fractions as testing every pair."""
+"""The compiled line-of-sight test (sim.occlusion._blocked) against the numpy reference (every segment
+against every occluder as arrays): the same visible fractions, bit for bit."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import pytest
 
 from fusion.objects import ObjectArray
 from sim import occlusion
-from sim.occlusion import cone_pairs, segments_hit_boxes, visible_fraction
+from sim.occlusion import box_points, visible_fraction
 
 
 def _targets(rng, n: int, span_m: float) -> ObjectArray:
@@ -36,15 +37,15 @@ def _scene(rng, max_targets: int, origin_on_target: bool):
     return n, targets, boxes, polys, origin
 
 
-def _fractions(prune: bool, *args, **kwargs) -> np.ndarray:
-    saved, occlusion.PRUNE = occlusion.PRUNE, prune
+def _fractions(compiled: bool, *args, **kwargs) -> np.ndarray:
+    saved, occlusion.COMPILED = occlusion.COMPILED, compiled
     try:
         return visible_fraction(*args, **kwargs)
     finally:
-        occlusion.PRUNE = saved
+        occlusion.COMPILED = saved
 
 
-def test_pruned_equals_every_pair_on_random_scenes():
+def test_compiled_equals_the_numpy_reference_on_random_scenes():
     rng = np.random.default_rng(11)
     checked = partly = 0
     for it in range(400):
@@ -63,52 +64,26 @@ def test_pruned_equals_every_pair_on_random_scenes():
     assert checked > 10_000 and partly > 500  # scenes where occlusion happens, not only all-or-nothing
 
 
-def test_cone_pairs_keep_every_hit_and_drop_most_misses():
-    rng = np.random.default_rng(5)
-    origin = np.array([1.0, -2.0])
-    pts = rng.uniform(-80, 80, (2000, 2))
-    boxes = np.column_stack([rng.uniform(-80, 80, (60, 2)), rng.uniform(0.5, 6, (60, 2)), rng.uniform(-4, 4, 60)])
-    boxes[0, :2] = origin + [0.5, 0.2]  # a box around the origin: every segment is a candidate
-    boxes[1, :2] = [-40.0, -2.0]  # straight behind along -x: its bearing span wraps past +-pi
-    hits = segments_hit_boxes(np.broadcast_to(origin, pts.shape), pts, boxes)
-    q, k = cone_pairs(origin, pts, boxes[:, :2], np.hypot(boxes[:, 2], boxes[:, 3]) / 2.0)
-    kept = np.zeros_like(hits)
-    kept[q, k] = True
-    assert hits[:, 1].any() and not (hits & ~kept).any()
-    assert kept[:, 0].all()
-    assert kept.sum() < 0.2 * kept.size  # far fewer exact tests than Q x B
-
-
-def test_cone_pairs_with_no_points_or_circles():
-    q, k = cone_pairs(np.zeros(2), np.zeros((0, 2)), np.ones((3, 2)), np.ones(3))
-    assert len(q) == len(k) == 0
-    q, k = cone_pairs(np.zeros(2), np.ones((4, 2)), np.zeros((0, 2)), np.zeros(0))
-    assert len(q) == len(k) == 0
-
-
-@pytest.mark.parametrize("prune", [True, False])
-def test_target_behind_a_wall_is_hidden_either_way(prune):
+@pytest.mark.parametrize("compiled", [True, False])
+def test_target_behind_a_wall_is_hidden_either_way(compiled):
     target = ObjectArray(ids=np.array([0]), cls=np.ones(1, dtype=np.int64), xy=np.array([[-30.0, 0.0]]),
                          z=np.zeros(1), lwh=np.array([[4.0, 2.0, 1.5]]), yaw=np.zeros(1), vxy=np.zeros((1, 2)))
     wall = np.array([[-15.0, 0.0, 1.0, 20.0, 0.0]])  # across the -x axis: bearing +-pi from the origin
-    assert _fractions(prune, np.zeros(2), target, wall)[0] == 0.0
-    assert _fractions(prune, np.zeros(2), target, wall + [0, 30.0, 0, 0, 0])[0] == 1.0
+    assert _fractions(compiled, np.zeros(2), target, wall)[0] == 0.0
+    assert _fractions(compiled, np.zeros(2), target, wall + [0, 30.0, 0, 0, 0])[0] == 1.0
 
 
-def test_every_pair_path_equals_the_pruned_path_on_random_scenes():
-    """visible_fraction's small-input path (every (point, occluder) pair through the pruned path's
-    own exact tests, up to SMALL_PAIRS pairs) gives the pruned path's fractions on random scenes."""
-    rng = np.random.default_rng(23)
-    saved = occlusion.SMALL_PAIRS
-    try:
-        for it in range(300):
-            n, targets, boxes, polys, origin = _scene(rng, 30, it % 3 == 0)
-            for targets_occlude in (True, False):
-                kw = {"samples": 9, "targets_occlude": targets_occlude}
-                occlusion.SMALL_PAIRS = 0
-                pruned = visible_fraction(origin, targets, boxes, polys, **kw)
-                occlusion.SMALL_PAIRS = 10**9
-                every = visible_fraction(origin, targets, boxes, polys, **kw)
-                np.testing.assert_array_equal(every, pruned)
-    finally:
-        occlusion.SMALL_PAIRS = saved
+def test_sampled_targets_and_degenerate_segments_agree():
+    """Only some targets sampled; the origin on an occluder's corner or on a target's sample point (a
+    zero-length segment: NaN and infinite slab parameters): the kernel takes the reference's branch."""
+    rng = np.random.default_rng(31)
+    for it in range(300):
+        n, targets, boxes, polys, origin = _scene(rng, 20, False)
+        if boxes is not None and it % 3 == 1:  # an axis-aligned occluder's corner
+            boxes[0, 4] = 0.0
+            origin = boxes[0, :2] + boxes[0, 2:4] / 2.0
+        elif n and it % 3 == 2:  # a target's front-left corner
+            origin = box_points(targets.xy[:1], targets.lwh[:1, :2], targets.yaw[:1], 5)[0, 1]
+        kw = {"samples": 5, "sampled": rng.random(n) < 0.5}
+        np.testing.assert_array_equal(_fractions(True, origin, targets, boxes, polys, **kw),
+                                      _fractions(False, origin, targets, boxes, polys, **kw))
