@@ -334,20 +334,6 @@ def _sandwich(f: np.ndarray, p: np.ndarray) -> np.ndarray:
     return (fp.reshape(k * n, n) @ f.T).reshape(k, n, n)
 
 
-def inv2(s: np.ndarray) -> np.ndarray:
-    """Inverse of 2 x 2 matrices (..., 2, 2) in closed form: [[d, -b], [-c, a]] / (a d - b c)."""
-    a, b, c, d = s[..., 0, 0], s[..., 0, 1], s[..., 1, 0], s[..., 1, 1]
-    out = np.empty_like(s)
-    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = d, -b, -c, a
-    out /= (a * d - b * c)[..., None, None]
-    return out
-
-
-def innovation_cov(p: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """S (K, 2, 2) = H P H^T + R of K tracks P (K, n, n) paired with K measurements R (K, 2, 2)."""
-    return p[:, :2, :2] + r
-
-
 def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, first: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Paired update of K tracks with K measurements of two consecutive state entries (Joseph form).
 
@@ -421,12 +407,6 @@ def mahalanobis_sq(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -
     s = pp + rr  # S_ij = H P_i H^T + R_j, (N, M, 2, 2)
     y0, y1 = z[None, :, 0] - x[:, None, 0], z[None, :, 1] - x[:, None, 1]
     return _quadratic_form(y0, y1, s[..., 0, 0], s[..., 0, 1], s[..., 1, 0], s[..., 1, 1])
-
-
-def mahalanobis_sq_pairs(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """d2 (K,) = y^T S^-1 y of K tracks x (K, n), P (K, n, n) paired with K measurements z (K, 2), R (K, 2, 2)."""
-    s = innovation_cov(p, r)  # S = H P H^T + R
-    return _quadratic_form(z[:, 0] - x[:, 0], z[:, 1] - x[:, 1], s[:, 0, 0], s[:, 0, 1], s[:, 1, 0], s[:, 1, 1])
 
 
 def make_model(name: str, accel_std_mps2: float, jerk_std_mps3: float, yaw_accel_std_radps2: float) -> MotionModel:
