@@ -29,6 +29,7 @@ from numba import njit, types
 
 IN_F1, IN_F2, IN_F3 = (types.Array(types.float64, n, "A", readonly=True) for n in (1, 2, 3))
 IN_I1 = types.Array(types.int64, 1, "A", readonly=True)
+IN_I2 = types.Array(types.int64, 2, "A", readonly=True)
 OUT_F2, OUT_F3 = (types.Array(types.float64, n, "A") for n in (2, 3))
 OUT_I1 = types.Array(types.int64, 1, "A")
 I64, F64 = types.int64, types.float64
@@ -64,7 +65,7 @@ def kernel(*argument_types) -> Callable[[Callable], Kernel]:
 
 
 # the modules that declare kernels (with the modules they import): load_kernels imports them
-KERNEL_MODULES = ("fusion.tracking", "sim.occlusion")
+KERNEL_MODULES = ("fusion.tracking", "sim.occlusion", "obu_service.clock_envelope")
 
 
 def load_kernels() -> float:

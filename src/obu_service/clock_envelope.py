@@ -1,28 +1,37 @@
-"""Lower-envelope statistics of one-way clock readings (pure numpy; see clock_sync for the model).
+"""Lower-envelope statistics of one-way clock readings (compiled; see clock_sync for the model).
 
 A one-way reading is a true delay (>= 0) plus or minus the clock offset; queueing only ever adds
 delay, so the information is in the lower tail of each leg's readings (Paxson 1998; Moon et al.
 1999). Readings are detrended with a drift d (ns per s): an up reading z_up = up + theta(t) has
 z_up - d t = up + theta(0), a down reading z_down = down - theta(t) has z_down + d t = down -
 theta(0). With sign s = +1 (up) or -1 (down): z - s d t is the detrended reading of either leg.
+
+A vehicle refits each RSU's and each peer's window (up to a few hundred exchanges) every few
+exchanges; written as numpy the fit was some 200 calls of ~1 us fixed cost each, so the
+statistics are loops compiled by numba (``fusion.jit``). Their numpy definition, which they equal
+to rounding, is in ``tests/unit/test_clock_envelope.py``. The kernels take a window's exchanges as
+arrays of shape (n,): ``t_up`` (s, t1 - t_ref), ``z_up`` (ns, x_up), ``t_down`` (s, t4 - t_ref),
+``z_down`` (ns, x_down).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
+
+from fusion.jit import F64, I64, IN_I1, IN_I2, helper, kernel
 
 # Readings more than this above their leg's least (detrended) reading are buffered or queued
 # far beyond any drift trend (500 ppm x 60 s = 30 ms): never part of a lower envelope.
 QUEUED_NS = 200_000_000.0
+NS_PER_S = 1_000_000_000
 
 
 @dataclass(frozen=True)
 class Leg:
-    """The readings of one leg (in one clock segment where that matters), arrays of shape (n,).
+    """The readings of one leg, arrays of shape (n,).
 
     t_s: OBU time of the reading relative to the reference time (s; t1 for up, t4 for down);
     z_ns: the reading (x_up or x_down, ns, relative to a reference offset); sign: +1 up, -1 down.
@@ -40,247 +49,83 @@ class Leg:
         return Leg(self.t_s[keep], self.z_ns[keep], self.sign)
 
 
-def lowest(values: np.ndarray, q: float) -> np.ndarray:
-    """Indices of the lowest max(1, ceil(q n)) entries of a (n,) array (the lower tail)."""
-    k = _tail_size(len(values), q)
-    return np.argpartition(values, k - 1)[:k]
+# --- one leg ---------------------------------------------------------------------------------
 
-
+@helper
 def _tail_size(n: int, q: float) -> int:
     """max(1, ceil(q n)), at most n: how many readings make the lower tail of n."""
     return min(n, max(1, math.ceil(q * n)))
 
 
-def bin_tail_means(bins: np.ndarray, t: np.ndarray, r: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray]:
-    """(mean t, mean of the lowest fraction q of r) per bin, shapes (m,), bins ascending.
-
-    Bins holding fewer than half the median count (half-filled bins at the window edges) are
-    left out: their lower tail is a weaker lower bound.
-    """
-    return _Bins.of(bins, q).tail_means(bins, t, r)
-
-
-@dataclass(frozen=True)
-class _Bins:
-    """Where each bin starts and ends in readings sorted by bin, its count, the size of its lower
-    tail and whether it is kept, shapes (m,): they depend on the bins only, not on the readings'
-    order within a bin, so a fit finds them once per leg for both drift iterations."""
-
-    starts: np.ndarray
-    ends: np.ndarray
-    counts: np.ndarray
-    tails: np.ndarray  # lower-tail size per bin, max(1, ceil(q counts))
-    keep: np.ndarray | None  # None: every bin is kept
-
-    @staticmethod
-    def of(bins: np.ndarray, q: float) -> _Bins:
-        b = np.sort(bins)  # = bins[np.lexsort((r, bins))] for any r
-        # (np.concatenate, not np.r_: the same arrays without np.r_'s parsing, this runs per clock fit)
-        starts = np.flatnonzero(np.concatenate(([True], b[1:] != b[:-1])))
-        ends = np.concatenate((starts[1:], [len(b)]))
-        counts = ends - starts
-        k = np.maximum(1, np.ceil(q * counts).astype(int))  # lower-tail size per bin
-        keep = counts >= 0.5 * median_of_ints(counts.tolist())
-        return _Bins(starts, ends, counts, k, None if keep.all() else keep)
-
-    def tail_means(self, bins: np.ndarray, t: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """bin_tail_means of readings (t, r) in these bins, shapes (n,) -> (m,)."""
-        order = np.lexsort((r, bins))  # by bin, then by r: each bin's lower tail comes first
-        t_cum, r_cum = _prefix_sums(t[order]), _prefix_sums(r[order])
-        t_bin = (t_cum[self.ends] - t_cum[self.starts]) / self.counts
-        r_bin = (r_cum[self.starts + self.tails] - r_cum[self.starts]) / self.tails
-        if self.keep is None:
-            return t_bin, r_bin
-        return t_bin[self.keep], r_bin[self.keep]
+@helper
+def _order(x: np.ndarray) -> np.ndarray:
+    """np.argsort(x, kind="stable") of a (n,) float64 array without NaN: a bottom-up merge sort
+    (numba's own sorts take about a second each to compile)."""
+    n = len(x)
+    a, b = np.arange(n), np.empty(n, np.int64)
+    width = 1
+    while width < n:
+        for lo in range(0, n, 2 * width):
+            mid, hi = min(lo + width, n), min(lo + 2 * width, n)
+            i, j = lo, mid
+            for k in range(lo, hi):
+                if i < mid and (j >= hi or x[a[i]] <= x[a[j]]):  # equal: the left run's first
+                    b[k], i = a[i], i + 1
+                else:
+                    b[k], j = a[j], j + 1
+        a, b = b, a
+        width *= 2
+    return a
 
 
-def _prefix_sums(x: np.ndarray) -> np.ndarray:
-    """[0, x0, x0 + x1, ...], shape (n + 1,): np.concatenate(([0.0], np.cumsum(x))) without the copy."""
-    out = np.empty(len(x) + 1)
-    out[0] = 0.0
-    np.cumsum(x, out=out[1:])
-    return out
+@helper
+def _sorted(x: np.ndarray) -> np.ndarray:
+    return x[_order(x)]
 
 
-def median_of_ints(values: list[int]) -> float:
-    """np.median of a few integers (exact: the middle one, or the mean of the middle two, as a float)."""
-    s = sorted(values)
-    h = len(s) // 2
-    return float(s[h]) if len(s) % 2 else (s[h - 1] + s[h]) / 2
-
-
-def lower_quartile(values: list[float]) -> float:
-    """np.percentile(values, 25) of a few finite floats, bit for bit: the linear method's virtual
-    index v = 0.25 (n - 1), a = s[floor v], b = s[floor v + 1], g = v - floor v, and numpy's lerp
-    a + (b - a) g (b - (b - a)(1 - g) when g >= 0.5)."""
-    s = sorted(values)
-    v = 0.25 * (len(s) - 1)
+@helper
+def _quantile(ascending: np.ndarray, p: float) -> float:
+    """The p-quantile of a sorted (n,) array, n >= 1, by linear interpolation (numpy's default
+    method): v = p (n - 1), s[floor v] + (s[floor v + 1] - s[floor v]) (v - floor v). (np.median and
+    np.percentile would take seconds more to compile.)"""
+    v = p * (len(ascending) - 1)
     i = int(v)
-    g = v - i
-    a, b = s[i], s[min(i + 1, len(s) - 1)]
-    diff = b - a
-    return b - diff * (1 - g) if g >= 0.5 else a + diff * g
+    a, b = ascending[i], ascending[min(i + 1, len(ascending) - 1)]
+    return a + (b - a) * (v - i)
 
 
-def shared_slope(groups: list[tuple[np.ndarray, np.ndarray]], min_resid: float) -> tuple[float, float] | None:
-    """Least-squares slope shared by point groups (t, y), each with its own intercept, and its std error.
-
-    d = sum_g sum_i (t_i - tbar_g)(y_i - ybar_g) / Sxx,  Sxx = sum_g sum_i (t_i - tbar_g)^2,
-    se = sqrt(s^2 / Sxx),  s^2 = RSS / (m - G - 1) floored at min_resid^2 (m points, G groups);
-    None unless two groups have >= 3 points spread in t.
-    """
-    groups = [(t, y) for t, y in groups if len(t) >= 2]
-    if sum(len(t) >= 3 for t, _ in groups) < 2:
-        return None
-    tc = [t - t.sum() / len(t) for t, _ in groups]  # (x.sum() / n: the very division np.mean makes)
-    yc = [y - y.sum() / len(y) for _, y in groups]
-    sxx = float(sum(a @ a for a in tc))
-    if sxx <= 0.0:
-        return None
-    d = float(sum(a @ b for a, b in zip(tc, yc))) / sxx
-    rss = float(sum(((b - d * a) ** 2).sum() for a, b in zip(tc, yc)))
-    dof = max(1, sum(len(a) for a in tc) - len(tc) - 1)
-    return d, float(np.sqrt(max(rss / dof, min_resid**2) / sxx))
+@helper
+def _unqueued(r: np.ndarray) -> np.ndarray:
+    """(n,) True where a detrended reading is within QUEUED_NS of the leg's least one."""
+    return r <= r.min() + QUEUED_NS
 
 
-def tail_mean_sd(r: np.ndarray, q: float) -> float:
+@helper
+def _tail_mean(r: np.ndarray, t_s: np.ndarray, q: float) -> tuple[float, float]:
+    """(E, a): the mean of the lowest fraction q of the readings r, and their mean age -t (s, >= 0)."""
+    k = _tail_size(len(r), q)
+    low = _order(r)[:k]
+    return r[low].sum() / k, max(0.0, -(t_s[low].sum() / k))
+
+
+@helper
+def _tail_mean_sd(r: np.ndarray, q: float) -> float:
     """Per-observation sd of the mean of the lowest fraction q of r (from its influence function):
 
     L = (1/q) int_0^q Q(p) dp,  IF(x) = min(x - Q_q, 0) / q + const, so
     var = E[(x - Q_q)^2 | tail] / q - (mean_tail - Q_q)^2.
     """
     k = _tail_size(len(r), q)
-    tail = np.sort(np.partition(r, k - 1)[:k])  # the k lowest values, ascending
-    dev = tail - tail[-1]  # tail[-1] ~ Q_q
-    # (sum / k: the very division np.mean makes)
-    return float(np.sqrt(max((dev**2).sum() / k / q - (dev.sum() / k) ** 2, 0.0)))
+    tail = _sorted(r)[:k]  # the k lowest, ascending
+    dev = tail - tail[k - 1]  # tail[-1] ~ Q_q
+    return math.sqrt(max((dev * dev).sum() / k / q - (dev.sum() / k) ** 2, 0.0))
 
 
-def _bin_envelopes(leg: Leg, bins: np.ndarray, layout: _Bins, r: np.ndarray, drift: float,
-                   q: float) -> tuple[np.ndarray, np.ndarray]:
-    """(t, sign * (envelope + sign d t)) per bin of a leg: points on a line of slope d, shapes (m,).
-
-    ``bins``: each reading's bin floor((t + phase_s) / bin_s) (edges at t = k bin_s - phase_s, fixed
-    in absolute time as the reference time moves), ``layout`` their _Bins; ``r``: the readings
-    detrended with ``drift``."""
-    t = leg.t_s
-    unqueued = r <= r.min() + QUEUED_NS  # buffered readings say nothing about the envelope's slope
-    if not unqueued.all():
-        bins, t, r = bins[unqueued], t[unqueued], r[unqueued]
-        layout = _Bins.of(bins, q)
-    t_bin, e_bin = layout.tail_means(bins, t, r)
-    return t_bin, leg.sign * e_bin + drift * t_bin
-
-
-def fit_drift(legs: list[Leg], bin_s: float, phase_s: float, q: float, prior: tuple[float, float],
-              min_resid: float, iters: int = 2) -> tuple[float, float]:
-    """(drift, sd) in ns per s of the lower envelopes of all legs and segments, shrunk to a prior.
-
-    Per sub-window (bin of bin_s seconds, edges at k bin_s - phase_s) and leg, the lower-tail
-    mean of the readings detrended with the current drift d is the envelope at the bin's mean
-    time; the envelopes (signed so that every leg rises with slope d) get one shared least-squares
-    slope s with an intercept per leg and clock segment (a step moves the intercepts, not the
-    rate: shared_slope, std error se from the scatter of the bins, but never below the expected
-    scatter tail_mean_sd / sqrt(samples per bin), so that a few bins lying on a line by chance do
-    not fake certainty). Bins whose envelope lies above the grouped Theil-Sen line by more than
-    3 such sd (a leg congested or buffered for a whole bin) are left out. With the prior
-    N(d0, sd0^2), the Gaussian posterior is
-      d = d0 + w (s - d0),  w = sd0^2 / (sd0^2 + se^2),  sd = (1 / sd0^2 + 1 / se^2)^(-1/2).
-    """
-    d0, sd0 = prior
-    d, sd = d0, sd0
-    legs = [leg for leg in legs if len(leg.t_s) >= 3]
-    if not legs:
-        return d0, sd0
-    n = sum(len(leg.t_s) for leg in legs)
-    bins = [np.floor((leg.t_s + phase_s) / bin_s) for leg in legs]  # the drift moves no reading across bins
-    layouts = [_Bins.of(b, q) for b in bins]
-    # shared_slope needs two groups of >= 3 bins, and leaving out queued readings or congested
-    # bins never adds a bin: without two legs of >= 3 bins (a young window) the fit is the prior
-    if sum(len(layout.starts) >= 3 for layout in layouts) < 2:
-        return d0, sd0
-    for _ in range(iters):
-        detrended = [leg.detrended(d) for leg in legs]  # once per leg and drift: envelopes and their noise
-        points = [_bin_envelopes(leg, b, layout, r, d, q) for leg, b, layout, r in zip(legs, bins, layouts, detrended)]
-        # a bin envelope scatters at least by the lower-tail-mean noise of its samples
-        n_bins = sum(len(t) for t, _ in points)
-        per_bin = max(tail_mean_sd(r, q) for r in detrended) / np.sqrt(max(1.0, n / max(n_bins, 1)))
-        floor = max(min_resid, per_bin)
-        robust = theil_sen_slope(points)
-        if robust is not None:
-            points = [_below_line(t, y, leg.sign, robust, 3.0 * floor) for (t, y), leg in zip(points, legs)]
-        fit = shared_slope(points, floor)
-        if fit is None:
-            return d0, sd0
-        s, se = fit
-        d, sd = d0 + sd0**2 / (sd0**2 + se**2) * (s - d0), float((1.0 / sd0**2 + 1.0 / se**2) ** -0.5)
-    return d, sd
-
-
-def theil_sen_slope(groups: list[tuple[np.ndarray, np.ndarray]]) -> float | None:
-    """Median of the pairwise slopes (y_j - y_i) / (t_j - t_i) within each group (Theil 1950, Sen 1968,
-    grouped so that each group keeps its own intercept); None without a pair."""
-    slopes = []
-    for t, y in groups:
-        i, j = _pairs(len(t))
-        dt = t[j] - t[i]
-        ok = dt != 0.0
-        slopes.append((y[j] - y[i]) / dt if ok.all() else (y[j] - y[i])[ok] / dt[ok])
-    slopes = np.concatenate(slopes) if slopes else np.empty(0)
-    return median_of_floats(slopes) if len(slopes) else None
-
-
-def median_of_floats(x: np.ndarray) -> float:
-    """np.median of a (n,) array of finite floats, bit for bit: the middle value, or (a + b) / 2 of
-    the middle two (np.median's mean of two), from a partition instead of its generic reduction."""
-    h = len(x) // 2
-    if len(x) % 2:
-        return float(np.partition(x, h)[h])
-    part = np.partition(x, (h - 1, h))
-    return (float(part[h - 1]) + float(part[h])) / 2
-
-
-@lru_cache(maxsize=128)
-def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """np.triu_indices(n, 1), read-only: a pure function of n (a fit has a few dozen bins per group)."""
-    i, j = np.triu_indices(n, 1)
-    i.flags.writeable = j.flags.writeable = False
-    return i, j
-
-
-def _below_line(t: np.ndarray, y: np.ndarray, sign: int, d: float, limit: float) -> tuple[np.ndarray, np.ndarray]:
-    """The bins of one group whose envelope is not congested: sign (y - d t) <= c + limit, c the lower
-    quartile of sign (y - d t) over the group (a congested bin lies above the envelope line)."""
-    if len(t) < 4:
-        return t, y
-    excess = sign * (y - d * t)
-    keep = excess <= lower_quartile(excess.tolist()) + limit
-    return (t, y) if keep.all() else (t[keep], y[keep])
-
-
-@dataclass(frozen=True)
-class TailMean:
-    """The lower-tail mean of one leg's detrended readings: value (ns) and mean age (s, >= 0)."""
-
-    value_ns: float
-    age_s: float
-
-
-def tail_mean(leg: Leg, drift: float, q: float) -> TailMean:
-    """E = mean of the lowest fraction q of the detrended readings, and their mean age -t."""
-    return _tail_mean(leg.detrended(drift), leg.t_s, q)
-
-
-def _tail_mean(r: np.ndarray, t_s: np.ndarray, q: float) -> TailMean:
-    """tail_mean of readings already detrended (r) at times t_s, shapes (n,)."""
-    low = lowest(r, q)
-    k = len(low)  # (sum / k: the very division np.mean makes, without its generic reduction)
-    return TailMean(float(r[low].sum() / k), float(max(0.0, -(t_s[low].sum() / k))))
-
-
-def leg_envelope(leg: Leg, drift: float, drift_bound: float, q: float, horizon_s: float, margin_ns: float,
-                 min_readings: int = 3) -> TailMean:
-    """The lower-tail mean of a leg over the horizon that keeps its bound E + drift_bound * age low.
+@helper
+def leg_envelope(t_s: np.ndarray, z_ns: np.ndarray, sign: int, drift: float, drift_bound: float, q: float,
+                 horizon_s: float, margin_ns: float, min_readings: int) -> tuple[float, float]:
+    """(E, a): the lower-tail mean of a leg (and its mean age) over the horizon that keeps its
+    bound E + drift_bound * a low.
 
     Readings more than QUEUED_NS above the leg's least one (buffered) are never part of its lower
     tail. Starts from the readings of the last horizon_s (at least the newest min_readings) and
@@ -288,50 +133,311 @@ def leg_envelope(leg: Leg, drift: float, drift_bound: float, q: float, horizon_s
     at most drift_bound (ns/s) moves a reading of age a by drift_bound a, so an older, un-queued
     envelope is worth more than a recent one whose every reading was buffered.
     """
-    r = leg.detrended(drift)
-    usable = np.flatnonzero(r <= r.min() + QUEUED_NS)
-    order = usable[np.argsort(-leg.t_s[usable])]  # un-queued readings, newest first
-    ages = -leg.t_s[order]
-    best, best_bound, h = None, np.inf, horizon_s
+    r = z_ns - sign * drift * t_s
+    usable = np.arange(len(r))[_unqueued(r)]
+    order = usable[_order(-t_s[usable])]  # un-queued readings, newest first
+    ages = -t_s[order]  # ascending
+    best_e, best_a, best_bound, h = 0.0, 0.0, np.inf, horizon_s
     while True:
-        count = max(min(min_readings, len(order)), int(np.searchsorted(ages, h, side="right")))
-        env = _tail_mean(r[order[:count]], leg.t_s[order[:count]], q)  # = tail_mean(leg.take(...), drift, q)
-        bound = env.value_ns + drift_bound * env.age_s
-        if best is None or bound < best_bound - margin_ns:
-            best, best_bound = env, bound
+        within = 0  # readings no older than h
+        while within < len(ages) and ages[within] <= h:
+            within += 1
+        count = max(min(min_readings, len(order)), within)
+        e, a = _tail_mean(r[order[:count]], t_s[order[:count]], q)
+        bound = e + drift_bound * a
+        if best_bound == np.inf or bound < best_bound - margin_ns:
+            best_e, best_a, best_bound = e, a, bound
         if h >= ages[-1]:
-            return best
+            return best_e, best_a
         h *= 2.0
 
 
-def _allowed(up: Leg, down: Leg, drift: float, slack_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The offsets theta(0) each exchange allows, [-(x_down + d t4), x_up - d t1] widened by slack (ns)."""
-    return -down.detrended(drift) - slack_ns, up.detrended(drift) + slack_ns
+# --- the drift ---------------------------------------------------------------------------------
+
+@helper
+def _legs(t_up, z_up, t_down, z_down, group):
+    """The readings of each leg with >= 3, leg by leg: segment g's up leg, then its down leg
+    (exchanges of group -1 are left out). (t, z) (m,), sign (L,), first (L + 1,): leg l's readings
+    are [first[l], first[l + 1]). (Loops: numpy's functions here took seconds to compile.)"""
+    n_groups = 0
+    for g in group:
+        n_groups = max(n_groups, g + 1)
+    counts = np.zeros(n_groups, np.int64)
+    for g in group:
+        if g >= 0:
+            counts[g] += 1
+    slot = np.full(n_groups, -1, np.int64)  # each segment's up leg, if it has >= 3 readings
+    n_legs = 0
+    for g in range(n_groups):
+        if counts[g] >= 3:
+            slot[g], n_legs = n_legs, n_legs + 2
+    first, sign = np.zeros(n_legs + 1, np.int64), np.empty(n_legs)
+    for g in range(n_groups):
+        if slot[g] >= 0:
+            leg = slot[g]
+            first[leg + 1], first[leg + 2] = first[leg] + counts[g], first[leg] + 2 * counts[g]
+            sign[leg], sign[leg + 1] = 1.0, -1.0
+    t, z, fill = np.empty(first[-1]), np.empty(first[-1]), first[:-1].copy()
+    for i in range(len(group)):
+        leg = slot[group[i]] if group[i] >= 0 else -1
+        if leg >= 0:
+            t[fill[leg]], z[fill[leg]] = t_up[i], z_up[i]
+            t[fill[leg + 1]], z[fill[leg + 1]] = t_down[i], z_down[i]
+            fill[leg] += 1
+            fill[leg + 1] += 1
+    return t, z, sign, first
 
 
-def consensus(up: Leg, down: Leg, drift: float, slack_ns: np.ndarray, among: np.ndarray) -> np.ndarray:
+@helper
+def _bin_layout(bins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(order, edges): the readings by bin (stable), bin j's being order[edges[j]:edges[j + 1]]."""
+    order = _order(bins)
+    edges = np.empty(len(bins) + 1, np.int64)
+    m = 1
+    edges[0] = 0
+    for i in range(1, len(order)):
+        if bins[order[i]] != bins[order[i - 1]]:
+            edges[m], m = i, m + 1
+    edges[m] = len(order)
+    return order, edges[:m + 1]
+
+
+@helper
+def _bin_envelopes(t: np.ndarray, order: np.ndarray, edges: np.ndarray, r: np.ndarray, sign: float, drift: float,
+                   q: float, out_t: np.ndarray, out_y: np.ndarray) -> int:
+    """Per bin of a leg, (mean t, sign * (E + sign d t)): points on a line of slope d, written to
+    out_t[:m], out_y[:m]; returns m.
+
+    (order, edges): the leg's readings by bin (``_bin_layout`` of floor((t + phase_s) / bin_s):
+    edges at t = k bin_s - phase_s, fixed in absolute time as the reference time moves); ``r``: the
+    readings detrended with ``drift``; E: the mean of the lowest fraction q of r in the bin.
+    Buffered readings (QUEUED_NS) say nothing about the envelope's slope and are left out; bins
+    holding fewer than half the median count (half-filled bins at the window edges) too: their
+    lower tail is a weaker lower bound.
+    """
+    unqueued = _unqueued(r)
+    n_bins = len(edges) - 1
+    counts, t_sum = np.zeros(n_bins, np.int64), np.zeros(n_bins)
+    r_bin = np.empty(len(r))  # the un-queued readings of each bin, bin after bin
+    for b in range(n_bins):
+        for i in order[edges[b]:edges[b + 1]]:
+            if unqueued[i]:
+                r_bin[edges[b] + counts[b]] = r[i]
+                t_sum[b] += t[i]
+                counts[b] += 1
+    least = 0.5 * _quantile(_sorted(counts[counts > 0].astype(np.float64)), 0.5)  # half the median count
+    m = 0
+    for b in range(n_bins):
+        c = counts[b]
+        if c == 0 or c < least:
+            continue
+        k = _tail_size(c, q)
+        t_bin, e_bin = t_sum[b] / c, _sorted(r_bin[edges[b]:edges[b] + c])[:k].sum() / k
+        out_t[m], out_y[m] = t_bin, sign * e_bin + drift * t_bin
+        m += 1
+    return m
+
+
+@helper
+def theil_sen_slope(t: np.ndarray, y: np.ndarray, first: np.ndarray) -> float:
+    """Median of the pairwise slopes (y_j - y_i) / (t_j - t_i) within each group (Theil 1950, Sen
+    1968, grouped so that each group keeps its own intercept; group g is [first[g], first[g + 1]));
+    NaN without a pair."""
+    pairs = 0
+    for g in range(len(first) - 1):
+        m = first[g + 1] - first[g]
+        pairs += m * (m - 1) // 2
+    slopes, k = np.empty(pairs), 0
+    for g in range(len(first) - 1):
+        for i in range(first[g], first[g + 1]):
+            for j in range(i + 1, first[g + 1]):
+                if t[j] != t[i]:
+                    slopes[k] = (y[j] - y[i]) / (t[j] - t[i])
+                    k += 1
+    return _quantile(_sorted(slopes[:k]), 0.5) if k else np.nan  # the median
+
+
+@helper
+def _below_line(t, y, first, sign, d, limit):
+    """The points of each group whose envelope is not congested: sign (y - d t) <= c + limit, c the
+    lower quartile of sign (y - d t) over the group (a congested bin lies above the envelope line);
+    groups of fewer than 4 are kept whole. Returns (t, y, first) of the points kept."""
+    keep = np.ones(len(t), np.bool_)
+    for g in range(len(first) - 1):
+        a, b = first[g], first[g + 1]
+        if b - a >= 4:
+            excess = sign[g] * (y[a:b] - d * t[a:b])
+            keep[a:b] = excess <= _quantile(_sorted(excess), 0.25) + limit
+    kept_first = np.zeros(len(first), np.int64)
+    for g in range(len(first) - 1):
+        kept_first[g + 1] = kept_first[g] + keep[first[g]:first[g + 1]].sum()
+    return t[keep], y[keep], kept_first
+
+
+@helper
+def shared_slope(t: np.ndarray, y: np.ndarray, first: np.ndarray, min_resid: float) -> tuple[bool, float, float]:
+    """(ok, d, se): the least-squares slope shared by point groups (group g: [first[g], first[g + 1])),
+    each with its own intercept, and its std error.
+
+    d = sum_g sum_i (t_i - tbar_g)(y_i - ybar_g) / Sxx,  Sxx = sum_g sum_i (t_i - tbar_g)^2,
+    se = sqrt(s^2 / Sxx),  s^2 = RSS / (m - G - 1) floored at min_resid^2 (m points, G groups of
+    >= 2 points); not ok unless two groups have >= 3 points spread in t.
+    """
+    tc, yc = np.empty(len(t)), np.empty(len(t))
+    groups, points, wide = 0, 0, 0
+    for g in range(len(first) - 1):
+        a, b = first[g], first[g + 1]
+        if b - a < 2:
+            tc[a:b], yc[a:b] = 0.0, 0.0  # a lone point adds nothing to the sums
+            continue
+        tc[a:b], yc[a:b] = t[a:b] - t[a:b].sum() / (b - a), y[a:b] - y[a:b].sum() / (b - a)
+        groups, points, wide = groups + 1, points + b - a, wide + (b - a >= 3)
+    sxx = (tc * tc).sum()
+    if wide < 2 or sxx <= 0.0:
+        return False, 0.0, 0.0
+    d = (tc * yc).sum() / sxx
+    resid = yc - d * tc
+    dof = max(1, points - groups - 1)
+    return True, d, math.sqrt(max((resid * resid).sum() / dof, min_resid**2) / sxx)
+
+
+@helper
+def fit_drift(t_up: np.ndarray, z_up: np.ndarray, t_down: np.ndarray, z_down: np.ndarray, group: np.ndarray,
+              bin_s: float, phase_s: float, q: float, prior_drift: float, prior_sd: float,
+              min_resid: float) -> tuple[float, float]:
+    """(drift, sd) in ns per s of the lower envelopes of both legs of every clock segment, shrunk
+    to a prior; ``group`` (n,): each exchange's segment 0, 1, ... (-1: left out).
+
+    Per sub-window (bin of bin_s seconds, edges at k bin_s - phase_s) and leg, the lower-tail
+    mean of the readings detrended with the current drift d is the envelope at the bin's mean
+    time; the envelopes (signed so that every leg rises with slope d) get one shared least-squares
+    slope s with an intercept per leg and clock segment (a step moves the intercepts, not the
+    rate: shared_slope, std error se from the scatter of the bins, but never below the expected
+    scatter _tail_mean_sd / sqrt(samples per bin), so that a few bins lying on a line by chance do
+    not fake certainty). Bins whose envelope lies above the grouped Theil-Sen line by more than
+    3 such sd (a leg congested or buffered for a whole bin) are left out. With the prior
+    N(d0, sd0^2), the Gaussian posterior is
+      d = d0 + w (s - d0),  w = sd0^2 / (sd0^2 + se^2),  sd = (1 / sd0^2 + 1 / se^2)^(-1/2).
+    Two passes: the second detrends with the first's drift. Legs of fewer than 3 readings are
+    left out; without two legs of >= 3 bins (a young window) the fit is the prior.
+    """
+    t, z, sign, first = _legs(t_up, z_up, t_down, z_down, group)
+    bins = np.floor((t + phase_s) / bin_s)  # the drift moves no reading across bins
+    layouts = [_bin_layout(bins[first[g]:first[g + 1]]) for g in range(len(sign))]
+    wide = 0
+    for _, edges in layouts:
+        wide += len(edges) - 1 >= 3
+    if wide < 2:  # (leaving out queued readings or congested bins never adds a bin)
+        return prior_drift, prior_sd
+    d, sd = prior_drift, prior_sd
+    pt, py, pfirst = np.empty(len(t)), np.empty(len(t)), np.zeros(len(first), np.int64)
+    for _ in range(2):
+        noise = 0.0  # the largest per-reading sd of a leg's lower-tail mean
+        for g in range(len(sign)):
+            a, b = first[g], first[g + 1]
+            r = z[a:b] - sign[g] * d * t[a:b]
+            noise = max(noise, _tail_mean_sd(r, q))
+            order, edges = layouts[g]
+            m = _bin_envelopes(t[a:b], order, edges, r, sign[g], d, q, pt[pfirst[g]:], py[pfirst[g]:])
+            pfirst[g + 1] = pfirst[g] + m
+        # a bin envelope scatters at least by the lower-tail-mean noise of its samples
+        floor = max(min_resid, noise / math.sqrt(max(1.0, len(t) / max(pfirst[-1], 1))))
+        et, ey, efirst = pt[:pfirst[-1]], py[:pfirst[-1]], pfirst
+        robust = theil_sen_slope(et, ey, efirst)
+        if not np.isnan(robust):
+            et, ey, efirst = _below_line(et, ey, efirst, sign, robust, 3.0 * floor)
+        ok, s, se = shared_slope(et, ey, efirst, floor)
+        if not ok:
+            return prior_drift, prior_sd
+        d = prior_drift + prior_sd**2 / (prior_sd**2 + se**2) * (s - prior_drift)
+        sd = (1.0 / prior_sd**2 + 1.0 / se**2) ** -0.5
+    return d, sd
+
+
+# --- the exchanges that agree --------------------------------------------------------------------
+
+@helper
+def consensus(t_up: np.ndarray, z_up: np.ndarray, t_down: np.ndarray, z_down: np.ndarray, drift: float,
+              slack_ns: np.ndarray, among: np.ndarray) -> np.ndarray:
     """Which exchanges agree on the offset most of them allow (Marzullo 1984), bool shape (n,).
 
-    up and down hold the two readings of the same n exchanges; only those in ``among`` (bool
-    (n,)) vote. Exchange i allows theta(0) in [-(x_down + d t4), x_up - d t1] (both delays >= 0),
-    widened by slack_ns[i] for the drift error; genuine exchanges all contain the true offset, so
-    the point covered by the most intervals is kept and an exchange whose interval misses it (a
-    forged or stepped reply among agreeing ones) is not.
+    Only those in ``among`` (bool (n,)) vote. Exchange i allows theta(0) in
+    [-(x_down + d t4), x_up - d t1] (both delays >= 0), widened by slack_ns[i] for the drift error;
+    genuine exchanges all contain the true offset, so the point covered by the most intervals (the
+    first such, an opening before a closing at the same value) is kept, and an exchange whose
+    interval misses it (a forged or stepped reply among agreeing ones) is not.
     """
-    lo, hi = _allowed(up, down, drift, slack_ns)
-    points = np.concatenate((lo, hi) if among.all() else (lo[among], hi[among]))  # the voters' openings, closings
+    lo = -(z_down + drift * t_down) - slack_ns
+    hi = (z_up - drift * t_up) + slack_ns
+    points = np.concatenate((lo[among], hi[among]))  # the voters' openings, then their closings
     voters = len(points) // 2
-    # by value, an opening before a closing at the same value: a stable sort of points whose openings
-    # come first (= np.lexsort((-kinds, points)), kinds +1 opening, -1 closing)
-    order = np.argsort(points, kind="stable")
-    kinds = np.where(order < voters, 1.0, -1.0)  # of the sorted points
-    theta = points[order[int(np.argmax(np.cumsum(kinds)))]]  # start of a most-covered segment
+    order = _order(points)  # stable: at equal values openings come first
+    covered, most, theta = 0, -1, 0.0
+    for i in order:
+        covered += 1 if i < voters else -1
+        if covered > most:
+            most, theta = covered, points[i]
     return (lo <= theta) & (theta <= hi)
 
 
-def disputed_ns(up: Leg, down: Leg, drift: float, slack_ns: np.ndarray, outside: np.ndarray,
-                theta_ns: float) -> float:
-    """How far from theta_ns the offsets allowed by the exchanges in ``outside`` reach (ns, the far
-    edge of the farthest): what the bound must cover when those may be the genuine ones."""
-    lo, hi = _allowed(up.take(outside), down.take(outside), drift, slack_ns[outside])
-    return float(np.max(np.maximum(np.abs(lo - theta_ns), np.abs(hi - theta_ns)), initial=0.0))
+@helper
+def _disputed_ns(lo: np.ndarray, hi: np.ndarray, theta_ns: float) -> float:
+    """How far from theta_ns the offsets [lo, hi] allowed by some exchanges reach (ns, the far edge of
+    the farthest): what the bound must cover when those may be the genuine ones."""
+    return max(np.abs(lo - theta_ns).max(), np.abs(hi - theta_ns).max()) if len(lo) else 0.0
+
+
+# --- a window's fit ------------------------------------------------------------------------------
+
+@kernel(IN_I2, IN_I1, F64, F64, F64, F64, I64, F64, F64, F64, F64, F64, I64, I64, F64)
+def fit_window(times: np.ndarray, segment: np.ndarray, prev_drift: float, prev_sd: float, prior_drift: float,
+               prior_sd: float, bin_ns: int, q: float, max_drift: float, sigmas: float, horizon_s: float,
+               threshold_ns: float, step_span: int, armed_after: int, min_resid: float):
+    """The fit of a window of n exchanges (the model and its parameters: clock_sync.ClockSync).
+
+    times (n, 4) int64 [t1, t2, t3, t4] ns by t4; segment (n,) int64 each exchange's clock
+    segment; (prev_drift, prev_sd) the last fit's drift (ns/s; it widens the consensus).
+    Returns (outside, theta_ref, theta_rel, drift, sd, bound, least_up, t1 of it, least_down,
+    t4 of it, armed): outside (n,) the exchanges of the current segment the consensus left out;
+    readings relative to theta_ref, the offset of the newest exchange of the current segment
+    (the newest segment left), at t_ref = the newest t4.
+    """
+    n = len(segment)
+    current = segment == segment.max()
+    last = np.flatnonzero(current)[-1]
+    t1, t2, t3, t4 = times[:, 0], times[:, 1], times[:, 2], times[:, 3]
+    t_ref = t4[n - 1]
+    theta_ref = ((t2[last] - t1[last]) + (t3[last] - t4[last])) // 2
+    t_up, z_up = (t1 - t_ref) / NS_PER_S, (t2 - t1 - theta_ref).astype(np.float64)  # up + theta - theta_ref
+    t_down, z_down = (t4 - t_ref) / NS_PER_S, (t4 - t3 + theta_ref).astype(np.float64)  # down - (theta - theta_ref)
+    # what a drift error of sigmas sd (of the last fit) does over each exchange's age
+    slack = sigmas * prev_sd * np.maximum(-t_up, -t_down) + 1_000.0
+    agree = current & consensus(t_up, z_up, t_down, z_down, prev_drift, slack, current)
+    outside = current & ~agree
+    present = np.zeros(segment.max() + 1, np.int64)
+    present[segment] = 1
+    group = (np.cumsum(present) - 1)[segment]  # each exchange's segment by rank among those present
+    group[outside] = -1
+    drift, sd = fit_drift(t_up, z_up, t_down, z_down, group, bin_ns / NS_PER_S, (t_ref % bin_ns) / NS_PER_S, q,
+                          prior_drift, prior_sd, min_resid)
+    if not np.isnan(drift):
+        drift = min(max(drift, -max_drift), max_drift)
+    # the offset at t_ref from the lower envelopes of the current segment's agreeing exchanges
+    keep = np.flatnonzero(agree)
+    cu_t, cu_z, cd_t, cd_z = t_up[keep], z_up[keep], t_down[keep], z_down[keep]
+    drift_bound = sigmas * sd
+    e_up, a_up = leg_envelope(cu_t, cu_z, 1, drift, drift_bound, q, horizon_s, threshold_ns, 3)
+    e_down, a_down = leg_envelope(cd_t, cd_z, -1, drift, drift_bound, q, horizon_s, threshold_ns, 3)
+    theta_rel = 0.5 * (e_up - e_down)
+    bound = 0.5 * (e_up + e_down) + drift_bound * 0.5 * (a_up + a_down)
+    contested = 2 * outside.sum() >= len(keep)  # no clear majority: the others may be right
+    if contested:
+        lo = -(z_down[outside] + drift * t_down[outside]) - slack[outside]
+        hi = (z_up[outside] - drift * t_up[outside]) + slack[outside]
+        bound = max(bound, _disputed_ns(lo, hi, theta_rel))
+    settled = len(keep) - step_span  # the newest step_span are on probation
+    r_up, r_down = cu_z - drift * cu_t, cd_z + drift * cd_t  # the least settled detrended reading of each leg
+    i_up, i_down = np.argmin(r_up[:max(1, settled)]), np.argmin(r_down[:max(1, settled)])
+    armed = not contested and settled >= armed_after
+    return (outside, theta_ref, theta_rel, drift, sd, max(0.0, bound), r_up[i_up], t1[keep[i_up]], r_down[i_down],
+            t4[keep[i_down]], armed)

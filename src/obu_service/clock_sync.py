@@ -65,7 +65,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .clock_envelope import Leg, consensus, disputed_ns, fit_drift, leg_envelope
+from .clock_envelope import fit_window
 
 NS_PER_S = 1_000_000_000
 PPM_NS_PER_S = 1_000.0  # 1 ppm = 1 us per s = 1000 ns per s
@@ -367,41 +367,14 @@ class ClockSync:
         return self._fit
 
     def _compute_fit(self) -> _Fit:
-        seg, segments = np.array(self._segments), sorted(set(self._segments))  # (n,), the segments present
-        t1, t2, t3, t4 = np.array(self._times, dtype=np.int64).reshape(-1, 4).T
-        segment = self._segment if self._segment in segments else segments[-1]
-        current = seg == segment
-        t_ref = int(t4[-1])
-        theta_ref = self._samples[int(np.flatnonzero(current)[-1])][2].offset_ns
-        up = Leg((t1 - t_ref) / NS_PER_S, (t2 - t1 - theta_ref).astype(float), +1)  # up + theta - theta_ref
-        down = Leg((t4 - t_ref) / NS_PER_S, (t4 - t3 + theta_ref).astype(float), -1)  # down - (theta - theta_ref)
-        slack = self._consensus_slack(up, down)
-        agree = current & consensus(up, down, self._drift[0], slack, current)
-        outside = current & ~agree
-        self._count_disagreeing(outside)
-        legs = [leg.take(agree if g == segment else seg == g) for g in segments for leg in (up, down)]
-        drift, sd = fit_drift(legs, self.bin_ns / NS_PER_S, (t_ref % self.bin_ns) / NS_PER_S, self.quantile,
-                              self._prior, MIN_RESID_NS)
-        drift = float(min(max(drift, -self.max_drift), self.max_drift))  # (np.clip of a scalar, NaN kept)
+        times = np.array(self._times, dtype=np.int64).reshape(-1, 4)
+        (outside, theta_ref, theta_rel, drift, sd, bound, least_up, t1, least_down, t4, armed) = fit_window(
+            times, np.array(self._segments, dtype=np.int64), *self._drift, *self._prior, self.bin_ns, self.quantile,
+            self.max_drift, self.bound_sigmas, self.offset_horizon_ns / NS_PER_S, float(self.step_threshold_ns),
+            self.step_span, self.step_armed_after, MIN_RESID_NS)
         self._drift = (drift, sd)
-        cur_up, cur_down = up.take(agree), down.take(agree)
-        drift_bound, h = self.bound_sigmas * sd, self.offset_horizon_ns / NS_PER_S
-        e_up = leg_envelope(cur_up, drift, drift_bound, self.quantile, h, float(self.step_threshold_ns))
-        e_down = leg_envelope(cur_down, drift, drift_bound, self.quantile, h, float(self.step_threshold_ns))
-        theta_rel = 0.5 * (e_up.value_ns - e_down.value_ns)
-        bound = 0.5 * (e_up.value_ns + e_down.value_ns) + drift_bound * 0.5 * (e_up.age_s + e_down.age_s)
-        # no clear majority: the others may be right
-        contested = 2 * np.count_nonzero(outside) >= np.count_nonzero(agree)
-        if contested:
-            bound = max(bound, disputed_ns(up, down, drift, slack, outside, theta_rel))
-        settled = max(1, len(cur_up.t_s) - self.step_span)  # the newest step_span are on probation
-        return _Fit(t_ref, theta_ref, theta_rel, drift, sd, max(0.0, bound), _least(cur_up, drift, settled, t_ref),
-                    _least(cur_down, drift, settled, t_ref),
-                    not contested and len(cur_up.t_s) - self.step_span >= self.step_armed_after)
-
-    def _consensus_slack(self, up: Leg, down: Leg) -> np.ndarray:
-        """Per exchange, what a drift error of bound_sigmas sd (of the last fit) does over its age (ns)."""
-        return self.bound_sigmas * self._drift[1] * np.maximum(-up.t_s, -down.t_s) + 1_000.0
+        self._count_disagreeing(outside)
+        return _Fit(int(times[-1, 3]), theta_ref, theta_rel, drift, sd, bound, (least_up, t1), (least_down, t4), armed)
 
     def _count_disagreeing(self, outside: np.ndarray) -> None:
         """Count each exchange left out by the consensus once in outliers_rejected."""
@@ -412,9 +385,3 @@ class ClockSync:
                 self._inconsistent.add(self._samples[i][2])
                 self.outliers_rejected += 1
 
-
-def _least(leg: Leg, drift: float, count: int, t_ref_ns: int) -> tuple[float, int]:
-    """(least detrended reading among the first count, its OBU time in ns)."""
-    r = leg.detrended(drift)[:count]
-    i = int(np.argmin(r))
-    return float(r[i]), t_ref_ns + round(leg.t_s[i] * NS_PER_S)

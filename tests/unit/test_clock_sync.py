@@ -5,12 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from scipy.stats import theilslopes
-
 from link_emulator.channel import LinkModel
 from link_emulator.profile import load_profile
-from obu_service.clock_envelope import (Leg, _pairs, consensus, fit_drift, lower_quartile, median_of_floats,
-                                        median_of_ints, shared_slope, theil_sen_slope)
 from obu_service.clock_sync import ClockSync, SyncSample
 from obu_service.sync_sim import (LTE_DOWNLINK, LTE_UPLINK, BufferedLeg, buffer_episodes, exchanges, forged,
                                   run_sync)
@@ -371,58 +367,6 @@ def test_the_bound_holds_over_offsets_drifts_and_steps(offset_ms, drift_ppm, ste
     assert run.steps_detected == 1
 
 
-# --- the hand-written fits equal the library ones ------------------------------------------------
-
-def test_shared_slope_and_theil_sen_equal_the_library_fits():
-    rng = np.random.default_rng(11)
-    groups = [(np.sort(rng.uniform(-60, 0, n)), None) for n in (7, 12, 5)]
-    groups = [(t, 3.0 * t + c + rng.normal(0, 0.5, len(t))) for (t, _), c in zip(groups, (10.0, -4.0, 100.0))]
-    # least squares with one slope column and one intercept column per group
-    design = np.zeros((sum(len(t) for t, _ in groups), 1 + len(groups)))
-    row = 0
-    for g, (t, _) in enumerate(groups):
-        design[row:row + len(t), 0], design[row:row + len(t), 1 + g] = t, 1.0
-        row += len(t)
-    coef, rss, *_ = np.linalg.lstsq(design, np.concatenate([y for _, y in groups]), rcond=None)
-    d, se = shared_slope(groups, min_resid=0.0)
-    assert d == pytest.approx(coef[0], rel=1e-9)
-    dof = len(design) - design.shape[1]
-    assert se == pytest.approx(np.sqrt(rss[0] / dof / sum(np.sum((t - t.mean()) ** 2) for t, _ in groups)), rel=1e-9)
-    t, y = groups[1]
-    assert theil_sen_slope([(t, y)]) == pytest.approx(theilslopes(y, t).slope, rel=1e-12)
-
-
-def test_the_fit_s_small_order_statistics_equal_numpy_bit_for_bit():
-    """The quartile and medians of the fit's few bins and slopes are np.percentile / np.median
-    exactly (the clock estimates of a run do not move by a bit), and the pair indices of the
-    Theil-Sen slope are np.triu_indices."""
-    rng = np.random.default_rng(5)
-    for n in range(1, 70):
-        for values in (rng.normal(0.0, 1e6, n), rng.integers(-5, 5, n).astype(float), np.full(n, 2.5e5)):
-            assert lower_quartile(values.tolist()) == np.percentile(values, 25)
-            assert median_of_floats(values) == np.median(values)
-        counts = rng.integers(1, 40, n)
-        assert median_of_ints(counts.tolist()) == np.median(counts)
-        assert all(np.array_equal(a, b) for a, b in zip(_pairs(n), np.triu_indices(n, 1)))
-
-
-def test_a_young_window_fits_the_prior_and_three_bins_on_two_legs_fit_the_readings():
-    """fit_drift needs two legs with >= 3 bins (a shared slope with an intercept per leg): with
-    fewer it is the prior exactly; from then on the readings' slope (40 ppm = 40 us/s) shows."""
-    rng = np.random.default_rng(4)
-    prior = (0.0, 100_000.0)
-
-    def legs(duration_s):
-        t = np.sort(rng.uniform(-duration_s, 0.0, 10 * round(duration_s)))
-        delay = rng.exponential(2e6, len(t)) + 1e6
-        return [Leg(t, 40_000.0 * t + delay, +1), Leg(t, -40_000.0 * t + delay[::-1], -1)]
-
-    young = legs(3.9)  # at most 2 bins of 2 s per leg (edges at multiples of 2 s)
-    assert fit_drift(young, 2.0, 0.0, 0.1, prior, 50_000.0) == prior
-    drift, sd = fit_drift(legs(20.0), 2.0, 0.0, 0.1, prior, 50_000.0)
-    assert sd < prior[1] and abs(drift - 40_000.0) < 3 * sd
-
-
 def test_a_converged_filter_refits_every_refit_every_exchanges_not_each_one(monkeypatch):
     """Until armed every exchange refits, then one refit per refit_every (5) exchanges; between
     refits the extrapolated estimate stays inside its bound."""
@@ -467,31 +411,3 @@ def test_an_estimate_asked_again_is_the_one_computed_afresh():
             want = sync.estimate_at(t_ns)
             assert got == want and type(got.at_ns) is type(t_ns)
     assert sync.steps_detected == 1 and suspected > 0 and kept > 0
-
-
-def _consensus_by_lexsort(up, down, drift, slack_ns, among):
-    """consensus as written before the stable argsort (np.lexsort of (-kinds, points))."""
-    lo, hi = -down.detrended(drift) - slack_ns, up.detrended(drift) + slack_ns
-    points = np.concatenate((lo[among], hi[among]))
-    voters = int(np.count_nonzero(among))
-    kinds = np.concatenate((np.ones(voters), -np.ones(voters)))
-    order = np.lexsort((-kinds, points))
-    theta = points[order][int(np.argmax(np.cumsum(kinds[order])))]
-    return (lo <= theta) & (theta <= hi)
-
-
-def test_consensus_by_a_stable_sort_equals_the_lexsort_of_openings_before_closings():
-    """Ties everywhere (integer readings: an opening and a closing at the same value, equal
-    openings), every exchange or a subset voting, a few exchanges or many: the same agreement."""
-    rng = np.random.default_rng(21)
-    for _ in range(400):
-        n = int(rng.integers(1, 60))
-        t1 = np.sort(rng.integers(-60, 1, n)).astype(float)
-        up = Leg(t1, rng.integers(-5, 6, n).astype(float), +1)
-        down = Leg(t1 + 0.01, rng.integers(-5, 6, n).astype(float), -1)
-        slack = rng.integers(0, 3, n).astype(float)
-        among = np.ones(n, bool) if rng.random() < 0.5 else rng.random(n) < 0.7
-        if not among.any():
-            among[0] = True
-        drift = float(rng.choice([0.0, 0.5, -1.25]))
-        assert np.array_equal(consensus(up, down, drift, slack, among), _consensus_by_lexsort(up, down, drift, slack, among))
