@@ -1,16 +1,18 @@
-"""Compiled kernels (numba) of the per-pair loops: the tracker's and the simulator's line of sight.
+"""Compiled kernels (numba): the tracker's per-pair loops, the OBU's clock fit, the simulator's line of sight.
 
 The tracker updates a few hundred tracks with lists of a few to a few hundred objects, ten
 times a second per source: numpy's fixed cost per call (~1 us, some 200 calls per update) was
 the whole cost, so association, the Kalman updates and covariance intersection are loops over
 the pairs, compiled by numba (``benchmarks/cycle_compute.py``; the numpy and filterpy
-references are in the tests); so is ``sim.occlusion``'s test of sample points against occluders.
+references are in the tests); so are the clock fit of ``obu_service.clock_envelope`` (a window
+of exchanges, refitted every few exchanges per RSU and peer) and ``sim.occlusion``'s test of
+sample points against occluders.
 
 ``kernel(*argument_types)`` compiles a function for exactly those argument types (and no
 others) at its first call, or when ``load_kernels`` loads every kernel: the services do that
 before they report ready, so that no cycle ever waits for the compiler. The machine code is
 cached under ``__pycache__`` (or the user's cache directory where the package is not
-writable): compiled once per machine, ~13 s for all kernels, then loaded in ~0.2 s per
+writable): compiled once per machine, ~22 s for all kernels, then loaded in ~0.2 s per
 process. Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
 arrays convert to them), the arrays a kernel writes ``OUT_*``; an array of another dtype is a
 ``TypeError`` (callers pass float64 and int64). ``helper`` is for the functions the kernels

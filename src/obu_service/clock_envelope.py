@@ -8,16 +8,15 @@ theta(0). With sign s = +1 (up) or -1 (down): z - s d t is the detrended reading
 
 A vehicle refits each RSU's and each peer's window (up to a few hundred exchanges) every few
 exchanges; written as numpy the fit was some 200 calls of ~1 us fixed cost each, so the
-statistics are loops compiled by numba (``fusion.jit``). Their numpy definition, which they equal
-to rounding, is in ``tests/unit/test_clock_envelope.py``. The kernels take a window's exchanges as
-arrays of shape (n,): ``t_up`` (s, t1 - t_ref), ``z_up`` (ns, x_up), ``t_down`` (s, t4 - t_ref),
-``z_down`` (ns, x_down).
+statistics are loops compiled by numba (``fusion.jit``): one kernel, ``fit_window``, per fit.
+Their numpy definitions, which they equal to rounding, are in ``tests/unit/test_clock_envelope.py``.
+A window's exchanges are arrays of shape (n,): ``t_up`` (s, t1 - t_ref), ``z_up`` (ns, x_up),
+``t_down`` (s, t4 - t_ref), ``z_down`` (ns, x_down).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,26 +26,6 @@ from fusion.jit import F64, I64, IN_I1, IN_I2, helper, kernel
 # far beyond any drift trend (500 ppm x 60 s = 30 ms): never part of a lower envelope.
 QUEUED_NS = 200_000_000.0
 NS_PER_S = 1_000_000_000
-
-
-@dataclass(frozen=True)
-class Leg:
-    """The readings of one leg, arrays of shape (n,).
-
-    t_s: OBU time of the reading relative to the reference time (s; t1 for up, t4 for down);
-    z_ns: the reading (x_up or x_down, ns, relative to a reference offset); sign: +1 up, -1 down.
-    """
-
-    t_s: np.ndarray
-    z_ns: np.ndarray
-    sign: int
-
-    def detrended(self, drift: float) -> np.ndarray:
-        """z - sign d t (ns): delay + const; shape (n,)."""
-        return self.z_ns - self.sign * drift * self.t_s
-
-    def take(self, keep: np.ndarray) -> Leg:
-        return Leg(self.t_s[keep], self.z_ns[keep], self.sign)
 
 
 # --- one leg ---------------------------------------------------------------------------------

@@ -64,7 +64,8 @@ def ref_fit_drift(legs, bin_s, phase_s, q, prior, min_resid):
         groups = [ref_bin_points(t, r, s, d, bin_s, phase_s, q) for (t, _, s), r in zip(legs, detrended)]
         floor = max(min_resid, max(ref_tail_mean_sd(r, q) for r in detrended)
                     / np.sqrt(max(1.0, n / max(sum(map(len, groups)), 1))))
-        slopes = [(b[1] - a[1]) / (b[0] - a[0]) for g in groups for i, a in enumerate(g) for b in g[i + 1:] if b[0] != a[0]]
+        slopes = [(b[1] - a[1]) / (b[0] - a[0])
+                  for g in groups for i, a in enumerate(g) for b in g[i + 1:] if b[0] != a[0]]
         if slopes:
             robust = np.median(slopes)
             groups = [g if len(g) < 4 else [p for p, e in zip(g, excess) if e <= np.percentile(excess, 25) + 3 * floor]
