@@ -8,7 +8,9 @@ theta(0). With sign s = +1 (up) or -1 (down): z - s d t is the detrended reading
 
 A vehicle refits each RSU's and each peer's window (up to a few hundred exchanges) every few
 exchanges; written as numpy the fit was some 200 calls of ~1 us fixed cost each, so the
-statistics are loops compiled by numba (``fusion.jit``): one kernel, ``fit_window``, per fit.
+statistics are loops compiled by numba (``fusion.jit``): one kernel, ``fit_window``, per fit
+(loops, not array expressions or numpy's sorts and quantiles: each of those adds ~0.1-1 s to the
+kernel's compile).
 Their numpy definitions, which they equal to rounding, are in ``tests/unit/test_clock_envelope.py``.
 A window's exchanges are arrays of shape (n,): ``t_up`` (s, t1 - t_ref), ``z_up`` (ns, x_up),
 ``t_down`` (s, t4 - t_ref), ``z_down`` (ns, x_down).
@@ -38,8 +40,7 @@ def _tail_size(n: int, q: float) -> int:
 
 @helper
 def _order(x: np.ndarray) -> np.ndarray:
-    """np.argsort(x, kind="stable") of a (n,) float64 array without NaN: a bottom-up merge sort
-    (numba's own sorts take about a second each to compile)."""
+    """np.argsort(x, kind="stable") of a (n,) float64 array without NaN: a bottom-up merge sort."""
     n = len(x)
     a, b = np.arange(n), np.empty(n, np.int64)
     width = 1
@@ -58,33 +59,38 @@ def _order(x: np.ndarray) -> np.ndarray:
 
 
 @helper
-def _sorted(x: np.ndarray) -> np.ndarray:
-    return x[_order(x)]
-
-
-@helper
-def _quantile(ascending: np.ndarray, p: float) -> float:
-    """The p-quantile of a sorted (n,) array, n >= 1, by linear interpolation (numpy's default
-    method): v = p (n - 1), s[floor v] + (s[floor v + 1] - s[floor v]) (v - floor v). (np.median and
-    np.percentile would take seconds more to compile.)"""
-    v = p * (len(ascending) - 1)
+def _quantile(x: np.ndarray, p: float) -> float:
+    """The p-quantile of a (n,) array, n >= 1, by linear interpolation (numpy's default method):
+    s sorted, v = p (n - 1), s[floor v] + (s[floor v + 1] - s[floor v]) (v - floor v)."""
+    order = _order(x)
+    v = p * (len(x) - 1)
     i = int(v)
-    a, b = ascending[i], ascending[min(i + 1, len(ascending) - 1)]
+    a, b = x[order[i]], x[order[min(i + 1, len(x) - 1)]]
     return a + (b - a) * (v - i)
 
 
 @helper
-def _unqueued(r: np.ndarray) -> np.ndarray:
-    """(n,) True where a detrended reading is within QUEUED_NS of the leg's least one."""
-    return r <= r.min() + QUEUED_NS
+def _detrended(t_s: np.ndarray, z_ns: np.ndarray, slope: float) -> np.ndarray:
+    """z - slope t, shape (n,): a leg's readings detrended (slope = sign d)."""
+    r = np.empty(len(z_ns))
+    for i in range(len(z_ns)):
+        r[i] = z_ns[i] - slope * t_s[i]
+    return r
 
 
 @helper
-def _tail_mean(r: np.ndarray, t_s: np.ndarray, q: float) -> tuple[float, float]:
-    """(E, a): the mean of the lowest fraction q of the readings r, and their mean age -t (s, >= 0)."""
-    k = _tail_size(len(r), q)
-    low = _order(r)[:k]
-    return r[low].sum() / k, max(0.0, -(t_s[low].sum() / k))
+def _tail_mean(r: np.ndarray, t_s: np.ndarray, rows: np.ndarray, q: float) -> tuple[float, float]:
+    """(E, a): the mean of the lowest fraction q of the readings r[rows], and their mean age -t (s, >= 0)."""
+    k = _tail_size(len(rows), q)
+    sub = np.empty(len(rows))
+    for j in range(len(rows)):
+        sub[j] = r[rows[j]]
+    low = _order(sub)
+    e, t = 0.0, 0.0
+    for j in range(k):
+        e += sub[low[j]]
+        t += t_s[rows[low[j]]]
+    return e / k, max(0.0, -(t / k))
 
 
 @helper
@@ -95,9 +101,14 @@ def _tail_mean_sd(r: np.ndarray, q: float) -> float:
     var = E[(x - Q_q)^2 | tail] / q - (mean_tail - Q_q)^2.
     """
     k = _tail_size(len(r), q)
-    tail = _sorted(r)[:k]  # the k lowest, ascending
-    dev = tail - tail[k - 1]  # tail[-1] ~ Q_q
-    return math.sqrt(max((dev * dev).sum() / k / q - (dev.sum() / k) ** 2, 0.0))
+    low = _order(r)
+    top = r[low[k - 1]]  # ~ Q_q
+    s1, s2 = 0.0, 0.0
+    for j in range(k):
+        dev = r[low[j]] - top
+        s1 += dev
+        s2 += dev * dev
+    return math.sqrt(max(s2 / k / q - (s1 / k) ** 2, 0.0))
 
 
 @helper
@@ -112,21 +123,30 @@ def leg_envelope(t_s: np.ndarray, z_ns: np.ndarray, sign: int, drift: float, dri
     at most drift_bound (ns/s) moves a reading of age a by drift_bound a, so an older, un-queued
     envelope is worth more than a recent one whose every reading was buffered.
     """
-    r = z_ns - sign * drift * t_s
-    usable = np.arange(len(r))[_unqueued(r)]
-    order = usable[_order(-t_s[usable])]  # un-queued readings, newest first
-    ages = -t_s[order]  # ascending
+    r = _detrended(t_s, z_ns, sign * drift)
+    limit = r.min() + QUEUED_NS
+    usable, n = np.empty(len(r), np.int64), 0
+    for i in range(len(r)):
+        if r[i] <= limit:
+            usable[n], n = i, n + 1
+    ages = np.empty(n)
+    for j in range(n):
+        ages[j] = -t_s[usable[j]]
+    by_age = _order(ages)
+    order = np.empty(n, np.int64)  # un-queued readings, newest first
+    for j in range(n):
+        order[j] = usable[by_age[j]]
     best_e, best_a, best_bound, h = 0.0, 0.0, np.inf, horizon_s
+    oldest = ages[by_age[n - 1]]
     while True:
         within = 0  # readings no older than h
-        while within < len(ages) and ages[within] <= h:
+        while within < n and ages[by_age[within]] <= h:
             within += 1
-        count = max(min(min_readings, len(order)), within)
-        e, a = _tail_mean(r[order[:count]], t_s[order[:count]], q)
+        e, a = _tail_mean(r, t_s, order[:max(min(min_readings, n), within)], q)
         bound = e + drift_bound * a
         if best_bound == np.inf or bound < best_bound - margin_ns:
             best_e, best_a, best_bound = e, a, bound
-        if h >= ages[-1]:
+        if h >= oldest:
             return best_e, best_a
         h *= 2.0
 
@@ -137,7 +157,7 @@ def leg_envelope(t_s: np.ndarray, z_ns: np.ndarray, sign: int, drift: float, dri
 def _legs(t_up, z_up, t_down, z_down, group):
     """The readings of each leg with >= 3, leg by leg: segment g's up leg, then its down leg
     (exchanges of group -1 are left out). (t, z) (m,), sign (L,), first (L + 1,): leg l's readings
-    are [first[l], first[l + 1]). (Loops: numpy's functions here took seconds to compile.)"""
+    are [first[l], first[l + 1])."""
     n_groups = 0
     for g in group:
         n_groups = max(n_groups, g + 1)
@@ -194,24 +214,28 @@ def _bin_envelopes(t: np.ndarray, order: np.ndarray, edges: np.ndarray, r: np.nd
     holding fewer than half the median count (half-filled bins at the window edges) too: their
     lower tail is a weaker lower bound.
     """
-    unqueued = _unqueued(r)
+    limit = r.min() + QUEUED_NS
     n_bins = len(edges) - 1
     counts, t_sum = np.zeros(n_bins, np.int64), np.zeros(n_bins)
-    r_bin = np.empty(len(r))  # the un-queued readings of each bin, bin after bin
+    rows = np.empty(len(r), np.int64)  # the un-queued readings of each bin, bin after bin
     for b in range(n_bins):
         for i in order[edges[b]:edges[b + 1]]:
-            if unqueued[i]:
-                r_bin[edges[b] + counts[b]] = r[i]
+            if r[i] <= limit:
+                rows[edges[b] + counts[b]] = i
                 t_sum[b] += t[i]
                 counts[b] += 1
-    least = 0.5 * _quantile(_sorted(counts[counts > 0].astype(np.float64)), 0.5)  # half the median count
+    filled, n_filled = np.empty(n_bins), 0
+    for b in range(n_bins):
+        if counts[b]:
+            filled[n_filled], n_filled = counts[b], n_filled + 1
+    least = 0.5 * _quantile(filled[:n_filled], 0.5)  # half the median count
     m = 0
     for b in range(n_bins):
         c = counts[b]
         if c == 0 or c < least:
             continue
-        k = _tail_size(c, q)
-        t_bin, e_bin = t_sum[b] / c, _sorted(r_bin[edges[b]:edges[b] + c])[:k].sum() / k
+        t_bin = t_sum[b] / c
+        e_bin, _ = _tail_mean(r, t, rows[edges[b]:edges[b] + c], q)
         out_t[m], out_y[m] = t_bin, sign * e_bin + drift * t_bin
         m += 1
     return m
@@ -233,7 +257,7 @@ def theil_sen_slope(t: np.ndarray, y: np.ndarray, first: np.ndarray) -> float:
                 if t[j] != t[i]:
                     slopes[k] = (y[j] - y[i]) / (t[j] - t[i])
                     k += 1
-    return _quantile(_sorted(slopes[:k]), 0.5) if k else np.nan  # the median
+    return _quantile(slopes[:k], 0.5) if k else np.nan  # the median
 
 
 @helper
@@ -241,16 +265,27 @@ def _below_line(t, y, first, sign, d, limit):
     """The points of each group whose envelope is not congested: sign (y - d t) <= c + limit, c the
     lower quartile of sign (y - d t) over the group (a congested bin lies above the envelope line);
     groups of fewer than 4 are kept whole. Returns (t, y, first) of the points kept."""
-    keep = np.ones(len(t), np.bool_)
+    out_t, out_y, out_first = np.empty(len(t)), np.empty(len(t)), np.zeros(len(first), np.int64)
+    m = 0
     for g in range(len(first) - 1):
         a, b = first[g], first[g + 1]
-        if b - a >= 4:
-            excess = sign[g] * (y[a:b] - d * t[a:b])
-            keep[a:b] = excess <= _quantile(_sorted(excess), 0.25) + limit
-    kept_first = np.zeros(len(first), np.int64)
-    for g in range(len(first) - 1):
-        kept_first[g + 1] = kept_first[g] + keep[first[g]:first[g + 1]].sum()
-    return t[keep], y[keep], kept_first
+        excess = np.empty(b - a)
+        for i in range(a, b):
+            excess[i - a] = sign[g] * (y[i] - d * t[i])
+        cut = _quantile(excess, 0.25) + limit if b - a >= 4 else np.inf
+        for i in range(a, b):
+            if excess[i - a] <= cut:
+                out_t[m], out_y[m], m = t[i], y[i], m + 1
+        out_first[g + 1] = m
+    return out_t[:m], out_y[:m], out_first
+
+
+@helper
+def _mean(x: np.ndarray, a: int, b: int) -> float:
+    s = 0.0
+    for i in range(a, b):
+        s += x[i]
+    return s / (b - a)
 
 
 @helper
@@ -262,22 +297,26 @@ def shared_slope(t: np.ndarray, y: np.ndarray, first: np.ndarray, min_resid: flo
     se = sqrt(s^2 / Sxx),  s^2 = RSS / (m - G - 1) floored at min_resid^2 (m points, G groups of
     >= 2 points); not ok unless two groups have >= 3 points spread in t.
     """
-    tc, yc = np.empty(len(t)), np.empty(len(t))
-    groups, points, wide = 0, 0, 0
+    groups, points, wide, sxx, sxy = 0, 0, 0, 0.0, 0.0
     for g in range(len(first) - 1):
         a, b = first[g], first[g + 1]
         if b - a < 2:
-            tc[a:b], yc[a:b] = 0.0, 0.0  # a lone point adds nothing to the sums
             continue
-        tc[a:b], yc[a:b] = t[a:b] - t[a:b].sum() / (b - a), y[a:b] - y[a:b].sum() / (b - a)
+        t_bar, y_bar = _mean(t, a, b), _mean(y, a, b)
+        for i in range(a, b):
+            sxx += (t[i] - t_bar) ** 2
+            sxy += (t[i] - t_bar) * (y[i] - y_bar)
         groups, points, wide = groups + 1, points + b - a, wide + (b - a >= 3)
-    sxx = (tc * tc).sum()
     if wide < 2 or sxx <= 0.0:
         return False, 0.0, 0.0
-    d = (tc * yc).sum() / sxx
-    resid = yc - d * tc
-    dof = max(1, points - groups - 1)
-    return True, d, math.sqrt(max((resid * resid).sum() / dof, min_resid**2) / sxx)
+    d, rss = sxy / sxx, 0.0
+    for g in range(len(first) - 1):
+        a, b = first[g], first[g + 1]
+        if b - a >= 2:
+            t_bar, y_bar = _mean(t, a, b), _mean(y, a, b)
+            for i in range(a, b):
+                rss += ((y[i] - y_bar) - d * (t[i] - t_bar)) ** 2
+    return True, d, math.sqrt(max(rss / max(1, points - groups - 1), min_resid**2) / sxx)
 
 
 @helper
@@ -301,7 +340,9 @@ def fit_drift(t_up: np.ndarray, z_up: np.ndarray, t_down: np.ndarray, z_down: np
     left out; without two legs of >= 3 bins (a young window) the fit is the prior.
     """
     t, z, sign, first = _legs(t_up, z_up, t_down, z_down, group)
-    bins = np.floor((t + phase_s) / bin_s)  # the drift moves no reading across bins
+    bins = np.empty(len(t))
+    for i in range(len(t)):
+        bins[i] = math.floor((t[i] + phase_s) / bin_s)  # the drift moves no reading across bins
     layouts = [_bin_layout(bins[first[g]:first[g + 1]]) for g in range(len(sign))]
     wide = 0
     for _, edges in layouts:
@@ -314,7 +355,7 @@ def fit_drift(t_up: np.ndarray, z_up: np.ndarray, t_down: np.ndarray, z_down: np
         noise = 0.0  # the largest per-reading sd of a leg's lower-tail mean
         for g in range(len(sign)):
             a, b = first[g], first[g + 1]
-            r = z[a:b] - sign[g] * d * t[a:b]
+            r = _detrended(t[a:b], z[a:b], sign[g] * d)
             noise = max(noise, _tail_mean_sd(r, q))
             order, edges = layouts[g]
             m = _bin_envelopes(t[a:b], order, edges, r, sign[g], d, q, pt[pfirst[g]:], py[pfirst[g]:])
@@ -336,6 +377,12 @@ def fit_drift(t_up: np.ndarray, z_up: np.ndarray, t_down: np.ndarray, z_down: np
 # --- the exchanges that agree --------------------------------------------------------------------
 
 @helper
+def _allowed(t_up, z_up, t_down, z_down, drift, slack_ns, i):
+    """The offsets theta(0) exchange i allows, [-(x_down + d t4), x_up - d t1] widened by slack (ns)."""
+    return -(z_down[i] + drift * t_down[i]) - slack_ns[i], (z_up[i] - drift * t_up[i]) + slack_ns[i]
+
+
+@helper
 def consensus(t_up: np.ndarray, z_up: np.ndarray, t_down: np.ndarray, z_down: np.ndarray, drift: float,
               slack_ns: np.ndarray, among: np.ndarray) -> np.ndarray:
     """Which exchanges agree on the offset most of them allow (Marzullo 1984), bool shape (n,).
@@ -346,24 +393,25 @@ def consensus(t_up: np.ndarray, z_up: np.ndarray, t_down: np.ndarray, z_down: np
     first such, an opening before a closing at the same value) is kept, and an exchange whose
     interval misses it (a forged or stepped reply among agreeing ones) is not.
     """
-    lo = -(z_down + drift * t_down) - slack_ns
-    hi = (z_up - drift * t_up) + slack_ns
-    points = np.concatenate((lo[among], hi[among]))  # the voters' openings, then their closings
-    voters = len(points) // 2
-    order = _order(points)  # stable: at equal values openings come first
+    n = len(t_up)
+    voters = 0
+    for i in range(n):
+        voters += among[i]
+    points, v = np.empty(2 * voters), 0  # the voters' openings, then their closings
+    for i in range(n):
+        if among[i]:
+            points[v], points[voters + v] = _allowed(t_up, z_up, t_down, z_down, drift, slack_ns, i)
+            v += 1
     covered, most, theta = 0, -1, 0.0
-    for i in order:
-        covered += 1 if i < voters else -1
+    for j in _order(points):  # stable: at equal values openings come first
+        covered += 1 if j < voters else -1
         if covered > most:
-            most, theta = covered, points[i]
-    return (lo <= theta) & (theta <= hi)
-
-
-@helper
-def _disputed_ns(lo: np.ndarray, hi: np.ndarray, theta_ns: float) -> float:
-    """How far from theta_ns the offsets [lo, hi] allowed by some exchanges reach (ns, the far edge of
-    the farthest): what the bound must cover when those may be the genuine ones."""
-    return max(np.abs(lo - theta_ns).max(), np.abs(hi - theta_ns).max()) if len(lo) else 0.0
+            most, theta = covered, points[j]
+    agree = np.empty(n, np.bool_)
+    for i in range(n):
+        lo, hi = _allowed(t_up, z_up, t_down, z_down, drift, slack_ns, i)
+        agree[i] = lo <= theta and theta <= hi
+    return agree
 
 
 # --- a window's fit ------------------------------------------------------------------------------
@@ -381,42 +429,59 @@ def fit_window(times: np.ndarray, segment: np.ndarray, prev_drift: float, prev_s
     readings relative to theta_ref, the offset of the newest exchange of the current segment
     (the newest segment left), at t_ref = the newest t4.
     """
-    n = len(segment)
-    current = segment == segment.max()
-    last = np.flatnonzero(current)[-1]
-    t1, t2, t3, t4 = times[:, 0], times[:, 1], times[:, 2], times[:, 3]
-    t_ref = t4[n - 1]
-    theta_ref = ((t2[last] - t1[last]) + (t3[last] - t4[last])) // 2
-    t_up, z_up = (t1 - t_ref) / NS_PER_S, (t2 - t1 - theta_ref).astype(np.float64)  # up + theta - theta_ref
-    t_down, z_down = (t4 - t_ref) / NS_PER_S, (t4 - t3 + theta_ref).astype(np.float64)  # down - (theta - theta_ref)
-    # what a drift error of sigmas sd (of the last fit) does over each exchange's age
-    slack = sigmas * prev_sd * np.maximum(-t_up, -t_down) + 1_000.0
-    agree = current & consensus(t_up, z_up, t_down, z_down, prev_drift, slack, current)
-    outside = current & ~agree
-    present = np.zeros(segment.max() + 1, np.int64)
-    present[segment] = 1
-    group = (np.cumsum(present) - 1)[segment]  # each exchange's segment by rank among those present
-    group[outside] = -1
+    n, newest = len(segment), segment.max()
+    last = n - 1
+    while segment[last] != newest:
+        last -= 1
+    t_ref = times[n - 1, 3]
+    theta_ref = ((times[last, 1] - times[last, 0]) + (times[last, 2] - times[last, 3])) // 2
+    t_up, z_up, t_down, z_down, slack = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    current = np.empty(n, np.bool_)
+    for i in range(n):
+        t1, t2, t3, t4 = times[i, 0], times[i, 1], times[i, 2], times[i, 3]
+        t_up[i], z_up[i] = (t1 - t_ref) / NS_PER_S, float(t2 - t1 - theta_ref)  # up + theta - theta_ref
+        t_down[i], z_down[i] = (t4 - t_ref) / NS_PER_S, float(t4 - t3 + theta_ref)  # down - (theta - theta_ref)
+        # what a drift error of sigmas sd (of the last fit) does over the exchange's age
+        slack[i] = sigmas * prev_sd * max(-t_up[i], -t_down[i]) + 1_000.0
+        current[i] = segment[i] == newest
+    agree = consensus(t_up, z_up, t_down, z_down, prev_drift, slack, current)
+    rank = np.zeros(newest + 1, np.int64)  # each segment's rank among those present
+    for g in segment:
+        rank[g] = 1
+    for g in range(1, newest + 1):
+        rank[g] += rank[g - 1]
+    outside, group, keep = np.empty(n, np.bool_), np.empty(n, np.int64), np.empty(n, np.int64)
+    n_keep, n_outside = 0, 0
+    for i in range(n):
+        agree[i] = agree[i] and current[i]
+        outside[i] = current[i] and not agree[i]
+        group[i] = -1 if outside[i] else rank[segment[i]] - 1
+        if agree[i]:
+            keep[n_keep], n_keep = i, n_keep + 1
+        n_outside += outside[i]
+    keep = keep[:n_keep]
+    contested = 2 * n_outside >= n_keep  # no clear majority: the others may be right
     drift, sd = fit_drift(t_up, z_up, t_down, z_down, group, bin_ns / NS_PER_S, (t_ref % bin_ns) / NS_PER_S, q,
                           prior_drift, prior_sd, min_resid)
     if not np.isnan(drift):
         drift = min(max(drift, -max_drift), max_drift)
     # the offset at t_ref from the lower envelopes of the current segment's agreeing exchanges
-    keep = np.flatnonzero(agree)
     cu_t, cu_z, cd_t, cd_z = t_up[keep], z_up[keep], t_down[keep], z_down[keep]
     drift_bound = sigmas * sd
     e_up, a_up = leg_envelope(cu_t, cu_z, 1, drift, drift_bound, q, horizon_s, threshold_ns, 3)
     e_down, a_down = leg_envelope(cd_t, cd_z, -1, drift, drift_bound, q, horizon_s, threshold_ns, 3)
     theta_rel = 0.5 * (e_up - e_down)
     bound = 0.5 * (e_up + e_down) + drift_bound * 0.5 * (a_up + a_down)
-    contested = 2 * outside.sum() >= len(keep)  # no clear majority: the others may be right
-    if contested:
-        lo = -(z_down[outside] + drift * t_down[outside]) - slack[outside]
-        hi = (z_up[outside] - drift * t_up[outside]) + slack[outside]
-        bound = max(bound, _disputed_ns(lo, hi, theta_rel))
-    settled = len(keep) - step_span  # the newest step_span are on probation
-    r_up, r_down = cu_z - drift * cu_t, cd_z + drift * cd_t  # the least settled detrended reading of each leg
-    i_up, i_down = np.argmin(r_up[:max(1, settled)]), np.argmin(r_down[:max(1, settled)])
+    if contested:  # the bound reaches as far as the offsets the others allow (the far edge of the farthest)
+        for i in range(n):
+            if outside[i]:
+                lo, hi = _allowed(t_up, z_up, t_down, z_down, drift, slack, i)
+                bound = max(bound, abs(lo - theta_rel), abs(hi - theta_rel))
+    settled = n_keep - step_span  # the newest step_span are on probation
+    i_up, i_down = 0, 0  # the least settled detrended reading of each leg
+    for j in range(1, max(1, settled)):
+        i_up = j if cu_z[j] - drift * cu_t[j] < cu_z[i_up] - drift * cu_t[i_up] else i_up
+        i_down = j if cd_z[j] + drift * cd_t[j] < cd_z[i_down] + drift * cd_t[i_down] else i_down
     armed = not contested and settled >= armed_after
-    return (outside, theta_ref, theta_rel, drift, sd, max(0.0, bound), r_up[i_up], t1[keep[i_up]], r_down[i_down],
-            t4[keep[i_down]], armed)
+    return (outside, theta_ref, theta_rel, drift, sd, max(0.0, bound), cu_z[i_up] - drift * cu_t[i_up],
+            times[keep[i_up], 0], cd_z[i_down] + drift * cd_t[i_down], times[keep[i_down], 3], armed)
