@@ -12,7 +12,7 @@ sample points against occluders.
 others) at its first call, or when ``load_kernels`` loads every kernel: the services do that
 before they report ready, so that no cycle ever waits for the compiler. The machine code is
 cached under ``__pycache__`` (or the user's cache directory where the package is not
-writable): compiled once per machine, ~22 s for all kernels, then loaded in ~0.2 s per
+writable): compiled once per machine, ~21 s for all kernels, then loaded in ~0.2 s per
 process. Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
 arrays convert to them), the arrays a kernel writes ``OUT_*``; an array of another dtype is a
 ``TypeError`` (callers pass float64 and int64). ``helper`` is for the functions the kernels
