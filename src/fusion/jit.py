@@ -32,9 +32,11 @@ from numba import njit, types
 IN_F1, IN_F2, IN_F3 = (types.Array(types.float64, n, "A", readonly=True) for n in (1, 2, 3))
 IN_I1 = types.Array(types.int64, 1, "A", readonly=True)
 IN_I2 = types.Array(types.int64, 2, "A", readonly=True)
-OUT_F2, OUT_F3 = (types.Array(types.float64, n, "A") for n in (2, 3))
+IN_B2 = types.Array(types.boolean, 2, "A", readonly=True)
+OUT_F1, OUT_F2, OUT_F3 = (types.Array(types.float64, n, "A") for n in (1, 2, 3))
 OUT_I1 = types.Array(types.int64, 1, "A")
-I64, F64 = types.int64, types.float64
+OUT_B1 = types.Array(types.boolean, 1, "A")
+I64, F64, B1 = types.int64, types.float64, types.boolean
 
 # error_model="numpy": a division by zero gives inf / NaN as in numpy (the callers test for them), not an exception
 OPTIONS = dict(cache=True, nogil=True, error_model="numpy")

@@ -20,6 +20,7 @@ from operator import itemgetter
 import numpy as np
 
 from .fastnp import true_index
+from .jit import B1, F64, I64, IN_B2, IN_F1, IN_F2, IN_I1, OUT_B1, OUT_F1, OUT_F2, OUT_I1, kernel
 
 SOURCE_BITS = 63  # source bitmasks are int64: bit 0 own vehicle, bits 1..62 one per RSU / peer slot
 _ALL_BITS = np.arange(SOURCE_BITS)
@@ -179,3 +180,30 @@ class TrackStore:
         view.__dict__.update(zip(_ROW_COLUMNS, live))
         view.seen_bits = rows.seen_bits
         self.view = view
+
+
+@kernel(OUT_I1, OUT_F1, OUT_F2, OUT_F1, OUT_F1, OUT_F1, OUT_F1, OUT_I1, OUT_B1, OUT_F1, OUT_F2,
+        IN_I1, IN_I1, IN_I1, IN_F1, IN_F2, IN_F1, IN_F1, IN_F1, IN_B2, F64, B1, I64, F64)
+def record_matches(cls, z, lwh, yaw, shape_var, shape_s, confidence, hits, confirmed, updated_s, seen_s,
+                   ti, di, det_cls, det_z, det_lwh, det_yaw, det_var, det_confidence, det_cols, t_s, estimates,
+                   confirm_hits, shape_hold_s) -> None:
+    """The bookkeeping of tracks ti (distinct rows of the TrackTable columns cls .. seen_s, in place)
+    matched with detections di at t_s: an UNKNOWN class (0) adopts the detection's; the box (z, lwh,
+    yaw; heading det_yaw already wrapped) comes from the detection when its position variance
+    det_var is no larger (1 % slack) or the track's box is older than shape_hold_s; confidence;
+    hits + 1; confirmed (always, for another tracker's estimates, else at confirm_hits hits);
+    updated_s; seen_s = t_s in the columns det_cols (M, B) marks for the detection's sources."""
+    for k in range(len(ti)):
+        i, j = ti[k], di[k]
+        if cls[i] == 0:
+            cls[i] = det_cls[j]
+        if det_var[j] <= shape_var[i] * 1.01 or t_s - shape_s[i] > shape_hold_s:
+            z[i], yaw[i], shape_var[i], shape_s[i] = det_z[j], det_yaw[j], det_var[j], t_s
+            lwh[i, 0], lwh[i, 1], lwh[i, 2] = det_lwh[j, 0], det_lwh[j, 1], det_lwh[j, 2]
+        confidence[i] = det_confidence[j]
+        hits[i] += 1
+        confirmed[i] = estimates or confirmed[i] or hits[i] >= confirm_hits
+        updated_s[i] = t_s
+        for b in range(seen_s.shape[1]):
+            if det_cols[j, b]:
+                seen_s[i, b] = t_s

@@ -83,7 +83,7 @@ import numpy as np
 
 from . import kalman
 from .covariance_intersection import ci_fuse_rows
-from .fastnp import all_true, any_true, true_index
+from .fastnp import any_true, true_index
 from .frames import wrap_angle
 from .gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
     GatedPairs,
@@ -96,7 +96,7 @@ from .gating import (  # noqa: F401  (re-exported: association is part of the tr
     paired_bev_iou,
 )
 from .objects import ObjectArray
-from .track_table import SOURCE_BITS, TrackStore, TrackTable
+from .track_table import SOURCE_BITS, TrackStore, TrackTable, record_matches
 
 _BIT_VALUES = 1 << np.arange(SOURCE_BITS)
 
@@ -391,36 +391,17 @@ class Tracker:
 
     def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, cols: np.ndarray, shape: _Shape,
                 t_s: float, estimates: bool) -> None:
-        """Bookkeeping of matched tracks ti: class, shape, confidence, hits, confirmation and update
-        times; cols (M, B) the seen_s columns of each detection's sources."""
-        tab = self._table
+        """Bookkeeping of matched tracks ti (``track_table.record_matches``): class, shape, confidence,
+        hits, confirmation and update times; cols (M, B) the seen_s columns of each detection's sources.
+        Box size, height and heading come from the most precise recent detection: a coarse RSU box never
+        overwrites the fresh LiDAR box of the same cycle."""
         if not len(ti):
             return
-        cls = tab.cls.take(ti)
-        if not all_true(cls):
-            tab.cls[ti] = np.where(cls == 0, dets.cls.take(di), cls)  # UNKNOWN adopts a class
-        self._take_shape(ti, dets, di, shape, t_s)
-        tab.confidence[ti] = dets.confidence.take(di)
-        hits = tab.hits.take(ti)
-        hits += 1
-        tab.hits[ti] = hits
-        tab.confirmed[ti] = True if estimates else tab.confirmed.take(ti) | (hits >= self.config.confirm_hits)
-        tab.updated_s[ti] = t_s
-        tab.seen_s[ti] = np.where(cols.take(di, axis=0), t_s, tab.seen_s.take(ti, axis=0))
-
-    def _take_shape(self, ti: np.ndarray, dets: ObjectArray, di: np.ndarray, shape: _Shape, t_s: float) -> None:
-        """Box size, height and heading come from the most precise recent detection: a
-        detection replaces the track's shape when its position variance is no larger, or
-        when the shape is older than ``shape_hold_s`` (a coarse RSU box never overwrites the
-        fresh LiDAR box of the same cycle)."""
         tab = self._table
-        var = shape.var_m2.take(di)
-        take = (var <= tab.shape_var.take(ti) * 1.01) | (t_s - tab.shape_s.take(ti) > self.config.shape_hold_s)
-        if not all_true(take):
-            take = true_index(take)
-            ti, di, var = ti.take(take), di.take(take), var.take(take)
-        tab.z[ti], tab.lwh[ti], tab.yaw[ti] = dets.z.take(di), dets.lwh.take(di, axis=0), shape.yaw_rad.take(di)
-        tab.shape_var[ti], tab.shape_s[ti] = var, t_s
+        record_matches(tab.cls, tab.z, tab.lwh, tab.yaw, tab.shape_var, tab.shape_s, tab.confidence, tab.hits,
+                       tab.confirmed, tab.updated_s, tab.seen_s, ti, di, dets.cls, dets.z, dets.lwh, shape.yaw_rad,
+                       shape.var_m2, dets.confidence, cols, t_s, estimates, self.config.confirm_hits,
+                       self.config.shape_hold_s)
 
     def _spawn(self, dets: ObjectArray, index: np.ndarray, cols: np.ndarray, shape: _Shape, t_s: float, x: np.ndarray,
                p: np.ndarray, estimates: bool, velocity_prior: np.ndarray) -> None:
