@@ -32,6 +32,7 @@ from numba import njit, types
 IN_F1, IN_F2, IN_F3 = (types.Array(types.float64, n, "A", readonly=True) for n in (1, 2, 3))
 IN_I1 = types.Array(types.int64, 1, "A", readonly=True)
 IN_I2 = types.Array(types.int64, 2, "A", readonly=True)
+IN_U1 = types.Array(types.uint8, 1, "A", readonly=True)
 IN_B2 = types.Array(types.boolean, 2, "A", readonly=True)
 OUT_F1, OUT_F2, OUT_F3 = (types.Array(types.float64, n, "A") for n in (1, 2, 3))
 OUT_I1 = types.Array(types.int64, 1, "A")
@@ -69,7 +70,7 @@ def kernel(*argument_types) -> Callable[[Callable], Kernel]:
 
 
 # the modules that declare kernels (with the modules they import): load_kernels imports them
-KERNEL_MODULES = ("fusion.tracking", "sim.occlusion", "obu_service.clock_envelope")
+KERNEL_MODULES = ("fusion.tracking", "sim.occlusion", "obu_service.clock_envelope", "schemas.bit_rows")
 
 
 def load_kernels() -> float:
