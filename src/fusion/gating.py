@@ -20,10 +20,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-import shapely
 
 from .association import Assignment, assign_sparse
-from .geometry import box_polygons
+from .geometry import iou_rows
 from .jit import F64, I64, IN_F2, IN_F3, IN_I1, kernel
 from .objects import ObjectArray
 
@@ -128,13 +127,9 @@ def _gate(x: np.ndarray, p: np.ndarray, track_cls: np.ndarray, z: np.ndarray, r:
 def paired_bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """IoU (K,) of paired BEV boxes a[k], b[k] (K, 5) [x, y, l, w, yaw]: |A n B| / (|A| + |B| - |A n B|).
 
-    Polygons from ``fusion.geometry``; one intersection per pair instead of a whole matrix.
+    ``fusion.geometry.iou_rows``: one intersection per pair instead of a whole matrix.
     """
-    if not len(a):
-        return np.zeros(0)
-    inter = shapely.area(shapely.intersection(box_polygons(a), box_polygons(b)))
-    union = a[:, 2] * a[:, 3] + b[:, 2] * b[:, 3] - inter
-    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+    return iou_rows(np.asarray(a, dtype=float), np.asarray(b, dtype=float)) if len(a) else np.zeros(0)
 
 
 def assign_pairs(pairs: GatedPairs, n_tracks: int, n_dets: int) -> Assignment:

@@ -1,4 +1,10 @@
-"""Bird's-eye-view boxes: corners, polygons and rotated-box IoU (via shapely)."""
+"""Bird's-eye-view boxes: corners, polygons (shapely) and rotated-box IoU.
+
+The IoU of two boxes is a compiled kernel (``iou_rows``: numba, ``fusion.jit``): the intersection
+of two convex quadrilaterals by Sutherland-Hodgman clipping, its area by the shoelace formula.
+It equals shapely's polygon intersection to rounding (tests/unit/test_fusion_geometry.py) and
+costs ~1 us instead of ~30 us per pair.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +13,7 @@ import math
 import numpy as np
 import shapely
 
+from .jit import IN_F2, helper, kernel
 from .objects import ObjectArray
 
 
@@ -47,10 +54,7 @@ def bev_iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     dist = np.linalg.norm(a[:, None, :2] - b[None, :, :2], axis=-1)
     ia, ib = np.nonzero(dist < reach)
     if len(ia):
-        pa, pb = box_polygons(a)[ia], box_polygons(b)[ib]
-        inter = shapely.area(shapely.intersection(pa, pb))
-        union = a[ia, 2] * a[ia, 3] + b[ib, 2] * b[ib, 3] - inter
-        iou[ia, ib] = np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+        iou[ia, ib] = iou_rows(a[ia], b[ib])
     return iou
 
 
@@ -61,16 +65,77 @@ def bev_iou(a, b) -> float:
 
 def bev_iou_pair(a: np.ndarray, b: np.ndarray) -> float:
     """``bev_iou_matrix(a[None], b[None])[0, 0]`` of two boxes a, b (5,), bit for bit: the same
-    skip test (|c_a - c_b| = sqrt(dx^2 + dy^2) >= the half diagonals' sum: 0) and the same shapely
-    intersection, both polygons from one ``box_polygons`` call, without the (N, M) bookkeeping."""
+    skip test (|c_a - c_b| = sqrt(dx^2 + dy^2) >= the half diagonals' sum: 0) and the same
+    ``iou_rows``, without the (N, M) bookkeeping."""
     boxes = np.vstack([a, b]).astype(float, copy=False)  # (2, 5)
     half_diagonal = np.hypot(boxes[:, 2], boxes[:, 3])
-    ax, ay, al, aw, _ = boxes[0].tolist()
-    bx, by, bl, bw, _ = boxes[1].tolist()
-    dx, dy = ax - bx, ay - by
+    dx, dy = float(boxes[0, 0] - boxes[1, 0]), float(boxes[0, 1] - boxes[1, 1])
     if not math.sqrt(dx * dx + dy * dy) < 0.5 * float(half_diagonal[0] + half_diagonal[1]):  # NaN: skipped too
         return 0.0
-    pa, pb = box_polygons(boxes)
-    inter = float(shapely.area(shapely.intersection(pa, pb)))
-    union = al * aw + bl * bw - inter
-    return inter / max(union, 1e-12) if union > 0 else 0.0
+    return float(iou_rows(boxes[:1], boxes[1:])[0])
+
+
+# --- the compiled IoU ------------------------------------------------------------------------------
+
+_HALF_SIGNS = ((1.0, 1.0), (-1.0, 1.0), (-1.0, -1.0), (1.0, -1.0))  # box_corners' order: counter-clockwise
+
+
+@helper
+def _corners(box: np.ndarray, x: np.ndarray, y: np.ndarray) -> None:
+    """The corners of box [x, y, l, w, yaw] into x, y (4,), as ``box_corners``: c + R(yaw) [+-l/2, +-w/2]."""
+    c, s = math.cos(box[4]), math.sin(box[4])
+    for k in range(4):
+        lx, ly = _HALF_SIGNS[k][0] * 0.5 * box[2], _HALF_SIGNS[k][1] * 0.5 * box[3]
+        x[k], y[k] = c * lx - s * ly + box[0], s * lx + c * ly + box[1]
+
+
+@helper
+def _clip(px: np.ndarray, py: np.ndarray, m: int, ax: float, ay: float, bx: float, by: float,
+          qx: np.ndarray, qy: np.ndarray) -> int:
+    """Polygon (px, py)[:m] cut to the half-plane left of the directed line a -> b (Sutherland-Hodgman),
+    into (qx, qy); its vertex count. Left: cross(b - a, p - a) >= 0."""
+    k = 0
+    for i in range(m):
+        j = (i + 1) % m
+        ci = (bx - ax) * (py[i] - ay) - (by - ay) * (px[i] - ax)
+        cj = (bx - ax) * (py[j] - ay) - (by - ay) * (px[j] - ax)
+        if ci >= 0.0:
+            qx[k], qy[k], k = px[i], py[i], k + 1
+        if (ci >= 0.0) != (cj >= 0.0):  # the edge p_i -> p_j crosses the line at t = ci / (ci - cj)
+            t = ci / (ci - cj)
+            qx[k], qy[k], k = px[i] + t * (px[j] - px[i]), py[i] + t * (py[j] - py[i]), k + 1
+    return k
+
+
+@helper
+def _intersection_area(a: np.ndarray, b: np.ndarray) -> float:
+    """Area (m^2) of the intersection of boxes a and b (5,): a clipped by b's four edges, then
+    the shoelace formula 1/2 |sum_i x_i y_(i+1) - x_(i+1) y_i|."""
+    px, py, qx, qy = np.empty(8), np.empty(8), np.empty(8), np.empty(8)
+    bx, by = np.empty(4), np.empty(4)
+    _corners(a, px, py)
+    _corners(b, bx, by)
+    m = 4
+    for e in range(4):
+        m = _clip(px, py, m, bx[e], by[e], bx[(e + 1) % 4], by[(e + 1) % 4], qx, qy)
+        px, qx, py, qy = qx, px, qy, py
+        if m < 3:
+            return 0.0
+    twice = 0.0
+    for i in range(m):
+        j = (i + 1) % m
+        twice += px[i] * py[j] - px[j] * py[i]
+    return 0.5 * abs(twice)
+
+
+@kernel(IN_F2, IN_F2)
+def iou_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """BEV IoU (K,) of box pairs a[k], b[k] (K, 5) [x, y, l, w, yaw]: |A n B| / (|A| + |B| - |A n B|),
+    0 where the union is not positive (or NaN)."""
+    out = np.zeros(a.shape[0])
+    for k in range(a.shape[0]):
+        inter = _intersection_area(a[k], b[k])
+        union = a[k, 2] * a[k, 3] + b[k, 2] * b[k, 3] - inter
+        if union > 0.0:
+            out[k] = inter / max(union, 1e-12)
+    return out

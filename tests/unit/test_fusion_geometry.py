@@ -84,3 +84,30 @@ def test_iou_merge_drops_rsu_duplicates_keeps_the_rest():
     merged = iou_merge(own, rsu, iou_threshold=0.1)
     assert len(merged) == 2
     np.testing.assert_allclose(merged.xy, [[0, 0], [30, 0]])
+
+
+def test_the_compiled_iou_equals_shapely_on_hard_pairs():
+    """iou_rows (Sutherland-Hodgman clipping) against shapely's intersection: random overlapping
+    pairs, equal boxes, nested ones, the same centre turned 90 degrees, edges that touch or are
+    collinear, slivers, and degenerate boxes of zero width."""
+    from fusion.geometry import iou_rows
+
+    rng = np.random.default_rng(17)
+    n = 4000
+    a = np.column_stack([rng.uniform(-3, 3, (n, 2)), rng.uniform(0.2, 6, (n, 2)), rng.uniform(-4, 4, n)])
+    b = np.column_stack([a[:, :2] + rng.normal(0, 1.5, (n, 2)), rng.uniform(0.2, 6, (n, 2)), rng.uniform(-4, 4, n)])
+    b[:200] = a[:200]  # equal
+    b[200:400, :2], b[200:400, 2:4] = a[200:400, :2], 0.5 * a[200:400, 2:4]  # nested, other yaws
+    b[400:600], b[400:600, 4] = a[400:600], a[400:600, 4] + np.pi / 2  # the same box turned 90 degrees
+    b[600:800], b[600:800, 4] = a[600:800], a[600:800, 4]  # then shifted by its own length: edges touch
+    b[600:800, 0] += a[600:800, 2] * np.cos(a[600:800, 4])
+    b[600:800, 1] += a[600:800, 2] * np.sin(a[600:800, 4])
+    b[800:1000], b[800:1000, 0] = a[800:1000], a[800:1000, 0] + 1e-9  # slivers of each other
+    a[1000:1100, 3] = 0.0  # zero width
+    pa, pb = box_polygons(a), box_polygons(b)
+    inter = shapely.area(shapely.intersection(pa, pb))
+    union = shapely.area(pa) + shapely.area(pb) - inter
+    want = np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+    got = iou_rows(a, b)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    assert np.all(got[:200] == pytest.approx(1.0)) and np.all(got[600:800] < 1e-9) and np.all(got[1000:1100] < 1e-12)
