@@ -86,6 +86,23 @@ def _edges(polygons: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.n
     return starts, ends, first
 
 
+_EDGES_KEPT: dict[int, tuple] = {}  # id(polygons) -> (polygons, _edges(polygons)) of the static occluders
+
+
+def _static_edges(polygons: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``_edges``, kept for a tuple of polygons (a world's buildings, the same tuple every frame)."""
+    if not len(polygons):
+        return np.zeros((0, 2)), np.zeros((0, 2)), _NO_EDGES
+    if not isinstance(polygons, tuple):
+        return _edges(polygons)
+    kept = _EDGES_KEPT.get(id(polygons))
+    if kept is None or kept[0] is not polygons:  # (the tuple is held, so its id is not reused while kept)
+        if len(_EDGES_KEPT) >= 64:
+            _EDGES_KEPT.clear()
+        kept = _EDGES_KEPT[id(polygons)] = (polygons, _edges(polygons))
+    return kept[1]
+
+
 def _cross(o: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """z of (p - o) x (q - o), broadcast over leading axes."""
     return (p[..., 0] - o[..., 0]) * (q[..., 1] - o[..., 1]) - (p[..., 1] - o[..., 1]) * (q[..., 0] - o[..., 0])
@@ -144,7 +161,7 @@ def visible_fraction(
     else:
         box_owner = np.full(len(boxes), -1)
     if COMPILED:
-        starts, ends, first = _edges(polygons) if len(polygons) else (np.zeros((0, 2)), np.zeros((0, 2)), _NO_EDGES)
+        starts, ends, first = _static_edges(polygons)
         # (cos, sin) of the yaws by numpy, as the reference: the kernel's own could differ in the last bit
         blocked = _blocked(origin, pts, owner, boxes, np.cos(boxes[:, 4]), np.sin(boxes[:, 4]), box_owner, starts,
                            ends, first)
