@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fusion.jit import load_kernels
 from link_emulator.channel import LinkModel
 from link_emulator.control import apply_control
 from link_emulator.profile import LinkProfile, load_profile
@@ -109,6 +110,7 @@ class OfflineRun:
         ``link_profile``: every pair's profile (default: the RSU's ``link_profile``, else ``spec.profile``).
         ``link_series``: after each cycle, each record keeps the OBU's RSU link status (the metrics
         a live OBU publishes per cycle) for the run report (``RunRecord.links``; ~5 % slower)."""
+        load_kernels()  # the compiled loops, as the services run them (the codec's bit packing too)
         self.spec = spec
         self.link_series = link_series
         self.chaos = chaos

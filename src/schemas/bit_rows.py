@@ -1,8 +1,8 @@
 """The loops of ``schemas.bitpack``, compiled (numba: ``fusion.jit``).
 
-Imported on first use by ``bitpack.pack`` / ``unpack`` (and by ``load_kernels``), so that a process
-that never packs objects (the link emulator) does not load numba. Bit b of a row's integer is bit
-b % 8 of the row's byte b // 8 (little-endian); field j holds bits [s_j, s_j + w_j).
+Imported by ``fusion.jit.load_kernels`` only; from then on ``bitpack.pack`` / ``unpack`` use them
+(see bitpack). Bit b of a row's integer is bit b % 8 of the row's byte b // 8 (little-endian);
+field j holds bits [s_j, s_j + w_j).
 """
 
 from __future__ import annotations
@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from fusion.jit import I64, IN_I1, IN_I2, IN_U1, kernel
+
+from . import bitpack
 
 
 @kernel(IN_I2, IN_I1, I64)
@@ -45,3 +47,6 @@ def unpack_rows(data: np.ndarray, n: int, widths: np.ndarray, row_bytes: int) ->
                 got, bit = got + take, bit + take
             out[i, j] = value
     return out
+
+
+bitpack.use_compiled(pack_rows, unpack_rows)
