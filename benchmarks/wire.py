@@ -22,7 +22,9 @@ objects after a CPM round trip, i.e. exactly what a CPM can say: dimensions 0.1 
 confidence, correlations 1 %, confidence 1/15; see ``schemas.cpm``). Per object = (bytes(N) -
 bytes(0)) / N, so the per-message column layout is included; header = bytes(0) (SDSM has no
 empty message: per object = (bytes(N) - bytes(1)) / (N - 1)). Times: median of
-``--repeat`` runs of a loop sized to ~20 ms, microseconds per message.
+``--repeat`` runs of a loop sized to ~20 ms, microseconds per message. The v2i codec packs its
+rows with the compiled loops, as the services do once they load their kernels (``schemas.bitpack``);
+``--numpy-bits`` times it as a process that never loads them (an outside publisher) runs it.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "unit"))
 import legacy_codec as v3  # noqa: E402
 
+from fusion.jit import load_kernels  # noqa: E402
 from fusion.objects import ObjectArray  # noqa: E402
 from fusion.wire import objects_from_states, states_from_objects  # noqa: E402
 from schemas.codec import decode, encode  # noqa: E402
@@ -242,7 +245,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--n", default="10,50,100,200,1000", help="object counts, comma-separated")
     ap.add_argument("--repeat", type=int, default=7, help="timed runs per cell (median)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--numpy-bits", action="store_true", help="v2i rows packed by numpy, not the compiled loops")
     args = ap.parse_args(argv)
+    if not args.numpy_bits:
+        load_kernels()
     ns = [int(v) for v in args.n.split(",")]
     codecs = {name: c for name, make in CODECS.items() if (c := make()) is not None}
     rng = np.random.default_rng(args.seed)

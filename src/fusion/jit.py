@@ -1,24 +1,28 @@
-"""Compiled kernels (numba): the tracker's per-pair loops, the OBU's clock fit, the simulator's line of sight.
+"""Compiled kernels (numba): the tracker's per-pair loops, the OBU's clock fit, the simulator's
+line of sight, the rotated-box IoU and the codec's bit packing.
 
 The tracker updates a few hundred tracks with lists of a few to a few hundred objects, ten
 times a second per source: numpy's fixed cost per call (~1 us, some 200 calls per update) was
-the whole cost, so association, the Kalman updates and covariance intersection are loops over
-the pairs, compiled by numba (``benchmarks/cycle_compute.py``; the numpy and filterpy
-references are in the tests); so are the clock fit of ``obu_service.clock_envelope`` (a window
-of exchanges, refitted every few exchanges per RSU and peer) and ``sim.occlusion``'s test of
-sample points against occluders.
+the whole cost, so association, the Kalman updates, covariance intersection and the matched
+tracks' bookkeeping are loops over the pairs, compiled by numba (``benchmarks/cycle_compute.py``;
+the numpy and filterpy references are in the tests). So are the clock fit of
+``obu_service.clock_envelope`` (a window of exchanges, refitted every few exchanges per RSU and
+peer), ``sim.occlusion``'s test of sample points against occluders, ``fusion.geometry``'s IoU
+(shapely's polygons cost ~30 us a pair) and ``schemas.bit_rows`` (used once loaded: see
+``schemas.bitpack``).
 
 ``kernel(*argument_types)`` compiles a function for exactly those argument types (and no
-others) at its first call, or when ``load_kernels`` loads every kernel: the services do that
-before they report ready, so that no cycle ever waits for the compiler. The machine code is
-cached under ``__pycache__`` (or the user's cache directory where the package is not
-writable): compiled once per machine, ~21 s for all kernels, then loaded in ~0.2 s per
+others) at its first call, or when ``load_kernels`` loads every kernel: the services and the
+offline evaluator do that before they start, so that no cycle ever waits for the compiler. The
+machine code is cached under ``__pycache__`` (or the user's cache directory where the package is
+not writable): compiled once per machine, ~21 s for all kernels, then loaded in ~0.25 s per
 process. Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
 arrays convert to them), the arrays a kernel writes ``OUT_*``; an array of another dtype is a
 ``TypeError`` (callers pass float64 and int64). ``helper`` is for the functions the kernels
 call (compiled into them). numba checks a cached kernel against its own source file only: the
 helpers a kernel calls live in its module, and after a change to ``OPTIONS`` here the cached
-files (``__pycache__/*.nbi``, ``*.nbc``) must be deleted.
+files (``__pycache__/*.nbi``, ``*.nbc``) must be deleted. Kernels are loops, not numpy's array
+expressions, sorts or quantiles where they can be: each of those adds ~0.1-1 s to a compile.
 """
 
 from __future__ import annotations
