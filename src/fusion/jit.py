@@ -15,7 +15,7 @@ peer), ``sim.occlusion``'s test of sample points against occluders, ``fusion.geo
 others) at its first call, or when ``load_kernels`` loads every kernel: the services and the
 offline evaluator do that before they start, so that no cycle ever waits for the compiler. The
 machine code is cached under ``__pycache__`` (or the user's cache directory where the package is
-not writable): compiled once per machine, ~21 s for all kernels, then loaded in ~0.25 s per
+not writable): compiled once per machine, ~23 s for all kernels, then loaded in ~0.3 s per
 process. Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
 arrays convert to them), the arrays a kernel writes ``OUT_*``; an array of another dtype is a
 ``TypeError`` (callers pass float64 and int64). ``helper`` is for the functions the kernels
