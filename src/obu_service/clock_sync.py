@@ -384,4 +384,3 @@ class ClockSync:
             if self._samples[i][2] not in self._inconsistent:
                 self._inconsistent.add(self._samples[i][2])
                 self.outliers_rejected += 1
-
