@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
-from scipy.stats import chi2
+from scipy.special import gammaincinv
 
 from fusion.objects import ObjectArray
 
@@ -429,6 +429,12 @@ def nees_values(errors: np.ndarray, covariances: np.ndarray) -> np.ndarray:
     return np.einsum("ki,ki->k", e, np.linalg.solve(p, e[:, :, None])[:, :, 0])  # e^T P^-1 e
 
 
+def chi2_ppf(q: np.ndarray, df: int) -> np.ndarray:
+    """Quantiles of chi2(df) at q in (0, 1): 2 P^-1(df / 2, q), P the regularised lower incomplete gamma
+    function, as scipy.stats.chi2.ppf computes them (scipy.stats takes ~0.4 s to import)."""
+    return 2 * gammaincinv(df / 2, q)
+
+
 def nees_summary(eps: np.ndarray, confidence: float = 0.95) -> dict:
     """``nees`` from the eps values (K,) of ``nees_values``."""
     eps = np.asarray(eps, dtype=float)
@@ -436,9 +442,9 @@ def nees_summary(eps: np.ndarray, confidence: float = 0.95) -> dict:
         return {"mean": None, "fraction_inside": None, "interval": None, "mean_interval": None,
                 "consistent": None, "samples": 0}
     tail = (1.0 - confidence) / 2.0
-    lo, hi = chi2.ppf([tail, 1.0 - tail], df=2)
+    lo, hi = chi2_ppf(np.array([tail, 1.0 - tail]), 2)
     k = len(eps)
-    mean_lo, mean_hi = chi2.ppf([tail, 1.0 - tail], df=2 * k) / k
+    mean_lo, mean_hi = chi2_ppf(np.array([tail, 1.0 - tail]), 2 * k) / k
     mean = float(eps.mean())
     return {
         "mean": mean, "fraction_inside": float(np.mean((eps >= lo) & (eps <= hi))),

@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.signal import lfilter
 
 from .profile import OutageSpec
 from .trace import DelayTrace
@@ -40,6 +39,8 @@ class GaussianAR1:
             z = np.array([self.rho * self.z + math.sqrt(1.0 - self.rho * self.rho) * float(e[0])])
         else:
             # y[k] = c e[k] + rho y[k-1] with y[-1] = z: lfilter([c], [1, -rho]) with zi = rho z
+            from scipy.signal import lfilter  # (imported here: scipy.signal takes ~0.5 s, and the live
+            #                                    per-message path never needs it)
             c = math.sqrt(1.0 - self.rho * self.rho)
             z, _ = lfilter([c], [1.0, -self.rho], e, zi=[self.rho * self.z])
         if z.size:

@@ -37,7 +37,6 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy.special import ndtri
-from scipy.stats import ks_2samp
 
 from .channel import NS_PER_MS, Channel
 from .processes import GilbertElliott, merge_windows
@@ -401,6 +400,8 @@ def validate_direction(name: str, direction_name: str, direction: DirectionProfi
     }
     reference = reference_delays_ms(direction, settings)
     if reference is not None:
+        from scipy.stats import ks_2samp  # (here: scipy.stats takes ~0.4 s to import, the link's start-up need not)
+
         report["ks_statistic"] = float(ks_2samp(delays_ms, reference).statistic) if delays_ms.size else None
     report["checks"] = checks(declared_s, achieved_s, p50_range, trace=direction.replay is not None)
     if keeps_order(direction):
