@@ -162,23 +162,27 @@ class Channel:
             and self.direction.bandwidth_kbps is None
 
     def _transmit_one(self, send_ns: int, size_bytes: int, distance_m: float | None) -> list[int]:
-        """``transmit_all`` on a plain channel (``_plain``) without the batch's arrays: the same
-        variates, the same state steps (loss chain, AR(1), fifo) in the same order and the same
-        float64 delay arithmetic (``_delay_ns``), so the same deliveries (test_link_emulator)."""
+        """``transmit_all`` on a plain channel (``_plain``) in Python floats: the same variates, the
+        same state steps (loss chain, AR(1), fifo) in the same order and the same float64 delay
+        arithmetic, the jitter's g(z) by the same numpy call (``_jitter_ms``), so the same deliveries
+        (test_link_channel)."""
         if size_bytes < 0:
             raise ValueError(f"size_bytes must be >= 0, got {size_bytes}")
         normal, uniform = self._draws.take(1)
+        z, u = normal[0].tolist(), uniform[0].tolist()
         if self._origin_ns is None:
             self._origin_ns = send_ns
         d = self.direction
-        lost = bool(self._ge.step(uniform[:, _U_LOSS])[0])
-        u_pdr, u_dup = float(uniform[0, _U_PDR]), float(uniform[0, _U_DUP])
+        lost = self._ge.step_one(u[_U_LOSS])
         if distance_m is not None and not math.isnan(distance_m):
-            lost = (u_pdr >= self._pdr_one(float(distance_m))) or lost  # delivered with probability PDR(d)
-        dup = not lost and u_dup < d.duplicate_probability
-        prop_ns = int(self._delay_ns(normal, uniform, 0, None)[0])  # steps the AR(1) for every message
-        copy_ns = send_ns + int(self._copy_delay_ns(normal[:, _Z_DUP], 0, None)[0]) if dup else NONE_NS
-        return sorted(t for t in self._one_in_order(NONE_NS if lost else send_ns + prop_ns, copy_ns) if t != NONE_NS)
+            lost = (u[_U_PDR] >= self._pdr_one(float(distance_m))) or lost  # delivered with probability PDR(d)
+        dup = not lost and u[_U_DUP] < d.duplicate_probability
+        delay_ms = d.delay_ms + _jitter_ms(d.jitter, self._ar.step_one(z[_Z_JITTER]))  # steps the AR(1) always
+        if d.spikes is not None and u[_U_SPIKE] < d.spikes.probability:
+            delay_ms = delay_ms + _jitter_ms(d.spikes.extra, z[_Z_SPIKE])
+        copy_ns = send_ns + _clipped_ns(d.delay_ms + _jitter_ms(d.jitter, z[_Z_DUP])) if dup else NONE_NS
+        deliver_ns = NONE_NS if lost else send_ns + _clipped_ns(delay_ms)
+        return sorted(t for t in self._one_in_order(deliver_ns, copy_ns) if t != NONE_NS)
 
     def transmit_batch(
         self, send_ns: np.ndarray, size_bytes: np.ndarray | int, distance_m: np.ndarray | float | None = None
@@ -327,6 +331,18 @@ class Channel:
 def _extra_ms(fx: Effects | None) -> np.ndarray | float:
     """Impairment extra delay (ms) of each message, shared by a message and its copy."""
     return fx.extra_delay_ms if fx is not None else 0.0
+
+
+def _jitter_ms(jitter, z: float) -> float:
+    """g(z) of one score (ms) by the jitter's own numpy expression, as in the batch (its exp, ndtr or
+    log_ndtr, not math's, which may differ in the last bit)."""
+    return float(jitter.from_normal(np.array([z]))[0])
+
+
+def _clipped_ns(delay_ms: float) -> int:
+    """``_clipped_sum_ns`` of one delay without a trace: rint(max(0, delay) ms) ns (round: half to
+    even, as np.rint)."""
+    return round(max(delay_ms, 0.0) * NS_PER_MS)
 
 
 def _clipped_sum_ns(other_ms: np.ndarray, trace_ns: np.ndarray | int) -> np.ndarray:

@@ -31,12 +31,18 @@ class GaussianAR1:
         self.rho = rho
         self.z = z0
 
+    def step_one(self, e: float) -> float:
+        """The score for one innovation ``e``, which becomes the state (the per-message path: the
+        arithmetic of ``step``'s lfilter)."""
+        self.z = e if self.rho == 0.0 else self.rho * self.z + math.sqrt(1.0 - self.rho * self.rho) * e
+        return self.z
+
     def step(self, e: np.ndarray) -> np.ndarray:
         """Scores for innovations ``e`` (shape (n,)); the last becomes the state."""
         if self.rho == 0.0 or e.size == 0:
             z = e
-        elif e.size == 1:  # the live per-message path; same arithmetic as lfilter below
-            z = np.array([self.rho * self.z + math.sqrt(1.0 - self.rho * self.rho) * float(e[0])])
+        elif e.size == 1:
+            z = np.array([self.step_one(float(e[0]))])
         else:
             # y[k] = c e[k] + rho y[k-1] with y[-1] = z: lfilter([c], [1, -rho]) with zi = rho z
             from scipy.signal import lfilter  # (imported here: scipy.signal takes ~0.5 s, and the live
@@ -78,12 +84,15 @@ class GilbertElliott:
         """Effective mean loss-burst length in messages (inf when everything is lost)."""
         return math.inf if self.r == 0.0 else 1.0 / self.r
 
+    def step_one(self, u: float) -> bool:
+        """Bad (lost) for one uniform ``u`` (the per-message path; the rule of ``step``)."""
+        self.bad = True if u < self.p else False if u >= 1.0 - self.r else self.bad
+        return self.bad
+
     def step(self, u: np.ndarray) -> np.ndarray:
         """Bad (lost) flags, shape (n,), for uniforms ``u``; the last becomes the state."""
-        if u.size == 1:  # the live per-message path; the same rule as below
-            x = float(u[0])
-            self.bad = True if x < self.p else False if x >= 1.0 - self.r else self.bad
-            return np.array([self.bad])
+        if u.size == 1:
+            return np.array([self.step_one(float(u[0]))])
         event = np.where(u < self.p, 1, np.where(u >= 1.0 - self.r, 0, -1))  # 1 Bad, 0 Good, -1 stay
         positions = np.where(event >= 0, np.arange(u.size), -1)
         last = np.maximum.accumulate(positions) if u.size else positions
