@@ -32,12 +32,14 @@ from evaluation.chaos import with_chaos
 from evaluation.runner import OfflineRun
 from sim import occlusion
 from sim.scenario import bundled_scenarios
+from schemas.runtime import freeze_heap
 from v2i.cli import _spec, build_parser
 
 from fusion.jit import load_kernels
 
 load_kernels()  # the tracker's compiled loops: loaded once per process, like the imports
 IMPORT_S = time.perf_counter() - _T0
+freeze_heap()  # as v2i eval does before its run
 
 # label -> "module:qualified name" of the functions timed by --stages
 STAGES = {

@@ -24,7 +24,7 @@ from contextlib import contextmanager
 import zenoh
 
 from schemas.config import ConfigError, load_config, one_line_error
-from schemas.runtime import limit_malloc_arenas, log
+from schemas.runtime import freeze_heap, limit_malloc_arenas, log
 from security.pki import PkiError
 from sim.clock import SystemClock
 from telemetry.metrics_cli import MetricsPortError, add_metrics_options, metrics_server
@@ -172,6 +172,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"link emulator: {exc}", file=sys.stderr)
         return 2
     log("link", relay.control_auth.describe())
+    freeze_heap()
     stop = threading.Event()
     try:
         with _stop_on_signals(stop), _stop_after(stop, args.duration):

@@ -6,6 +6,7 @@ once its Zenoh session is open and declared, and stops cleanly on SIGINT or SIGT
 
 from __future__ import annotations
 
+import gc
 import json
 import re
 import signal
@@ -112,6 +113,16 @@ def limit_malloc_arenas(arenas: int = SERVICE_MALLOC_ARENAS) -> bool:
     return mallopt is not None and mallopt(M_ARENA_MAX, arenas) == 1
 
 
+def freeze_heap() -> None:
+    """Move every object alive now (the modules, numba's registries and kernels, the scenario:
+    ~150k objects) to the collector's permanent generation (``gc.freeze``), so that a full
+    collection later scans only what the process creates from then on. A full collection of that
+    start-up heap takes 55-80 ms on this machine: a pause of most of a 10 Hz cycle, and the first
+    eval run of a short scenario took 0.37-0.40 s with one in it against 0.29-0.30 s after a freeze.
+    Call it once, when the start-up is done."""
+    gc.freeze()
+
+
 class MemoryTrim:
     """Returns freed heap memory to the system (glibc ``malloc_trim``) at most every ``period_s``.
 
@@ -167,6 +178,7 @@ def run_service(name: str, model, args, make_node) -> int:
     except (ConfigError, ValueError, OSError) as exc:
         print(f"v2i {name}: {one_line_error(exc)}", file=sys.stderr)
         return 2
+    freeze_heap()
     try:
         node.run(stop_on_signals())
     except zenoh.ZError as exc:

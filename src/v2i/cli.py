@@ -182,7 +182,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
         chaos = load_chaos(args.chaos)
     from evaluation.chaos import with_chaos
+    from schemas.runtime import freeze_heap
 
+    freeze_heap()  # the start-up's objects: no full collection of them during the run
     run = OfflineRun(with_chaos(_spec(args), chaos), chaos=chaos, link_series=bool(args.report))
     run.execute()
     report = run.report(driver="eval")
