@@ -21,10 +21,10 @@ from collections import Counter
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-from scipy.spatial.distance import cdist
 from scipy.special import gammaincinv
 
+from fusion.association import center_distance_cost
+from fusion.lsap import linear_sum_assignment
 from fusion.objects import ObjectArray
 
 # nuScenes' detection-eval constants (nuscenes-devkit, eval/detection/algo.py, configs/detection_cvpr_2019.json)
@@ -150,7 +150,7 @@ def _bin_ap(binned: list[tuple[np.ndarray, np.ndarray, np.ndarray]], thresholds_
     rank = np.empty(len(confidence), dtype=np.int64)
     rank[_confidence_order(confidence)] = np.arange(len(confidence))
     starts = np.cumsum([0] + [len(c) for _, _, c in binned])
-    dists = [cdist(p, t) if len(p) and len(t) else np.zeros((len(p), len(t))) for t, p, _ in binned]
+    dists = [center_distance_cost(p, t) if len(p) and len(t) else np.zeros((len(p), len(t))) for t, p, _ in binned]
     num_truth = int(sum(len(t) for t, _, _ in binned))
     result: dict = {"num_truth": num_truth, "num_predictions": len(confidence)}
     aps = []
@@ -228,7 +228,7 @@ class CenterDistanceAp:
             keep_t, keep_p = (d_truth >= lo) & (d_truth < hi), (d_pred >= lo) & (d_pred < hi)  # _in_range
             self._num_truth[b] += int(keep_t.sum())
             t, p = truth_xy[keep_t], pred_xy[keep_p]
-            dist = cdist(p, t) if len(p) and len(t) else np.zeros((len(p), len(t)))
+            dist = center_distance_cost(p, t) if len(p) and len(t) else np.zeros((len(p), len(t)))
             tp = np.array(_greedy_matches(dist, rank[keep_p], self.thresholds_m),
                           dtype=np.uint64).reshape(len(self.thresholds_m), len(p))
             flags[keep_p] |= (tp.T @ self._tp_bits[b]) | np.uint64(1 << (b * stride))  # disjoint bits: sum = OR
@@ -266,7 +266,7 @@ def _distance_matrix(truth_xy: np.ndarray, hyp_xy: np.ndarray, max_distance_m: f
     hyp_xy = np.asarray(hyp_xy, dtype=float).reshape(-1, 2)
     if not len(truth_xy) or not len(hyp_xy):
         return np.full((len(truth_xy), len(hyp_xy)), np.nan)
-    d = cdist(truth_xy, hyp_xy)
+    d = center_distance_cost(truth_xy, hyp_xy)
     d[d > max_distance_m] = np.nan
     return d
 

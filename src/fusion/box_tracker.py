@@ -11,7 +11,7 @@ State x = [cx, cy, w, h, vcx, vcy, vw, vh] (px, px/s), measurement z = [cx, cy, 
 
 Association (Sec. 4.7.2): cost C(i, j) = 1 - IoU(D_i, T_j) (eq. 5.1-5.5) between detections and
 predicted track boxes; pairs need IoU >= ``iou_gate``; minimum total cost one-to-one
-(``fusion.association.assign``, scipy's Hungarian solver).
+(``fusion.association.assign``, the shortest augmenting path solver of ``fusion.lsap``).
 
 Track management (Sec. 4.7.3): an unmatched detection starts a tentative track (velocity 0,
 ``init_velocity_std_pxps``); ``confirm_hits`` hits confirm it; a tentative track is deleted at its

@@ -134,7 +134,7 @@ def paired_bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def assign_pairs(pairs: GatedPairs, n_tracks: int, n_dets: int) -> Assignment:
     """Minimum-cost one-to-one matching among the gated pairs (``association.assign_sparse``:
-    per connected component of the gated graph, scipy linear_sum_assignment for those of more than one pair)."""
+    per connected component of the gated graph, ``fusion.lsap`` for those of more than one pair)."""
     return assign_sparse(pairs.track, pairs.det, pairs.cost, n_tracks, n_dets)
 
 

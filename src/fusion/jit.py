@@ -1,5 +1,5 @@
-"""Compiled kernels (numba): the tracker's per-pair loops, the OBU's clock fit, the simulator's
-line of sight, the rotated-box IoU and the codec's bit packing.
+"""Compiled kernels (numba): the tracker's per-pair loops and assignment solver, the OBU's clock
+fit, the simulator's line of sight, the rotated-box IoU and the codec's bit packing.
 
 The tracker updates a few hundred tracks with lists of a few to a few hundred objects, ten
 times a second per source: numpy's fixed cost per call (~1 us, some 200 calls per update) was
@@ -8,8 +8,9 @@ tracks' bookkeeping are loops over the pairs, compiled by numba (``benchmarks/cy
 the numpy and filterpy references are in the tests). So are the clock fit of
 ``obu_service.clock_envelope`` (a window of exchanges, refitted every few exchanges per RSU and
 peer), ``sim.occlusion``'s test of sample points against occluders, ``fusion.geometry``'s IoU
-(shapely's polygons cost ~30 us a pair) and ``schemas.bit_rows`` (used once loaded: see
-``schemas.bitpack``).
+(shapely's polygons cost ~30 us a pair), ``schemas.bit_rows`` (used once loaded: see
+``schemas.bitpack``) and ``fusion.lsap``'s assignment solver (scipy's algorithm: importing
+``scipy.optimize`` for it cost each service ~0.15 s of its start-up).
 
 ``kernel(*argument_types)`` compiles a function for exactly those argument types (and no
 others) at its first call, or when ``load_kernels`` loads every kernel: the services and the

@@ -31,7 +31,7 @@ Per frame, with the detections of both cameras (boxes in their own images):
    the 4 mapped corners, clipped to the RSU image (a corner with w' <= 0, behind the
    view, or a box left with no area drops it).
 5. IoU of every (RSU, mapped OBU) pair, eq. 5.1-5.5; pairs with IoU >= ``iou_gate`` (0.1)
-   may fuse; a one-to-one assignment minimises sum(1 - IoU) (Hungarian, scipy).
+   may fuse; a one-to-one assignment minimises sum(1 - IoU) (Hungarian: ``fusion.lsap``).
 6. Each assigned pair fuses by confidence-weighted corner averaging, eq. 5.6-5.11; the
    fused confidence is the larger of the two, the class that of the more confident box.
    Unassigned boxes of either side pass through unchanged (OBU boxes mapped), so the

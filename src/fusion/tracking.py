@@ -25,7 +25,7 @@ d2 = y^T S^-1 y <= ``gate_chi2`` (9.21: 99 % for 2 dof); ``gate="either"``: one 
 within ``gate_max_m`` (a young track whose velocity is still uncertain reaches as far as its
 covariance says, but not across a junction on an unknown velocity's 100 m/s prior; an
 established one at least ``gate_m`` however small its covariance). Among allowed pairs a
-minimum-cost one-to-one assignment (scipy ``linear_sum_assignment``) with cost
+minimum-cost one-to-one assignment (``fusion.lsap``, scipy's algorithm compiled) with cost
 ``distance`` (m), ``mahalanobis`` (d2) or ``iou`` (1 - BEV IoU of the predicted box and the
 detected box). Matched tracks get a Kalman update of the position and, for CV / CA with
 ``velocity_updates``, of the velocity where the detection measured one (``cov_vxy`` below

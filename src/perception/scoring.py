@@ -2,7 +2,7 @@
 detections in ``map`` against the ground truth it could see, frame by frame.
 
 Per frame, detections and the visible ground truth are matched one-to-one by centre
-distance (Hungarian, scipy) within ``MATCH_GATE_M``. Then
+distance (Hungarian: ``fusion.lsap``) within ``MATCH_GATE_M``. Then
 
     recall    = matched truths / visible truths       (per range bin and overall)
     precision = matched detections / detections
@@ -18,8 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-from scipy.spatial.distance import cdist
+
+from fusion.association import center_distance_cost
+from fusion.lsap import linear_sum_assignment
 
 MATCH_GATE_M = 5.0  # a detection farther than this from every visible truth is a false positive
 ERROR_BINS_M = ((0.0, 50.0), (50.0, 120.0))
@@ -44,7 +45,7 @@ def match(truth_xy: np.ndarray, det_xy: np.ndarray, gate_m: float = MATCH_GATE_M
     centre distance, each pair within ``gate_m``. truth_xy (T, 2), det_xy (D, 2) m."""
     if not len(truth_xy) or not len(det_xy):
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    d = cdist(truth_xy, det_xy)
+    d = center_distance_cost(truth_xy, det_xy)
     rows, cols = linear_sum_assignment(np.where(d <= gate_m, d, 1e6))
     ok = d[rows, cols] <= gate_m
     return rows[ok], cols[ok]
