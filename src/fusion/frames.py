@@ -66,6 +66,16 @@ class PoseUncertainty:
         object.__setattr__(self, "cov", cov)
 
     @classmethod
+    def trusted(cls, cov: np.ndarray, correlation_time_s: float) -> PoseUncertainty:
+        """One made from a (3, 3) float64 array that nothing else holds and a tau >= 0 (a blend of two
+        valid ones, ``fusion.pose_history``), without the checks and the copy: made read-only here."""
+        cov.setflags(write=False)
+        out = object.__new__(cls)
+        object.__setattr__(out, "cov", cov)
+        object.__setattr__(out, "correlation_time_s", correlation_time_s)
+        return out
+
+    @classmethod
     def from_stds(cls, x_std_m: float, y_std_m: float, yaw_std_rad: float,
                   correlation_time_s: float = 0.0) -> PoseUncertainty:
         return cls(np.diag([x_std_m**2, y_std_m**2, yaw_std_rad**2]), correlation_time_s)

@@ -12,10 +12,12 @@ poses keep the uncertainty of the pose they start from (the velocity is taken as
 from __future__ import annotations
 
 import bisect
+import math
 from collections import deque
 
+from .frames import Pose2D, PoseUncertainty
 
-from .frames import Pose2D, PoseUncertainty, wrap_angle
+_TWO_PI = 2.0 * math.pi
 
 
 class PoseHistory:
@@ -52,9 +54,15 @@ class PoseHistory:
         return _interpolate(self._poses[i - 1], self._poses[i], a)
 
 
+def _wrap(rad: float) -> float:
+    """``fusion.frames.wrap_angle`` of one Python float, to [-pi, pi): the same IEEE operations (a float's
+    ``%`` is numpy's remainder: fmod, then the divisor's sign), without the 0-d arrays."""
+    return (rad + math.pi) % _TWO_PI - math.pi
+
+
 def _interpolate(p: Pose2D, q: Pose2D, a: float) -> Pose2D:
     # yaw along the shorter arc: yaw = p + a * wrap(q - p)
-    yaw = float(wrap_angle(p.yaw + a * float(wrap_angle(q.yaw - p.yaw))))
+    yaw = _wrap(float(p.yaw) + a * _wrap(float(q.yaw) - float(p.yaw)))
     lerp = lambda u, v: (1 - a) * u + a * v  # noqa: E731
     return Pose2D(lerp(p.x, q.x), lerp(p.y, q.y), yaw, lerp(p.vx, q.vx), lerp(p.vy, q.vy),
                   _interpolate_uncertainty(p.uncertainty, q.uncertainty, a))
@@ -65,7 +73,7 @@ def _interpolate_uncertainty(p: PoseUncertainty | None, q: PoseUncertainty | Non
     if p is None or q is None:
         return p if a < 0.5 else q
     tau_s = (1 - a) * p.correlation_time_s + a * q.correlation_time_s
-    return PoseUncertainty((1 - a) * p.cov + a * q.cov, tau_s)
+    return PoseUncertainty.trusted((1 - a) * p.cov + a * q.cov, tau_s)
 
 
 def _extrapolate(p: Pose2D, dt_s: float) -> Pose2D:

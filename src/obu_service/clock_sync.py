@@ -60,6 +60,7 @@ envelope* of each reading is where the information is (clock_envelope):
 from __future__ import annotations
 
 import math
+from array import array
 from bisect import bisect_right
 from dataclasses import dataclass, field
 
@@ -191,10 +192,11 @@ class ClockSync:
         self.step_armed_after = step_armed_after
         self.refit_every, self.refit_interval_ns = refit_every, refit_interval_ns
         self._samples: list[tuple[int, int, SyncSample]] = []  # (t4, clock segment, sample), by t4
-        # the same window as columns, kept beside it by _insert and _relabel (a fit reads them as arrays
-        # without touching each sample): t1, t2, t3, t4 of each sample in turn, and each one's segment
-        self._times: list[int] = []
-        self._segments: list[int] = []
+        # the same window as int64 columns, kept beside it by _insert and _relabel (a fit reads them as
+        # arrays through their buffers, without converting each Python int): t1, t2, t3, t4 of each
+        # sample in turn, and each one's segment
+        self._times = array("q")
+        self._segments = array("q")
         self._segment = 0  # current clock segment (steps detected so far)
         self._hypotheses: list[_Hypothesis] = []  # competing suspected steps (disjoint suspect clusters)
         self._last_step = (0.0, 0.0)  # feasible sizes (ns) of the last confirmed step
@@ -207,7 +209,7 @@ class ClockSync:
         self._inconsistent: set[SyncSample] = set()  # window samples outside the consensus (counted once)
         self._fit: _Fit | None = None  # cache, None when it must be refitted
         self._unfitted = 0  # exchanges inserted since the cached fit
-        self._last_estimate: tuple | None = None  # estimate_at's last (fit, (t, type, total, segment), answer)
+        self._last_estimate: tuple | None = None  # estimate_at's last ((t, type, total, segment), answer)
 
     @property
     def steps_detected(self) -> int:
@@ -252,13 +254,15 @@ class ClockSync:
 
     def estimate_at(self, t_obu_ns: int) -> OffsetEstimate | None:
         """The estimate extrapolated to OBU time t: theta(t) = theta0 + drift (t - t0), with U(t)."""
+        key = (t_obu_ns, type(t_obu_ns), self._total, self._segment)
+        last = self._last_estimate  # a cycle asks for the same instant several times
+        if last is not None and last[0] == key:
+            # no exchange since (the same total): the same fit (only ``add`` inserts samples, arms a
+            # refit or suspects a step), and no step suspected (none was when it was kept)
+            return last[1]
         fit = self._current_fit()
         if fit is None:
             return None
-        key = (t_obu_ns, type(t_obu_ns), self._total, self._segment)
-        last = self._last_estimate  # a cycle asks for the same instant several times
-        if last is not None and last[0] is fit and last[1] == key and not self._hypotheses:
-            return last[2]
         dt_s = (t_obu_ns - fit.t_ref_ns) / NS_PER_S
         offset = fit.theta_ref_ns + round(fit.theta_rel_ns + fit.drift * dt_s)
         bound = fit.bound_ns + self.bound_sigmas * fit.drift_sd * abs(dt_s)
@@ -266,9 +270,9 @@ class ClockSync:
             bound += max(max(abs(h.low), abs(h.high)) for h in self._hypotheses)
         est = OffsetEstimate(offset, math.ceil(bound), self._total, fit.drift / PPM_NS_PER_S, t_obu_ns,
                              self._segment, fit.drift_sd / PPM_NS_PER_S)
-        # while no step is suspected the answer is a function of (fit, t, total, segment) alone: kept
-        # with exactly those (the fit object held, so its identity cannot pass to another one)
-        self._last_estimate = None if self._hypotheses else (fit, key, est)
+        # while no step is suspected the answer is a function of (fit, t, total, segment) alone, and the
+        # fit one of the exchanges added so far (total): kept with (t, total, segment)
+        self._last_estimate = None if self._hypotheses else (key, est)
         return est
 
     def naive(self) -> OffsetEstimate | None:
@@ -293,7 +297,7 @@ class ClockSync:
         """Insert by t4 (replies may complete out of order); drop what is past the horizon or the window."""
         i = bisect_right(self._samples, sample.t4_ns, key=lambda e: e[0])  # where insort puts it
         self._samples.insert(i, (sample.t4_ns, segment, sample))
-        self._times[4 * i:4 * i] = (sample.t1_ns, sample.t2_ns, sample.t3_ns, sample.t4_ns)
+        self._times[4 * i:4 * i] = array("q", (sample.t1_ns, sample.t2_ns, sample.t3_ns, sample.t4_ns))
         self._segments.insert(i, segment)
         newest_ns = self._samples[-1][0]
         cut = 0
@@ -306,7 +310,7 @@ class ClockSync:
     def _relabel(self, moved: set[int]) -> None:
         """The samples whose id is in ``moved`` join the current segment."""
         self._samples = [(t4, self._segment if id(s) in moved else seg, s) for t4, seg, s in self._samples]
-        self._segments = [seg for _, seg, _ in self._samples]
+        self._segments = array("q", [seg for _, seg, _ in self._samples])
 
     # --- steps and outliers -----------------------------------------------------------------
     def _suspect(self, sample: SyncSample, interval: tuple[float, float]) -> None:
@@ -367,9 +371,11 @@ class ClockSync:
         return self._fit
 
     def _compute_fit(self) -> _Fit:
-        times = np.array(self._times, dtype=np.int64).reshape(-1, 4)
+        # copies of the columns (a view would pin the arrays' buffers: they could not grow)
+        times = np.frombuffer(self._times, dtype=np.int64).reshape(-1, 4).copy()
+        segments = np.frombuffer(self._segments, dtype=np.int64).copy()
         (outside, theta_ref, theta_rel, drift, sd, bound, least_up, t1, least_down, t4, armed) = fit_window(
-            times, np.array(self._segments, dtype=np.int64), *self._drift, *self._prior, self.bin_ns, self.quantile,
+            times, segments, *self._drift, *self._prior, self.bin_ns, self.quantile,
             self.max_drift, self.bound_sigmas, self.offset_horizon_ns / NS_PER_S, float(self.step_threshold_ns),
             self.step_span, self.step_armed_after, MIN_RESID_NS)
         self._drift = (drift, sd)

@@ -23,6 +23,7 @@ Memory is bounded: at most ``max_records`` arrivals and cycles are kept.
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -79,6 +80,7 @@ class LinkMonitor:
         self._highest: int | None = None  # highest seq of the current epoch
         self.duplicates_total = self.reordered_total = self.restarts_total = 0
         self._last_receive_ns: int | None = None
+        self._arrival_stats: tuple[list[float], float | None] | None = None  # kept until the arrivals change
 
     # --- input -----------------------------------------------------------------------------
     def on_message(self, seq: int, capture_obu_ns: int | None, publish_obu_ns: int | None,
@@ -97,6 +99,7 @@ class LinkMonitor:
         latency = None if capture_obu_ns is None else (receive_obu_ns - capture_obu_ns) / NS_PER_MS
         delay = None if publish_obu_ns is None else (receive_obu_ns - publish_obu_ns) / NS_PER_MS
         self._arrivals.append(Arrival(receive_obu_ns, seq, self._epoch, latency, delay))
+        self._arrival_stats = None
         self._seen.add((self._epoch, seq))
         while len(self._arrivals) > self.max_records:
             self._drop_oldest()
@@ -147,11 +150,14 @@ class LinkMonitor:
     def arrival_probability(self, within_ms: float) -> float:
         """P(a frame arrives within ``within_ms`` of its capture) = (1 - loss) * P(l <= W);
         0.0 with no latency measured yet (nothing known: do not count on it)."""
-        latencies = [a.latency_ms for a in self._arrivals if a.latency_ms is not None]  # a few tens: no array
+        if self._arrival_stats is None:  # asked each cycle, the window changing at the RSU's rate
+            latencies = sorted(a.latency_ms for a in self._arrivals if a.latency_ms is not None)  # a few tens
+            self._arrival_stats = latencies, self.loss_ratio()
+        latencies, loss_ratio = self._arrival_stats
         if not latencies:
             return 0.0
-        on_time = float(sum(latency <= within_ms for latency in latencies)) / len(latencies)
-        return (1.0 - (self.loss_ratio() or 0.0)) * on_time
+        on_time = float(bisect_right(latencies, within_ms)) / len(latencies)  # #{l <= W} / n
+        return (1.0 - (loss_ratio or 0.0)) * on_time
 
     def summary(self, now_obu_ns: int | None = None) -> dict[str, float | int | None]:
         """Window statistics for metrics (ms, ratios, counts); None where nothing was measured."""
@@ -193,4 +199,5 @@ class LinkMonitor:
 
     def _drop_oldest(self) -> None:
         old = self._arrivals.popleft()
+        self._arrival_stats = None
         self._seen.discard((old.epoch, old.seq))

@@ -52,9 +52,10 @@ import numpy as np
 from pydantic import ValidationError
 
 from fusion.frames import Pose2D, base_to_map
+from fusion.objects import ObjectArray
 from fusion.pose_history import PoseHistory
 from fusion.tracking import slot_source
-from fusion.wire import objects_from_states
+from fusion.wire import objects_from_states, read_only
 from schemas.columns import ObjectColumns
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObjectListHeader, TimeReply, TimeRequest
 
@@ -62,7 +63,7 @@ from .admission import Admission
 from .clock_sync import OffsetEstimate
 from .methods import RsuFrame
 from .mode_inputs import ModeInputs, Received
-from .rsu_table import RsuState, RsuTable
+from .rsu_table import RecentResults, RsuState, RsuTable
 from .time_requests import TimeRequests
 
 MAX_PEERS = 8  # peer slots (tracker source bits) an OBU gives to V2V peers by default
@@ -170,7 +171,7 @@ class PeerIntake:
         self._sync(receive_ns)
         reason = ("key_mismatch" if msg.vehicle_id != sender else "self" if sender == self.me
                   else "bad_frame" if msg.frame_id != "base_link" else None)
-        header = None if reason is not None else self._header(msg)
+        header = None if reason is not None else _header(msg)
         if header is None:
             self.rejected[reason or "bad_header"] += 1
             return False
@@ -178,12 +179,9 @@ class PeerIntake:
         if state is None:
             return False
         state.lists_seen.add((header.seq, header.capture_time_ns))
-        objects = objects_from_states(msg.objects)
-        own = (objects.sources & SOURCE_VEHICLE) != 0
-        if not own.all():
-            self.rejected["not_own_perception"] += int((~own).sum())
-            objects = objects.take(own)
-        objects = base_to_map(objects, Pose2D(msg.ego_x, msg.ego_y, msg.ego_yaw), pose_uncertainty=False)
+        objects, not_own = _own_in_map(msg)
+        if not_own:
+            self.rejected["not_own_perception"] += not_own
         objects = self._admission.on_site(state, objects, self.poses.at(receive_ns))
         est = state.sync.estimate_at(receive_ns)
         capture_ns = receive_ns if est is None else est.to_obu_ns(header.capture_time_ns)
@@ -198,14 +196,6 @@ class PeerIntake:
         while len(state.frames) > self._frames_kept:
             state.frames.popleft()
         return True
-
-    def _header(self, msg: FusedObjectList) -> ObjectListHeader | None:
-        """The list's header in the RSU lists' terms (capture = the sender's cycle time), for admission."""
-        try:
-            return ObjectListHeader(rsu_id=msg.vehicle_id, seq=msg.seq, capture_time_ns=msg.cycle_time_ns,
-                                    publish_time_ns=msg.publish_time_ns, frame_id="map")
-        except ValidationError:  # published before captured
-            return None
 
     # --- fusion ----------------------------------------------------------------------
     def frames(self, t_c: int) -> tuple[list[RsuFrame], list[RsuFrame]]:
@@ -230,6 +220,30 @@ class PeerIntake:
                 "sync_samples": 0 if est is None else est.samples,
             }
         return out
+
+
+@RecentResults
+def _header(msg: FusedObjectList) -> ObjectListHeader | None:
+    """The list's header in the RSU lists' terms (capture = the sender's cycle time), for admission
+    (once per list: the same for every receiver)."""
+    try:
+        return ObjectListHeader(rsu_id=msg.vehicle_id, seq=msg.seq, capture_time_ns=msg.cycle_time_ns,
+                                publish_time_ns=msg.publish_time_ns, frame_id="map")
+    except ValidationError:  # published before captured
+        return None
+
+
+@RecentResults
+def _own_in_map(msg: FusedObjectList) -> tuple[ObjectArray, int]:
+    """(the list's objects its sender perceives itself, base_link -> map with the header's pose
+    (read-only, shared), how many others it carried): once per list, the same for every receiver."""
+    objects = objects_from_states(msg.objects)
+    own = (objects.sources & SOURCE_VEHICLE) != 0
+    not_own = 0 if own.all() else int((~own).sum())
+    if not_own:
+        objects = objects.take(own)
+    objects = base_to_map(objects, Pose2D(msg.ego_x, msg.ego_y, msg.ego_yaw), pose_uncertainty=False)
+    return read_only(objects), not_own
 
 
 def _slot_ids(state: RsuState, ids: np.ndarray) -> np.ndarray:

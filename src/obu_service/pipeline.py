@@ -33,7 +33,7 @@ from fusion.merger import iou_merge
 from fusion.objects import ObjectArray
 from fusion.pose_history import PoseHistory
 from fusion.tracking import SOURCE_BITS, slot_source
-from fusion.wire import objects_from_states, wire_columns
+from fusion.wire import objects_from_states, read_only, wire_columns
 from schemas.messages import (MAX_OBJECTS, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics,
                               PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
 
@@ -44,13 +44,15 @@ from .methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_fusion, make
 from .mode_inputs import ModeInputs, Received
 from .peers import MAX_PEERS, PeerIntake
 from .planning import objects_at, retimed
-from .rsu_table import RsuState, RsuTable
+from .rsu_table import RecentResults, RsuState, RsuTable
 from .time_requests import TimeRequests
 
 __all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "ObuPipeline", "ObuPipelineConfig"]
 
 RSU_ID_BASE = 1_000_000  # output ids of RSU objects: RSU_ID_BASE * (rsu index + 1) + RSU track id mod base
 MAX_RSUS = SOURCE_BITS - 1  # RSU slots (known + unknown): one tracker source bit each (62; metrics list <= 64)
+# an RSU list's objects (map) as received: the same for every vehicle that hears it (read-only, shared)
+_rsu_objects = RecentResults(lambda columns: read_only(objects_from_states(columns)))
 
 
 @dataclass(frozen=True)
@@ -206,7 +208,7 @@ class ObuPipeline:
         if state is None:
             return None
         state.lists_seen.add((header.seq, header.capture_time_ns))
-        objects = self._admission.on_site(state, objects_from_states(msg.objects), self.poses.at(receive_ns))
+        objects = self._admission.on_site(state, _rsu_objects(msg.objects), self.poses.at(receive_ns))
         est = state.sync.estimate_at(receive_ns)
         capture_ns = receive_ns if est is None else est.to_obu_ns(header.capture_time_ns)
         objects = self._admission.not_ego(objects, self.poses.at(capture_ns))

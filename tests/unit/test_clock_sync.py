@@ -291,8 +291,8 @@ def test_the_window_s_columns_follow_its_samples_through_steps_late_replies_and_
     for k, s in enumerate(feed):
         sync.add(s)
         if k % 17 == 0 or k == len(feed) - 1:
-            assert sync._times == [t for w in sync.window() for t in (w.t1_ns, w.t2_ns, w.t3_ns, w.t4_ns)]
-            assert sync._segments == [seg for _, seg, _ in sync._samples]
+            assert list(sync._times) == [t for w in sync.window() for t in (w.t1_ns, w.t2_ns, w.t3_ns, w.t4_ns)]
+            assert list(sync._segments) == [seg for _, seg, _ in sync._samples]
     assert sync.steps_detected == 1 and len(sync.window()) == 250
     assert set(sync._segments) == {0, 1}
 

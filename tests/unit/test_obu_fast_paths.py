@@ -1,0 +1,126 @@
+"""The OBU pipeline's fast paths equal the plain expressions they replace (bit for bit)."""
+
+import math
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from fusion.frames import Pose2D, PoseUncertainty, wrap_angle
+from fusion.pose_history import PoseHistory, _interpolate, _wrap
+from obu_service.clock_sync import ClockSync, SyncSample
+from obu_service.link_monitor import LinkMonitor
+from obu_service.rsu_table import RecentResults
+
+MS = 1_000_000
+
+
+def test_scalar_wrap_equals_the_numpy_wrap_bit_for_bit():
+    rng = np.random.default_rng(0)
+    values = np.concatenate([rng.uniform(-50.0, 50.0, 100_000), rng.normal(0.0, 1e-9, 1000),
+                             np.array([0.0, -0.0, math.pi, -math.pi, 2 * math.pi, -2 * math.pi, 3 * math.pi,
+                                       np.nextafter(math.pi, 0.0), np.nextafter(-math.pi, 0.0), 1e300, -1e-300])])
+    want = wrap_angle(values)
+    got = np.array([_wrap(float(v)) for v in values])
+    assert np.array_equal(got.view(np.int64), want.view(np.int64))  # the same bits (signed zeros too)
+
+
+def _old_interpolated_yaw(p, q, a):
+    """pose_history's yaw before the scalar wrap: numpy's wrap_angle on 0-d arrays."""
+    return float(wrap_angle(p.yaw + a * float(wrap_angle(q.yaw - p.yaw))))
+
+
+def test_interpolated_pose_equals_the_numpy_expressions():
+    rng = np.random.default_rng(1)
+    u = PoseUncertainty.from_stds(0.05, 0.08, 0.005, 5.0)
+    v = PoseUncertainty.from_stds(0.07, 0.02, 0.002, 2.0)
+    for _ in range(2000):
+        p = Pose2D(*rng.normal(0, 100, 2), float(rng.uniform(-4, 4)), uncertainty=u)
+        q = Pose2D(*rng.normal(0, 100, 2), np.float64(rng.uniform(-4, 4)), uncertainty=v)
+        a = float(rng.uniform(0, 1))
+        got = _interpolate(p, q, a)
+        assert got.yaw == _old_interpolated_yaw(p, q, a) and type(got.yaw) is float
+        want_cov = (1 - a) * u.cov + a * v.cov
+        assert np.array_equal(got.uncertainty.cov, want_cov) and not got.uncertainty.cov.flags.writeable
+        assert got.uncertainty.correlation_time_s == (1 - a) * 5.0 + a * 2.0
+
+
+def test_pose_history_uncertainty_is_a_valid_read_only_blend():
+    h = PoseHistory()
+    u = PoseUncertainty.from_stds(0.05, 0.08, 0.005, 5.0)
+    h.add(0, Pose2D(0.0, 0.0, 0.0, uncertainty=u))
+    h.add(100 * MS, Pose2D(1.0, 0.0, 0.1, uncertainty=u))
+    blend = h.at(25 * MS).uncertainty
+    assert isinstance(blend, PoseUncertainty) and blend.cov.shape == (3, 3)
+    with pytest.raises(ValueError):
+        blend.cov[0, 0] = 1.0
+
+
+def _exchanges(n, seed=2, t0=10**18):
+    rng = np.random.default_rng(seed)
+    for k in range(n):
+        t1 = t0 + k * 100 * MS
+        t2 = t1 + int(rng.exponential(2e6)) + 1_000_000 + 5_000_000
+        t3 = t2 + 50_000
+        yield SyncSample(t1, t2, t3, t3 - 5_000_000 + int(rng.exponential(2e6)) + 1_000_000)
+
+
+def _fresh_estimate(sync: ClockSync, t_ns: int):
+    sync._last_estimate = None  # the estimate computed from the fit, not the kept one
+    return sync.estimate_at(t_ns)
+
+
+def test_kept_estimate_equals_a_fresh_one_through_adds_and_steps():
+    sync = ClockSync(refit_every=3)
+    samples = list(_exchanges(400))
+    step = 40 * MS  # the RSU clock steps after 250 exchanges: suspects, then a new segment
+    samples = samples[:250] + [SyncSample(s.t1_ns, s.t2_ns + step, s.t3_ns + step, s.t4_ns) for s in samples[250:]]
+    for k, sample in enumerate(samples):
+        sync.add(sample)
+        for t in (sample.t4_ns, sample.t4_ns + 30 * MS, sample.t4_ns):
+            kept = sync.estimate_at(t)
+            assert kept == _fresh_estimate(sync, t)
+            assert sync.estimate_at(t) == kept
+    assert sync.steps_detected == 1
+
+
+def _old_arrival_probability(mon: LinkMonitor, within_ms: float) -> float:
+    """LinkMonitor.arrival_probability before its kept statistics."""
+    latencies = [a.latency_ms for a in mon._arrivals if a.latency_ms is not None]
+    if not latencies:
+        return 0.0
+    on_time = float(sum(latency <= within_ms for latency in latencies)) / len(latencies)
+    return (1.0 - (mon.loss_ratio() or 0.0)) * on_time
+
+
+def test_arrival_probability_equals_the_counting_expression_as_the_window_moves():
+    rng = np.random.default_rng(4)
+    mon = LinkMonitor(window_ns=2_000 * MS)
+    t_ns = 10**18
+    for seq in range(400):
+        t_ns += 100 * MS
+        if rng.random() < 0.1:
+            continue  # lost
+        capture = t_ns - int(rng.uniform(50, 400)) * MS // 10 * 10  # ties between latencies too
+        mon.on_message(seq, None if rng.random() < 0.05 else capture, None, t_ns)
+        latencies = [a.latency_ms for a in mon._arrivals if a.latency_ms is not None]
+        for w in [0.0, 100.0, 250.0, 1e9, *latencies[:3], float(rng.uniform(0, 500))]:
+            assert mon.arrival_probability(w) == _old_arrival_probability(mon, w)
+        if seq % 50 == 0:
+            mon.expire(t_ns + 1_500 * MS)  # most of the window leaves at once
+            assert mon.arrival_probability(200.0) == _old_arrival_probability(mon, 200.0)
+
+
+def test_recent_results_match_by_identity_and_forget_the_oldest():
+    calls = Counter()
+
+    def double(x):
+        calls[id(x)] += 1
+        return [x, x]
+
+    memo = RecentResults(double, capacity=2)
+    a, b, c = object(), object(), object()
+    assert memo(a)[0] is a and memo(a)[0] is a and calls[id(a)] == 1
+    memo(b), memo(c)
+    memo(a)  # forgotten (capacity 2): computed again
+    assert calls[id(a)] == 2 and calls[id(b)] == 1
