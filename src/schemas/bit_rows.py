@@ -11,7 +11,8 @@ import numpy as np
 
 from fusion.jit import I64, IN_I1, IN_I2, IN_U1, kernel
 
-from . import bitpack
+from . import bitpack, object_wire
+from .columns import _YAW_HALF_TURN as YAW_HALF_TURN  # yaw codes live in [-1800, 1800)
 
 
 @kernel(IN_I2, IN_I1, I64)
@@ -50,3 +51,45 @@ def unpack_rows(data: np.ndarray, n: int, widths: np.ndarray, row_bytes: int) ->
 
 
 bitpack.use_compiled(pack_rows, unpack_rows)
+
+
+@kernel(IN_U1, I64, I64, IN_I2, IN_I1, IN_I2, I64)
+def unpack_codes(data: np.ndarray, n: int, row_bytes: int, params: np.ndarray, sums: np.ndarray,
+                 code_table: np.ndarray, yaw_col: int) -> tuple[np.ndarray, int, bool]:
+    """(N, K) codes of ``n`` rows of an objects section (``object_wire.unpack_objects``), the first
+    code outside its column's range as a flat index ``i * K + j`` (-1: none; -2: an indexed position
+    past its table, which refuses the section before any range), and whether a yaw code lies outside
+    [-YAW_HALF_TURN, YAW_HALF_TURN). ``params`` (6, F) per present column f: width, column, scale, ref, table start
+    (-1: not indexed), table size; ``sums`` the tables' cumulative gaps; ``code_table`` (3, K)
+    default, lowest and highest code per column. A code is ``d * scale + ref``, ``d`` the field or,
+    indexed, ``sums[start + d] - sums[start]``; the other columns hold their default."""
+    if len(data) != n * row_bytes:
+        raise ValueError("packed rows: wrong length")
+    k = code_table.shape[1]
+    codes = np.empty((n, k), np.int64)
+    first_bad, beyond, yaw_outside = -1, False, False
+    for i in range(n):
+        for j in range(k):
+            codes[i, j] = code_table[0, j]
+        bit = 8 * row_bytes * i
+        for f in range(params.shape[1]):
+            width, value, got = params[0, f], 0, 0
+            while got < width:
+                take = min(8 - (bit & 7), width - got)
+                value |= ((np.int64(data[bit >> 3]) >> (bit & 7)) & ((1 << take) - 1)) << got
+                got, bit = got + take, bit + take
+            start = params[4, f]
+            if start >= 0:
+                if value >= params[5, f]:
+                    beyond, value = True, 0
+                else:
+                    value = sums[start + value] - sums[start]
+            codes[i, params[1, f]] = value * params[2, f] + params[3, f]
+        for j in range(k):
+            if first_bad < 0 and (codes[i, j] < code_table[1, j] or codes[i, j] > code_table[2, j]):
+                first_bad = i * k + j
+        yaw_outside |= codes[i, yaw_col] < -YAW_HALF_TURN or codes[i, yaw_col] >= YAW_HALF_TURN
+    return codes, -2 if beyond else first_bad, yaw_outside
+
+
+object_wire.use_compiled(unpack_codes)

@@ -138,6 +138,18 @@ class Layout:
         """(K,) default code per column (0 where the column is required)."""
         return np.array([s.default_code or 0 for s in self.specs], dtype=np.int64)
 
+    @cached_property
+    def required_mask(self) -> int:
+        """The required columns as a present mask (bit j: column j)."""
+        return sum(1 << j for j, s in enumerate(self.specs) if s.default is None)
+
+    @cached_property
+    def code_table(self) -> np.ndarray:
+        """(3, K) int64: ``default_codes``, ``code_lo``, ``code_hi`` (one argument of a compiled loop)."""
+        out = np.array([self.default_codes, self.code_lo, self.code_hi], dtype=np.int64)
+        out.flags.writeable = False
+        return out
+
 
 OBJECTS, FUSED = Layout(OBJECT_SPECS), Layout(FUSED_SPECS)
 _YAW_COL = COLUMN["yaw"]

@@ -18,23 +18,28 @@ bits per object, a coarser grid than the wire's (sizes every 0.1 m) is divided o
 and a column with few distinct values spread over a wide range sends ``ceil(log2 U)`` bits per
 object plus its table of values, whenever that is smaller.
 Decoding checks the layout (``MalformedMessage``) and then every code against its column's range
-(``ObjectColumns.from_codes``: ``InvalidMessage`` naming ``objects.i.column``).
+(``ObjectColumns.from_codes``: ``InvalidMessage`` naming ``objects.i.column``). Once the kernels are
+loaded (``fusion.jit.load_kernels``) one compiled loop (``schemas.bit_rows.unpack_codes``) unpacks the
+rows into codes and checks their ranges; a section it would refuse goes to ``from_codes`` for the
+very error (tests/unit/test_object_wire_paths.py: both paths against the numpy decoder).
 """
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
 
 from . import bitpack, value_tables
-from .columns import ObjectColumns, layout_of
+from .columns import COLUMN, ObjectColumns, layout_of
 from .errors import InvalidMessage, MalformedMessage
 from .limits import MAX_OBJECTS
 
 SECTION_LEN = 7
 _WIDTH_BITS, _SCALED, _INDEXED = 0x3F, 0x40, 0x80
 MAX_REF = 1 << bitpack.MAX_WIDTH  # |ref| bound: codes stay far inside int64
+_YAW_COL = COLUMN["yaw"]
 EMPTY_SECTION = (0, 0, b"", (), (), b"", value_tables.NO_TABLES)
 
 
@@ -65,7 +70,8 @@ def object_count(section: Any) -> int:
 
 
 def unpack_objects(section: Any, fused: bool) -> ObjectColumns:
-    """Validated columns of an objects section (``MalformedMessage`` for a bad layout)."""
+    """Validated columns of an objects section (``MalformedMessage`` for a bad layout). The layout is
+    read in plain Python (a section has at most 23 columns: numpy's cost per call would dominate)."""
     layout = layout_of(fused)
     n, present, widths, refs, scales, rows, tables = _fields(section)
     if n > MAX_OBJECTS:
@@ -73,23 +79,67 @@ def unpack_objects(section: Any, fused: bool) -> ObjectColumns:
     k = len(layout.specs)
     if present >> k:
         raise MalformedMessage(f"objects: present mask {present:#x} names columns beyond the {k} of this list")
-    cols = [j for j in range(k) if present >> j & 1]
-    if n and not all(present >> j & 1 for j in np.flatnonzero(layout.required)):
+    if n and present & layout.required_mask != layout.required_mask:
         raise MalformedMessage("objects: a required column (id, x, y, length, width) is missing")
+    cols = _present_columns(present)
     w, ref, scale, indexed = _descriptors(cols, widths, refs, scales)
-    tables = value_tables.ValueTables(tables, indexed, n) if indexed.any() or tables != [] else None
+    tables = value_tables.ValueTables(tables, np.array(indexed, dtype=bool), n) if any(indexed) or tables != [] \
+        else None
     _check_value_bits(w, scale, indexed, tables)
-    if len(rows) != n * bitpack.row_bytes(w):
-        raise MalformedMessage(f"objects: rows are {len(rows)} bytes, {n} objects of "
-                               f"{bitpack.row_bytes(w)} bytes expected")
+    row_bytes = -(-sum(w) // 8)
+    if len(rows) != n * row_bytes:
+        raise MalformedMessage(f"objects: rows are {len(rows)} bytes, {n} objects of {row_bytes} bytes expected")
+    if _compiled_codes is not None:
+        return _columns_compiled(layout, fused, n, rows, row_bytes, (w, cols, scale, ref), indexed, tables)
     codes = np.empty((n, k), dtype=np.int64)
     codes[:] = layout.default_codes
     if cols:
-        d = bitpack.unpack(rows, n, w)
+        d = bitpack.unpack(rows, n, np.array(w, dtype=np.int64))
         if tables is not None:
-            d[:, indexed] = tables.lookup(d[:, indexed])
-        codes[:, cols] = d * scale + ref
+            mask = np.array(indexed, dtype=bool)
+            d[:, mask] = tables.lookup(d[:, mask])
+        codes[:, list(cols)] = d * np.array(scale, dtype=np.int64) + np.array(ref, dtype=np.int64)
     return ObjectColumns.from_codes(codes, fused)
+
+
+_compiled_codes = None  # schemas.bit_rows.unpack_codes, once loaded (fusion.jit.load_kernels)
+
+
+def use_compiled(unpack_codes) -> None:
+    """From now on ``unpack_objects`` builds its codes with ``schemas.bit_rows.unpack_codes``."""
+    global _compiled_codes
+    _compiled_codes = unpack_codes
+
+
+def _columns_compiled(layout, fused: bool, n: int, rows: bytes, row_bytes: int, per_column: tuple[list, ...],
+                      indexed: list[bool], tables: value_tables.ValueTables | None) -> ObjectColumns:
+    """The codes of ``unpack_objects``' last steps (unpack, table lookup, ``d * scale + ref``, the range
+    and yaw checks of ``ObjectColumns.from_codes``) in one compiled loop; any refusal, or a yaw to
+    wrap, is left to ``from_codes`` itself (the same errors, the same canonical yaw)."""
+    starts, counts = [-1] * len(indexed), [0] * len(indexed)
+    if tables is not None:
+        at = [f for f, x in enumerate(indexed) if x]
+        for f, s, c in zip(at, tables.starts.tolist(), tables.counts.tolist()):
+            starts[f], counts[f] = s, c
+    params = np.array([*per_column, starts, counts], dtype=np.int64).reshape(6, len(indexed))
+    sums = tables.sums if tables is not None else _NO_SUMS
+    codes, bad, yaw_outside = _compiled_codes(np.frombuffer(rows, dtype=np.uint8), n, row_bytes, params, sums,
+                                              layout.code_table, _YAW_COL)
+    if bad == BEYOND_TABLE:
+        raise MalformedMessage("objects: a position beyond its indexed column's table")
+    if bad < 0 and not yaw_outside:
+        return ObjectColumns(codes, fused)  # every code checked and canonical: from_codes would keep it
+    return ObjectColumns.from_codes(codes, fused)
+
+
+BEYOND_TABLE = -2  # unpack_codes' verdict for an indexed position past its table
+_NO_SUMS = np.zeros(0, dtype=np.int64)
+
+
+@lru_cache(maxsize=256)
+def _present_columns(present: int) -> tuple[int, ...]:
+    """The column indices of a present mask, ascending (a sender's few masks, kept)."""
+    return tuple(j for j in range(present.bit_length()) if present >> j & 1)
 
 
 def _fields(section: Any) -> tuple[int, int, bytes, list, list, bytes, list]:
@@ -106,32 +156,36 @@ def _fields(section: Any) -> tuple[int, int, bytes, list, list, bytes, list]:
     return n, present, widths, refs, scales, rows, tables
 
 
-def _descriptors(cols: list[int], widths: bytes, refs: list, scales: list) -> tuple[np.ndarray, ...]:
-    """(F,) width, ref, scale and indexed flag of the F present columns."""
+def _descriptors(cols: list[int], widths: bytes, refs: list, scales: list) -> tuple[list, ...]:
+    """(F,) width, ref, scale and indexed flag of the F present columns, as lists."""
     if len(widths) != len(cols) or len(refs) != len(cols):
         raise MalformedMessage(f"objects: {len(cols)} present columns but {len(widths)} widths, {len(refs)} refs")
-    flags = np.frombuffer(widths, dtype=np.uint8)
-    w = (flags & _WIDTH_BITS).astype(np.int64)
-    scaled = (flags & _SCALED) != 0
-    if (w > bitpack.MAX_WIDTH).any():
+    w = [f & _WIDTH_BITS for f in widths]  # a bytes object iterates as its byte values
+    if w and max(w) > bitpack.MAX_WIDTH:
         raise MalformedMessage(f"objects: a column width above {bitpack.MAX_WIDTH} bits")
-    if len(scales) != int(scaled.sum()):
-        raise MalformedMessage(f"objects: {int(scaled.sum())} scaled columns but {len(scales)} scales")
-    if not all(type(r) is int and -MAX_REF <= r <= MAX_REF for r in refs):
+    scaled = [f & _SCALED != 0 for f in widths]
+    if len(scales) != sum(scaled):
+        raise MalformedMessage(f"objects: {sum(scaled)} scaled columns but {len(scales)} scales")
+    if not _ints_within(refs, -MAX_REF, MAX_REF):
         raise MalformedMessage(f"objects: refs must be integers within +-2^{bitpack.MAX_WIDTH}")
-    if not all(type(s) is int and 2 <= s <= MAX_REF for s in scales):
+    if not _ints_within(scales, 2, MAX_REF):
         raise MalformedMessage(f"objects: scales must be integers in 2..2^{bitpack.MAX_WIDTH}")
-    scale = np.ones(len(cols), dtype=np.int64)
-    scale[scaled] = scales
-    return w, np.array(refs, dtype=np.int64), scale, (flags & _INDEXED) != 0
+    given = iter(scales)
+    scale = [next(given) if x else 1 for x in scaled]
+    return w, list(refs), scale, [f & _INDEXED != 0 for f in widths]
 
 
-def _check_value_bits(w: np.ndarray, scale: np.ndarray, indexed: np.ndarray,
+def _ints_within(values: list, lo: int, hi: int) -> bool:
+    """Every value a plain ``int`` (not a bool, not a float) in [lo, hi] (an empty list: True)."""
+    return not values or ({*map(type, values)} == {int} and lo <= min(values) and max(values) <= hi)
+
+
+def _check_value_bits(w: list[int], scale: list[int], indexed: list[bool],
                       tables: value_tables.ValueTables | None) -> None:
     """No code can overflow: ``ref + d * scale`` with ``d < 2^b`` (``b``: the width, or the bits of an
     indexed column's largest value) and ``b + bits(scale) <= 49`` stays below 2^50."""
-    b = w.copy()
-    if tables is not None:
-        b[indexed] = bitpack.bit_lengths(tables.top)
-    if (b + bitpack.bit_lengths(scale) > bitpack.MAX_WIDTH + 1).any():
-        raise MalformedMessage(f"objects: a column's values and scale exceed {bitpack.MAX_WIDTH} bits")
+    tops = iter(tables.top.tolist() if tables is not None else ())
+    for w_j, scale_j, indexed_j in zip(w, scale, indexed):
+        b = next(tops).bit_length() if indexed_j else w_j
+        if b + scale_j.bit_length() > bitpack.MAX_WIDTH + 1:
+            raise MalformedMessage(f"objects: a column's values and scale exceed {bitpack.MAX_WIDTH} bits")

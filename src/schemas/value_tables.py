@@ -86,6 +86,11 @@ class ValueTables:
         if (self.top >= _MAX_VALUE).any():
             raise MalformedMessage(f"objects: a table value above 2^{bitpack.MAX_WIDTH}")
 
+    @property
+    def sums(self) -> np.ndarray:
+        """(M,) int64 cumulative sum of every table's gaps: ``T_k = sums[s + k] - sums[s]``."""
+        return self._c
+
     def lookup(self, positions: np.ndarray) -> np.ndarray:
         """(N, K) values of the K indexed columns' (N, K) ``positions``."""
         if (positions >= self.counts).any():
