@@ -51,7 +51,9 @@ import math
 
 import numpy as np
 
-from .jit import I64, IN_F1, IN_F2, IN_F3, IN_I1, OUT_F2, OUT_F3, helper, kernel
+from schemas.messages import UNKNOWN_VELOCITY_VAR  # per-axis velocity variance meaning "no velocity"
+
+from .jit import B1, I64, IN_F1, IN_F2, IN_F3, IN_I1, OUT_F2, OUT_F3, helper, kernel
 
 W_MIN = 1e-6  # smallest weight of the track (full observations: w -> 0 takes the estimate)
 W_TOL = 1e-12  # Newton stops once a step is below this (module docstring)
@@ -270,6 +272,31 @@ def _fuse_rows(x: np.ndarray, p: np.ndarray, rows: np.ndarray, z: np.ndarray, r:
     for k in range(rows.shape[0]):  # every weight from the prior covariances before any update
         w[k] = _weight(p[rows[k]], r[k], 0)
     _update_each(x, p, rows, z, r, w, 0)
+
+
+@kernel(OUT_F2, OUT_F3, IN_I1, IN_F2, IN_F3, IN_F2, IN_F3, IN_I1, B1)
+def ci_fuse_objects(x: np.ndarray, p: np.ndarray, rows: np.ndarray, xy: np.ndarray, cov_xy: np.ndarray,
+                    vxy: np.ndarray, cov_vxy: np.ndarray, cols: np.ndarray, velocity: bool) -> None:
+    """CI of the tracks rows (K,) of a table x (N, n), P (N, n, n) with the objects cols (K,) of a list (xy (M, 2),
+    cov_xy, vxy, cov_vxy (M, 2, 2)), in place: z = xy, R = cov_xy, or with ``velocity`` where the object measured
+    one (trace cov_vxy < UNKNOWN_VELOCITY_VAR, ``ObjectArray.velocity_known``) z = [xy, vxy],
+    R = blockdiag(cov_xy, cov_vxy); ``ci_fuse_rows`` of each pair (every weight from the prior covariances)."""
+    n_pairs = rows.shape[0]
+    w, dim = np.empty(n_pairs), np.empty(n_pairs, np.int64)
+    z, r = np.zeros((n_pairs, 4)), np.zeros((n_pairs, 4, 4))  # pair k: z[k, :m], R[k, :m, :m], m = dim[k]
+    for k in range(n_pairs):
+        j = cols[k]
+        m = 4 if velocity and cov_vxy[j, 0, 0] + cov_vxy[j, 1, 1] < UNKNOWN_VELOCITY_VAR else 2
+        for a in range(2):
+            z[k, a], z[k, 2 + a] = xy[j, a], vxy[j, a]
+            for b in range(2):
+                r[k, a, b], r[k, 2 + a, 2 + b] = cov_xy[j, a, b], cov_vxy[j, a, b]
+        dim[k] = m
+        w[k] = _weight(p[rows[k]], r[k, :m, :m], 0)
+    for k in range(n_pairs):
+        if w[k] < 1.0:
+            m = dim[k]
+            _update_pair(x[rows[k]], p[rows[k]], z[k, :m], r[k, :m, :m], w[k], 0)
 
 
 def covariance_intersection(x1: np.ndarray, p1: np.ndarray, x2: np.ndarray, p2: np.ndarray,

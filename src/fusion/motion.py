@@ -18,7 +18,14 @@ def predict_cv(objs: ObjectArray, dt_s) -> ObjectArray:
 
 
 def predict_ca(objs: ObjectArray, dt_s) -> ObjectArray:
-    """Constant acceleration: p += v dt + a dt^2 / 2, v += a dt."""
+    """Constant acceleration: p += v dt + a dt^2 / 2, v += a dt. ``dt_s`` scalar or (N,) seconds."""
+    if isinstance(dt_s, (float, int)):  # one step for all: the broadcast column's sums, without broadcasting
+        dt, zero = np.float64(dt_s), np.float64(0.0)  # numpy scalars: float64 results, as with a float64 column
+        return objs.with_(
+            xy=objs.xy + objs.vxy * dt + 0.5 * objs.axy * (dt * dt),  # dt^2 of a float64 column is dt * dt
+            vxy=objs.vxy + objs.axy * dt,
+            age_s=objs.age_s + max(dt, zero),  # np.maximum(dt, 0): dt unless 0 > dt (NaN and -0.0 stay)
+        )
     dt = np.broadcast_to(np.asarray(dt_s, dtype=float), (len(objs),))[:, None]
     return objs.with_(
         xy=objs.xy + objs.vxy * dt + 0.5 * objs.axy * dt**2,

@@ -68,12 +68,22 @@ class ObjectArray:
         )
 
     def take(self, index) -> "ObjectArray":
-        """Rows selected by an index, index array or boolean mask (always an ObjectArray)."""
+        """Rows selected by an index, index array or boolean mask (always an ObjectArray).
+
+        A mask of the N rows or a 1-D integer index gathers every column with ``ndarray.take``
+        (one mask scan, then ~0.3 us a column against ~0.6-0.8 us for indexing: the same rows);
+        anything else is each column's ``column[index]``."""
         if np.ndim(index) == 0:
             index = [index]
+        rows = np.asarray(index)
+        if rows.dtype == bool and rows.shape == self.ids.shape:
+            rows = rows.nonzero()[0]
         columns = self.__dict__
         out = object.__new__(ObjectArray)  # every column indexed alike: rows agree, no __post_init__ needed
-        out.__dict__.update({name: columns[name][index] for name in _FIELDS})
+        if rows.dtype.kind == "i" and rows.ndim == 1:
+            out.__dict__.update({name: columns[name].take(rows, axis=0) for name in _FIELDS})
+        else:
+            out.__dict__.update({name: columns[name][index] for name in _FIELDS})
         return out
 
     def with_(self, **changes) -> "ObjectArray":
@@ -81,8 +91,9 @@ class ObjectArray:
         column (new ids included) is an array of the N rows the others have, only those are checked
         (the rest were at __init__: rows still agree)."""
         n = len(self.ids)
-        if not all(name in _FIELD_SET and value is not None and len(value) == n for name, value in changes.items()):
-            return replace(self, **changes)  # a default, a bad column or other row counts: validate everything
+        for name, value in changes.items():
+            if name not in _FIELD_SET or value is None or len(value) != n:
+                return replace(self, **changes)  # a default, a bad column or other row counts: validate everything
         out = object.__new__(ObjectArray)
         out.__dict__.update(self.__dict__)
         out.__dict__.update(changes)

@@ -207,3 +207,30 @@ def record_matches(cls, z, lwh, yaw, shape_var, shape_s, confidence, hits, confi
         for b in range(seen_s.shape[1]):
             if det_cols[j, b]:
                 seen_s[i, b] = t_s
+
+
+@kernel(IN_F2, IN_I1, IN_B2, IN_I1, IN_I1, I64, F64, F64)
+def estimate_rules(seen_s, ti, det_cols, di, col_values, intersecting_mask, t_s, max_coast_s):
+    """The fusion rule of each pair (track ti[k], estimate di[k]) (``fusion.tracking``'s module docstring), from
+    the sources outside the estimate's bits (det_cols (M, B) False) that updated the track within max_coast_s
+    (t_s - seen_s <= max_coast_s): none: rule 1 (alone); one whose column value (col_values (B,)) has a bit
+    of intersecting_mask: rule 2 (intersect); else rule 3. Returns (order (K,), n_alone, n_intersect):
+    the pair indices of rule 1, then rule 2, then rule 3, each group in pair order."""
+    n = len(ti)
+    rule = np.zeros(n, np.int64)
+    count = np.zeros(3, np.int64)
+    for k in range(n):
+        i, j = ti[k], di[k]
+        for b in range(seen_s.shape[1]):
+            if not det_cols[j, b] and t_s - seen_s[i, b] <= max_coast_s:  # another source, recently
+                if col_values[b] & intersecting_mask:
+                    rule[k] = 1
+                    break
+                rule[k] = 2
+        count[rule[k]] += 1
+    order = np.empty(n, np.int64)
+    start = np.array([0, count[0], count[0] + count[1]])
+    for k in range(n):
+        order[start[rule[k]]] = k
+        start[rule[k]] += 1
+    return order, count[0], count[1]

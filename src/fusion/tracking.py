@@ -82,8 +82,8 @@ from typing import Literal
 import numpy as np
 
 from . import kalman
-from .covariance_intersection import ci_fuse_rows
-from .fastnp import any_true, true_index
+from .covariance_intersection import ci_fuse_objects
+from .fastnp import any_true
 from .frames import wrap_angle
 from .gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
     GatedPairs,
@@ -96,7 +96,7 @@ from .gating import (  # noqa: F401  (re-exported: association is part of the tr
     paired_bev_iou,
 )
 from .objects import ObjectArray
-from .track_table import SOURCE_BITS, TrackStore, TrackTable, record_matches
+from .track_table import SOURCE_BITS, TrackStore, TrackTable, estimate_rules, record_matches
 
 _BIT_VALUES = 1 << np.arange(SOURCE_BITS)
 
@@ -229,48 +229,51 @@ class Tracker:
         tab = self._table
         result = associate(self.config, tab, dets)
         ti, di = result.matches[:, 0], result.matches[:, 1]
-        known = dets.velocity_known()
-        k, other = 0, None
-        if estimates and len(ti):  # (K, B) sources outside the estimate's bits that updated the track recently
-            # (multi-column gathers as .take(index, axis=0): a fraction of fancy indexing's cost on small batches;
-            # ufunc reductions: the array methods add a Python-level wrapper)
-            other = ((t_s - tab.seen_s.take(ti, axis=0)) <= self.config.max_coast_s) & ~cols.take(di, axis=0)
-            shared_any = np.logical_or.reduce(other, axis=1)
-            k = len(ti) - int(np.count_nonzero(shared_any))  # alone: no other source
+        k = n_ci = 0
+        if estimates and len(ti):  # pairs by rule (module docstring): k alone, n_ci to intersect, the rest
+            order, k, n_ci = estimate_rules(tab.seen_s, ti, cols, di, self._store.col_values,
+                                            self._intersecting_mask(), t_s, self.config.max_coast_s)
+            ti, di = ti.take(order), di.take(order)
         # one initialisation, from the detection alone, for the tracks an estimate replaces and the new tracks
         start = result.unmatched_b
         if k:
-            alone, rest = true_index(~shared_any), true_index(shared_any)
-            start = np.concatenate([di.take(alone), start])
-        inputs = filter_inputs(dets, start)
-        x0, p0 = self.model.initial(inputs, self._prior)
+            start = np.concatenate([di[:k], start])
+        x0, p0, measured = self._initial(dets, start)
         if k:
-            replaced = ti.take(alone)
+            replaced = ti[:k]
             tab.x[replaced], tab.p[replaced] = x0[:k], p0[:k]
-            ti, di, other = ti.take(rest), di.take(rest), other.take(rest, axis=0)
+            ti, di = ti[k:], di[k:]
         if len(ti):
-            self._fuse(ti, di, other, dets, known, t_s, estimates)
+            self._fuse(ti, di, n_ci, dets, t_s, estimates)
         shape = _Shape(dets)
         self._record(result.matches[:, 0], result.matches[:, 1], dets, cols, shape, t_s, estimates)
-        measured = inputs.velocity_measured(self._prior.speed_std_mps)[k:]
-        self._spawn(dets, result.unmatched_b, cols, shape, t_s, x0[k:], p0[k:], estimates, ~measured)
+        self._spawn(dets, result.unmatched_b, cols, shape, t_s, x0[k:], p0[k:], estimates, ~measured[k:])
 
-    def _fuse(self, ti: np.ndarray, di: np.ndarray, other: np.ndarray | None, dets: ObjectArray, known: np.ndarray,
-              t_s: float, estimates: bool) -> None:
-        """Matched pairs (ti, di) that no estimate replaced: covariance intersection where another estimate
-        source shares the track (other (K, B) as in ``update``), two-point initialisation, else a Kalman update."""
-        if estimates and self.config.estimate_fusion != "kf":
-            if self.config.estimate_fusion == "ci-all":  # every track another source shares
-                self._intersect(ti, di, dets, known)
+    def _initial(self, dets: ObjectArray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x (K, n), P (K, n, n) of tracks started from the detections dets[index] alone (``MotionModel.initial``)
+        and (K,) True where their velocity was measured; most updates start none, and skip the model."""
+        if not len(index):
+            dim = self.model.dim_x
+            return np.zeros((0, dim)), np.zeros((0, dim, dim)), np.zeros(0, bool)
+        inputs = filter_inputs(dets, index)
+        x0, p0 = self.model.initial(inputs, self._prior)
+        return x0, p0, inputs.velocity_measured(self._prior.speed_std_mps)
+
+    def _intersecting_mask(self) -> int:
+        """Bits of the sources whose recent update of a track makes an estimate intersect it (rule 2; int64):
+        the sources that delivered estimates (``ci``), every source (``ci-all``), none (``kf``: rule 3 instead)."""
+        fusion = self.config.estimate_fusion
+        return self._estimate_mask if fusion == "ci" else (-1 if fusion == "ci-all" else 0)
+
+    def _fuse(self, ti: np.ndarray, di: np.ndarray, n_ci: int, dets: ObjectArray, t_s: float, estimates: bool) -> None:
+        """Matched pairs (ti, di) that no estimate replaced: covariance intersection of the first n_ci (estimates
+        into a track another estimate source shares), then two-point initialisation, else a Kalman update."""
+        if n_ci:
+            self._intersect(ti[:n_ci], di[:n_ci], dets)
+            ti, di = ti[n_ci:], di[n_ci:]
+            if not len(ti):
                 return
-            shared = np.logical_or.reduce(other & ((self._store.col_values & self._estimate_mask) != 0), axis=1)
-            n_shared = int(np.count_nonzero(shared))
-            if n_shared == len(ti):
-                self._intersect(ti, di, dets, known)
-                return
-            if n_shared:
-                self._intersect(ti[shared], di[shared], dets, known)
-                ti, di = ti[~shared], di[~shared]
+        known = dets.velocity_known()
         pair = self._second_positions(ti, di, known, t_s)
         if pair is not None:
             self._two_point(ti[pair], di[pair], dets, t_s)
@@ -330,21 +333,13 @@ class Tracker:
         if self._t_s is not None and t_s < self._t_s:
             raise ValueError(f"t_s={t_s} precedes the filter time {self._t_s}; use fusion.oosm.OosmTracker")
 
-    def _intersect(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, known: np.ndarray) -> None:
+    def _intersect(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray) -> None:
         """Covariance intersection of tracks ti with estimates di: the position, or the position and
-        velocity where the estimate measured one (known (M,); CV / CA with velocity_updates), one w per track."""
+        velocity where the estimate measured one (CV / CA with velocity_updates), one w per track
+        (``covariance_intersection.ci_fuse_objects``)."""
         tab = self._table
-        n_v = 0
-        if self.config.velocity_updates and self.config.motion in ("cv", "ca"):
-            with_v = known.take(di)
-            n_v = int(np.count_nonzero(with_v))
-        if n_v in (0, len(ti)):  # one group: position only, or position and velocity
-            groups = ((ti, di, n_v > 0),)
-        else:
-            groups = ((ti[~with_v], di[~with_v], False), (ti[with_v], di[with_v], True))
-        for t, d, velocity in groups:
-            z, r = _position_velocity(dets, d) if velocity else (dets.xy.take(d, axis=0), dets.cov_xy.take(d, axis=0))
-            ci_fuse_rows(tab.x, tab.p, t, z, r)
+        velocity = self.config.velocity_updates and self.config.motion in ("cv", "ca")
+        ci_fuse_objects(tab.x, tab.p, ti, dets.xy, dets.cov_xy, dets.vxy, dets.cov_vxy, di, velocity)
 
     def _second_positions(self, ti: np.ndarray, di: np.ndarray, known: np.ndarray, t_s: float) -> np.ndarray | None:
         """(K,) True where the pair (track ti, detection di) is a two-point initialisation: the track
@@ -433,13 +428,6 @@ class _Shape:
     def __init__(self, dets: ObjectArray):
         c = dets.cov_xy
         self.var_m2, self.yaw_rad = c[:, 0, 0] + c[:, 1, 1], wrap_angle(dets.yaw)
-
-
-def _position_velocity(dets: ObjectArray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """z (K, 4) = [x, y, vx, vy] and R (K, 4, 4) = blockdiag(cov_xy, cov_vxy) of dets[index]."""
-    r = np.zeros((len(index), 4, 4))
-    r[:, :2, :2], r[:, 2:, 2:] = dets.cov_xy.take(index, axis=0), dets.cov_vxy.take(index, axis=0)
-    return np.concatenate([dets.xy.take(index, axis=0), dets.vxy.take(index, axis=0)], axis=1), r
 
 
 def filter_inputs(dets: ObjectArray, index: np.ndarray) -> kalman.Measured:

@@ -138,11 +138,7 @@ class KalmanFusion:
     def _update(self, dets: ObjectArray, t_s: float, sources, estimates: bool = False) -> None:
         """One batch into the tracker; ``sources``: the batch's bitmask, or its objects' (K,) masks."""
         mask = sources if isinstance(sources, int) else int(np.bitwise_or.reduce(np.atleast_1d(sources)))
-        if isinstance(self.tracker, OosmTracker):
-            self.tracker.update(dets, t_s, mask, estimates)
-        else:
-            self.tracker.predict(t_s)
-            self.tracker.update(dets, t_s, mask, estimates)
+        self.tracker.update(dets, t_s, mask, estimates)  # Tracker.update predicts to t_s first
 
     def _tracks(self, t_s: float) -> ObjectArray:
         if isinstance(self.tracker, OosmTracker):

@@ -41,3 +41,35 @@ def test_with_replaces_columns_and_still_refuses_a_wrong_row_count():
     with pytest.raises(TypeError):
         objs.with_(colour=np.ones(3))
     assert objs.with_(confidence=None).confidence.tolist() == [1.0, 1.0, 1.0]  # None: the default again
+
+
+def _random_objects(n: int, rng: np.random.Generator) -> ObjectArray:
+    return ObjectArray(ids=rng.integers(0, 1000, n), cls=rng.integers(0, 5, n), xy=rng.normal(size=(n, 2)),
+                       z=rng.normal(size=n), lwh=rng.random((n, 3)), yaw=rng.normal(size=n),
+                       vxy=rng.normal(size=(n, 2)),
+                       axy=rng.normal(size=(n, 2)), yaw_rate=rng.normal(size=n), cov_xy=rng.normal(size=(n, 2, 2)),
+                       confidence=rng.random(n), cov_vxy=rng.normal(size=(n, 2, 2)), age_s=rng.random(n),
+                       sources=rng.integers(0, 8, n))
+
+
+@pytest.mark.parametrize("index", [
+    np.array([True, False, True, True, False, False, True]), [False] * 7, [2, 0, 6, 6],
+    np.array([-1, 3], np.int64), np.array([4], np.int32), 5, np.int64(-2), [], np.zeros(0, np.int64),
+    [True, False, True, False, False, False, True]])
+def test_take_selects_the_rows_each_column_indexing_selects(index):
+    objs = _random_objects(7, np.random.default_rng(3))
+    expected = {name: np.asarray(getattr(objs, name))[[index] if np.ndim(index) == 0 else index]
+                for name in objs.__dataclass_fields__}
+    taken = objs.take(index)
+    for name, column in expected.items():
+        got = getattr(taken, name)
+        assert got.dtype == column.dtype and got.shape == column.shape, name
+        np.testing.assert_array_equal(got, column)
+
+
+def test_take_refuses_what_indexing_refuses():
+    objs = _random_objects(4, np.random.default_rng(4))
+    with pytest.raises(IndexError):
+        objs.take(np.array([True, False]))  # a mask of another length
+    with pytest.raises(IndexError):
+        objs.take([4])

@@ -1,0 +1,76 @@
+"""The tracker's compiled estimate rules and CI of object lists equal the numpy expressions they replaced,
+bit for bit."""
+
+import numpy as np
+import pytest
+
+from fusion.covariance_intersection import ci_fuse_objects, ci_fuse_rows
+from fusion.track_table import estimate_rules
+from schemas.messages import UNKNOWN_VELOCITY_VAR
+
+
+def _reference_rules(seen_s, ti, cols, di, col_values, mask, t_s, max_coast_s):
+    """Tracker.update's former numpy expressions: (order, n_alone, n_intersect)."""
+    other = ((t_s - seen_s.take(ti, axis=0)) <= max_coast_s) & ~cols.take(di, axis=0)
+    shared_any = np.logical_or.reduce(other, axis=1)
+    shared = np.logical_or.reduce(other & ((col_values & mask) != 0), axis=1)
+    alone, ci = np.flatnonzero(~shared_any), np.flatnonzero(shared_any & shared)
+    rest = np.flatnonzero(shared_any & ~shared)
+    return np.concatenate([alone, ci, rest]), len(alone), len(ci)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_estimate_rules_group_the_pairs_as_the_numpy_expressions(seed):
+    rng = np.random.default_rng(seed)
+    n_tracks, n_dets, n_bits = int(rng.integers(1, 12)), int(rng.integers(1, 12)), int(rng.integers(1, 6))
+    t_s, max_coast_s = 10.0, 0.6
+    seen_s = np.where(rng.random((n_tracks, n_bits)) < 0.3, -np.inf, t_s - rng.choice([0.0, 0.3, 0.6, 0.7, 2.0],
+                                                                                      (n_tracks, n_bits)))
+    cols = rng.random((n_dets, n_bits)) < 0.3
+    col_values = np.int64(1) << rng.permutation(8)[:n_bits].astype(np.int64)
+    k = int(rng.integers(0, min(n_tracks, n_dets) + 1))
+    ti, di = rng.permutation(n_tracks)[:k].astype(np.int64), rng.permutation(n_dets)[:k].astype(np.int64)
+    for mask in (int(rng.integers(0, 256)), -1, 0):
+        order, n_alone, n_ci = estimate_rules(seen_s, ti, cols, di, col_values, mask, t_s, max_coast_s)
+        want = _reference_rules(seen_s, ti, cols, di, col_values, mask, t_s, max_coast_s)
+        assert order.tolist() == want[0].tolist() and (n_alone, n_ci) == want[1:]
+
+
+def _spd(rng, k, d, scale):
+    a = rng.normal(size=(k, d, d)) * scale
+    return a @ a.transpose(0, 2, 1) + 1e-3 * np.eye(d)
+
+
+def _reference_intersect(x, p, rows, xy, cov_xy, vxy, cov_vxy, cols, velocity):
+    """Tracker._intersect's former body: position-only and position-velocity groups through ci_fuse_rows."""
+    known = cov_vxy[:, 0, 0] + cov_vxy[:, 1, 1] < UNKNOWN_VELOCITY_VAR
+    with_v = known.take(cols) if velocity else np.zeros(len(cols), bool)
+    for v in (False, True):
+        t, d = rows[with_v == v], cols[with_v == v]
+        if v:
+            r = np.zeros((len(d), 4, 4))
+            r[:, :2, :2], r[:, 2:, 2:] = cov_xy.take(d, axis=0), cov_vxy.take(d, axis=0)
+            z = np.concatenate([xy.take(d, axis=0), vxy.take(d, axis=0)], axis=1)
+        else:
+            z, r = xy.take(d, axis=0), cov_xy.take(d, axis=0)
+        ci_fuse_rows(x, p, t, z, r)
+
+
+@pytest.mark.parametrize("seed", range(60))
+def test_ci_fuse_objects_is_the_grouped_ci_fuse_rows_bit_for_bit(seed):
+    rng = np.random.default_rng(seed)
+    n_tracks, n_dets, dim = int(rng.integers(1, 10)), int(rng.integers(1, 10)), int(rng.choice([4, 6]))
+    x, p = rng.normal(0, 20, (n_tracks, dim)), _spd(rng, n_tracks, dim, rng.choice([0.1, 1.0, 5.0]))
+    xy, vxy = rng.normal(0, 20, (n_dets, 2)), rng.normal(0, 5, (n_dets, 2))
+    cov_xy, cov_vxy = _spd(rng, n_dets, 2, rng.choice([0.05, 1.0, 10.0])), _spd(rng, n_dets, 2, 0.5)
+    cov_vxy[rng.random(n_dets) < 0.4] = np.eye(2) * UNKNOWN_VELOCITY_VAR  # no velocity measured
+    if seed % 7 == 0:
+        cov_xy[0, 0, 0] = np.nan  # a broken covariance: w = 1, no update
+    k = int(rng.integers(0, min(n_tracks, n_dets) + 1))
+    rows, cols = rng.permutation(n_tracks)[:k].astype(np.int64), rng.permutation(n_dets)[:k].astype(np.int64)
+    for velocity in (True, False):
+        got_x, got_p, want_x, want_p = x.copy(), p.copy(), x.copy(), p.copy()
+        ci_fuse_objects(got_x, got_p, rows, xy, cov_xy, vxy, cov_vxy, cols, velocity)
+        _reference_intersect(want_x, want_p, rows, xy, cov_xy, vxy, cov_vxy, cols, velocity)
+        np.testing.assert_array_equal(got_x, want_x)
+        np.testing.assert_array_equal(got_p, want_p)
