@@ -14,6 +14,7 @@ from __future__ import annotations
 import itertools
 import statistics
 from dataclasses import dataclass
+from functools import cached_property
 from operator import attrgetter, is_
 
 from fusion.objects import ObjectArray
@@ -51,6 +52,11 @@ class Placement:
         return ((self.estimate is est or self.estimate == est) and len(self.frames) == len(frames)
                 and all(map(is_, self.frames, frames)))  # (each frame the very same object)
 
+    @cached_property
+    def period_ns(self) -> int:
+        """``rsu_period_ns`` of these frames (asked each cycle by intra_slots and intra)."""
+        return _median_period_ns(self.frames)
+
 
 class ModeInputs:
     """Which RSU data each mode can use; ``config`` is the OBU pipeline's configuration."""
@@ -63,15 +69,19 @@ class ModeInputs:
         sync. A frame valid later than its own arrival (beyond the clock uncertainty and the
         future tolerance) is left out: it was admitted before the clock was known. The answer
         is reused while the RSU's estimate at t_ns and its frames are unchanged."""
+        placement = self._placement(state, t_ns)
+        return [] if placement is None else list(placement.placed)
+
+    def _placement(self, state: RsuState, t_ns: int) -> Placement | None:
+        """``placed``'s answer as kept in ``state.placement`` (None before sync)."""
         est = state.sync.estimate_at(t_ns)
         if est is None:
-            return []
+            return None
         last = state.placement  # a cycle asks about 6 times (intra_slots, intra, inter, consume)
         if last is not None and last.holds(est, state.frames):
-            return list(last.placed)
-        placed = self._place(state, est)
-        state.placement = Placement(est, tuple(state.frames), tuple(placed))
-        return placed
+            return last
+        state.placement = Placement(est, tuple(state.frames), tuple(self._place(state, est)))
+        return state.placement
 
     def _place(self, state: RsuState, est) -> list[tuple[Received, RsuFrame]]:
         tolerance_ns = est.uncertainty_ns + self.config.future_tolerance_ms * 1e6
@@ -110,9 +120,10 @@ class ModeInputs:
             state = self.rsus.get(rsu_id)
             if state is None:  # expired meanwhile
                 return [], []
-            period_ns = rsu_period_ns(state)
-            match = [(raw, f) for raw, f in self.placed(state, capture_ns)
-                     if abs(f.capture_ns - slot_ns) < period_ns / 2]
+            placement = self._placement(state, capture_ns)
+            period_ns = rsu_period_ns(state) if placement is None else placement.period_ns
+            match = [] if placement is None else [(raw, f) for raw, f in placement.placed
+                                                  if abs(f.capture_ns - slot_ns) < period_ns / 2]
             if not match:
                 return [], []
             raw, frame = max(match, key=lambda m: m[1].valid_ns)
@@ -133,12 +144,12 @@ class ModeInputs:
         """
         slots = {}
         for state in self.rsus:
-            est = state.sync.estimate_at(t_c)
-            if est is None:
+            placement = self._placement(state, t_c)
+            if placement is None:
                 continue
-            period_ns = rsu_period_ns(state)
+            est, period_ns = placement.estimate, placement.period_ns
             reach_ns = t_c + min(max(est.uncertainty_ns, MIN_SLOT_TOLERANCE_NS), period_ns // 2)
-            captures = [f.capture_ns for _, f in self.placed(state, t_c) if f.capture_ns <= reach_ns]
+            captures = [f.capture_ns for _, f in placement.placed if f.capture_ns <= reach_ns]
             if not captures:
                 continue
             last_ns = max(captures)
@@ -178,7 +189,11 @@ _valid_rsu_ns = attrgetter("valid_rsu_ns")
 def rsu_period_ns(state: RsuState) -> int:
     """Median interval between the RSU's distinct captures (RSU clock; drift is negligible
     here), at least 1 ms. (At most ``frames_kept`` captures: plain Python beats numpy here.)"""
-    captures = sorted({f.capture_rsu_ns for f in state.frames})
+    return _median_period_ns(state.frames)
+
+
+def _median_period_ns(frames) -> int:
+    captures = sorted({f.capture_rsu_ns for f in frames})
     if len(captures) < 2:
         return DEFAULT_RSU_PERIOD_NS
     return max(int(statistics.median(b - a for a, b in itertools.pairwise(captures))), 1_000_000)

@@ -63,7 +63,7 @@ from .admission import Admission
 from .clock_sync import OffsetEstimate
 from .methods import RsuFrame
 from .mode_inputs import ModeInputs, Received
-from .rsu_table import RecentResults, RsuState, RsuTable
+from .rsu_table import RSU_ID_BASE, RecentResults, RsuState, RsuTable
 from .time_requests import TimeRequests
 
 MAX_PEERS = 8  # peer slots (tracker source bits) an OBU gives to V2V peers by default
@@ -248,6 +248,4 @@ def _own_in_map(msg: FusedObjectList) -> tuple[ObjectArray, int]:
 
 def _slot_ids(state: RsuState, ids: np.ndarray) -> np.ndarray:
     """Output ids of a slot's objects: RSU_ID_BASE * (slot + 1) + id mod base (as RSU objects)."""
-    from .pipeline import RSU_ID_BASE
-
     return RSU_ID_BASE * (state.index + 1) + np.mod(ids, RSU_ID_BASE)

@@ -44,12 +44,11 @@ from .methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_fusion, make
 from .mode_inputs import ModeInputs, Received
 from .peers import MAX_PEERS, PeerIntake
 from .planning import objects_at, retimed
-from .rsu_table import RecentResults, RsuState, RsuTable
+from .rsu_table import RSU_ID_BASE, RecentResults, RsuState, RsuTable
 from .time_requests import TimeRequests
 
-__all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "ObuPipeline", "ObuPipelineConfig"]
+__all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "RSU_ID_BASE", "ObuPipeline", "ObuPipelineConfig"]
 
-RSU_ID_BASE = 1_000_000  # output ids of RSU objects: RSU_ID_BASE * (rsu index + 1) + RSU track id mod base
 MAX_RSUS = SOURCE_BITS - 1  # RSU slots (known + unknown): one tracker source bit each (62; metrics list <= 64)
 # an RSU list's objects (map) as received: the same for every vehicle that hears it (read-only, shared)
 _rsu_objects = RecentResults(lambda columns: read_only(objects_from_states(columns)))
