@@ -71,23 +71,23 @@ def _greedy_match(dist: np.ndarray, rank: np.ndarray, threshold_m: float) -> np.
     return _greedy_matches(dist, rank, [threshold_m])[0]
 
 
-def _greedy_matches(dist: np.ndarray, rank: np.ndarray, thresholds_m: Sequence[float]) -> list[np.ndarray]:
-    """``_greedy_match`` at each threshold, (P,) bool each; the rows' nearest truths are found once."""
+def _greedy_matches(dist: np.ndarray, rank: np.ndarray, thresholds_m: Sequence[float]) -> np.ndarray:
+    """``_greedy_match`` at each threshold, (T, P) bool (row t: thresholds_m[t]); the rows' nearest
+    truths are found once."""
     n_pred, n_truth = dist.shape
     if n_truth == 0 or n_pred == 0:
-        return [np.zeros(n_pred, dtype=bool) for _ in thresholds_m]
+        return np.zeros((len(thresholds_m), n_pred), dtype=bool)
     row_min, nearest = dist.min(axis=1), dist.argmin(axis=1)
+    # (T, P): each threshold's candidates, all true positives when their nearest truths differ
+    tp = row_min < np.asarray(thresholds_m, dtype=float)[:, None]
     widest = nearest[row_min < max(thresholds_m)].tolist()
     if len(set(widest)) == len(widest):  # no two candidates share a truth at the widest threshold: nor at a narrower
-        return [row_min < th for th in thresholds_m]
-    out = []
-    for th in thresholds_m:
-        tp = row_min < th  # the candidates; all true positives when their nearest truths differ
-        taken = nearest[tp].tolist()
+        return tp
+    for k, th in enumerate(thresholds_m):
+        taken = nearest[tp[k]].tolist()
         if len(set(taken)) < len(taken):
-            tp = _greedy_walk(dist, rank, th, np.flatnonzero(tp), np.zeros(n_pred, dtype=bool))
-        out.append(tp)
-    return out
+            tp[k] = _greedy_walk(dist, rank, th, np.flatnonzero(tp[k]), np.zeros(n_pred, dtype=bool))
+    return tp
 
 
 def _greedy_walk(dist: np.ndarray, rank: np.ndarray, threshold_m: float, candidates: np.ndarray,
@@ -215,25 +215,31 @@ class CenterDistanceAp:
                                   for b in range(len(self.range_bins_m))],
                                  dtype=np.uint64).reshape(len(self.range_bins_m), -1)
 
-    def add_frame(self, truth_xy: np.ndarray, pred_xy: np.ndarray, confidence: np.ndarray) -> None:
-        """One frame: truth centres (G, 2), prediction centres (P, 2) m, confidences (P,)."""
+    def add_frame(self, truth_xy: np.ndarray, pred_xy: np.ndarray, confidence: np.ndarray,
+                  cost_m: np.ndarray | None = None) -> None:
+        """One frame: truth centres (G, 2), prediction centres (P, 2) m, confidences (P,); ``cost_m``:
+        their centre distances (G, P) m when the caller has them (``center_distance_cost``)."""
         truth_xy, pred_xy = np.reshape(truth_xy, (-1, 2)), np.reshape(pred_xy, (-1, 2))
         confidence = np.asarray(confidence, dtype=float)
+        if cost_m is None:
+            cost_m = center_distance_cost(truth_xy, pred_xy) if len(truth_xy) and len(pred_xy) else \
+                np.zeros((len(truth_xy), len(pred_xy)))
         rank = np.empty(len(confidence), dtype=np.int64)
         rank[_confidence_order(confidence)] = np.arange(len(confidence))
         flags = np.zeros(len(confidence), dtype=np.uint64)
-        stride = 1 + len(self.thresholds_m)
         d_truth, d_pred = np.hypot(truth_xy[:, 0], truth_xy[:, 1]), np.hypot(pred_xy[:, 0], pred_xy[:, 1])
         for b, (lo, hi) in enumerate(self.range_bins_m):
             keep_t, keep_p = (d_truth >= lo) & (d_truth < hi), (d_pred >= lo) & (d_pred < hi)  # _in_range
-            self._num_truth[b] += int(keep_t.sum())
-            t, p = truth_xy[keep_t], pred_xy[keep_p]
-            dist = center_distance_cost(p, t) if len(p) and len(t) else np.zeros((len(p), len(t)))
-            tp = np.array(_greedy_matches(dist, rank[keep_p], self.thresholds_m),
-                          dtype=np.uint64).reshape(len(self.thresholds_m), len(p))
-            flags[keep_p] |= (tp.T @ self._tp_bits[b]) | np.uint64(1 << (b * stride))  # disjoint bits: sum = OR
+            self._num_truth[b] += int(np.count_nonzero(keep_t))
+            flags[keep_p] |= self._bin_flags(b, cost_m[keep_t][:, keep_p].T, rank[keep_p])
         self._confidence.extend(confidence.tolist())
         self._flags.extend(flags.tolist())
+
+    def _bin_flags(self, b: int, dist: np.ndarray, rank: np.ndarray) -> np.ndarray:
+        """Flag words (P,) of bin b's predictions: its bit, and a true-positive bit per threshold, from
+        their distances (P, G) m to the bin's truths and their ranks (P,)."""
+        tp = _greedy_matches(dist, rank, self.thresholds_m)  # (T, P) bool
+        return (tp.T @ self._tp_bits[b]) | np.uint64(1 << (b * (1 + len(self.thresholds_m))))  # disjoint bits: sum = OR
 
     def result(self) -> dict:
         """As ``center_distance_ap`` returns: {bin label: {"num_truth", "num_predictions", "AP@<th>", "mAP"}}."""
@@ -335,25 +341,30 @@ class MotTally:
         self.num_truth = self.num_predictions = 0
         self._distance_sum_m = 0.0
 
-    def add_frame(self, truth_ids, truth_xy, hyp_ids, hyp_xy) -> None:
-        """Truth ids (N,), truth xy (N, 2) m, hypothesis ids (M,), hypothesis xy (M, 2) m."""
-        oids, hids = [int(i) for i in np.ravel(truth_ids)], [int(h) for h in np.ravel(hyp_ids)]
-        dist = _distance_matrix(truth_xy, hyp_xy, self.max_distance_m)
+    def add_frame(self, truth_ids, truth_xy, hyp_ids, hyp_xy, cost_m: np.ndarray | None = None) -> None:
+        """Truth ids (N,), truth xy (N, 2) m, hypothesis ids (M,), hypothesis xy (M, 2) m; ``cost_m``:
+        their centre distances (N, M) m when the caller has them (``center_distance_cost``)."""
+        oids, hids = np.ravel(truth_ids).astype(np.int64).tolist(), np.ravel(hyp_ids).astype(np.int64).tolist()
+        if cost_m is None or not cost_m.size:
+            dist = _distance_matrix(truth_xy, hyp_xy, self.max_distance_m)
+        else:  # _distance_matrix from the distances
+            dist = np.where(cost_m > self.max_distance_m, np.nan, cost_m)
         self.frames += 1
         self.num_truth, self.num_predictions = self.num_truth + len(oids), self.num_predictions + len(hids)
-        rows, cols = np.nonzero(np.isfinite(dist))
+        finite = np.isfinite(dist)
+        rows, cols = np.nonzero(finite)
         self._pairs.update(zip([oids[i] for i in rows.tolist()], [hids[j] for j in cols.tolist()]))
-        pairs = self._match(oids, hids, dist) if oids and hids else []
+        pairs = self._match(oids, hids, dist, finite) if oids and hids else []
         self.misses += len(oids) - len(pairs)
         self.false_positives += len(hids) - len(pairs)
 
-    def _match(self, oids: list[int], hids: list[int], dist: np.ndarray) -> list[tuple[int, int]]:
-        """Steps (1) and (2): matched (truth index, hyp index) pairs; counts matches and switches."""
+    def _match(self, oids: list[int], hids: list[int], dist: np.ndarray, finite: np.ndarray) -> list[tuple[int, int]]:
+        """Steps (1) and (2): matched (truth index, hyp index) pairs; counts matches and switches.
+        ``finite`` (N, M): the pairs that may pair (``np.isfinite(dist)``)."""
         pairs, free_h = [], [True] * len(hids)
         columns: dict[int, list[int]] = {}  # hypothesis id -> its indices in hids, ascending
         for j, h in enumerate(hids):
             columns.setdefault(h, []).append(j)
-        finite = np.isfinite(dist)
         for i, o in enumerate(oids):
             h = self._last.get(o)
             if h is None or h not in columns:
@@ -365,22 +376,30 @@ class MotTally:
                         free_h[j] = False
                     break
         self.matches += len(pairs)
+        if len(pairs) < len(oids) and len(pairs) < len(hids):  # else no pair is left for step (2)
+            pairs += self._assign_rest(oids, hids, dist, pairs, free_h)
+        total_m = 0  # summed in pair order, as before
+        for d_m in dist[[i for i, _ in pairs], [j for _, j in pairs]].tolist() if pairs else ():
+            total_m += d_m
+        self._distance_sum_m += float(total_m)
+        return pairs
+
+    def _assign_rest(self, oids: list[int], hids: list[int], dist: np.ndarray, pairs: list[tuple[int, int]],
+                     free_h: list[bool]) -> list[tuple[int, int]]:
+        """Step (2): the free truths and hypotheses assigned (``_lsa_nan`` of the distances without the
+        pairs of step (1)); counts matches and switches."""
         rest = dist.copy()
         rest[[i for i, _ in pairs], :] = np.nan
         rest[:, [not free for free in free_h]] = np.nan
-        for i, j in _lsa_nan(rest):
+        assigned = _lsa_nan(rest)
+        for i, j in assigned:
             o, h = oids[i], hids[j]
             if o in self._last and self._last[o] != h:
                 self.switches += 1
             else:
                 self.matches += 1
             self._last[o] = h
-            pairs.append((i, j))
-        total_m = 0  # summed in pair order, as before
-        for d_m in dist[[i for i, _ in pairs], [j for _, j in pairs]].tolist() if pairs else ():
-            total_m += d_m
-        self._distance_sum_m += float(total_m)
-        return pairs
+        return assigned
 
     def result(self) -> dict:
         """The keys of ``mot_metrics``."""

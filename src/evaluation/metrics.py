@@ -12,6 +12,7 @@ from array import array
 from collections import OrderedDict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -72,25 +73,34 @@ def match_target(truth: ObjectArray, output: ObjectArray, target_id: int) -> int
 
 
 def _match_target_xy(truth_xy: np.ndarray, truth_ids: np.ndarray, out_xy: np.ndarray, target_id: int) -> int | None:
-    """``match_target`` on arrays: truth centres (G, 2) and ids (G,), output centres (P, 2).
+    """``match_target`` on arrays: truth centres (G, 2) and ids (G,), output centres (P, 2)."""
+    if not len(out_xy) or not len(truth_xy):
+        return None
+    return _match_target_cost(center_distance_cost(truth_xy, out_xy), truth_ids, target_id)
+
+
+def _match_target_cost(cost_m: np.ndarray, truth_ids: np.ndarray, target_id: int,
+                       rows: np.ndarray | None = None) -> int | None:
+    """``match_target`` on the centre distances (G, P) m of truths (ids (G,)) to outputs; ``rows``:
+    the truth rows of ``target_id`` (found when None).
 
     Shortcut, exact for the minimum-cost matching of ``assign``: a target with no output inside
     the gate is not detected; when its only output inside the gate has no other truth inside
-    the gate, the two form a component of their own and every optimum matches them.
+    the gate, the two form a component of their own and every optimum matches them. (A NaN or
+    inf cost is never <= the gate, so the comparison alone keeps the finite costs inside it.)
     """
-    if not len(out_xy) or not len(truth_xy):
+    if not cost_m.shape[0] or not cost_m.shape[1]:
         return None
-    rows = np.flatnonzero(truth_ids == target_id)
+    rows = np.flatnonzero(truth_ids == target_id) if rows is None else rows
+    if not len(rows):
+        return None  # no truth row of the target: no match of the full assignment is its
     if len(rows) == 1:  # the target's row of the (G, P) cost, and the one column it may need
-        row = center_distance_cost(truth_xy[rows], out_xy)[0]  # (P,) m, the full matrix's row bit for bit
-        near = np.flatnonzero(np.isfinite(row) & (row <= MATCH_GATE_M))
+        near = np.flatnonzero(cost_m[rows[0]] <= MATCH_GATE_M)
         if not len(near):
             return None
-        if len(near) == 1:
-            column = center_distance_cost(truth_xy, out_xy[near])[:, 0]  # (G,) m
-            if np.count_nonzero(np.isfinite(column) & (column <= MATCH_GATE_M)) == 1:
-                return int(near[0])
-    result = assign(center_distance_cost(truth_xy, out_xy), MATCH_GATE_M)  # (G, P) m
+        if len(near) == 1 and np.count_nonzero(cost_m[:, near[0]] <= MATCH_GATE_M) == 1:
+            return int(near[0])
+    result = assign(cost_m, MATCH_GATE_M)  # (G, P) m
     rows = result.matches[truth_ids[result.matches[:, 0]] == target_id]
     return int(rows[0, 1]) if len(rows) else None
 
@@ -112,6 +122,21 @@ class CycleFrame:
     # (truth row, output row) -> TargetTally's numbers of that pair: a function of this frame's
     # arrays alone, kept so that the run's two tallies (all sources, vehicle only) score a pair once
     _pair_values: dict = field(default_factory=dict, compare=False, repr=False)
+    _truth_rows: dict = field(default_factory=dict, compare=False, repr=False)  # actor id -> its truth rows
+
+    @cached_property
+    def distances_m(self) -> np.ndarray:
+        """(G, P) centre distances (m) of every truth row to every output row, computed once per
+        frame: each element is ``center_distance_cost``'s of that pair alone (elementwise, so any
+        subset of rows and columns, either way round, is the cost of those subsets bit for bit)."""
+        return center_distance_cost(self.truth.xy, self.out.xy)
+
+    def truth_rows(self, actor_id: int) -> np.ndarray:
+        """The truth rows (R,) of ``actor_id`` (one when present), found once per frame and id."""
+        rows = self._truth_rows.get(actor_id)
+        if rows is None:
+            rows = self._truth_rows[actor_id] = np.flatnonzero(self.truth.ids == actor_id)
+        return rows
 
     def pair_values(self, i: int, k: int) -> tuple[float, float, float, float]:
         """BEV IoU, squared error |e|^2, NEES eps and ego distance |truth xy| (m) of truth row i
@@ -150,17 +175,21 @@ class TargetTally:
 
     def add(self, frame: CycleFrame) -> None:
         truth, out = frame.truth, frame.out
-        kept = np.arange(len(out)) if self.sources_mask is None else np.flatnonzero(out.sources & self.sources_mask)
-        k = _match_target_xy(truth.xy, truth.ids, out.xy[kept], self.target_id)
+        rows = frame.truth_rows(self.target_id)
+        if self.sources_mask is None:
+            k = _match_target_cost(frame.distances_m, truth.ids, self.target_id, rows)
+        else:  # the kept outputs' columns of the cost
+            kept = np.flatnonzero(out.sources & self.sources_mask)
+            k = _match_target_cost(frame.distances_m[:, kept], truth.ids, self.target_id, rows)
+            k = None if k is None else int(kept[k])  # the index in the whole output
         if k is None:
             return
-        k = int(kept[k])  # the index in the whole output
-        i = int(np.flatnonzero(truth.ids == self.target_id)[0])
+        i = int(rows[0])
         iou, sq_err, eps, dist = frame.pair_values(i, k)
         values = {"t_s": frame.t_s, "iou": iou, "sq_err": sq_err, "eps": eps, "dist": dist}
         self._cycle_ns.append(frame.cycle_ns)
         self._ids.append(int(out.ids[k]))
-        self._out_xy.extend(float(v) for v in out.xy[k])
+        self._out_xy.extend(out.xy[k].tolist())
         mask = int(out.sources[k])  # bit 0 the own vehicle, bits 1..62 the RSU / peer slots
         self._sources.append((mask & 1) | (2 if mask >> 1 else 0))
         for name, value in values.items():
@@ -371,8 +400,10 @@ class DetectionTally:
         truth, out = frame.truth, frame.out
         t = np.linalg.norm(truth.xy, axis=1) <= MAX_RANGE_M
         o = np.linalg.norm(out.xy, axis=1) <= MAX_RANGE_M
-        self.ap.add_frame(truth.xy[t], out.xy[o], out.confidence[o])
-        self.mot.add_frame(truth.ids[t], truth.xy[t], out.ids[o], out.xy[o])
+        cost_m = frame.distances_m[t][:, o]  # (G_t, P_o): the frame's distances of the actors and outputs in range
+        truth_xy, out_xy = truth.xy[t], out.xy[o]
+        self.ap.add_frame(truth_xy, out_xy, out.confidence[o], cost_m)
+        self.mot.add_frame(truth.ids[t], truth_xy, out.ids[o], out_xy, cost_m)
 
     def scores(self) -> dict:
         mot = self.mot.result()
