@@ -29,6 +29,7 @@ so the random stream of message k never depends on the fate of earlier messages.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from typing import NamedTuple
 
 import numpy as np
@@ -78,21 +79,35 @@ class _Draws:
 
     def __init__(self, rng: np.random.Generator) -> None:
         self._rng = rng
-        self._normal = np.empty((0, 3))
+        self.normal = np.empty((0, 3))  # the current block (rows from ``_pos`` on not yet taken)
         self._uniform = np.empty((0, 5))
+        self._rows: tuple[list, list] | None = None  # the block as Python floats, once asked for
         self._pos = 0
 
-    def take(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """The next n messages' variates: normals (n, 3) and uniforms (n, 5)."""
-        if self._pos + n > len(self._normal):
-            blocks = -(-(self._pos + n - len(self._normal)) // self.BLOCK)
-            normal, uniform = [self._normal[self._pos:]], [self._uniform[self._pos:]]
+    def _have(self, n: int) -> None:
+        """At least n rows left in the block: the rest, then new blocks, become the block."""
+        if self._pos + n > len(self.normal):
+            blocks = -(-(self._pos + n - len(self.normal)) // self.BLOCK)
+            normal, uniform = [self.normal[self._pos:]], [self._uniform[self._pos:]]
             for _ in range(blocks):
                 normal.append(self._rng.standard_normal((self.BLOCK, 3)))
                 uniform.append(self._rng.random((self.BLOCK, 5)))
-            self._normal, self._uniform, self._pos = np.concatenate(normal), np.concatenate(uniform), 0
+            self.normal, self._uniform, self._pos, self._rows = np.concatenate(normal), np.concatenate(uniform), 0, None
+
+    def take(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The next n messages' variates: normals (n, 3) and uniforms (n, 5)."""
+        self._have(n)
         start, self._pos = self._pos, self._pos + n
-        return self._normal[start:self._pos], self._uniform[start:self._pos]
+        return self.normal[start:self._pos], self._uniform[start:self._pos]
+
+    def take_one(self) -> tuple[int, list[float], list[float]]:
+        """The next message's row of ``normal`` and its variates as Python floats: normals (3), uniforms (5)."""
+        self._have(1)
+        if self._rows is None:
+            self._rows = (self.normal.tolist(), self._uniform.tolist())
+        k = self._pos
+        self._pos += 1
+        return k, self._rows[0][k], self._rows[1][k]
 
 
 class Channel:
@@ -103,6 +118,7 @@ class Channel:
         self._draws = _Draws(rng)
         self._z0, self._u_bad0, self._u_phase = setup_rng.standard_normal(), setup_rng.random(), setup_rng.random()
         self._impairments: list[Impairment] = []
+        self._g_kept: dict[int, tuple[np.ndarray, object, list[float]]] = {}  # column -> (block, jitter, g(z))
         self._free_ns = _INT64_MIN  # when the send queue is next free
         self._last_ns = _INT64_MIN  # latest delivery so far (for fifo)
         self._ar: GaussianAR1 | None = None
@@ -117,7 +133,7 @@ class Channel:
         Time-based processes (outage schedule, trace replay) restart at the next message.
         """
         self.direction = direction
-        self._pdr_curve = None if direction.pdr_curve is None else tuple(np.array(c, dtype=float)
+        self._pdr_curve = None if direction.pdr_curve is None else tuple([float(v) for v in c]
                                                                           for c in zip(*direction.pdr_curve))
         self._ar = GaussianAR1(direction.correlation, self._ar.z if self._ar else self._z0)
         bad0 = self._ge.bad if self._ge else self._u_bad0 < direction.loss_probability
@@ -168,8 +184,7 @@ class Channel:
         (test_link_channel)."""
         if size_bytes < 0:
             raise ValueError(f"size_bytes must be >= 0, got {size_bytes}")
-        normal, uniform = self._draws.take(1)
-        z, u = normal[0].tolist(), uniform[0].tolist()
+        k, z, u = self._draws.take_one()
         if self._origin_ns is None:
             self._origin_ns = send_ns
         d = self.direction
@@ -177,12 +192,25 @@ class Channel:
         if distance_m is not None and not math.isnan(distance_m):
             lost = (u[_U_PDR] >= self._pdr_one(float(distance_m))) or lost  # delivered with probability PDR(d)
         dup = not lost and u[_U_DUP] < d.duplicate_probability
-        delay_ms = d.delay_ms + _jitter_ms(d.jitter, self._ar.step_one(z[_Z_JITTER]))  # steps the AR(1) always
+        z_jitter = self._ar.step_one(z[_Z_JITTER])  # steps the AR(1) always
+        # without correlation the score is the block's own normal: its g(z) is the block's
+        jitter_ms = self._block_g(d.jitter, _Z_JITTER, k) if self._ar.rho == 0.0 else _jitter_ms(d.jitter, z_jitter)
+        delay_ms = d.delay_ms + jitter_ms
         if d.spikes is not None and u[_U_SPIKE] < d.spikes.probability:
-            delay_ms = delay_ms + _jitter_ms(d.spikes.extra, z[_Z_SPIKE])
-        copy_ns = send_ns + _clipped_ns(d.delay_ms + _jitter_ms(d.jitter, z[_Z_DUP])) if dup else NONE_NS
+            delay_ms = delay_ms + self._block_g(d.spikes.extra, _Z_SPIKE, k)
+        copy_ns = send_ns + _clipped_ns(d.delay_ms + self._block_g(d.jitter, _Z_DUP, k)) if dup else NONE_NS
         deliver_ns = NONE_NS if lost else send_ns + _clipped_ns(delay_ms)
         return sorted(t for t in self._one_in_order(deliver_ns, copy_ns) if t != NONE_NS)
+
+    def _block_g(self, jitter, column: int, k: int) -> float:
+        """g(z) (ms) of row k of a column of the current block of normals: ``jitter``'s numpy expression
+        over the whole column (elementwise, so each entry is what ``_jitter_ms`` of the one score
+        gives), computed once per block, column and jitter (a profile switch brings another)."""
+        block = self._draws.normal
+        kept = self._g_kept.get(column)
+        if kept is None or kept[0] is not block or kept[1] is not jitter:
+            kept = self._g_kept[column] = (block, jitter, jitter.from_normal(block[:, column]).tolist())
+        return kept[2][k]
 
     def transmit_batch(
         self, send_ns: np.ndarray, size_bytes: np.ndarray | int, distance_m: np.ndarray | float | None = None
@@ -310,12 +338,12 @@ class Channel:
         return Deliveries(deliver, copy)
 
     def _pdr_one(self, distance_m: float) -> float:
-        """``direction.pdr_at`` of one distance (m): the same interpolation (np.interp) on the curve's
-        arrays, taken apart once per profile (``set_direction``)."""
+        """``direction.pdr_at`` of one distance (m): np.interp's rule on the curve's points, taken apart
+        once per profile (``set_direction``), in Python floats (``_interp``)."""
         d = self.direction
         if d.range_m is not None and distance_m > d.range_m:
             return 0.0
-        return 1.0 if self._pdr_curve is None else float(np.interp(distance_m, *self._pdr_curve))
+        return 1.0 if self._pdr_curve is None else _interp(distance_m, *self._pdr_curve)
 
     def _one_in_order(self, deliver_ns: int, copy_ns: int) -> tuple[int, int]:
         """``_in_order`` of one message and its copy (NONE_NS: none), as ints."""
@@ -326,6 +354,24 @@ class Channel:
                 t_ns = self._last_ns if self.direction.fifo else t_ns
             out.append(t_ns)
         return out[0], out[1]
+
+
+def _interp(x: float, xp: list[float], fp: list[float]) -> float:
+    """``np.interp(x, xp, fp)`` of one number x (not NaN), xp strictly increasing: the held end values
+    outside, a point's own value on it, else the same float steps, slope (fp[j+1] - fp[j]) /
+    (xp[j+1] - xp[j]) times (x - xp[j]) plus fp[j] (numpy's arr_interp; test_link_channel)."""
+    j = bisect_right(xp, x) - 1  # xp[j] <= x < xp[j + 1]
+    if j < 0:
+        return fp[0]
+    if j == len(xp) - 1 or xp[j] == x:
+        return fp[j]
+    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+    y = slope * (x - xp[j]) + fp[j]
+    if math.isnan(y):  # numpy's retry from the other end (a non-finite slope)
+        y = slope * (x - xp[j + 1]) + fp[j + 1]
+        if math.isnan(y) and fp[j] == fp[j + 1]:
+            y = fp[j]
+    return y
 
 
 def _extra_ms(fx: Effects | None) -> np.ndarray | float:
