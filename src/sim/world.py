@@ -173,11 +173,53 @@ class _Body:
         return f_k + v_k * dt + 0.5 * a_k * (dt * dt) - self._f0, v_k + a_k * dt
 
 
+class _Bodies:
+    """Every body of a scenario (its actors, then its vehicles) at its own clock t - spawn_s, all at
+    once: ``Trajectories.at`` (row by row the same bits for any set of rows: each row's keys, segment and
+    arithmetic are its own). The scenario's views (each vehicle's, the site's) ask for the same instants
+    (the LiDARs' and cameras' shared capture times), so the last ``RECENT`` instants are kept."""
+
+    RECENT = 8
+
+    def __init__(self, scenario: Scenario):
+        bodies = list(scenario.actors) + list(scenario.vehicles)
+        self._trajectories = Trajectories([b.trajectory for b in bodies])
+        spawn_s = np.array([b.spawn_s for b in bodies], dtype=float)  # (B,) s
+        self._spawn_s = spawn_s if spawn_s.any() else 0.0  # none late: one scalar time (t - 0 = t, the same rows)
+        self._recent: dict[float, tuple[np.ndarray, ...]] = {}
+
+    def at(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """xy (B, 2) m, yaw (B,) rad, vxy (B, 2) m/s, axy (B, 2) m/s^2 at scenario time t_s (s): read them only."""
+        state = self._recent.get(t_s)
+        if state is None:
+            state = self._trajectories.at(t_s - self._spawn_s)  # shared by the views: they take rows (copies)
+            if len(self._recent) >= self.RECENT:
+                del self._recent[next(iter(self._recent))]  # the oldest
+            self._recent[t_s] = state
+        return state
+
+
+_BODIES_KEPT: dict[int, tuple[Scenario, _Bodies]] = {}  # id(scenario) -> (scenario, its bodies)
+
+
+def _bodies_of(scenario: Scenario) -> _Bodies:
+    """The ``_Bodies`` of a scenario, one per scenario object (shared by its views)."""
+    kept = _BODIES_KEPT.get(id(scenario))
+    if kept is None or kept[0] is not scenario:  # (the scenario is held, so its id is not reused while kept)
+        if len(_BODIES_KEPT) >= 16:
+            _BODIES_KEPT.clear()
+        kept = _BODIES_KEPT[id(scenario)] = (scenario, _Bodies(scenario))
+    return kept[1]
+
+
 def _building_arrays(buildings: list[Building]) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
     """Boxes (M, 5) [x, y, l, w, yaw rad] and polygons, each (K, 2), of the static occluders."""
     boxes = [[b.box.x, b.box.y, b.box.l, b.box.w, np.deg2rad(b.box.yaw_deg)] for b in buildings if b.box is not None]
     polygons = tuple(np.asarray(b.polygon, dtype=float) for b in buildings if b.polygon is not None)
     return np.asarray(boxes, dtype=float).reshape(-1, 5), polygons
+
+
+_STATIC_COLUMNS = ("ids", "cls", "z", "lwh", "yaw_rate", "cov_xy", "confidence", "cov_vxy", "age_s", "sources")
 
 
 class World:
@@ -203,7 +245,8 @@ class World:
         self._spawn_s = np.array([a.spawn_s for a in actors])
         self._despawn_s = np.array([np.inf if a.despawn_s is None else a.despawn_s for a in actors])
         self._timed = bool((self._spawn_s > 0).any() or np.isfinite(self._despawn_s).any())
-        self._actors = Trajectories([a.trajectory for a in actors])
+        self._bodies, self._rows = _bodies_of(scenario), np.flatnonzero(keep)  # the actors' rows among the bodies
+        self._static_present: dict[bytes, ObjectArray] = {}  # present mask -> those actors' static columns
         self._ego = None if ego_spec is None else Trajectories([ego_spec.trajectory])
         self._ego_body = None if ego_spec is None else self._ego.body(0)
         self.ego_size = None if ego_spec is None else np.array(ego_spec.size, dtype=float)  # (3,) l, w, h (m)
@@ -219,14 +262,23 @@ class World:
 
     def actors_at(self, t_s: float) -> ObjectArray:
         """Ground truth at time t_s (s), map frame, of every actor present then (the other
-        vehicles included, this view's ego excluded)."""
+        vehicles included, this view's ego excluded); each actor on its own clock t_s - spawn_s."""
+        xy, yaw, vxy, axy = self._bodies.at(t_s)
+        static, rows = self._static, self._rows
         if self._timed:
-            # each body on its own clock t - spawn_s: evaluate all at once per distinct spawn time
-            xy, yaw, vxy, axy = self._at_own_clocks(t_s)
-        else:
-            xy, yaw, vxy, axy = self._actors.at(t_s)
-        out = self._static.with_(xy=xy, yaw=yaw, vxy=vxy, axy=axy)
-        return out.take(self.present(t_s)) if self._timed else out
+            present = self.present(t_s)
+            static, rows = self._static_of(present), rows[present]
+        return static.with_(xy=xy[rows], yaw=yaw[rows], vxy=vxy[rows], axy=axy[rows])
+
+    def _static_of(self, present: np.ndarray) -> ObjectArray:
+        """``_static_truth`` of the actors present (N,) bool, kept per mask (it changes at spawns)."""
+        key = present.tobytes()
+        static = self._static_present.get(key)
+        if static is None:
+            static = self._static_present[key] = self._static.take(present)
+            for name in _STATIC_COLUMNS:
+                getattr(static, name).flags.writeable = False
+        return static
 
     def _static_truth(self) -> ObjectArray:
         """Every actor's time-independent columns (ids, class, size, z = h / 2, zero covariance,
@@ -237,13 +289,9 @@ class World:
             lwh=self.lwh.copy(), yaw=np.zeros(n), vxy=np.zeros((n, 2)), cov_xy=np.zeros((n, 2, 2)),
             confidence=np.ones(n), sources=np.zeros(n, dtype=np.int64),
         )
-        for name in ("ids", "cls", "z", "lwh", "yaw_rate", "cov_xy", "confidence", "cov_vxy", "age_s", "sources"):
+        for name in _STATIC_COLUMNS:
             getattr(out, name).flags.writeable = False  # shared by every state: never written
         return out
-
-    def _at_own_clocks(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Every actor's state at its own clock t_s - spawn_s, all at once."""
-        return self._actors.at(t_s - self._spawn_s)
 
     def positions_of(self, ids: np.ndarray, t_s: float) -> np.ndarray:
         """(K, 2) map positions (m) at t_s of the bodies ``ids`` (K,): actors present then, or 0 for the ego."""

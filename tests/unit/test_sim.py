@@ -15,7 +15,7 @@ from schemas.classes import ObjectClass
 from sim.occlusion import box_points, segments_hit_boxes, segments_hit_polygons, visible_fraction
 from sim.scenario import Scenario, ScenarioError, bundled_scenarios, load_scenario
 from sim.sensors import Lidar, Localization, RsuCamera, frame_times, mean_error_at
-from sim.world import World
+from sim.world import Trajectories, World
 
 RLR = "red-light-runner"
 
@@ -324,20 +324,47 @@ def test_localization_noise_is_small_unbiased_and_slowly_drifting():
     assert np.corrcoef(x[:-1], x[1:])[0, 1] > 0.95
 
 
+def _view_trajectories(world: World) -> Trajectories:
+    """The trajectories of a view's own actors alone (what each view evaluated before the shared bodies)."""
+    bodies = list(world.scenario.actors) + list(world.scenario.vehicles)
+    return Trajectories([bodies[r].trajectory for r in world._rows])
+
+
 def test_actors_on_their_own_clocks_equal_one_evaluation_per_spawn_time():
     """World.actors_at evaluates every actor at t - spawn_s at once: bit-equal to evaluating the
     trajectories once per distinct spawn time and keeping each actor's own rows."""
     world = World(load_scenario("two-rsu-corridor"))
+    own = _view_trajectories(world)
     spawns = np.unique(world._spawn_s)
     assert len(spawns) > 1
     for t_s in np.linspace(0.0, world.duration_s, 37):
-        want = [np.array(a) for a in world._actors.at(t_s - spawns[0])]
+        want = [np.array(a) for a in own.at(t_s - spawns[0])]
         for spawn in spawns[1:]:
             rows = world._spawn_s == spawn
-            for full, part in zip(want, world._actors.at(t_s - spawn)):
+            for full, part in zip(want, own.at(t_s - spawn)):
                 full[rows] = part[rows]
-        for got, ref in zip(world._at_own_clocks(t_s), want):
-            np.testing.assert_array_equal(got, ref, strict=True)
+        got = world._bodies.at(t_s)
+        for got_column, ref in zip(got, want):
+            np.testing.assert_array_equal(got_column[world._rows], ref, strict=True)
+
+
+@pytest.mark.parametrize("name", bundled_scenarios())
+def test_views_sharing_the_bodies_equal_their_own_evaluation_bit_for_bit(name):
+    """Every view of a scenario (each vehicle's, the site's) takes its actors' rows of one evaluation
+    of all bodies (kept per instant): the bits of evaluating its own actors alone, at its own clocks
+    (a scalar time when none spawns late, as before), whatever the order the views ask in."""
+    scenario = load_scenario(name)
+    views = [World(scenario, ego=v.name) for v in scenario.vehicles] + [World(scenario, site=True)]
+    assert len({id(w._bodies) for w in views}) == 1
+    times = np.r_[0.0, np.linspace(-0.5, scenario.duration_s + 5.0, 41)]
+    for t_s in np.r_[times, times[::-1]]:
+        for world in views[::-1] if t_s > 3.0 else views:
+            own = _view_trajectories(world)
+            want = own.at(t_s - world._spawn_s if world._timed else float(t_s))
+            got = world.actors_at(float(t_s))
+            present = world.present(t_s) if world._timed else slice(None)  # an untimed view keeps every actor
+            for column, ref in zip(("xy", "yaw", "vxy", "axy"), want):
+                assert getattr(got, column).tobytes() == ref[present].tobytes(), (name, column, t_s)
 
 
 def _reference_state(traj, t_s):
@@ -367,7 +394,7 @@ def _reference_state(traj, t_s):
 @pytest.mark.parametrize("name", bundled_scenarios())
 def test_trajectories_equal_the_per_branch_reference_bit_for_bit(name):
     world = World(load_scenario(name))
-    for traj in (world._actors, world._ego):
+    for traj in (_view_trajectories(world), world._ego):
         for t_s in np.r_[-3.0, np.linspace(-0.5, world.duration_s + 5.0, 53)]:
             for got, want in zip(traj.at(t_s), _reference_state(traj, t_s)):
                 np.testing.assert_array_equal(got, want, strict=True)
@@ -380,7 +407,7 @@ def test_one_body_in_floats_equals_the_vectorised_rows_bit_for_bit(name):
     included, signed zeros too (compared as raw float64 bytes)."""
     world = World(load_scenario(name))
     times = np.r_[-3.0, 0.0, np.linspace(-0.5, world.duration_s + 5.0, 97), world.duration_s + 60.0]
-    for traj in (world._actors, world._ego):
+    for traj in (_view_trajectories(world), world._ego):
         bodies = [traj.body(i) for i in range(len(traj._paths.length))]
         for t_s in times:
             xy, yaw, vxy, _ = traj.at(t_s)
@@ -420,7 +447,7 @@ def test_actors_at_adds_the_kinematics_to_read_only_static_columns(name):
     world = World(load_scenario(name))
     for t_s in (0.0, 3.7, 11.2, world.duration_s - 0.1):
         got = world.actors_at(t_s)
-        xy, yaw, vxy, axy = world._actors.at(t_s - world._spawn_s if world._timed else t_s)
+        xy, yaw, vxy, axy = _view_trajectories(world).at(t_s - world._spawn_s if world._timed else t_s)
         n = len(world.ids)
         want = ObjectArray(ids=world.ids.copy(), cls=world.cls.copy(), xy=xy, z=world.lwh[:, 2] / 2.0,
                            lwh=world.lwh.copy(), yaw=yaw, vxy=vxy, axy=axy, cov_xy=np.zeros((n, 2, 2)),
