@@ -20,7 +20,7 @@ from operator import itemgetter
 import numpy as np
 
 from .fastnp import true_index
-from .jit import B1, F64, I64, IN_B2, IN_F1, IN_F2, IN_I1, OUT_B1, OUT_F1, OUT_F2, OUT_I1, kernel
+from .jit import B1, F64, I64, IN_B2, IN_F1, IN_F2, IN_F3, IN_I1, OUT_B1, OUT_F1, OUT_F2, OUT_I1, kernel
 
 SOURCE_BITS = 63  # source bitmasks are int64: bit 0 own vehicle, bits 1..62 one per RSU / peer slot
 _ALL_BITS = np.arange(SOURCE_BITS)
@@ -120,15 +120,17 @@ class TrackStore:
         """A compact copy of the live rows."""
         return self.view.copy()
 
-    def source_columns(self, masks: np.ndarray) -> tuple[np.ndarray, int]:
-        """(K, B) bool: which seen columns each of K int64 bitmasks sets, and the OR of the masks;
-        bits not yet in use get a column; negative masks (bit 63) are refused (ValueError)."""
-        union = int(np.bitwise_or.reduce(masks)) if len(masks) else 0
+    def source_columns(self, masks: np.ndarray, extra: int = 0) -> tuple[np.ndarray, int]:
+        """(K, B) bool: which seen columns each of K int64 bitmasks (masks | extra) sets, and the OR of the
+        masks; bits not yet in use get a column; negative masks (bit 63) are refused (ValueError)."""
+        masks = np.asarray(masks, dtype=np.int64)
+        cols, union = _mask_columns(masks, extra, self.col_values)
         if union < 0:  # the OR has bit 63 (the sign) exactly when some mask has it
-            raise ValueError(f"source bitmasks must be in [0, 2^{SOURCE_BITS}), got {masks.min()}")
+            raise ValueError(f"source bitmasks must be in [0, 2^{SOURCE_BITS}), got {(masks | extra).min()}")
         if union & ~self._known:
             self._add_seen_bits([b for b in range(SOURCE_BITS) if (union >> b) & 1 and not (self._known >> b) & 1])
-        return (masks[:, None] & self.col_values) != 0, union
+            cols, union = _mask_columns(masks, extra, self.col_values)
+        return cols, union
 
     def append(self, new: TrackTable) -> None:
         """Add the rows of new (its seen_s columns as this store's seen_bits) after the live ones."""
@@ -182,23 +184,39 @@ class TrackStore:
         self.view = view
 
 
+@kernel(IN_I1, I64, IN_I1)
+def _mask_columns(masks, extra, col_values):
+    """cols (K, B): (masks[k] | extra) & col_values[b] != 0 (the seen columns each of K bitmasks sets, column b
+    standing for the bit value col_values[b]) and the OR of the K masks with extra (extra alone for K = 0)."""
+    cols = np.empty((len(masks), len(col_values)), np.bool_)
+    union = extra if len(masks) else 0
+    for k in range(len(masks)):
+        mask = masks[k] | extra
+        union |= mask
+        for b in range(len(col_values)):
+            cols[k, b] = (mask & col_values[b]) != 0
+    return cols, union
+
+
 @kernel(OUT_I1, OUT_F1, OUT_F2, OUT_F1, OUT_F1, OUT_F1, OUT_F1, OUT_I1, OUT_B1, OUT_F1, OUT_F2,
-        IN_I1, IN_I1, IN_I1, IN_F1, IN_F2, IN_F1, IN_F1, IN_F1, IN_B2, F64, B1, I64, F64)
+        IN_I1, IN_I1, IN_I1, IN_F1, IN_F2, IN_F1, IN_F3, IN_F1, IN_B2, F64, B1, I64, F64)
 def record_matches(cls, z, lwh, yaw, shape_var, shape_s, confidence, hits, confirmed, updated_s, seen_s,
-                   ti, di, det_cls, det_z, det_lwh, det_yaw, det_var, det_confidence, det_cols, t_s, estimates,
+                   ti, di, det_cls, det_z, det_lwh, det_yaw, det_cov_xy, det_confidence, det_cols, t_s, estimates,
                    confirm_hits, shape_hold_s) -> None:
     """The bookkeeping of tracks ti (distinct rows of the TrackTable columns cls .. seen_s, in place)
     matched with detections di at t_s: an UNKNOWN class (0) adopts the detection's; the box (z, lwh,
-    yaw; heading det_yaw already wrapped) comes from the detection when its position variance
-    det_var is no larger (1 % slack) or the track's box is older than shape_hold_s; confidence;
-    hits + 1; confirmed (always, for another tracker's estimates, else at confirm_hits hits);
-    updated_s; seen_s = t_s in the columns det_cols (M, B) marks for the detection's sources."""
+    yaw; the heading det_yaw wrapped to [-pi, pi) as ``frames.wrap_angle``) comes from the detection when
+    its position variance (trace of det_cov_xy) is no larger (1 % slack) or the track's box is older than
+    shape_hold_s; confidence; hits + 1; confirmed (always, for another tracker's estimates, else at
+    confirm_hits hits); updated_s; seen_s = t_s in the columns det_cols (M, B) marks for the detection's sources."""
     for k in range(len(ti)):
         i, j = ti[k], di[k]
         if cls[i] == 0:
             cls[i] = det_cls[j]
-        if det_var[j] <= shape_var[i] * 1.01 or t_s - shape_s[i] > shape_hold_s:
-            z[i], yaw[i], shape_var[i], shape_s[i] = det_z[j], det_yaw[j], det_var[j], t_s
+        var = det_cov_xy[j, 0, 0] + det_cov_xy[j, 1, 1]
+        if var <= shape_var[i] * 1.01 or t_s - shape_s[i] > shape_hold_s:
+            # (yaw + pi) mod 2 pi - pi: numba's float % is numpy's remainder (fmod, then the divisor's sign)
+            z[i], yaw[i], shape_var[i], shape_s[i] = det_z[j], (det_yaw[j] + np.pi) % (2.0 * np.pi) - np.pi, var, t_s
             lwh[i, 0], lwh[i, 1], lwh[i, 2] = det_lwh[j, 0], det_lwh[j, 1], det_lwh[j, 2]
         confidence[i] = det_confidence[j]
         hits[i] += 1

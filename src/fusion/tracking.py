@@ -83,7 +83,7 @@ import numpy as np
 
 from . import kalman
 from .covariance_intersection import ci_fuse_objects
-from .fastnp import any_true
+from .fastnp import any_true, true_index
 from .frames import wrap_angle
 from .gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
     GatedPairs,
@@ -222,8 +222,8 @@ class Tracker:
         source_mask = int(source_mask)
         if source_mask < 0:
             raise ValueError(f"source bitmasks must be in [0, 2^{SOURCE_BITS}), got {source_mask}")
-        masks = np.asarray(dets.sources, dtype=np.int64) | source_mask  # (M,) source bitmask per detection
-        cols, union = self._store.source_columns(masks)  # (M, B): the seen_s columns each detection's bits set
+        # (M, B): the seen_s columns each detection's bits (its sources | source_mask) set, and their OR
+        cols, union = self._store.source_columns(dets.sources, source_mask)
         if estimates:
             self._estimate_mask |= source_mask | union
         tab = self._table
@@ -245,9 +245,8 @@ class Tracker:
             ti, di = ti[k:], di[k:]
         if len(ti):
             self._fuse(ti, di, n_ci, dets, t_s, estimates)
-        shape = _Shape(dets)
-        self._record(result.matches[:, 0], result.matches[:, 1], dets, cols, shape, t_s, estimates)
-        self._spawn(dets, result.unmatched_b, cols, shape, t_s, x0[k:], p0[k:], estimates, ~measured[k:])
+        self._record(result.matches[:, 0], result.matches[:, 1], dets, cols, t_s, estimates)
+        self._spawn(dets, result.unmatched_b, cols, t_s, x0[k:], p0[k:], estimates, ~measured[k:])
 
     def _initial(self, dets: ObjectArray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """x (K, n), P (K, n, n) of tracks started from the detections dets[index] alone (``MotionModel.initial``)
@@ -298,17 +297,17 @@ class Tracker:
         since birth; sources (see module doc).
         """
         tab = self._table
-        keep = tab.confirmed & (t_s - tab.updated_s <= self.config.max_coast_s)
-        tab = tab.take(keep)
-        x, p = tab.x, tab.p
-        if self._t_s is not None and t_s != self._t_s and len(tab):
+        rows = true_index(tab.confirmed & (t_s - tab.updated_s <= self.config.max_coast_s))
+        x, p = tab.x.take(rows, axis=0), tab.p.take(rows, axis=0)  # only the columns the output needs, gathered
+        if self._t_s is not None and t_s != self._t_s and len(rows):
             x, p = kalman.predict(x, p, self.model, t_s - self._t_s)
-        recent = (t_s - tab.seen_s) <= self.config.max_coast_s
+        recent = (t_s - tab.seen_s.take(rows, axis=0)) <= self.config.max_coast_s
         return ObjectArray(
-            ids=tab.ids, cls=tab.cls, xy=x[:, :2].copy(), z=tab.z, lwh=tab.lwh, yaw=tab.yaw,
-            vxy=np.array(self.model.velocity(x)), axy=self.model.acceleration(x), yaw_rate=self.model.yaw_rate(x),
-            cov_xy=p[:, :2, :2].copy(), cov_vxy=self.model.velocity_cov(x, p), confidence=tab.confidence,
-            age_s=t_s - tab.born_s, sources=tab.source_masks(recent),
+            ids=tab.ids.take(rows), cls=tab.cls.take(rows), xy=x[:, :2].copy(), z=tab.z.take(rows),
+            lwh=tab.lwh.take(rows, axis=0), yaw=tab.yaw.take(rows), vxy=np.array(self.model.velocity(x)),
+            axy=self.model.acceleration(x), yaw_rate=self.model.yaw_rate(x), cov_xy=p[:, :2, :2].copy(),
+            cov_vxy=self.model.velocity_cov(x, p), confidence=tab.confidence.take(rows),
+            age_s=t_s - tab.born_s.take(rows), sources=tab.source_masks(recent),
         )
 
     def lifecycle(self, t_s: float) -> dict[int, str]:
@@ -384,8 +383,8 @@ class Tracker:
             elif n_v:
                 kalman.update_rows(tab.x, tab.p, ti[v], dets.vxy, dets.cov_vxy, di[v], 2)
 
-    def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, cols: np.ndarray, shape: _Shape,
-                t_s: float, estimates: bool) -> None:
+    def _record(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, cols: np.ndarray, t_s: float,
+                estimates: bool) -> None:
         """Bookkeeping of matched tracks ti (``track_table.record_matches``): class, shape, confidence,
         hits, confirmation and update times; cols (M, B) the seen_s columns of each detection's sources.
         Box size, height and heading come from the most precise recent detection: a coarse RSU box never
@@ -394,15 +393,16 @@ class Tracker:
             return
         tab = self._table
         record_matches(tab.cls, tab.z, tab.lwh, tab.yaw, tab.shape_var, tab.shape_s, tab.confidence, tab.hits,
-                       tab.confirmed, tab.updated_s, tab.seen_s, ti, di, dets.cls, dets.z, dets.lwh, shape.yaw_rad,
-                       shape.var_m2, dets.confidence, cols, t_s, estimates, self.config.confirm_hits,
+                       tab.confirmed, tab.updated_s, tab.seen_s, ti, di, dets.cls, dets.z, dets.lwh, dets.yaw,
+                       dets.cov_xy, dets.confidence, cols, t_s, estimates, self.config.confirm_hits,
                        self.config.shape_hold_s)
 
-    def _spawn(self, dets: ObjectArray, index: np.ndarray, cols: np.ndarray, shape: _Shape, t_s: float, x: np.ndarray,
+    def _spawn(self, dets: ObjectArray, index: np.ndarray, cols: np.ndarray, t_s: float, x: np.ndarray,
                p: np.ndarray, estimates: bool, velocity_prior: np.ndarray) -> None:
         """New tracks from the detections dets[index], initial state x (n, dim), P (n, dim, dim): tentative,
         or confirmed when they are another tracker's estimates; velocity_prior (n,) as in TrackTable;
-        cols (M, B) the seen_s columns of each detection's sources."""
+        cols (M, B) the seen_s columns of each detection's sources. The box shape's variance is the trace
+        of the position covariance, its heading wrapped to [-pi, pi) (as ``record_matches``)."""
         n = len(index)
         if not n:
             return
@@ -412,22 +412,12 @@ class Tracker:
         rows.x[new], rows.p[new], rows.birth_x[new], rows.birth_p[new] = x, p, x, p
         rows.cls[new], rows.z[new] = dets.cls.take(index), dets.z.take(index)
         rows.lwh[new] = dets.lwh.take(index, axis=0)
-        rows.yaw[new], rows.confidence[new] = shape.yaw_rad.take(index), dets.confidence.take(index)
+        rows.yaw[new], rows.confidence[new] = wrap_angle(dets.yaw.take(index)), dets.confidence.take(index)
         rows.hits[new], rows.born_s[new], rows.updated_s[new], rows.shape_s[new] = 1, t_s, t_s, t_s
         rows.seen_s[new] = np.where(cols.take(index, axis=0), t_s, -np.inf)
-        rows.shape_var[new] = shape.var_m2.take(index)
+        c = dets.cov_xy.take(index, axis=0)
+        rows.shape_var[new] = c[:, 0, 0] + c[:, 1, 1]
         rows.confirmed[new], rows.velocity_prior[new] = estimates or self.config.confirm_hits <= 1, velocity_prior
-
-
-class _Shape:
-    """Per-detection shape inputs of one update, computed once for the matched and the new tracks:
-    var_m2 (M,) the trace of the position covariance, yaw_rad (M,) the heading wrapped to [-pi, pi)."""
-
-    __slots__ = ("var_m2", "yaw_rad")
-
-    def __init__(self, dets: ObjectArray):
-        c = dets.cov_xy
-        self.var_m2, self.yaw_rad = c[:, 0, 0] + c[:, 1, 1], wrap_angle(dets.yaw)
 
 
 def filter_inputs(dets: ObjectArray, index: np.ndarray) -> kalman.Measured:

@@ -74,3 +74,75 @@ def test_ci_fuse_objects_is_the_grouped_ci_fuse_rows_bit_for_bit(seed):
         _reference_intersect(want_x, want_p, rows, xy, cov_xy, vxy, cov_vxy, cols, velocity)
         np.testing.assert_array_equal(got_x, want_x)
         np.testing.assert_array_equal(got_p, want_p)
+
+
+def test_record_matches_wraps_the_heading_and_takes_the_variance_as_the_tracker_did():
+    """The box heading is frames.wrap_angle's and its variance the trace of cov_xy, bit for bit (the kernel
+    computes both per matched pair; the tracker computed them for the whole list before)."""
+    from fusion.frames import wrap_angle
+    from fusion.track_table import record_matches
+
+    rng = np.random.default_rng(5)
+    yaws = np.concatenate([rng.normal(0, 10, 400), rng.normal(0, 1e6, 50), np.pi * np.arange(-9, 10),
+                           [0.0, -0.0, np.pi, -np.pi, np.nextafter(np.pi, 0), np.nextafter(-np.pi, 0), 1e300, -1e-300,
+                            np.inf, -np.inf, np.nan]])
+    m = len(yaws)
+    cov = _spd(rng, m, 2, rng.choice([0.1, 3.0]))
+    ti = di = np.arange(m, dtype=np.int64)
+    cls, z, lwh, yaw = np.zeros(m, np.int64), np.zeros(m), np.zeros((m, 3)), np.zeros(m)
+    shape_var, shape_s, confidence = np.full(m, np.inf), np.zeros(m), np.zeros(m)
+    hits, confirmed, updated_s, seen_s = np.zeros(m, np.int64), np.zeros(m, bool), np.zeros(m), np.zeros((m, 1))
+    record_matches(cls, z, lwh, yaw, shape_var, shape_s, confidence, hits, confirmed, updated_s, seen_s, ti, di,
+                   np.ones(m, np.int64), rng.normal(size=m), rng.random((m, 3)), yaws, cov, rng.random(m),
+                   np.ones((m, 1), bool), 1.0, False, 2, 0.3)
+    with np.errstate(invalid="ignore"):  # inf mod 2 pi is NaN
+        want_yaw = wrap_angle(yaws)
+    np.testing.assert_array_equal(yaw.view(np.uint64), want_yaw.view(np.uint64))
+    np.testing.assert_array_equal(shape_var, cov[:, 0, 0] + cov[:, 1, 1])
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_mask_columns_are_the_numpy_expression(seed):
+    from fusion.track_table import _mask_columns
+
+    rng = np.random.default_rng(seed)
+    masks = rng.integers(0, 1 << 12, int(rng.integers(0, 9))).astype(np.int64)
+    col_values = np.int64(1) << rng.permutation(12)[:int(rng.integers(0, 12))].astype(np.int64)
+    extra = int(rng.integers(0, 1 << 12))
+    cols, union = _mask_columns(masks, extra, col_values)
+    both = masks | extra
+    assert cols.tolist() == ((both[:, None] & col_values) != 0).tolist()
+    assert union == (int(np.bitwise_or.reduce(both)) if len(both) else 0)
+
+
+def test_tracks_are_the_confirmed_rows_of_the_table_as_before():
+    """Tracker.tracks gathers the columns it outputs; the former body took the whole table first."""
+    from fusion.objects import ObjectArray
+    from fusion.tracking import Tracker, TrackerConfig
+    from fusion import kalman
+
+    rng = np.random.default_rng(11)
+    tracker = Tracker(TrackerConfig(gate="either"))
+    truth = rng.uniform(-50, 50, (12, 2))
+    for step in range(8):
+        t_s = 0.1 * step
+        n = len(truth) - step % 3
+        dets = ObjectArray(ids=np.arange(n), cls=np.ones(n, np.int64), xy=truth[:n] + rng.normal(0, 0.3, (n, 2)),
+                           z=np.zeros(n), lwh=np.ones((n, 3)), yaw=rng.normal(size=n), vxy=np.zeros((n, 2)),
+                           cov_xy=np.tile(np.eye(2) * 0.1, (n, 1, 1)), sources=np.full(n, 1 << (step % 2), np.int64))
+        tracker.update(dets, t_s, estimates=step % 2 == 1)
+        for query_s in (t_s, t_s + 0.05):
+            got = tracker.tracks(query_s)
+            tab = tracker._table
+            max_coast_s = tracker.config.max_coast_s
+            tab = tab.take(tab.confirmed & (query_s - tab.updated_s <= max_coast_s))
+            x, p = tab.x, tab.p
+            if query_s != tracker.time_s and len(tab):
+                x, p = kalman.predict(x, p, tracker.model, query_s - tracker.time_s)
+            want = dict(ids=tab.ids, cls=tab.cls, xy=x[:, :2], z=tab.z, lwh=tab.lwh, yaw=tab.yaw, vxy=x[:, 2:4],
+                        cov_xy=p[:, :2, :2], cov_vxy=p[:, 2:4, 2:4], confidence=tab.confidence,
+                        age_s=query_s - tab.born_s,
+                        sources=tab.source_masks((query_s - tab.seen_s) <= max_coast_s))
+            assert len(got) > 0 or step == 0
+            for name, column in want.items():
+                np.testing.assert_array_equal(getattr(got, name), column, err_msg=name)
