@@ -23,7 +23,7 @@ Memory is bounded: at most ``max_records`` arrivals and cycles are kept.
 
 from __future__ import annotations
 
-from bisect import bisect_right
+from bisect import bisect_left, bisect_right, insort
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -80,7 +80,10 @@ class LinkMonitor:
         self._highest: int | None = None  # highest seq of the current epoch
         self.duplicates_total = self.reordered_total = self.restarts_total = 0
         self._last_receive_ns: int | None = None
-        self._arrival_stats: tuple[list[float], float | None] | None = None  # kept until the arrivals change
+        # the window's latencies (ms) sorted, and each epoch's sequence numbers sorted, kept as arrivals
+        # come and go: the OBU asks for arrival_probability every cycle (O(log n), not a pass over the window)
+        self._latencies: list[float] = []
+        self._epoch_seqs: dict[int, list[int]] = {}
 
     # --- input -----------------------------------------------------------------------------
     def on_message(self, seq: int, capture_obu_ns: int | None, publish_obu_ns: int | None,
@@ -99,8 +102,10 @@ class LinkMonitor:
         latency = None if capture_obu_ns is None else (receive_obu_ns - capture_obu_ns) / NS_PER_MS
         delay = None if publish_obu_ns is None else (receive_obu_ns - publish_obu_ns) / NS_PER_MS
         self._arrivals.append(Arrival(receive_obu_ns, seq, self._epoch, latency, delay))
-        self._arrival_stats = None
         self._seen.add((self._epoch, seq))
+        insort(self._epoch_seqs.setdefault(self._epoch, []), seq)
+        if latency is not None:
+            insort(self._latencies, latency)
         while len(self._arrivals) > self.max_records:
             self._drop_oldest()
         return True
@@ -140,8 +145,14 @@ class LinkMonitor:
         return mean_abs_diff(self.delays_ms())
 
     def loss(self) -> tuple[int, int]:
-        """(lost, expected) messages in the window, from sequence gaps."""
-        return gap_loss([a.seq for a in self._arrivals], [a.epoch for a in self._arrivals])
+        """(lost, expected) messages in the window, from sequence gaps: ``gap_loss`` of the arrivals,
+        from each epoch's sorted sequence numbers (the window holds each (epoch, seq) once)."""
+        lost = expected = 0
+        for seqs in self._epoch_seqs.values():
+            span = seqs[-1] - seqs[0] + 1
+            expected += span
+            lost += span - len(seqs)
+        return lost, expected
 
     def loss_ratio(self) -> float | None:
         lost, expected = self.loss()
@@ -150,14 +161,11 @@ class LinkMonitor:
     def arrival_probability(self, within_ms: float) -> float:
         """P(a frame arrives within ``within_ms`` of its capture) = (1 - loss) * P(l <= W);
         0.0 with no latency measured yet (nothing known: do not count on it)."""
-        if self._arrival_stats is None:  # asked each cycle, the window changing at the RSU's rate
-            latencies = sorted(a.latency_ms for a in self._arrivals if a.latency_ms is not None)  # a few tens
-            self._arrival_stats = latencies, self.loss_ratio()
-        latencies, loss_ratio = self._arrival_stats
+        latencies = self._latencies
         if not latencies:
             return 0.0
         on_time = float(bisect_right(latencies, within_ms)) / len(latencies)  # #{l <= W} / n
-        return (1.0 - (loss_ratio or 0.0)) * on_time
+        return (1.0 - (self.loss_ratio() or 0.0)) * on_time
 
     def summary(self, now_obu_ns: int | None = None) -> dict[str, float | int | None]:
         """Window statistics for metrics (ms, ratios, counts); None where nothing was measured."""
@@ -199,5 +207,10 @@ class LinkMonitor:
 
     def _drop_oldest(self) -> None:
         old = self._arrivals.popleft()
-        self._arrival_stats = None
         self._seen.discard((old.epoch, old.seq))
+        seqs = self._epoch_seqs[old.epoch]
+        del seqs[bisect_left(seqs, old.seq)]
+        if not seqs:
+            del self._epoch_seqs[old.epoch]
+        if old.latency_ms is not None:
+            del self._latencies[bisect_left(self._latencies, old.latency_ms)]

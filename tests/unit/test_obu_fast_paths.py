@@ -9,7 +9,7 @@ import pytest
 from fusion.frames import Pose2D, PoseUncertainty, wrap_angle
 from fusion.pose_history import PoseHistory, _interpolate, _wrap
 from obu_service.clock_sync import ClockSync, SyncSample
-from obu_service.link_monitor import LinkMonitor
+from obu_service.link_monitor import LinkMonitor, gap_loss
 from obu_service.rsu_table import RecentResults
 
 MS = 1_000_000
@@ -84,13 +84,19 @@ def test_kept_estimate_equals_a_fresh_one_through_adds_and_steps():
     assert sync.steps_detected == 1
 
 
+def _old_loss(mon: LinkMonitor) -> tuple[int, int]:
+    """LinkMonitor.loss before its kept sequence numbers: gap_loss over the window's arrivals."""
+    return gap_loss([a.seq for a in mon._arrivals], [a.epoch for a in mon._arrivals])
+
+
 def _old_arrival_probability(mon: LinkMonitor, within_ms: float) -> float:
     """LinkMonitor.arrival_probability before its kept statistics."""
     latencies = [a.latency_ms for a in mon._arrivals if a.latency_ms is not None]
     if not latencies:
         return 0.0
+    lost, expected = _old_loss(mon)
     on_time = float(sum(latency <= within_ms for latency in latencies)) / len(latencies)
-    return (1.0 - (mon.loss_ratio() or 0.0)) * on_time
+    return (1.0 - ((lost / expected if expected else None) or 0.0)) * on_time
 
 
 def test_arrival_probability_equals_the_counting_expression_as_the_window_moves():
@@ -109,6 +115,23 @@ def test_arrival_probability_equals_the_counting_expression_as_the_window_moves(
         if seq % 50 == 0:
             mon.expire(t_ns + 1_500 * MS)  # most of the window leaves at once
             assert mon.arrival_probability(200.0) == _old_arrival_probability(mon, 200.0)
+        assert mon.loss() == _old_loss(mon)
+
+
+def test_kept_loss_equals_gap_loss_through_restarts_reordering_duplicates_and_drops():
+    rng = np.random.default_rng(5)
+    mon = LinkMonitor(window_ns=3_000 * MS, max_records=20, max_misorder=10, max_dropout=50)
+    t_ns, seq = 10**18, 0
+    for _ in range(3000):
+        t_ns += int(rng.integers(1, 150)) * MS
+        r = rng.random()
+        seq = (0 if r < 0.01 else seq + 200 if r < 0.02 else seq - int(rng.integers(1, 15)) if r < 0.15
+               else seq + int(rng.integers(1, 4)))  # restarts, jumps, late (or duplicate) arrivals, gaps
+        mon.on_message(seq, t_ns - 80 * MS if rng.random() < 0.9 else None, None, t_ns)
+        assert mon.loss() == _old_loss(mon)
+        w = float(rng.choice([80.0, 79.9, 200.0]))  # every latency 80 ms: all, none
+        assert mon.arrival_probability(w) == _old_arrival_probability(mon, w)
+    assert mon.restarts_total > 5 and mon.duplicates_total > 5 and mon.reordered_total > 5
 
 
 def test_recent_results_match_by_identity_and_forget_the_oldest():
