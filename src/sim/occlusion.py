@@ -5,8 +5,8 @@ visible when the segment origin -> sample crosses no occluder. Occluders are rot
 (slab test in each box's own frame), polygons (edge crossings + containment) and, optionally,
 the other targets' boxes (never the target itself).
 
-The test runs compiled (numba, ``_blocked``): per sample point, the occluders one by one until
-one blocks it. ``COMPILED = False`` runs the numpy reference instead, every segment against
+The test runs compiled (numba, ``_blocked``): per target, its sample points made as ``box_points``
+makes them, and per point the occluders one by one until one blocks it. ``COMPILED = False`` runs the numpy reference instead, every segment against
 every occluder as (points, occluders) arrays; both give the same answers bit for bit (the same
 operations in the same order; tests/unit/test_occlusion_kernel.py,
 ``benchmarks/eval_speed.py --reference``).
@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from fusion.jit import IN_F1, IN_F2, IN_I1, helper, kernel
+from fusion.jit import B1, IN_F1, IN_F2, IN_I1, IN_U1, helper, kernel
 from fusion.objects import ObjectArray
 
 _NO_EDGES = np.zeros(0, np.int64)
@@ -148,25 +148,36 @@ def visible_fraction(
     n = len(targets)
     if n == 0:
         return np.zeros(0)
+    if samples not in _OFFSETS:
+        raise ValueError(f"samples must be one of {sorted(_OFFSETS)}, got {samples}")
     origin = np.asarray(origin_xy, dtype=float)
+    boxes = np.zeros((0, 5)) if occluder_boxes is None else np.asarray(occluder_boxes, dtype=float).reshape(-1, 5)
+    if not COMPILED:
+        return _visible_fraction_all(origin, targets, boxes, polygons, samples, targets_occlude, sampled)
+    wanted = np.ones(n, dtype=bool) if sampled is None else np.asarray(sampled, dtype=bool)
+    starts, ends, first = _static_edges(polygons)
+    # (cos, sin) of the yaws by numpy, as the reference: the kernel's own could differ in the last bit
+    yaw = targets.yaw
+    blocked = _blocked(origin, targets.xy, targets.lwh, np.cos(yaw), np.sin(yaw), _OFFSETS[samples], wanted.view(np.uint8),
+                       targets_occlude and n > 1, boxes, np.cos(boxes[:, 4]), np.sin(boxes[:, 4]), starts, ends, first)
+    fraction = 1.0 - blocked / samples  # the mean of the points' blocked flags: count / samples
+    return fraction if sampled is None else np.where(wanted, fraction, 0.0)
+
+
+def _visible_fraction_all(origin, targets, boxes, polygons, samples, targets_occlude, sampled) -> np.ndarray:
+    """``visible_fraction`` by the numpy reference: every sample point against every occluder, as arrays."""
+    n = len(targets)
     pts = box_points(targets.xy, targets.lwh[:, :2], targets.yaw, samples).reshape(-1, 2)  # (N S, 2)
     owner = np.repeat(np.arange(n), samples)  # target of each sample point
     if sampled is not None:
         rows = np.repeat(np.asarray(sampled, dtype=bool), samples)
         pts, owner = pts[rows], owner[rows]
-    boxes = np.zeros((0, 5)) if occluder_boxes is None else np.asarray(occluder_boxes, dtype=float).reshape(-1, 5)
     if targets_occlude and n > 1:
         boxes = np.concatenate([boxes, np.column_stack([targets.xy, targets.lwh[:, :2], targets.yaw])])
         box_owner = np.concatenate([np.full(len(boxes) - n, -1), np.arange(n)])  # a target never hides itself
     else:
         box_owner = np.full(len(boxes), -1)
-    if COMPILED:
-        starts, ends, first = _static_edges(polygons)
-        # (cos, sin) of the yaws by numpy, as the reference: the kernel's own could differ in the last bit
-        blocked = _blocked(origin, pts, owner, boxes, np.cos(boxes[:, 4]), np.sin(boxes[:, 4]), box_owner, starts,
-                           ends, first)
-    else:
-        blocked = _blocked_all(origin, pts, owner, boxes, box_owner, polygons)
+    blocked = _blocked_all(origin, pts, owner, boxes, box_owner, polygons)
     if sampled is None:
         return 1.0 - blocked.reshape(n, samples).mean(axis=1)
     out = np.zeros(n)
@@ -187,32 +198,56 @@ def _blocked_all(origin, pts, owner, boxes, box_owner, polygons) -> np.ndarray:
     return blocked
 
 
-@kernel(IN_F1, IN_F2, IN_I1, IN_F2, IN_F1, IN_F1, IN_I1, IN_F2, IN_F2, IN_I1)
-def _blocked(origin: np.ndarray, pts: np.ndarray, owner: np.ndarray, boxes: np.ndarray, cos: np.ndarray,
-             sin: np.ndarray, box_owner: np.ndarray, starts: np.ndarray, ends: np.ndarray,
-             first: np.ndarray) -> np.ndarray:
-    """``_blocked_all`` compiled, point by point: the boxes not owned by owner[q] (slab test; cos, sin (B,) of
-    their yaws), then the polygons (edges starts / ends (E, 2), polygon p's from first[p]), until one blocks."""
-    blocked = np.zeros(len(pts), np.bool_)
-    for q in range(len(pts)):
-        for k in range(len(boxes)):
-            if box_owner[k] != owner[q] and _hits_box(origin, pts[q], boxes[k], cos[k], sin[k]):
-                blocked[q] = True
-                break
-        for p in range(len(first)):
-            if blocked[q]:
-                break
-            blocked[q] = _hits_polygon(origin, pts[q], starts, ends, first[p],
-                                       first[p + 1] if p + 1 < len(first) else len(starts))
+@kernel(IN_F1, IN_F2, IN_F2, IN_F1, IN_F1, IN_F2, IN_U1, B1, IN_F2, IN_F1, IN_F1, IN_F2, IN_F2, IN_I1)
+def _blocked(origin: np.ndarray, xy: np.ndarray, lwh: np.ndarray, cos: np.ndarray, sin: np.ndarray,
+             offsets: np.ndarray, wanted: np.ndarray, occlude: bool, boxes: np.ndarray, box_cos: np.ndarray,
+             box_sin: np.ndarray, starts: np.ndarray, ends: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """Blocked sample points (N,) of each wanted target (``_blocked_all`` compiled, point by point): targets
+    xy (N, 2), lwh (N, 3), cos, sin (N,) of their yaws; a point is p = c + R(yaw) q, q = offset (S, 2) *
+    (l/2, w/2), with ``box_points``' operations. Each point meets the boxes (M, 5) (box_cos, box_sin (M,)),
+    then, with ``occlude``, the other targets' boxes, then the polygons (edges starts / ends (E, 2),
+    polygon p's from first[p]), until one blocks it."""
+    blocked = np.zeros(len(xy), np.int64)
+    for i in range(len(xy)):
+        if not wanted[i]:
+            continue
+        half_l, half_w = lwh[i, 0] / 2.0, lwh[i, 1] / 2.0
+        for k in range(len(offsets)):
+            qx, qy = offsets[k, 0] * half_l, offsets[k, 1] * half_w
+            px = xy[i, 0] + (cos[i] * qx + (-sin[i]) * qy)  # c + R q, R = [[c, -s], [s, c]]
+            py = xy[i, 1] + (sin[i] * qx + cos[i] * qy)
+            if _point_blocked(origin, px, py, i, xy, lwh, cos, sin, occlude, boxes, box_cos, box_sin, starts, ends,
+                              first):
+                blocked[i] += 1
     return blocked
 
 
 @helper
-def _hits_box(a: np.ndarray, b: np.ndarray, box: np.ndarray, c: float, s: float) -> bool:
-    """Segment a -> b meets box [x, y, l, w, yaw] (c, s = cos, sin yaw): ``segments_hit_boxes``' slab test with
-    its operations (R^T v = (c v_x + s v_y, -s v_x + c v_y); np.minimum / np.maximum keep its NaN handling)."""
-    acx, acy, bax, bay = a[0] - box[0], a[1] - box[1], b[0] - a[0], b[1] - a[1]
-    hx, hy = box[2] / 2.0, box[3] / 2.0
+def _point_blocked(origin: np.ndarray, px: float, py: float, owner: int, xy: np.ndarray, lwh: np.ndarray,
+                   cos: np.ndarray, sin: np.ndarray, occlude: bool, boxes: np.ndarray, box_cos: np.ndarray,
+                   box_sin: np.ndarray, starts: np.ndarray, ends: np.ndarray, first: np.ndarray) -> bool:
+    """Segment origin -> (px, py) meets a static box, another target's box (with ``occlude``) or a polygon."""
+    for k in range(len(boxes)):
+        if _hits_box(origin, px, py, boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3], box_cos[k], box_sin[k]):
+            return True
+    if occlude:
+        for j in range(len(xy)):
+            if j != owner and _hits_box(origin, px, py, xy[j, 0], xy[j, 1], lwh[j, 0], lwh[j, 1], cos[j], sin[j]):
+                return True
+    for p in range(len(first)):
+        if _hits_polygon(origin, px, py, starts, ends, first[p], first[p + 1] if p + 1 < len(first) else len(starts)):
+            return True
+    return False
+
+
+@helper
+def _hits_box(a: np.ndarray, bx: float, by: float, x: float, y: float, length: float, width: float, c: float,
+              s: float) -> bool:
+    """Segment a -> b meets box [x, y, length, width, yaw] (c, s = cos, sin yaw): ``segments_hit_boxes``' slab
+    test with its operations (R^T v = (c v_x + s v_y, -s v_x + c v_y); np.minimum / np.maximum keep its NaN
+    handling)."""
+    acx, acy, bax, bay = a[0] - x, a[1] - y, bx - a[0], by - a[1]
+    hx, hy = length / 2.0, width / 2.0
     q0x, q0y = c * acx + s * acy, -s * acx + c * acy  # R^T (a - c)
     dx, dy = c * bax + s * bay, -s * bax + c * bay  # R^T (b - a)
     t1x, t2x, t1y, t2y = (-hx - q0x) / dx, (hx - q0x) / dx, (-hy - q0y) / dy, (hy - q0y) / dy
@@ -228,15 +263,15 @@ def _cross_z(ox: float, oy: float, px: float, py: float, qx: float, qy: float) -
 
 
 @helper
-def _hits_polygon(a: np.ndarray, b: np.ndarray, starts: np.ndarray, ends: np.ndarray, lo: int, hi: int) -> bool:
+def _hits_polygon(a: np.ndarray, bx: float, by: float, starts: np.ndarray, ends: np.ndarray, lo: int, hi: int) -> bool:
     """Segment a -> b meets the polygon of edges lo .. hi - 1: ``segments_hit_polygons``' tests (crosses an
     edge, or b inside by the crossing number of the ray from b towards +x)."""
     inside = False
     for e in range(lo, hi):
         cx, cy, dx, dy = starts[e, 0], starts[e, 1], ends[e, 0], ends[e, 1]
-        if (_cross_z(a[0], a[1], b[0], b[1], cx, cy) * _cross_z(a[0], a[1], b[0], b[1], dx, dy) <= 0
-                and _cross_z(cx, cy, dx, dy, a[0], a[1]) * _cross_z(cx, cy, dx, dy, b[0], b[1]) <= 0):
+        if (_cross_z(a[0], a[1], bx, by, cx, cy) * _cross_z(a[0], a[1], bx, by, dx, dy) <= 0
+                and _cross_z(cx, cy, dx, dy, a[0], a[1]) * _cross_z(cx, cy, dx, dy, bx, by) <= 0):
             return True
-        if (cy > b[1]) != (dy > b[1]) and b[0] < cx + (b[1] - cy) * (dx - cx) / (dy - cy):
+        if (cy > by) != (dy > by) and bx < cx + (by - cy) * (dx - cx) / (dy - cy):
             inside = not inside
     return inside
