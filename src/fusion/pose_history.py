@@ -40,9 +40,10 @@ class PoseHistory:
             self._t.popleft()
             self._poses.popleft()
 
-    def at(self, t_ns: int) -> Pose2D | None:
+    def at(self, t_ns: int, uncertainty: bool = True) -> Pose2D | None:
         """Pose at t_ns: linear interpolation between neighbours, constant-velocity
-        extrapolation outside the stored span; None when empty."""
+        extrapolation outside the stored span; None when empty. ``uncertainty=False``: where the
+        ego is, without its error statistics (an interpolated pose's ``uncertainty`` is then None)."""
         if not self._t:
             return None
         i = bisect.bisect_left(self._t, t_ns)
@@ -51,7 +52,7 @@ class PoseHistory:
             return _extrapolate(self._poses[j], (t_ns - self._t[j]) * 1e-9)
         t0, t1 = self._t[i - 1], self._t[i]
         a = (t_ns - t0) / (t1 - t0) if t1 > t0 else 0.0
-        return _interpolate(self._poses[i - 1], self._poses[i], a)
+        return _interpolate(self._poses[i - 1], self._poses[i], a, uncertainty)
 
 
 def _wrap(rad: float) -> float:
@@ -60,12 +61,12 @@ def _wrap(rad: float) -> float:
     return (rad + math.pi) % _TWO_PI - math.pi
 
 
-def _interpolate(p: Pose2D, q: Pose2D, a: float) -> Pose2D:
+def _interpolate(p: Pose2D, q: Pose2D, a: float, uncertainty: bool = True) -> Pose2D:
     # yaw along the shorter arc: yaw = p + a * wrap(q - p)
     yaw = _wrap(float(p.yaw) + a * _wrap(float(q.yaw) - float(p.yaw)))
     lerp = lambda u, v: (1 - a) * u + a * v  # noqa: E731
     return Pose2D(lerp(p.x, q.x), lerp(p.y, q.y), yaw, lerp(p.vx, q.vx), lerp(p.vy, q.vy),
-                  _interpolate_uncertainty(p.uncertainty, q.uncertainty, a))
+                  _interpolate_uncertainty(p.uncertainty, q.uncertainty, a) if uncertainty else None)
 
 
 def _interpolate_uncertainty(p: PoseUncertainty | None, q: PoseUncertainty | None, a: float) -> PoseUncertainty | None:

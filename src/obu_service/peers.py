@@ -182,10 +182,10 @@ class PeerIntake:
         objects, not_own = _own_in_map(msg)
         if not_own:
             self.rejected["not_own_perception"] += not_own
-        objects = self._admission.on_site(state, objects, self.poses.at(receive_ns))
+        objects = self._admission.on_site(state, objects, self.poses.at(receive_ns, uncertainty=False))
         est = state.sync.estimate_at(receive_ns)
         capture_ns = receive_ns if est is None else est.to_obu_ns(header.capture_time_ns)
-        objects = self._admission.not_ego(objects, self.poses.at(capture_ns))
+        objects = self._admission.not_ego(objects, self.poses.at(capture_ns, uncertainty=False))
         objects = objects.with_(ids=_slot_ids(state, objects.ids),
                                 sources=np.full(len(objects), slot_source(state.index), np.int64))
         state.frames.append(Received(header.capture_time_ns, header.valid_time_ns, header.seq, objects, receive_ns))

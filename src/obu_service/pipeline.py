@@ -207,10 +207,11 @@ class ObuPipeline:
         if state is None:
             return None
         state.lists_seen.add((header.seq, header.capture_time_ns))
-        objects = self._admission.on_site(state, _rsu_objects(msg.objects), self.poses.at(receive_ns))
+        ego_now = self.poses.at(receive_ns, uncertainty=False)
+        objects = self._admission.on_site(state, _rsu_objects(msg.objects), ego_now)
         est = state.sync.estimate_at(receive_ns)
         capture_ns = receive_ns if est is None else est.to_obu_ns(header.capture_time_ns)
-        objects = self._admission.not_ego(objects, self.poses.at(capture_ns))
+        objects = self._admission.not_ego(objects, self.poses.at(capture_ns, uncertainty=False))
         objects = objects.with_(ids=self._rsu_ids(state, objects.ids),
                                 sources=np.full(len(objects), slot_source(state.index), np.int64))
         state.frames.append(Received(header.capture_time_ns, header.valid_time_ns, header.seq, objects, receive_ns))

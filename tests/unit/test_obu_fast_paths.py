@@ -147,3 +147,14 @@ def test_recent_results_match_by_identity_and_forget_the_oldest():
     memo(b), memo(c)
     memo(a)  # forgotten (capacity 2): computed again
     assert calls[id(a)] == 2 and calls[id(b)] == 1
+
+
+def test_a_pose_without_its_uncertainty_is_the_same_pose():
+    h = PoseHistory()
+    u = PoseUncertainty.from_stds(0.05, 0.08, 0.005, 5.0)
+    for k in range(20):
+        h.add(k * 100 * MS, Pose2D(k * 1.5, -k * 0.5, 3.0 - 0.4 * k, 15.0, -5.0, uncertainty=u))
+    for t in (-50 * MS, 0, 1234 * MS, 1900 * MS, 2500 * MS):
+        with_u, without = h.at(t), h.at(t, uncertainty=False)
+        assert without == with_u and with_u.uncertainty is not None  # (x, y, yaw, vx, vy) compared
+    assert h.at(1234 * MS, uncertainty=False).uncertainty is None
