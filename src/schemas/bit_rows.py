@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.jit import I64, IN_I1, IN_I2, IN_U1, kernel
+from fusion.jit import I64, IN_I1, IN_I2, IN_U1, helper, kernel
 
 from . import bitpack, object_wire
 from .columns import _YAW_HALF_TURN as YAW_HALF_TURN  # yaw codes live in [-1800, 1800)
 
 
-@kernel(IN_I2, IN_I1, I64)
-def pack_rows(fields: np.ndarray, widths: np.ndarray, row_bytes: int) -> np.ndarray:
-    """(N * row_bytes,) uint8 of (N, K) non-negative int64 ``fields``, each below 2^widths[j]."""
+@helper
+def _packed(fields: np.ndarray, widths: np.ndarray, row_bytes: int) -> np.ndarray:
+    """``pack_rows``' loop (a helper: ``pack_section`` packs its rows with it too)."""
     n, k = fields.shape
     out = np.zeros(n * row_bytes, np.uint8)
     for i in range(n):
@@ -29,6 +29,12 @@ def pack_rows(fields: np.ndarray, widths: np.ndarray, row_bytes: int) -> np.ndar
                 out[bit >> 3] |= (value & ((1 << take) - 1)) << (bit & 7)
                 value, left, bit = value >> take, left - take, bit + take
     return out
+
+
+@kernel(IN_I2, IN_I1, I64)
+def pack_rows(fields: np.ndarray, widths: np.ndarray, row_bytes: int) -> np.ndarray:
+    """(N * row_bytes,) uint8 of (N, K) non-negative int64 ``fields``, each below 2^widths[j]."""
+    return _packed(fields, widths, row_bytes)
 
 
 @kernel(IN_U1, I64, IN_I1, I64)
@@ -60,8 +66,8 @@ def unpack_codes(data: np.ndarray, n: int, row_bytes: int, params: np.ndarray, s
     code outside its column's range as a flat index ``i * K + j`` (-1: none; -2: an indexed position
     past its table, which refuses the section before any range), and whether a yaw code lies outside
     [-YAW_HALF_TURN, YAW_HALF_TURN). ``params`` (6, F) per present column f: width, column, scale, ref, table start
-    (-1: not indexed), table size; ``sums`` the tables' cumulative gaps; ``code_table`` (3, K)
-    default, lowest and highest code per column. A code is ``d * scale + ref``, ``d`` the field or,
+    (-1: not indexed), table size; ``sums`` the tables' cumulative gaps; ``code_table`` (4, K)
+    default, lowest and highest code per column (and whether it is required, unused here). A code is ``d * scale + ref``, ``d`` the field or,
     indexed, ``sums[start + d] - sums[start]``; the other columns hold their default."""
     if len(data) != n * row_bytes:
         raise ValueError("packed rows: wrong length")
@@ -92,4 +98,79 @@ def unpack_codes(data: np.ndarray, n: int, row_bytes: int, params: np.ndarray, s
     return codes, -2 if beyond else first_bad, yaw_outside
 
 
-object_wire.use_compiled(unpack_codes)
+
+@helper
+def _gcd(a: int, b: int) -> int:
+    """gcd of two non-negative ints (Euclid; np.gcd's value)."""
+    while b:
+        a, b = b, a % b
+    return a
+
+
+@helper
+def _bit_length(v: int) -> int:
+    """Bits of a non-negative int (0 for 0): Python's ``int.bit_length``."""
+    bits = 0
+    while v:
+        v >>= 1
+        bits += 1
+    return bits
+
+
+@kernel(IN_I2, IN_I2)
+def pack_section(codes: np.ndarray, code_table: np.ndarray) -> tuple:
+    """``object_wire.pack_objects``' section parts of (N, K) valid ``codes`` (N >= 1), per present
+    column f (required, or some code not the default; F of them): its column, ref (the smallest code),
+    scale (gcd of the codes' distances to ref, 1 for none), width, and for an indexed column its
+    table's size U and item size b (0: not indexed); the packed rows (N * row_bytes,) uint8; the
+    tables' gaps, narrowed (``value_tables``). A column's fields are ``(code - ref) / scale``, width
+    the bits of the largest; it is indexed (fields: their positions among the U distinct fields,
+    width: bits(U - 1)) iff n (w - bits(U - 1)) > 8 U b, b the item size of the largest gap between
+    neighbouring distinct fields (``value_tables.index_columns``' rule)."""
+    n, k = codes.shape
+    present = np.zeros(k, np.bool_)
+    for j in range(k):
+        present[j] = code_table[3, j] != 0
+        for i in range(n):
+            present[j] |= codes[i, j] != code_table[0, j]
+    f = int(present.sum())
+    cols, ref, scale, width = np.zeros(f, np.int64), np.zeros(f, np.int64), np.zeros(f, np.int64), np.zeros(f, np.int64)
+    distinct, itemsize = np.zeros(f, np.int64), np.zeros(f, np.int64)
+    fields = np.zeros((n, f), np.int64)
+    ordered, values = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    blob, used = np.zeros(8 * n * f, np.uint8), 0
+    c = 0
+    for j in range(k):
+        if not present[j]:
+            continue
+        low, g, top = codes[0, j], 0, 0
+        for i in range(n):
+            low = min(low, codes[i, j])
+        for i in range(n):
+            g = _gcd(g, codes[i, j] - low)
+        g = max(g, 1)
+        for i in range(n):
+            fields[i, c] = (codes[i, j] - low) // g
+            top = max(top, fields[i, c])
+        ordered[:] = fields[:, c]
+        ordered.sort()
+        u, gap, values[0] = 1, 0, ordered[0]
+        for i in range(1, n):
+            if ordered[i] > ordered[i - 1]:
+                values[u], u, gap = ordered[i], u + 1, max(gap, ordered[i] - ordered[i - 1])
+        b = 1 if gap <= 0xFF else 2 if gap <= 0xFFFF else 4 if gap <= 0xFFFFFFFF else 8
+        cols[c], ref[c], scale[c], width[c] = j, low, g, _bit_length(top)
+        if n * (width[c] - _bit_length(u - 1)) > 8 * u * b:
+            distinct[c], itemsize[c], width[c] = u, b, _bit_length(u - 1)
+            for i in range(n):  # the field's position among the distinct fields
+                fields[i, c] = np.searchsorted(values[:u], fields[i, c])
+            for v in range(u):  # gaps T_v - T_(v-1), 0 first, little-endian in b bytes
+                step = values[v] - values[v - 1] if v else 0
+                for byte in range(b):
+                    blob[used + byte] = (step >> (8 * byte)) & 0xFF
+                used += b
+        c += 1
+    return cols, ref, scale, width, distinct, itemsize, _packed(fields, width, (width.sum() + 7) // 8), blob[:used]
+
+
+object_wire.use_compiled(unpack_codes, pack_section)

@@ -145,8 +145,9 @@ class Layout:
 
     @cached_property
     def code_table(self) -> np.ndarray:
-        """(3, K) int64: ``default_codes``, ``code_lo``, ``code_hi`` (one argument of a compiled loop)."""
-        out = np.array([self.default_codes, self.code_lo, self.code_hi], dtype=np.int64)
+        """(4, K) int64: ``default_codes``, ``code_lo``, ``code_hi``, ``required`` (1: required): one
+        argument of the codec's compiled loops (``schemas.bit_rows``)."""
+        out = np.array([self.default_codes, self.code_lo, self.code_hi, self.required], dtype=np.int64)
         out.flags.writeable = False
         return out
 

@@ -44,10 +44,13 @@ EMPTY_SECTION = (0, 0, b"", (), (), b"", value_tables.NO_TABLES)
 
 
 def pack_objects(objects: ObjectColumns) -> list[Any]:
-    """The msgpack-ready objects section of validated columns."""
+    """The msgpack-ready objects section of validated columns (once the kernels are loaded, one
+    compiled loop when no column is worth indexing: ``schemas.bit_rows.pack_section``)."""
     codes, layout = objects.codes, layout_of(objects.fused)
     if len(codes) == 0:
         return list(EMPTY_SECTION)
+    if _compiled_section is not None:
+        return _section_compiled(codes, layout)
     present = layout.required | (codes != layout.default_codes).any(axis=0)
     cols = np.flatnonzero(present)
     c = codes[:, cols]
@@ -61,6 +64,17 @@ def pack_objects(objects: ObjectColumns) -> list[Any]:
     flags = np.where(scale > 1, _SCALED, 0) | np.where(indexed, _INDEXED, 0)
     return [len(codes), int(np.left_shift(1, cols).sum()), (widths | flags).astype(np.uint8).tobytes(),
             ref.tolist(), scale[scale > 1].tolist(), bitpack.pack(fields, widths), tables]
+
+
+def _section_compiled(codes: np.ndarray, layout) -> list[Any]:
+    """``pack_objects``' section by ``schemas.bit_rows.pack_section`` (the same bytes: test_object_wire_paths)."""
+    cols, ref, scale, widths, counts, sizes, rows, blob = _compiled_section(codes, layout.code_table)
+    scales, sizes = scale.tolist(), sizes.tolist()
+    flags = bytes(w | (_SCALED if s > 1 else 0) | (_INDEXED if b else 0) for w, s, b in zip(widths.tolist(), scales, sizes))
+    tables = [[u for u in counts.tolist() if u], bytes(b for b in sizes if b), blob.tobytes()] if any(sizes) \
+        else list(value_tables.NO_TABLES)
+    return [len(codes), sum(1 << j for j in cols.tolist()), flags, ref.tolist(), [s for s in scales if s > 1],
+            rows.tobytes(), tables]
 
 
 def object_count(section: Any) -> int:
@@ -103,12 +117,14 @@ def unpack_objects(section: Any, fused: bool) -> ObjectColumns:
 
 
 _compiled_codes = None  # schemas.bit_rows.unpack_codes, once loaded (fusion.jit.load_kernels)
+_compiled_section = None  # schemas.bit_rows.pack_section, likewise
 
 
-def use_compiled(unpack_codes) -> None:
-    """From now on ``unpack_objects`` builds its codes with ``schemas.bit_rows.unpack_codes``."""
-    global _compiled_codes
-    _compiled_codes = unpack_codes
+def use_compiled(unpack_codes, pack_section) -> None:
+    """From now on ``unpack_objects`` builds its codes with ``schemas.bit_rows.unpack_codes`` and
+    ``pack_objects`` its section with ``pack_section``."""
+    global _compiled_codes, _compiled_section
+    _compiled_codes, _compiled_section = unpack_codes, pack_section
 
 
 def _columns_compiled(layout, fused: bool, n: int, rows: bytes, row_bytes: int, per_column: tuple[list, ...],

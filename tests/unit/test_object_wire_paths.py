@@ -2,7 +2,8 @@
 ``schemas.bit_rows.unpack_codes`` once the kernels are loaded) against the decoder it replaced
 (``legacy_object_wire``): on valid sections, sections with codes out of range or yaws to wrap,
 and sections with a damaged entry, both paths give the very codes or the very refusal
-(exception type, message and field)."""
+(exception type, message and field). ``pack_objects`` (numpy, or ``schemas.bit_rows.pack_section``)
+against the encoder it replaced: the very section, indexed columns included."""
 
 from __future__ import annotations
 
@@ -24,10 +25,11 @@ def path(request):
     """Run the module's tests with numpy's codes, then with the compiled loop's."""
     from schemas import bit_rows
 
-    saved = object_wire._compiled_codes
-    object_wire._compiled_codes = None if request.param == "numpy" else bit_rows.unpack_codes
+    saved = object_wire._compiled_codes, object_wire._compiled_section
+    compiled = request.param == "compiled"
+    object_wire.use_compiled(bit_rows.unpack_codes if compiled else None, bit_rows.pack_section if compiled else None)
     yield request.param
-    object_wire._compiled_codes = saved
+    object_wire.use_compiled(*saved)
 
 
 def outcome(fn):
@@ -109,6 +111,32 @@ def test_unpack_objects_equals_the_decoder_it_replaced(path, case) -> None:
     assert not got.codes.flags.writeable
 
 
+@MANY
+@given(fused=st.booleans(), n=st.sampled_from([1, 2, 3, 6, 30, 200]), distinct=st.integers(1, 12),
+       wide=st.sampled_from([300, 70_000, 2**33]), seed=st.integers(0, 2**32 - 1))
+def test_pack_objects_equals_the_encoder_it_replaced(path, fused: bool, n: int, distinct: int, wide: int,
+                                                       seed: int) -> None:
+    """Codes with some columns constant or at their default, some on a coarse grid (a scale), some with
+    few distinct values far apart (indexed when that is smaller, with 1-, 2-, 4- and 8-byte gaps)."""
+    layout = FUSED if fused else OBJECTS
+    rng = np.random.default_rng(seed)
+    lo, hi = layout.code_lo.astype(np.int64), layout.code_hi.astype(np.int64)
+    codes = rng.integers(np.maximum(lo, -3000), np.minimum(hi, 3000) + 1, size=(n, len(lo)))
+    for j in rng.choice(len(lo), size=6, replace=False):
+        kind = rng.integers(0, 4)
+        if kind == 0:
+            codes[:, j] = layout.default_codes[j]
+        elif kind == 1:
+            codes[:, j] = codes[0, j]
+        elif kind == 2:
+            codes[:, j] = np.maximum(lo[j], 0) + 20 * rng.integers(0, 50, size=n)
+        else:
+            values = np.maximum(lo[j], 0) + np.sort(rng.choice(wide, size=distinct, replace=False))
+            codes[:, j] = np.minimum(rng.choice(values, size=n), hi[j])
+    columns = ObjectColumns(codes, fused)  # raw codes: the encoder packs what it is given
+    assert object_wire.pack_objects(columns) == legacy.pack_objects(columns)
+
+
 def test_the_compiled_path_is_the_one_the_services_use() -> None:
     """Once the kernels are loaded (services, v2i eval), ``unpack_objects`` builds codes with the loop."""
     from fusion.jit import load_kernels
@@ -116,3 +144,4 @@ def test_the_compiled_path_is_the_one_the_services_use() -> None:
 
     load_kernels()
     assert object_wire._compiled_codes is bit_rows.unpack_codes
+    assert object_wire._compiled_section is bit_rows.pack_section
