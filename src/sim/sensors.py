@@ -50,6 +50,19 @@ def _default_lwh(cls: np.ndarray) -> np.ndarray:
     return _DEFAULT_LWH_BY_CODE[np.asarray(cls, dtype=np.int64)].reshape(-1, 3)
 
 
+_DIAGONALS: dict[float, np.ndarray] = {}  # variance -> (K, 2, 2) var I_2, grown as needed
+
+
+def _diagonal_covariances(variance: float, n: int) -> np.ndarray:
+    """(n, 2, 2) fresh copies of var I_2 (m^2): ``np.tile(np.eye(2) * var, (n, 1, 1))``, sliced from a kept tile."""
+    tile = _DIAGONALS.get(variance)
+    if tile is None or len(tile) < n:
+        if len(_DIAGONALS) >= 64:
+            _DIAGONALS.clear()
+        tile = _DIAGONALS[variance] = np.tile(np.eye(2) * variance, (max(n, 64), 1, 1))
+    return tile[:n].copy()
+
+
 class Lidar:
     """On-board LiDAR + CenterPoint-like detector: detections in the ego's true base_link."""
 
@@ -96,13 +109,13 @@ class Lidar:
         # fewer returns on far or partly hidden objects -> lower score
         confidence = np.clip(vis * (1.0 - 0.5 * dist / c.range_m), 0.05, 1.0)
         keep = (dist <= c.range_m) & (vis >= c.min_visible_fraction) & detected
-        out = ObjectArray(
-            ids=np.full(n, -1, dtype=np.int64), cls=truth.cls, xy=xy, z=z, lwh=lwh, yaw=yaw, vxy=vxy,
-            cov_xy=np.tile(np.eye(2) * c.position_noise_std_m**2, (n, 1, 1)), confidence=confidence,
-            cov_vxy=np.tile(np.eye(2) * c.velocity_noise_std_mps**2, (n, 1, 1)),
-            sources=np.full(n, SOURCE_VEHICLE, dtype=np.int64),
+        k = int(np.count_nonzero(keep))  # the kept rows alone
+        return ObjectArray(
+            ids=np.full(k, -1, dtype=np.int64), cls=truth.cls[keep], xy=xy[keep], z=z[keep], lwh=lwh[keep],
+            yaw=yaw[keep], vxy=vxy[keep], cov_xy=_diagonal_covariances(c.position_noise_std_m**2, k),
+            confidence=confidence[keep], cov_vxy=_diagonal_covariances(c.velocity_noise_std_mps**2, k),
+            sources=np.full(k, SOURCE_VEHICLE, dtype=np.int64),
         )
-        return out.take(keep)
 
 
 def mean_error_at(range_m: np.ndarray, cfg: RsuCameraConfig) -> np.ndarray:
@@ -110,8 +123,16 @@ def mean_error_at(range_m: np.ndarray, cfg: RsuCameraConfig) -> np.ndarray:
 
     Piecewise constant over the configured bands; beyond the last band, the last value.
     """
-    edges = np.array([b.max_range_m for b in cfg.position_error])
-    means = np.array([b.mean_error_m for b in cfg.position_error])
+    return _band_values(range_m, *_error_bands(cfg))
+
+
+def _error_bands(cfg: RsuCameraConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's error bands: upper range edges (B,) m and mean errors (B,) m."""
+    return np.array([b.max_range_m for b in cfg.position_error]), np.array([b.mean_error_m for b in cfg.position_error])
+
+
+def _band_values(range_m: np.ndarray, edges: np.ndarray, means: np.ndarray) -> np.ndarray:
+    """``mean_error_at`` from the bands (``_error_bands``)."""
     return means[np.minimum(np.searchsorted(edges, range_m, side="left"), len(means) - 1)]
 
 
@@ -131,10 +152,15 @@ class RsuCamera:
         self.cfg = cfg
         self.rng = rng
         self.last_visible_xy = np.zeros((0, 2))  # (T, 2) m: the truth the last frame could see (scoring)
+        self._position = np.array([cfg.position.x, cfg.position.y])
+        self._position.flags.writeable = False
+        self._bands = _error_bands(cfg)
+        self._yaw_rad, self._half_fov_rad = np.deg2rad(cfg.yaw_deg), np.deg2rad(cfg.fov_deg) / 2.0
 
     @property
     def position(self) -> np.ndarray:
-        return np.array([self.cfg.position.x, self.cfg.position.y])
+        """The pole's position (2,) m in map (read-only)."""
+        return self._position
 
     def coverage(self, world: World, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Per actor (N,): horizontal range from the pole (m) and whether it is observable.
@@ -148,8 +174,8 @@ class RsuCamera:
         c = self.cfg
         rel = gt.xy - self.position
         rng_m = np.hypot(rel[:, 0], rel[:, 1])
-        off_axis = wrap_angle(np.arctan2(rel[:, 1], rel[:, 0]) - np.deg2rad(c.yaw_deg))
-        in_view = (rng_m <= c.range_m) & (np.abs(off_axis) <= np.deg2rad(c.fov_deg) / 2.0)
+        off_axis = wrap_angle(np.arctan2(rel[:, 1], rel[:, 0]) - self._yaw_rad)
+        in_view = (rng_m <= c.range_m) & (np.abs(off_axis) <= self._half_fov_rad)
         vis = visible_fraction(self.position, gt, world.building_boxes, world.building_polygons, targets_occlude=False,
                                sampled=in_view)  # an actor out of view is not observable, however visible
         return rng_m, in_view & (vis >= c.min_visible_fraction)
@@ -163,18 +189,20 @@ class RsuCamera:
         rng_m, observable = self._coverage(world, truth)
         self.last_visible_xy = truth.xy[observable]
         n = len(truth)
-        sigma = per_axis_sigma(mean_error_at(rng_m, c))
+        sigma = per_axis_sigma(_band_values(rng_m, *self._bands))
         detected = rng.random(n) < c.detection_probability
         xy = truth.xy + rng.normal(0.0, 1.0, (n, 2)) * sigma[:, None]
         yaw = wrap_angle(truth.yaw + rng.normal(0.0, c.yaw_noise_std_rad, n))
         lwh = np.maximum(_default_lwh(truth.cls) + rng.normal(0.0, c.size_noise_std_m, (n, 3)), _MIN_SIZE_M)
+        keep = observable & detected
+        k, lwh, sigma = int(np.count_nonzero(keep)), lwh[keep], sigma[keep]  # the kept rows alone
         out = ObjectArray(
-            ids=np.full(n, -1, dtype=np.int64), cls=truth.cls, xy=xy, z=lwh[:, 2] / 2.0, lwh=lwh, yaw=yaw,
-            vxy=np.zeros((n, 2)), cov_xy=sigma[:, None, None] ** 2 * np.eye(2),
-            confidence=np.clip(1.0 - 0.5 * rng_m / c.range_m, 0.05, 1.0),
-            sources=np.full(n, SOURCE_RSU, dtype=np.int64),
+            ids=np.full(k, -1, dtype=np.int64), cls=truth.cls[keep], xy=xy[keep], z=lwh[:, 2] / 2.0, lwh=lwh,
+            yaw=yaw[keep], vxy=np.zeros((k, 2)), cov_xy=sigma[:, None, None] ** 2 * np.eye(2),
+            confidence=np.clip(1.0 - 0.5 * rng_m[keep] / c.range_m, 0.05, 1.0),
+            sources=np.full(k, SOURCE_RSU, dtype=np.int64),
         )
-        return out.take(observable & detected), delay_s
+        return out, delay_s
 
 
 class Localization:
