@@ -75,8 +75,8 @@ def states_from_objects(objs: ObjectArray, fused: bool = False) -> ObjectColumns
     table[:, _C["length"]:_C["height"] + 1], table[:, _C["yaw"]] = objs.lwh, objs.yaw
     table[:, _C["vx"]:_C["vy"] + 1], table[:, _C["ax"]:_C["ay"] + 1] = objs.vxy, objs.axy
     table[:, _C["yaw_rate"]] = objs.yaw_rate
-    table[:, _C["cov_xx"]:_C["cov_yy"] + 1] = objs.cov_xy.reshape(n, 4)[:, [0, 1, 3]]
-    table[:, _C["cov_vxx"]:_C["cov_vyy"] + 1] = objs.cov_vxy.reshape(n, 4)[:, [0, 1, 3]]
+    _put_cov(table, _C["cov_xx"], objs.cov_xy)
+    _put_cov(table, _C["cov_vxx"], objs.cov_vxy)
     table[:, _C["confidence"]] = np.clip(objs.confidence, 0.0, 1.0)
     table[:, _C["age_s"]] = np.maximum(objs.age_s, 0.0)
     if fused:
@@ -117,8 +117,8 @@ def wire_columns(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS, fused: boo
     real = table[:, _W_REAL]  # (N, 22) view: x .. age_s, cov_xy[1, 0], cov_vxy[1, 0]
     for name, start, width in _W_SPANS:
         real[:, start:start + width] = getattr(objs, name).reshape(n, width)
-    real[:, _W_COV] = objs.cov_xy.reshape(n, 4)[:, [0, 1, 3, 2]]
-    real[:, _W_VCOV] = objs.cov_vxy.reshape(n, 4)[:, [0, 1, 3, 2]]
+    _put_cov(real, _W_COV[0], objs.cov_xy, _W_YX)
+    _put_cov(real, _W_VCOV[0], objs.cov_vxy, _W_YX + 1)
     keep, counts = _kept_rows(real, objs.xy, max_objects)
     rows = keep if len(keep) < n else slice(None)  # every row kept (the usual case): views, no copies
     table, old_ids = table[rows], objs.ids[rows]
@@ -131,6 +131,15 @@ def wire_columns(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS, fused: boo
     if fused:
         table[:, _C["sources"]] = wire_sources(objs.sources[rows])  # over cov_xy[1, 0], counted above
     return ObjectColumns.from_values(table[:, :len(COLUMN) if fused else len(COLUMN) - 1], fused), +counts
+
+
+def _put_cov(table: np.ndarray, xx: int, cov: np.ndarray, yx: int | None = None) -> None:
+    """Covariances cov (N, 2, 2) into columns of ``table`` (N, M): xx, xy, yy at xx, xx + 1, xx + 2, and
+    the lower off-diagonal at ``yx`` if given (slice copies, no gather)."""
+    table[:, xx:xx + 2] = cov[:, 0, :]
+    table[:, xx + 2] = cov[:, 1, 1]
+    if yx is not None:
+        table[:, yx] = cov[:, 1, 0]
 
 
 def _kept_rows(real: np.ndarray, xy: np.ndarray, max_objects: int) -> tuple[np.ndarray, Counter[str]]:

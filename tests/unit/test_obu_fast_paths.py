@@ -158,3 +158,16 @@ def test_a_pose_without_its_uncertainty_is_the_same_pose():
         with_u, without = h.at(t), h.at(t, uncertainty=False)
         assert without == with_u and with_u.uncertainty is not None  # (x, y, yaw, vx, vy) compared
     assert h.at(1234 * MS, uncertainty=False).uncertainty is None
+
+
+def test_covariance_columns_written_by_slices_equal_the_gathered_ones():
+    from fusion.wire import _put_cov
+
+    rng = np.random.default_rng(6)
+    cov = rng.normal(size=(7, 2, 2))
+    cov[0, 1, 0], cov[1, 0, 1] = np.nan, -np.inf
+    got = np.zeros((7, 6))
+    _put_cov(got, 1, cov, 5)
+    want = np.zeros((7, 6))
+    want[:, [1, 2, 3, 5]] = cov.reshape(7, 4)[:, [0, 1, 3, 2]]  # the gather it replaces
+    assert np.array_equal(got, want, equal_nan=True)
