@@ -3,7 +3,8 @@
 - ``center_distance_ap``: nuScenes-style average precision with a centre-distance match
   criterion, as OTVIC (seed 002 Sec. V-B) reports it: thresholds {0.5, 1, 2, 4} m, range bins
   0-40 m / 40-80 m / overall. ``CenterDistanceAp`` computes the same frame by frame, keeping
-  10 bytes per prediction (its confidence and true-positive flags), not the frames.
+  10 bytes per prediction (its confidence and true-positive flags), not the frames; its per-frame
+  matching runs compiled (numba, ``_frame_flags``; ``_greedy_matches`` is its numpy reference).
 - ``mot_metrics``: CLEAR-MOT (MOTA) and identity (IDF1) metrics through ``motmetrics`` (the
   reference). ``MotTally`` computes the same frame by frame, keeping counts per id and id pair
   instead of motmetrics' table of every event.
@@ -24,6 +25,7 @@ import numpy as np
 from scipy.special import gammaincinv
 
 from fusion.association import center_distance_cost
+from fusion.jit import IN_F1, IN_F2, IN_I1, kernel
 from fusion.lsap import linear_sum_assignment
 from fusion.objects import ObjectArray
 
@@ -210,10 +212,8 @@ class CenterDistanceAp:
         self._confidence = array("d")
         self._flags = array(next(code for code, width in (("B", 8), ("H", 16), ("I", 32), ("Q", 64)) if bits <= width))
         self._num_truth = [0] * len(self.range_bins_m)
-        stride = 1 + len(self.thresholds_m)  # (bins, T) uint64: the flag bit of a true positive per bin and threshold
-        self._tp_bits = np.array([[1 << (b * stride + 1 + k) for k in range(len(self.thresholds_m))]
-                                  for b in range(len(self.range_bins_m))],
-                                 dtype=np.uint64).reshape(len(self.range_bins_m), -1)
+        lo_m, hi_m = zip(*self.range_bins_m) if self.range_bins_m else ((), ())
+        self._bins = tuple(np.array(v, dtype=float) for v in (lo_m, hi_m, self.thresholds_m))  # _frame_flags' arguments
 
     def add_frame(self, truth_xy: np.ndarray, pred_xy: np.ndarray, confidence: np.ndarray,
                   cost_m: np.ndarray | None = None) -> None:
@@ -224,22 +224,11 @@ class CenterDistanceAp:
         if cost_m is None:
             cost_m = center_distance_cost(truth_xy, pred_xy) if len(truth_xy) and len(pred_xy) else \
                 np.zeros((len(truth_xy), len(pred_xy)))
-        rank = np.empty(len(confidence), dtype=np.int64)
-        rank[_confidence_order(confidence)] = np.arange(len(confidence))
-        flags = np.zeros(len(confidence), dtype=np.uint64)
         d_truth, d_pred = np.hypot(truth_xy[:, 0], truth_xy[:, 1]), np.hypot(pred_xy[:, 0], pred_xy[:, 1])
-        for b, (lo, hi) in enumerate(self.range_bins_m):
-            keep_t, keep_p = (d_truth >= lo) & (d_truth < hi), (d_pred >= lo) & (d_pred < hi)  # _in_range
-            self._num_truth[b] += int(np.count_nonzero(keep_t))
-            flags[keep_p] |= self._bin_flags(b, cost_m[keep_t][:, keep_p].T, rank[keep_p])
+        flags, truths = _frame_flags(cost_m, d_truth, d_pred, _confidence_order(confidence), *self._bins)
+        self._num_truth = [total + count for total, count in zip(self._num_truth, truths.tolist())]
         self._confidence.extend(confidence.tolist())
         self._flags.extend(flags.tolist())
-
-    def _bin_flags(self, b: int, dist: np.ndarray, rank: np.ndarray) -> np.ndarray:
-        """Flag words (P,) of bin b's predictions: its bit, and a true-positive bit per threshold, from
-        their distances (P, G) m to the bin's truths and their ranks (P,)."""
-        tp = _greedy_matches(dist, rank, self.thresholds_m)  # (T, P) bool
-        return (tp.T @ self._tp_bits[b]) | np.uint64(1 << (b * (1 + len(self.thresholds_m))))  # disjoint bits: sum = OR
 
     def result(self) -> dict:
         """As ``center_distance_ap`` returns: {bin label: {"num_truth", "num_predictions", "AP@<th>", "mAP"}}."""
@@ -259,6 +248,40 @@ class CenterDistanceAp:
             result["mAP"] = float(np.mean(aps)) if num_truth else None
             out[bin_label(lo, hi)] = result
         return out
+
+
+@kernel(IN_F2, IN_F1, IN_F1, IN_I1, IN_F1, IN_F1, IN_F1)
+def _frame_flags(dist: np.ndarray, d_truth: np.ndarray, d_pred: np.ndarray, order: np.ndarray, lo: np.ndarray,
+                 hi: np.ndarray, thresholds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``CenterDistanceAp``'s flag words (P,) of one frame and its truths per bin (B,): distances (G, P) m of
+    truths to predictions, their ego distances d_truth (G,), d_pred (P,), the predictions in rank order
+    (P,), bins [lo, hi) (B,) m, thresholds (T,) m. Per bin and threshold, ``_greedy_match``'s walk: in rank
+    order each prediction of the bin takes its nearest free truth of the bin (the first on a tie) when
+    closer than the threshold (a true positive)."""
+    n_truth, n_pred = dist.shape
+    stride = 1 + len(thresholds)
+    flags, truths = np.zeros(n_pred, np.uint64), np.zeros(len(lo), np.int64)
+    taken = np.zeros(n_truth, np.bool_)
+    for b in range(len(lo)):
+        for g in range(n_truth):
+            if d_truth[g] >= lo[b] and d_truth[g] < hi[b]:
+                truths[b] += 1
+        for p in range(n_pred):
+            if d_pred[p] >= lo[b] and d_pred[p] < hi[b]:
+                flags[p] |= np.uint64(1) << np.uint64(b * stride)
+        for k in range(len(thresholds)):
+            taken[:] = False
+            for p in order:
+                if not (d_pred[p] >= lo[b] and d_pred[p] < hi[b]):
+                    continue
+                best_m, best = np.inf, -1
+                for g in range(n_truth):
+                    if not taken[g] and d_truth[g] >= lo[b] and d_truth[g] < hi[b] and dist[g, p] < best_m:
+                        best_m, best = dist[g, p], g
+                if best >= 0 and best_m < thresholds[k]:
+                    taken[best] = True
+                    flags[p] |= np.uint64(1) << np.uint64(b * stride + 1 + k)
+    return flags, truths
 
 
 # --- MOT metrics --------------------------------------------------------------------------
