@@ -23,6 +23,7 @@ from fusion.objects import ObjectArray
 
 _NO_EDGES = np.zeros(0, np.int64)
 
+REACH_MARGIN_M = 1e-6  # the compiled test skips a box whose circumscribed square, this much larger, misses a segment's box
 COMPILED = True  # False: the numpy reference (every segment against every occluder, as arrays)
 
 # Sample offsets in units of (l/2, w/2) in the box frame: centre, corners, edge midpoints.
@@ -208,6 +209,7 @@ def _blocked(origin: np.ndarray, xy: np.ndarray, lwh: np.ndarray, cos: np.ndarra
     then, with ``occlude``, the other targets' boxes, then the polygons (edges starts / ends (E, 2),
     polygon p's from first[p]), until one blocks it."""
     blocked = np.zeros(len(xy), np.int64)
+    box_reach, reach = _reach(boxes[:, 2], boxes[:, 3]), _reach(lwh[:, 0], lwh[:, 1])
     for i in range(len(xy)):
         if not wanted[i]:
             continue
@@ -216,23 +218,47 @@ def _blocked(origin: np.ndarray, xy: np.ndarray, lwh: np.ndarray, cos: np.ndarra
             qx, qy = offsets[k, 0] * half_l, offsets[k, 1] * half_w
             px = xy[i, 0] + (cos[i] * qx + (-sin[i]) * qy)  # c + R q, R = [[c, -s], [s, c]]
             py = xy[i, 1] + (sin[i] * qx + cos[i] * qy)
-            if _point_blocked(origin, px, py, i, xy, lwh, cos, sin, occlude, boxes, box_cos, box_sin, starts, ends,
-                              first):
+            if _point_blocked(origin, px, py, i, xy, lwh, cos, sin, reach, occlude, boxes, box_cos, box_sin,
+                              box_reach, starts, ends, first):
                 blocked[i] += 1
     return blocked
 
 
 @helper
+def _reach(length: np.ndarray, width: np.ndarray) -> np.ndarray:
+    """(B,) m: half the diagonal of each box (l, w (B,)) plus REACH_MARGIN_M: no point of the box is farther
+    from its centre."""
+    out = np.empty(len(length))
+    for k in range(len(length)):
+        out[k] = 0.5 * np.sqrt(length[k] * length[k] + width[k] * width[k]) + REACH_MARGIN_M
+    return out
+
+
+@helper
+def _apart(a: np.ndarray, px: float, py: float, x: float, y: float, reach: float) -> bool:
+    """The segment a -> (px, py) cannot meet the box centred at (x, y) of that reach: the square of side
+    2 reach around the centre lies outside the segment's bounding box (the slab test finds no hit either:
+    its rounding is ~1e-13 m, far below REACH_MARGIN_M)."""
+    return (x - reach > max(a[0], px) or x + reach < min(a[0], px) or y - reach > max(a[1], py)
+            or y + reach < min(a[1], py))
+
+
+@helper
 def _point_blocked(origin: np.ndarray, px: float, py: float, owner: int, xy: np.ndarray, lwh: np.ndarray,
-                   cos: np.ndarray, sin: np.ndarray, occlude: bool, boxes: np.ndarray, box_cos: np.ndarray,
-                   box_sin: np.ndarray, starts: np.ndarray, ends: np.ndarray, first: np.ndarray) -> bool:
-    """Segment origin -> (px, py) meets a static box, another target's box (with ``occlude``) or a polygon."""
+                   cos: np.ndarray, sin: np.ndarray, reach: np.ndarray, occlude: bool, boxes: np.ndarray,
+                   box_cos: np.ndarray, box_sin: np.ndarray, box_reach: np.ndarray, starts: np.ndarray,
+                   ends: np.ndarray, first: np.ndarray) -> bool:
+    """Segment origin -> (px, py) meets a static box, another target's box (with ``occlude``) or a polygon;
+    the boxes apart from the segment (``_apart``) are not tested."""
     for k in range(len(boxes)):
-        if _hits_box(origin, px, py, boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3], box_cos[k], box_sin[k]):
+        if (not _apart(origin, px, py, boxes[k, 0], boxes[k, 1], box_reach[k])
+                and _hits_box(origin, px, py, boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3], box_cos[k],
+                              box_sin[k])):
             return True
     if occlude:
         for j in range(len(xy)):
-            if j != owner and _hits_box(origin, px, py, xy[j, 0], xy[j, 1], lwh[j, 0], lwh[j, 1], cos[j], sin[j]):
+            if (j != owner and not _apart(origin, px, py, xy[j, 0], xy[j, 1], reach[j])
+                    and _hits_box(origin, px, py, xy[j, 0], xy[j, 1], lwh[j, 0], lwh[j, 1], cos[j], sin[j])):
                 return True
     for p in range(len(first)):
         if _hits_polygon(origin, px, py, starts, ends, first[p], first[p + 1] if p + 1 < len(first) else len(starts)):

@@ -87,3 +87,31 @@ def test_sampled_targets_and_degenerate_segments_agree():
         kw = {"samples": 5, "sampled": rng.random(n) < 0.5}
         np.testing.assert_array_equal(_fractions(True, origin, targets, boxes, polys, **kw),
                                       _fractions(False, origin, targets, boxes, polys, **kw))
+
+
+def test_boxes_apart_from_a_segment_are_skipped_without_changing_a_fraction():
+    """The compiled test skips a box whose circumscribed square (+ REACH_MARGIN_M) misses the segment's
+    bounding box: on wide scenes (most boxes apart from most segments), long thin boxes (the square far
+    larger than the box) and boxes grazing a segment (a corner on the sensor's row or column), the
+    fractions of the reference, which tests every pair."""
+    rng = np.random.default_rng(41)
+    checked = partly = 0
+    for it in range(60):
+        n = int(rng.integers(20, 120))
+        targets = _targets(rng, n, 150.0)
+        if it % 2:
+            targets.lwh[:, 0], targets.lwh[:, 1] = rng.uniform(5.0, 20.0, n), rng.uniform(0.2, 0.5, n)
+        origin = rng.uniform(-20.0, 20.0, 2)
+        if it % 3 == 0:  # grazing: corners exactly on the origin's row and column
+            corners = box_points(targets.xy, targets.lwh[:, :2], targets.yaw, 5)[:, 1]
+            targets.xy[::3, 1] += origin[1] - corners[::3, 1]
+            targets.xy[1::3, 0] += origin[0] - corners[1::3, 0]
+        m = int(rng.integers(0, 6))
+        boxes = np.column_stack([rng.uniform(-150, 150, (m, 2)), rng.uniform(0.5, 30, (m, 2)), rng.uniform(-4, 4, m)])
+        for samples in (5, 9):
+            want = _fractions(False, origin, targets, boxes, [], samples=samples)
+            got = _fractions(True, origin, targets, boxes, [], samples=samples)
+            np.testing.assert_array_equal(got, want)
+            checked += n
+            partly += int(((want > 0) & (want < 1)).sum())
+    assert checked > 5000 and partly > 100
