@@ -38,6 +38,7 @@ to load the map and build the routing graph.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -270,6 +271,14 @@ def propagate_along(s0, v0, a0, t, use_acceleration: bool) -> tuple[np.ndarray, 
     return s0 + v0 * te + 0.5 * a0 * te**2, v0 + a0 * te
 
 
+@lru_cache(maxsize=8)
+def _step_times(horizon_s: float, step_s: float) -> np.ndarray:
+    """(T,) s: step_s, 2 step_s, ..., T step_s with T = round(horizon_s / step_s) (read-only, kept)."""
+    times = step_s * np.arange(1, round(horizon_s / step_s) + 1)
+    times.flags.writeable = False
+    return times
+
+
 class LanePredictor:
     """Lane-following predictor over one map (see the module docstring for the model)."""
 
@@ -279,6 +288,7 @@ class LanePredictor:
         self._seg = _segments(geometry)
         self._chains = _chains(geometry, self.config)
         self._map_classes = np.asarray(self.config.map_classes, dtype=np.int64)
+        self._map_class_set = frozenset(self._map_classes.tolist())  # match's np.isin, for few objects
 
     @classmethod
     def from_lanelet_map(cls, lmap, config: LanePredictionConfig | None = None) -> LanePredictor:
@@ -323,7 +333,7 @@ class LanePredictor:
         dpsi = wrap_angle(heading[row] - seg.psi[k])
         ok = (dist <= half_w + cfg.lateral_margin_m) & (np.abs(dpsi) <= cfg.heading_tolerance_rad)
         ok &= ~(seg.first[k] & (along < -1e-6)) & ~(seg.last[k] & (along > length + 1e-6))
-        ok &= np.isin(objs.cls, self._map_classes)[row]
+        ok &= np.array([c in self._map_class_set for c in objs.cls.tolist()], dtype=bool)[row]  # np.isin
         cost = np.full((n, len(seg.lane)), np.inf)
         cost[row, k] = np.where(ok, (dist / half_w) ** 2 + (dpsi / cfg.heading_scale_rad) ** 2, np.inf)
         best = np.argmin(cost, axis=1)
@@ -384,15 +394,14 @@ class LanePredictor:
         return out.with_(xy=xy, yaw=yaw, vxy=vxy, axy=axy_out)
 
     def _trajectories(self, objs: ObjectArray, horizon_s: float, step_s: float,
-                      n_hyp: int) -> tuple[np.ndarray, np.ndarray]:
-        """(N, H, T, 3) trajectories and (N, H) probabilities for the first H <= n_hyp hypotheses."""
-        times = step_s * np.arange(1, round(horizon_s / step_s) + 1)
+                      n_hyp: int, probabilities: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """(N, H, T, 3) trajectories and (N, H) probabilities (None without ``probabilities``) for the
+        first H <= n_hyp hypotheses."""
+        times = _step_times(horizon_s, step_s)
         n, h = len(objs), min(n_hyp, self._chains.of_lane.shape[1])
         cv_xy = objs.xy[:, None, :] + objs.vxy[:, None, :] * times[None, :, None]  # x = x0 + v t
         traj = np.concatenate([cv_xy, np.repeat(objs.yaw[:, None, None], len(times), axis=1)], axis=2)
         traj = np.repeat(traj[:, None], h, axis=1)
-        prob = np.zeros((n, h))
-        prob[:, 0] = 1.0
         lane, s0, d0 = self.match(objs)
         chains = np.where((lane >= 0)[:, None], self._chains.of_lane[np.maximum(lane, 0), :h], -1)  # (N, H)
         obj, hyp = np.nonzero(chains >= 0)
@@ -400,10 +409,16 @@ class LanePredictor:
             p = self._frenet(objs.take(obj), chains[obj, hyp], s0[obj], d0[obj],
                              np.broadcast_to(times, (len(obj), len(times))), motion=False)
             traj[obj, hyp] = np.concatenate([p["xy"], p["yaw"][..., None]], axis=2)
+            if h > 1:  # a matched object's missing hypotheses repeat its first (with one, the first is itself)
+                missing = (lane >= 0)[:, None] & (chains < 0)
+                traj[missing] = np.repeat(traj[:, :1], h, axis=1)[missing]
+        if not probabilities:
+            return traj, None
+        prob = np.zeros((n, h))
+        prob[:, 0] = 1.0
+        if len(obj):
             prob[obj, hyp] = self._chains.prob[lane[obj], hyp]
             prob /= prob.sum(axis=1, keepdims=True)  # renormalise over the H kept
-            missing = (lane >= 0)[:, None] & (chains < 0)
-            traj[missing] = np.repeat(traj[:, :1], h, axis=1)[missing]
         return traj, prob
 
     def predict_hypotheses(self, objs: ObjectArray, horizon_s: float = 5.0,
@@ -417,4 +432,4 @@ class LanePredictor:
     def predict_trajectories(self, objs: ObjectArray, horizon_s: float = 5.0, step_s: float = 0.1) -> np.ndarray:
         """Most probable trajectory per object (N, T, 3) [x m, y m, yaw rad] at t = step_s .. horizon_s
         (T = round(horizon_s / step_s)); unmatched objects: constant velocity, constant yaw."""
-        return self._trajectories(objs, horizon_s, step_s, 1)[0][:, 0]
+        return self._trajectories(objs, horizon_s, step_s, 1, probabilities=False)[0][:, 0]

@@ -367,3 +367,25 @@ def test_shapes_and_no_nans_on_scenario_ground_truth(intersection, highway):
     empty = ObjectArray.empty()
     assert intersection.predict_trajectories(empty, 1.0, 0.1).shape == (0, 10, 3)
     assert len(intersection.predict_objects(empty, 0.5)) == 0
+
+
+@pytest.mark.parametrize("name", ["dense-intersection", "highway-merge"])
+def test_trajectories_without_probabilities_equal_the_full_call(name, intersection, highway):
+    """predict_trajectories (``_trajectories(..., probabilities=False)``: no probabilities, no repeat of
+    missing hypotheses for one) gives, as bytes, the first hypothesis of the full call with one and
+    with every hypothesis; objects on lanes, off the map, of every class, none, one or many."""
+    pred = intersection if name == "dense-intersection" else highway
+    rng = np.random.default_rng(8)
+    seg = pred._seg
+    for n in (0, 1, 3, 9, 60):
+        on = rng.integers(0, len(seg.lane), n)
+        xy = seg.a[on] + rng.uniform(0.0, 1.0, (n, 1)) * seg.length[on, None] * seg.t[on] + rng.normal(0.0, 1.0, (n, 2))
+        far = rng.random(n) < 0.2
+        xy[far] = rng.uniform(-300.0, 300.0, (int(far.sum()), 2))
+        vxy = rng.choice([0.0, 9.0], (n, 1)) * np.column_stack([np.cos(seg.psi[on]), np.sin(seg.psi[on])])
+        objs = _objs(xy, vxy, yaw=seg.psi[on]).with_(cls=rng.choice([int(c) for c in ObjectClass], n))
+        got = pred.predict_trajectories(objs, 5.0, 0.1)
+        one, prob_one = pred._trajectories(objs, 5.0, 0.1, 1)
+        every, _ = pred._trajectories(objs, 5.0, 0.1, pred.config.max_hypotheses)
+        assert got.shape == (n, 50, 3) and prob_one.shape == (n, 1)
+        assert got.tobytes() == np.ascontiguousarray(one[:, 0]).tobytes() == np.ascontiguousarray(every[:, 0]).tobytes()
