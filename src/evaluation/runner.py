@@ -183,8 +183,11 @@ class OfflineRun:
                 for a, b in self.chaos.down_windows(service, self.duration_s + 1.0)]
 
     def _up(self, service: str, t_ns: int | None = None) -> bool:
+        windows = self._down[service]
+        if not windows:  # (most runs: no chaos)
+            return True
         t_ns = self.clock.t_ns if t_ns is None else t_ns
-        return not any(a <= t_ns < b for a, b in self._down[service])
+        return not any(a <= t_ns < b for a, b in windows)
 
     def _schedule_chaos(self) -> None:
         """Link events reach every pair's channel; an RSU restart restarts every RSU."""
@@ -298,8 +301,10 @@ class OfflineRun:
         channel = getattr(vehicle.links[rsu.index], direction)
         x, y = self._ego_xy(vehicle)
         distance_m = float(np.hypot(x - rsu.xy[0], y - rsu.xy[1]))
+        # through _arrive (lost if the emulator dies meanwhile) only when the link has down windows
+        event = (self._arrive, deliver, vehicle, rsu, data) if self._down["link"] else (deliver, vehicle, rsu, data)
         for arrival_ns in channel.transmit_all(self.clock.t_ns, len(data), distance_m=distance_m):
-            self.queue.at(arrival_ns, self._arrive, deliver, vehicle, rsu, data)
+            self.queue.at(arrival_ns, *event)
 
     def _ego_xy(self, vehicle: _Vehicle) -> tuple[float, float]:
         """The vehicle's true position (map, m) now; kept for the instant (a broadcast asks for it
