@@ -23,6 +23,7 @@ from bisect import bisect_right
 import numpy as np
 
 from fusion.frames import Pose2D
+from fusion.jit import IN_F1, IN_F2, IN_F3, IN_I1, kernel
 from fusion.objects import ObjectArray
 
 from .scenario import Building, Scenario, Trajectory
@@ -119,18 +120,67 @@ class Trajectories:
     def __init__(self, trajectories: list[Trajectory]):
         self._speed = _SpeedProfiles(trajectories)
         self._paths = _Paths(trajectories)
+        sp, pa = self._speed, self._paths
+        u = pa._puc[..., 2:4]  # each segment's heading, as at_numpy computes it (arctan2 elementwise)
+        self._kernel_args = (sp._t, sp._tavf, sp._f0, pa._cum, pa._puc, pa._last_seg, pa.length,
+                             np.arctan2(u[..., 1], u[..., 0]))
 
     def body(self, i: int) -> _Body:
         """Body ``i`` alone, evaluated in plain floats (``_Body``)."""
         return _Body(self, i)
 
     def at(self, t_s: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """xy (N, 2) m, yaw (N,) rad, vxy (N, 2) m/s, axy (N, 2) m/s^2 at time t_s (s; or (N,), one per body)."""
+        """xy (N, 2) m, yaw (N,) rad, vxy (N, 2) m/s, axy (N, 2) m/s^2 at time t_s (s; or (N,), one per body):
+        ``at_numpy`` compiled (``_states``), the same bits."""
+        t = np.asarray(t_s, dtype=float).reshape(-1) if np.ndim(t_s) else np.array([float(t_s)])
+        return _states(t, *self._kernel_args)
+
+    def at_numpy(self, t_s: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``at`` by numpy over every body at once (the reference of ``_states``)."""
         s, v, a = self._speed.at(np.asarray(t_s, dtype=float) if np.ndim(t_s) else float(t_s))
         xy, u = self._paths.at(s)
         moving = (s >= 0.0) & (s < self._paths.length)  # stopped at either end of the path
         yaw = np.arctan2(u[:, 1], u[:, 0])
         return xy, yaw, np.where(moving, v, 0.0)[:, None] * u, np.where(moving, a, 0.0)[:, None] * u
+
+
+@kernel(IN_F1, IN_F2, IN_F3, IN_F1, IN_F2, IN_F3, IN_I1, IN_F1, IN_F2)
+def _states(t: np.ndarray, key_t: np.ndarray, tavf: np.ndarray, f0: np.ndarray, cum: np.ndarray, puc: np.ndarray,
+            last_seg: np.ndarray, length: np.ndarray,
+            seg_yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``Trajectories.at_numpy`` body by body with its float64 operations in its order (``_Body.at`` is the
+    same in Python floats): t (1,) s for every body or (N,) one per body; speed keys key_t (N, K) and
+    [t, a, v, F] per key tavf (N, K, 4), F(0) f0 (N,); path arc lengths cum (N, Kp), per segment point,
+    tangent and start arc length puc (N, Ks, 5), last segment (N,), length (N,) m, heading seg_yaw (N, Ks)."""
+    n = len(f0)
+    xy, yaw, vxy, axy = np.empty((n, 2)), np.empty(n), np.empty((n, 2)), np.empty((n, 2))
+    for i in range(n):
+        ti = t[0] if len(t) == 1 else t[i]
+        k = -1  # the key: #(keys <= t) - 1, at least 0
+        for j in range(key_t.shape[1]):
+            k += key_t[i, j] <= ti
+        k = max(k, 0)
+        if ti < key_t[i, 0]:  # before the first key: v = v_0 + 0 0, F = v_0 (t - t_0), dv/dt = 0
+            a = 0.0
+            v = tavf[i, k, 2] + a * 0.0
+            f = tavf[i, 0, 2] * (ti - key_t[i, 0])
+        else:  # F = F_k + v_k dt + a_k dt^2 / 2, v = v_k + a_k dt
+            dt, a = ti - tavf[i, k, 0], tavf[i, k, 1]
+            v = tavf[i, k, 2] + a * dt
+            f = tavf[i, k, 3] + tavf[i, k, 2] * dt + 0.5 * a * (dt * dt)
+        s = f - f0[i]
+        sc = s if s > 0.0 else 0.0  # np.clip(s, 0, L): max (0.0 for -0.0), then min
+        sc = sc if sc < length[i] else length[i]
+        j = -1  # the segment: #(cum <= s) - 1 in [0, last_seg]
+        for m in range(cum.shape[1]):
+            j += cum[i, m] <= sc
+        j = min(max(j, 0), last_seg[i])
+        ux, uy, along = puc[i, j, 2], puc[i, j, 3], sc - puc[i, j, 4]
+        xy[i, 0], xy[i, 1], yaw[i] = puc[i, j, 0] + along * ux, puc[i, j, 1] + along * uy, seg_yaw[i, j]
+        moving = s >= 0.0 and s < length[i]  # stopped at either end of the path
+        speed, accel = (v, a) if moving else (0.0, 0.0)
+        vxy[i, 0], vxy[i, 1], axy[i, 0], axy[i, 1] = speed * ux, speed * uy, accel * ux, accel * uy
+    return xy, yaw, vxy, axy
 
 
 class _Body:

@@ -401,6 +401,21 @@ def test_trajectories_equal_the_per_branch_reference_bit_for_bit(name):
 
 
 @pytest.mark.parametrize("name", bundled_scenarios())
+def test_compiled_states_equal_the_numpy_evaluation_bit_for_bit(name):
+    """Trajectories.at (compiled, body by body) gives the bits of at_numpy: one time for every body and
+    one time per body (late spawns), before the first key and after the path's end, signed zeros too."""
+    scenario = load_scenario(name)
+    bodies = list(scenario.actors) + list(scenario.vehicles)
+    traj = Trajectories([b.trajectory for b in bodies])
+    rng = np.random.default_rng(9)
+    times = np.r_[-3.0, -0.0, 0.0, np.linspace(-0.5, scenario.duration_s + 5.0, 61), scenario.duration_s + 60.0]
+    per_body = [t - rng.choice([0.0, 0.0, 1.5, 7.25], len(bodies)) for t in times]
+    for t_s in [*times.tolist(), *per_body]:
+        for got, want in zip(traj.at(t_s), traj.at_numpy(t_s)):
+            assert got.dtype == want.dtype and got.shape == want.shape and got.tobytes() == want.tobytes(), (name, t_s)
+
+
+@pytest.mark.parametrize("name", bundled_scenarios())
 def test_one_body_in_floats_equals_the_vectorised_rows_bit_for_bit(name):
     """Trajectories.body(i).at (plain floats, World.ego_at) gives the bits of Trajectories.at row i:
     every actor and the ego of every bundled scenario, before the first key and after the path's end
