@@ -93,8 +93,10 @@ def ci_update_into(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, w
 
 def ci_fuse_rows(x: np.ndarray, p: np.ndarray, rows: np.ndarray, z: np.ndarray, r: np.ndarray) -> None:
     """CI of the tracks rows (K,) of a table x (N, n), P (N, n, n) with estimates z (K, m), R (K, m, m)
-    of their first m state entries, in place: ``ci_weights`` of the K pairs, then ``ci_update_into``."""
-    _fuse_rows(x, p, rows, z, r)
+    of their first m state entries, in place: ``ci_weights`` of the K pairs, then ``ci_update_into``
+    (the tracker's path, ``ci_fuse_objects``, takes z and R from an object list itself)."""
+    rows = np.asarray(rows, dtype=np.int64)
+    ci_update_into(x, p, z, r, ci_weights(p[rows], r), 0, rows)
 
 
 # --- compiled kernels (numba; the equations of the module docstring, one pair at a time) ------------
@@ -264,14 +266,6 @@ def _weights(p: np.ndarray, r: np.ndarray, first: int) -> np.ndarray:
 def _update_rows(x: np.ndarray, p: np.ndarray, rows: np.ndarray, z: np.ndarray, r: np.ndarray, w: np.ndarray,
                  first: int) -> None:
     _update_each(x, p, rows, z, r, w, first)
-
-
-@kernel(OUT_F2, OUT_F3, IN_I1, IN_F2, IN_F3)
-def _fuse_rows(x: np.ndarray, p: np.ndarray, rows: np.ndarray, z: np.ndarray, r: np.ndarray) -> None:
-    w = np.empty(rows.shape[0])
-    for k in range(rows.shape[0]):  # every weight from the prior covariances before any update
-        w[k] = _weight(p[rows[k]], r[k], 0)
-    _update_each(x, p, rows, z, r, w, 0)
 
 
 @kernel(OUT_F2, OUT_F3, IN_I1, IN_F2, IN_F3, IN_F2, IN_F3, IN_I1, B1)
