@@ -1,5 +1,6 @@
 """Compiled kernels (numba): the tracker's per-pair loops and assignment solver, the OBU's clock
-fit, the simulator's line of sight, the rotated-box IoU and the codec's bit packing.
+fit, the simulator's line of sight and body states, the rotated-box IoU, the codec's bit packing
+and the evaluation's per-frame detection matching.
 
 The tracker updates a few hundred tracks with lists of a few to a few hundred objects, ten
 times a second per source: numpy's fixed cost per call (~1 us, some 200 calls per update) was
@@ -7,7 +8,8 @@ the whole cost, so association, the Kalman updates, covariance intersection and 
 tracks' bookkeeping are loops over the pairs, compiled by numba (``benchmarks/cycle_compute.py``;
 the numpy and filterpy references are in the tests). So are the clock fit of
 ``obu_service.clock_envelope`` (a window of exchanges, refitted every few exchanges per RSU and
-peer), ``sim.occlusion``'s test of sample points against occluders, ``fusion.geometry``'s IoU
+peer), ``sim.occlusion``'s test of sample points against occluders, ``sim.world``'s body states
+along their paths, ``evaluation.detection_metrics``' matches per frame, ``fusion.geometry``'s IoU
 (shapely's polygons cost ~30 us a pair), ``schemas.bit_rows`` (used once loaded: see
 ``schemas.bitpack``) and ``fusion.lsap``'s assignment solver (scipy's algorithm: importing
 ``scipy.optimize`` for it cost each service ~0.15 s of its start-up).
@@ -74,12 +76,15 @@ def kernel(*argument_types) -> Callable[[Callable], Kernel]:
     return lambda fn: Kernel(fn, argument_types)
 
 
-# the modules that declare kernels (with the modules they import): load_kernels imports them
-KERNEL_MODULES = ("fusion.tracking", "sim.occlusion", "obu_service.clock_envelope", "schemas.bit_rows")
+# the modules that declare kernels (with the modules they import): load_kernels imports them. The
+# evaluation's (evaluation.detection_metrics) are not listed, so that no service imports them: the
+# offline evaluator has imported them before it calls load_kernels, which loads those too
+KERNEL_MODULES = ("fusion.tracking", "sim.occlusion", "sim.world", "obu_service.clock_envelope", "schemas.bit_rows")
 
 
 def load_kernels() -> float:
-    """Load (or compile) every kernel of ``KERNEL_MODULES``; seconds taken."""
+    """Load (or compile) every kernel of ``KERNEL_MODULES`` and of every module imported before the call;
+    seconds taken."""
     for name in KERNEL_MODULES:
         importlib.import_module(name)
     t0 = time.perf_counter()

@@ -40,3 +40,17 @@ def test_a_division_by_zero_in_a_kernel_gives_nan_as_numpy_does():
     x, p = np.zeros((1, 4)), np.zeros((1, 4, 4))
     kalman.update_rows(x, p, np.array([0]), np.zeros((1, 2)), np.zeros((1, 2, 2)), np.array([0]), 0)
     assert np.isnan(x).all() and np.isnan(p[0, :2, :2]).all()
+
+
+def test_load_kernels_loads_the_simulator_and_every_kernel_imported_before():
+    """sim.world's body states are in KERNEL_MODULES (the services import it); a kernel of a module imported before
+    the call (the evaluation's matching, imported by the offline evaluator) is loaded too."""
+    import importlib
+
+    from fusion.jit import KERNEL_MODULES
+
+    assert "sim.world" in KERNEL_MODULES
+    importlib.import_module("evaluation.detection_metrics")
+    load_kernels()
+    loaded = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all if k._compiled is not None}
+    assert {"sim.world._states", "evaluation.detection_metrics._frame_flags"} <= loaded
