@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.jit import I64, IN_I1, IN_I2, IN_U1, helper, kernel
+from fusion.jit import I64, IN_F2, IN_I1, IN_I2, IN_U1, helper, kernel
 
-from . import bitpack, object_wire
+from . import bitpack, columns, object_wire
 from .columns import _YAW_HALF_TURN as YAW_HALF_TURN  # yaw codes live in [-1800, 1800)
+from .quantize import YAW_RAD
 
 
 @helper
@@ -173,4 +174,28 @@ def pack_section(codes: np.ndarray, code_table: np.ndarray) -> tuple:
     return cols, ref, scale, width, distinct, itemsize, _packed(fields, width, (width.sum() + 7) // 8), blob[:used]
 
 
+
+@kernel(IN_F2, IN_F2, I64)
+def quantize_values(table: np.ndarray, value_table: np.ndarray, yaw_col: int) -> tuple:
+    """(N, K) codes of an (N, K) float table (``columns.ObjectColumns.from_values``) and the first value
+    it refuses as a flat index ``i * K + j`` (-1: none; then the codes are not meaningful). A value
+    passes when finite, inside [lo, hi] and, in an integer column, integral (``value_table`` (4, K):
+    lo, hi, step, integer); its code is rint(v / step), the yaw's rint(((v + pi) mod 2 pi - pi) /
+    step) folded into [-YAW_HALF_TURN, YAW_HALF_TURN) (numba's float mod is numpy's remainder)."""
+    n, k = table.shape
+    codes = np.zeros((n, k), np.int64)
+    for i in range(n):
+        for j in range(k):
+            v = table[i, j]
+            c = np.rint(v / value_table[2, j])
+            if not (np.isfinite(v) and value_table[0, j] <= v <= value_table[1, j]
+                    and (value_table[3, j] == 0.0 or c == v)):
+                return codes, i * k + j
+            codes[i, j] = np.int64(c)
+        yaw = np.int64(np.rint((np.mod(table[i, yaw_col] + np.pi, 2.0 * np.pi) - np.pi) / YAW_RAD))
+        codes[i, yaw_col] = yaw - 2 * YAW_HALF_TURN if yaw >= YAW_HALF_TURN else yaw
+    return codes, -1
+
+
 object_wire.use_compiled(unpack_codes, pack_section)
+columns.use_compiled(quantize_values)

@@ -144,6 +144,14 @@ class Layout:
         return sum(1 << j for j, s in enumerate(self.specs) if s.default is None)
 
     @cached_property
+    def value_table(self) -> np.ndarray:
+        """(4, K) float64: ``lo``, ``hi``, ``steps``, ``integer`` (1.0: integer): the argument of
+        ``schemas.bit_rows.quantize_values``."""
+        out = np.array([self.lo, self.hi, self.steps, self.integer], dtype=np.float64)
+        out.flags.writeable = False
+        return out
+
+    @cached_property
     def code_table(self) -> np.ndarray:
         """(4, K) int64: ``default_codes``, ``code_lo``, ``code_hi``, ``required`` (1: required): one
         argument of the codec's compiled loops (``schemas.bit_rows``)."""
@@ -154,6 +162,13 @@ class Layout:
 
 OBJECTS, FUSED = Layout(OBJECT_SPECS), Layout(FUSED_SPECS)
 _YAW_COL = COLUMN["yaw"]
+_compiled_values = None  # schemas.bit_rows.quantize_values, once loaded (fusion.jit.load_kernels)
+
+
+def use_compiled(quantize_values) -> None:
+    """From now on ``ObjectColumns.from_values`` checks and quantises with ``schemas.bit_rows.quantize_values``."""
+    global _compiled_values
+    _compiled_values = quantize_values
 
 
 def layout_of(fused: bool) -> Layout:
@@ -211,6 +226,10 @@ class ObjectColumns:
             raise InvalidMessage(f"objects: expected an (N, {len(layout.specs)}) table, got shape {table.shape}",
                                  "objects")
         _check_count(len(table))
+        if _compiled_values is not None:  # one compiled loop; a table it refuses goes on for the very error
+            codes, bad = _compiled_values(table, layout.value_table, _YAW_COL)
+            if bad < 0:
+                return cls(codes, fused)
         ok = np.isfinite(table) & (table >= layout.lo) & (table <= layout.hi)
         with np.errstate(invalid="ignore"):
             codes_f = np.rint(table / layout.steps)
