@@ -1,8 +1,13 @@
-"""The loops of ``schemas.bitpack``, compiled (numba: ``fusion.jit``).
+"""The codec's loops, compiled (numba: ``fusion.jit``): ``schemas.bitpack``'s row packing, and an
+objects section packed (``pack_section``), unpacked into checked codes (``unpack_codes``) and a float
+table checked and quantised (``quantize_values``), each in one pass instead of ~15-60 numpy calls on
+a few rows.
 
-Imported by ``fusion.jit.load_kernels`` only; from then on ``bitpack.pack`` / ``unpack`` use them
-(see bitpack). Bit b of a row's integer is bit b % 8 of the row's byte b // 8 (little-endian);
-field j holds bits [s_j, s_j + w_j).
+Imported by ``fusion.jit.load_kernels`` only; from then on ``bitpack.pack`` / ``unpack``,
+``object_wire.pack_objects`` / ``unpack_objects`` and ``ObjectColumns.from_values`` use them (their
+numpy paths stay for processes without kernels; tests/unit/test_object_wire_paths.py and
+test_columns_paths.py hold both to the same results). Bit b of a row's integer is bit b % 8 of the
+row's byte b // 8 (little-endian); field j holds bits [s_j, s_j + w_j).
 """
 
 from __future__ import annotations
