@@ -12,6 +12,7 @@ import numpy as np
 from fusion.frames import Pose2D, PoseUncertainty, base_to_map_points, map_to_base, wrap_angle
 from fusion.objects import ObjectArray
 from schemas.classes import ObjectClass
+from schemas.messages import UNKNOWN_VELOCITY_VAR
 
 from .occlusion import visible_fraction
 from .scenario import LidarConfig, LocalizationConfig, RsuCameraConfig
@@ -200,6 +201,7 @@ class RsuCamera:
             ids=np.full(k, -1, dtype=np.int64), cls=truth.cls[keep], xy=xy[keep], z=lwh[:, 2] / 2.0, lwh=lwh,
             yaw=yaw[keep], vxy=np.zeros((k, 2)), cov_xy=sigma[:, None, None] ** 2 * np.eye(2),
             confidence=np.clip(1.0 - 0.5 * rng_m[keep] / c.range_m, 0.05, 1.0),
+            cov_vxy=_diagonal_covariances(UNKNOWN_VELOCITY_VAR, k),  # ObjectArray's default: no velocity measured
             sources=np.full(k, SOURCE_RSU, dtype=np.int64),
         )
         return out, delay_s
