@@ -257,30 +257,40 @@ def _frame_flags(dist: np.ndarray, d_truth: np.ndarray, d_pred: np.ndarray, orde
     truths to predictions, their ego distances d_truth (G,), d_pred (P,), the predictions in rank order
     (P,), bins [lo, hi) (B,) m, thresholds (T,) m. Per bin and threshold, ``_greedy_match``'s walk: in rank
     order each prediction of the bin takes its nearest free truth of the bin (the first on a tie) when
-    closer than the threshold (a true positive)."""
+    closer than the threshold (a true positive). Only the truths closer than the widest threshold are
+    walked (candidates, ascending): the nearest free truth counts only when closer than the threshold."""
     n_truth, n_pred = dist.shape
-    stride = 1 + len(thresholds)
+    stride, widest = 1 + len(thresholds), -np.inf
+    for th in thresholds:
+        widest = max(widest, th)
     flags, truths = np.zeros(n_pred, np.uint64), np.zeros(len(lo), np.int64)
-    taken = np.zeros(n_truth, np.bool_)
+    taken, in_bin = np.zeros(n_truth, np.bool_), np.zeros(n_truth, np.bool_)
+    first, candidates = np.zeros(n_pred + 1, np.int64), np.empty(n_pred * n_truth, np.int64)
     for b in range(len(lo)):
         for g in range(n_truth):
-            if d_truth[g] >= lo[b] and d_truth[g] < hi[b]:
-                truths[b] += 1
-        for p in range(n_pred):
+            in_bin[g] = d_truth[g] >= lo[b] and d_truth[g] < hi[b]
+            truths[b] += in_bin[g]
+        count = 0
+        for r in range(n_pred):  # each prediction's candidate truths, in rank order
+            p, first[r] = order[r], count
             if d_pred[p] >= lo[b] and d_pred[p] < hi[b]:
                 flags[p] |= np.uint64(1) << np.uint64(b * stride)
+                for g in range(n_truth):
+                    if in_bin[g] and dist[g, p] < widest:
+                        candidates[count] = g
+                        count += 1
+        first[n_pred] = count
         for k in range(len(thresholds)):
             taken[:] = False
-            for p in order:
-                if not (d_pred[p] >= lo[b] and d_pred[p] < hi[b]):
-                    continue
+            for r in range(n_pred):
                 best_m, best = np.inf, -1
-                for g in range(n_truth):
-                    if not taken[g] and d_truth[g] >= lo[b] and d_truth[g] < hi[b] and dist[g, p] < best_m:
-                        best_m, best = dist[g, p], g
+                for c in range(first[r], first[r + 1]):
+                    g = candidates[c]
+                    if not taken[g] and dist[g, order[r]] < best_m:
+                        best_m, best = dist[g, order[r]], g
                 if best >= 0 and best_m < thresholds[k]:
                     taken[best] = True
-                    flags[p] |= np.uint64(1) << np.uint64(b * stride + 1 + k)
+                    flags[order[r]] |= np.uint64(1) << np.uint64(b * stride + 1 + k)
     return flags, truths
 
 
