@@ -118,9 +118,9 @@ def unpack_objects(section: Any, fused: bool) -> ObjectColumns:
 
 _compiled_codes = None  # schemas.bit_rows.unpack_codes, once loaded (fusion.jit.load_kernels)
 _compiled_section = None  # schemas.bit_rows.pack_section, likewise
-# pack_section sorts each column in a loop: faster than numpy's ~15 calls up to ~250 rows (16.6 vs 48.5 us
-# at 10, 56.7 vs 76.8 us at 100), slower past them (1060 vs 593 us at 1000: numpy's SIMD sorts)
-COMPILED_PACK_ROWS = 128
+# pack_section sorts each column by insertion: faster than numpy's ~15 calls on a few rows (12.3 vs 48.9 us at
+# 10 rows, 36.2 vs 63.8 us at 60), slower past ~110 (89.5 vs 83.9 us at 128, 261 vs 121 us at 250)
+COMPILED_PACK_ROWS = 64
 
 
 def use_compiled(unpack_codes, pack_section) -> None:
