@@ -19,6 +19,7 @@ from schemas.columns import COLUMN, ObjectColumns
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, ObjectState
 
 from .frames import wrap_angle
+from .jit import F64, I64, IN_F1, IN_I1, OUT_F2, OUT_I1, kernel
 from .objects import ObjectArray
 
 _C = COLUMN
@@ -95,6 +96,13 @@ def fit_to_wire(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS) -> tuple[Ob
     Every check and clip runs once on the (N, 22) table of the real-valued columns (``_LAYOUT``).
     """
     table = _table(objs)
+    n, ids = len(objs), np.empty(len(objs), np.int64)
+    changed = -1  # the usual case (every row kept) in one compiled pass, in place; else the general one below
+    if n <= max_objects and objs.ids.dtype == np.int64:
+        changed = _fit_rows(table, objs.ids, ids, _LO, _HI, _YAW, m.POSITION_MAX_M)
+    if changed >= 0:  # (cls and sources copied, as take copies them)
+        objs = objs.with_(cls=objs.cls.copy(), sources=objs.sources.copy())
+        return _with_table(objs, ids, table), Counter(clipped=changed) if changed else Counter()
     keep, counts = _kept_rows(table, objs.xy, max_objects)
     objs, table = objs.take(keep), table[keep]
     clipped = np.clip(table, _LO, _HI)
@@ -119,6 +127,16 @@ def wire_columns(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS, fused: boo
         real[:, start:start + width] = getattr(objs, name).reshape(n, width)
     _put_cov(real, _W_COV[0], objs.cov_xy, _W_YX)
     _put_cov(real, _W_VCOV[0], objs.cov_vxy, _W_YX + 1)
+    ids = np.empty(n, np.int64)
+    changed = -1  # the usual case (every row kept) in one compiled pass; else the general one below
+    if n <= max_objects and objs.ids.dtype == np.int64:
+        changed = _fit_rows(real, objs.ids, ids, _W_LO, _W_HI, _W_YAW, m.POSITION_MAX_M)
+    if changed >= 0:
+        table[:, _C["id"]], table[:, _C["cls"]] = ids, objs.cls
+        if fused:
+            table[:, _C["sources"]] = wire_sources(objs.sources)  # over cov_xy[1, 0], counted
+        counts = Counter(clipped=changed) if changed else Counter()
+        return ObjectColumns.from_values(table[:, :len(COLUMN) if fused else len(COLUMN) - 1], fused), counts
     keep, counts = _kept_rows(real, objs.xy, max_objects)
     rows = keep if len(keep) < n else slice(None)  # every row kept (the usual case): views, no copies
     table, old_ids = table[rows], objs.ids[rows]
@@ -131,6 +149,38 @@ def wire_columns(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS, fused: boo
     if fused:
         table[:, _C["sources"]] = wire_sources(objs.sources[rows])  # over cov_xy[1, 0], counted above
     return ObjectColumns.from_values(table[:, :len(COLUMN) if fused else len(COLUMN) - 1], fused), +counts
+
+
+@kernel(OUT_F2, IN_I1, OUT_I1, IN_F1, IN_F1, I64, F64)
+def _fit_rows(real: np.ndarray, ids: np.ndarray, wire_ids: np.ndarray, lo: np.ndarray, hi: np.ndarray, yaw: int,
+              position_max_m: float) -> int:
+    """wire_columns' usual case, in place: -1 (``real`` untouched) unless every value of ``real`` (N, M)
+    is finite and every position (columns 0, 1) within +-position_max_m; then each value clipped to
+    [lo, hi] (M,) as np.clip does (x > lo ? x : lo, then v < hi ? v : hi), column ``yaw`` wrapped as
+    ``wrap_angle`` ((x + pi) mod 2 pi - pi, the remainder taking the divisor's sign, as numpy's),
+    wire_ids (N,) = ids mod 2^32; returns how many rows changed (``clipped``)."""
+    n, width = real.shape
+    for i in range(n):
+        if abs(real[i, 0]) > position_max_m or abs(real[i, 1]) > position_max_m:
+            return -1
+        for j in range(width):
+            if not np.isfinite(real[i, j]):
+                return -1
+    changed = 0
+    for i in range(n):
+        wire_ids[i] = ids[i] % 4294967296
+        row = wire_ids[i] != ids[i]
+        for j in range(width):
+            x = real[i, j]
+            if j == yaw:
+                v = (x + np.pi) % (2.0 * np.pi) - np.pi
+            else:
+                v = x if x > lo[j] else lo[j]
+                v = v if v < hi[j] else hi[j]
+            row = row or v != x
+            real[i, j] = v
+        changed += row
+    return changed
 
 
 def _put_cov(table: np.ndarray, xx: int, cov: np.ndarray, yx: int | None = None) -> None:

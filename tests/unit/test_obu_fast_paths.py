@@ -171,3 +171,98 @@ def test_covariance_columns_written_by_slices_equal_the_gathered_ones():
     want = np.zeros((7, 6))
     want[:, [1, 2, 3, 5]] = cov.reshape(7, 4)[:, [0, 1, 3, 2]]  # the gather it replaces
     assert np.array_equal(got, want, equal_nan=True)
+
+
+def _finite_hostile(rng, n):
+    """n objects, every value finite and every position on the wire, many values beyond its other ranges."""
+    def col(*shape, scale):
+        a = rng.normal(0.0, scale, (n, *shape)) * np.where(rng.random((n, *shape)) < 0.2, 1e4, 1.0)
+        a[rng.random(a.shape) < 0.05] = -0.0
+        return a
+
+    from fusion.objects import ObjectArray
+
+    return ObjectArray(
+        ids=rng.integers(-2**40, 2**40, n), cls=rng.integers(0, 5, n), xy=rng.uniform(-5000.0, 5000.0, (n, 2)),
+        z=col(scale=1.0), lwh=col(3, scale=3.0), yaw=col(scale=10.0), vxy=col(2, scale=20.0),
+        axy=col(2, scale=3.0), yaw_rate=col(scale=0.5), cov_xy=col(2, 2, scale=2.0),
+        cov_vxy=col(2, 2, scale=2.0), confidence=col(scale=0.8), age_s=col(scale=5.0), sources=rng.integers(0, 4, n))
+
+
+def test_compiled_row_fit_equals_numpy_clip_and_wrap_bit_for_bit():
+    from fusion import wire
+
+    rng = np.random.default_rng(8)
+    for n in (0, 1, 7, 500):
+        real = rng.normal(0.0, 10.0, (n, 22)) * np.where(rng.random((n, 22)) < 0.3, 1e6, 1.0)
+        real[rng.random(real.shape) < 0.1] = -0.0
+        real[:, :2] = rng.uniform(-5000.0, 5000.0, (n, 2))
+        real[-1:, 1] = -4500.0  # beyond a bound of 4000 m
+        bounds = rng.integers(2, len(wire._W_LO), (n, 4))  # values exactly on a (finite) bound
+        for i in range(n):
+            real[i, bounds[i, 0]], real[i, bounds[i, 1]] = wire._W_LO[bounds[i, 0]], wire._W_HI[bounds[i, 1]]
+        real[:, wire._W_YAW] = rng.choice([math.pi, -math.pi, 3 * math.pi, 0.0, -0.0, 1e6, -7.0], n)
+        ids = rng.integers(-2**40, 2**40, n)
+        want = np.clip(real, wire._W_LO, wire._W_HI)
+        want[:, wire._W_YAW] = wrap_angle(real[:, wire._W_YAW])
+        want_ids = np.mod(ids, 2**32)
+        want_changed = int(((ids != want_ids) | (real != want).any(axis=1)).sum())
+        got, got_ids = real.copy(), np.empty(n, np.int64)
+        assert wire._fit_rows(got, ids, got_ids, wire._W_LO, wire._W_HI, wire._W_YAW, 4000.0) == (-1 if n else 0)
+        assert np.array_equal(got, real)  # a position beyond the bound: untouched, for the general path
+        assert wire._fit_rows(got, ids, got_ids, wire._W_LO, wire._W_HI, wire._W_YAW, 5000.0) == want_changed
+        assert np.array_equal(got.view(np.int64), want.view(np.int64)) and np.array_equal(got_ids, want_ids)
+    nan = np.zeros((2, 22))
+    nan[1, 5] = np.nan
+    assert wire._fit_rows(nan, np.zeros(2, np.int64), np.empty(2, np.int64), wire._W_LO, wire._W_HI, 3, 1.0) == -1
+
+
+def test_wire_columns_compiled_path_equals_fit_to_wire_then_states_from_objects():
+    from fusion.wire import fit_to_wire, states_from_objects, wire_columns
+
+    rng = np.random.default_rng(9)
+    for n in (0, 1, 6, 300):
+        objs = _finite_hostile(rng, n)
+        fitted, counts = fit_to_wire(objs, 1024)
+        assert n < 300 or counts["clipped"] > 0
+        for fused in (False, True):
+            cols, got_counts = wire_columns(objs, 1024, fused)
+            assert got_counts == counts
+            assert np.array_equal(cols.codes, states_from_objects(fitted, fused).codes)
+
+
+def _table_fit(objs):
+    """fit_to_wire's general (numpy) path when every row is kept: the table clipped by np.clip, yaw wrapped."""
+    from fusion import wire
+
+    table = wire._table(objs)
+    clipped = np.clip(table, wire._LO, wire._HI)
+    clipped[:, wire._YAW] = wrap_angle(table[:, wire._YAW])
+    ids = np.mod(objs.ids, 2**32)
+    changed = int(((objs.ids != ids) | (table != clipped).any(axis=1)).sum())
+    return wire._with_table(objs.take(np.arange(len(objs))), ids, clipped), Counter(clipped=changed)
+
+
+def test_fit_to_wire_compiled_path_equals_the_numpy_table_path_and_the_per_column_reference():
+    import importlib.util
+    from pathlib import Path
+
+    from fusion.wire import fit_to_wire
+
+    spec = importlib.util.spec_from_file_location("fit_reference", Path(__file__).with_name("test_fit_to_wire.py"))
+    reference = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(reference)
+    rng = np.random.default_rng(10)
+    for n in (0, 1, 6, 300):
+        objs = _finite_hostile(rng, n)
+        fitted, counts = fit_to_wire(objs, 1024)
+        table_fitted, table_counts = _table_fit(objs)
+        ref, ref_counts = reference.reference_fit(objs, 1024)
+        assert counts == +table_counts == ref_counts and (n < 300 or counts["clipped"] > 0)
+        for name in ("ids", "cls", "xy", "z", "lwh", "yaw", "vxy", "axy", "yaw_rate", "cov_xy", "cov_vxy",
+                     "confidence", "age_s", "sources"):
+            got, want = getattr(fitted, name), getattr(table_fitted, name)
+            np.testing.assert_array_equal(got, want, err_msg=name, strict=True)
+            assert got.dtype.kind in "iu" or np.array_equal(np.signbit(got), np.signbit(want)), name  # signed zeros
+            np.testing.assert_array_equal(got, getattr(ref, name), err_msg=name, strict=True)
+        assert fitted.cls is not objs.cls and fitted.sources is not objs.sources
