@@ -156,6 +156,8 @@ def visible_fraction(
     if not COMPILED:
         return _visible_fraction_all(origin, targets, boxes, polygons, samples, targets_occlude, sampled)
     wanted = np.ones(n, dtype=bool) if sampled is None else np.asarray(sampled, dtype=bool)
+    if wanted.shape != (n,):  # the kernel reads wanted[i] for every target i
+        raise ValueError(f"sampled has shape {wanted.shape}, the targets are {n}")
     starts, ends, first = _static_edges(polygons)
     # (cos, sin) of the yaws by numpy, as the reference: the kernel's own could differ in the last bit
     yaw = targets.yaw

@@ -133,6 +133,8 @@ class Trajectories:
         """xy (N, 2) m, yaw (N,) rad, vxy (N, 2) m/s, axy (N, 2) m/s^2 at time t_s (s; or (N,), one per body):
         ``at_numpy`` compiled (``_states``), the same bits."""
         t = np.asarray(t_s, dtype=float).reshape(-1) if np.ndim(t_s) else np.array([float(t_s)])
+        if len(t) != 1 and len(t) != len(self._paths.length):  # the kernel reads t[i] for every body i
+            raise ValueError(f"{len(t)} times for {len(self._paths.length)} bodies: one time, or one per body")
         return _states(t, *self._kernel_args)
 
     def at_numpy(self, t_s: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -115,3 +115,10 @@ def test_boxes_apart_from_a_segment_are_skipped_without_changing_a_fraction():
             checked += n
             partly += int(((want > 0) & (want < 1)).sum())
     assert checked > 5000 and partly > 100
+
+
+def test_a_sampled_mask_of_another_length_is_refused_either_way():
+    targets = _targets(np.random.default_rng(2), 4, 20.0)
+    for compiled in (True, False):
+        with pytest.raises((ValueError, IndexError)):
+            _fractions(compiled, np.zeros(2), targets, None, [], sampled=np.ones(5, dtype=bool))

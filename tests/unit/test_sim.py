@@ -475,3 +475,11 @@ def test_actors_at_adds_the_kinematics_to_read_only_static_columns(name):
     first, second = untimed.actors_at(1.0), untimed.actors_at(2.0)
     assert first.ids is second.ids and not first.ids.flags.writeable
     assert first.xy is not second.xy and first.xy.flags.writeable
+
+
+def test_compiled_states_refuse_a_time_per_body_of_another_count():
+    traj = Trajectories([a.trajectory for a in load_scenario(RLR).actors])
+    n = len(traj._paths.length)
+    assert len(traj.at(np.zeros(n))[1]) == len(traj.at(np.zeros(1))[1]) == n
+    with pytest.raises(ValueError, match="one time, or one per body"):
+        traj.at(np.zeros(n + 1))
