@@ -224,6 +224,9 @@ class CenterDistanceAp:
         if cost_m is None:
             cost_m = center_distance_cost(truth_xy, pred_xy) if len(truth_xy) and len(pred_xy) else \
                 np.zeros((len(truth_xy), len(pred_xy)))
+        if np.shape(cost_m) != (len(truth_xy), len(pred_xy)) or len(confidence) != len(pred_xy):
+            raise ValueError(f"cost {np.shape(cost_m)} and {len(confidence)} confidences for {len(truth_xy)} truths "
+                             f"and {len(pred_xy)} predictions")  # the kernel reads them without bounds checks
         d_truth, d_pred = np.hypot(truth_xy[:, 0], truth_xy[:, 1]), np.hypot(pred_xy[:, 0], pred_xy[:, 1])
         flags, truths = _frame_flags(cost_m, d_truth, d_pred, _confidence_order(confidence), *self._bins)
         self._num_truth = [total + count for total, count in zip(self._num_truth, truths.tolist())]

@@ -350,3 +350,12 @@ def test_compiled_frame_flags_equal_the_greedy_matches_per_bin():
             assert (flags.tolist(), truths.tolist()) == _frame_flags_numpy(ap, truth_xy, pred_xy, confidence)
             matched += sum(bin(f).count("1") for f in flags.tolist())
     assert matched > 5000
+
+
+def test_streaming_ap_refuses_costs_or_confidences_of_other_shapes():
+    ap, truth, pred = CenterDistanceAp(), np.zeros((3, 2)), np.ones((2, 2))
+    with pytest.raises(ValueError):
+        ap.add_frame(truth, pred, np.ones(2), np.zeros((2, 3)))
+    with pytest.raises(ValueError):
+        ap.add_frame(truth, pred, np.ones(3))
+    ap.add_frame(truth, pred, np.ones(2), np.zeros((3, 2)))
