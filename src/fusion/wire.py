@@ -158,8 +158,11 @@ def _fit_rows(real: np.ndarray, ids: np.ndarray, wire_ids: np.ndarray, lo: np.nd
     is finite and every position (columns 0, 1) within +-position_max_m; then each value clipped to
     [lo, hi] (M,) as np.clip does (x > lo ? x : lo, then v < hi ? v : hi), column ``yaw`` wrapped as
     ``wrap_angle`` ((x + pi) mod 2 pi - pi, the remainder taking the divisor's sign, as numpy's),
-    wire_ids (N,) = ids mod 2^32; returns how many rows changed (``clipped``)."""
+    wire_ids (N,) = ids mod 2^32; returns how many rows changed (``clipped``). -1 too unless ids, wire_ids
+    have N rows and lo, hi M entries."""
     n, width = real.shape
+    if len(ids) != n or len(wire_ids) != n or len(lo) != width or len(hi) != width or width < 2:
+        return -1  # (read below without bounds checks: the general path raises instead)
     for i in range(n):
         if abs(real[i, 0]) > position_max_m or abs(real[i, 1]) > position_max_m:
             return -1

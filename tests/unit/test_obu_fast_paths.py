@@ -215,6 +215,12 @@ def test_compiled_row_fit_equals_numpy_clip_and_wrap_bit_for_bit():
     nan = np.zeros((2, 22))
     nan[1, 5] = np.nan
     assert wire._fit_rows(nan, np.zeros(2, np.int64), np.empty(2, np.int64), wire._W_LO, wire._W_HI, 3, 1.0) == -1
+    fine = np.zeros((2, 22))
+    assert wire._fit_rows(fine, np.zeros(2, np.int64), np.empty(2, np.int64), wire._W_LO, wire._W_HI, 3, 1.0) == 0
+    for ids, out, lo in [(np.zeros(1, np.int64), np.empty(2, np.int64), wire._W_LO),
+                         (np.zeros(2, np.int64), np.empty(1, np.int64), wire._W_LO),
+                         (np.zeros(2, np.int64), np.empty(2, np.int64), wire._W_LO[:5])]:
+        assert wire._fit_rows(fine, ids, out, lo, wire._W_HI, 3, 1.0) == -1  # lengths that disagree
 
 
 def test_wire_columns_compiled_path_equals_fit_to_wire_then_states_from_objects():
