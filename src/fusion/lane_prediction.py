@@ -30,8 +30,8 @@ object shows its branch once it is on a connector (it then matches the connector
 agrees), so a turning vehicle is predicted straight until it turns in, and along its arc after.
 
 Cost: centrelines are cached at construction as flat numpy polylines with cumulative arc length,
-one per lane sequence, stacked with disjoint arc-length keys, so that a call is one vectorised
-segment match (N x S) and one ``searchsorted`` for all objects and steps; lanelet2 is only used
+one per lane sequence, stacked with disjoint arc-length keys, so that a call is one segment match
+(a compiled loop: ``fusion.lane_match``) and one ``searchsorted`` for all objects and steps; lanelet2 is only used
 to load the map and build the routing graph.
 """
 
@@ -46,6 +46,7 @@ import numpy as np
 from schemas.classes import ObjectClass
 
 from .frames import wrap_angle
+from .lane_match import match_segments
 from .motion import predict_cv
 from .objects import ObjectArray
 
@@ -176,6 +177,12 @@ class _Segments:
 REACH_SLACK_M = 1.0  # beyond rounding: a segment's candidate disc is a bound, not a test
 
 
+def segment_tables(seg: _Segments) -> tuple[np.ndarray, np.ndarray]:
+    """The segments as ``lane_match.match_segments`` reads them: floats (S, 12) and lane, first, last (S, 3)."""
+    floats = np.column_stack([seg.mid, seg.reach_sq, seg.a, seg.t, seg.length, seg.half_w, seg.psi, seg.s0])
+    return np.ascontiguousarray(floats, dtype=np.float64), np.column_stack([seg.lane, seg.first, seg.last]).astype(np.int64)
+
+
 def _segments(geometry: LaneGeometry) -> _Segments:
     parts = []
     for i, (c, hw) in enumerate(zip(geometry.centres, geometry.half_widths)):
@@ -289,6 +296,9 @@ class LanePredictor:
         self._chains = _chains(geometry, self.config)
         self._map_classes = np.asarray(self.config.map_classes, dtype=np.int64)
         self._map_class_set = frozenset(self._map_classes.tolist())  # match's np.isin, for few objects
+        self._seg_table, self._seg_index = segment_tables(self._seg)
+        self._match_rules = np.array([self.config.lateral_margin_m, self.config.heading_tolerance_rad,
+                                      self.config.heading_scale_rad])
 
     @classmethod
     def from_lanelet_map(cls, lmap, config: LanePredictionConfig | None = None) -> LanePredictor:
@@ -310,40 +320,20 @@ class LanePredictor:
         The lowest cost over every (object, segment) pair, first segment on a tie. Only pairs whose
         object lies within sqrt(``reach_sq``) of the segment's midpoint can pass the lateral test
         (distance to the segment <= half width + margin, and |p - mid| <= that distance + length / 2):
-        the others cost inf without being computed; the candidates cost what the full (N, S) arrays
-        gave, element for element.
+        the others cost inf without being computed. The pairs in one compiled loop
+        (``fusion.lane_match``: the numpy expression's operations, bit for bit); the headings here.
         """
-        cfg, seg = self.config, self._seg
+        cfg = self.config
         n = len(objs)
+        lane, s0, d0 = np.empty(n, dtype=np.int64), np.empty(n), np.empty(n)
         if n == 0:
-            return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
-        moving = np.hypot(objs.vxy[:, 0], objs.vxy[:, 1]) > cfg.min_speed_for_heading_mps
-        heading = np.where(moving, np.arctan2(objs.vxy[:, 1], objs.vxy[:, 0]), objs.yaw)
-        off_x, off_y = np.subtract.outer(objs.xy[:, 0], seg.mid[:, 0]), np.subtract.outer(objs.xy[:, 1], seg.mid[:, 1])
-        # candidate pairs (K,), by object then segment
-        row, k = np.nonzero(off_x * off_x + off_y * off_y <= seg.reach_sq)
-        if not len(row):
-            return np.full(n, -1, dtype=seg.lane.dtype), np.zeros(n), np.zeros(n)
-        rel = objs.xy[row] - seg.a[k]  # (K, 2)
-        t, length, hw = seg.t[k], seg.length[k], seg.half_w[k]
-        along = rel[:, 0] * t[:, 0] + rel[:, 1] * t[:, 1]
-        lateral = t[:, 0] * rel[:, 1] - t[:, 1] * rel[:, 0]  # t x rel: left positive
-        dist = np.hypot(along - np.clip(along, 0.0, length), lateral)
-        half_w = np.where(lateral >= 0.0, hw[:, 0], hw[:, 1])
-        dpsi = wrap_angle(heading[row] - seg.psi[k])
-        ok = (dist <= half_w + cfg.lateral_margin_m) & (np.abs(dpsi) <= cfg.heading_tolerance_rad)
-        ok &= ~(seg.first[k] & (along < -1e-6)) & ~(seg.last[k] & (along > length + 1e-6))
-        ok &= np.array([c in self._map_class_set for c in objs.cls.tolist()], dtype=bool)[row]  # np.isin
-        cost = np.full((n, len(seg.lane)), np.inf)
-        cost[row, k] = np.where(ok, (dist / half_w) ** 2 + (dpsi / cfg.heading_scale_rad) ** 2, np.inf)
-        best = np.argmin(cost, axis=1)
-        rows = np.arange(n)
-        matched = np.isfinite(cost[rows, best])
-        key = row * len(seg.lane) + k  # sorted: the pairs' order
-        at = np.minimum(np.searchsorted(key, rows * len(seg.lane) + best), len(key) - 1)  # a matched row's best pair
-        lane = np.where(matched, seg.lane[best], -1)
-        s0 = seg.s0[best] + np.clip(along[at], 0.0, seg.length[best])
-        return lane, np.where(matched, s0, 0.0), np.where(matched, lateral[at], 0.0)
+            return lane, s0, d0
+        vxy = objs.vxy
+        moving = np.hypot(vxy[:, 0], vxy[:, 1]) > cfg.min_speed_for_heading_mps
+        heading = np.where(moving, np.arctan2(vxy[:, 1], vxy[:, 0]), objs.yaw)
+        road = np.array([c in self._map_class_set for c in objs.cls.tolist()], dtype=bool)  # np.isin
+        match_segments(objs.xy, heading, road, self._seg_table, self._seg_index, self._match_rules, lane, s0, d0)
+        return lane, s0, d0
 
     def _frenet(self, objs: ObjectArray, chain: np.ndarray, s0, d0, t: np.ndarray,
                 motion: bool = True) -> dict[str, np.ndarray]:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import fusion.lane_prediction  # noqa: F401 (its compiled match loads with the service's kernels: fusion.jit.load_kernels)
 from fusion.motion import trajectories_cv
 from sim.maps import lane_predictor, scenario_map
 

@@ -1,0 +1,87 @@
+"""The lane predictor's segment match (``LanePredictor.match``) in one compiled loop.
+
+Per object i and centreline segment j (start a_j, unit tangent t_j, length L_j, half widths
+[left, right], heading psi_j, midpoint m_j), in the numpy expression's float64 operations and order:
+
+    candidate:  (x_i - m_jx)^2 + (y_i - m_jy)^2 <= reach_sq_j          (else cost inf)
+    rel = p_i - a_j,  along = rel_x t_x + rel_y t_y,  lateral = t_x rel_y - t_y rel_x   (left positive)
+    dist = hypot(along - clip(along, 0, L_j), lateral),  w = left if lateral >= 0 else right
+    dpsi = wrap(heading_i - psi_j) = (heading_i - psi_j + pi) mod 2 pi - pi
+    ok = dist <= w + margin, |dpsi| <= tolerance, not before a first / after a last segment, road class
+    cost = (dist / w)^2 + (dpsi / scale)^2 if ok else inf
+
+and the best segment by numpy's ``argmin`` rule (the first NaN, else the first lowest; every cost inf:
+segment 0). The numpy expression is the reference of tests/unit/test_lane_match.py (bit for bit on
+every bundled map). The headings (arctan2) stay with numpy: its SIMD transcendental functions may
+differ from libm's in the last bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import types
+
+from .jit import IN_F1, IN_F2, IN_I2, OUT_F1, OUT_I1, helper, kernel
+
+IN_B1 = types.Array(types.boolean, 1, "A", readonly=True)
+
+# columns of the segment table (S, 12)
+MID_X, MID_Y, REACH_SQ, A_X, A_Y, T_X, T_Y, LENGTH, HALF_LEFT, HALF_RIGHT, PSI, S0 = range(12)
+# columns of the segment index table (S, 3)
+LANE, FIRST, LAST = range(3)
+EDGE_M = 1e-6  # a first (last) segment does not reach before its start (after its end) by more
+
+
+@helper
+def _clip(value: float, high: float) -> float:
+    """``np.clip(value, 0.0, high)`` of floats: numpy's max then min, a NaN kept (max(+-0, 0) is +0)."""
+    if math.isnan(value):
+        return value
+    low_clipped = value if value > 0.0 else 0.0
+    return low_clipped if low_clipped < high else high
+
+
+@kernel(IN_F2, IN_F1, IN_B1, IN_F2, IN_I2, IN_F1, OUT_I1, OUT_F1, OUT_F1)
+def match_segments(xy: np.ndarray, heading: np.ndarray, road: np.ndarray, seg: np.ndarray, seg_index: np.ndarray,
+                   rules: np.ndarray, lane: np.ndarray, s0: np.ndarray, d0: np.ndarray) -> None:
+    """Lane (N,) (-1 unmatched), arc length s0 (N,) m and lateral offset d0 (N,) m of objects at ``xy``
+    (N, 2) m with ``heading`` (N,) rad and ``road`` (N,) class flags, against the segment tables
+    ``seg`` (S, 12) and ``seg_index`` (S, 3); ``rules`` [margin m, tolerance rad, scale rad]."""
+    n = xy.shape[0]  # the loop reads and writes without bounds checks: the lengths are checked here
+    if not (xy.shape[1] >= 2 and len(heading) == len(road) == len(lane) == len(s0) == len(d0) == n):
+        raise ValueError("match_segments: xy (N, 2), heading, road, lane, s0, d0 (N,)")
+    if not (seg.shape[1] == 12 and seg_index.shape[1] == 3 and seg_index.shape[0] == seg.shape[0] and len(rules) == 3):
+        raise ValueError("match_segments: seg (S, 12), seg_index (S, 3), rules (3,)")
+    margin, tolerance, scale = rules[0], rules[1], rules[2]
+    for i in range(n):
+        x, y = xy[i, 0], xy[i, 1]
+        best, best_cost, best_along, best_lateral = 0, math.inf, 0.0, 0.0
+        for j in range(seg.shape[0]):
+            off_x, off_y = x - seg[j, MID_X], y - seg[j, MID_Y]
+            if not off_x * off_x + off_y * off_y <= seg[j, REACH_SQ]:
+                continue
+            rel_x, rel_y = x - seg[j, A_X], y - seg[j, A_Y]
+            t_x, t_y, length = seg[j, T_X], seg[j, T_Y], seg[j, LENGTH]
+            along = rel_x * t_x + rel_y * t_y
+            lateral = t_x * rel_y - t_y * rel_x
+            dist = math.hypot(along - _clip(along, length), lateral)
+            half_w = seg[j, HALF_LEFT] if lateral >= 0.0 else seg[j, HALF_RIGHT]
+            dpsi = (heading[i] - seg[j, PSI] + math.pi) % (2.0 * math.pi) - math.pi
+            ok = dist <= half_w + margin and abs(dpsi) <= tolerance and road[i]
+            ok = ok and not (seg_index[j, FIRST] and along < -EDGE_M) and not (seg_index[j, LAST] and along > length + EDGE_M)
+            if not ok:
+                continue
+            q_d, q_psi = dist / half_w, dpsi / scale
+            cost = q_d * q_d + q_psi * q_psi
+            if math.isnan(cost) or cost < best_cost:  # numpy's argmin: the first NaN, else the first lowest
+                best, best_cost, best_along, best_lateral = j, cost, along, lateral
+                if math.isnan(cost):
+                    break
+        if math.isinf(best_cost) or math.isnan(best_cost):  # np.isfinite(cost[best]) fails: unmatched
+            lane[i], s0[i], d0[i] = -1, 0.0, 0.0
+        else:
+            lane[i] = seg_index[best, LANE]
+            s0[i] = seg[best, S0] + _clip(best_along, seg[best, LENGTH])
+            d0[i] = best_lateral

@@ -1,0 +1,114 @@
+"""The lane predictor's compiled segment match (fusion.lane_match) against its numpy expression."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fusion.frames import wrap_angle
+from fusion.lane_match import match_segments
+from fusion.lane_prediction import LanePredictor
+from fusion.objects import ObjectArray
+from schemas.classes import ObjectClass
+from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, bundled_maps, map_path
+
+
+def _match_numpy(pred: LanePredictor, objs: ObjectArray):
+    """LanePredictor.match before the kernel: the candidate pairs as numpy arrays (the reference)."""
+    cfg, seg = pred.config, pred._seg
+    n = len(objs)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
+    moving = np.hypot(objs.vxy[:, 0], objs.vxy[:, 1]) > cfg.min_speed_for_heading_mps
+    heading = np.where(moving, np.arctan2(objs.vxy[:, 1], objs.vxy[:, 0]), objs.yaw)
+    off_x, off_y = np.subtract.outer(objs.xy[:, 0], seg.mid[:, 0]), np.subtract.outer(objs.xy[:, 1], seg.mid[:, 1])
+    row, k = np.nonzero(off_x * off_x + off_y * off_y <= seg.reach_sq)
+    if not len(row):
+        return np.full(n, -1, dtype=seg.lane.dtype), np.zeros(n), np.zeros(n)
+    rel = objs.xy[row] - seg.a[k]
+    t, length, hw = seg.t[k], seg.length[k], seg.half_w[k]
+    along = rel[:, 0] * t[:, 0] + rel[:, 1] * t[:, 1]
+    lateral = t[:, 0] * rel[:, 1] - t[:, 1] * rel[:, 0]
+    dist = np.hypot(along - np.clip(along, 0.0, length), lateral)
+    half_w = np.where(lateral >= 0.0, hw[:, 0], hw[:, 1])
+    dpsi = wrap_angle(heading[row] - seg.psi[k])
+    ok = (dist <= half_w + cfg.lateral_margin_m) & (np.abs(dpsi) <= cfg.heading_tolerance_rad)
+    ok &= ~(seg.first[k] & (along < -1e-6)) & ~(seg.last[k] & (along > length + 1e-6))
+    ok &= np.isin(objs.cls, pred._map_classes)[row]
+    cost = np.full((n, len(seg.lane)), np.inf)
+    cost[row, k] = np.where(ok, (dist / half_w) ** 2 + (dpsi / cfg.heading_scale_rad) ** 2, np.inf)
+    best = np.argmin(cost, axis=1)
+    rows = np.arange(n)
+    matched = np.isfinite(cost[rows, best])
+    key = row * len(seg.lane) + k
+    at = np.minimum(np.searchsorted(key, rows * len(seg.lane) + best), len(key) - 1)
+    lane = np.where(matched, seg.lane[best], -1)
+    s0 = seg.s0[best] + np.clip(along[at], 0.0, seg.length[best])
+    return lane, np.where(matched, s0, 0.0), np.where(matched, lateral[at], 0.0)
+
+
+def _objects(pred: LanePredictor, rng: np.random.Generator, n: int) -> ObjectArray:
+    """n objects on, beside, at the ends of and off the predictor's lanes; every class, moving or not."""
+    seg = pred._seg
+    on = rng.integers(0, len(seg.lane), n)
+    u = rng.choice([rng.uniform(-0.3, 1.3), 0.0, 1.0, -1e-7, 1.0 + 1e-7], n)[:, None]  # exactly at the ends too
+    aside = rng.choice([0.0, rng.normal(0.0, 2.0)], n, p=[0.2, 0.8])[:, None]
+    xy = seg.a[on] + u * seg.length[on, None] * seg.t[on] + aside * seg.t[on][:, ::-1] * [-1, 1]
+    far = rng.random(n) < 0.15
+    xy[far] = rng.uniform(-300.0, 300.0, (int(far.sum()), 2))
+    speed = rng.choice([0.0, 0.2, 1.0, 8.0], n)
+    angle = seg.psi[on] + rng.normal(0.0, 0.6, n) + rng.choice([0.0, np.pi, np.pi / 4], n, p=[0.8, 0.1, 0.1])
+    return ObjectArray(
+        ids=np.arange(n, dtype=np.int64), cls=rng.choice([int(c) for c in ObjectClass], n).astype(np.int64), xy=xy,
+        z=np.zeros(n), lwh=np.tile([4.5, 1.8, 1.5], (n, 1)), yaw=seg.psi[on] + rng.normal(0.0, 0.6, n),
+        vxy=speed[:, None] * np.column_stack([np.cos(angle), np.sin(angle)]),
+    )
+
+
+@pytest.mark.parametrize("name", sorted(bundled_maps()))
+def test_compiled_match_equals_the_numpy_expression(name):
+    """Lanes, s0 and d0 of the compiled loop equal the numpy expression's as bytes on every bundled map
+    (objects on lanes, beside them, exactly at segment ends, off the map; none, one or many)."""
+    pred = LanePredictor.from_osm(map_path(name), MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG)
+    rng = np.random.default_rng(11)
+    matched = 0
+    for n in (0, 1, 2, 3, 7, 40, 300):
+        objs = _objects(pred, rng, n)
+        got, want = pred.match(objs), _match_numpy(pred, objs)
+        for g, w in zip(got, want):
+            assert g.dtype == w.dtype and g.shape == w.shape and g.tobytes() == w.tobytes()
+        matched += int(np.count_nonzero(got[0] >= 0))
+    assert matched > 40
+
+
+def test_compiled_match_takes_numpy_argmin_rule():
+    """Equal costs: the first segment; a zero half width (0 / 0 cost, NaN): numpy's argmin takes it and
+    the object is unmatched; no candidate at all: unmatched."""
+    seg = np.zeros((3, 12))
+    seg[:, 2] = 100.0  # reach_sq
+    seg[:, 5] = 1.0  # tangent x
+    seg[:, 7] = 10.0  # length
+    seg[:, 8:10] = 2.0  # half widths
+    seg[:, 11] = [0.0, 10.0, 20.0]  # s0
+    index = np.array([[4, 1, 0], [5, 0, 0], [6, 0, 1]], dtype=np.int64)
+    rules = np.array([0.5, np.pi / 4, 0.2])
+    lane, s0, d0 = np.empty(1, dtype=np.int64), np.empty(1), np.empty(1)
+    xy, heading, road = np.array([[3.0, 0.5]]), np.zeros(1), np.ones(1, dtype=bool)
+    match_segments(xy, heading, road, seg, index, rules, lane, s0, d0)
+    assert (lane[0], s0[0], d0[0]) == (4, 3.0, 0.5)  # three equal costs: the first
+    seg[1, 8:10] = 0.0
+    match_segments(np.array([[3.0, 0.0]]), heading, road, seg, index, rules, lane, s0, d0)
+    assert (lane[0], s0[0], d0[0]) == (-1, 0.0, 0.0)  # segment 1 costs NaN
+    match_segments(np.array([[300.0, 0.0]]), heading, road, seg, index, rules, lane, s0, d0)
+    assert lane[0] == -1
+    match_segments(xy, heading, np.zeros(1, dtype=bool), seg, index, rules, lane, s0, d0)
+    assert lane[0] == -1  # not a road class
+
+
+def test_compiled_match_refuses_inputs_of_other_lengths():
+    seg, index, rules = np.zeros((2, 12)), np.zeros((2, 3), dtype=np.int64), np.zeros(3)
+    lane, s0, d0 = np.empty(2, dtype=np.int64), np.empty(2), np.empty(2)
+    with pytest.raises(ValueError):  # one heading for two objects
+        match_segments(np.zeros((2, 2)), np.zeros(1), np.ones(2, dtype=bool), seg, index, rules, lane, s0, d0)
+    with pytest.raises(ValueError):  # a segment index table of another length
+        match_segments(np.zeros((2, 2)), np.zeros(2), np.ones(2, dtype=bool), seg, index[:1], rules, lane, s0, d0)
