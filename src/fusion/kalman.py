@@ -318,12 +318,32 @@ def two_point(model: MotionModel, x0: np.ndarray, p0: np.ndarray, z: np.ndarray,
 
 def predict(x: np.ndarray, p: np.ndarray, model: MotionModel, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Prior x (N, n), P (N, n, n) -> predicted x, P after dt_s seconds (new arrays)."""
+    if isinstance(model, (ConstantVelocity, ConstantAcceleration)) and dt_s:  # F, Q depend on dt alone
+        f, q = _linear_matrices(model, dt_s)
+        return x @ f.T, _sandwich(f, p) + q
     q = model.process_noise(x, dt_s)  # Q at the prior state
     x_new, f = model.transition(x, dt_s)
     # P' = F P F^T + Q
     if f.ndim == 2:  # one F for every track: two matrix products over the whole batch
         return x_new, _sandwich(f, p) + q
     return x_new, f @ p @ np.swapaxes(f, -1, -2) + q
+
+
+_LINEAR: dict[tuple[object, float], tuple[np.ndarray, np.ndarray]] = {}  # (model, dt_s) -> read-only F, Q
+
+
+def _linear_matrices(model: ConstantVelocity | ConstantAcceleration, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """F (n, n) and Q (n, n) of a linear model (CV, CA) over dt_s != 0, kept per (model, dt_s): a tracker
+    predicts over the same few cycle periods again and again (0.0 is left out: -0.0 hashes as 0.0)."""
+    key = (model, dt_s)
+    found = _LINEAR.get(key)
+    if found is None:
+        if len(_LINEAR) >= 256:
+            _LINEAR.clear()
+        f, q = model.transition(np.zeros((0, model.dim_x)), dt_s)[1], model.process_noise(None, dt_s)
+        f.flags.writeable = q.flags.writeable = False
+        found = _LINEAR[key] = (f, q)
+    return found
 
 
 def _sandwich(f: np.ndarray, p: np.ndarray) -> np.ndarray:

@@ -235,25 +235,22 @@ class Tracker:
                                             self._intersecting_mask(), t_s, self.config.max_coast_s)
             ti, di = ti.take(order), di.take(order)
         # one initialisation, from the detection alone, for the tracks an estimate replaces and the new tracks
-        start = result.unmatched_b
-        if k:
-            start = np.concatenate([di[:k], start])
-        x0, p0, measured = self._initial(dets, start)
-        if k:
-            replaced = ti[:k]
-            tab.x[replaced], tab.p[replaced] = x0[:k], p0[:k]
-            ti, di = ti[k:], di[k:]
+        spawned = result.unmatched_b
+        if k or len(spawned):  # most updates start none
+            x0, p0, measured = self._initial(dets, np.concatenate([di[:k], spawned]) if k else spawned)
+            if k:
+                replaced = ti[:k]
+                tab.x[replaced], tab.p[replaced] = x0[:k], p0[:k]
+                ti, di = ti[k:], di[k:]
         if len(ti):
             self._fuse(ti, di, n_ci, dets, t_s, estimates)
         self._record(result.matches[:, 0], result.matches[:, 1], dets, cols, t_s, estimates)
-        self._spawn(dets, result.unmatched_b, cols, t_s, x0[k:], p0[k:], estimates, ~measured[k:])
+        if len(spawned):
+            self._spawn(dets, spawned, cols, t_s, x0[k:], p0[k:], estimates, ~measured[k:])
 
     def _initial(self, dets: ObjectArray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """x (K, n), P (K, n, n) of tracks started from the detections dets[index] alone (``MotionModel.initial``)
-        and (K,) True where their velocity was measured; most updates start none, and skip the model."""
-        if not len(index):
-            dim = self.model.dim_x
-            return np.zeros((0, dim)), np.zeros((0, dim, dim)), np.zeros(0, bool)
+        and (K,) True where their velocity was measured."""
         inputs = filter_inputs(dets, index)
         x0, p0 = self.model.initial(inputs, self._prior)
         return x0, p0, inputs.velocity_measured(self._prior.speed_std_mps)

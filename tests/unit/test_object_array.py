@@ -24,6 +24,19 @@ def test_defaults_fill_only_the_columns_left_out():
                     lwh=np.ones((2, 3)), yaw=np.zeros(2), vxy=np.zeros((2, 2)))
 
 
+@pytest.mark.parametrize("n", [0, 1, 5, 64, 65, 300, 3])
+def test_default_covariances_are_fresh_tiles_bit_for_bit(n):
+    """The kept tiles give np.tile's arrays (bytes, shape, layout), each a fresh writable copy."""
+    a, b = objects(n), objects(n)
+    for got, variance in ((a.cov_xy, 1.0), (a.cov_vxy, UNKNOWN_VELOCITY_VAR)):
+        want = np.tile(np.eye(2) * variance, (n, 1, 1))
+        assert got.shape == want.shape and got.tobytes() == want.tobytes() and got.flags.c_contiguous
+        assert got.flags.writeable and got.flags.owndata
+    if n:
+        a.cov_xy[0, 0, 0] = a.cov_vxy[0, 0, 0] = 7.0
+        assert b.cov_xy[0, 0, 0] == 1.0 and b.cov_vxy[0, 0, 0] == UNKNOWN_VELOCITY_VAR
+
+
 def test_with_replaces_columns_and_still_refuses_a_wrong_row_count():
     objs = objects(3)
     moved = objs.with_(xy=np.ones((3, 2)), yaw=np.full(3, 0.5))
