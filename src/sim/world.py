@@ -363,3 +363,10 @@ class World:
             raise ValueError("the site view (World(..., site=True)) has no ego")
         x, y, yaw, vx, vy = self._ego_body.at(t_s)  # = self._ego.at(t_s) row 0, bit for bit
         return Pose2D(x=x, y=y, yaw=yaw, vx=vx, vy=vy)
+
+    def ego_xy_at(self, t_s: float) -> tuple[float, float]:
+        """x, y (m) of ``ego_at(t_s)``, without building the Pose2D (for callers that need the position alone)."""
+        if self._ego is None:
+            raise ValueError("the site view (World(..., site=True)) has no ego")
+        x, y, _, _, _ = self._ego_body.at(t_s)
+        return x, y

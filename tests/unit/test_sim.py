@@ -137,6 +137,18 @@ def test_world_red_light_runner_ground_truth():
     np.testing.assert_allclose(world.ego_size, [4.7, 1.85, 1.5])
 
 
+@pytest.mark.parametrize("name", sorted(bundled_scenarios()))
+def test_ego_xy_at_is_ego_at_s_position_bit_for_bit(name):
+    scenario = load_scenario(name)
+    for vehicle in [None] + [v.name for v in scenario.vehicles]:
+        world = World(scenario, vehicle) if vehicle else World(scenario)
+        for t in np.concatenate([[-1.0, 0.0, -0.0], np.linspace(0.0, scenario.duration_s + 2.0, 97)]):
+            ego = world.ego_at(t)
+            assert world.ego_xy_at(t) == (ego.x, ego.y)
+    with pytest.raises(ValueError, match="no ego"):
+        World(scenario, site=True).ego_xy_at(0.0)
+
+
 # --- occlusion vs shapely ---------------------------------------------------------------
 
 def _box_polygon(box) -> Polygon:
