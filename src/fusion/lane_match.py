@@ -1,4 +1,5 @@
-"""The lane predictor's segment match (``LanePredictor.match``) in one compiled loop.
+"""The lane predictor's compiled loops: its segment match (``LanePredictor.match``) and its centreline
+points (``chain_frame``'s lookups).
 
 Per object i and centreline segment j (start a_j, unit tangent t_j, length L_j, half widths
 [left, right], heading psi_j, midpoint m_j), in the numpy expression's float64 operations and order:
@@ -14,6 +15,10 @@ and the best segment by numpy's ``argmin`` rule (the first NaN, else the first l
 segment 0). The numpy expression is the reference of tests/unit/test_lane_match.py (bit for bit on
 every bundled map). The headings (arctan2) stay with numpy: its SIMD transcendental functions may
 differ from libm's in the last bit.
+
+``chain_frame_points``: ``lane_prediction.chain_points`` of s, s + b and s - b at once (a binary search of
+numpy's ``searchsorted(side="right")``, the vertex clipped to the chain, then c = v + (s - cum) t),
+the same float64 operations (tests/unit/test_lane_match.py).
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import math
 import numpy as np
 from numba import types
 
-from .jit import IN_F1, IN_F2, IN_I2, OUT_F1, OUT_I1, helper, kernel
+from .jit import F64, IN_F1, IN_F2, IN_I1, IN_I2, OUT_F1, OUT_F3, OUT_I1, helper, kernel
 
 IN_B1 = types.Array(types.boolean, 1, "A", readonly=True)
 
@@ -85,3 +90,38 @@ def match_segments(xy: np.ndarray, heading: np.ndarray, road: np.ndarray, seg: n
             lane[i] = seg_index[best, LANE]
             s0[i] = seg[best, S0] + _clip(best_along, seg[best, LENGTH])
             d0[i] = best_lateral
+
+
+@kernel(IN_F1, IN_I1, IN_I1, IN_F2, IN_F1, IN_F2, F64, IN_I1, IN_F2, F64, OUT_F3)
+def chain_frame_points(key: np.ndarray, first: np.ndarray, last: np.ndarray, vertex: np.ndarray, cum: np.ndarray,
+                       tangent: np.ndarray, span: float, chain: np.ndarray, s: np.ndarray, base: float,
+                       out: np.ndarray) -> None:
+    """Centreline points ``out`` (P, 3 T, 2) m at s, s + base, s - base (each (P, T) m; columns 0..T-1,
+    T..2T-1, 2T..3T-1) on ``chain`` (P,), of the chain table (``lane_prediction._Chains``: vertex keys
+    (M,) sorted, first / last vertex per chain, vertices, arc lengths and tangents)."""
+    p_n, t_n, m = s.shape[0], s.shape[1], len(key)  # checked: the loop reads without bounds checks
+    if not (len(chain) == out.shape[0] == p_n and out.shape[1] == 3 * t_n and out.shape[2] == 2):
+        raise ValueError("chain_frame_points: chain (P,), s (P, T), out (P, 3 T, 2)")
+    if not (len(cum) == vertex.shape[0] == tangent.shape[0] == m and len(first) == len(last)):
+        raise ValueError("chain_frame_points: key, cum, vertex, tangent of one length; first, last of one")
+    for p in range(p_n):
+        c = chain[p]
+        if not 0 <= c < len(first) or not 0 <= first[c] < last[c] < m:
+            raise ValueError("chain_frame_points: a chain outside the table")
+        offset = c * span  # (chain * span): the chain's key offset
+        for part in range(3):
+            for t in range(t_n):
+                s_pt = s[p, t] if part == 0 else s[p, t] + base if part == 1 else s[p, t] - base
+                q = s_pt + offset
+                lo, hi = 0, m  # searchsorted(key, q, side="right"): the first key > q (NaN: past the end)
+                while lo < hi:
+                    mid = (lo + hi) >> 1
+                    if q < key[mid]:
+                        hi = mid
+                    else:
+                        lo = mid + 1
+                j = max(lo - 1, first[c])  # np.clip(j, first, last - 1)
+                j = min(j, last[c] - 1)
+                along = s_pt - cum[j]
+                out[p, part * t_n + t, 0] = vertex[j, 0] + along * tangent[j, 0]
+                out[p, part * t_n + t, 1] = vertex[j, 1] + along * tangent[j, 1]

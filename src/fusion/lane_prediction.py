@@ -46,7 +46,7 @@ import numpy as np
 from schemas.classes import ObjectClass
 
 from .frames import wrap_angle
-from .lane_match import match_segments
+from .lane_match import chain_frame_points, match_segments
 from .motion import predict_cv
 from .objects import ObjectArray
 
@@ -257,8 +257,10 @@ def chain_frame(chains: _Chains, chain: np.ndarray, s: np.ndarray) -> tuple[np.n
     straights and circles, and smooth across a sampled arc's vertices (a segment's own heading
     would jump by the sampling step there).
     """
-    t = s.shape[1]  # the three sets of points in one lookup (element-wise: each point as alone)
-    points = chain_points(chains, chain, np.concatenate([s, s + HEADING_BASE_M, s - HEADING_BASE_M], axis=1))
+    t = s.shape[1]  # the three sets of points in one compiled lookup: chain_points of [s, s + b, s - b]
+    points = np.empty((len(chain), 3 * t, 2))
+    chain_frame_points(chains.key, chains.first, chains.last, chains.vertex, chains.cum, chains.tangent, chains.span,
+                       chain, s, HEADING_BASE_M, points)
     ahead, behind = points[:, t:2 * t], points[:, 2 * t:]
     return points[:, :t], np.arctan2(ahead[..., 1] - behind[..., 1], ahead[..., 0] - behind[..., 0])
 

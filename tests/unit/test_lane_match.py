@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from fusion.frames import wrap_angle
-from fusion.lane_match import match_segments
-from fusion.lane_prediction import LanePredictor
+from fusion.lane_match import chain_frame_points, match_segments
+from fusion.lane_prediction import HEADING_BASE_M, LanePredictor, chain_points
 from fusion.objects import ObjectArray
 from schemas.classes import ObjectClass
 from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, bundled_maps, map_path
@@ -112,3 +112,25 @@ def test_compiled_match_refuses_inputs_of_other_lengths():
         match_segments(np.zeros((2, 2)), np.zeros(1), np.ones(2, dtype=bool), seg, index, rules, lane, s0, d0)
     with pytest.raises(ValueError):  # a segment index table of another length
         match_segments(np.zeros((2, 2)), np.zeros(2), np.ones(2, dtype=bool), seg, index[:1], rules, lane, s0, d0)
+
+
+@pytest.mark.parametrize("name", sorted(bundled_maps()))
+def test_compiled_chain_points_equal_numpy_lookups(name):
+    """chain_frame's compiled lookup equals chain_points (numpy's searchsorted, clip and gathers) of
+    s, s + b and s - b as bytes: arc lengths at the vertices exactly (ties of side="right"), between
+    them, past either end of a chain, and NaN."""
+    chains = LanePredictor.from_osm(map_path(name), MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG)._chains
+    rng = np.random.default_rng(3)
+    for p, t in ((1, 1), (4, 3), (30, 51)):
+        chain = rng.integers(0, len(chains.first), p)
+        at_vertex = chains.cum[rng.integers(chains.first[chain][:, None], chains.last[chain][:, None] + 1, (p, t))]
+        s = np.where(rng.random((p, t)) < 0.3, at_vertex, rng.uniform(-1500.0, 2000.0, (p, t)))
+        s[rng.random((p, t)) < 0.05] = np.nan
+        points = np.empty((p, 3 * t, 2))
+        chain_frame_points(chains.key, chains.first, chains.last, chains.vertex, chains.cum, chains.tangent,
+                           chains.span, chain, s, HEADING_BASE_M, points)
+        want = chain_points(chains, chain, np.concatenate([s, s + HEADING_BASE_M, s - HEADING_BASE_M], axis=1))
+        assert points.tobytes() == want.tobytes()
+    with pytest.raises(ValueError):  # a chain outside the table
+        chain_frame_points(chains.key, chains.first, chains.last, chains.vertex, chains.cum, chains.tangent,
+                           chains.span, np.array([len(chains.first)]), np.zeros((1, 1)), HEADING_BASE_M, np.empty((1, 3, 2)))
