@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.frames import Pose2D, map_to_base_points
+from fusion.frames import Pose2D, outside_box_rows
 from fusion.objects import ObjectArray
 from schemas.messages import ObjectListHeader
 
@@ -81,12 +81,11 @@ class Admission:
         half_l, half_w = self.limits.ego_half_lw_m
         if ego is None or half_l <= 0.0 or not len(objects):
             return objects
-        local = map_to_base_points(objects.xy, ego)
-        own = (np.abs(local[:, 0]) <= half_l) & (np.abs(local[:, 1]) <= half_w)
-        if not own.any():
-            return objects  # the usual case: no copy
-        self.rejected["ego_self_detection"] += int(own.sum())
-        return objects.take(np.flatnonzero(~own))  # (the rows of ~own: one mask scan, not one per column)
+        kept = outside_box_rows(objects.xy, ego, half_l, half_w)  # (the rows outside, ascending)
+        if len(kept) == len(objects):
+            return objects  # no copy
+        self.rejected["ego_self_detection"] += len(objects) - len(kept)
+        return objects.take(kept)
 
     def _screen(self, header: ObjectListHeader, n_objects: int, receive_ns: int, paths: bool) -> RsuState | None:
         lim = self.limits
