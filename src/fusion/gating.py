@@ -10,7 +10,8 @@ minimum-cost one-to-one assignment (``association.assign_sparse``) with cost ``d
 Each pair is tested in one compiled loop over tracks and detections (``_gate``, numba): a bound
 first, distance gate |y| <= gate_m; Mahalanobis gate d2 = y^T S^-1 y >= |y|^2 / lambda_max(S) and
 lambda_max(S) <= tr(S) = tr(H P H^T) + tr(R), so a pair with |y|^2 > chi2 (tr P_xy + tr R)
-fails. The exact test and the class check run on the pairs the bound leaves.
+fails. The exact test and the class check run on the pairs the bound leaves. When every gated pair is
+a component of its own (most lists), that same call matches them (``_gate_single_pairs``).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import numpy as np
 
 from .association import Assignment, assign_sparse
 from .geometry import iou_rows
-from .jit import F64, I64, IN_F2, IN_F3, IN_I1, kernel
+from .jit import F64, I64, IN_F2, IN_F3, IN_I1, helper, kernel
 from .objects import ObjectArray
 
 if TYPE_CHECKING:
@@ -65,9 +66,40 @@ def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
     return GatedPairs(ti, di, cost)
 
 
-@kernel(IN_F2, IN_F3, IN_I1, IN_F2, IN_F3, IN_I1, I64, I64, F64, F64, F64)
+_GATE_ARGS = (IN_F2, IN_F3, IN_I1, IN_F2, IN_F3, IN_I1, I64, I64, F64, F64, F64)
+
+
+@kernel(*_GATE_ARGS)
 def _gate(x: np.ndarray, p: np.ndarray, track_cls: np.ndarray, z: np.ndarray, r: np.ndarray, det_cls: np.ndarray,
           gate: int, cost: int, gate_m: float, gate_chi2: float, gate_max_m: float):
+    """``_gate_pairs`` (ti, di, cost)."""
+    return _gate_pairs(x, p, track_cls, z, r, det_cls, gate, cost, gate_m, gate_chi2, gate_max_m)
+
+
+@kernel(*_GATE_ARGS)
+def _gate_single_pairs(x: np.ndarray, p: np.ndarray, track_cls: np.ndarray, z: np.ndarray, r: np.ndarray,
+                       det_cls: np.ndarray, gate: int, cost: int, gate_m: float, gate_chi2: float, gate_max_m: float):
+    """``_gate_pairs``, then the matching when every gated pair is a component of its own (its track and its
+    detection in no other pair; ``association.assign_sparse`` matches such a pair as it is): (True, matches
+    (K, 2) sorted by track, unmatched tracks, unmatched detections), or (False, empty arrays) when some
+    component needs the solver. The usual list in one call, returning 3 arrays instead of 8 from 3 kernels."""
+    ti, di, _ = _gate_pairs(x, p, track_cls, z, r, det_cls, gate, cost, gate_m, gate_chi2, gate_max_m)
+    n_t, n_d = x.shape[0], z.shape[0]
+    count_t, count_d = np.zeros(n_t, np.int64), np.zeros(n_d, np.int64)
+    for k in range(len(ti)):
+        count_t[ti[k]] += 1
+        count_d[di[k]] += 1
+    matches = np.empty((len(ti), 2), np.int64)  # ti ascending: the matches sorted by track
+    for k in range(len(ti)):
+        if count_t[ti[k]] != 1 or count_d[di[k]] != 1:
+            return False, matches[:0], count_t[:0], count_d[:0]
+        matches[k, 0], matches[k, 1] = ti[k], di[k]
+    return True, matches, np.flatnonzero(count_t == 0), np.flatnonzero(count_d == 0)
+
+
+@helper
+def _gate_pairs(x: np.ndarray, p: np.ndarray, track_cls: np.ndarray, z: np.ndarray, r: np.ndarray,
+                det_cls: np.ndarray, gate: int, cost: int, gate_m: float, gate_chi2: float, gate_max_m: float):
     """Pairs (ti, di, cost) of tracks x (N, n), P (N, n, n) and detections z (M, 2), R (M, 2, 2) inside the gate
     (``_GATES`` code) and class-compatible, ordered by track then detection, cost by ``_COSTS`` code (0 for iou).
 
@@ -139,7 +171,15 @@ def assign_pairs(pairs: GatedPairs, n_tracks: int, n_dets: int) -> Assignment:
 
 
 def associate(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> Assignment:
-    """Gate, cost and assign the detections to the tracks (indices into table and dets)."""
+    """Gate, cost and assign the detections to the tracks (indices into table and dets). When every gated
+    pair is a component of its own (most lists), the costs do not matter: one compiled call
+    (``_gate_single_pairs``) gates and matches; else the gated pairs and their costs go to ``assign_pairs``."""
+    if len(table) and len(dets):
+        single, matches, free_t, free_d = _gate_single_pairs(
+            table.x, table.p, table.cls, dets.xy, dets.cov_xy, dets.cls, _GATES[config.gate], _COSTS[config.cost],
+            config.gate_m, config.gate_chi2, config.gate_max_m)
+        if single:
+            return Assignment(matches, free_t, free_d)
     return assign_pairs(gated_pairs(config, table, dets), len(table), len(dets))
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from fusion import kalman
-from fusion.gating import compatible_classes, gated_pairs
+from fusion.gating import assign_pairs, associate, compatible_classes, gated_pairs
 from fusion.objects import ObjectArray
 from fusion.track_table import TrackTable
 from fusion.tracking import TrackerConfig
@@ -66,3 +66,29 @@ def test_a_crowded_gate_grows_its_pair_buffer():
     assert len(got.track) == 900
     np.testing.assert_array_equal(got.track, np.repeat(np.arange(30), 30))
     np.testing.assert_array_equal(got.det, np.tile(np.arange(30), 30))
+
+
+@pytest.mark.parametrize("gate", ["distance", "mahalanobis", "either"])
+@pytest.mark.parametrize("cost", ["distance", "mahalanobis", "iou"])
+def test_associate_equals_the_solver_path_on_single_pair_lists_and_the_rest(gate, cost):
+    """associate's one-call path (every gated pair a component of its own) gives assign_pairs' matching of
+    gated_pairs, array for array and dtype for dtype; lists with shared components take that path itself."""
+    config = TrackerConfig(gate=gate, cost=cost)
+    rng = np.random.default_rng(7 * len(gate) + len(cost))
+    kinds = set()
+    for n_tracks, n_dets in [(1, 1), (2, 1), (4, 3), (8, 6), (30, 20), (0, 3), (3, 0)] * 12:
+        table, dets = scene(rng, max(n_tracks, 1), n_dets)
+        if not n_tracks:
+            table = TrackTable.empty(4, 0)
+        if rng.random() < 0.5:  # tracks and detections spread apart: mostly single pairs
+            table.x[:, :2] *= 4.0
+            dets = dets.with_(xy=dets.xy * 4.0)
+        got = associate(config, table, dets)
+        want = assign_pairs(gated_pairs(config, table, dets), len(table), len(dets))
+        for name in ("matches", "unmatched_a", "unmatched_b"):
+            g, w = getattr(got, name), getattr(want, name)
+            assert g.dtype == w.dtype and g.shape == w.shape and np.array_equal(g, w), name
+        pairs = gated_pairs(config, table, dets)
+        single = len(np.unique(pairs.track)) == len(pairs.track) and len(np.unique(pairs.det)) == len(pairs.det)
+        kinds.add((single, len(pairs.track) > 0))
+    assert {(True, True), (False, True)} <= kinds  # both paths ran, on lists with pairs
