@@ -89,8 +89,9 @@ class TrackTable:
         return [getattr(self, name) for name in _ROW_COLUMNS]
 
     def source_masks(self, recent: np.ndarray) -> np.ndarray:
-        """(N,) int64 bitmasks of the sources marked in recent (N, B) bool (columns as seen_s)."""
-        return (recent * (np.int64(1) << self.seen_bits)).sum(axis=1).astype(np.int64)
+        """(N,) int64 bitmasks of the sources marked in recent (N, B) bool (columns as seen_s): the sum of the
+        marked columns' bit values, as a product of bool (N, B) and int64 (B,) (exact: distinct bits, no carry)."""
+        return recent @ (np.int64(1) << self.seen_bits)
 
 
 _ROW_COLUMNS = tuple(f.name for f in fields(TrackTable) if f.name != "seen_bits")

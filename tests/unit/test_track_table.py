@@ -2,6 +2,7 @@
 and the covariance-intersection fast paths against the row-by-row ones."""
 
 import numpy as np
+import pytest
 
 from fusion.covariance_intersection import ci_update, ci_update_into, ci_weights
 from fusion.objects import ObjectArray
@@ -122,3 +123,17 @@ def test_ci_update_into_writes_what_ci_update_returns():
         others = np.setdiff1d(np.arange(9), rows)
         np.testing.assert_array_equal(table_x[others], before_x[others])
         np.testing.assert_array_equal(table_p[others], before_p[others])
+
+
+@pytest.mark.parametrize("rows", [0, 1, 9])
+def test_source_masks_equal_the_sum_of_the_marked_bit_values(rows):
+    """The product form equals the old sum of bool x bit value (int64), high bits (62) included."""
+    rng = np.random.default_rng(rows)
+    bits = np.array([0, 5, 1, 62, 30], np.int64)
+    table = TrackTable.empty(4, rows, bits)
+    recent = rng.random((rows, len(bits))) < 0.5
+    got = table.source_masks(recent)
+    want = (recent * (np.int64(1) << bits)).sum(axis=1).astype(np.int64)
+    assert got.dtype == np.int64 and got.shape == (rows,) and np.array_equal(got, want)
+    assert np.array_equal(table.source_masks(np.ones((rows, len(bits)), bool)),
+                          np.full(rows, int(sum(1 << int(b) for b in bits)), np.int64))
