@@ -40,8 +40,20 @@ def _tail_size(n: int, q: float) -> int:
 
 @helper
 def _order(x: np.ndarray) -> np.ndarray:
-    """np.argsort(x, kind="stable") of a (n,) float64 array without NaN: a bottom-up merge sort."""
+    """np.argsort(x, kind="stable") of a (n,) float64 array without NaN: a bottom-up merge sort, after
+    an O(n) look for the usual orders of a window's readings (by time: non-decreasing, its identity;
+    strictly decreasing, ages of readings by time: the reverse)."""
     n = len(x)
+    rising, falling = True, True
+    for i in range(1, n):
+        rising = rising and x[i] >= x[i - 1]  # (False at a NaN: the merge sort then orders as before)
+        falling = falling and x[i] < x[i - 1]
+        if not (rising or falling):
+            break
+    if rising:
+        return np.arange(n)
+    if falling:
+        return np.arange(n - 1, -1, -1)
     a, b = np.arange(n), np.empty(n, np.int64)
     width = 1
     while width < n:
@@ -56,6 +68,29 @@ def _order(x: np.ndarray) -> np.ndarray:
         a, b = b, a
         width *= 2
     return a
+
+
+@helper
+def _lowest(x: np.ndarray, k: int) -> np.ndarray:
+    """_order(x)[:k], 1 <= k <= n, of a (n,) float64 array: the k least by (value, index), kept in
+    order in a buffer (an element enters only below the buffer's last, after its equals: stable),
+    without sorting the other n - k. A NaN in x: _order's own answer."""
+    n = len(x)
+    low = np.empty(k, np.int64)
+    m = 0
+    for i in range(n):
+        v = x[i]
+        if v != v:  # NaN
+            return _order(x)[:k]
+        if m == k and not v < x[low[k - 1]]:
+            continue
+        j = m if m < k else k - 1  # the slot freed (or the last one dropped)
+        while j > 0 and v < x[low[j - 1]]:
+            low[j] = low[j - 1]
+            j -= 1
+        low[j] = i
+        m = min(m + 1, k)
+    return low
 
 
 @helper
@@ -85,7 +120,7 @@ def _tail_mean(r: np.ndarray, t_s: np.ndarray, rows: np.ndarray, q: float) -> tu
     sub = np.empty(len(rows))
     for j in range(len(rows)):
         sub[j] = r[rows[j]]
-    low = _order(sub)
+    low = _lowest(sub, k)
     e, t = 0.0, 0.0
     for j in range(k):
         e += sub[low[j]]
@@ -101,7 +136,7 @@ def _tail_mean_sd(r: np.ndarray, q: float) -> float:
     var = E[(x - Q_q)^2 | tail] / q - (mean_tail - Q_q)^2.
     """
     k = _tail_size(len(r), q)
-    low = _order(r)
+    low = _lowest(r, k)
     top = r[low[k - 1]]  # ~ Q_q
     s1, s2 = 0.0, 0.0
     for j in range(k):

@@ -197,3 +197,26 @@ def test_consensus_equals_the_lexsort_of_openings_before_closings():
         among = np.ones(n, bool) if rng.random() < 0.5 else rng.random(n) < 0.7
         among[0] = True
         assert np.array_equal(consensus(*args, among), _consensus_by_lexsort(*args, among))
+
+
+def test_the_sort_s_shortcuts_and_the_k_least_equal_numpy_s_stable_argsort():
+    """_order's shortcuts (readings by time, ages by time) and _lowest (the k least, stable) give
+    np.argsort(kind="stable") exactly: sorted, reversed, tied, constant, random, -0.0 beside 0.0 and
+    NaN inputs (_lowest: its first k, for every k)."""
+    from obu_service.clock_envelope import _lowest
+
+    rng = np.random.default_rng(17)
+    for n in range(1, 120):
+        ties = rng.integers(-4, 4, n).astype(float)
+        zeros = rng.choice([0.0, -0.0, 1.0], n)
+        rising = np.cumsum(rng.integers(0, 3, n)).astype(float)  # non-decreasing, with ties
+        for x in (rng.normal(0.0, 1e6, n), ties, zeros, np.full(n, 2.5e5), rising, -rising, rising[::-1].copy(),
+                  np.sort(rng.normal(size=n))[::-1].copy(), np.sort(ties), np.sort(ties)[::-1].copy()):
+            want = np.argsort(x, kind="stable")
+            assert np.array_equal(_order(x), want), (n, x)
+            for k in {1, n, max(1, n // 10), int(rng.integers(1, n + 1))}:
+                assert np.array_equal(_lowest(x, k), want[:k]), (n, k, x)
+        x = rng.normal(size=n)
+        x[rng.integers(0, n)] = np.nan  # _lowest falls back to _order
+        for k in (1, n):
+            assert np.array_equal(_lowest(x, k), _order(x)[:k])
