@@ -28,12 +28,12 @@ so the random stream of message k never depends on the fate of earlier messages.
 
 from __future__ import annotations
 
-import math
-from bisect import bisect_right
 from typing import NamedTuple
 
 import numpy as np
 
+from .channel_scalar import (_U_DUP, _U_IMPAIR, _U_LOSS, _U_PDR, _U_SPIKE, _Z_DUP, _Z_JITTER,  # noqa: F401
+                             _Z_SPIKE, NONE_NS, ScalarPath, _clipped_ns, _interp, _jitter_ms)
 from .impairment import DIRECTIONS, Effects, Impairment, effects
 from .processes import (
     NS_PER_MS,
@@ -52,12 +52,7 @@ __all__ = ["NS_PER_MS", "Channel", "Deliveries", "Impairment", "LinkModel"]
 # everything after it by the whole backlog, long after the cap is lifted.
 IMPAIRMENT_QUEUE_LIMIT_MS = 500.0
 
-NONE_NS = -1  # "no delivery" in Deliveries arrays
 _INT64_MIN = np.iinfo(np.int64).min
-# per-message variates: normals (jitter innovation, spike size, duplicate's jitter),
-# uniforms (loss chain, distance PDR, spike occurrence, duplication, impairment loss)
-_Z_JITTER, _Z_SPIKE, _Z_DUP = range(3)
-_U_LOSS, _U_PDR, _U_SPIKE, _U_DUP, _U_IMPAIR = range(5)
 
 
 class Deliveries(NamedTuple):
@@ -102,16 +97,20 @@ class _Draws:
 
     def take_one(self) -> tuple[int, list[float], list[float]]:
         """The next message's row of ``normal`` and its variates as Python floats: normals (3), uniforms (5)."""
-        self._have(1)
-        if self._rows is None:
-            self._rows = (self.normal.tolist(), self._uniform.tolist())
         k = self._pos
-        self._pos += 1
-        return k, self._rows[0][k], self._rows[1][k]
+        if k >= len(self.normal):  # _have(1)
+            self._have(1)
+            k = self._pos
+        rows = self._rows
+        if rows is None:
+            rows = self._rows = (self.normal.tolist(), self._uniform.tolist())
+        self._pos = k + 1
+        return k, rows[0][k], rows[1][k]
 
 
-class Channel:
-    """One direction of a link; see the module docstring for what happens to a message."""
+class Channel(ScalarPath):
+    """One direction of a link; see the module docstring for what happens to a message (one message on a
+    plain channel: ``channel_scalar.ScalarPath``)."""
 
     def __init__(self, direction: DirectionProfile, rng: np.random.Generator) -> None:
         setup_rng, self._outage_rng = rng.spawn(2)
@@ -144,14 +143,17 @@ class Channel:
             trace = load_trace(direction.replay.trace)
             self._trace = TraceClock(trace, int(self._u_phase * trace.loop_ms * NS_PER_MS))
         self._origin_ns: int | None = None
+        self._plain_now = self._plain()
 
     def add_impairment(self, impairment: Impairment) -> None:
         """Apply ``impairment`` to messages sent inside its window."""
         self._impairments.append(impairment)
+        self._plain_now = False
 
     def clear_impairments(self) -> None:
         """Forget every impairment window."""
         self._impairments.clear()
+        self._plain_now = self._plain()
 
     # ---- transmission -----------------------------------------------------------------
 
@@ -165,7 +167,7 @@ class Channel:
 
     def transmit_all(self, send_time_ns: int, size_bytes: int, distance_m: float | None = None) -> list[int]:
         """Every delivery of one message in ns, ascending: [] lost, two entries when duplicated."""
-        if self._plain():
+        if self._plain_now:  # _plain(), kept by set_direction and the impairment methods
             return self._transmit_one(int(send_time_ns), size_bytes, distance_m)
         out = self.transmit_batch(np.array([send_time_ns]), size_bytes, distance_m)
         times = [int(t) for t in (out.deliver_ns[0], out.duplicate_ns[0]) if t != NONE_NS]
@@ -176,41 +178,6 @@ class Channel:
         trace pass every message through unchanged."""
         return not self._impairments and self._outages is None and self._trace is None \
             and self.direction.bandwidth_kbps is None
-
-    def _transmit_one(self, send_ns: int, size_bytes: int, distance_m: float | None) -> list[int]:
-        """``transmit_all`` on a plain channel (``_plain``) in Python floats: the same variates, the
-        same state steps (loss chain, AR(1), fifo) in the same order and the same float64 delay
-        arithmetic, the jitter's g(z) by the same numpy call (``_jitter_ms``), so the same deliveries
-        (test_link_channel)."""
-        if size_bytes < 0:
-            raise ValueError(f"size_bytes must be >= 0, got {size_bytes}")
-        k, z, u = self._draws.take_one()
-        if self._origin_ns is None:
-            self._origin_ns = send_ns
-        d = self.direction
-        lost = self._ge.step_one(u[_U_LOSS])
-        if distance_m is not None and not math.isnan(distance_m):
-            lost = (u[_U_PDR] >= self._pdr_one(float(distance_m))) or lost  # delivered with probability PDR(d)
-        dup = not lost and u[_U_DUP] < d.duplicate_probability
-        z_jitter = self._ar.step_one(z[_Z_JITTER])  # steps the AR(1) always
-        # without correlation the score is the block's own normal: its g(z) is the block's
-        jitter_ms = self._block_g(d.jitter, _Z_JITTER, k) if self._ar.rho == 0.0 else _jitter_ms(d.jitter, z_jitter)
-        delay_ms = d.delay_ms + jitter_ms
-        if d.spikes is not None and u[_U_SPIKE] < d.spikes.probability:
-            delay_ms = delay_ms + self._block_g(d.spikes.extra, _Z_SPIKE, k)
-        copy_ns = send_ns + _clipped_ns(d.delay_ms + self._block_g(d.jitter, _Z_DUP, k)) if dup else NONE_NS
-        deliver_ns = NONE_NS if lost else send_ns + _clipped_ns(delay_ms)
-        return sorted(t for t in self._one_in_order(deliver_ns, copy_ns) if t != NONE_NS)
-
-    def _block_g(self, jitter, column: int, k: int) -> float:
-        """g(z) (ms) of row k of a column of the current block of normals: ``jitter``'s numpy expression
-        over the whole column (elementwise, so each entry is what ``_jitter_ms`` of the one score
-        gives), computed once per block, column and jitter (a profile switch brings another)."""
-        block = self._draws.normal
-        kept = self._g_kept.get(column)
-        if kept is None or kept[0] is not block or kept[1] is not jitter:
-            kept = self._g_kept[column] = (block, jitter, jitter.from_normal(block[:, column]).tolist())
-        return kept[2][k]
 
     def transmit_batch(
         self, send_ns: np.ndarray, size_bytes: np.ndarray | int, distance_m: np.ndarray | float | None = None
@@ -337,58 +304,10 @@ class Channel:
             return Deliveries(seq[:, 0].copy(), seq[:, 1].copy())
         return Deliveries(deliver, copy)
 
-    def _pdr_one(self, distance_m: float) -> float:
-        """``direction.pdr_at`` of one distance (m): np.interp's rule on the curve's points, taken apart
-        once per profile (``set_direction``), in Python floats (``_interp``)."""
-        d = self.direction
-        if d.range_m is not None and distance_m > d.range_m:
-            return 0.0
-        return 1.0 if self._pdr_curve is None else _interp(distance_m, *self._pdr_curve)
-
-    def _one_in_order(self, deliver_ns: int, copy_ns: int) -> tuple[int, int]:
-        """``_in_order`` of one message and its copy (NONE_NS: none), as ints."""
-        out = []
-        for t_ns in (deliver_ns, copy_ns):
-            if t_ns != NONE_NS:
-                self._last_ns = max(self._last_ns, t_ns)
-                t_ns = self._last_ns if self.direction.fifo else t_ns
-            out.append(t_ns)
-        return out[0], out[1]
-
-
-def _interp(x: float, xp: list[float], fp: list[float]) -> float:
-    """``np.interp(x, xp, fp)`` of one number x (not NaN), xp strictly increasing: the held end values
-    outside, a point's own value on it, else the same float steps, slope (fp[j+1] - fp[j]) /
-    (xp[j+1] - xp[j]) times (x - xp[j]) plus fp[j] (numpy's arr_interp; test_link_channel)."""
-    j = bisect_right(xp, x) - 1  # xp[j] <= x < xp[j + 1]
-    if j < 0:
-        return fp[0]
-    if j == len(xp) - 1 or xp[j] == x:
-        return fp[j]
-    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
-    y = slope * (x - xp[j]) + fp[j]
-    if math.isnan(y):  # numpy's retry from the other end (a non-finite slope)
-        y = slope * (x - xp[j + 1]) + fp[j + 1]
-        if math.isnan(y) and fp[j] == fp[j + 1]:
-            y = fp[j]
-    return y
-
 
 def _extra_ms(fx: Effects | None) -> np.ndarray | float:
     """Impairment extra delay (ms) of each message, shared by a message and its copy."""
     return fx.extra_delay_ms if fx is not None else 0.0
-
-
-def _jitter_ms(jitter, z: float) -> float:
-    """g(z) of one score (ms) by the jitter's own numpy expression, as in the batch (its exp, ndtr or
-    log_ndtr, not math's, which may differ in the last bit)."""
-    return float(jitter.from_normal(np.array([z]))[0])
-
-
-def _clipped_ns(delay_ms: float) -> int:
-    """``_clipped_sum_ns`` of one delay without a trace: rint(max(0, delay) ms) ns (round: half to
-    even, as np.rint)."""
-    return round(max(delay_ms, 0.0) * NS_PER_MS)
 
 
 def _clipped_sum_ns(other_ms: np.ndarray, trace_ns: np.ndarray | int) -> np.ndarray:
