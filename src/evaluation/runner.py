@@ -299,8 +299,8 @@ class OfflineRun:
         if not self._up("link"):
             return
         channel = getattr(vehicle.links[rsu.index], direction)
-        x, y = self._ego_xy(vehicle)
-        distance_m = float(np.hypot(x - rsu.xy[0], y - rsu.xy[1]))
+        (x, y), (rsu_x, rsu_y) = self._ego_xy(vehicle), rsu.xy
+        distance_m = float(np.hypot(x - rsu_x, y - rsu_y))
         # through _arrive (lost if the emulator dies meanwhile) only when the link has down windows
         event = (self._arrive, deliver, vehicle, rsu, data) if self._down["link"] else (deliver, vehicle, rsu, data)
         for arrival_ns in channel.transmit_all(self.clock.t_ns, len(data), distance_m=distance_m):
@@ -311,8 +311,8 @@ class OfflineRun:
         once per channel, and the true trajectory is a pure function of time)."""
         cached = self._ego_now.get(vehicle.name)
         if cached is None or cached[0] != self.clock.t_ns:
-            ego = vehicle.world.ego_at((self.clock.t_ns - self.start_ns) * 1e-9)
-            cached = self._ego_now[vehicle.name] = (self.clock.t_ns, (ego.x, ego.y))
+            xy = vehicle.world.ego_xy_at((self.clock.t_ns - self.start_ns) * 1e-9)  # ego_at's x, y, no Pose2D
+            cached = self._ego_now[vehicle.name] = (self.clock.t_ns, xy)
         return cached[1]
 
     def _arrive(self, deliver: Callable, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
