@@ -24,7 +24,7 @@ from functools import cache
 from typing import Any, TypeVar
 
 import msgpack
-from pydantic import ValidationError
+from pydantic import PlainSerializer, ValidationError, WrapSerializer
 
 from .columns import OBJECT_SPECS, ObjectColumns
 from .errors import (CodecError, InvalidMessage, MalformedMessage, MessageTooLarge,  # noqa: F401 (re-exported)
@@ -111,6 +111,20 @@ def _named(values: Any, model: type[Message], where: str) -> dict[str, Any]:
 # ---------------------------------------------------------------- encode
 
 
+@cache
+def _dumps_as_stored(model: type[Message]) -> bool:
+    """True when ``model_dump(mode="python")`` of a ``model`` is its field dict as stored (``__dict__``,
+    in declaration order): every field a plain int, str, float or bool, none excluded or with a
+    serializer, no computed field, no extra keys (a time request or reply; test_codec_fast_paths)."""
+    decorators = model.__pydantic_decorators__
+    plain = all(f.annotation in (int, str, float, bool) and not f.exclude
+                and not any(isinstance(m, (PlainSerializer, WrapSerializer)) for m in f.metadata)
+                for f in model.model_fields.values())
+    return (plain and model.model_config.get("extra") == "forbid" and not model.model_computed_fields
+            and not decorators.field_serializers and not decorators.model_serializers)
+
+
+
 def encode(msg: Message, max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
     """msgpack bytes of ``msg`` in a versioned envelope, at most ``max_bytes`` long.
 
@@ -121,7 +135,8 @@ def encode(msg: Message, max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
         raise TypeError(f"encode() takes a schemas Message, got {type(msg).__name__}")
     tag = LIST_TAGS.get(msg.TYPE)
     if tag is None:
-        envelope: Any = {"v": SCHEMA_VERSION, "t": msg.TYPE, "d": msg.model_dump(mode="python")}
+        body = msg.__dict__ if _dumps_as_stored(type(msg)) else msg.model_dump(mode="python")
+        envelope: Any = {"v": SCHEMA_VERSION, "t": msg.TYPE, "d": body}
     else:
         envelope = [SCHEMA_VERSION, tag, _positional(msg), msg.objects.wire_section]  # = pack_objects(msg.objects)
     try:
@@ -263,7 +278,7 @@ def from_body(body: dict[str, Any], model: type[M], unpack: Callable[[Any, bool]
         objects = unpack(body.get("objects", list(EMPTY_SECTION)), model is FusedObjectList)
         body = {**body, "objects": objects}
     try:
-        return model.model_validate(body)
+        return model.__pydantic_validator__.validate_python(body)  # = model.model_validate(body)
     except ValidationError as exc:
         raise _describe(exc, model.TYPE) from None
     except RecursionError:
