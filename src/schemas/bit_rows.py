@@ -1,6 +1,6 @@
 """The codec's loops, compiled (numba: ``fusion.jit``): ``schemas.bitpack``'s row packing, and an
 objects section packed (``pack_section``), unpacked into checked codes (``unpack_codes``) and a float
-table checked and quantised (``quantize_values``), each in one pass instead of ~15-60 numpy calls on
+table checked and quantised (``quantize_values``), and predicted path points gridded (``grid_path_points``), each in one pass instead of ~15-60 numpy calls on
 a few rows.
 
 Imported by ``fusion.jit.load_kernels`` only; from then on ``bitpack.pack`` / ``unpack``,
@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.jit import I64, IN_F2, IN_I1, IN_I2, IN_U1, helper, kernel
+from fusion.jit import F64, I64, IN_F1, IN_F2, IN_I1, IN_I2, IN_U1, OUT_F1, helper, kernel
 
-from . import bitpack, columns, object_wire
+from . import bitpack, columns, object_wire, path_points
 from .columns import _YAW_HALF_TURN as YAW_HALF_TURN  # yaw codes live in [-1800, 1800)
 from .quantize import YAW_RAD
 
@@ -226,5 +226,27 @@ def quantize_values(table: np.ndarray, value_table: np.ndarray, yaw_col: int) ->
     return codes, -1
 
 
+@kernel(IN_F1, I64, F64, F64, F64, F64, OUT_F1)
+def grid_path_points(points: np.ndarray, m: int, position_max_m: float, yaw_max: float, position_step: float,
+                     yaw_step: float, out: np.ndarray) -> bool:
+    """``path_points._gridded`` in one pass: ``points`` (3 M,) [x..., y..., yaw...] gridded into ``out``
+    (positions on the first 2 M: (rint(v / step) + 0) step; yaws on the last M: wrapped by numpy's
+    remainder, k = rint(w / step) + 0, k - 3600 from 1800 on, k step), or False (``out`` not meaningful)
+    when a value is out of range or NaN."""
+    n = len(points)
+    if len(out) != n or not 0 <= 2 * m <= n:
+        raise ValueError("grid_path_points: out as long as points, 2 M <= len(points)")
+    for i in range(n):  # every range first, as the numpy path's np.all over both parts
+        if not abs(points[i]) <= (position_max_m if i < 2 * m else yaw_max):
+            return False
+    for i in range(2 * m):
+        out[i] = (np.rint(points[i] / position_step) + 0.0) * position_step
+    for i in range(2 * m, n):
+        k = np.rint((np.remainder(points[i] + np.pi, 2.0 * np.pi) - np.pi) / yaw_step) + 0.0
+        out[i] = (k - 2 * YAW_HALF_TURN if k >= YAW_HALF_TURN else k) * yaw_step
+    return True
+
+
 object_wire.use_compiled(unpack_codes, pack_section)
 columns.use_compiled(quantize_values)
+path_points.use_compiled(grid_path_points)
