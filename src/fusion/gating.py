@@ -60,7 +60,14 @@ def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
         return GatedPairs(_NO_INDEX, _NO_INDEX, np.zeros(0))
     ti, di, cost = _gate(table.x, table.p, table.cls, dets.xy, dets.cov_xy, dets.cls, _GATES[config.gate],
                          _COSTS[config.cost], config.gate_m, config.gate_chi2, config.gate_max_m)
-    if config.cost == "iou":  # 1 - BEV IoU of the predicted box (last detected size and yaw) and the detected box
+    return _costed(config, table, dets, ti, di, cost)
+
+
+def _costed(config: TrackerConfig, table: TrackTable, dets: ObjectArray, ti: np.ndarray, di: np.ndarray,
+            cost: np.ndarray) -> GatedPairs:
+    """The gated pairs (ti, di) with the configured cost: the kernel's (distance, d2), or for ``iou``
+    1 - BEV IoU of the predicted box (last detected size and yaw) and the detected box."""
+    if config.cost == "iou":
         a = np.column_stack([table.x[ti, :2], table.lwh[ti, :2], table.yaw[ti]])
         cost = 1.0 - paired_bev_iou(a, np.column_stack([dets.xy[di], dets.lwh[di, :2], dets.yaw[di]]))
     return GatedPairs(ti, di, cost)
@@ -79,22 +86,27 @@ def _gate(x: np.ndarray, p: np.ndarray, track_cls: np.ndarray, z: np.ndarray, r:
 @kernel(*_GATE_ARGS)
 def _gate_single_pairs(x: np.ndarray, p: np.ndarray, track_cls: np.ndarray, z: np.ndarray, r: np.ndarray,
                        det_cls: np.ndarray, gate: int, cost: int, gate_m: float, gate_chi2: float, gate_max_m: float):
-    """``_gate_pairs``, then the matching when every gated pair is a component of its own (its track and its
-    detection in no other pair; ``association.assign_sparse`` matches such a pair as it is): (True, matches
-    (K, 2) sorted by track, unmatched tracks, unmatched detections), or (False, empty arrays) when some
-    component needs the solver. The usual list in one call, returning 3 arrays instead of 8 from 3 kernels."""
-    ti, di, _ = _gate_pairs(x, p, track_cls, z, r, det_cls, gate, cost, gate_m, gate_chi2, gate_max_m)
+    """``_gate_pairs`` as (K, 2) [track, detection] rows, and the matching when every gated pair is a component of
+    its own (its track and its detection in no other pair; ``association.assign_sparse`` matches such a pair as
+    it is): (True, the pairs = the matches, sorted by track; unmatched tracks; unmatched detections; no costs),
+    or (False, the pairs, empty, empty, their costs (K,)) when some component needs the solver. The usual list
+    in one call, returning 4 arrays instead of 8 from 3 kernels."""
+    ti, di, out = _gate_pairs(x, p, track_cls, z, r, det_cls, gate, cost, gate_m, gate_chi2, gate_max_m)
     n_t, n_d = x.shape[0], z.shape[0]
     count_t, count_d = np.zeros(n_t, np.int64), np.zeros(n_d, np.int64)
+    pairs = np.empty((len(ti), 2), np.int64)  # ti ascending: sorted by track
+    single = True
     for k in range(len(ti)):
         count_t[ti[k]] += 1
         count_d[di[k]] += 1
-    matches = np.empty((len(ti), 2), np.int64)  # ti ascending: the matches sorted by track
+        pairs[k, 0], pairs[k, 1] = ti[k], di[k]
     for k in range(len(ti)):
         if count_t[ti[k]] != 1 or count_d[di[k]] != 1:
-            return False, matches[:0], count_t[:0], count_d[:0]
-        matches[k, 0], matches[k, 1] = ti[k], di[k]
-    return True, matches, np.flatnonzero(count_t == 0), np.flatnonzero(count_d == 0)
+            single = False
+            break
+    if not single:
+        return False, pairs, count_t[:0], count_d[:0], out
+    return True, pairs, np.flatnonzero(count_t == 0), np.flatnonzero(count_d == 0), out[:0]
 
 
 @helper
@@ -173,14 +185,15 @@ def assign_pairs(pairs: GatedPairs, n_tracks: int, n_dets: int) -> Assignment:
 def associate(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> Assignment:
     """Gate, cost and assign the detections to the tracks (indices into table and dets). When every gated
     pair is a component of its own (most lists), the costs do not matter: one compiled call
-    (``_gate_single_pairs``) gates and matches; else the gated pairs and their costs go to ``assign_pairs``."""
-    if len(table) and len(dets):
-        single, matches, free_t, free_d = _gate_single_pairs(
-            table.x, table.p, table.cls, dets.xy, dets.cov_xy, dets.cls, _GATES[config.gate], _COSTS[config.cost],
-            config.gate_m, config.gate_chi2, config.gate_max_m)
-        if single:
-            return Assignment(matches, free_t, free_d)
-    return assign_pairs(gated_pairs(config, table, dets), len(table), len(dets))
+    (``_gate_single_pairs``) gates and matches; else the pairs it gated, with their costs, go to ``assign_pairs``."""
+    if not len(table) or not len(dets):
+        return assign_pairs(gated_pairs(config, table, dets), len(table), len(dets))
+    single, pairs, free_t, free_d, cost = _gate_single_pairs(
+        table.x, table.p, table.cls, dets.xy, dets.cov_xy, dets.cls, _GATES[config.gate], _COSTS[config.cost],
+        config.gate_m, config.gate_chi2, config.gate_max_m)
+    if single:
+        return Assignment(pairs, free_t, free_d)
+    return assign_pairs(_costed(config, table, dets, pairs[:, 0], pairs[:, 1], cost), len(table), len(dets))
 
 
 def association_cost(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> np.ndarray:
