@@ -71,7 +71,8 @@ class Admission:
         centre = self._rsus.position(state.rsu_id) or (None if ego is None else (ego.x, ego.y))
         if centre is None or not len(objects):
             return objects
-        if _all_within(objects.xy, float(centre[0]), float(centre[1]), float(self.limits.site_radius_m)):
+        xy = objects.xy
+        if xy.dtype == np.float64 and _all_within(xy, float(centre[0]), float(centre[1]), float(self.limits.site_radius_m)):
             return objects  # the usual case: no copy (the rest decided as before)
         inside = np.hypot(objects.xy[:, 0] - centre[0], objects.xy[:, 1] - centre[1]) <= self.limits.site_radius_m
         if inside.all():
