@@ -274,7 +274,7 @@ class Demo(InboxScoring):
         return path
 
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (~23 s) here, before the start time, not in each child
+        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, before the start time, not in each child
         start_ns = time.time_ns() + round(self.startup_s * 1e9)
         cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
         self.record = RunRecord(self.world, start_ns, self.duration_s, cycles)

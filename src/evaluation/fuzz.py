@@ -121,7 +121,7 @@ class FuzzRun(ABC):
 
     # --- the run ------------------------------------------------------------------------------
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (~23 s) here, before the start time, not in each child
+        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, before the start time, not in each child
         duration_s = self.startup_s + 2.0 * self.count / self.rate_hz + 60.0
         start_ns = time.time_ns() + round(self.startup_s * 1e9)
         try:

@@ -103,7 +103,7 @@ class FramesFuzz:
         return sent
 
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (~23 s) here, before the start time, not in the child
+        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, before the start time, not in the child
         with tempfile.TemporaryDirectory(prefix="v2i-fuzz-frames-") as tmp:
             sent = self._write(Path(tmp))
             files = WARMUP_FRAMES + 2 * self.count

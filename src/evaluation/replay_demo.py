@@ -78,7 +78,7 @@ class ReplayDemo(Demo):
         self.replayer = Replayer(self.recording, "vehicle" if "vehicle" in self.recording.sides else None, keys_pattern)
 
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (~23 s) here, before the start time, not in the child
+        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, before the start time, not in the child
         start_ns = self.replayer.align(time.time_ns() + round(self.startup_s * 1e9))
         cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
         self.record = RunRecord(self.world, start_ns, self.duration_s, cycles)

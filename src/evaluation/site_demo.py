@@ -114,7 +114,7 @@ class SiteDemo(InboxScoring):
         self.pki_dir = run_pki(spec, self.scenario, pki_dir or Path(self._tmp.name) / "pki", time.time_ns())
 
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (~23 s) here, before the start time, not in each child
+        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, before the start time, not in each child
         start_ns = time.time_ns() + round(self.startup_s * 1e9)
         for name, world in self.worlds.items():
             cycles = SimulatedVehicle(world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)

@@ -79,7 +79,8 @@ def kernel(*argument_types) -> Callable[[Callable], Kernel]:
 # the modules that declare kernels (with the modules they import): load_kernels imports them. The
 # evaluation's (evaluation.detection_metrics) are not listed, so that no service imports them: the
 # offline evaluator has imported them before it calls load_kernels, which loads those too
-KERNEL_MODULES = ("fusion.tracking", "sim.occlusion", "sim.world", "obu_service.clock_envelope", "schemas.bit_rows")
+KERNEL_MODULES = ("fusion.tracking", "fusion.wire", "fusion.frames", "fusion.geometry", "fusion.lane_match",
+                  "sim.occlusion", "sim.world", "obu_service.admission", "obu_service.clock_envelope", "schemas.bit_rows")
 
 
 def load_kernels() -> float:

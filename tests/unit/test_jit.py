@@ -54,3 +54,19 @@ def test_load_kernels_loads_the_simulator_and_every_kernel_imported_before():
     load_kernels()
     loaded = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all if k._compiled is not None}
     assert {"sim.world._states", "evaluation.detection_metrics._frame_flags"} <= loaded
+
+
+def test_kernel_modules_name_every_module_a_service_runs_kernels_of():
+    """Every module under src/ that declares a kernel, but the offline evaluation's, is loaded by load_kernels
+    alone (a fresh interpreter): otherwise a service would compile or load that kernel at its first call, mid-run."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    src = Path(__file__).resolve().parents[2] / "src"
+    declared = {str(p.relative_to(src).with_suffix("")).replace("/", ".") for p in src.rglob("*.py")
+                if "@kernel(" in p.read_text()}
+    code = ("from fusion.jit import Kernel, load_kernels; load_kernels(); "
+            "print(' '.join(sorted({k.fn.__module__ for k in Kernel._all if k._compiled is not None})))")
+    loaded = set(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split())
+    assert {m for m in declared if not m.startswith("evaluation.")} <= loaded
