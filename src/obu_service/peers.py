@@ -52,6 +52,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from fusion.frames import Pose2D, base_to_map
+from fusion.identity_memo import IdentityMemo
 from fusion.objects import ObjectArray
 from fusion.pose_history import PoseHistory
 from fusion.tracking import slot_source
@@ -63,7 +64,7 @@ from .admission import Admission
 from .clock_sync import OffsetEstimate
 from .methods import RsuFrame
 from .mode_inputs import ModeInputs, Received
-from .rsu_table import RSU_ID_BASE, RecentResults, RsuState, RsuTable
+from .rsu_table import RSU_ID_BASE, RsuState, RsuTable
 from .time_requests import TimeRequests
 
 MAX_PEERS = 8  # peer slots (tracker source bits) an OBU gives to V2V peers by default
@@ -222,7 +223,7 @@ class PeerIntake:
         return out
 
 
-@RecentResults
+@IdentityMemo
 def _header(msg: FusedObjectList) -> ObjectListHeader | None:
     """The list's header in the RSU lists' terms (capture = the sender's cycle time), for admission
     (once per list: the same for every receiver)."""
@@ -233,7 +234,7 @@ def _header(msg: FusedObjectList) -> ObjectListHeader | None:
         return None
 
 
-@RecentResults
+@IdentityMemo
 def _own_in_map(msg: FusedObjectList) -> tuple[ObjectArray, int]:
     """(the list's objects its sender perceives itself, base_link -> map with the header's pose
     (read-only, shared), how many others it carried): once per list, the same for every receiver."""

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fusion.frames import Pose2D, map_to_base
+from fusion.identity_memo import IdentityMemo
 from fusion.merger import iou_merge
 from fusion.objects import ObjectArray
 from fusion.pose_history import PoseHistory
@@ -44,14 +45,14 @@ from .methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_fusion, make
 from .mode_inputs import ModeInputs, Received
 from .peers import MAX_PEERS, PeerIntake
 from .planning import objects_at, retimed
-from .rsu_table import RSU_ID_BASE, RecentResults, RsuState, RsuTable
+from .rsu_table import RSU_ID_BASE, RsuState, RsuTable
 from .time_requests import TimeRequests
 
 __all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "RSU_ID_BASE", "ObuPipeline", "ObuPipelineConfig"]
 
 MAX_RSUS = SOURCE_BITS - 1  # RSU slots (known + unknown): one tracker source bit each (62; metrics list <= 64)
 # an RSU list's objects (map) as received: the same for every vehicle that hears it (read-only, shared)
-_rsu_objects = RecentResults(lambda columns: read_only(objects_from_states(columns)))
+_rsu_objects = IdentityMemo(lambda columns: read_only(objects_from_states(columns)))
 
 
 @dataclass(frozen=True)

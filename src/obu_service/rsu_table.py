@@ -42,29 +42,6 @@ class RecentKeys:
             self._keys.popitem(last=False)
 
 
-class RecentResults:
-    """``function(message)`` for the last ``capacity`` messages asked about, matched by identity.
-
-    The offline runner hands every receiver of a broadcast the very same decoded message (its
-    decode memo), so what a receiver works out of a message alone is worked out once per message;
-    a live node decodes each message anew and only pays the lookup (~1 us). Messages are immutable
-    and held while cached (their ids cannot be reused meanwhile). Results are shared by whoever
-    asks: return immutable ones (read-only arrays).
-    """
-
-    def __init__(self, function, capacity: int = 16):
-        self._function = function
-        self._entries: deque[tuple[object, object]] = deque(maxlen=capacity)
-
-    def __call__(self, message):
-        for held, result in reversed(self._entries):  # the newest first: receivers hear it about together
-            if held is message:
-                return result
-        result = self._function(message)
-        self._entries.append((message, result))
-        return result
-
-
 @dataclass
 class RsuState:
     """What the OBU keeps of one RSU. Times are OBU-clock ns."""

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from fusion.identity_memo import IdentityMemo
 from fusion.jit import B1, IN_F1, IN_F2, IN_I1, IN_U1, helper, kernel
 from fusion.objects import ObjectArray
 
@@ -87,7 +88,7 @@ def _edges(polygons: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.n
     return starts, ends, first
 
 
-_EDGES_KEPT: dict[int, tuple] = {}  # id(polygons) -> (polygons, _edges(polygons)) of the static occluders
+_kept_edges = IdentityMemo(_edges, capacity=64)  # of the static occluders: a world's polygons tuple
 
 
 def _static_edges(polygons: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -96,12 +97,7 @@ def _static_edges(polygons: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarra
         return np.zeros((0, 2)), np.zeros((0, 2)), _NO_EDGES
     if not isinstance(polygons, tuple):
         return _edges(polygons)
-    kept = _EDGES_KEPT.get(id(polygons))
-    if kept is None or kept[0] is not polygons:  # (the tuple is held, so its id is not reused while kept)
-        if len(_EDGES_KEPT) >= 64:
-            _EDGES_KEPT.clear()
-        kept = _EDGES_KEPT[id(polygons)] = (polygons, _edges(polygons))
-    return kept[1]
+    return _kept_edges(polygons)
 
 
 def _cross(o: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ from bisect import bisect_right
 import numpy as np
 
 from fusion.frames import Pose2D
+from fusion.identity_memo import IdentityMemo
 from fusion.jit import IN_F1, IN_F2, IN_F3, IN_I1, kernel
 from fusion.objects import ObjectArray
 
@@ -251,17 +252,7 @@ class _Bodies:
         return state
 
 
-_BODIES_KEPT: dict[int, tuple[Scenario, _Bodies]] = {}  # id(scenario) -> (scenario, its bodies)
-
-
-def _bodies_of(scenario: Scenario) -> _Bodies:
-    """The ``_Bodies`` of a scenario, one per scenario object (shared by its views)."""
-    kept = _BODIES_KEPT.get(id(scenario))
-    if kept is None or kept[0] is not scenario:  # (the scenario is held, so its id is not reused while kept)
-        if len(_BODIES_KEPT) >= 16:
-            _BODIES_KEPT.clear()
-        kept = _BODIES_KEPT[id(scenario)] = (scenario, _Bodies(scenario))
-    return kept[1]
+_bodies_of = IdentityMemo(_Bodies)  # the _Bodies of a scenario, one per scenario object (shared by its views)
 
 
 def _building_arrays(buildings: list[Building]) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:

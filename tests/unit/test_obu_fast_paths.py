@@ -10,7 +10,6 @@ from fusion.frames import Pose2D, PoseUncertainty, wrap_angle
 from fusion.pose_history import PoseHistory, _interpolate, _wrap
 from obu_service.clock_sync import ClockSync, SyncSample
 from obu_service.link_monitor import LinkMonitor, gap_loss
-from obu_service.rsu_table import RecentResults
 
 MS = 1_000_000
 
@@ -132,21 +131,6 @@ def test_kept_loss_equals_gap_loss_through_restarts_reordering_duplicates_and_dr
         w = float(rng.choice([80.0, 79.9, 200.0]))  # every latency 80 ms: all, none
         assert mon.arrival_probability(w) == _old_arrival_probability(mon, w)
     assert mon.restarts_total > 5 and mon.duplicates_total > 5 and mon.reordered_total > 5
-
-
-def test_recent_results_match_by_identity_and_forget_the_oldest():
-    calls = Counter()
-
-    def double(x):
-        calls[id(x)] += 1
-        return [x, x]
-
-    memo = RecentResults(double, capacity=2)
-    a, b, c = object(), object(), object()
-    assert memo(a)[0] is a and memo(a)[0] is a and calls[id(a)] == 1
-    memo(b), memo(c)
-    memo(a)  # forgotten (capacity 2): computed again
-    assert calls[id(a)] == 2 and calls[id(b)] == 1
 
 
 def test_a_pose_without_its_uncertainty_is_the_same_pose():
