@@ -124,18 +124,6 @@ def _bit_length(v: int) -> int:
 
 
 @helper
-def _sorted_into(out: np.ndarray, values: np.ndarray) -> None:
-    """``out[:] = sorted(values)`` by insertion (a section packed here has at most 128 rows; a loop
-    compiles in a fraction of a second, numba's sort in ~4 s)."""
-    for i in range(len(values)):
-        v, at = values[i], i
-        while at > 0 and out[at - 1] > v:
-            out[at] = out[at - 1]
-            at -= 1
-        out[at] = v
-
-
-@helper
 def _position(values: np.ndarray, u: int, v: int) -> int:
     """Index of v in the ascending ``values[:u]`` that hold it (binary search)."""
     lo, hi = 0, u - 1
@@ -148,9 +136,11 @@ def _position(values: np.ndarray, u: int, v: int) -> int:
     return lo
 
 
-@kernel(IN_I2, IN_I2)
-def pack_section(codes: np.ndarray, code_table: np.ndarray) -> tuple:
-    """``object_wire.pack_objects``' section parts of (N, K) valid ``codes`` (N >= 1), per present
+@kernel(IN_I2, IN_I2, IN_I2)
+def pack_section(codes: np.ndarray, sorted_codes: np.ndarray, code_table: np.ndarray) -> tuple:
+    """``object_wire.pack_objects``' section parts of (N, K) valid ``codes`` (N >= 1; ``sorted_codes``:
+    each column sorted, ``np.sort(codes, axis=0)``: numpy's sort beats a compiled one past a few tens
+    of rows, and numba's sort compiles in ~4 s), per present
     column f (required, or some code not the default; F of them): its column, ref (the smallest code),
     scale (gcd of the codes' distances to ref, 1 for none), width, and for an indexed column its
     table's size U and item size b (0: not indexed); the packed rows (N * row_bytes,) uint8; the
@@ -168,7 +158,7 @@ def pack_section(codes: np.ndarray, code_table: np.ndarray) -> tuple:
     cols, ref, scale, width = np.zeros(f, np.int64), np.zeros(f, np.int64), np.zeros(f, np.int64), np.zeros(f, np.int64)
     distinct, itemsize = np.zeros(f, np.int64), np.zeros(f, np.int64)
     fields = np.zeros((n, f), np.int64)
-    ordered, values = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    ordered, values = np.zeros(n, np.int64), np.zeros(n, np.int64)  # a column's sorted fields, its distinct ones
     blob, used = np.zeros(8 * n * f, np.uint8), 0
     c = 0
     for j in range(k):
@@ -183,7 +173,8 @@ def pack_section(codes: np.ndarray, code_table: np.ndarray) -> tuple:
         for i in range(n):
             fields[i, c] = (codes[i, j] - low) // g
             top = max(top, fields[i, c])
-        _sorted_into(ordered, fields[:, c])
+        for i in range(n):  # (code - low) // g keeps the order: g divides every code - low
+            ordered[i] = (sorted_codes[i, j] - low) // g
         u, gap, values[0] = 1, 0, ordered[0]
         for i in range(1, n):
             if ordered[i] > ordered[i - 1]:

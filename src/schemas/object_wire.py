@@ -44,12 +44,12 @@ EMPTY_SECTION = (0, 0, b"", (), (), b"", value_tables.NO_TABLES)
 
 
 def pack_objects(objects: ObjectColumns) -> list[Any]:
-    """The msgpack-ready objects section of validated columns (once the kernels are loaded, up to
-    ``COMPILED_PACK_ROWS`` objects, by one compiled loop: ``schemas.bit_rows.pack_section``)."""
+    """The msgpack-ready objects section of validated columns (once the kernels are loaded, by one
+    compiled loop: ``schemas.bit_rows.pack_section``)."""
     codes, layout = objects.codes, layout_of(objects.fused)
     if len(codes) == 0:
         return list(EMPTY_SECTION)
-    if _compiled_section is not None and len(codes) <= COMPILED_PACK_ROWS:
+    if _compiled_section is not None:
         return _section_compiled(codes, layout)
     present = layout.required | (codes != layout.default_codes).any(axis=0)
     cols = np.flatnonzero(present)
@@ -68,7 +68,8 @@ def pack_objects(objects: ObjectColumns) -> list[Any]:
 
 def _section_compiled(codes: np.ndarray, layout) -> list[Any]:
     """``pack_objects``' section by ``schemas.bit_rows.pack_section`` (the same bytes: test_object_wire_paths)."""
-    cols, ref, scale, widths, counts, sizes, rows, blob = _compiled_section(codes, layout.code_table)
+    cols, ref, scale, widths, counts, sizes, rows, blob = _compiled_section(codes, np.sort(codes, axis=0),
+                                                                           layout.code_table)
     scales, sizes = scale.tolist(), sizes.tolist()
     flags = bytes(w | (_SCALED if s > 1 else 0) | (_INDEXED if b else 0) for w, s, b in zip(widths.tolist(), scales, sizes))
     tables = [[u for u in counts.tolist() if u], bytes(b for b in sizes if b), blob.tobytes()] if any(sizes) \
@@ -118,9 +119,6 @@ def unpack_objects(section: Any, fused: bool) -> ObjectColumns:
 
 _compiled_codes = None  # schemas.bit_rows.unpack_codes, once loaded (fusion.jit.load_kernels)
 _compiled_section = None  # schemas.bit_rows.pack_section, likewise
-# pack_section sorts each column by insertion: faster than numpy's ~15 calls on a few rows (12.3 vs 48.9 us at
-# 10 rows, 36.2 vs 63.8 us at 60), slower past ~110 (89.5 vs 83.9 us at 128, 261 vs 121 us at 250)
-COMPILED_PACK_ROWS = 64
 
 
 def use_compiled(unpack_codes, pack_section) -> None:
