@@ -1,6 +1,7 @@
 """Compiled kernels (numba): the tracker's per-pair loops and assignment solver, the OBU's clock
-fit, the simulator's line of sight and body states, the rotated-box IoU, the codec's bit packing
-and the evaluation's per-frame detection matching.
+fit and input checks, the simulator's line of sight and body states, the rotated-box IoU, the
+codec's bit packing, the fitting of objects to the wire, lane matching and the evaluation's
+per-frame detection matching.
 
 The tracker updates a few hundred tracks with lists of a few to a few hundred objects, ten
 times a second per source: numpy's fixed cost per call (~1 us, some 200 calls per update) was
@@ -18,8 +19,9 @@ along their paths, ``evaluation.detection_metrics``' matches per frame, ``fusion
 others) at its first call, or when ``load_kernels`` loads every kernel: the services and the
 offline evaluator do that before they start, so that no cycle ever waits for the compiler. The
 machine code is cached under ``__pycache__`` (or the user's cache directory where the package is
-not writable): compiled once per machine, ~23 s for all kernels, then loaded in ~0.3 s per
-process. Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
+not writable): compiled once per machine (36 s for the 30 kernels, measured on a 2-core machine),
+then loaded in ~0.4 s per process (most of it numba's own set-up at the first load, which imports
+scipy.linalg for LAPACK: ~0.2 s). Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
 arrays convert to them), the arrays a kernel writes ``OUT_*``; an array of another dtype is a
 ``TypeError`` (callers pass float64 and int64). ``helper`` is for the functions the kernels
 call (compiled into them). numba checks a cached kernel against its own source file only: the
