@@ -96,13 +96,11 @@ def fit_to_wire(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS) -> tuple[Ob
     Every check and clip runs once on the (N, 22) table of the real-valued columns (``_LAYOUT``).
     """
     table = _table(objs)
-    n, ids = len(objs), np.empty(len(objs), np.int64)
-    changed = -1  # the usual case (every row kept) in one compiled pass, in place; else the general one below
-    if n <= max_objects and objs.ids.dtype == np.int64:
-        changed = _fit_rows(table, objs.ids, ids, _LO, _HI, _YAW, m.POSITION_MAX_M)
-    if changed >= 0:  # (cls and sources copied, as take copies them)
+    fitted = _fit_in_place(table, objs, max_objects, _LO, _HI, _YAW)
+    if fitted is not None:  # (cls and sources copied, as take copies them)
+        ids, changed = fitted
         objs = objs.with_(cls=objs.cls.copy(), sources=objs.sources.copy())
-        return _with_table(objs, ids, table), Counter(clipped=changed) if changed else Counter()
+        return _with_table(objs, ids, table), +Counter(clipped=changed)
     keep, counts = _kept_rows(table, objs.xy, max_objects)
     objs, table = objs.take(keep), table[keep]
     clipped = np.clip(table, _LO, _HI)
@@ -127,16 +125,14 @@ def wire_columns(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS, fused: boo
         real[:, start:start + width] = getattr(objs, name).reshape(n, width)
     _put_cov(real, _W_COV[0], objs.cov_xy, _W_YX)
     _put_cov(real, _W_VCOV[0], objs.cov_vxy, _W_YX + 1)
-    ids = np.empty(n, np.int64)
-    changed = -1  # the usual case (every row kept) in one compiled pass; else the general one below
-    if n <= max_objects and objs.ids.dtype == np.int64:
-        changed = _fit_rows(real, objs.ids, ids, _W_LO, _W_HI, _W_YAW, m.POSITION_MAX_M)
-    if changed >= 0:
+    fitted = _fit_in_place(real, objs, max_objects, _W_LO, _W_HI, _W_YAW)
+    if fitted is not None:
+        ids, changed = fitted
         table[:, _C["id"]], table[:, _C["cls"]] = ids, objs.cls
         if fused:
             table[:, _C["sources"]] = wire_sources(objs.sources)  # over cov_xy[1, 0], counted
-        counts = Counter(clipped=changed) if changed else Counter()
-        return ObjectColumns.from_values(table[:, :len(COLUMN) if fused else len(COLUMN) - 1], fused), counts
+        return ObjectColumns.from_values(table[:, :len(COLUMN) if fused else len(COLUMN) - 1], fused), \
+            +Counter(clipped=changed)
     keep, counts = _kept_rows(real, objs.xy, max_objects)
     rows = keep if len(keep) < n else slice(None)  # every row kept (the usual case): views, no copies
     table, old_ids = table[rows], objs.ids[rows]
@@ -149,6 +145,17 @@ def wire_columns(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS, fused: boo
     if fused:
         table[:, _C["sources"]] = wire_sources(objs.sources[rows])  # over cov_xy[1, 0], counted above
     return ObjectColumns.from_values(table[:, :len(COLUMN) if fused else len(COLUMN) - 1], fused), +counts
+
+
+def _fit_in_place(real: np.ndarray, objs: ObjectArray, max_objects: int, lo: np.ndarray, hi: np.ndarray,
+                  yaw: int) -> tuple[np.ndarray, int] | None:
+    """The usual case of fit_to_wire and wire_columns (every row kept) in one compiled pass over ``real``
+    (N, M), in place: (wire ids (N,), rows changed), or None (``real`` untouched) for the general path."""
+    if len(objs) > max_objects or objs.ids.dtype != np.int64:
+        return None
+    ids = np.empty(len(objs), np.int64)
+    changed = _fit_rows(real, objs.ids, ids, lo, hi, yaw, m.POSITION_MAX_M)
+    return None if changed < 0 else (ids, changed)
 
 
 @kernel(OUT_F2, IN_I1, OUT_I1, IN_F1, IN_F1, I64, F64)

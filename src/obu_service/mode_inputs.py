@@ -121,9 +121,8 @@ class ModeInputs:
             if state is None:  # expired meanwhile
                 return [], []
             placement = self._placement(state, capture_ns)
-            period_ns = rsu_period_ns(state) if placement is None else placement.period_ns
             match = [] if placement is None else [(raw, f) for raw, f in placement.placed
-                                                  if abs(f.capture_ns - slot_ns) < period_ns / 2]
+                                                  if abs(f.capture_ns - slot_ns) < placement.period_ns / 2]
             if not match:
                 return [], []
             raw, frame = max(match, key=lambda m: m[1].valid_ns)
