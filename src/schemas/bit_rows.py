@@ -104,7 +104,6 @@ def unpack_codes(data: np.ndarray, n: int, row_bytes: int, params: np.ndarray, s
     return codes, -2 if beyond else first_bad, yaw_outside
 
 
-
 @helper
 def _gcd(a: int, b: int) -> int:
     """gcd of two non-negative ints (Euclid; np.gcd's value)."""
@@ -192,7 +191,6 @@ def pack_section(codes: np.ndarray, sorted_codes: np.ndarray, code_table: np.nda
                 used += b
         c += 1
     return cols, ref, scale, width, distinct, itemsize, _packed(fields, width, (width.sum() + 7) // 8), blob[:used]
-
 
 
 @kernel(IN_F2, IN_F2, I64)

@@ -124,7 +124,6 @@ def _dumps_as_stored(model: type[Message]) -> bool:
             and not decorators.field_serializers and not decorators.model_serializers)
 
 
-
 def encode(msg: Message, max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
     """msgpack bytes of ``msg`` in a versioned envelope, at most ``max_bytes`` long.
 
