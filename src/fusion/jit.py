@@ -20,8 +20,8 @@ others) at its first call, or when ``load_kernels`` loads every kernel: the serv
 offline evaluator do that before they start, so that no cycle ever waits for the compiler. The
 machine code is cached under ``__pycache__`` (or the user's cache directory where the package is
 not writable): compiled once per machine (36 s for the 30 kernels, measured on a 2-core machine),
-then loaded in ~0.4 s per process (most of it numba's own set-up at the first load, which imports
-scipy.linalg for LAPACK: ~0.2 s). Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
+then loaded in ~0.3-0.4 s per process (most of it numba's own set-up at the first load; its check for
+BLAS and LAPACK reaches scipy's two Cython modules directly: ``preload_scipy_blas``). Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
 arrays convert to them), the arrays a kernel writes ``OUT_*``; an array of another dtype is a
 ``TypeError`` (callers pass float64 and int64). ``helper`` is for the functions the kernels
 call (compiled into them). numba checks a cached kernel against its own source file only: the
@@ -33,7 +33,11 @@ expressions, sorts or quantiles where they can be: each of those adds ~0.1-1 s t
 from __future__ import annotations
 
 import importlib
+import importlib.machinery
+import importlib.util
+import sys
 import time
+from pathlib import Path
 from typing import Callable
 
 from numba import njit, types
@@ -91,6 +95,49 @@ def load_kernels() -> float:
     for name in KERNEL_MODULES:
         importlib.import_module(name)
     t0 = time.perf_counter()
+    preload_scipy_blas()
     for k in Kernel._all:
         k.load()
     return time.perf_counter() - t0
+
+
+# numba's first kernel load checks that BLAS and LAPACK are there by importing these two Cython modules
+# (numba.np.linalg.ensure_blas / ensure_lapack); no kernel here calls them
+SCIPY_BLAS_MODULES = ("scipy.linalg.cython_blas", "scipy.linalg.cython_lapack")
+
+
+def preload_scipy_blas() -> list[str]:
+    """Import scipy's ``cython_blas`` and ``cython_lapack`` extension modules from their files,
+    without running the ``scipy.linalg`` package they live in; the names loaded so (none when
+    scipy.linalg is already imported, or a file is not where scipy puts it: numba then imports
+    them as usual).
+
+    Importing a submodule runs its package's ``__init__`` first: for scipy.linalg that is its
+    decompositions and scipy's array-API layer, 0.13-0.17 s of a service's start-up (a third of
+    ``load_kernels``; ``benchmarks/cli_start.py``), for two modules that need none of it. Both are in
+    ``sys.modules`` under their own names, so numba (and scipy itself, when something imports
+    scipy.linalg later) finds the very same modules there.
+    """
+    if "scipy.linalg" in sys.modules:
+        return []
+    import scipy
+
+    folder = Path(scipy.__file__).parent / "linalg"
+    loaded = []
+    for name in SCIPY_BLAS_MODULES:
+        if name in sys.modules:
+            continue
+        files = [folder / (name.rsplit(".", 1)[1] + suffix) for suffix in importlib.machinery.EXTENSION_SUFFIXES]
+        path = next((f for f in files if f.is_file()), None)
+        if path is None:
+            return loaded
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        try:
+            spec.loader.exec_module(module)
+        except BaseException:
+            del sys.modules[name]
+            raise
+        loaded.append(name)
+    return loaded

@@ -70,3 +70,41 @@ def test_kernel_modules_name_every_module_a_service_runs_kernels_of():
             "print(' '.join(sorted({k.fn.__module__ for k in Kernel._all if k._compiled is not None})))")
     loaded = set(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split())
     assert {m for m in declared if not m.startswith("evaluation.")} <= loaded
+
+
+def test_load_kernels_reaches_scipys_blas_modules_without_importing_scipy_linalg():
+    """load_kernels loads scipy's cython_blas / cython_lapack from their files (fusion.jit.preload_scipy_blas), not
+    through scipy.linalg's package (a tenth of a second of a service's start); scipy.linalg imported afterwards works
+    and finds those very modules, and numba's BLAS and LAPACK still serve a kernel (a fresh interpreter)."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+import numpy as np
+from fusion.jit import SCIPY_BLAS_MODULES, load_kernels
+load_kernels()
+assert "scipy.linalg" not in sys.modules, "load_kernels imported scipy.linalg"
+preloaded = [sys.modules[name] for name in SCIPY_BLAS_MODULES]
+import numba
+import scipy.linalg
+from scipy.linalg import cython_blas, cython_lapack
+from scipy.optimize import linear_sum_assignment
+assert [cython_blas, cython_lapack] == preloaded
+assert np.allclose(scipy.linalg.inv(4 * np.eye(3)), 0.25 * np.eye(3))
+assert linear_sum_assignment(np.array([[4, 1, 3], [2, 0, 5], [3, 2, 2]]))[1].tolist() == [1, 0, 2]
+solve = numba.njit(lambda a, b: (np.dot(a, b), np.linalg.inv(a)))
+product, inverse = solve(2 * np.eye(2), np.ones((2, 2)))
+assert np.allclose(product, 2) and np.allclose(inverse, 0.5 * np.eye(2))
+print("ok")
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_preloading_scipys_blas_modules_is_skipped_once_scipy_linalg_is_imported():
+    import scipy.linalg  # noqa: F401  (this test process: the package is there, its modules are its own)
+
+    from fusion.jit import preload_scipy_blas
+
+    assert preload_scipy_blas() == []
