@@ -63,3 +63,17 @@ def test_off_unwraps_without_counting():
     assert gate.open(_signed(b"list", 100.0, who="ego"), KEY, NOW_NS) == b"list"
     assert gate.open(b"\x94plain", KEY, NOW_NS) == b"\x94plain"
     assert not counts
+
+
+def test_policy_off_asks_no_clock_estimate_and_passes_what_it_gets():
+    asked = []
+    gate = InboundSecurity(make_verifier(None, "off", 5.0), lambda rsu_id, t_ns: asked.append(rsu_id),
+                           lambda label: None)
+    assert gate.open(b"\x94plain", KEY, NOW_NS) == b"\x94plain"
+    assert gate.open(_signed(b"wrapped", 0.05), KEY, NOW_NS) == b"wrapped"  # unwrapped unchecked
+    assert asked == [] and gate.verifier.counts["unchecked"] == 2
+    checked = []
+    strict = InboundSecurity(make_verifier(TRUST, "strict", 5.0), lambda rsu_id, t_ns: checked.append(rsu_id),
+                             lambda label: None)
+    strict.open(_signed(b"fresh", 0.05), KEY, NOW_NS)
+    assert checked == ["rsu1"]  # a checking policy still asks
