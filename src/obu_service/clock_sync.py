@@ -63,6 +63,7 @@ import math
 from array import array
 from bisect import bisect_right
 from dataclasses import dataclass, field
+from operator import itemgetter
 
 import numpy as np
 
@@ -71,6 +72,7 @@ from .clock_envelope import fit_window
 NS_PER_S = 1_000_000_000
 PPM_NS_PER_S = 1_000.0  # 1 ppm = 1 us per s = 1000 ns per s
 MIN_RESID_NS = 50_000.0  # floor on the per-sample noise of a drift fit (no false certainty)
+_first = itemgetter(0)  # a window entry's t4
 
 
 @dataclass(frozen=True)
@@ -295,16 +297,23 @@ class ClockSync:
     # --- window -----------------------------------------------------------------------------
     def _insert(self, sample: SyncSample, segment: int) -> None:
         """Insert by t4 (replies may complete out of order); drop what is past the horizon or the window."""
-        i = bisect_right(self._samples, sample.t4_ns, key=lambda e: e[0])  # where insort puts it
-        self._samples.insert(i, (sample.t4_ns, segment, sample))
-        self._times[4 * i:4 * i] = array("q", (sample.t1_ns, sample.t2_ns, sample.t3_ns, sample.t4_ns))
-        self._segments.insert(i, segment)
-        newest_ns = self._samples[-1][0]
+        samples, t4_ns = self._samples, sample.t4_ns
+        if not samples or t4_ns >= samples[-1][0]:  # the usual case: the newest (where insort puts it)
+            samples.append((t4_ns, segment, sample))
+            self._times.extend((sample.t1_ns, sample.t2_ns, sample.t3_ns, t4_ns))
+            self._segments.append(segment)
+        else:
+            i = bisect_right(samples, t4_ns, key=_first)  # where insort puts it
+            samples.insert(i, (t4_ns, segment, sample))
+            self._times[4 * i:4 * i] = array("q", (sample.t1_ns, sample.t2_ns, sample.t3_ns, t4_ns))
+            self._segments.insert(i, segment)
+        newest_ns = samples[-1][0]
         cut = 0
-        while cut < len(self._samples) and newest_ns - self._samples[cut][0] > self.horizon_ns:
+        while cut < len(samples) and newest_ns - samples[cut][0] > self.horizon_ns:
             cut += 1
-        cut = max(cut, len(self._samples) - self.max_samples)
-        del self._samples[:cut], self._times[:4 * cut], self._segments[:cut]
+        cut = max(cut, len(samples) - self.max_samples)
+        if cut:
+            del samples[:cut], self._times[:4 * cut], self._segments[:cut]
         self._unfitted += 1
 
     def _relabel(self, moved: set[int]) -> None:
