@@ -355,7 +355,13 @@ def _lsa_nan(dist: np.ndarray) -> list[tuple[int, int]]:
         return []
     large = 2 * min(dist.shape) * (np.abs(dist[valid]).max() + 1) + 1
     rows, cols = linear_sum_assignment(np.where(valid, dist, large))
-    return [(int(i), int(j)) for i, j in zip(rows, cols) if valid[i, j]]
+    return [(i, j) for i, j, ok in zip(rows.tolist(), cols.tolist(), valid[rows, cols].tolist()) if ok]
+
+
+def _id_list(ids) -> list[int]:
+    """``np.ravel(ids).astype(np.int64).tolist()`` (no copy when already int64)."""
+    flat = np.ravel(ids)
+    return (flat if flat.dtype == np.int64 else flat.astype(np.int64)).tolist()
 
 
 class MotTally:
@@ -380,23 +386,24 @@ class MotTally:
     def add_frame(self, truth_ids, truth_xy, hyp_ids, hyp_xy, cost_m: np.ndarray | None = None) -> None:
         """Truth ids (N,), truth xy (N, 2) m, hypothesis ids (M,), hypothesis xy (M, 2) m; ``cost_m``:
         their centre distances (N, M) m when the caller has them (``center_distance_cost``)."""
-        oids, hids = np.ravel(truth_ids).astype(np.int64).tolist(), np.ravel(hyp_ids).astype(np.int64).tolist()
+        oids, hids = _id_list(truth_ids), _id_list(hyp_ids)
         if cost_m is None or not cost_m.size:
             dist = _distance_matrix(truth_xy, hyp_xy, self.max_distance_m)
         else:  # _distance_matrix from the distances
             dist = np.where(cost_m > self.max_distance_m, np.nan, cost_m)
         self.frames += 1
         self.num_truth, self.num_predictions = self.num_truth + len(oids), self.num_predictions + len(hids)
-        finite = np.isfinite(dist)
-        rows, cols = np.nonzero(finite)
-        self._pairs.update(zip([oids[i] for i in rows.tolist()], [hids[j] for j in cols.tolist()]))
-        pairs = self._match(oids, hids, dist, finite) if oids and hids else []
+        rows, cols = np.nonzero(np.isfinite(dist))
+        gated = list(zip(rows.tolist(), cols.tolist()))  # the (truth, hyp) indices that may pair, row by row
+        self._pairs.update([(oids[i], hids[j]) for i, j in gated])
+        pairs = self._match(oids, hids, dist, set(gated)) if oids and hids else []
         self.misses += len(oids) - len(pairs)
         self.false_positives += len(hids) - len(pairs)
 
-    def _match(self, oids: list[int], hids: list[int], dist: np.ndarray, finite: np.ndarray) -> list[tuple[int, int]]:
+    def _match(self, oids: list[int], hids: list[int], dist: np.ndarray, gated: set[tuple[int, int]]
+               ) -> list[tuple[int, int]]:
         """Steps (1) and (2): matched (truth index, hyp index) pairs; counts matches and switches.
-        ``finite`` (N, M): the pairs that may pair (``np.isfinite(dist)``)."""
+        ``gated``: the (i, j) that may pair (``np.isfinite(dist)``)."""
         pairs, free_h = [], [True] * len(hids)
         columns: dict[int, list[int]] = {}  # hypothesis id -> its indices in hids, ascending
         for j, h in enumerate(hids):
@@ -407,16 +414,18 @@ class MotTally:
                 continue
             for j in columns[h]:  # the first free one
                 if free_h[j]:
-                    if finite[i, j]:
+                    if (i, j) in gated:
                         pairs.append((i, j))
                         free_h[j] = False
                     break
         self.matches += len(pairs)
         if len(pairs) < len(oids) and len(pairs) < len(hids):  # else no pair is left for step (2)
-            pairs += self._assign_rest(oids, hids, dist, pairs, free_h)
+            paired = {i for i, _ in pairs}
+            if any(free_h[j] and i not in paired for i, j in gated):  # else step (2) assigns nothing
+                pairs += self._assign_rest(oids, hids, dist, pairs, free_h)
         total_m = 0  # summed in pair order, as before
-        for d_m in dist[[i for i, _ in pairs], [j for _, j in pairs]].tolist() if pairs else ():
-            total_m += d_m
+        for i, j in pairs:
+            total_m += dist.item(i, j)
         self._distance_sum_m += float(total_m)
         return pairs
 
@@ -425,8 +434,11 @@ class MotTally:
         """Step (2): the free truths and hypotheses assigned (``_lsa_nan`` of the distances without the
         pairs of step (1)); counts matches and switches."""
         rest = dist.copy()
-        rest[[i for i, _ in pairs], :] = np.nan
-        rest[:, [not free for free in free_h]] = np.nan
+        if pairs:
+            rest[[i for i, _ in pairs], :] = np.nan
+        taken = [j for j, free in enumerate(free_h) if not free]
+        if taken:
+            rest[:, taken] = np.nan
         assigned = _lsa_nan(rest)
         for i, j in assigned:
             o, h = oids[i], hids[j]

@@ -107,7 +107,14 @@ def _match_target_cost(cost_m: np.ndarray, truth_ids: np.ndarray, target_id: int
 
 def _bev_row(objs: ObjectArray, i: int) -> np.ndarray:
     """(5,) ``bev_boxes`` row of object ``i`` alone: [x, y, length, width, yaw]."""
-    return np.concatenate([objs.xy[i], objs.lwh[i, :2], [objs.yaw[i]]])
+    return np.array([*objs.xy[i].tolist(), *objs.lwh[i, :2].tolist(), objs.yaw.item(i)])
+
+
+def _ranges_m(xy: np.ndarray) -> np.ndarray:
+    """(N,) distances (m) of points (N, 2) from the origin: ``np.linalg.norm(xy, axis=1)`` bit for bit,
+    sqrt(x^2 + y^2) (its reduce of the two squares is this one addition), in fewer numpy calls."""
+    sq = xy * xy
+    return np.sqrt(sq[:, 0] + sq[:, 1])
 
 
 @dataclass(frozen=True)
@@ -144,10 +151,12 @@ class CycleFrame:
         values = self._pair_values.get((i, k))
         if values is None:
             truth, out = self.truth, self.out
-            err = out.xy[k] - truth.xy[i]
+            (tx, ty), (ox, oy) = truth.xy[i].tolist(), out.xy[k].tolist()
+            ex, ey = ox - tx, oy - ty
+            # |e|^2 = ex^2 + ey^2: np.sum(np.square(e)) of the two, one addition of the same squares
             values = self._pair_values[i, k] = (
-                bev_iou_pair(_bev_row(truth, i), _bev_row(out, k)), float(np.sum(np.square(err))),
-                float(nees_values(err[None], out.cov_xy[k][None])[0]), float(np.linalg.norm(truth.xy[i])))
+                bev_iou_pair(_bev_row(truth, i), _bev_row(out, k)), ex * ex + ey * ey,
+                float(nees_values(np.array([[ex, ey]]), out.cov_xy[k][None])[0]), float(np.linalg.norm(truth.xy[i])))
         return values
 
     @classmethod
@@ -184,16 +193,15 @@ class TargetTally:
             k = None if k is None else int(kept[k])  # the index in the whole output
         if k is None:
             return
-        i = int(rows[0])
-        iou, sq_err, eps, dist = frame.pair_values(i, k)
-        values = {"t_s": frame.t_s, "iou": iou, "sq_err": sq_err, "eps": eps, "dist": dist}
+        iou, sq_err, eps, dist = frame.pair_values(rows.item(0), k)
         self._cycle_ns.append(frame.cycle_ns)
-        self._ids.append(int(out.ids[k]))
+        self._ids.append(out.ids.item(k))
         self._out_xy.extend(out.xy[k].tolist())
-        mask = int(out.sources[k])  # bit 0 the own vehicle, bits 1..62 the RSU / peer slots
+        mask = out.sources.item(k)  # bit 0 the own vehicle, bits 1..62 the RSU / peer slots
         self._sources.append((mask & 1) | (2 if mask >> 1 else 0))
-        for name, value in values.items():
-            self._cols[name].append(float(value))
+        cols = self._cols
+        for name, value in (("t_s", frame.t_s), ("iou", iou), ("sq_err", sq_err), ("eps", eps), ("dist", dist)):
+            cols[name].append(float(value))
 
     def score(self) -> TargetScore:
         """Mean IoU, RMSE = sqrt(mean |e|^2), NEES over the detected cycles; the first one's distance and time."""
@@ -398,8 +406,8 @@ class DetectionTally:
 
     def add(self, frame: CycleFrame) -> None:
         truth, out = frame.truth, frame.out
-        t = np.linalg.norm(truth.xy, axis=1) <= MAX_RANGE_M
-        o = np.linalg.norm(out.xy, axis=1) <= MAX_RANGE_M
+        t = _ranges_m(truth.xy) <= MAX_RANGE_M
+        o = _ranges_m(out.xy) <= MAX_RANGE_M
         cost_m = frame.distances_m[t][:, o]  # (G_t, P_o): the frame's distances of the actors and outputs in range
         truth_xy, out_xy = truth.xy[t], out.xy[o]
         self.ap.add_frame(truth_xy, out_xy, out.confidence[o], cost_m)
