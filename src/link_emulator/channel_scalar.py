@@ -44,19 +44,19 @@ class ScalarPath:
         if self._origin_ns is None:
             self._origin_ns = send_ns
         d = self.direction
-        lost = self._ge.step_one(u[_U_LOSS])
+        lost = self._ge.step_one(u[_U_LOSS][k])
         if distance_m is not None and not math.isnan(distance_m):
-            lost = (u[_U_PDR] >= self._pdr_one(float(distance_m))) or lost  # delivered with probability PDR(d)
-        z_jitter = self._ar.step_one(z[_Z_JITTER])  # steps the AR(1) always
+            lost = (u[_U_PDR][k] >= self._pdr_one(float(distance_m))) or lost  # delivered with probability PDR(d)
+        z_jitter = self._ar.step_one(z[_Z_JITTER][k])  # steps the AR(1) always
         if lost:
             return []
         # without correlation the score is the block's own normal: its g(z) is the block's
         jitter_ms = self._block_g(d.jitter, _Z_JITTER, k) if self._ar.rho == 0.0 else _jitter_ms(d.jitter, z_jitter)
         delay_ms = d.delay_ms + jitter_ms
-        if d.spikes is not None and u[_U_SPIKE] < d.spikes.probability:
+        if d.spikes is not None and u[_U_SPIKE][k] < d.spikes.probability:
             delay_ms = delay_ms + self._block_g(d.spikes.extra, _Z_SPIKE, k)
         deliver_ns = self._in_order_one(send_ns + round(max(delay_ms, 0.0) * NS_PER_MS))  # _clipped_ns
-        if not u[_U_DUP] < d.duplicate_probability:
+        if not u[_U_DUP][k] < d.duplicate_probability:
             return [deliver_ns]
         copy_ms = d.delay_ms + self._block_g(d.jitter, _Z_DUP, k)
         copy_ns = self._in_order_one(send_ns + round(max(copy_ms, 0.0) * NS_PER_MS))

@@ -71,7 +71,7 @@ def test_block_g_equals_the_one_score_expression(jitter: dict) -> None:
         k, z, _ = channel._draws.take_one()
         for column in range(3):
             got = channel._block_g(channel.direction.jitter, column, k)
-            assert np.float64(got).tobytes() == np.float64(_jitter_ms(channel.direction.jitter, z[column])).tobytes()
+            assert np.float64(got).tobytes() == np.float64(_jitter_ms(channel.direction.jitter, z[column][k])).tobytes()
 
 
 @settings(max_examples=200, deadline=None)
@@ -86,3 +86,15 @@ def test_interp_equals_numpy_bit_for_bit(points: list, seed: int) -> None:
     for x in xs:
         want = np.interp(x, np.array(xp), np.array(fp))
         assert np.float64(_interp(float(x), xp, fp)).tobytes() == np.float64(want).tobytes(), (x, xp, fp)
+
+
+def test_take_one_gives_each_row_of_the_blocks_as_floats():
+    """take_one's k-th entries of the block's columns are the row ``take(1)`` gives, across blocks."""
+    from link_emulator.channel import _Draws
+
+    draws, reference = _Draws(np.random.default_rng(2)), _Draws(np.random.default_rng(2))
+    for _ in range(2500):
+        k, z, u = draws.take_one()
+        normal, uniform = reference.take(1)
+        assert [column[k] for column in z] == normal[0].tolist()
+        assert [column[k] for column in u] == uniform[0].tolist()
