@@ -39,10 +39,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .identity_memo import IdentityMemo
 from .jit import F64, IN_F2, OUT_I1, kernel
 from .objects import ObjectArray
 
 _S = np.array([[0.0, -1.0], [1.0, 0.0]])  # R(pi/2): dR(yaw)/dyaw = S R(yaw)
+_EYE2 = np.eye(2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,9 +117,32 @@ def rotation(yaw: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
+@dataclass(frozen=True, eq=False)
+class _Axes:
+    """What the frame changes of one ego pose share (read-only): rot = R(yaw) (2, 2), origin = t (2,) m and
+    rot^T @ 0 (2,), the zero velocity offset as map_to_base's matrix product forms it (its zeros' signs)."""
+
+    rot: np.ndarray
+    origin: np.ndarray
+    zero_offset: np.ndarray
+
+    @classmethod
+    def of(cls, ego: Pose2D) -> _Axes:
+        rot, origin = rotation(ego.yaw), np.array([ego.x, ego.y], dtype=float)
+        axes = cls(rot, origin, rot.T @ np.zeros(2))
+        for column in (rot, origin, axes.zero_offset):
+            column.flags.writeable = False
+        return axes
+
+
+# a pose's axes, kept for the poses last asked about (a cycle changes frames with one ego pose several times)
+_axes = IdentityMemo(_Axes.of, capacity=8)
+
+
 def map_to_base_points(xy: np.ndarray, ego: Pose2D) -> np.ndarray:
     """Points (N, 2) in map -> base_link: p_b = R(yaw)^T (p_m - t)."""
-    return (np.asarray(xy, dtype=float) - [ego.x, ego.y]) @ rotation(ego.yaw)
+    axes = _axes(ego)
+    return (np.asarray(xy, dtype=float) - axes.origin) @ axes.rot
 
 
 def outside_box_rows(xy: np.ndarray, ego: Pose2D, half_l_m: float, half_w_m: float) -> np.ndarray:
@@ -166,15 +191,16 @@ def _outside_rows(xy, x, y, c, s, half_l, half_w, keep):
 
 def base_to_map_points(xy: np.ndarray, ego: Pose2D) -> np.ndarray:
     """Points (N, 2) in base_link -> map: p_m = R(yaw) p_b + t."""
-    return np.asarray(xy, dtype=float) @ rotation(ego.yaw).T + [ego.x, ego.y]
+    axes = _axes(ego)
+    return np.asarray(xy, dtype=float) @ axes.rot.T + axes.origin
 
 
 def pose_jacobian(lever_xy_m: np.ndarray) -> np.ndarray:
     """J_m = dp_m / d(x, y, yaw) = [I_2 | S d], shape (N, 2, 3), for lever arms d (N, 2) m =
     p_m - t in map axes (see the module docstring)."""
     d = np.asarray(lever_xy_m, dtype=float).reshape(-1, 2)
-    jac = np.zeros((len(d), 2, 3))
-    jac[:, 0, 0] = jac[:, 1, 1] = 1.0
+    jac = np.empty((len(d), 2, 3))
+    jac[:, :, :2] = _EYE2
     jac[:, :, 2] = d @ _S.T  # S d = [-d_y, d_x]
     return jac
 
@@ -182,7 +208,7 @@ def pose_jacobian(lever_xy_m: np.ndarray) -> np.ndarray:
 def pose_cov_map(xy_m: np.ndarray, ego: Pose2D, cov: np.ndarray) -> np.ndarray:
     """J_m cov J_m^T, shape (N, 2, 2) m^2 in map axes: what a pose error of covariance cov
     (3, 3) adds to points xy_m (N, 2) in map, relative to the ego at (ego.x, ego.y)."""
-    jac = pose_jacobian(np.asarray(xy_m, dtype=float) - [ego.x, ego.y])
+    jac = pose_jacobian(np.asarray(xy_m, dtype=float) - _axes(ego).origin)
     return jac @ np.asarray(cov, dtype=float) @ jac.transpose(0, 2, 1)
 
 
@@ -194,18 +220,28 @@ def add_pose_uncertainty(objs: ObjectArray, ego: Pose2D, vel_offset: np.ndarray 
     """
     if ego.uncertainty is None or not len(objs):
         return objs
+    cov_xy, cov_vxy = pose_covariances(objs.xy, objs.vxy, ego, vel_offset)
+    return objs.with_(cov_xy=objs.cov_xy + cov_xy, cov_vxy=objs.cov_vxy + cov_vxy)
+
+
+def pose_covariances(xy_m: np.ndarray, vxy: np.ndarray, ego: Pose2D,
+                     vel_offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """What ``add_pose_uncertainty`` adds to objects at xy_m (N, 2) m moving at vxy (N, 2) m/s (map axes):
+    J_m Sigma J_m^T (N, 2, 2) m^2 and sigma_yaw^2 (S v)(S v)^T (N, 2, 2) m^2/s^2, v = vxy - vel_offset;
+    ego.uncertainty must be set."""
     sigma = ego.uncertainty.cov
-    sv = (objs.vxy - (0.0 if vel_offset is None else vel_offset)) @ _S.T  # (N, 2) S v
-    return objs.with_(cov_xy=objs.cov_xy + pose_cov_map(objs.xy, ego, sigma),
-                      cov_vxy=objs.cov_vxy + sigma[2, 2] * sv[:, :, None] * sv[:, None, :])
+    sv = (vxy if vel_offset is None else vxy - vel_offset) @ _S.T  # (N, 2) S v
+    return pose_cov_map(xy_m, ego, sigma), sigma[2, 2] * sv[:, :, None] * sv[:, None, :]
 
 
-def _transform(objs: ObjectArray, rot: np.ndarray, xy: np.ndarray, dyaw: float, vel_offset: np.ndarray) -> ObjectArray:
-    # velocities and covariances rotate with the frame: v' = R v, C' = R C R^T
+def _transform(objs: ObjectArray, rot: np.ndarray, xy: np.ndarray, dyaw: float,
+               vel_offset: np.ndarray | None) -> ObjectArray:
+    # velocities and covariances rotate with the frame: v' = R v - offset, C' = R C R^T; yaw wrapped to [-pi, pi)
+    vxy = objs.vxy @ rot.T
     return objs.with_(
         xy=xy,
-        yaw=wrap_angle(objs.yaw + dyaw),
-        vxy=objs.vxy @ rot.T - vel_offset,
+        yaw=(objs.yaw + dyaw + np.pi) % (2.0 * np.pi) - np.pi,
+        vxy=vxy if vel_offset is None else vxy - vel_offset,
         axy=objs.axy @ rot.T,
         cov_xy=rot @ objs.cov_xy @ rot.T,
         cov_vxy=rot @ objs.cov_vxy @ rot.T,
@@ -221,16 +257,20 @@ def map_to_base(objs: ObjectArray, ego: Pose2D, relative_velocity: bool = False,
     gain the ego pose's (C_b = R^T (C_m + J_m Sigma J_m^T) R); leave it off for objects
     already in the ego's own map' (its tracker's output).
     """
-    ego_v_map = np.array([ego.vx, ego.vy]) if relative_velocity else np.zeros(2)
+    axes = _axes(ego)
+    rot = axes.rot.T
+    ego_v_map = np.array([ego.vx, ego.vy]) if relative_velocity else None  # None: 0 (v - 0 is v, bit for bit)
     if pose_uncertainty:
         objs = add_pose_uncertainty(objs, ego, ego_v_map)
-    rot = rotation(ego.yaw).T
-    return _transform(objs, rot, map_to_base_points(objs.xy, ego), -ego.yaw, rot @ ego_v_map)
+    xy = (np.asarray(objs.xy, dtype=float) - axes.origin) @ axes.rot  # map_to_base_points
+    return _transform(objs, rot, xy, -ego.yaw, axes.zero_offset if ego_v_map is None else rot @ ego_v_map)
 
 
 def base_to_map(objs: ObjectArray, ego: Pose2D, pose_uncertainty: bool = True) -> ObjectArray:
     """Objects in base_link of ``ego`` -> map (velocities taken as over ground). With
     ``pose_uncertainty`` the covariances gain the ego pose's (C_m = R C_b R^T + J_m Sigma J_m^T);
     leave it off to enter the ego's own map', where its detections carry no pose error."""
-    out = _transform(objs, rotation(ego.yaw), base_to_map_points(objs.xy, ego), ego.yaw, np.zeros(2))
+    axes = _axes(ego)
+    xy = np.asarray(objs.xy, dtype=float) @ axes.rot.T + axes.origin  # base_to_map_points
+    out = _transform(objs, axes.rot, xy, ego.yaw, None)  # no offset: v - 0 is v, bit for bit
     return add_pose_uncertainty(out, ego) if pose_uncertainty else out

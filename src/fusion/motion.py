@@ -21,17 +21,18 @@ def predict_ca(objs: ObjectArray, dt_s) -> ObjectArray:
     """Constant acceleration: p += v dt + a dt^2 / 2, v += a dt. ``dt_s`` scalar or (N,) seconds."""
     if isinstance(dt_s, (float, int)):  # one step for all: the broadcast column's sums, without broadcasting
         dt, zero = np.float64(dt_s), np.float64(0.0)  # numpy scalars: float64 results, as with a float64 column
-        return objs.with_(
-            xy=objs.xy + objs.vxy * dt + 0.5 * objs.axy * (dt * dt),  # dt^2 of a float64 column is dt * dt
-            vxy=objs.vxy + objs.axy * dt,
-            age_s=objs.age_s + max(dt, zero),  # np.maximum(dt, 0): dt unless 0 > dt (NaN and -0.0 stay)
-        )
-    dt = np.broadcast_to(np.asarray(dt_s, dtype=float), (len(objs),))[:, None]
-    return objs.with_(
-        xy=objs.xy + objs.vxy * dt + 0.5 * objs.axy * dt**2,
-        vxy=objs.vxy + objs.axy * dt,
-        age_s=objs.age_s + np.maximum(dt[:, 0], 0.0),
-    )
+        xy, vxy = ca_step(objs.xy, objs.vxy, objs.axy, dt)
+        return objs.with_(xy=xy, vxy=vxy, age_s=objs.age_s + max(dt, zero))  # np.maximum(dt, 0): dt unless 0 > dt
+    dt = np.broadcast_to(np.asarray(dt_s, dtype=float), (len(objs),))[:, None]  # (NaN and -0.0 stay)
+    xy, vxy = ca_step(objs.xy, objs.vxy, objs.axy, dt)
+    return objs.with_(xy=xy, vxy=vxy, age_s=objs.age_s + np.maximum(dt[:, 0], 0.0))
+
+
+def ca_step(xy: np.ndarray, vxy: np.ndarray, axy: np.ndarray, dt) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (N, 2) m and velocities (N, 2) m/s after dt at constant acceleration:
+    p + v dt + a dt^2 / 2 and v + a dt, for dt a float64 scalar or an (N, 1) column of seconds
+    (dt^2 of a float64 column, numpy's square, is dt * dt: the same bits either way)."""
+    return xy + vxy * dt + 0.5 * axy * (dt * dt), vxy + axy * dt
 
 
 def trajectories_cv(objs: ObjectArray, horizon_s: float, step_s: float) -> np.ndarray:
