@@ -19,6 +19,7 @@ import heapq
 import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -79,8 +80,11 @@ class _Rsu:
     pipeline: RsuPipeline
     clock: object  # sim.clock.DriftingClock
     signer: Signer | None  # RunSpec.security: signs what it sends as the live RSU does
+    list_key: str  # its key expressions: object lists (in the run's wire), predictions, time queries
+    predictions_key: str
+    time_key: str
 
-    @property
+    @cached_property
     def xy(self) -> tuple[float, float]:
         return self.cfg.position.x, self.cfg.position.y
 
@@ -148,7 +152,8 @@ class OfflineRun:
     def _new_rsu_site(self, index: int, cfg: RsuCameraConfig) -> _Rsu:
         config = self.rsu_config.model_copy(update={"rsu_id": cfg.id})
         return _Rsu(index, cfg, make_source(config, self.site, self.start_ns), self._new_pipeline(cfg.id),
-                    config.clock(self.clock, self.start_ns), Signer(self.identities[cfg.id]) if self.trust else None)
+                    config.clock(self.clock, self.start_ns), Signer(self.identities[cfg.id]) if self.trust else None,
+                    list_key(self.spec.wire, cfg.id), keys.rsu_predictions(cfg.id), keys.rsu_time(cfg.id))
 
     def _new_pipeline(self, rsu_id: str) -> RsuPipeline:
         """A freshly started RSU (a restart loses its tracks and restarts its sequence numbers)."""
@@ -258,7 +263,7 @@ class OfflineRun:
         msg = rsu.pipeline.on_frame(frame.detections, capture, self._rsu_now(rsu))
         self._broadcast_list(rsu, msg)
         predictions = rsu.pipeline.predictions(self._rsu_now(rsu))
-        data = sign(encode(predictions), rsu.signer, predictions.header.publish_time_ns, keys.rsu_predictions(rsu.cfg.id))
+        data = sign(encode(predictions), rsu.signer, predictions.header.publish_time_ns, rsu.predictions_key)
         self._broadcast(rsu, data, self._obu_predictions)
         if rsu.pipeline.config.predict_ahead:
             self.queue.at(self.clock.t_ns + rsu.camera.upsample_offset_ns, self._rsu_upsample, rsu)
@@ -272,8 +277,7 @@ class OfflineRun:
         """An object list in the run's encoding (``spec.wire``: v2i, cpm or sdsm; an SDSM has none for no objects)."""
         data = encode_list(msg, self.spec.wire)
         if data is not None:
-            key = list_key(self.spec.wire, rsu.cfg.id)
-            self._broadcast(rsu, sign(data, rsu.signer, msg.header.publish_time_ns, key), self._obu_receive)
+            self._broadcast(rsu, sign(data, rsu.signer, msg.header.publish_time_ns, rsu.list_key), self._obu_receive)
 
     def _rsu_now(self, rsu: _Rsu) -> Stamp:
         """Now on the RSU's wall clock (offset, drift, steps) and its monotonic clock (the true one)."""
@@ -285,7 +289,7 @@ class OfflineRun:
         request = self._memo.decoded(data, TimeRequest, lambda: decode(data, TimeRequest))  # one per broadcast
         t2 = rsu.clock.now_ns()
         reply = answer_time_request(request, rsu.pipeline.config.rsu_id, t2, t2 + RSU_REPLY_NS)
-        data = sign(encode(reply), rsu.signer, reply.t3_ns, keys.rsu_time(rsu.cfg.id))
+        data = sign(encode(reply), rsu.signer, reply.t3_ns, rsu.time_key)
         self.queue.at(self.clock.t_ns + RSU_REPLY_NS, self._send, vehicle, rsu, "downlink", data, self._obu_time_reply)
 
     # --- link --------------------------------------------------------------------------
@@ -296,13 +300,14 @@ class OfflineRun:
 
     def _send(self, vehicle: _Vehicle, rsu: _Rsu, direction: str, data: bytes, deliver: Callable) -> None:
         """Through the pair's channel model at the current vehicle-RSU distance; duplicates arrive twice."""
-        if not self._up("link"):
+        windows = self._down["link"]
+        if windows and not self._up("link"):
             return
         channel = getattr(vehicle.links[rsu.index], direction)
         (x, y), (rsu_x, rsu_y) = self._ego_xy(vehicle), rsu.xy
         distance_m = float(np.hypot(x - rsu_x, y - rsu_y))
         # through _arrive (lost if the emulator dies meanwhile) only when the link has down windows
-        event = (self._arrive, deliver, vehicle, rsu, data) if self._down["link"] else (deliver, vehicle, rsu, data)
+        event = (self._arrive, deliver, vehicle, rsu, data) if windows else (deliver, vehicle, rsu, data)
         for arrival_ns in channel.transmit_all(self.clock.t_ns, len(data), distance_m=distance_m):
             self.queue.at(arrival_ns, *event)
 
@@ -323,7 +328,7 @@ class OfflineRun:
     # --- OBU side ----------------------------------------------------------------------
     def _obu_receive(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
         rsu_id = rsu.pipeline.config.rsu_id
-        payload = vehicle.security.open(data, list_key(self.spec.wire, rsu_id), self.clock.t_ns)
+        payload = vehicle.security.open(data, rsu.list_key, self.clock.t_ns)
         if payload is None:
             return
         try:  # memoised per wire bytes object: its payload is the same for every receiver
@@ -341,7 +346,7 @@ class OfflineRun:
         return decode_list(payload, self.spec.wire, rsu_id)
 
     def _obu_predictions(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
-        payload = vehicle.security.open(data, keys.rsu_predictions(rsu.cfg.id), self.clock.t_ns)
+        payload = vehicle.security.open(data, rsu.predictions_key, self.clock.t_ns)
         if payload is None:
             return
         try:
@@ -360,7 +365,7 @@ class OfflineRun:
                                 self._peer_time_request)
 
     def _obu_time_reply(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
-        payload = vehicle.security.open(data, keys.rsu_time(rsu.cfg.id), self.clock.t_ns, time_reply=True)
+        payload = vehicle.security.open(data, rsu.time_key, self.clock.t_ns, time_reply=True)
         if payload is not None:
             vehicle.obu.on_time_reply(decode(payload, TimeReply), self.clock.t_ns)
 

@@ -64,6 +64,24 @@ def _diagonal_covariances(variance: float, n: int) -> np.ndarray:
     return tile[:n].copy()
 
 
+_CONSTANTS: dict[int, np.ndarray] = {}  # value -> (K,) int64 of it, grown as needed
+
+
+def _constant_column(value: int, n: int) -> np.ndarray:
+    """(n,) int64 fresh copy of ``value``: ``np.full(n, value, dtype=np.int64)``, sliced from a kept column."""
+    column = _CONSTANTS.get(value)
+    if column is None or len(column) < n:
+        if len(_CONSTANTS) >= 64:
+            _CONSTANTS.clear()
+        column = _CONSTANTS[value] = np.full(max(n, 64), value, dtype=np.int64)
+    return column[:n].copy()
+
+
+def _confidence_clip(score: np.ndarray) -> np.ndarray:
+    """``np.clip(score, 0.05, 1.0)`` bit for bit (NaN stays NaN), as two ufuncs without its wrappers."""
+    return np.minimum(np.maximum(score, 0.05), 1.0)
+
+
 class Lidar:
     """On-board LiDAR + CenterPoint-like detector: detections in the ego's true base_link."""
 
@@ -72,10 +90,12 @@ class Lidar:
         self.rng = rng
         # (t_s, every actor's truth in the true base_link at t_s) of the last frame (scoring)
         self.last_truth: tuple[float, ObjectArray] | None = None
+        self._mount = np.array([[cfg.mount.x, cfg.mount.y]])  # (1, 2) m in base_link
+        self._mount.flags.writeable = False
 
     def origin(self, ego: Pose2D) -> np.ndarray:
         """Sensor position (2,) in map for the ego pose."""
-        return base_to_map_points(np.array([[self.cfg.mount.x, self.cfg.mount.y]]), ego)[0]
+        return base_to_map_points(self._mount, ego)[0]
 
     def visibility(self, world: World, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Per actor (N,): distance from the sensor (m) and visible fraction seen from it."""
@@ -108,14 +128,14 @@ class Lidar:
         lwh = np.maximum(truth.lwh + rng.normal(0.0, c.size_noise_std_m, (n, 3)), _MIN_SIZE_M)
         vxy = truth.vxy + rng.normal(0.0, c.velocity_noise_std_mps, (n, 2))
         # fewer returns on far or partly hidden objects -> lower score
-        confidence = np.clip(vis * (1.0 - 0.5 * dist / c.range_m), 0.05, 1.0)
+        confidence = _confidence_clip(vis * (1.0 - 0.5 * dist / c.range_m))
         keep = (dist <= c.range_m) & (vis >= c.min_visible_fraction) & detected
         k = int(np.count_nonzero(keep))  # the kept rows alone
         return ObjectArray(
-            ids=np.full(k, -1, dtype=np.int64), cls=truth.cls[keep], xy=xy[keep], z=z[keep], lwh=lwh[keep],
+            ids=_constant_column(-1, k), cls=truth.cls[keep], xy=xy[keep], z=z[keep], lwh=lwh[keep],
             yaw=yaw[keep], vxy=vxy[keep], cov_xy=_diagonal_covariances(c.position_noise_std_m**2, k),
             confidence=confidence[keep], cov_vxy=_diagonal_covariances(c.velocity_noise_std_mps**2, k),
-            sources=np.full(k, SOURCE_VEHICLE, dtype=np.int64),
+            sources=_constant_column(SOURCE_VEHICLE, k),
         )
 
 
@@ -198,11 +218,11 @@ class RsuCamera:
         keep = observable & detected
         k, lwh, sigma = int(np.count_nonzero(keep)), lwh[keep], sigma[keep]  # the kept rows alone
         out = ObjectArray(
-            ids=np.full(k, -1, dtype=np.int64), cls=truth.cls[keep], xy=xy[keep], z=lwh[:, 2] / 2.0, lwh=lwh,
+            ids=_constant_column(-1, k), cls=truth.cls[keep], xy=xy[keep], z=lwh[:, 2] / 2.0, lwh=lwh,
             yaw=yaw[keep], vxy=np.zeros((k, 2)), cov_xy=sigma[:, None, None] ** 2 * np.eye(2),
-            confidence=np.clip(1.0 - 0.5 * rng_m[keep] / c.range_m, 0.05, 1.0),
+            confidence=_confidence_clip(1.0 - 0.5 * rng_m[keep] / c.range_m),
             cov_vxy=_diagonal_covariances(UNKNOWN_VELOCITY_VAR, k),  # ObjectArray's default: no velocity measured
-            sources=np.full(k, SOURCE_RSU, dtype=np.int64),
+            sources=_constant_column(SOURCE_RSU, k),
         )
         return out, delay_s
 
