@@ -47,8 +47,11 @@ class Limits:
 
 
 class Admission:
-    def __init__(self, limits: Limits, rsus: RsuTable, rejected: Counter):
-        self.limits, self._rsus, self.rejected = limits, rsus, rejected
+    """``link_stats``: a stale list still tells its source's link monitor its delay (off for sources whose
+    link statistics nothing reads: the V2V peers)."""
+
+    def __init__(self, limits: Limits, rsus: RsuTable, rejected: Counter, link_stats: bool = True):
+        self.limits, self._rsus, self.rejected, self.link_stats = limits, rsus, rejected, link_stats
 
     def lists(self, header: ObjectListHeader, n_objects: int, receive_ns: int) -> RsuState | None:
         """The RSU's state if an object list with this header is admitted, else None (counted)."""
@@ -119,7 +122,7 @@ class Admission:
         max_age_ns = self.limits.paths_max_age_ns if paths else self.limits.list_max_age_ns
         if receive_ns - valid_ns <= max_age_ns + est.uncertainty_ns:
             return None
-        if not paths:
+        if not paths and self.link_stats:
             state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns),
                                      est.to_obu_ns(header.publish_time_ns), receive_ns)
         return "stale"

@@ -40,7 +40,8 @@ Fusion: a peer's lists are tracker estimates like an RSU's (covariance intersect
 another source's estimate shares the track, ``fusion.tracking``). Peers' cycles are not
 aligned with ours (each runs on its own LiDAR), so their lists are fused inter-frame in every
 cycle (newest of each peer, each list once, predicted to the cycle time), whatever mode the
-RSU data put the cycle in; the mode policy stays about RSUs.
+RSU data put the cycle in; the mode policy stays about RSUs. So no link statistics are kept per
+peer (an RSU's ``LinkMonitor`` serves the intra mode's wait and the metrics; nothing reads a peer's).
 """
 
 from __future__ import annotations
@@ -122,7 +123,7 @@ class PeerIntake:
         self.rejected = _Prefixed(rejected, "v2v_")
         self.poses = poses
         self.table = RsuTable({}, max_peers, round(config.rsu_expiry_s * 1e9), True, first_index=first_slot)
-        self._admission = Admission(config.limits(), self.table, self.rejected)
+        self._admission = Admission(config.limits(), self.table, self.rejected, link_stats=False)
         # peers are always fused inter-frame: place and consume their lists as in the adaptive mode
         self._inputs = ModeInputs(dataclasses.replace(config, fusion_mode="adaptive"), self.table)
         self._requests = TimeRequests(self.me)
@@ -192,8 +193,6 @@ class PeerIntake:
         state.frames.append(Received(header.capture_time_ns, header.valid_time_ns, header.seq, objects, receive_ns))
         state.accepted += 1
         state.last_receive_ns = receive_ns
-        if est is not None:
-            state.monitor.on_message(header.seq, capture_ns, est.to_obu_ns(header.publish_time_ns), receive_ns)
         while len(state.frames) > self._frames_kept:
             state.frames.popleft()
         return True

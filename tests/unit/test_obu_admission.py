@@ -139,6 +139,7 @@ def test_replays_are_duplicates_or_stale_and_a_restarted_rsu_is_accepted():
     p.on_rsu_message(genuine, t + 5_000 * MS)  # replayed 5 s later
     p.on_rsu_message(rsu_list(t - 150 * MS, [[5.0, -20.0]], seq=8), t + 5_000 * MS)  # unseen, 5 s old
     assert p.rejected["duplicate"] == 2 and p.rejected["stale"] == 1
+    assert p._rsus.get("rsu1").monitor.summary()["messages"] == 2  # the stale list still told its delay
     restarted = rsu_list(t + 5_000 * MS - 150 * MS, [[5.0, -20.0]], seq=0)  # seq starts again
     p.on_rsu_message(restarted, t + 5_000 * MS - 20 * MS)
     assert p.rejected["duplicate"] == 2 and cycle(p, t + 5_000 * MS).mode in ("intra", "inter")

@@ -234,3 +234,14 @@ def test_hostile_v2v_messages_never_raise_past_the_codec():
     a.on_detections(ObjectArray.empty(), T0)
     out = a.fuse(T0 + 10 * MS)  # fusing whatever was admitted does not raise either
     assert out.vehicle_id == "ego"
+
+
+def test_peer_lists_keep_no_link_statistics():
+    """A peer's lists are fused inter-frame only and nothing reads a peer's link statistics: none are
+    kept, of an accepted list or a stale one (refused and counted as before)."""
+    a, b, outs_a, _, _ = run_pair()
+    state = b.peers.table.get("car-a")
+    assert state.accepted > 0 and state.monitor.summary()["messages"] == 0
+    old = shared_list(outs_a[0]).model_copy(update={"seq": 999})  # unseen, captured at T0
+    assert not b.peers.on_list(old, "car-a", T0 + 5_000 * MS)
+    assert b.rejected["v2v_stale"] == 1 and state.monitor.summary()["messages"] == 0
