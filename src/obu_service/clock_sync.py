@@ -393,9 +393,10 @@ class ClockSync:
 
     def _count_disagreeing(self, outside: np.ndarray) -> None:
         """Count each exchange left out by the consensus once in outliers_rejected."""
-        oldest_ns = self._samples[0][0]
-        self._inconsistent = {s for s in self._inconsistent if s.t4_ns >= oldest_ns}  # forget what left the window
-        for i in np.flatnonzero(outside):
+        if self._inconsistent:  # forget what left the window
+            oldest_ns = self._samples[0][0]
+            self._inconsistent = {s for s in self._inconsistent if s.t4_ns >= oldest_ns}
+        for i in outside.nonzero()[0]:
             if self._samples[i][2] not in self._inconsistent:
                 self._inconsistent.add(self._samples[i][2])
                 self.outliers_rejected += 1
