@@ -315,6 +315,8 @@ class ObuPipeline:
     def _within_budget(self, frames: list[RsuFrame]) -> list[RsuFrame]:
         """The frames a cycle may fuse: at most max_rsu_objects_per_cycle objects in all, known
         RSUs first, then newer frames (the rest counted as ``rsu_objects_over_budget``)."""
+        if sum(len(frame.objects) for frame in frames) <= self.config.max_rsu_objects_per_cycle:
+            return frames  # all within the budget (the usual case): every frame kept, as the loop below keeps them
         known = {s.index for s in self._rsus if s.known}
         kept, total = [], 0
         for frame in sorted(frames, key=lambda f: (f.rsu_index not in known, -f.valid_ns)):
