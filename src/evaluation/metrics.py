@@ -18,7 +18,7 @@ import numpy as np
 
 from fusion.association import assign, center_distance_cost
 from fusion.frames import map_to_base
-from fusion.geometry import bev_iou_pair
+from fusion.geometry import iou_rows
 from fusion.objects import ObjectArray
 from fusion.wire import objects_from_states
 from schemas.messages import FusedObjectList, PredictionList
@@ -105,9 +105,22 @@ def _match_target_cost(cost_m: np.ndarray, truth_ids: np.ndarray, target_id: int
     return int(rows[0, 1]) if len(rows) else None
 
 
-def _bev_row(objs: ObjectArray, i: int) -> np.ndarray:
-    """(5,) ``bev_boxes`` row of object ``i`` alone: [x, y, length, width, yaw]."""
-    return np.array([*objs.xy[i].tolist(), *objs.lwh[i, :2].tolist(), objs.yaw.item(i)])
+def _bev_row(objs: ObjectArray, i: int) -> list[float]:
+    """``bev_boxes`` row of object ``i`` alone, as floats: [x, y, length, width, yaw]."""
+    return [*objs.xy[i].tolist(), *objs.lwh[i, :2].tolist(), objs.yaw.item(i)]
+
+
+def _paired_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(K,) ``fusion.geometry.bev_iou_pair(a[k], b[k])`` of box pairs a, b (K, 5), bit for bit: the same
+    skip test (|c_a - c_b| = sqrt(dx^2 + dy^2) not below the half diagonals' sum: 0, NaN too) and the
+    same ``iou_rows`` (row by row its own) on the rest, in one call."""
+    reach = 0.5 * (np.hypot(a[:, 2], a[:, 3]) + np.hypot(b[:, 2], b[:, 3]))
+    d = a[:, :2] - b[:, :2]
+    rows = np.flatnonzero(np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) < reach)
+    iou = np.zeros(len(a))
+    if len(rows):
+        iou[rows] = iou_rows(a[rows], b[rows])
+    return iou
 
 
 def _ranges_m(xy: np.ndarray) -> np.ndarray:
@@ -126,8 +139,8 @@ class CycleFrame:
     t_s: float
     truth: ObjectArray
     out: ObjectArray
-    # (truth row, output row) -> TargetTally's numbers of that pair: a function of this frame's
-    # arrays alone, kept so that the run's two tallies (all sources, vehicle only) score a pair once
+    # (truth row, output row) -> TargetTally's numbers of that pair (``pair_values``): a function of this
+    # frame's arrays alone, kept so that the run's two tallies (all sources, vehicle only) read a pair once
     _pair_values: dict = field(default_factory=dict, compare=False, repr=False)
     _truth_rows: dict = field(default_factory=dict, compare=False, repr=False)  # actor id -> its truth rows
 
@@ -145,18 +158,18 @@ class CycleFrame:
             rows = self._truth_rows[actor_id] = np.flatnonzero(self.truth.ids == actor_id)
         return rows
 
-    def pair_values(self, i: int, k: int) -> tuple[float, float, float, float]:
-        """BEV IoU, squared error |e|^2, NEES eps and ego distance |truth xy| (m) of truth row i
-        scored against output row k, e = out xy - truth xy (base_link)."""
+    def pair_values(self, i: int, k: int) -> tuple[float, list[float], tuple[float, float], list[float]]:
+        """Truth row i scored against output row k (base_link), as floats: the squared error |e|^2
+        (e = out xy - truth xy), the two BEV boxes [x, y, l, w, yaw] (truth's, then the output's: 10), e
+        and the output's position covariance (4, row-major). ``TargetTally`` derives the IoU and NEES."""
         values = self._pair_values.get((i, k))
         if values is None:
             truth, out = self.truth, self.out
             (tx, ty), (ox, oy) = truth.xy[i].tolist(), out.xy[k].tolist()
             ex, ey = ox - tx, oy - ty
             # |e|^2 = ex^2 + ey^2: np.sum(np.square(e)) of the two, one addition of the same squares
-            values = self._pair_values[i, k] = (
-                bev_iou_pair(_bev_row(truth, i), _bev_row(out, k)), ex * ex + ey * ey,
-                float(nees_values(np.array([[ex, ey]]), out.cov_xy[k][None])[0]), float(np.linalg.norm(truth.xy[i])))
+            values = self._pair_values[i, k] = (ex * ex + ey * ey, _bev_row(truth, i) + _bev_row(out, k), (ex, ey),
+                                                out.cov_xy[k].ravel().tolist())
         return values
 
     @classmethod
@@ -173,14 +186,23 @@ class CycleFrame:
 
 class TargetTally:
     """``world.target_id`` in a stream of outputs. Per cycle where it is detected: cycle time,
-    BEV IoU, squared error, NEES eps, ego distance and the output id (56 bytes), and for the run
-    report the output's position in base_link and its source class (17 bytes); scored in cycle order."""
+    BEV IoU, squared error, NEES eps, the truth's position (for the ego distance at the first
+    detection) and the output id (64 bytes), and for the run report the output's position in
+    base_link and its source class (17 bytes); scored in cycle order.
+
+    A detected cycle's IoU and NEES wait with the pair's boxes, error and covariance (144 bytes) until
+    ``PENDING`` cycles have gathered (or a score is asked for), then are computed for all of them at
+    once (``_paired_iou``, ``nees_values``: row by row the numbers of one pair alone)."""
+
+    PENDING = 64
 
     def __init__(self, target_id: int, sources_mask: int | None = None):
         self.target_id, self.sources_mask = target_id, sources_mask
-        self._cycle_ns, self._cols = array("q"), {k: array("d") for k in ("t_s", "iou", "sq_err", "eps", "dist")}
+        self._cycle_ns, self._cols = array("q"), {k: array("d") for k in ("t_s", "iou", "sq_err", "eps")}
         self._ids = array("q")
+        self._truth_xy = array("d")  # x, y interleaved (base_link, m)
         self._out_xy, self._sources = array("d"), array("B")  # x, y interleaved (base_link, m); source class
+        self._boxes, self._err, self._cov = array("d"), array("d"), array("d")  # pending: 10, 2 and 4 per cycle
 
     def add(self, frame: CycleFrame) -> None:
         truth, out = frame.truth, frame.out
@@ -193,28 +215,48 @@ class TargetTally:
             k = None if k is None else int(kept[k])  # the index in the whole output
         if k is None:
             return
-        iou, sq_err, eps, dist = frame.pair_values(rows.item(0), k)
+        i = rows.item(0)
+        sq_err, boxes, err, cov = frame.pair_values(i, k)
         self._cycle_ns.append(frame.cycle_ns)
         self._ids.append(out.ids.item(k))
+        self._truth_xy.extend(truth.xy[i].tolist())
         self._out_xy.extend(out.xy[k].tolist())
         mask = out.sources.item(k)  # bit 0 the own vehicle, bits 1..62 the RSU / peer slots
         self._sources.append((mask & 1) | (2 if mask >> 1 else 0))
-        cols = self._cols
-        for name, value in (("t_s", frame.t_s), ("iou", iou), ("sq_err", sq_err), ("eps", eps), ("dist", dist)):
-            cols[name].append(float(value))
+        self._cols["t_s"].append(frame.t_s)
+        self._cols["sq_err"].append(sq_err)
+        self._boxes.extend(boxes)
+        self._err.extend(err)
+        self._cov.extend(cov)
+        if len(self._err) >= 2 * self.PENDING:
+            self._score_pending()
+
+    def _score_pending(self) -> None:
+        """The IoU and NEES eps of the pending cycles, in their order."""
+        if not self._err:
+            return
+        boxes = np.array(self._boxes, dtype=float).reshape(-1, 2, 5)  # (K, 2, 5): truth, output
+        self._cols["iou"].extend(_paired_iou(boxes[:, 0], boxes[:, 1]).tolist())
+        errors, covariances = np.array(self._err, dtype=float).reshape(-1, 2), np.array(self._cov, dtype=float)
+        self._cols["eps"].extend(nees_values(errors, covariances.reshape(-1, 2, 2)).tolist())
+        for pending in (self._boxes, self._err, self._cov):
+            del pending[:]
 
     def score(self) -> TargetScore:
         """Mean IoU, RMSE = sqrt(mean |e|^2), NEES over the detected cycles; the first one's distance and time."""
+        self._score_pending()
         order = np.argsort(np.array(self._cycle_ns, dtype=np.int64), kind="stable")
         col = {k: np.array(v, dtype=float)[order] for k, v in self._cols.items()}
         consistency = nees_summary(col["eps"])
         detected = len(order)
         ids = np.array(self._ids, dtype=np.int64)[order]
+        # the ego distance |truth xy| of the first detection (np.linalg.norm of that (2,) row, as ever)
+        first_xy = np.array(self._truth_xy, dtype=float).reshape(-1, 2)[order[0]] if detected else None
         return TargetScore(
             detected_cycles=detected,
             mean_bev_iou=float(np.mean(col["iou"])) if detected else None,
             rmse_m=float(np.sqrt(np.mean(col["sq_err"]))) if detected else None,
-            first_detection_distance_m=float(col["dist"][0]) if detected else None,
+            first_detection_distance_m=float(np.linalg.norm(first_xy)) if detected else None,
             first_detection_time_s=float(col["t_s"][0]) if detected else None,
             nees_mean=consistency["mean"], nees_fraction_inside=consistency["fraction_inside"],
             track_ids=len(np.unique(ids)), id_switches=int(np.count_nonzero(np.diff(ids))),

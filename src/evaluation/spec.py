@@ -63,7 +63,7 @@ class RunRecord:
     the OBU = true clock). ``v2i eval`` and ``v2i demo`` feed it; ``build_report`` reads it.
 
     Nothing grows with the run but compact per-cycle numbers: per output 17 bytes
-    (``CycleLog``) and 10 bytes per predicted object in range (``CenterDistanceAp``), 48
+    (``CycleLog``) and 10 bytes per predicted object in range (``CenterDistanceAp``), 56
     bytes per cycle the target is detected (twice: fused and vehicle-only), 32 bytes per
     clock-offset sample; plus counts per track id for IDF1. For the run report
     (``evaluation.run_report``): 17 more bytes per cycle the target is detected (twice), and

@@ -92,13 +92,14 @@ def true_output(world: World, k: int, mode: str = "intra") -> FusedObjectList:
 
 
 def test_record_memory_per_output_is_a_few_hundred_bytes():
-    # Kept per output: 17 B cycle log, 10 B per object in range (AP), 2 x 48 B while the target
+    # Kept per output: 17 B cycle log, 10 B per object in range (AP), 2 x 56 B while the target
     # is detected (fused and vehicle-only). Keeping the messages, as the demo did, costs their
     # size (0.8 kB encoded here, several kB decoded) per output.
     world = World(load_scenario("red-light-runner"))
     warm = RunRecord(world, EVAL_EPOCH_NS, 40.0)
     for k in range(0, 200, 5):  # every code path once (lazy imports) before memory is traced
         warm.add_output(true_output(world, k))
+    warm.target.score()  # (its pending IoU and NEES too)
     tracemalloc.start()
     record = RunRecord(world, EVAL_EPOCH_NS, 40.0)
     for k in range(50):
@@ -107,12 +108,14 @@ def test_record_memory_per_output_is_a_few_hundred_bytes():
     before = tracemalloc.get_traced_memory()[0]
     for k in range(50, 350):  # 5-35 s: the target in range from 6 to 15 s, then the world stands still
         record.add_output(true_output(world, k))
+    for tally in (record.target, record.vehicle_target):  # its pending cycles (at most PENDING x 144 B) scored
+        tally.score()
     gc.collect()
     per_output_bytes = (tracemalloc.get_traced_memory()[0] - before) / 300
     tracemalloc.stop()
     assert record.target.score().detected_cycles > 50
     objects_in_range = max(len(true_output(world, k).objects) for k in (100, 349))
-    assert per_output_bytes < 17 + 10 * objects_in_range + 2 * 48 + 30, per_output_bytes  # 30: arrays' spare room
+    assert per_output_bytes < 17 + 10 * objects_in_range + 2 * 56 + 30, per_output_bytes  # 30: arrays' spare room
 
 
 def test_demo_scores_messages_from_its_queue_as_a_direct_feed_would():
@@ -193,7 +196,7 @@ def test_the_two_target_tallies_score_a_shared_frame_as_their_own_frames():
     """RunRecord's tallies (all sources, vehicle only) share each CycleFrame and its pair numbers
     (CycleFrame.pair_values): scores and series equal those of tallies each given a fresh frame,
     and a pair's numbers equal the ones computed from the arrays (IoU: bev_iou_matrix)."""
-    from evaluation.metrics import CycleFrame, TargetTally
+    from evaluation.metrics import CycleFrame, TargetTally, _paired_iou
     from fusion.geometry import bev_iou_matrix
 
     def box(objs, r):
@@ -210,10 +213,12 @@ def test_the_two_target_tallies_score_a_shared_frame_as_their_own_frames():
             tally.add(frame)
         for tally in alone:
             tally.add(CycleFrame.of(world, out, EVAL_EPOCH_NS))
-        for (i, j), (iou, sq_err, eps, dist) in frame._pair_values.items():
-            assert iou == bev_iou_matrix(box(frame.truth, i), box(frame.out, j))[0, 0]
+        for (i, j), (sq_err, boxes, err, cov) in frame._pair_values.items():
+            pair = np.array(boxes).reshape(2, 5)
+            assert _paired_iou(pair[:1], pair[1:])[0] == bev_iou_matrix(box(frame.truth, i), box(frame.out, j))[0, 0]
             assert sq_err == np.sum(np.square(frame.out.xy[j] - frame.truth.xy[i]))
-            assert dist == np.linalg.norm(frame.truth.xy[i])
+            assert np.array(err).tobytes() == (frame.out.xy[j] - frame.truth.xy[i]).tobytes()
+            assert np.array(cov).tobytes() == frame.out.cov_xy[j].tobytes()
             pairs += 1
     assert pairs > 50
     for a, b in zip(shared, alone):
