@@ -110,6 +110,9 @@ class _Cycle:
     mode: str
     fuse_by_ns: int
     intra_slots: dict[str, int]  # RSU id -> expected capture (OBU ns) of the frame intra waits for
+    # what on_detections and ready asked ModeInputs at capture_ns, each with the inputs' version then
+    # (ObuPipeline._inputs_version): fuse asks again only if an input came in since
+    asked: dict[str, tuple[int, object]] = field(default_factory=dict)
 
 
 class ObuPipeline:
@@ -134,6 +137,7 @@ class ObuPipeline:
         self._admission = Admission(config.limits(), self._rsus, self.rejected)
         self._inputs = ModeInputs(config, self._rsus)
         self._cycle: _Cycle | None = None
+        self._inputs_version = 0  # counts the inputs that can change what ModeInputs answers (see _sync)
         self._last_publish_ns: int | None = None
         self._out_seq = 0
         self.peers: PeerIntake | None = None  # V2V peers (``enable_v2v``)
@@ -157,7 +161,9 @@ class ObuPipeline:
         self._sync(t4_ns)
 
     def _sync(self, now_ns: int) -> None:
-        """Feed the replies whose hold has passed to their RSU's clock filter."""
+        """Feed the replies whose hold has passed to their RSU's clock filter. Every input that can change
+        what ModeInputs answers (a time reply, an RSU list or paths, admission, expiry) passes here first."""
+        self._inputs_version += 1
         for rsu_id, sample in self._requests.ripe(now_ns):
             state = self._rsus.admit(rsu_id, sample.t4_ns)
             if isinstance(state, str):
@@ -250,10 +256,10 @@ class ObuPipeline:
             interval_ns = round((self.config.output_interval_ms - self.config.compute_margin_ms) * 1e6)
             fuse_by_ns = min(fuse_by_ns, max(self._last_publish_ns + interval_ns, capture_ns))
         slots = self._inputs.intra_slots(capture_ns, fuse_by_ns)
-        feasible = Feasible(intra=bool(slots), inter=bool(self._inputs.inter(capture_ns)[0]),
-                            planning=bool(self._inputs.planning(capture_ns)))
-        mode = self._policy.select(feasible)
+        inter, planning = self._inputs.inter(capture_ns), self._inputs.planning(capture_ns)
+        mode = self._policy.select(Feasible(intra=bool(slots), inter=bool(inter[0]), planning=bool(planning)))
         self._cycle = _Cycle(capture_ns, own, mode, fuse_by_ns, slots if mode == "intra" else {})
+        self._cycle.asked.update(inter=(self._inputs_version, inter), planning=(self._inputs_version, planning))
         return fuse_by_ns
 
     @property
@@ -268,7 +274,9 @@ class ObuPipeline:
             return False
         if cycle.mode != "intra" or not cycle.intra_slots or now_ns >= cycle.fuse_by_ns:
             return True
-        return bool(self._inputs.intra(cycle.capture_ns, cycle.intra_slots)[0])
+        intra = self._inputs.intra(cycle.capture_ns, cycle.intra_slots)
+        cycle.asked["intra"] = (self._inputs_version, intra)
+        return bool(intra[0])
 
     def reject(self, reason: str, count: int = 1) -> None:
         """Count inputs the shell refused (a codec error's reason, an intake refusal)."""
@@ -283,9 +291,9 @@ class ObuPipeline:
         self._cycle = None
         t_c = cycle.capture_ns
         ego = self.poses.at(t_c) or Pose2D(0.0, 0.0, 0.0)
-        intra = self._inputs.intra(t_c, cycle.intra_slots)
-        inter = self._inputs.inter(t_c)
-        planning = self._inputs.planning(t_c)
+        intra = self._asked(cycle, "intra", lambda: self._inputs.intra(t_c, cycle.intra_slots))
+        inter = self._asked(cycle, "inter", lambda: self._inputs.inter(t_c))
+        planning = self._asked(cycle, "planning", lambda: self._inputs.planning(t_c))
         mode = self._policy.resolve(cycle.mode, Feasible(bool(intra[0]), bool(inter[0]), bool(planning)))
         if self.config.fusion == "vehicle-only":
             mode = "vehicle-only"
@@ -311,6 +319,13 @@ class ObuPipeline:
             vehicle_id=self.config.vehicle_id, seq=self._out_seq, cycle_time_ns=t_c, publish_time_ns=now_ns,
             fusion=self.config.fusion, mode=mode, ego_x=ego.x, ego_y=ego.y, ego_yaw=ego.yaw, objects=objects,
         )
+
+    def _asked(self, cycle: _Cycle, what: str, ask):
+        """ModeInputs' answer about the cycle (``ask()``), as on_detections or ready had it if no input came in
+        since (the same state and time: the same answer, and the same side effects: its placements kept,
+        ``last_age_ms`` the same value)."""
+        version, answer = cycle.asked.get(what, (None, None))
+        return answer if version == self._inputs_version else ask()
 
     def _within_budget(self, frames: list[RsuFrame]) -> list[RsuFrame]:
         """The frames a cycle may fuse: at most max_rsu_objects_per_cycle objects in all, known
