@@ -20,6 +20,8 @@ from . import bitpack, columns, object_wire, path_points
 from .columns import _YAW_HALF_TURN as YAW_HALF_TURN  # yaw codes live in [-1800, 1800)
 from .quantize import YAW_RAD
 
+_SCALED, _INDEXED = object_wire._SCALED, object_wire._INDEXED  # a column's flag bits in its width byte
+
 
 @helper
 def _packed(fields: np.ndarray, widths: np.ndarray, row_bytes: int) -> np.ndarray:
@@ -137,14 +139,14 @@ def _position(values: np.ndarray, u: int, v: int) -> int:
 
 @kernel(IN_I2, IN_I2, IN_I2)
 def pack_section(codes: np.ndarray, sorted_codes: np.ndarray, code_table: np.ndarray) -> tuple:
-    """``object_wire.pack_objects``' section parts of (N, K) valid ``codes`` (N >= 1; ``sorted_codes``:
+    """``object_wire.pack_objects``' section entries of (N, K) valid ``codes`` (N >= 1; ``sorted_codes``:
     each column sorted, ``np.sort(codes, axis=0)``: numpy's sort beats a compiled one past a few tens
-    of rows, and numba's sort compiles in ~4 s), per present
-    column f (required, or some code not the default; F of them): its column, ref (the smallest code),
-    scale (gcd of the codes' distances to ref, 1 for none), width, and for an indexed column its
-    table's size U and item size b (0: not indexed); the packed rows (N * row_bytes,) uint8; the
-    tables' gaps, narrowed (``value_tables``). A column's fields are ``(code - ref) / scale``, width
-    the bits of the largest; it is indexed (fields: their positions among the U distinct fields,
+    of rows, and numba's sort compiles in ~4 s): the present mask (required columns, and those with
+    some code not the default; F of them), per present column its flag byte (width w, | 0x40 scaled, |
+    0x80 indexed) and ref (the smallest code), the scales above 1 (gcd of the codes' distances to ref),
+    the packed rows (N * row_bytes,) uint8, and per indexed column its table's size U and item size b,
+    then the tables' gaps, narrowed (``value_tables``). A column's fields are ``(code - ref) / scale``,
+    width the bits of the largest; it is indexed (fields: their positions among the U distinct fields,
     width: bits(U - 1)) iff n (w - bits(U - 1)) > 8 U b, b the item size of the largest gap between
     neighbouring distinct fields (``value_tables.index_columns``' rule)."""
     n, k = codes.shape
@@ -190,7 +192,20 @@ def pack_section(codes: np.ndarray, sorted_codes: np.ndarray, code_table: np.nda
                     blob[used + byte] = (step >> (8 * byte)) & 0xFF
                 used += b
         c += 1
-    return cols, ref, scale, width, distinct, itemsize, _packed(fields, width, (width.sum() + 7) // 8), blob[:used]
+    mask, flags, n_scaled, n_indexed = 0, np.zeros(f, np.uint8), 0, 0
+    for c in range(f):  # the section's entries (object_wire's layout): mask, flag bytes, kept scales and tables
+        mask |= 1 << cols[c]
+        flags[c] = width[c] | (_SCALED if scale[c] > 1 else 0) | (_INDEXED if distinct[c] else 0)
+        n_scaled += scale[c] > 1
+        n_indexed += distinct[c] > 0
+    scales, counts, sizes = np.zeros(n_scaled, np.int64), np.zeros(n_indexed, np.int64), np.zeros(n_indexed, np.uint8)
+    n_scaled, n_indexed = 0, 0
+    for c in range(f):
+        if scale[c] > 1:
+            scales[n_scaled], n_scaled = scale[c], n_scaled + 1
+        if distinct[c]:
+            counts[n_indexed], sizes[n_indexed], n_indexed = distinct[c], itemsize[c], n_indexed + 1
+    return mask, flags, ref, scales, _packed(fields, width, (width.sum() + 7) // 8), counts, sizes, blob[:used]
 
 
 @kernel(IN_F2, IN_F2, I64)

@@ -68,14 +68,10 @@ def pack_objects(objects: ObjectColumns) -> list[Any]:
 
 def _section_compiled(codes: np.ndarray, layout) -> list[Any]:
     """``pack_objects``' section by ``schemas.bit_rows.pack_section`` (the same bytes: test_object_wire_paths)."""
-    cols, ref, scale, widths, counts, sizes, rows, blob = _compiled_section(codes, np.sort(codes, axis=0),
-                                                                           layout.code_table)
-    scales, sizes = scale.tolist(), sizes.tolist()
-    flags = bytes(w | (_SCALED if s > 1 else 0) | (_INDEXED if b else 0) for w, s, b in zip(widths.tolist(), scales, sizes))
-    tables = [[u for u in counts.tolist() if u], bytes(b for b in sizes if b), blob.tobytes()] if any(sizes) \
-        else list(value_tables.NO_TABLES)
-    return [len(codes), sum(1 << j for j in cols.tolist()), flags, ref.tolist(), [s for s in scales if s > 1],
-            rows.tobytes(), tables]
+    mask, flags, ref, scales, rows, counts, sizes, blob = _compiled_section(codes, np.sort(codes, axis=0),
+                                                                            layout.code_table)
+    tables = [counts.tolist(), sizes.tobytes(), blob.tobytes()] if len(counts) else list(value_tables.NO_TABLES)
+    return [len(codes), mask, flags.tobytes(), ref.tolist(), scales.tolist(), rows.tobytes(), tables]
 
 
 def object_count(section: Any) -> int:
