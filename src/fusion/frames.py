@@ -117,26 +117,27 @@ def rotation(yaw: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
-@dataclass(frozen=True, eq=False)
 class _Axes:
     """What the frame changes of one ego pose share (read-only): rot = R(yaw) (2, 2), origin = t (2,) m and
-    rot^T @ 0 (2,), the zero velocity offset as map_to_base's matrix product forms it (its zeros' signs)."""
+    ``zero_offset()``, rot^T @ 0 (2,), the zero velocity offset as map_to_base's matrix product forms it (its
+    zeros' signs), formed on first use."""
 
-    rot: np.ndarray
-    origin: np.ndarray
-    zero_offset: np.ndarray
+    __slots__ = ("rot", "origin", "_zero_offset")
 
-    @classmethod
-    def of(cls, ego: Pose2D) -> _Axes:
-        rot, origin = rotation(ego.yaw), np.array([ego.x, ego.y], dtype=float)
-        axes = cls(rot, origin, rot.T @ np.zeros(2))
-        for column in (rot, origin, axes.zero_offset):
-            column.flags.writeable = False
-        return axes
+    def __init__(self, ego: Pose2D):
+        self.rot, self.origin = rotation(ego.yaw), np.array([ego.x, ego.y], dtype=float)
+        self.rot.flags.writeable = self.origin.flags.writeable = False
+        self._zero_offset: np.ndarray | None = None
+
+    def zero_offset(self) -> np.ndarray:
+        if self._zero_offset is None:
+            self._zero_offset = self.rot.T @ np.zeros(2)
+            self._zero_offset.flags.writeable = False
+        return self._zero_offset
 
 
 # a pose's axes, kept for the poses last asked about (a cycle changes frames with one ego pose several times)
-_axes = IdentityMemo(_Axes.of, capacity=8)
+_axes = IdentityMemo(_Axes, capacity=8)
 
 
 def map_to_base_points(xy: np.ndarray, ego: Pose2D) -> np.ndarray:
@@ -263,7 +264,7 @@ def map_to_base(objs: ObjectArray, ego: Pose2D, relative_velocity: bool = False,
     if pose_uncertainty:
         objs = add_pose_uncertainty(objs, ego, ego_v_map)
     xy = (np.asarray(objs.xy, dtype=float) - axes.origin) @ axes.rot  # map_to_base_points
-    return _transform(objs, rot, xy, -ego.yaw, axes.zero_offset if ego_v_map is None else rot @ ego_v_map)
+    return _transform(objs, rot, xy, -ego.yaw, axes.zero_offset() if ego_v_map is None else rot @ ego_v_map)
 
 
 def base_to_map(objs: ObjectArray, ego: Pose2D, pose_uncertainty: bool = True) -> ObjectArray:
