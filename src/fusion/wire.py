@@ -23,8 +23,8 @@ from .jit import B1, F64, I64, IN_F1, IN_F2, IN_F3, IN_I1, OUT_F2, OUT_I1, helpe
 from .objects import ObjectArray
 
 _C = COLUMN
-_COV = [_C["cov_xx"], _C["cov_xy"], _C["cov_xy"], _C["cov_yy"]]  # row-major [[xx, xy], [xy, yy]]
-_VCOV = [_C["cov_vxx"], _C["cov_vxy"], _C["cov_vxy"], _C["cov_vyy"]]
+_COV = np.array([_C["cov_xx"], _C["cov_xy"], _C["cov_xy"], _C["cov_yy"]])  # row-major [[xx, xy], [xy, yy]]
+_VCOV = np.array([_C["cov_vxx"], _C["cov_vxy"], _C["cov_vxy"], _C["cov_vyy"]])
 
 
 def objects_from_states(states: ObjectColumns | Sequence[ObjectState]) -> ObjectArray:
@@ -40,11 +40,17 @@ def objects_from_states(states: ObjectColumns | Sequence[ObjectState]) -> Object
         ids=codes[:, _C["id"]].copy(), cls=codes[:, _C["cls"]].copy(), xy=v[:, _C["x"]:_C["y"] + 1].copy(),
         z=v[:, _C["z"]].copy(), lwh=v[:, _C["length"]:_C["height"] + 1].copy(), yaw=v[:, _C["yaw"]].copy(),
         vxy=v[:, _C["vx"]:_C["vy"] + 1].copy(), axy=v[:, _C["ax"]:_C["ay"] + 1].copy(),
-        yaw_rate=v[:, _C["yaw_rate"]].copy(), cov_xy=v[:, _COV].reshape(n, 2, 2),
-        cov_vxy=v[:, _VCOV].reshape(n, 2, 2), confidence=v[:, _C["confidence"]].copy(),
+        yaw_rate=v[:, _C["yaw_rate"]].copy(), cov_xy=_gathered(v, _COV).reshape(n, 2, 2),
+        cov_vxy=_gathered(v, _VCOV).reshape(n, 2, 2), confidence=v[:, _C["confidence"]].copy(),
         age_s=v[:, _C["age_s"]].copy(),
         sources=codes[:, _C["sources"]].copy() if cols.fused else np.zeros(n, np.int64),
     )
+
+
+def _gathered(v: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """``v[:, columns]`` (N, K) of a C-ordered table, its very values and memory order (the column-major
+    order numpy's advanced indexing gives here, kept for the products that read it), by one ``take``."""
+    return v.T.take(columns, axis=0).T
 
 
 def read_only(objs: ObjectArray) -> ObjectArray:

@@ -174,3 +174,16 @@ def test_wire_columns_compiled_pass_equals_the_numpy_table():
                 np.testing.assert_array_equal(cols.codes, states_from_objects(fit_to_wire(other, 1000)[0], fused).codes,
                                               strict=True)
     assert wire._compiled_table(np.empty((3, wire._W_WIDTH)), hostile_objects(rng, 3), 2, True) == wire._NOT_FILLED
+
+
+def test_gathered_covariances_are_advanced_indexing_values_and_layout():
+    """objects_from_states' covariance columns (``_gathered``): the values and the strides of v[:, columns]."""
+    from fusion import wire
+
+    rng = np.random.default_rng(4)
+    for n in (0, 1, 2, 6, 41):
+        v = rng.normal(size=(n, 23))
+        for columns in (wire._COV, wire._VCOV):
+            got, want = wire._gathered(v, columns), v[:, list(columns)]
+            assert got.shape == want.shape and got.strides == want.strides and got.tobytes() == want.tobytes()
+            assert got.reshape(n, 2, 2).strides == want.reshape(n, 2, 2).strides
