@@ -40,6 +40,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -288,6 +289,20 @@ def _step_times(horizon_s: float, step_s: float) -> np.ndarray:
     return times
 
 
+class _Kinematics(NamedTuple):
+    """The columns ``LanePredictor._frenet`` reads of some objects' rows."""
+
+    xy: np.ndarray
+    vxy: np.ndarray
+    axy: np.ndarray
+    yaw: np.ndarray
+
+    @classmethod
+    def take(cls, objs: ObjectArray, rows: np.ndarray) -> _Kinematics:
+        return cls(objs.xy.take(rows, axis=0), objs.vxy.take(rows, axis=0), objs.axy.take(rows, axis=0),
+                   objs.yaw.take(rows))
+
+
 class LanePredictor:
     """Lane-following predictor over one map (see the module docstring for the model)."""
 
@@ -340,18 +355,23 @@ class LanePredictor:
     def _frenet(self, objs: ObjectArray, chain: np.ndarray, s0, d0, t: np.ndarray,
                 motion: bool = True) -> dict[str, np.ndarray]:
         """Predicted xy (P, T, 2), yaw (P, T), and with ``motion`` vxy (P, T, 2) and lane heading
-        change dpsi (P, T), for objects (already restricted to P rows) on ``chain`` (P,) at times t (P, T) s."""
+        change dpsi (P, T), for objects (already restricted to P rows: any holder of their xy, vxy, axy and yaw
+        columns) on ``chain`` (P,) at times t (P, T) s."""
         cfg = self.config
+        n = len(s0)
         _, psi0 = chain_frame(self._chains, chain, s0[:, None])
         t0 = np.stack([np.cos(psi0[:, 0]), np.sin(psi0[:, 0])], axis=1)
         v_s = np.sum(objs.vxy * t0, axis=1)  # v_s = v . t(s0)
-        a_s = np.sum(objs.axy * t0, axis=1) if cfg.use_acceleration else np.zeros(len(objs))
-        tt = np.concatenate([np.zeros((len(objs), 1)), t], axis=1)  # column 0: t = 0
+        a_s = np.sum(objs.axy * t0, axis=1) if cfg.use_acceleration else np.zeros(n)
+        tt = np.concatenate([np.zeros((n, 1)), t], axis=1)  # column 0: t = 0
         s, v = propagate_along(s0, v_s, a_s, tt, cfg.use_acceleration)
-        d = d0[:, None] * np.exp(-tt / cfg.lateral_decay_s)  # d(t) = d0 exp(-t / tau_d)
+        if cfg.lateral_decay_s == np.inf:  # exp(-t / inf) = exp(-0) = 1 and d0 * 1 = d0: the column, broadcast
+            d = d0[:, None]
+        else:
+            d = d0[:, None] * np.exp(-tt / cfg.lateral_decay_s)  # d(t) = d0 exp(-t / tau_d)
         c, psi = chain_frame(self._chains, chain, s)
-        tan = np.stack([np.cos(psi), np.sin(psi)], axis=-1)
-        normal = np.stack([-tan[..., 1], tan[..., 0]], axis=-1)
+        cos_psi, sin_psi = np.cos(psi), np.sin(psi)
+        normal = np.stack([-sin_psi, cos_psi], axis=-1)
         f = c + d[..., None] * normal  # F(s, d) = c(s) + d n(s)
         offset = wrap_angle(objs.yaw - psi[:, 0])[:, None] * np.exp(-tt / cfg.heading_decay_s)
         out = {
@@ -359,6 +379,7 @@ class LanePredictor:
             "yaw": wrap_angle(psi + offset)[:, 1:],  # yaw = psi(s) + (yaw0 - psi(s0)) exp(-t / tau_psi)
         }
         if motion:
+            tan = np.stack([cos_psi, sin_psi], axis=-1)
             out["vxy"] = (v[..., None] * tan + (-d / cfg.lateral_decay_s)[..., None] * normal)[:, 1:]
             out["dpsi"] = wrap_angle(psi - psi[:, :1])[:, 1:]
         return out
@@ -398,7 +419,8 @@ class LanePredictor:
         chains = np.where((lane >= 0)[:, None], self._chains.of_lane[np.maximum(lane, 0), :h], -1)  # (N, H)
         obj, hyp = np.nonzero(chains >= 0)
         if len(obj):
-            p = self._frenet(objs.take(obj), chains[obj, hyp], s0[obj], d0[obj],
+            rows = objs if h == 1 and len(obj) == n else _Kinematics.take(objs, obj)  # (h = 1: obj = rows matched)
+            p = self._frenet(rows, chains[obj, hyp], s0[obj], d0[obj],
                              np.broadcast_to(times, (len(obj), len(times))), motion=False)
             traj[obj, hyp] = np.concatenate([p["xy"], p["yaw"][..., None]], axis=2)
             if h > 1:  # a matched object's missing hypotheses repeat its first (with one, the first is itself)
