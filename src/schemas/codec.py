@@ -232,19 +232,28 @@ def open_body(data: bytes, model: type[Message], max_bytes: int = MAX_MESSAGE_BY
     A receiver can look at the header (``header_of``) and the object count
     (``object_count``) before paying for ``from_body``.
     """
-    if not isinstance(data, (bytes, bytearray, memoryview)):
+    if type(data) is bytes:  # (the usual case: its length is its size)
+        size = len(data)
+    elif isinstance(data, (bytes, bytearray, memoryview)):
+        size = memoryview(data).nbytes
+    else:
         raise TypeError(f"decode() takes bytes, got {type(data).__name__}")
-    size = memoryview(data).nbytes
     if size > max_bytes:
         raise MessageTooLarge(f"{model.TYPE} payload is {size} bytes, limit is {max_bytes}")
     body = _open_envelope(_unpack(data, size, max_bytes), model)
+    _check_stated_version(body, model)
     header = body.get("header")
-    for holder in (body, header if isinstance(header, dict) else {}):
-        stated = holder.get("schema_version", SCHEMA_VERSION)
-        if type(stated) is int and stated != SCHEMA_VERSION:
-            raise SchemaVersionError(f"{model.TYPE} states schema version {stated}, this build speaks "
-                                     f"version {SCHEMA_VERSION}")
+    if isinstance(header, dict):
+        _check_stated_version(header, model)
     return body
+
+
+def _check_stated_version(holder: dict[str, Any], model: type[Message]) -> None:
+    """SchemaVersionError when a body or header states an integer schema version not this build's."""
+    stated = holder.get("schema_version", SCHEMA_VERSION)
+    if type(stated) is int and stated != SCHEMA_VERSION:
+        raise SchemaVersionError(f"{model.TYPE} states schema version {stated}, this build speaks "
+                                 f"version {SCHEMA_VERSION}")
 
 
 def header_of(body: dict[str, Any]) -> ObjectListHeader:
