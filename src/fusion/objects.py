@@ -16,7 +16,7 @@ def _col(n: int, width: int | None = None, dtype=np.float64) -> np.ndarray:
     return np.zeros((n,) if width is None else (n, width), dtype=dtype)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class ObjectArray:
     """N objects in one frame at one time.
 
@@ -41,6 +41,16 @@ class ObjectArray:
     cov_vxy: np.ndarray = field(default=None)  # type: ignore[assignment]
     age_s: np.ndarray = field(default=None)  # type: ignore[assignment]
     sources: np.ndarray = field(default=None)  # type: ignore[assignment]
+
+    def __init__(self, ids: np.ndarray, cls: np.ndarray, xy: np.ndarray, z: np.ndarray, lwh: np.ndarray,
+                 yaw: np.ndarray, vxy: np.ndarray, axy: np.ndarray = None, yaw_rate: np.ndarray = None,
+                 cov_xy: np.ndarray = None, confidence: np.ndarray = None, cov_vxy: np.ndarray = None,
+                 age_s: np.ndarray = None, sources: np.ndarray = None) -> None:
+        """The dataclass's own __init__ (the fields in order, None: a default column), its frozen fields set
+        into __dict__ at once instead of one object.__setattr__ each (~2.5 -> ~1 us for 14 columns)."""
+        self.__dict__.update(ids=ids, cls=cls, xy=xy, z=z, lwh=lwh, yaw=yaw, vxy=vxy, axy=axy, yaw_rate=yaw_rate,
+                             cov_xy=cov_xy, confidence=confidence, cov_vxy=cov_vxy, age_s=age_s, sources=sources)
+        self.__post_init__()
 
     def __post_init__(self) -> None:
         columns = self.__dict__  # the frozen dataclass's fields, read and defaulted in place

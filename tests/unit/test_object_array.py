@@ -86,3 +86,24 @@ def test_take_refuses_what_indexing_refuses():
         objs.take(np.array([True, False]))  # a mask of another length
     with pytest.raises(IndexError):
         objs.take([4])
+
+
+def test_init_takes_the_dataclass_fields_in_order():
+    """ObjectArray's own __init__ (the frozen fields set at once) has the dataclass's signature: every field in
+    order, the optional ones defaulting to None; positional and keyword calls give the same columns."""
+    import dataclasses
+    import inspect
+
+    fields = dataclasses.fields(ObjectArray)
+    params = list(inspect.signature(ObjectArray.__init__).parameters.values())[1:]
+    assert [p.name for p in params] == [f.name for f in fields]
+    assert [p.default for p in params] == [inspect.Parameter.empty if f.default is dataclasses.MISSING else f.default
+                                           for f in fields]
+    rng = np.random.default_rng(0)
+    columns = [rng.normal(size=(3, *shape)) for shape in ((), (), (2,), (), (3,), (), (2,), (2,), (), (2, 2), (), (2, 2),
+                                                         (), ())]
+    by_position, by_name = ObjectArray(*columns), ObjectArray(**{f.name: c for f, c in zip(fields, columns)})
+    assert list(by_position.__dict__) == [f.name for f in fields]
+    for f, c in zip(fields, columns):
+        assert getattr(by_position, f.name) is c and getattr(by_name, f.name) is c
+    assert dataclasses.replace(by_name, z=columns[0]).z is columns[0]
