@@ -421,25 +421,28 @@ class MotTally:
         self.matches += len(pairs)
         if len(pairs) < len(oids) and len(pairs) < len(hids):  # else no pair is left for step (2)
             paired = {i for i, _ in pairs}
-            if any(free_h[j] and i not in paired for i, j in gated):  # else step (2) assigns nothing
-                pairs += self._assign_rest(oids, hids, dist, pairs, free_h)
+            free = [(i, j) for i, j in gated if free_h[j] and i not in paired]
+            if free:  # else step (2) assigns nothing
+                pairs += self._assign_rest(oids, hids, dist, free)
         total_m = 0  # summed in pair order, as before
         for i, j in pairs:
             total_m += dist.item(i, j)
         self._distance_sum_m += float(total_m)
         return pairs
 
-    def _assign_rest(self, oids: list[int], hids: list[int], dist: np.ndarray, pairs: list[tuple[int, int]],
-                     free_h: list[bool]) -> list[tuple[int, int]]:
-        """Step (2): the free truths and hypotheses assigned (``_lsa_nan`` of the distances without the
-        pairs of step (1)); counts matches and switches."""
-        rest = dist.copy()
-        if pairs:
-            rest[[i for i, _ in pairs], :] = np.nan
-        taken = [j for j, free in enumerate(free_h) if not free]
-        if taken:
-            rest[:, taken] = np.nan
-        assigned = _lsa_nan(rest)
+    def _assign_rest(self, oids: list[int], hids: list[int], dist: np.ndarray, free: list[tuple[int, int]]
+                     ) -> list[tuple[int, int]]:
+        """Step (2): the free truths and hypotheses assigned; counts matches and switches. ``free``: the
+        gated pairs (i, j) of a free truth and a free hypothesis, the finite entries of the distances
+        without the pairs of step (1), so this is ``_lsa_nan`` of those distances: cost d_ij there and
+        l = 2 r c + 1 elsewhere (r = min(N, M), c = max |d_ij| + 1), the pairs on d_ij kept."""
+        values = [dist.item(i, j) for i, j in free]
+        large = 2 * min(dist.shape) * (max(abs(v) for v in values) + 1) + 1
+        cost = np.full(dist.shape, large)
+        cost[[i for i, _ in free], [j for _, j in free]] = values
+        rows, cols = linear_sum_assignment(cost)
+        kept = set(free)
+        assigned = [(i, j) for i, j in zip(rows.tolist(), cols.tolist()) if (i, j) in kept]
         for i, j in assigned:
             o, h = oids[i], hids[j]
             if o in self._last and self._last[o] != h:
