@@ -40,7 +40,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import NamedTuple
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -289,18 +289,9 @@ def _step_times(horizon_s: float, step_s: float) -> np.ndarray:
     return times
 
 
-class _Kinematics(NamedTuple):
-    """The columns ``LanePredictor._frenet`` reads of some objects' rows."""
-
-    xy: np.ndarray
-    vxy: np.ndarray
-    axy: np.ndarray
-    yaw: np.ndarray
-
-    @classmethod
-    def take(cls, objs: ObjectArray, rows: np.ndarray) -> _Kinematics:
-        return cls(objs.xy.take(rows, axis=0), objs.vxy.take(rows, axis=0), objs.axy.take(rows, axis=0),
-                   objs.yaw.take(rows))
+def _kinematics(objs: ObjectArray, rows: np.ndarray) -> SimpleNamespace:
+    """The columns ``LanePredictor._frenet`` reads (xy, vxy, axy, yaw) of some objects' rows."""
+    return SimpleNamespace(**{name: getattr(objs, name).take(rows, axis=0) for name in ("xy", "vxy", "axy", "yaw")})
 
 
 class LanePredictor:
@@ -419,7 +410,7 @@ class LanePredictor:
         chains = np.where((lane >= 0)[:, None], self._chains.of_lane[np.maximum(lane, 0), :h], -1)  # (N, H)
         obj, hyp = np.nonzero(chains >= 0)
         if len(obj):
-            rows = objs if h == 1 and len(obj) == n else _Kinematics.take(objs, obj)  # (h = 1: obj = rows matched)
+            rows = objs if h == 1 and len(obj) == n else _kinematics(objs, obj)  # (h = 1: obj = rows matched)
             p = self._frenet(rows, chains[obj, hyp], s0[obj], d0[obj],
                              np.broadcast_to(times, (len(obj), len(times))), motion=False)
             traj[obj, hyp] = np.concatenate([p["xy"], p["yaw"][..., None]], axis=2)
