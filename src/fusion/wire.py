@@ -19,7 +19,7 @@ from schemas.columns import COLUMN, ObjectColumns
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, ObjectState
 
 from .frames import wrap_angle
-from .jit import B1, F64, I64, IN_F1, IN_F2, IN_F3, IN_I1, OUT_F2, OUT_I1, helper, kernel
+from .jit import F64, I64, IN_F1, IN_I1, OUT_F2, OUT_I1, kernel
 from .objects import ObjectArray
 
 _C = COLUMN
@@ -123,27 +123,22 @@ def wire_columns(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS, fused: boo
     lower off-diagonal (which fit_to_wire checks and clips as well; the slot ``sources`` takes
     once they are counted) is checked and clipped in place of the (N, 22) ``_LAYOUT`` table and
     handed to ``ObjectColumns.from_values`` (no fitted ObjectArray, no second table). The same
-    values in the same columns: the same codes. The usual case (every row kept, float64 and int64
-    columns) fills, fits and finishes the table in one compiled pass (``_wire_rows``)."""
+    values in the same columns: the same codes."""
     n = len(objs)
     table = np.empty((n, _W_WIDTH))
-    width = len(COLUMN) if fused else len(COLUMN) - 1
-    changed = _compiled_table(table, objs, max_objects, fused)
-    if changed >= 0:
-        return ObjectColumns.from_values(table[:, :width], fused), +Counter(clipped=changed)
     real = table[:, _W_REAL]  # (N, 22) view: x .. age_s, cov_xy[1, 0], cov_vxy[1, 0]
-    if changed == _NOT_FILLED:
-        for name, start, w in _W_SPANS:
-            real[:, start:start + w] = getattr(objs, name).reshape(n, w)
-        _put_cov(real, _W_COV[0], objs.cov_xy, _W_YX)
-        _put_cov(real, _W_VCOV[0], objs.cov_vxy, _W_YX + 1)
-        fitted = _fit_in_place(real, objs, max_objects, _W_LO, _W_HI, _W_YAW)
-        if fitted is not None:
-            ids, changed = fitted
-            table[:, _C["id"]], table[:, _C["cls"]] = ids, objs.cls
-            if fused:
-                table[:, _C["sources"]] = wire_sources(objs.sources)  # over cov_xy[1, 0], counted
-            return ObjectColumns.from_values(table[:, :width], fused), +Counter(clipped=changed)
+    for name, start, width in _W_SPANS:
+        real[:, start:start + width] = getattr(objs, name).reshape(n, width)
+    _put_cov(real, _W_COV[0], objs.cov_xy, _W_YX)
+    _put_cov(real, _W_VCOV[0], objs.cov_vxy, _W_YX + 1)
+    fitted = _fit_in_place(real, objs, max_objects, _W_LO, _W_HI, _W_YAW)
+    if fitted is not None:
+        ids, changed = fitted
+        table[:, _C["id"]], table[:, _C["cls"]] = ids, objs.cls
+        if fused:
+            table[:, _C["sources"]] = wire_sources(objs.sources)  # over cov_xy[1, 0], counted
+        return ObjectColumns.from_values(table[:, :len(COLUMN) if fused else len(COLUMN) - 1], fused), \
+            +Counter(clipped=changed)
     keep, counts = _kept_rows(real, objs.xy, max_objects)
     rows = keep if len(keep) < n else slice(None)  # every row kept (the usual case): views, no copies
     table, old_ids = table[rows], objs.ids[rows]
@@ -155,77 +150,7 @@ def wire_columns(objs: ObjectArray, max_objects: int = m.MAX_OBJECTS, fused: boo
     table[:, _C["id"]], table[:, _C["cls"]] = ids, objs.cls[rows]
     if fused:
         table[:, _C["sources"]] = wire_sources(objs.sources[rows])  # over cov_xy[1, 0], counted above
-    return ObjectColumns.from_values(table[:, :width], fused), +counts
-
-
-_NOT_FILLED = -2  # _wire_rows: the table untouched (a column of another dtype or row count, or too many rows)
-
-
-def _compiled_table(table: np.ndarray, objs: ObjectArray, max_objects: int, fused: bool) -> int:
-    """``_wire_rows`` of objs into table (N, 24): rows changed by the fit (the table finished), -1 (filled, not
-    fitted: the general path), or _NOT_FILLED (a column the kernel does not take, or more than max_objects rows)."""
-    if len(objs) > max_objects:
-        return _NOT_FILLED
-    c = objs.__dict__
-    try:
-        return _wire_rows(table, c["xy"], c["z"], c["lwh"], c["yaw"], c["vxy"], c["axy"], c["yaw_rate"], c["cov_xy"],
-                          c["cov_vxy"], c["confidence"], c["age_s"], c["ids"], c["cls"], c["sources"], fused, _W_LO,
-                          _W_HI, m.POSITION_MAX_M)
-    except TypeError:  # a column of another dtype or dimension (numba matches none of its argument types)
-        return _NOT_FILLED
-
-
-# wire_columns' table columns (compile-time constants of _wire_rows): the wire's (COLUMN), then each covariance's
-# lower off-diagonal (cov_xy[1, 0] where a fused list's sources go once it is counted, then cov_vxy[1, 0])
-_ID, _CLS, _X0, _SRC = _C["id"], _C["cls"], _C["x"], _C["sources"]
-_XY, _Z, _LWH, _YAWC, _VXY, _AXY = _C["x"], _C["z"], _C["length"], _C["yaw"], _C["vx"], _C["ax"]
-_YAW_RATE, _CONF, _AGE, _COV_AT, _VCOV_AT = _C["yaw_rate"], _C["confidence"], _C["age_s"], _C["cov_xx"], _C["cov_vxx"]
-_COV_YX, _VCOV_YX = _C["age_s"] + 1, _C["age_s"] + 2
-
-
-@kernel(OUT_F2, IN_F2, IN_F1, IN_F2, IN_F1, IN_F2, IN_F2, IN_F1, IN_F3, IN_F3, IN_F1, IN_F1, IN_I1, IN_I1, IN_I1, B1,
-        IN_F1, IN_F1, F64)
-def _wire_rows(table, xy, z, lwh, yaw, vxy, axy, yaw_rate, cov_xy, cov_vxy, confidence, age_s, ids, cls, sources,
-               fused, lo, hi, position_max_m):
-    """wire_columns' usual case in one pass: the columns copied into table (N, 24) as its numpy fill does (the
-    real columns x .. age_s, cov_xy[1, 0], cov_vxy[1, 0]), fitted as ``_fit_real`` (-1 when it declines: the
-    table filled, unfitted), then ids mod 2^32, cls and, if ``fused``, ``wire_sources`` of sources written
-    (as floats, as numpy's assignment converts them); returns the rows changed. _NOT_FILLED (table untouched)
-    when a column's shape does not fit N rows."""
-    n = table.shape[0]
-    if table.shape[1] != _W_WIDTH:
-        return _NOT_FILLED
-    for column in (z, yaw, yaw_rate, confidence, age_s):
-        if column.shape[0] != n:
-            return _NOT_FILLED
-    for column in (xy, vxy, axy):
-        if column.shape[0] != n or column.shape[1] != 2:
-            return _NOT_FILLED
-    for column in (cov_xy, cov_vxy):
-        if column.shape[0] != n or column.shape[1] != 2 or column.shape[2] != 2:
-            return _NOT_FILLED
-    if lwh.shape[0] != n or lwh.shape[1] != 3 or ids.shape[0] != n or cls.shape[0] != n or sources.shape[0] != n:
-        return _NOT_FILLED
-    for i in range(n):
-        table[i, _XY], table[i, _XY + 1], table[i, _Z] = xy[i, 0], xy[i, 1], z[i]
-        table[i, _LWH], table[i, _LWH + 1], table[i, _LWH + 2] = lwh[i, 0], lwh[i, 1], lwh[i, 2]
-        table[i, _YAWC], table[i, _VXY], table[i, _VXY + 1] = yaw[i], vxy[i, 0], vxy[i, 1]
-        table[i, _AXY], table[i, _AXY + 1], table[i, _YAW_RATE] = axy[i, 0], axy[i, 1], yaw_rate[i]
-        table[i, _CONF], table[i, _AGE] = confidence[i], age_s[i]
-        table[i, _COV_AT], table[i, _COV_AT + 1], table[i, _COV_AT + 2] = cov_xy[i, 0, 0], cov_xy[i, 0, 1], cov_xy[i, 1, 1]
-        table[i, _VCOV_AT], table[i, _VCOV_AT + 1] = cov_vxy[i, 0, 0], cov_vxy[i, 0, 1]
-        table[i, _VCOV_AT + 2] = cov_vxy[i, 1, 1]
-        table[i, _COV_YX], table[i, _VCOV_YX] = cov_xy[i, 1, 0], cov_vxy[i, 1, 0]
-    wire_ids = np.empty(n, np.int64)
-    changed = _fit_real(table[:, _X0:], ids, wire_ids, lo, hi, _W_YAW, position_max_m)
-    if changed < 0:
-        return -1
-    for i in range(n):
-        table[i, _ID], table[i, _CLS] = wire_ids[i], cls[i]
-        if fused:  # wire_sources: bit 0 stays, any other bit becomes SOURCE_RSU
-            s = sources[i]
-            table[i, _SRC] = (s & SOURCE_VEHICLE) | (SOURCE_RSU if (s & ~SOURCE_VEHICLE) != 0 else 0)
-    return changed
+    return ObjectColumns.from_values(table[:, :len(COLUMN) if fused else len(COLUMN) - 1], fused), +counts
 
 
 def _fit_in_place(real: np.ndarray, objs: ObjectArray, max_objects: int, lo: np.ndarray, hi: np.ndarray,
@@ -241,13 +166,6 @@ def _fit_in_place(real: np.ndarray, objs: ObjectArray, max_objects: int, lo: np.
 
 @kernel(OUT_F2, IN_I1, OUT_I1, IN_F1, IN_F1, I64, F64)
 def _fit_rows(real: np.ndarray, ids: np.ndarray, wire_ids: np.ndarray, lo: np.ndarray, hi: np.ndarray, yaw: int,
-              position_max_m: float) -> int:
-    """``_fit_real`` (fit_to_wire's and wire_columns' usual case)."""
-    return _fit_real(real, ids, wire_ids, lo, hi, yaw, position_max_m)
-
-
-@helper
-def _fit_real(real: np.ndarray, ids: np.ndarray, wire_ids: np.ndarray, lo: np.ndarray, hi: np.ndarray, yaw: int,
               position_max_m: float) -> int:
     """wire_columns' usual case, in place: -1 (``real`` untouched) unless every value of ``real`` (N, M)
     is finite and every position (columns 0, 1) within +-position_max_m; then each value clipped to

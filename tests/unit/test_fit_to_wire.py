@@ -138,44 +138,6 @@ def test_every_row_kept_fast_path_equals_the_reference():
         assert cols_counts == counts and np.array_equal(cols.codes, states_from_objects(fitted, True).codes)
 
 
-def test_wire_columns_compiled_pass_equals_the_numpy_table():
-    """wire_columns' one compiled pass (``_wire_rows``: fill, fit, ids, cls, sources) gives the codes and counts of
-    fit_to_wire then states_from_objects, and the very table of the numpy fill and ``_fit_rows``; a column the kernel
-    does not take (int32 classes, float32 positions) goes the numpy way to the same codes."""
-    from fusion import wire
-
-    rng = np.random.default_rng(21)
-    for n in (0, 1, 7, 60):
-        objs = hostile_objects(rng, n)
-        objs = objs.with_(**{name: np.nan_to_num(getattr(objs, name), nan=0.5, posinf=2.0, neginf=-2.0)
-                             for name in ("xy", "z", "lwh", "yaw", "vxy", "axy", "yaw_rate", "cov_xy", "cov_vxy",
-                                          "confidence", "age_s")})
-        objs = objs.with_(xy=np.clip(objs.xy, -m.POSITION_MAX_M, m.POSITION_MAX_M),
-                          sources=rng.integers(0, 2**62, n) >> rng.integers(0, 63, n))  # every bit
-        fitted, counts = fit_to_wire(objs, 1000)
-        for fused in (False, True):
-            table = np.empty((n, wire._W_WIDTH))
-            assert wire._compiled_table(table, objs, 1000, fused) == counts["clipped"]
-            want = np.empty((n, wire._W_WIDTH))  # the numpy fill and fit, as wire_columns did before the pass
-            real = want[:, wire._W_REAL]
-            for name, start, width in wire._W_SPANS:
-                real[:, start:start + width] = getattr(objs, name).reshape(n, width)
-            wire._put_cov(real, wire._W_COV[0], objs.cov_xy, wire._W_YX)
-            wire._put_cov(real, wire._W_VCOV[0], objs.cov_vxy, wire._W_YX + 1)
-            ids, _ = wire._fit_in_place(real, objs, 1000, wire._W_LO, wire._W_HI, wire._W_YAW)
-            want[:, 0], want[:, 1] = ids, objs.cls
-            if fused:
-                want[:, wire._SRC] = wire.wire_sources(objs.sources)
-            width = want.shape[1] - (1 if fused else 2)
-            assert table[:, :width].tobytes() == want[:, :width].tobytes()
-            for other in (objs, objs.with_(cls=objs.cls.astype(np.int32)), objs.with_(xy=objs.xy.astype(np.float32))):
-                cols, got = wire_columns(other, 1000, fused)
-                assert got == counts or other.xy.dtype == np.float32
-                np.testing.assert_array_equal(cols.codes, states_from_objects(fit_to_wire(other, 1000)[0], fused).codes,
-                                              strict=True)
-    assert wire._compiled_table(np.empty((3, wire._W_WIDTH)), hostile_objects(rng, 3), 2, True) == wire._NOT_FILLED
-
-
 def test_gathered_covariances_are_advanced_indexing_values_and_layout():
     """objects_from_states' covariance columns (``_gathered``): the values and the strides of v[:, columns]."""
     from fusion import wire
