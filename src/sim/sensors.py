@@ -7,8 +7,6 @@ order before any selection, so one actor's visibility never shifts another actor
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from fusion.frames import Pose2D, PoseUncertainty, base_to_map_points, map_to_base, wrap_angle
@@ -243,20 +241,17 @@ class Localization:
         self.rng = rng
         self._sigma = np.array([cfg.x_std_m, cfg.y_std_m, cfg.yaw_std_rad])
         self.uncertainty = PoseUncertainty.from_stds(cfg.x_std_m, cfg.y_std_m, cfg.yaw_std_rad, cfg.correlation_time_s)
-        self._error: list[float] | None = None
+        self._error: np.ndarray | None = None
         self._t_s: float | None = None
 
-    def _next_error(self, t_s: float) -> list[float]:
-        """The error [x, y, yaw] (m, m, rad) at t_s, as floats: e = a e_prev + sqrt(1 - a^2) w element by
-        element (the array expression's operations; sqrt correctly rounded in both)."""
-        w = (self.rng.normal(0.0, 1.0, 3) * self._sigma).tolist()
+    def _next_error(self, t_s: float) -> np.ndarray:
+        w = self.rng.normal(0.0, 1.0, 3) * self._sigma
         tau = self.cfg.correlation_time_s
         if self._error is None or tau <= 0:
             self._error = w
         else:
             a = float(np.exp(-abs(t_s - self._t_s) / tau))
-            s = math.sqrt(1.0 - a * a)
-            self._error = [a * e + s * v for e, v in zip(self._error, w)]
+            self._error = a * self._error + np.sqrt(1.0 - a * a) * w
         self._t_s = t_s
         return self._error
 
@@ -264,8 +259,5 @@ class Localization:
         """Noisy ego pose in map at t_s (s) with its stated uncertainty; velocity passed through unchanged."""
         true = world.ego_at(t_s)
         dx, dy, dyaw = self._next_error(t_s)
-        # x, y as numpy floats (the array's elements they were); yaw = wrap_angle(yaw + e), Python's float % being
-        # numpy's remainder
-        return Pose2D(x=np.float64(true.x + dx), y=np.float64(true.y + dy),
-                      yaw=(true.yaw + dyaw + math.pi) % (2.0 * math.pi) - math.pi, vx=true.vx, vy=true.vy,
+        return Pose2D(x=true.x + dx, y=true.y + dy, yaw=float(wrap_angle(true.yaw + dyaw)), vx=true.vx, vy=true.vy,
                       uncertainty=self.uncertainty)
