@@ -64,19 +64,6 @@ def _diagonal_covariances(variance: float, n: int) -> np.ndarray:
     return tile[:n].copy()
 
 
-_CONSTANTS: dict[int, np.ndarray] = {}  # value -> (K,) int64 of it, grown as needed
-
-
-def _constant_column(value: int, n: int) -> np.ndarray:
-    """(n,) int64 fresh copy of ``value``: ``np.full(n, value, dtype=np.int64)``, sliced from a kept column."""
-    column = _CONSTANTS.get(value)
-    if column is None or len(column) < n:
-        if len(_CONSTANTS) >= 64:
-            _CONSTANTS.clear()
-        column = _CONSTANTS[value] = np.full(max(n, 64), value, dtype=np.int64)
-    return column[:n].copy()
-
-
 def _confidence_clip(score: np.ndarray) -> np.ndarray:
     """``np.clip(score, 0.05, 1.0)`` bit for bit (NaN stays NaN), as two ufuncs without its wrappers."""
     return np.minimum(np.maximum(score, 0.05), 1.0)
@@ -132,10 +119,10 @@ class Lidar:
         keep = (dist <= c.range_m) & (vis >= c.min_visible_fraction) & detected
         k = int(np.count_nonzero(keep))  # the kept rows alone
         return ObjectArray(
-            ids=_constant_column(-1, k), cls=truth.cls[keep], xy=xy[keep], z=z[keep], lwh=lwh[keep],
+            ids=np.full(k, -1, dtype=np.int64), cls=truth.cls[keep], xy=xy[keep], z=z[keep], lwh=lwh[keep],
             yaw=yaw[keep], vxy=vxy[keep], cov_xy=_diagonal_covariances(c.position_noise_std_m**2, k),
             confidence=confidence[keep], cov_vxy=_diagonal_covariances(c.velocity_noise_std_mps**2, k),
-            sources=_constant_column(SOURCE_VEHICLE, k),
+            sources=np.full(k, SOURCE_VEHICLE, dtype=np.int64),
         )
 
 
@@ -218,11 +205,11 @@ class RsuCamera:
         keep = observable & detected
         k, lwh, sigma = int(np.count_nonzero(keep)), lwh[keep], sigma[keep]  # the kept rows alone
         out = ObjectArray(
-            ids=_constant_column(-1, k), cls=truth.cls[keep], xy=xy[keep], z=lwh[:, 2] / 2.0, lwh=lwh,
+            ids=np.full(k, -1, dtype=np.int64), cls=truth.cls[keep], xy=xy[keep], z=lwh[:, 2] / 2.0, lwh=lwh,
             yaw=yaw[keep], vxy=np.zeros((k, 2)), cov_xy=sigma[:, None, None] ** 2 * np.eye(2),
             confidence=_confidence_clip(1.0 - 0.5 * rng_m[keep] / c.range_m),
             cov_vxy=_diagonal_covariances(UNKNOWN_VELOCITY_VAR, k),  # ObjectArray's default: no velocity measured
-            sources=_constant_column(SOURCE_RSU, k),
+            sources=np.full(k, SOURCE_RSU, dtype=np.int64),
         )
         return out, delay_s
 

@@ -4,7 +4,7 @@ import numpy as np
 
 from fusion.frames import Pose2D, base_to_map_points
 from sim.scenario import load_scenario
-from sim.sensors import Lidar, _confidence_clip, _constant_column
+from sim.sensors import Lidar, _confidence_clip
 
 
 def test_confidence_clip_equals_np_clip():
@@ -13,15 +13,6 @@ def test_confidence_clip_equals_np_clip():
                                                            np.nextafter(0.05, 0.0), np.nextafter(1.0, 2.0), 5e-324]])
     for part in (score, score[:0], score[:1]):
         assert _confidence_clip(part).tobytes() == np.clip(part, 0.05, 1.0).tobytes()
-
-
-def test_constant_column_equals_np_full_and_is_a_fresh_copy():
-    for value in (-1, 1, 2):
-        for n in (0, 1, 5, 64, 65, 300, 3):
-            got = _constant_column(value, n)
-            assert got.dtype == np.int64 and got.tobytes() == np.full(n, value, dtype=np.int64).tobytes()
-            got[:] = 7  # a caller may write its column: the next one is untouched
-            assert (_constant_column(value, n) == value).all()
 
 
 def test_lidar_origin_equals_the_mount_point_moved_to_map():
