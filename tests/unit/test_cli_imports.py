@@ -52,3 +52,12 @@ def _options(parser, name: str) -> list[tuple]:
 def test_a_command_parsed_alone_has_the_options_of_the_full_parser(name):
     assert _options(build_parser([name]), name) == _options(build_parser(), name)
     assert len(_options(build_parser([name]), name)) > 1  # more than --help
+
+
+def test_the_services_import_no_image_library_for_their_simulated_sources():
+    """OpenCV and ONNX Runtime load only for an image source (``--source camera|video``): not at every RSU and
+    OBU start (OpenCV alone is ~15 ms of an RSU's start-up, whose target is ready within 1 s)."""
+    code = ("import sys\nimport rsu_service.node, obu_service.node\n"
+            "print('LOADED', sorted(m for m in ('cv2', 'onnxruntime') if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert ast.literal_eval(out.rsplit("LOADED ", 1)[1]) == []
