@@ -120,6 +120,13 @@ class ObjectArray:
 _TILES: dict[float, np.ndarray] = {}  # variance -> (K, 2, 2) var I_2, K grown as needed
 
 
+def read_only(objs: ObjectArray) -> ObjectArray:
+    """``objs`` with every column made read-only (in place): for objects several holders share."""
+    for column in objs.__dict__.values():
+        column.flags.writeable = False
+    return objs
+
+
 def _diagonal_covariances(variance: float, n: int) -> np.ndarray:
     """(n, 2, 2) fresh copies of var I_2: ``np.tile(np.eye(2) * var, (n, 1, 1))`` (~4 us), copied from a slice
     of a kept tile (~0.5 us)."""

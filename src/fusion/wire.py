@@ -53,13 +53,6 @@ def _gathered(v: np.ndarray, columns: np.ndarray) -> np.ndarray:
     return v.T.take(columns, axis=0).T
 
 
-def read_only(objs: ObjectArray) -> ObjectArray:
-    """``objs`` with every column made read-only (in place): for objects several holders share."""
-    for column in objs.__dict__.values():
-        column.flags.writeable = False
-    return objs
-
-
 def wire_sources(masks: np.ndarray) -> np.ndarray:
     """The wire's one-byte sources (K,) of K int64 source bitmasks of the OBU's tracker: bit 0
     (own vehicle) stays SOURCE_VEHICLE, any of bits 1..62 (RSU / peer slots) becomes SOURCE_RSU."""

@@ -54,10 +54,10 @@ from pydantic import ValidationError
 
 from fusion.frames import Pose2D, base_to_map
 from fusion.identity_memo import IdentityMemo
-from fusion.objects import ObjectArray
+from fusion.objects import ObjectArray, read_only
 from fusion.pose_history import PoseHistory
 from fusion.tracking import slot_source
-from fusion.wire import objects_from_states, read_only
+from fusion.wire import objects_from_states
 from schemas.columns import ObjectColumns
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObjectListHeader, TimeReply, TimeRequest
 

@@ -31,10 +31,10 @@ import numpy as np
 from fusion.frames import Pose2D, map_to_base
 from fusion.identity_memo import IdentityMemo
 from fusion.merger import iou_merge
-from fusion.objects import ObjectArray
+from fusion.objects import ObjectArray, read_only
 from fusion.pose_history import PoseHistory
 from fusion.tracking import SOURCE_BITS, slot_source
-from fusion.wire import objects_from_states, read_only, wire_columns
+from fusion.wire import objects_from_states, wire_columns
 from schemas.messages import (MAX_OBJECTS, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics,
                               PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
 

@@ -25,7 +25,7 @@ import numpy as np
 from fusion.frames import Pose2D
 from fusion.identity_memo import IdentityMemo
 from fusion.jit import IN_F1, IN_F2, IN_F3, IN_I1, kernel
-from fusion.objects import ObjectArray
+from fusion.objects import ObjectArray, read_only
 
 from .scenario import Building, Scenario, Trajectory
 
@@ -262,9 +262,6 @@ def _building_arrays(buildings: list[Building]) -> tuple[np.ndarray, tuple[np.nd
     return np.asarray(boxes, dtype=float).reshape(-1, 5), polygons
 
 
-_STATIC_COLUMNS = ("ids", "cls", "z", "lwh", "yaw_rate", "cov_xy", "confidence", "cov_vxy", "age_s", "sources")
-
-
 class World:
     """Ground truth of a scenario from one vehicle (module docstring). Ids are stable across views."""
 
@@ -318,9 +315,7 @@ class World:
         key = present.tobytes()
         static = self._static_present.get(key)
         if static is None:
-            static = self._static_present[key] = self._static.take(present)
-            for name in _STATIC_COLUMNS:
-                getattr(static, name).flags.writeable = False
+            static = self._static_present[key] = read_only(self._static.take(present))
         return static
 
     def _static_truth(self) -> ObjectArray:
@@ -332,9 +327,7 @@ class World:
             lwh=self.lwh.copy(), yaw=np.zeros(n), vxy=np.zeros((n, 2)), cov_xy=np.zeros((n, 2, 2)),
             confidence=np.ones(n), sources=np.zeros(n, dtype=np.int64),
         )
-        for name in _STATIC_COLUMNS:
-            getattr(out, name).flags.writeable = False  # shared by every state: never written
-        return out
+        return read_only(out)  # shared by every state (actors_at replaces the kinematics): never written
 
     def positions_of(self, ids: np.ndarray, t_s: float) -> np.ndarray:
         """(K, 2) map positions (m) at t_s of the bodies ``ids`` (K,): actors present then, or 0 for the ego."""

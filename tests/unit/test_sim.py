@@ -487,6 +487,11 @@ def test_actors_at_adds_the_kinematics_to_read_only_static_columns(name):
     first, second = untimed.actors_at(1.0), untimed.actors_at(2.0)
     assert first.ids is second.ids and not first.ids.flags.writeable
     assert first.xy is not second.xy and first.xy.flags.writeable
+    # every column of the shared static truth is read-only (fusion.objects.read_only), whichever ObjectArray has
+    for world in (untimed, World(load_scenario("two-rsu-corridor"))):
+        world.actors_at(3.7)
+        for static in (world._static, *world._static_present.values()):
+            assert not any(column.flags.writeable for column in static.__dict__.values())
 
 
 def test_compiled_states_refuse_a_time_per_body_of_another_count():
