@@ -221,18 +221,10 @@ def add_pose_uncertainty(objs: ObjectArray, ego: Pose2D, vel_offset: np.ndarray 
     """
     if ego.uncertainty is None or not len(objs):
         return objs
-    cov_xy, cov_vxy = pose_covariances(objs.xy, objs.vxy, ego, vel_offset)
-    return objs.with_(cov_xy=objs.cov_xy + cov_xy, cov_vxy=objs.cov_vxy + cov_vxy)
-
-
-def pose_covariances(xy_m: np.ndarray, vxy: np.ndarray, ego: Pose2D,
-                     vel_offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """What ``add_pose_uncertainty`` adds to objects at xy_m (N, 2) m moving at vxy (N, 2) m/s (map axes):
-    J_m Sigma J_m^T (N, 2, 2) m^2 and sigma_yaw^2 (S v)(S v)^T (N, 2, 2) m^2/s^2, v = vxy - vel_offset;
-    ego.uncertainty must be set."""
     sigma = ego.uncertainty.cov
-    sv = (vxy if vel_offset is None else vxy - vel_offset) @ _S.T  # (N, 2) S v
-    return pose_cov_map(xy_m, ego, sigma), sigma[2, 2] * sv[:, :, None] * sv[:, None, :]
+    sv = (objs.vxy - (0.0 if vel_offset is None else vel_offset)) @ _S.T  # (N, 2) S v
+    return objs.with_(cov_xy=objs.cov_xy + pose_cov_map(objs.xy, ego, sigma),
+                      cov_vxy=objs.cov_vxy + sigma[2, 2] * sv[:, :, None] * sv[:, None, :])
 
 
 def _transform(objs: ObjectArray, rot: np.ndarray, xy: np.ndarray, dyaw: float,

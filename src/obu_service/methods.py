@@ -37,9 +37,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusion.ego_map_tracker import EgoMapTracker
-from fusion.frames import Pose2D, add_pose_uncertainty, base_to_map, map_to_base, pose_covariances
+from fusion.frames import Pose2D, add_pose_uncertainty, base_to_map, map_to_base
 from fusion.merger import iou_merge
-from fusion.motion import ca_step, predict_ca
+from fusion.motion import predict_ca
 from fusion.nms import nms_fuse
 from fusion.objects import ObjectArray
 from fusion.oosm import OosmTracker
@@ -122,20 +122,12 @@ class KalmanFusion:
         self._ego_map.ego = ego
         if self.use_own:
             self._update(base_to_map(own, ego, pose_uncertainty=False), t_s, own.sources)
-        frames = sorted(fresh, key=lambda f: f.valid_ns) if self.use_rsu else []
-        for frame, rsu in zip(frames, self._measurements(frames, cycle_ns, ego)):
+        for frame in sorted(fresh, key=lambda f: f.valid_ns) if self.use_rsu else ():
+            # oosm: a measurement at its own time, re-filtered into the past; else moved to the cycle
             at_ns = frame.valid_ns if self.compensation == "oosm" else cycle_ns
+            rsu = add_pose_uncertainty(self._as_measurement(frame, at_ns), ego)
             self._update(rsu, self._t(at_ns), slot_source(frame.rsu_index), estimates=True)
         return map_to_base(self._tracks(t_s), ego, pose_uncertainty=False)
-
-    def _measurements(self, frames: list[RsuFrame], cycle_ns: int, ego: Pose2D) -> list[ObjectArray]:
-        """Each frame's objects as the tracker takes them: ``add_pose_uncertainty(_as_measurement(...))``, at
-        their own time (oosm: re-filtered into the past), else moved to the cycle; under constant-acceleration
-        compensation (``predict``, ``track-predict``) the frames' rows in one pass (``_moved_together``)."""
-        if len(frames) > 1 and self.motion is predict_ca and self.compensation in ("predict", "track-predict"):
-            return _moved_together(frames, cycle_ns, ego)
-        oosm = self.compensation == "oosm"
-        return [add_pose_uncertainty(self._as_measurement(f, f.valid_ns if oosm else cycle_ns), ego) for f in frames]
 
     def _as_measurement(self, frame: RsuFrame, cycle_ns: int) -> ObjectArray:
         # R = C + dt^2 C_v: moving the estimate by v dt adds the velocity's uncertainty
@@ -156,30 +148,6 @@ class KalmanFusion:
 
     def _t(self, t_ns: int) -> float:
         return (t_ns - self._ref_ns) * 1e-9
-
-
-def _moved_together(frames: list[RsuFrame], cycle_ns: int, ego: Pose2D) -> list[ObjectArray]:
-    """``add_pose_uncertainty(_as_measurement(frame, cycle_ns), ego)`` of each frame with ``predict_ca``
-    compensation, over the K frames' N rows at once (one set of numpy calls instead of one per frame): each
-    row's dt (N, 1) and dt^2 (N, 1, 1) repeated from its frame's, the same operations row by row (elementwise,
-    and one product per row or 2x2 matrix), so the same values. age_s is left as received (the tracker reads
-    no detection's age)."""
-    parts = [f.objects for f in frames]
-    counts = [len(p) for p in parts]
-    dt_s = [(cycle_ns - f.valid_ns) * 1e-9 for f in frames]
-    dt = np.repeat(np.array(dt_s), counts)[:, None]  # (N, 1) s
-    xy, vxy = ca_step(*(np.concatenate([getattr(p, c) for p in parts]) for c in ("xy", "vxy", "axy")), dt)
-    cov_vxy = np.concatenate([p.cov_vxy for p in parts])
-    # R = C + dt^2 C_v (_as_measurement)
-    cov_xy = np.concatenate([p.cov_xy for p in parts]) + np.repeat([d**2 for d in dt_s], counts)[:, None, None] * cov_vxy
-    if ego.uncertainty is not None:
-        pose_xy, pose_vxy = pose_covariances(xy, vxy, ego)
-        cov_xy, cov_vxy = cov_xy + pose_xy, cov_vxy + pose_vxy
-    out, end = [], 0
-    for p, n in zip(parts, counts):
-        rows, end = slice(end, end + n), end + n
-        out.append(p.with_(xy=xy[rows], vxy=vxy[rows], cov_xy=cov_xy[rows], cov_vxy=cov_vxy[rows]))
-    return out
 
 
 def check_fusion(method: str, compensation: str) -> None:

@@ -1,8 +1,7 @@
-"""The faster frame changes and the OBU's batched measurements equal the expressions they replace, bit for bit.
+"""The faster frame changes equal the expressions they replace, bit for bit.
 
 References: ``fusion.frames`` before the kept axes (``_Axes``: R(yaw), the origin and the zero velocity
-offset per pose) and ``obu_service.methods.KalmanFusion`` before ``_moved_together`` (each RSU frame
-compensated, inflated and given the pose's covariance by itself).
+offset per pose), and ``predict_ca`` before its shared step (``motion.ca_step``).
 """
 
 import numpy as np
@@ -12,7 +11,6 @@ from fusion import frames
 from fusion.frames import Pose2D, PoseUncertainty, add_pose_uncertainty, base_to_map, map_to_base
 from fusion.motion import predict_ca
 from fusion.objects import ObjectArray
-from obu_service.methods import KalmanFusion, RsuFrame, _moved_together
 
 _S = np.array([[0.0, -1.0], [1.0, 0.0]])
 _COLUMNS = ("ids", "cls", "xy", "z", "lwh", "yaw", "vxy", "axy", "yaw_rate", "cov_xy", "confidence", "cov_vxy",
@@ -76,15 +74,6 @@ def _predict_ca_ref(objs, dt_s):
                       age_s=objs.age_s + np.maximum(dt[:, 0], 0.0))
 
 
-def _measurement_ref(frame, cycle_ns, ego):
-    """KalmanFusion._as_measurement then add_pose_uncertainty, under predict_ca compensation."""
-    dt_s = (cycle_ns - frame.valid_ns) * 1e-9
-    objs = _predict_ca_ref(frame.objects, dt_s)
-    objs = objs.with_(cov_xy=objs.cov_xy + dt_s**2 * objs.cov_vxy)
-    return _add_pose_uncertainty_ref(objs, ego)
-
-
-# --- inputs ------------------------------------------------------------------------------------------------
 def _objects(rng, n, zero_velocity=False):
     a = rng.normal(size=(n, 2, 2))
     b = rng.normal(size=(n, 2, 2))
@@ -154,42 +143,6 @@ def test_kept_axes_follow_the_pose_asked_about():
         _assert_same(map_to_base(objs, ego), _map_to_base_ref(objs, ego))
     with pytest.raises(ValueError):
         frames._axes(first).rot[0, 0] = 2.0  # shared: read-only
-
-
-def _frames(rng, cycle_ns, counts):
-    out = []
-    for k, n in enumerate(counts):
-        valid_ns = cycle_ns - int(rng.integers(-20_000_000, 400_000_000))
-        out.append(RsuFrame(k, k, valid_ns - 50_000_000, valid_ns, _objects(rng, n, zero_velocity=n == 3)))
-    return out
-
-
-@pytest.mark.parametrize("seed", range(6))
-def test_frames_moved_together_equal_one_by_one(seed):
-    rng = np.random.default_rng(100 + seed)
-    cycle_ns = 1_700_000_000_000_000_000 + int(rng.integers(0, 10**12))
-    for counts in ((5, 5), (5, 5, 5, 2), (0, 4), (1, 1, 1), (7, 0, 3, 6, 2, 1)):
-        for uncertain in (True, False):
-            batch, ego = _frames(rng, cycle_ns, counts), _ego(rng, uncertain)
-            for frame, got in zip(batch, _moved_together(batch, cycle_ns, ego)):
-                # every column the tracker reads; age_s stays as received (the tracker reads no detection's age)
-                _assert_same(got, _measurement_ref(frame, cycle_ns, ego), [c for c in _COLUMNS if c != "age_s"])
-                _assert_same(got, frame.objects, ["age_s"])
-
-
-def test_kalman_fusion_takes_every_frame_as_before():
-    """KalmanFusion._measurements: the batch for predict / track-predict, one by one for the other compensations."""
-    rng = np.random.default_rng(3)
-    cycle_ns = 1_700_000_000_000_000_000
-    batch, ego = _frames(rng, cycle_ns, (4, 2, 5)), _ego(rng)
-    for compensation in ("predict", "track-predict", "none", "oosm"):
-        kf = KalmanFusion(compensation)
-        got = kf._measurements(batch, cycle_ns, ego)
-        for frame, objs in zip(batch, got):
-            at_ns = frame.valid_ns if compensation == "oosm" else cycle_ns
-            want = add_pose_uncertainty(kf._as_measurement(frame, at_ns), ego)
-            columns = [c for c in _COLUMNS if c != "age_s" or compensation in ("none", "oosm")]
-            _assert_same(objs, want, columns)
 
 
 def test_predict_ca_equals_the_previous_expression():
