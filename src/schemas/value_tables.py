@@ -18,7 +18,6 @@ The encoder indexes column j iff it is smaller: ``N (w_j - ceil(log2 U_j)) > 8 U
 
 from __future__ import annotations
 
-from itertools import accumulate
 from typing import Any
 
 import numpy as np
@@ -27,7 +26,6 @@ from . import bitpack
 from .errors import MalformedMessage
 
 NO_TABLES: tuple = ()
-SMALL_TABLES = 64  # tables of at most this many values in all are read in Python ints (ValueTables._read_small)
 _ITEMSIZES = np.array([1, 2, 4, 8])
 _ITEM_LIMITS = np.array([2**8 - 1, 2**16 - 1, 2**32 - 1])  # the largest gap of each item size
 _MAX_VALUE = 1 << bitpack.MAX_WIDTH
@@ -73,9 +71,6 @@ class ValueTables:
             raise MalformedMessage(f"objects: a table must hold 1..{max(n, 1)} values")
         if not set(sizes) <= {1, 2, 4, 8}:
             raise MalformedMessage("objects: a table's item size must be 1, 2, 4 or 8 bytes")
-        if sum(counts) <= SMALL_TABLES:
-            self._read_small(counts, sizes, blob)
-            return
         item = np.frombuffer(sizes, dtype=np.uint8)
         self.counts = np.array(counts, dtype=np.int64)
         self.starts = np.cumsum(self.counts) - self.counts
@@ -90,29 +85,6 @@ class ValueTables:
         self.top = self._c[self.starts + self.counts - 1] - self._c[self.starts]
         if (self.top >= _MAX_VALUE).any():
             raise MalformedMessage(f"objects: a table value above 2^{bitpack.MAX_WIDTH}")
-
-    def _read_small(self, counts: list[int], sizes: bytes, blob: bytes) -> None:
-        """``__init__``'s reading of a few values (at most SMALL_TABLES) in Python ints: the same checks in
-        the same order, the same arrays (a numpy call per step would cost more than the values)."""
-        total = sum(c * b for c, b in zip(counts, sizes))
-        if total != len(blob):
-            raise MalformedMessage(f"objects: tables of {total} bytes, {len(blob)} sent")
-        gaps, at = [], 0
-        for count, size in zip(counts, sizes):
-            for _ in range(count):
-                gaps.append(int.from_bytes(blob[at:at + size], "little"))
-                at += size
-        if any(g > _MAX_VALUE for g in gaps):
-            raise MalformedMessage(f"objects: a table gap above 2^{bitpack.MAX_WIDTH}")
-        starts = list(accumulate(counts, initial=0))[:-1]
-        if [i for i, g in enumerate(gaps) if g == 0] != starts:
-            raise MalformedMessage("objects: a table must start with 0 and then strictly increase")
-        sums = list(accumulate(gaps))
-        top = [sums[s + c - 1] - sums[s] for s, c in zip(starts, counts)]
-        if any(t >= _MAX_VALUE for t in top):
-            raise MalformedMessage(f"objects: a table value above 2^{bitpack.MAX_WIDTH}")
-        self.counts, self.starts = np.array(counts, dtype=np.int64), np.array(starts, dtype=np.int64)
-        self._c, self.top = np.array(sums, dtype=np.int64), np.array(top, dtype=np.int64)
 
     @property
     def sums(self) -> np.ndarray:
