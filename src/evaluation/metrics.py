@@ -18,7 +18,7 @@ import numpy as np
 
 from fusion.association import assign, center_distance_cost
 from fusion.frames import map_to_base
-from fusion.geometry import iou_rows
+from fusion.geometry import bev_iou_pairs
 from fusion.objects import ObjectArray
 from fusion.wire import objects_from_states
 from schemas.messages import FusedObjectList, PredictionList
@@ -110,19 +110,6 @@ def _bev_row(objs: ObjectArray, i: int) -> list[float]:
     return [*objs.xy[i].tolist(), *objs.lwh[i, :2].tolist(), objs.yaw.item(i)]
 
 
-def _paired_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(K,) ``fusion.geometry.bev_iou_pair(a[k], b[k])`` of box pairs a, b (K, 5), bit for bit: the same
-    skip test (|c_a - c_b| = sqrt(dx^2 + dy^2) not below the half diagonals' sum: 0, NaN too) and the
-    same ``iou_rows`` (row by row its own) on the rest, in one call."""
-    reach = 0.5 * (np.hypot(a[:, 2], a[:, 3]) + np.hypot(b[:, 2], b[:, 3]))
-    d = a[:, :2] - b[:, :2]
-    rows = np.flatnonzero(np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) < reach)
-    iou = np.zeros(len(a))
-    if len(rows):
-        iou[rows] = iou_rows(a[rows], b[rows])
-    return iou
-
-
 def _ranges_m(xy: np.ndarray) -> np.ndarray:
     """(N,) distances (m) of points (N, 2) from the origin: ``np.linalg.norm(xy, axis=1)`` bit for bit,
     sqrt(x^2 + y^2) (its reduce of the two squares is this one addition), in fewer numpy calls."""
@@ -192,7 +179,7 @@ class TargetTally:
 
     A detected cycle's IoU and NEES wait with the pair's boxes, error and covariance (144 bytes) until
     ``PENDING`` cycles have gathered (or a score is asked for), then are computed for all of them at
-    once (``_paired_iou``, ``nees_values``: row by row the numbers of one pair alone)."""
+    once (``fusion.geometry.bev_iou_pairs``, ``nees_values``: row by row the numbers of one pair alone)."""
 
     PENDING = 64
 
@@ -236,7 +223,7 @@ class TargetTally:
         if not self._err:
             return
         boxes = np.array(self._boxes, dtype=float).reshape(-1, 2, 5)  # (K, 2, 5): truth, output
-        self._cols["iou"].extend(_paired_iou(boxes[:, 0], boxes[:, 1]).tolist())
+        self._cols["iou"].extend(bev_iou_pairs(boxes[:, 0], boxes[:, 1]).tolist())
         errors, covariances = np.array(self._err, dtype=float).reshape(-1, 2), np.array(self._cov, dtype=float)
         self._cols["eps"].extend(nees_values(errors, covariances.reshape(-1, 2, 2)).tolist())
         for pending in (self._boxes, self._err, self._cov):

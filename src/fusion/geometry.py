@@ -63,16 +63,17 @@ def bev_iou(a, b) -> float:
     return float(bev_iou_matrix(np.asarray(a)[None], np.asarray(b)[None])[0, 0])
 
 
-def bev_iou_pair(a: np.ndarray, b: np.ndarray) -> float:
-    """``bev_iou_matrix(a[None], b[None])[0, 0]`` of two boxes a, b (5,), bit for bit: the same
-    skip test (|c_a - c_b| = sqrt(dx^2 + dy^2) >= the half diagonals' sum: 0) and the same
-    ``iou_rows``, without the (N, M) bookkeeping."""
-    boxes = np.vstack([a, b]).astype(float, copy=False)  # (2, 5)
-    half_diagonal = np.hypot(boxes[:, 2], boxes[:, 3])
-    dx, dy = float(boxes[0, 0] - boxes[1, 0]), float(boxes[0, 1] - boxes[1, 1])
-    if not math.sqrt(dx * dx + dy * dy) < 0.5 * float(half_diagonal[0] + half_diagonal[1]):  # NaN: skipped too
-        return 0.0
-    return float(iou_rows(boxes[:1], boxes[1:])[0])
+def bev_iou_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(K,) IoU of box pairs a[k], b[k] (K, 5): ``bev_iou_matrix(a[k][None], b[k][None])[0, 0]`` bit for
+    bit, without the (N, M) bookkeeping: the same skip test (|c_a - c_b| = sqrt(dx^2 + dy^2) not below
+    the half diagonals' sum: 0, NaN too) and the same ``iou_rows`` (row by row its own) on the rest."""
+    reach = 0.5 * (np.hypot(a[:, 2], a[:, 3]) + np.hypot(b[:, 2], b[:, 3]))
+    d = a[:, :2] - b[:, :2]
+    rows = np.flatnonzero(np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) < reach)
+    iou = np.zeros(len(a))
+    if len(rows):
+        iou[rows] = iou_rows(a[rows], b[rows])
+    return iou
 
 
 # --- the compiled IoU ------------------------------------------------------------------------------

@@ -196,8 +196,8 @@ def test_the_two_target_tallies_score_a_shared_frame_as_their_own_frames():
     """RunRecord's tallies (all sources, vehicle only) share each CycleFrame and its pair numbers
     (CycleFrame.pair_values): scores and series equal those of tallies each given a fresh frame,
     and a pair's numbers equal the ones computed from the arrays (IoU: bev_iou_matrix)."""
-    from evaluation.metrics import CycleFrame, TargetTally, _paired_iou
-    from fusion.geometry import bev_iou_matrix
+    from evaluation.metrics import CycleFrame, TargetTally
+    from fusion.geometry import bev_iou_matrix, bev_iou_pairs
 
     def box(objs, r):
         return np.r_[objs.xy[r], objs.lwh[r, :2], objs.yaw[r]][None]
@@ -215,7 +215,7 @@ def test_the_two_target_tallies_score_a_shared_frame_as_their_own_frames():
             tally.add(CycleFrame.of(world, out, EVAL_EPOCH_NS))
         for (i, j), (sq_err, boxes, err, cov) in frame._pair_values.items():
             pair = np.array(boxes).reshape(2, 5)
-            assert _paired_iou(pair[:1], pair[1:])[0] == bev_iou_matrix(box(frame.truth, i), box(frame.out, j))[0, 0]
+            assert bev_iou_pairs(pair[:1], pair[1:])[0] == bev_iou_matrix(box(frame.truth, i), box(frame.out, j))[0, 0]
             assert sq_err == np.sum(np.square(frame.out.xy[j] - frame.truth.xy[i]))
             assert np.array(err).tobytes() == (frame.out.xy[j] - frame.truth.xy[i]).tobytes()
             assert np.array(cov).tobytes() == frame.out.cov_xy[j].tobytes()

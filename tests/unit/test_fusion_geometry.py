@@ -5,7 +5,7 @@ import shapely
 from fusion.geometry import (
     bev_iou,
     bev_iou_matrix,
-    bev_iou_pair,
+    bev_iou_pairs,
     box_corners,
     box_polygons,
 )
@@ -46,8 +46,9 @@ def test_bev_iou_matrix_equals_pairwise_shapely():
             assert iou[i, j] == pytest.approx(inter / (pa[i].area + pb[j].area - inter), abs=1e-9)
 
 
-def test_bev_iou_pair_equals_the_matrix_bit_for_bit():
-    """bev_iou_pair(a, b) is bev_iou_matrix(a[None], b[None])[0, 0] as float64 bits: overlapping,
+def test_bev_iou_pairs_equal_the_matrix_bit_for_bit():
+    """bev_iou_pairs(a, b)[k] is bev_iou_matrix(a[k][None], b[k][None])[0, 0] as float64 bits, pair by pair and
+    in one call: overlapping,
     nested, equal and far boxes, and pairs at the skip test's boundary (centre distance = the half
     diagonals' sum, to the last bit on either side)."""
     rng = np.random.default_rng(11)
@@ -65,10 +66,12 @@ def test_bev_iou_pair_equals_the_matrix_bit_for_bit():
     overlapping = 0
     for x, y in zip(a, b):
         want = bev_iou_matrix(x[None], y[None])[0, 0]
-        got = bev_iou_pair(x, y)
-        assert type(got) is float and np.float64(got).tobytes() == want.tobytes(), (x, y, got, want)
+        got = bev_iou_pairs(x[None], y[None])[0]
+        assert got.tobytes() == want.tobytes(), (x, y, got, want)
         overlapping += got > 0
     assert 1000 < overlapping < 3000  # both branches taken
+    want = np.array([bev_iou_matrix(x[None], y[None])[0, 0] for x, y in zip(a, b)])
+    assert bev_iou_pairs(a, b).tobytes() == want.tobytes()
 
 
 def test_box_corners_rotate_about_centre():

@@ -54,17 +54,16 @@ def _hard_boxes(rng: np.random.Generator, n: int) -> np.ndarray:
     return boxes
 
 
-def test_paired_iou_equals_bev_iou_pair_row_by_row():
-    from evaluation.metrics import _paired_iou
-    from fusion.geometry import bev_iou_pair
+def test_bev_iou_pairs_equal_the_matrix_row_by_row_on_hard_boxes():
+    from fusion.geometry import bev_iou_matrix, bev_iou_pairs
 
     rng = np.random.default_rng(6)
     for n in (0, 1, 3, 2000):
         a, b = _hard_boxes(rng, n), _hard_boxes(rng, n)
         b[: n // 3] = a[: n // 3] + rng.normal(0.0, 0.3, (n // 3, 5))  # near twins
         b[n // 3: n // 3 + 5] = a[n // 3: n // 3 + 5]  # identical
-        want = np.array([bev_iou_pair(x, y) for x, y in zip(a, b)])
-        got = _paired_iou(a, b)
+        want = np.array([bev_iou_matrix(x[None], y[None])[0, 0] for x, y in zip(a, b)])
+        got = bev_iou_pairs(a, b)
         assert got.tobytes() == want.tobytes()
         assert n < 2000 or 0 < np.count_nonzero(got) < n
 
@@ -79,7 +78,7 @@ class _ReferenceTargetTally:
     def add(self, frame) -> None:
         from evaluation.detection_metrics import nees_values
         from evaluation.metrics import _match_target_cost
-        from fusion.geometry import bev_iou_pair
+        from fusion.geometry import bev_iou_matrix
 
         truth, out = frame.truth, frame.out
         rows = np.flatnonzero(truth.ids == self.target_id)
@@ -94,7 +93,7 @@ class _ReferenceTargetTally:
         i = int(rows[0])
         err = out.xy[k] - truth.xy[i]
         box = lambda o, r: np.concatenate([o.xy[r], o.lwh[r, :2], [o.yaw[r]]])  # noqa: E731
-        self.rows.append((frame.cycle_ns, frame.t_s, bev_iou_pair(box(truth, i), box(out, k)),
+        self.rows.append((frame.cycle_ns, frame.t_s, float(bev_iou_matrix(box(truth, i)[None], box(out, k)[None])[0, 0]),
                           float(np.sum(np.square(err))), float(nees_values(err[None], out.cov_xy[k][None])[0]),
                           float(np.linalg.norm(truth.xy[i])), int(out.ids[k])))
 
