@@ -20,6 +20,14 @@ take ``input_size``, default 640 x 384, rounded up to stride 32), grey 114 paddi
 boxes back to the original image's pixels. Class names (metadata ``names``, ultralytics style
 ``{0: 'person', ...}``) map to ``ObjectClass`` by name; detections of other classes are dropped
 and counted (``dropped_unmapped``), so a COCO YOLOv8n export works unchanged.
+
+The shipped model (``SHIPPED_MODEL``) is trained by ``tools/train_detector.py`` on frames the
+renderer (``sim.render``) draws of the bundled scenarios, and on nothing else: it is for those
+scenes. On real camera images it is no detector (on a street photo of a city bus with
+pedestrians it found 11 boxes, none of them the bus). For real images pass a model trained on
+real images, e.g. a COCO YOLOv8n export (ultralytics ``yolo export model=yolov8n.pt
+format=onnx``: input [1, 3, 640, 640], output [1, 84, 8400], names metadata), with ``v2i rsu
+--model``; ``tests/unit/test_detector_yolov8n.py`` runs that layout through the same path.
 """
 
 from __future__ import annotations

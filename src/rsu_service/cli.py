@@ -40,7 +40,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                         "fusion on the OBU (v2i obu --fusion roif; seed 004)")
     p.add_argument("--image-features-max", type=int, metavar="N",
                    help="ORB keypoints per frame at most in image_features (default 1000: ~42 kB a frame)")
-    p.add_argument("--model", metavar="ONNX", help="detector model, YOLOv8/v5 export layout (default: the shipped one)")
+    p.add_argument("--model", metavar="ONNX",
+                   help="detector model, YOLOv8/v5 export layout, e.g. a COCO YOLOv8n export for real images "
+                   "(default: the shipped one, trained on rendered frames of the bundled scenes only)")
     p.add_argument("--calibration", metavar="FILE",
                    help="camera calibration from `v2i camera calibrate` (default: the scenario's shipped one)")
     p.add_argument("--score-threshold", type=float, help="detector score threshold (default 0.4)")

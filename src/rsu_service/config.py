@@ -41,7 +41,9 @@ class RsuConfig(ServiceConfig):
                                  "boxes + ORB features on v2x/rsu/{id}/image_features (ROIF, seed 004)")
     image_features_max: int = Field(1000, ge=1, le=4096, description="ORB keypoints per frame at most in "
                                     "image_features (the strongest; ~42 bytes each on the wire)")
-    model: str | None = Field(None, description="ONNX detector (YOLOv8/v5 export layout; default: the shipped model)")
+    model: str | None = Field(None, description="ONNX detector (YOLOv8/v5 export layout, e.g. a COCO YOLOv8n "
+                              "export for real images; default: the shipped model, trained on rendered frames of "
+                              "the bundled scenes only)")
     calibration: str | None = Field(None, description="calibration file (v2i camera calibrate); default: the "
                                     "scenario's shipped one")
     detector_threads: int | None = Field(None, ge=1, le=256, description="ONNX Runtime intra-op threads")
