@@ -1,7 +1,7 @@
 """Detection, tracking and consistency metrics (pure: numpy, scipy, motmetrics).
 
 - ``center_distance_ap``: nuScenes-style average precision with a centre-distance match
-  criterion, as OTVIC (seed 002 Sec. V-B) reports it: thresholds {0.5, 1, 2, 4} m, range bins
+  criterion, as OTVIC (Zhu et al., Sec. V-B) reports it: thresholds {0.5, 1, 2, 4} m, range bins
   0-40 m / 40-80 m / overall. ``CenterDistanceAp`` computes the same frame by frame, keeping
   10 bytes per prediction (its confidence and true-positive flags), not the frames; its per-frame
   matching runs compiled (numba, ``_frame_flags``; ``_greedy_matches`` is its numpy reference).
@@ -167,7 +167,7 @@ def _bin_ap(binned: list[tuple[np.ndarray, np.ndarray, np.ndarray]], thresholds_
 
 def center_distance_ap(frames: Sequence[Frame], thresholds_m: Sequence[float] = DEFAULT_THRESHOLDS_M,
                        range_bins_m: Sequence[tuple[float, float]] = DEFAULT_RANGE_BINS_M) -> dict:
-    """nuScenes-style centre-distance mAP (as in OTVIC, seed 002 Sec. V-B, Table III).
+    """nuScenes-style centre-distance mAP (as in OTVIC, Zhu et al., Sec. V-B, Table III).
 
     frames: (truth, predictions) pairs, both in base_link (ego at the origin) at one time;
     predictions are ranked by ``confidence`` over all frames. Class-agnostic: any prediction

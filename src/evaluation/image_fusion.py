@@ -1,4 +1,4 @@
-"""Offline driver of image-level fusion (``v2i eval --fusion roif``; seed 004 Ch. 5-6).
+"""Offline driver of image-level fusion (``v2i eval --fusion roif``; Maqsud's ROIF thesis Ch. 5-6).
 
 At the ego camera's rate (``scenario.ego_camera.rate_hz``), frame k at t_k = k / rate:
 render the RSU view (``sim.camera.rsu_camera``, swaying as the live RSU's) and the ego view
@@ -19,11 +19,11 @@ Scoring, per frame, against the RSU view's truth T = labels of actors (ids > 0) 
 class-agnostic. Labels not in T (the ego, id 0, which the RSU sees; actors barely visible)
 are "ignore" boxes: an unmatched box with IoU >= 0.5 against one is neither right nor wrong.
 
-    detection_accuracy = matched truths / truths            (fused boxes; seed 004: 93 %)
+    detection_accuracy = matched truths / truths            (fused boxes; Maqsud's ROIF thesis: 93 %)
     rsu_only_detection_accuracy                             (the RSU's boxes alone; 91 %)
     vehicle_only_detection_accuracy                         (the OBU's boxes as ROIF maps them
         into the RSU view, alone, against the same T: a box ROIF could not map counts as a
-        miss; seed 004: 37 %)
+        miss; Maqsud's ROIF thesis: 37 %)
     vehicle_only_scene_accuracy                             (objects of T the OBU detects in its
         own image, matched to the ego-view truth of the same object: the vehicle's share of the
         scene without the cost of mapping)
@@ -31,10 +31,10 @@ are "ignore" boxes: an unmatched box with IoU >= 0.5 against one is neither righ
         view's own truth: the detector, not the scene)
     tracked_detection_accuracy                              (confirmed tracks, coasting included)
     precision = matched boxes / (boxes - ignored boxes)     (fused; also RSU-only, vehicle-only)
-    mean_iou = mean IoU of matched (fused box, truth) pairs (seed 004: 0.72)
+    mean_iou = mean IoU of matched (fused box, truth) pairs (Maqsud's ROIF thesis: 0.72)
     reprojection_error_px: mean over frames of the mean corner error 1/2 (|tl' - tl| + |br' - br|)
         of the OBU boxes that match (IoU >= 0.5) the ego-view truth of an object of T, as mapped
-        into the RSU view, against that object's RSU-view truth box (how seed 004 validated
+        into the RSU view, against that object's RSU-view truth box (how the ROIF thesis validated
         its 4.3 px); ``_rel``: the same over the truth box's diagonal; ``_gt_box_px``: the
         ego-view truth box through the same transform (the mapping alone, no detector error);
         ``ransac_inlier_error_px``: mean over frames of the RANSAC inliers' mean error of the
@@ -381,7 +381,7 @@ def _percentiles(values: list) -> dict:
 
 
 def summary(report: dict) -> str:
-    """Human lines of a ``run_image_fusion`` report, beside seed 004's figures."""
+    """Human lines of a ``run_image_fusion`` report, beside the ROIF thesis's figures."""
     f = report["image_fusion"]
 
     def pct(v) -> str:
@@ -392,7 +392,7 @@ def summary(report: dict) -> str:
         f"{f['frames']} frames at {report['camera_rate_hz']:g} Hz",
         f"  detection accuracy: fused {pct(f['detection_accuracy'])}, vehicle-only "
         f"{pct(f['vehicle_only_detection_accuracy'])}, RSU-only {pct(f['rsu_only_detection_accuracy'])} "
-        "(seed 004: 93 %, 37 %, 91 %)",
+        "(ROIF thesis: 93 %, 37 %, 91 %)",
         f"  fused boxes: mean IoU {f['mean_iou']} (0.72), precision {pct(f['precision'])}; re-projection error "
         f"{f['reprojection_error_px']} px (4.3 px); homography failures {f['homography_failures']}",
     ])

@@ -372,7 +372,7 @@ def _recovery_s(t_ns: np.ndarray, err_ms: np.ndarray, step_ns: int) -> float | N
 
 
 class DisplacementTally:
-    """Seed 003 eq. 1 over the RSU paths handed to the planner, each RSU list once: mean
+    """IAAD, Liu et al. eq. 1 over the RSU paths handed to the planner, each RSU list once: mean
     |predicted - true location| over their points, for objects matched to a true actor at t0
     (centre-distance assignment, gate MATCH_GATE_M); points after the scenario's end are not
     scored. Keeps a sum, a count and the last RECENT_HANDOFFS (rsu id, seq) keys (a list is

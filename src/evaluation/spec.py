@@ -31,7 +31,7 @@ class RunSpec:
     fusion: str = "kf"
     compensation: str = "predict"
     fusion_mode: str = "adaptive"
-    inter_max_age_s: float = 0.6  # inter-frame fusion uses RSU data up to this old (seed 003)
+    inter_max_age_s: float = 0.6  # inter-frame fusion uses RSU data up to this old (IAAD, Liu et al.)
     seed: int = 0
     duration_s: float | None = None  # default: the scenario's
     rsu_clock_offset_ms: float = 0.0

@@ -69,17 +69,17 @@ def dropout_profile(base: LinkProfile, dropout: float) -> LinkProfile:
 
 
 def seed_tables(base: RunSpec) -> list[Table]:
-    """Seed 000 Tables I-III and seed 001 Table 1 on red-light-runner; OTVIC Table IV on highway-merge."""
+    """Saravanan et al. Tables I-III and Bidare Table 1 on red-light-runner; OTVIC Table IV on highway-merge."""
     rl = replace(base, scenario="red-light-runner")
     iou_rmse = [("mean BEV IoU", _get("target", "mean_bev_iou")), ("RMSE m", _get("target", "rmse_m"))]
-    t1 = Table("RSU-only localisation with and without delay compensation", "seed 000 Table I", iou_rmse, [
+    t1 = Table("RSU-only localisation with and without delay compensation", "Saravanan et al. Table I", iou_rmse, [
         Row("without compensation", replace(rl, fusion="rsu-only", compensation="none")),
         Row("with compensation (predict)", replace(rl, fusion="rsu-only", compensation="predict")),
         Row("with compensation (track-predict)", replace(rl, fusion="rsu-only", compensation="track-predict")),
     ])
-    t2 = Table("Late fusion", "seed 000 Table II / seed 001 Table 1", iou_rmse, [
+    t2 = Table("Late fusion", "Saravanan et al. Table II / Bidare Table 1", iou_rmse, [
         Row(label, replace(rl, fusion=fusion, compensation=comp)) for label, fusion, comp in (
-            ("IoU merger (seed 000 baseline)", "iou-merge", "predict"),
+            ("IoU merger (Saravanan et al. baseline)", "iou-merge", "predict"),
             ("LiDAR-only KF", "kf-vehicle", "predict"),
             ("camera-only KF", "kf-rsu", "predict"),
             ("NMS", "nms", "predict"),
@@ -88,7 +88,7 @@ def seed_tables(base: RunSpec) -> list[Table]:
             ("LiDAR + camera KF, OOSM", "kf", "oosm"),
         )
     ])
-    t3 = Table("Detection range of the red-light runner", "seed 000 Table III",
+    t3 = Table("Detection range of the red-light runner", "Saravanan et al. Table III",
                [("first detection m", _get("target", "first_detection_distance_m"))], [
         Row("vehicle-only", replace(rl, fusion="vehicle-only")),
         Row("V2I late fusion (IoU merger)", replace(rl, fusion="iou-merge")),

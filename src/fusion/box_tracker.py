@@ -1,4 +1,4 @@
-"""Image-box tracker (seed 004 Sec. 4.7): IoU-cost Hungarian association and a constant-velocity
+"""Image-box tracker (Maqsud's ROIF thesis Sec. 4.7): IoU-cost Hungarian association and a constant-velocity
 Kalman filter on box centre and size, SORT-like. Boxes are (N, 4) [x1, y1, x2, y2] px.
 
 State x = [cx, cy, w, h, vcx, vcy, vw, vh] (px, px/s), measurement z = [cx, cy, w, h]:

@@ -1,7 +1,7 @@
 """2-D rigid frames (SE(2)) between ``map`` and ``base_link``, with the ego pose's uncertainty.
 
 A pose (x, y, yaw) of frame B in frame A gives T_A<-B = [[R(yaw), t], [0, 1]].
-Seed 000 eq. 3-4: T_Object2Base = T_Map2Base * T_Object2Map, with T_Map2Base the
+Saravanan et al. eq. 3-4: T_Object2Base = T_Map2Base * T_Object2Map, with T_Map2Base the
 inverse of the ego pose in map.
 
 Pose uncertainty. The OBU knows an *estimate* of its pose, (t + dt, yaw + dyaw) with the

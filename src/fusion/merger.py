@@ -1,4 +1,4 @@
-"""Seed 000 asynchronous late-fusion merger (Section II-F).
+"""Saravanan et al.'s asynchronous late-fusion merger (Section II-F).
 
 When an RSU object overlaps an on-board object (BEV IoU >= threshold) the RSU
 instance is removed; objects that do not overlap are concatenated unfiltered.

@@ -1,9 +1,9 @@
-"""ROIF: image-level fusion of an on-board (OBU) and a roadside (RSU) camera (seed 004 Ch. 4-5).
+"""ROIF: image-level fusion of an on-board (OBU) and a roadside (RSU) camera (Maqsud's ROIF thesis, Ch. 4-5).
 
 Per frame, with the detections of both cameras (boxes in their own images):
 
 1. ORB keypoints and descriptors, detected only inside the detection boxes of each image
-   (a mask; seed 004 Sec. 5.3: features outside the boxes gave false matches, Fig. 6.3):
+   (a mask; the thesis's Sec. 5.3: features outside the boxes gave false matches, Fig. 6.3):
    ``fusion.roif_features.ViewFeatures``, computed by each camera's own node (the RSU sends
    its features, never its image); ``roif_fuse`` takes the two views' features.
 2. Brute-force Hamming matching (``cv2.BFMatcher(cv2.NORM_HAMMING)``), OBU -> RSU. A match
@@ -18,7 +18,7 @@ Per frame, with the detections of both cameras (boxes in their own images):
 4. OBU boxes into the RSU view. ``mapping="frame"`` (the thesis): every box through the
    frame's H; none without one. ``mapping="object"`` (default): each box through its own
    transform, fitted by RANSAC to the matches whose OBU keypoint lies in the box and whose
-   RSU keypoint lies in the RSU box most of them land in (its corresponding box, seed 004
+   RSU keypoint lies in the RSU box most of them land in (its corresponding box, the thesis's
    Fig. 6.4), where at least ``min_object_inliers`` agree; a box without one goes through the
    frame's H if ``object_fallback``, else is not mapped. Why: a street of 3-D vehicles at
    different depths is no plane, and one homography maps well only the depth its inliers

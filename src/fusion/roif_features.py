@@ -1,4 +1,4 @@
-"""What one camera contributes to ROIF (seed 004 Sec. 5.3): its boxes and the ORB features inside them.
+"""What one camera contributes to ROIF (the thesis's Sec. 5.3): its boxes and the ORB features inside them.
 
 ROIF splits at the wire: the RSU computes its ``ViewFeatures`` next to its detector and sends
 them (``schemas.image_messages.RsuImageFeatures``); the OBU computes its own from its camera

@@ -1,4 +1,4 @@
-"""ROIF per frame (seed 004 Ch. 5): the one pure object both drivers step.
+"""ROIF per frame (Maqsud's ROIF thesis Ch. 5): the one pure object both drivers step.
 
 ``v2i eval --fusion roif`` (``evaluation.image_fusion``) and the live OBU
 (``obu_service.image_fusion``) feed it the same way: per OBU camera frame, the OBU's

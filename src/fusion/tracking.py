@@ -1,6 +1,6 @@
 """Multi-object tracker over the batched Kalman filters of ``fusion.kalman`` (map frame).
 
-Cycle (seed 001, two updates per cycle): ``predict(t)``, ``update(lidar, t, SOURCE_VEHICLE)``,
+Cycle (Bidare's KF poster: two updates per cycle): ``predict(t)``, ``update(lidar, t, SOURCE_VEHICLE)``,
 ``update(rsu, t, SOURCE_RSU)`` for each RSU list, ``prune(t)``, ``tracks(t)``; ``step(dets, t)``
 does one predict / update / prune / tracks. Times are seconds on any fixed origin; the
 filter never goes back in time (``fusion.oosm.OosmTracker`` re-filters late measurements).

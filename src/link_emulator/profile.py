@@ -145,7 +145,7 @@ class DirectionProfile(BaseModel):
                     "known distance is pdr(d) * (1 - loss_probability)")
     range_m: float | None = Field(
         default=None, gt=0.0,
-        description="beyond this distance everything is lost (seed 000, Saravanan et al.: the RSU reaches 80 m)")
+        description="beyond this distance everything is lost (Saravanan et al.: the RSU reaches 80 m)")
     outage: OutageSpec | None = None
     bandwidth_kbps: float | None = Field(default=None, gt=0.0, description="send rate in kbit/s (1000 bit/s)")
     queue_limit_ms: float | None = Field(default=None, ge=0.0, description="longest wait in the send queue; tail drop")

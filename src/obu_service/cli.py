@@ -27,7 +27,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                         "e.g. from v2i world or examples/external_publisher.py; one cycle per detection frame, "
                         "a cycle without own objects when a frame is missing at the slot's fuse-by time)")
     p.add_argument("--fusion", choices=(*FUSION_METHODS, "roif"),
-                   help="fusion method (default kf); roif: image-level fusion (seed 004) of the ego camera (the "
+                   help="fusion method (default kf); roif: image-level fusion (Maqsud's thesis) of the ego camera (the "
                         "scenario's ego_camera, rendered, through the ONNX detector, ORB) with the RSU's "
                         "v2x/rsu/{id}/image_features (v2i rsu --source camera --image-features), published as "
                         "ImageFusedBoxes on v2x/obu/{id}/image_objects at the camera's rate")

@@ -18,12 +18,12 @@ class ObuConfig(ServiceConfig):
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7448"])
     fusion: Literal[(*FUSION_METHODS, "roif")] = Field("kf", description="object-level method, or roif: "
                                                        "image-level fusion of the ego camera with the RSU's "
-                                                       "image features (seed 004; obu_service.image_fusion)")
+                                                       "image features (Maqsud's thesis; obu_service.image_fusion)")
     source: Literal["sim", "zenoh"] = Field("sim", description="own detections and pose: sim, the scenario's "
                                             "LiDAR and localisation sampled in the OBU; zenoh: received on "
                                             "v2x/sensor/vehicle/{vehicle_id}/objects|pose (e.g. from v2i world)")
     compensation: Literal[COMPENSATIONS] = "predict"
-    fusion_mode: Literal[FUSION_MODES] = Field("adaptive", description="which RSU data a cycle fuses (seed 003)")
+    fusion_mode: Literal[FUSION_MODES] = Field("adaptive", description="which RSU data a cycle fuses (IAAD, Liu et al.)")
     iou_threshold: float = Field(0.1, gt=0, le=1)
     inter_max_age_s: float = Field(0.6, gt=0, le=30, description="inter-frame fusion uses RSU data up to this old")
     planning_max_age_s: float = Field(5.0, gt=0, le=60, description="planning fusion uses RSU paths up to this old")

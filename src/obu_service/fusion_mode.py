@@ -1,4 +1,4 @@
-"""Fusion modes (seed 003, Liu et al., IAAD) and the policy that picks one per cycle. Pure.
+"""Fusion modes (IAAD, Liu et al.) and the policy that picks one per cycle. Pure.
 
 - ``intra``: fuse the RSU frame of this cycle's sensing slot (the newest RSU capture at or
   before the own LiDAR capture), waiting for it at most until the cycle's fusion deadline;

@@ -1,4 +1,4 @@
-"""The OBU's image-level fusion (``v2i obu --fusion roif``; seed 004), pure: pairing, ROIF, output.
+"""The OBU's image-level fusion (``v2i obu --fusion roif``; Maqsud's ROIF thesis), pure: pairing, ROIF, output.
 
 Driven by calls, never by a clock or Zenoh (the node, ``image_fusion_node``, feeds it). All
 times are OBU-clock ns unless named ``*_rsu_ns``.

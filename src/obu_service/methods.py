@@ -6,11 +6,11 @@ returns the fused objects in base_link at the cycle time.
 
 - ``vehicle-only``: own objects.
 - ``rsu-only``: compensated RSU objects.
-- ``iou-merge``: seed 000 merger (RSU duplicates of own objects removed).
+- ``iou-merge``: Saravanan et al.'s merger (RSU duplicates of own objects removed).
 - ``nms``: non-maximum suppression over the pooled boxes.
 - ``tclf``: DAIR-V2X time-compensated late fusion (two-frame RSU velocity).
 - ``kf``: a Kalman-filter tracker in ``map`` updated with own LiDAR, then with each RSU
-  frame once (seed 001); with ``oosm`` compensation RSU frames are out-of-sequence
+  frame once (Bidare's KF poster); with ``oosm`` compensation RSU frames are out-of-sequence
   measurements at their capture time and the filter is re-run from there. RSU objects
   are the RSU tracker's estimates (position and velocity with covariances), each RSU slot
   its own source bit (``fusion.tracking.slot_source``): a track only this RSU has seen
@@ -18,14 +18,14 @@ returns the fused objects in base_link at the cycle time.
   track another RSU also updates fuses it by covariance intersection (the two filters'
   errors are correlated); a track only the LiDAR also sees fuses its position in a Kalman
   update (``Tracker.update(..., estimates=True)``, rules in ``fusion.tracking``).
-  ``kf-vehicle`` and ``kf-rsu`` are the same tracker fed by one source only (seed 001's
+  ``kf-vehicle`` and ``kf-rsu`` are the same tracker fed by one source only (Bidare's poster's
   "LiDAR only KF" and "camera only KF" ablations).
 
 Compensation of RSU objects (``--compensation``): ``none`` uses them where they were;
 ``predict`` extrapolates them to the cycle time at constant acceleration (OTVIC);
-``track-predict`` uses the RSU's own prediction to its publish time (seed 000
+``track-predict`` uses the RSU's own prediction to its publish time (Saravanan et al.
 Algorithm 1) and extrapolates only the delay measured on the vehicle; ``lane`` moves them
-along their lanes of the scenario's Lanelet2 map (Frenet, constant speed; seed 000's
+along their lanes of the scenario's Lanelet2 map (Frenet, constant speed; Saravanan et al.'s
 lanelet-based predictor); ``oosm`` (kf only) feeds them to the filter at their own time.
 """
 

@@ -9,7 +9,7 @@ says so (at once, or when the awaited RSU frame arrives, or at ``fuse_by_ns``):
 
   fuse_by = min(t_c + D, last publish + output interval bound) - compute margin
 
-so the output is on time whatever the link does (seed 003's E2E and output-interval bounds).
+so the output is on time whatever the link does (IAAD's E2E and output-interval bounds).
 
 Whatever passes admission can never crash fusion, and fusion always publishes: the RSU
 input is admitted or refused from its header before any object is decoded
@@ -61,9 +61,9 @@ class ObuPipelineConfig:
     fusion: str = "kf"
     compensation: str = "predict"
     fusion_mode: str = "adaptive"
-    iou_threshold: float = 0.1  # seed 000 merger: an RSU object this overlapping an own one is a duplicate
-    inter_max_age_s: float = 0.6  # seed 003: inter-frame fusion tolerates RSU data this old
-    planning_max_age_s: float = 5.0  # seed 003: the RSU's paths are usable this long after t0
+    iou_threshold: float = 0.1  # Saravanan et al.'s merger: an RSU object this overlapping an own one is a duplicate
+    inter_max_age_s: float = 0.6  # IAAD, Liu et al.: inter-frame fusion tolerates RSU data this old
+    planning_max_age_s: float = 5.0  # IAAD, Liu et al.: the RSU's paths are usable this long after t0
     deadline_ms: float = 100.0  # end-to-end: own LiDAR capture -> publish
     output_interval_ms: float = 150.0  # bound on the time between two consecutive outputs
     compute_margin_ms: float = 10.0  # fusion compute + publish must fit between fuse_by and the deadline
@@ -83,7 +83,7 @@ class ObuPipelineConfig:
     max_path_points: int = 8192  # predicted positions in one prediction list (objects x points)
     future_tolerance_ms: float = 20.0  # beyond the clock uncertainty
     ego_size_m: tuple[float, float] = (4.7, 1.85)  # length, width of this vehicle: RSU objects on it are itself
-    self_margin_m: float = 1.0  # beyond the footprint (the RSU's error near its pole is ~0.8 m, seed 000)
+    self_margin_m: float = 1.0  # beyond the footprint (the RSU's error near its pole is ~0.8 m, Saravanan et al.)
 
     def limits(self) -> Limits:
         """What admission allows (obu_service.admission), in ns."""

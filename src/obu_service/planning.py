@@ -1,4 +1,4 @@
-"""Planning fusion inputs (seed 003): the RSU's long-horizon paths, sampled and re-timed. Pure."""
+"""Planning fusion inputs (IAAD, Liu et al.): the RSU's long-horizon paths, sampled and re-timed. Pure."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Camera calibration from surveyed point correspondences (seed 000 Sec. II, eq. 1-2), with OpenCV.
+"""Camera calibration from surveyed point correspondences (Saravanan et al. Sec. II, eq. 1-2), with OpenCV.
 
 N >= 6 pairs pixel (u, v) <-> map point (x, y, z) (map: x east, y north, z up, m), as the
 paper selects ">= six point correspondences" between the image and the local map:
@@ -38,7 +38,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from schemas.config import ConfigError, validate
 
 SCHEMA = "v2i-calibration/1"
-MIN_POINTS = 6  # seed 000 Sec. II: at least six point correspondences
+MIN_POINTS = 6  # Saravanan et al. Sec. II: at least six point correspondences
 DEFAULT_RANSAC_PX = 3.0  # inlier threshold: ~4 sigma of a careful click (0.5-1 px)
 _COLLINEAR_RATIO = 1e-3  # second / first singular value of centred points below this: on a line
 _SINGULAR_COND = 1e12  # condition number of the unit-norm H above which it is singular

@@ -1,6 +1,6 @@
 """Pixels to map: detector boxes through a calibrated ground homography (inverse perspective mapping).
 
-A box's ground contact g is its bottom-centre pixel (seed 000 Sec. I: 3D-Net's reference
+A box's ground contact g is its bottom-centre pixel (Saravanan et al. Sec. I: 3D-Net's reference
 point), undistorted and taken through H^-1 to the ground. Seen from a pole, the bottom edge of
 a box is the object's nearest face, not its centre. Precisely: the bottom row v_max of the box
 maps to a ground line L (the image row's preimage; for a camera without roll, the line

@@ -8,7 +8,7 @@ distance (Hungarian: ``fusion.lsap``) within ``MATCH_GATE_M``. Then
     precision = matched detections / detections
     mean_error_m[bin] = mean |p_det - p_true| over the matches whose truth is in the bin
 
-with range the horizontal distance from the camera. Seed 000 Sec. I reports CAROM's mean
+with range the horizontal distance from the camera. Saravanan et al. Sec. I reports CAROM's mean
 error as 0.8 m within 50 m and 1.7 m from 50 to 120 m: ``ERROR_BINS_M`` are those bins.
 Only counts and sums are kept, so a tally merges (``merge``) and travels in RSU metrics.
 """

@@ -37,7 +37,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--image-features", action="store_true", default=None,
                    help="with --source camera|video: also publish each frame's detection boxes and the ORB "
                         "keypoints + descriptors inside them on v2x/rsu/{id}/image_features, for image-level "
-                        "fusion on the OBU (v2i obu --fusion roif; seed 004)")
+                        "fusion on the OBU (v2i obu --fusion roif; Maqsud's ROIF thesis)")
     p.add_argument("--image-features-max", type=int, metavar="N",
                    help="ORB keypoints per frame at most in image_features (default 1000: ~42 kB a frame)")
     p.add_argument("--model", metavar="ONNX",

@@ -28,7 +28,7 @@ class RsuConfig(ServiceConfig):
                                  "v2x/rsu/{id}/objects), cpm (ETSI CPM, UPER, on .../cpm) or sdsm (SAE J3224 SDSM, "
                                  "UPER, on .../sdsm); see schemas.list_wire")
     predict_ahead: bool = Field(False, description="track-predict: publish tracks predicted to the publish "
-                                                   "time and upsample 5 Hz to 10 Hz (seed 000 Algorithm 1)")
+                                                   "time and upsample 5 Hz to 10 Hz (Saravanan et al. Algorithm 1)")
     source: Literal[SOURCES] = Field("sim", description="sim: the scenario's camera noise model (fast); camera: "
                                      "the world rendered, through the ONNX detector and the calibration; video: "
                                      "a video file or image folder (--video) through the same; zenoh: SensorObjects received on "
@@ -38,7 +38,7 @@ class RsuConfig(ServiceConfig):
                                   "(default: the video's, 10 for a folder); with source camera: the camera's "
                                   "rate (default: the scenario's RSU rate)")
     image_features: bool = Field(False, description="with source camera or video: also publish each frame's "
-                                 "boxes + ORB features on v2x/rsu/{id}/image_features (ROIF, seed 004)")
+                                 "boxes + ORB features on v2x/rsu/{id}/image_features (ROIF, Maqsud's thesis)")
     image_features_max: int = Field(1000, ge=1, le=4096, description="ORB keypoints per frame at most in "
                                     "image_features (the strongest; ~42 bytes each on the wire)")
     model: str | None = Field(None, description="ONNX detector (YOLOv8/v5 export layout, e.g. a COCO YOLOv8n "

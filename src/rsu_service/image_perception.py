@@ -20,7 +20,7 @@ class ImagePerception:
     def __init__(self, detector, calibration, camera_xy=None, pixel_sigma_px: float = 1.0,
                  max_range_m: float | None = None):
         """``max_range_m``: objects farther from ``camera_xy`` are dropped (the camera's working
-        range: beyond it a pixel spans metres, seed 000 Sec. V-B)."""
+        range: beyond it a pixel spans metres, Saravanan et al. Sec. V-B)."""
         self.detector = detector
         self.calibration = calibration
         self.camera_xy = None if camera_xy is None else np.asarray(camera_xy, dtype=float)

@@ -7,7 +7,7 @@ way) and a monotonic clock that never steps (``mono_ns``, CLOCK_MONOTONIC). The 
 every prediction horizon run on the monotonic clock, so a wall-clock step never moves the
 filter backwards; headers carry the wall stamps. A plain ``int`` is a reading of a clock
 that does not step (both at once).
-With ``predict_ahead`` (the track-predict compensation, seed 000 Algorithm 1) the RSU
+With ``predict_ahead`` (the track-predict compensation, Saravanan et al. Algorithm 1) the RSU
 publishes its tracks predicted to the publish time instead of the capture time, and
 ``upsampled(at_ns)`` gives the same tracks predicted further, so that a 5 Hz camera
 yields 10 Hz object lists. The header's ``prediction_ns`` says how far ahead the
@@ -56,7 +56,7 @@ class RsuPipelineConfig:
     # error (dense-intersection seeds 0-2: tracking id switches 95/90/104 -> 83/85/93)
     tracker: TrackerConfig = field(default_factory=lambda: TrackerConfig(gate="either"))
     predict_ahead: bool = False  # track-predict: publish tracks predicted to the publish time
-    horizon_s: float = 5.0  # long-horizon trajectories for planning fusion (seed 003: ~5 s)
+    horizon_s: float = 5.0  # long-horizon trajectories for planning fusion (IAAD, Liu et al.: ~5 s)
     path_step_s: float = 0.1
 
 

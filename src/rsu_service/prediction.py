@@ -1,5 +1,5 @@
 """The RSU's long-horizon trajectory predictor: lane-following on the scenario's Lanelet2 map
-(seed 000's lanelet-based predictor) or constant velocity."""
+(Saravanan et al.'s lanelet-based predictor) or constant velocity."""
 
 from __future__ import annotations
 

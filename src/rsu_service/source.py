@@ -11,7 +11,7 @@
   samples the ``SimulatedCamera`` below.
 
 Frame k is captured at start + k / rate (true clock); its detections are ready after the
-processing delay: the scenario's (80-120 ms by default, seed 001) for the simulated world,
+processing delay: the scenario's (80-120 ms by default, Bidare's KF poster) for the simulated world,
 the measured detector time for a recording.
 """
 

@@ -1,4 +1,4 @@
-"""Wire messages of image-level fusion (ROIF, seed 004): RSU features down, OBU boxes out.
+"""Wire messages of image-level fusion (ROIF, Maqsud's thesis): RSU features down, OBU boxes out.
 
 - ``RsuImageFeatures`` (RSU -> vehicles, ``v2x/rsu/{rsu_id}/image_features``): one camera
   frame's detection boxes and the ORB keypoints + descriptors inside them, so that the OBU can

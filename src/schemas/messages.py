@@ -126,7 +126,7 @@ class ObjectListHeader(Message):
     frame_id: Annotated[str, Field(max_length=64)] = "map"
     sensor: Annotated[str, Field(max_length=128)] = ""
     # The objects are valid at capture_time_ns + prediction_ns: non-zero when the RSU has
-    # already predicted them forward (track-predict compensation, seed 000 Algorithm 1).
+    # already predicted them forward (track-predict compensation, Saravanan et al. Algorithm 1).
     prediction_ns: Annotated[int, Field(ge=0, le=10_000_000_000)] = 0
 
     @property
@@ -210,7 +210,7 @@ class PredictionList(Message):
 
     ``objects`` are the tracks at ``header.valid_time_ns`` (t0, map frame) and
     ``paths[i]`` the predicted positions of ``objects[i]`` at t0 + k * step_ns, k = 1..K
-    (the planning-fusion input of seed 003).
+    (IAAD's planning-fusion input).
     """
 
     TYPE: ClassVar[str] = "prediction_list"
@@ -346,7 +346,7 @@ class ObuMetrics(Message):
     t_ns: TimeNs
     cycles: Count = 0
     output_deadline_misses: Count = 0  # published after capture + deadline, or after the interval bound
-    rsu_deadline_misses: Count = 0  # covered cycles fused without RSU data (seed 003's metric)
+    rsu_deadline_misses: Count = 0  # covered cycles fused without RSU data (IAAD's metric)
     covered_cycles: Count = 0  # cycles with an RSU heard recently
     mode: Annotated[str, Field(max_length=32)] = ""
     mode_counts: dict[Annotated[str, Field(max_length=32)], Count] = Field(default_factory=dict, max_length=8)

@@ -164,7 +164,7 @@ class ErrorBand(_Frozen):
 
 
 def _carom_bands() -> list[ErrorBand]:
-    # CAROM (seed 000 Sec. I): ~0.8 m within 50 m of the camera, ~1.7 m from 50 to 120 m
+    # CAROM (CARs On the Map; Saravanan et al. Sec. I): ~0.8 m within 50 m of the camera, ~1.7 m from 50 to 120 m
     return [ErrorBand(max_range_m=50.0, mean_error_m=0.8), ErrorBand(max_range_m=120.0, mean_error_m=1.7)]
 
 

@@ -22,7 +22,7 @@ SOURCE_VEHICLE = 1
 SOURCE_RSU = 2
 
 # Class-typical box sizes l, w, h (m): a monocular detector reports the class prior size
-# (seed 000 Sec. I: 3D-Net / CAROM take dimensions from the recognised vehicle type).
+# (Saravanan et al. Sec. I: 3D-Net / CAROM take dimensions from the recognised vehicle type).
 CLASS_DEFAULT_LWH: dict[ObjectClass, tuple[float, float, float]] = {
     ObjectClass.UNKNOWN: (4.0, 1.8, 1.6),
     ObjectClass.CAR: (4.6, 1.85, 1.5),

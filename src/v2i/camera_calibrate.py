@@ -26,7 +26,7 @@ HEADERS = (("u_px", "v_px", "x_m", "y_m"), ("u_px", "v_px", "x_m", "y_m", "z_m")
 
 DESCRIPTION = """\
 Fit a camera calibration from >= 6 surveyed correspondences between pixels and map points
-(seed 000 Sec. II) and write the calibration file the RSU loads (--calibration of `v2i rsu`).
+(Saravanan et al. Sec. II) and write the calibration file the RSU loads (--calibration of `v2i rsu`).
 
 Points file (CSV): a header line, then one point per line; '#' starts a comment (whole line
 or after the values); blank lines are skipped.

@@ -38,11 +38,11 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", default="lte-v2x", help="link profile: bundled name or YAML path (default %(default)s)")
     p.add_argument("--fusion", default="kf", choices=(*FUSION_METHODS, "roif"),
                    help="fusion method (default %(default)s); roif: image-level fusion of the ego's and the RSU's "
-                        "camera boxes by ORB + RANSAC homography (seed 004) on a scenario with an ego_camera, e.g. "
+                        "camera boxes by ORB + RANSAC homography (Maqsud's thesis) on a scenario with an ego_camera, e.g. "
                         "--scenario roif-intersection: offline in v2i eval; live in v2i demo (RSU --source camera "
                         "--image-features at the ego camera's rate, the link, OBU --fusion roif; startup >= 12 s)")
     p.add_argument("--fusion-mode", default="adaptive", choices=FUSION_MODES,
-                   help="which RSU data a cycle fuses (seed 003): intra waits for the frame of the cycle's slot, "
+                   help="which RSU data a cycle fuses (IAAD, Liu et al.): intra waits for the frame of the cycle's slot, "
                         "inter uses the newest buffered one, planning hands the RSU's 5 s paths to the planner; "
                         "adaptive picks the most accurate feasible one per cycle (default %(default)s)")
     p.add_argument("--compensation", default="predict", choices=COMPENSATIONS,
@@ -203,7 +203,7 @@ def _wrote(paths: list[Path], prog: str) -> None:
 
 
 def cmd_eval_roif(args: argparse.Namespace) -> int:
-    """Image-level fusion (seed 004), offline: the ``image_fusion`` report."""
+    """Image-level fusion (Maqsud's ROIF thesis), offline: the ``image_fusion`` report."""
     from evaluation.image_fusion import run_image_fusion, summary
     from sim.scenario import load_scenario
 
@@ -403,8 +403,8 @@ def build_parser(commands: Iterable[str] | None = None) -> argparse.ArgumentPars
 
 def _eval_options(ev: argparse.ArgumentParser) -> None:
     _run_options(ev)
-    ev.add_argument("--table", choices=["seeds"], help="run the experiment tables (seed 000 Tables I-III, "
-                    "seed 001 Table 1, OTVIC Table IV) instead of one run")
+    ev.add_argument("--table", choices=["seeds"], help="run the experiment tables (Saravanan et al. Tables I-III, "
+                    "Bidare's poster Table 1, OTVIC Table IV) instead of one run")
     ev.add_argument("--seeds", type=int, default=5, help="with --table: seeds --seed .. --seed+N-1 (default %(default)s)")
     ev.add_argument("--report", metavar="DIR", help="write pictures of the run here: timeline.png (modes, latency and "
                     "misses, RSU delay and data age, clock error, target error; chaos shaded), bev.png (truth vs "
