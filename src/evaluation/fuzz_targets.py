@@ -4,7 +4,7 @@ are, what its normal output is and where it counts what it refused.
 - ``obu``: an RSU (clock offset 250 ms) and the OBU connected to it directly. The attacker's
   session reaches both: it publishes on the RSU keys of other ids (v2i lists, and CPM / SDSM
   lists on ``.../cpm`` / ``.../sdsm``: ``evaluation.fuzz_standard``; and, as one special kind
-  among the others, valid lists on the genuine RSU's own key: without signatures, issue 14,
+  among the others, valid lists on the genuine RSU's own key: without signatures (``--security none``),
   those are indistinguishable from the RSU's), replays the genuine RSU's lists, and, once the OBU has synchronised and fuses RSU data, answers
   half of its time queries at once with a forged clock (245 ms further ahead, a
   precise-looking round trip). Normal output: a fused list per 10 Hz cycle, late after the

@@ -1,4 +1,4 @@
-"""Who may change a link: authentication of ``LinkControl`` messages (issue 14 §3).
+"""Who may change a link: authentication of ``LinkControl`` messages.
 
 Three modes, chosen at start-up (``LinkConfig.pki`` / ``insecure_control``):
 

@@ -127,7 +127,7 @@ def object_list(header: ObjectListHeader, columns: dict[str, np.ndarray]) -> Obj
     table = np.column_stack([columns[k] for k in COLUMN_NAMES]).reshape(len(columns["id"]), len(COLUMN_NAMES))
     try:
         from .columns import ObjectColumns
-    except ImportError:  # before the columnar object lists (issue 15 section 1): per-object models
+    except ImportError:  # before the columnar object lists (schemas.columns): per-object models
         rows = [dict(zip(COLUMN_NAMES, row)) for row in table.tolist()]
         for row in rows:
             row["id"], row["cls"] = int(row["id"]), int(row["cls"])

@@ -1,4 +1,4 @@
-"""Signed V2X messages (issue 14): a site PKI, signed envelopes and their verifier.
+"""Signed V2X messages (IEEE 1609.2 / ETSI TS 103 097 style): a site PKI, signed envelopes and their verifier.
 
 Pure: no Zenoh, no clock reads (times are arguments). Modules: :mod:`.algorithms` (ECDSA P-256,
 Ed25519), :mod:`.certificates` (certificates, revocation lists), :mod:`.pki` (the directory the CA

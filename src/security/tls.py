@@ -1,4 +1,4 @@
-"""X.509 material for Zenoh TLS and mutual TLS (issue 14 §3): a site TLS CA and one certificate per node.
+"""X.509 material for Zenoh TLS and mutual TLS: a site TLS CA and one certificate per node.
 
 Zenoh's ``tls/`` links (rustls) need X.509 certificates, not the compact V2X certificates of
 :mod:`.certificates`; this module writes them with ``cryptography.x509``. Layout of the directory:

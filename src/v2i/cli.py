@@ -65,7 +65,7 @@ def _run_options(p: argparse.ArgumentParser) -> None:
                         "message, UPER) or sdsm (SAE J3224, UPER); the OBU fuses each at its resolution "
                         "(default %(default)s)")
     p.add_argument("--security", choices=("strict", "permissive", "off", "none"),
-                   help="signed V2X messages (issue 14): the RSUs sign object lists, predictions and time replies "
+                   help="signed V2X messages: the RSUs sign object lists, predictions and time replies "
                         "with a site PKI's certificates and the OBU verifies them: strict drops what fails (counted "
                         "as security_<reason>), permissive counts and fuses it, off unwraps unchecked; none: nothing "
                         "signed (default: strict for demo and chaos run, none for eval)")
