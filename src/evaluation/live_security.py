@@ -3,7 +3,7 @@ process, and each service's flags.
 
 The PKI is always written (the link emulator's control needs an operator certificate whatever the
 run signs); ``RunSpec.security`` decides whether the RSUs sign (``--pki``) and how the OBUs verify
-(``--pki DIR --security POLICY``). None: nothing is signed (the runs before signing existed).
+(``--pki DIR --security POLICY``). None: nothing is signed.
 """
 
 from __future__ import annotations
