@@ -19,8 +19,8 @@ along their paths, ``evaluation.detection_metrics``' matches per frame, ``fusion
 others) at its first call, or when ``load_kernels`` loads every kernel: the services and the
 offline evaluator do that before they start, so that no cycle ever waits for the compiler. The
 machine code is cached under ``__pycache__`` (or the user's cache directory where the package is
-not writable): compiled once per machine (36 s for the 30 kernels, measured on a 2-core machine),
-then loaded in ~0.3-0.4 s per process (most of it numba's own set-up at the first load; its check for
+not writable): compiled once per machine (``v2i warm`` does it ahead; a compile says so on stderr
+within a second, ``CompileProgress``), then loaded in ~0.3-0.4 s per process (most of it numba's own set-up at the first load; its check for
 BLAS and LAPACK reaches scipy's two Cython modules directly: ``preload_scipy_blas``). Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
 arrays convert to them), the arrays a kernel writes ``OUT_*``; an array of another dtype is a
 ``TypeError`` (callers pass float64 and int64). ``helper`` is for the functions the kernels
@@ -35,12 +35,14 @@ from __future__ import annotations
 import importlib
 import importlib.machinery
 import importlib.util
+import os
 import sys
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, TextIO
 
 from numba import njit, types
+from numba.core import event
 
 IN_F1, IN_F2, IN_F3 = (types.Array(types.float64, n, "A", readonly=True) for n in (1, 2, 3))
 IN_I1 = types.Array(types.int64, 1, "A", readonly=True)
@@ -65,16 +67,33 @@ class Kernel:
     def __init__(self, fn: Callable, argument_types: tuple):
         self.fn, self.argument_types = fn, argument_types
         self._compiled: Callable | None = None
+        self._dispatcher: Callable | None = None
         Kernel._all.append(self)
 
     def __call__(self, *args):
         return (self._compiled or self.load())(*args)
 
     def load(self) -> Callable:
-        """The compiled function (loaded from the cache, or compiled and cached)."""
+        """The compiled function (loaded from the cache, or compiled and cached, with ``CompileProgress``)."""
         if self._compiled is None:
-            self._compiled = njit(self.argument_types, **OPTIONS)(self.fn)
+            load_each([self])
         return self._compiled
+
+    def cache_dir(self) -> str:
+        """The folder numba caches this kernel's machine code in."""
+        return self._lazy_dispatcher()._cache._cache_path
+
+    def _lazy_dispatcher(self):
+        if self._dispatcher is None:
+            self._dispatcher = njit(**OPTIONS)(self.fn)
+        return self._dispatcher
+
+    def _compile(self) -> None:
+        """What ``njit(argument_types, ...)`` does: compile (or load) that signature, then no other."""
+        dispatcher = self._lazy_dispatcher()
+        dispatcher.compile(self.argument_types)
+        dispatcher.disable_compile()
+        self._compiled = dispatcher
 
 
 def kernel(*argument_types) -> Callable[[Callable], Kernel]:
@@ -83,22 +102,107 @@ def kernel(*argument_types) -> Callable[[Callable], Kernel]:
 
 
 # the modules that declare kernels (with the modules they import): load_kernels imports them. The
-# evaluation's (evaluation.detection_metrics) are not listed, so that no service imports them: the
+# evaluation's (EVALUATION_KERNEL_MODULES) are not listed, so that no service imports them: the
 # offline evaluator has imported them before it calls load_kernels, which loads those too
 KERNEL_MODULES = ("fusion.tracking", "fusion.wire", "fusion.frames", "fusion.geometry", "fusion.lane_match",
                   "sim.occlusion", "sim.world", "obu_service.admission", "obu_service.clock_envelope", "schemas.bit_rows")
+EVALUATION_KERNEL_MODULES = ("evaluation.detection_metrics",)
 
 
-def load_kernels() -> float:
-    """Load (or compile) every kernel of ``KERNEL_MODULES`` and of every module imported before the call;
-    seconds taken."""
-    for name in KERNEL_MODULES:
+def load_kernels(extra_modules: tuple[str, ...] = ()) -> float:
+    """Load (or compile) every kernel of ``KERNEL_MODULES``, ``extra_modules`` and every module imported
+    before the call; seconds taken. A compile shows its progress on stderr (``CompileProgress``)."""
+    for name in (*KERNEL_MODULES, *extra_modules):
         importlib.import_module(name)
     t0 = time.perf_counter()
     preload_scipy_blas()
-    for k in Kernel._all:
-        k.load()
+    load_each(Kernel._all)
     return time.perf_counter() - t0
+
+
+def warm() -> str:
+    """``v2i warm``: load or compile every kernel, the services' and the offline evaluator's, ahead of
+    any run (a compile shows its progress); the closing line: how many, the seconds taken, the cache."""
+    t0 = time.perf_counter()
+    for name in (*KERNEL_MODULES, *EVALUATION_KERNEL_MODULES):
+        importlib.import_module(name)
+    preload_scipy_blas()
+    compiled = load_each(Kernel._all)
+    return (f"v2i warm: {len(Kernel._all)} numba kernels ready ({compiled} compiled) in "
+            f"{time.perf_counter() - t0:.1f} s; cached in {cache_location([k.cache_dir() for k in Kernel._all])}")
+
+
+def load_each(kernels: list[Kernel], stream: TextIO | None = None) -> int:
+    """Load (or compile) these kernels; how many of them compiled. Nothing is printed unless one compiles."""
+    pending = [k for k in kernels if k._compiled is None]
+    if not pending:
+        return 0
+    progress = CompileProgress(len(pending), cache_location([k.cache_dir() for k in pending]),
+                               sys.stderr if stream is None else stream)
+    with event.install_listener("numba:compile", progress):
+        for k in pending:
+            k._compile()
+            progress.loaded()
+    progress.finish()
+    return progress.compiled
+
+
+def cache_location(folders: list[str]) -> str:
+    """One name for the folders numba caches in: the folder, or where they all are."""
+    unique = sorted(set(folders))
+    if len(unique) == 1:
+        return unique[0]
+    common = os.path.commonpath(unique)
+    if all(os.path.basename(f) == "__pycache__" for f in unique):
+        return os.path.join(common, "*", "__pycache__")
+    return common
+
+
+class CompileProgress(event.Listener):
+    """What a one-time compile says on stderr: numba's first ``numba:compile`` event (a cache miss of a
+    kernel or of a helper it calls) prints the first line at once, then each kernel loaded updates it,
+    rewritten in place on a terminal, elsewhere a plain line at most every ``LINE_EVERY_S``; a closing
+    line with the time taken. A load from the cache fires no event and prints nothing."""
+
+    LINE_EVERY_S = 10.0
+
+    def __init__(self, total: int, cache: str, stream: TextIO, clock: Callable[[], float] = time.monotonic):
+        self.total, self.cache, self.stream, self.clock = total, cache, stream, clock
+        self.done = self.compiled = 0
+        self._compiling = False  # a compile event since the last kernel loaded
+        self._t0 = self._last_line = None
+        self._tty = stream.isatty()
+
+    def on_start(self, ev) -> None:
+        self._compiling = True
+        if self._t0 is None:
+            self._t0 = self.clock()
+            self._show()
+
+    def on_end(self, ev) -> None:
+        pass
+
+    def loaded(self) -> None:
+        """One more kernel loaded (or compiled)."""
+        self.done += 1
+        self.compiled += self._compiling
+        self._compiling = False
+        if self._t0 is not None and (self._tty or self.clock() - self._last_line >= self.LINE_EVERY_S):
+            self._show()
+
+    def finish(self) -> None:
+        if self._t0 is not None:
+            self._write(f"v2i: compiled {self.compiled} numba kernels in {self.clock() - self._t0:.1f} s "
+                        f"(once per machine; cached in {self.cache})", end="\n")
+
+    def _show(self) -> None:
+        self._last_line = self.clock()
+        self._write(f"v2i: compiling numba kernels {self.done}/{self.total} (once per machine; cached in "
+                    f"{self.cache})", end="" if self._tty else "\n")
+
+    def _write(self, text: str, end: str) -> None:
+        self.stream.write(("\r\x1b[K" if self._tty else "") + text + end)
+        self.stream.flush()
 
 
 # numba's first kernel load checks that BLAS and LAPACK are there by importing these two Cython modules

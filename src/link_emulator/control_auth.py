@@ -20,8 +20,9 @@ NTP keeps hosts of one site within tens of milliseconds, and 0.5 s ahead / 2 s o
 badly synchronised host while keeping a captured control useless 2 s later (and within those
 2 s the replay window refuses it). Both are ``LinkConfig`` fields.
 
-The revocation list is re-read (at most once per ``reload_s``, on a control's arrival, if its
-file changed) so that revoking an operator needs no restart. Verification runs on the thread
+The revocation list is re-read (``security.trust_reload``: at most once per ``reload_s``, on a
+control's arrival, if its file changed; a list that does not verify is refused and logged, the one
+in force kept) so that revoking an operator needs no restart. Verification runs on the thread
 that calls :meth:`ControlAuth.open` (the relay's scheduler thread) and never raises on any bytes.
 """
 
@@ -35,7 +36,8 @@ from schemas.codec import encode
 from schemas.keys import link_control
 from schemas.messages import LinkControl
 from security.envelope import PREFIX, Signer, Verifier, parse, sign
-from security.pki import CRL_FILE, Identity, PkiError, Trust, load_trust
+from security.pki import Identity
+from security.trust_reload import TrustReload
 
 log = logging.getLogger(__name__)
 
@@ -67,18 +69,18 @@ class Opened:
 class ControlAuth:
     """Authenticates the link controls of one link; build with :meth:`create`. One owner thread."""
 
-    def __init__(self, mode: str, link_id: str, directory: Path | None = None, trust: Trust | None = None,
-                 max_age_s: float = 2.0, max_ahead_s: float = 0.5, reload_s: float = RELOAD_S) -> None:
-        if mode not in ("signed", "refuse", "insecure") or (mode == "signed") != (trust is not None):
-            raise ValueError(f"control auth mode {mode!r} needs trust exactly when signed")
+    def __init__(self, mode: str, link_id: str, directory: Path | None = None, max_age_s: float = 2.0,
+                 max_ahead_s: float = 0.5, reload_s: float = RELOAD_S) -> None:
+        if mode not in ("signed", "refuse", "insecure") or (mode == "signed") != (directory is not None):
+            raise ValueError(f"control auth mode {mode!r} needs a PKI directory exactly when signed")
         self.mode, self.key_expr, self.directory = mode, link_control(link_id), directory
         self.max_age_ns, self.max_ahead_ns = round(max_age_s * NS_PER_S), round(max_ahead_s * NS_PER_S)
-        self._reload_ns, self._next_reload_ns, self._crl_stamp = round(reload_s * NS_PER_S), 0, None
         self.verifier: Verifier | None = None
-        if trust is not None:
-            self.verifier = Verifier(trust, "strict", freshness_ns=self.max_age_ns, future_ns=self.max_ahead_ns,
-                                     roles=(OPERATOR,))
-            self._crl_stamp = self._stamp()
+        self._trust: TrustReload | None = None
+        if directory is not None:
+            self._trust = TrustReload(directory, reload_s)  # PkiError on a bad directory
+            self.verifier = Verifier(self._trust.trust, "strict", freshness_ns=self.max_age_ns,
+                                     future_ns=self.max_ahead_ns, roles=(OPERATOR,))
 
     @classmethod
     def create(cls, link_id: str, pki: str | None, insecure: bool, max_age_s: float = 2.0,
@@ -86,7 +88,7 @@ class ControlAuth:
         """The authenticator of a config: ``signed`` with a PKI directory (PkiError on a bad one),
         ``insecure`` when asked, else ``refuse``."""
         if pki is not None:
-            return cls("signed", link_id, Path(pki), load_trust(pki), max_age_s, max_ahead_s)
+            return cls("signed", link_id, Path(pki), max_age_s, max_ahead_s)
         return cls("insecure" if insecure else "refuse", link_id, max_age_s=max_age_s, max_ahead_s=max_ahead_s)
 
     def describe(self) -> str:
@@ -134,28 +136,11 @@ class ControlAuth:
 
     # ---- the revocation list ----------------------------------------------------------------
 
-    def _stamp(self) -> tuple[int, int] | None:
-        """(mtime_ns, size) of the revocation list file, None when absent."""
-        try:
-            st = (self.directory / CRL_FILE).stat()
-        except OSError:
-            return None
-        return st.st_mtime_ns, st.st_size
-
     def _maybe_reload(self, now_ns: int) -> None:
-        """Reload the trust directory when its revocation list changed (checked once per reload_s)."""
-        if now_ns < self._next_reload_ns:
+        """Take a changed revocation list (checked once per reload_s); log what happened."""
+        outcome = self._trust.poll(now_ns)
+        if outcome is None:
             return
-        self._next_reload_ns = now_ns + self._reload_ns
-        stamp = self._stamp()
-        if stamp == self._crl_stamp:
-            return
-        try:
-            trust = load_trust(self.directory)
-        except PkiError as exc:
-            log.warning("kept the previous trust: cannot reload %s (%s)", self.directory, exc)
-            return
-        self._crl_stamp = stamp
-        self.verifier.set_trust(trust)
-        log.warning("reloaded %s: %d certificate(s) revoked", self.directory / CRL_FILE, len(trust.revoked))
-
+        if outcome.accepted:
+            self.verifier.set_trust(outcome.trust)
+        log.warning(outcome.describe())

@@ -38,7 +38,7 @@ from sim.world import World
 from .config import ObuConfig
 from .ego_camera import EgoCamera
 from .image_fusion import ImageFusionConfig, ImageFusionPipeline
-from .inbound_security import InboundSecurity, make_verifier, trust_of
+from .inbound_security import live_security
 from .time_requests import sync_times_ns
 
 INPUTS_PER_LATE_EVENT = 8  # queued inputs taken before each overdue event (an RSU frame of 41 kB decodes in ~0.06 ms)
@@ -57,8 +57,8 @@ class ImageFusionNode:
             vehicle_id=config.vehicle_id, known_rsus=known, pair_tolerance_ms=config.roif_pair_tolerance_ms,
             wait_ms=config.roif_wait_ms, deadline_ms=config.roif_deadline_ms, max_age_ms=config.roif_max_age_ms,
             future_tolerance_ms=config.future_tolerance_ms))
-        verifier = make_verifier(trust_of(config.pki_dir), config.security_policy, config.roif_max_age_ms * 1e-3)
-        self._security = InboundSecurity(verifier, self.pipeline.clock_offset, self.pipeline.reject)
+        self._security = live_security(config.pki_dir, config.security_policy, config.roif_max_age_ms * 1e-3,
+                                       self.pipeline.clock_offset, self.pipeline.reject)
         self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
                               config.source_burst, max_queued_bytes=config.inbox_max_bytes,
                               preferred=lambda key: keys.rsu_id_or_none(key) in known)
@@ -171,6 +171,8 @@ class ImageFusionNode:
             self._count_refusals()
             self._metrics.put(encode(self.pipeline.metrics(self.clock.now_ns())))
             self._trim.maybe()
+            if (change := self._security.poll_trust(self.clock.now_ns())) is not None:  # a revocation while running
+                log("obu", change)
 
     def _count_refusals(self) -> None:
         for reason, n in self._intake.take_counts().items():

@@ -13,6 +13,12 @@ Outcomes are counted through ``reject(label)``: ``security_<reason>`` for a drop
 ``malformed`` under ``permissive``), ``security_accepted_<reason>`` for a failure ``permissive``
 let through. Under ``off`` (no ``--pki``) envelopes are unwrapped unchecked and unsigned bytes pass
 unchanged, as before signing existed.
+
+A live OBU (:func:`live_security`) also takes a revocation while it runs: its node calls
+:meth:`InboundSecurity.poll_trust` from its loop after each cycle's output (never per message), which
+looks at ``DIR/revoked.crl`` at most once a second (``security.trust_reload``); a new list signed by the
+CA applies from the next message on (the revoked RSU's messages dropped as ``security_revoked``), one
+that does not parse, is not the CA's or is older than the list in force is refused and logged.
 """
 
 from __future__ import annotations
@@ -21,7 +27,8 @@ from collections.abc import Callable
 
 from schemas.keys import rsu_id_or_none
 from security.envelope import REJECTIONS, Verifier
-from security.pki import PkiError, Trust, load_trust
+from security.pki import PkiError, Trust
+from security.trust_reload import TrustReload
 
 FUTURE_S = 1.0  # how far ahead of the estimated RSU clock a generation time may be
 ClockOffset = Callable[[str, int], "object | None"]  # (rsu_id, obu t_ns) -> estimate with .offset_ns, or None
@@ -30,10 +37,22 @@ ClockOffset = Callable[[str, int], "object | None"]  # (rsu_id, obu t_ns) -> est
 class InboundSecurity:
     """Verifies RSU messages for one OBU; ``reject(label)`` counts each failure."""
 
-    def __init__(self, verifier: Verifier, clock_offset: ClockOffset, reject: Callable[[str], None]):
+    def __init__(self, verifier: Verifier, clock_offset: ClockOffset, reject: Callable[[str], None],
+                 reload: TrustReload | None = None):
         self.verifier = verifier
         self._clock_offset = clock_offset
         self._reject = reject
+        self._reload = reload  # the --pki directory's revocation list, watched while running (None: not watched)
+
+    def poll_trust(self, now_ns: int) -> str | None:
+        """Between messages: take a changed revocation list (looked at once a second at most); the
+        log line of what was taken or refused, None when nothing changed."""
+        outcome = None if self._reload is None else self._reload.poll(now_ns)
+        if outcome is None:
+            return None
+        if outcome.accepted:
+            self.verifier.set_trust(outcome.trust)
+        return outcome.describe()
 
     def open(self, data: bytes, key_expr: str, receive_ns: int, time_reply: bool = False) -> bytes | None:
         """The payload to decode, or None when the message is dropped (counted)."""
@@ -65,9 +84,14 @@ def make_verifier(trust: Trust | None, policy: str, freshness_s: float) -> Verif
                     roles=("rsu",))
 
 
-def trust_of(pki_dir: str | None) -> Trust | None:
-    """The trust a ``--pki`` directory holds (None without one); ValueError naming a bad file."""
+def live_security(pki_dir: str | None, policy: str, freshness_s: float, clock_offset: ClockOffset,
+                  reject: Callable[[str], None]) -> InboundSecurity:
+    """A live OBU's gate: ``pki_dir``'s trust under ``policy`` (:func:`make_verifier`), its revocation
+    list watched while running unless nothing is checked (no directory, or policy off); ValueError
+    naming a bad file."""
     try:
-        return None if pki_dir is None else load_trust(pki_dir)
+        reload = None if pki_dir is None else TrustReload(pki_dir)
     except PkiError as exc:
         raise ValueError(str(exc)) from None
+    verifier = make_verifier(None if reload is None else reload.trust, policy, freshness_s)
+    return InboundSecurity(verifier, clock_offset, reject, None if policy == "off" else reload)

@@ -41,7 +41,7 @@ from sim.world import World
 from telemetry.latency import PeriodicSummary, StageLatency
 
 from .config import ObuConfig
-from .inbound_security import InboundSecurity, make_verifier, trust_of
+from .inbound_security import live_security
 from .pipeline import ObuPipeline
 from .source import ExternalCycles, OwnFrame, SimulatedVehicle, detections_of, pose_of
 from .time_requests import sync_times_ns
@@ -71,8 +71,8 @@ class ObuNode:
         self.duration_s = config.duration_s or self.world.scenario.duration_s
         self.vehicle = SimulatedVehicle(self.world, config.seed, self.start_ns) if config.source == "sim" else None
         self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
-        verifier = make_verifier(trust_of(config.pki_dir), config.security_policy, config.planning_max_age_s)
-        self._security = InboundSecurity(verifier, self.pipeline.clock_offset, self.pipeline.reject)
+        self._security = live_security(config.pki_dir, config.security_policy, config.planning_max_age_s,
+                                       self.pipeline.clock_offset, self.pipeline.reject)
         known = set(self.pipeline.config.known_rsus)
         vid = config.vehicle_id
         self._v2v = (V2vShell(vid, self.pipeline.enable_v2v(config.max_peers), self.clock, config.max_message_bytes)
@@ -318,6 +318,8 @@ class ObuNode:
         self._pub["metrics"].put(encode(metrics))
         self.last_metrics = metrics
         self._trim.maybe()  # just published: the next deadline is a cycle away
+        if (change := self._security.poll_trust(self.clock.now_ns())) is not None:  # a revocation while running
+            log("obu", change)
 
     def _count_refusals(self) -> None:
         """The intake's refusals into the pipeline's counters; the new ones to the throttled log."""

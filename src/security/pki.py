@@ -99,7 +99,9 @@ def read_key(path: Path, cert: Certificate) -> alg.PrivateKey:
     return key
 
 
-def _read_crl(directory: Path, ca: Certificate, ca_key: alg.PublicKey) -> RevocationList | None:
+def read_crl(directory: Path, ca: Certificate, ca_key: alg.PublicKey) -> RevocationList | None:
+    """``directory``'s revocation list, its CA signature checked; None when absent, PkiError when
+    it cannot be read, does not parse or is not signed by ``ca``."""
     path = directory / CRL_FILE
     if not path.exists():
         return None
@@ -122,7 +124,7 @@ def load_trust(directory: str | Path) -> Trust:
     directory's other ``*.cert`` files as known certificates; PkiError on any bad file."""
     directory = Path(directory)
     ca, ca_key = _load_ca(directory)
-    crl = _read_crl(directory, ca, ca_key)
+    crl = read_crl(directory, ca, ca_key)
     known = {}
     for path in sorted(directory.glob("*.cert")):
         if path.name != f"{CA_NAME}.cert":
@@ -202,7 +204,7 @@ class Pki:
         cert = read_cert(self.directory / f"{subject}.cert")
         if cert.issuer != self.ca.cert.digest:
             raise PkiError(f"{self.directory / f'{subject}.cert'}: not issued by this CA")
-        old = _read_crl(self.directory, self.ca.cert, self.ca.key.public_key())
+        old = read_crl(self.directory, self.ca.cert, self.ca.key.public_key())
         revoked = (old.revoked if old else frozenset()) | {cert.digest}
         crl = certs.sign_revocations(revoked, now_ns, self.ca.cert, self.ca.key)
         _write(self.directory / CRL_FILE, crl.encode(), 0o644)

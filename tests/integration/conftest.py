@@ -1,12 +1,12 @@
-"""The services these tests start load the tracker's compiled loops before they report ready, and
-the tests give them seconds to be ready: on a machine where the loops were never compiled (a
-fresh clone: ~12 s, once), they are compiled here, before the first test, not in a service."""
+"""The services these tests start load the compiled kernels before they report ready: on a machine
+where they were never compiled (a fresh clone), they are compiled here, once, before the first test
+(what ``v2i warm`` does: the services' kernels and the evaluator's), not in a service."""
 
 import pytest
 
-from fusion.jit import load_kernels
+from fusion.jit import EVALUATION_KERNEL_MODULES, load_kernels
 
 
 @pytest.fixture(scope="session", autouse=True)
 def compiled_kernels() -> None:
-    load_kernels()
+    load_kernels(EVALUATION_KERNEL_MODULES)

@@ -108,3 +108,98 @@ def test_preloading_scipys_blas_modules_is_skipped_once_scipy_linalg_is_imported
     from fusion.jit import preload_scipy_blas
 
     assert preload_scipy_blas() == []
+
+
+class _Stream:
+    """A stderr stand-in: what was written, and whether it is a terminal."""
+
+    def __init__(self, tty: bool):
+        self.text, self.tty = "", tty
+
+    def write(self, text: str) -> None:
+        self.text += text
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return self.tty
+
+
+def test_compile_progress_prints_at_the_first_compile_then_a_line_every_ten_seconds_and_a_closing_line():
+    from fusion.jit import CompileProgress
+
+    now = [100.0]
+    stream = _Stream(tty=False)
+    progress = CompileProgress(3, "/cache", stream, clock=lambda: now[0])
+    progress.loaded()  # loaded from the cache: nothing said
+    assert stream.text == ""
+    progress.on_start(None)
+    assert stream.text == "v2i: compiling numba kernels 1/3 (once per machine; cached in /cache)\n"
+    now[0] += 9.0
+    progress.loaded()  # 9 s after the last line: no new line
+    assert stream.text.count("\n") == 1
+    progress.on_start(None)
+    now[0] += 1.5
+    progress.loaded()
+    progress.finish()
+    assert stream.text.splitlines()[1:] == ["v2i: compiling numba kernels 3/3 (once per machine; cached in /cache)",
+                                           "v2i: compiled 2 numba kernels in 10.5 s (once per machine; cached in /cache)"]
+
+
+def test_compile_progress_rewrites_one_line_on_a_terminal_and_says_nothing_without_a_compile():
+    from fusion.jit import CompileProgress
+
+    stream = _Stream(tty=True)
+    progress = CompileProgress(2, "/cache", stream)
+    progress.on_start(None)
+    progress.loaded()
+    progress.loaded()
+    progress.finish()
+    lines = stream.text.split("\r\x1b[K")[1:]
+    assert [line.split(" (")[0] for line in lines] == ["v2i: compiling numba kernels 0/2",
+                                                       "v2i: compiling numba kernels 1/2",
+                                                       "v2i: compiling numba kernels 2/2",
+                                                       "v2i: compiled 1 numba kernels in 0.0 s"]
+    assert stream.text.count("\n") == 1 and stream.text.endswith("\n")
+    quiet = _Stream(tty=True)
+    warm = CompileProgress(2, "/cache", quiet)
+    warm.loaded()
+    warm.loaded()
+    warm.finish()
+    assert quiet.text == ""
+
+
+def test_a_cold_compile_says_so_on_stderr_and_a_cached_load_says_nothing(tmp_path):
+    """A kernel module of its own, compiled into an empty NUMBA_CACHE_DIR in a fresh interpreter: the progress
+    and closing lines; the same load again (from the cache): no output at all."""
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "tiny_kernels.py").write_text(
+        "from fusion.jit import I64, kernel\n\n\n@kernel(I64)\ndef plus_one(x):\n    return x + 1\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
+           "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+    code = ("import tiny_kernels; from fusion.jit import Kernel, load_each; "
+            "print(load_each([k for k in Kernel._all if k.fn.__module__ == 'tiny_kernels']), tiny_kernels.plus_one(2))")
+    runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+            for _ in range(2)]
+    assert runs[0].stdout.split() == ["1", "3"]
+    first, *_, last = runs[0].stderr.splitlines()
+    assert first.startswith(f"v2i: compiling numba kernels 0/1 (once per machine; cached in {tmp_path / 'cache'}")
+    assert last.startswith("v2i: compiled 1 numba kernels in ")
+    assert runs[1].stdout.split() == ["0", "3"] and runs[1].stderr == ""
+
+
+def test_v2i_warm_loads_every_kernel_and_says_how_long_and_where():
+    import subprocess
+    import sys
+
+    from fusion.jit import EVALUATION_KERNEL_MODULES
+
+    load_kernels(EVALUATION_KERNEL_MODULES)  # every module that declares a kernel (the test above checks the list)
+    out = subprocess.run([sys.executable, "-m", "v2i", "warm"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    line = out.stdout.strip()
+    assert line.startswith(f"v2i warm: {len(Kernel._all)} numba kernels ready (") and " s; cached in " in line

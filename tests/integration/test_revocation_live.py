@@ -1,0 +1,65 @@
+"""A revocation issued while the OBU runs: a strict OBU fuses a signing RSU's lists, ``v2i pki revoke``
+revokes the RSU's certificate, and from then on the OBU refuses its messages as ``security_revoked``."""
+
+from __future__ import annotations
+
+import queue
+import subprocess
+import sys
+import time
+
+import pytest
+
+from obu_service.config import ObuConfig
+from obu_service.node import ObuNode
+from rsu_service.config import RsuConfig
+from rsu_service.node import RsuNode
+from schemas import keys
+from schemas.codec import decode
+from schemas.messages import ObuMetrics
+from schemas.transport import free_tcp_endpoint
+from security.pki import CRL_FILE
+from security.site import write_site
+
+from test_obu_node import probe_session, running, wait_for  # tests/integration is on sys.path (rootdir-less import)
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
+READY_S = 60.0  # to the first accepted RSU list: generous for a loaded machine (the nodes start in seconds)
+REVOKED_S = 30.0  # to the first refusal after the revocation: the OBU looks once a second, after a cycle's output
+# After the first refusal, lists keep coming at 10 Hz (and time replies): at least this many more refused, none
+# accepted, within REVOKED_S; 5 is half a second of lists, a margin for a busy machine's late cycles.
+MORE_REFUSED = 5
+
+
+def _rsu1(m: ObuMetrics):
+    return next((r for r in m.rsus if r.rsu_id == "rsu1"), None)
+
+
+def _accepted(m: ObuMetrics) -> int:
+    row = _rsu1(m)
+    return 0 if row is None else row.messages_accepted
+
+
+def test_a_revocation_written_while_the_obu_runs_refuses_the_rsu_from_then_on(tmp_path, capsys):
+    pki = write_site(tmp_path / "pki", time.time_ns() - 10**9, ["rsu1"], ["ego"])
+    rsu_ep, obu_ep = free_tcp_endpoint(), free_tcp_endpoint()
+    start_ns = time.time_ns() + 1_000_000_000
+    rsu = RsuNode(RsuConfig(listen=[rsu_ep], start_at_ns=start_ns, duration_s=180.0, pki_dir=str(pki)))
+    obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], start_at_ns=start_ns, duration_s=180.0,
+                            pki_dir=str(pki)))
+    assert obu.config.security_policy == "strict"
+    metrics: queue.Queue = queue.Queue()
+    with running(rsu, obu), probe_session(obu_ep) as (probe, entities):
+        entities.append(probe.declare_subscriber(keys.obu_metrics("ego"),
+                                                 lambda s: metrics.put(decode(s.payload.to_bytes(), ObuMetrics))))
+        before = wait_for(metrics, lambda m: _accepted(m) > 0, READY_S)
+        assert not any(k.startswith("security_") for k in before.rejected), before.rejected
+        revoke = subprocess.run([sys.executable, "-m", "v2i", "pki", "revoke", str(pki), "rsu1"],
+                                capture_output=True, text=True, timeout=60)
+        assert revoke.returncode == 0 and "rsu1: revoked" in revoke.stdout, revoke.stderr
+        first = wait_for(metrics, lambda m: m.rejected.get("security_revoked", 0) > 0, REVOKED_S)
+        refused = first.rejected["security_revoked"]
+        later = wait_for(metrics, lambda m: m.rejected.get("security_revoked", 0) >= refused + MORE_REFUSED, REVOKED_S)
+        assert _accepted(later) == _accepted(first)  # nothing of rsu1's accepted after the first refusal
+        assert not any(k.startswith("security_") and k != "security_revoked" for k in later.rejected), later.rejected
+    assert f"[obu] reloaded {pki / CRL_FILE}: 1 certificate(s) revoked" in capsys.readouterr().err
