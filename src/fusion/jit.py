@@ -120,16 +120,18 @@ def load_kernels(extra_modules: tuple[str, ...] = ()) -> float:
     return time.perf_counter() - t0
 
 
-def warm() -> str:
+def warm() -> tuple[str, int]:
     """``v2i warm``: load or compile every kernel, the services' and the offline evaluator's, ahead of
-    any run (a compile shows its progress); the closing line: how many, the seconds taken, the cache."""
+    any run (a compile shows its progress); the closing line (how many, the seconds taken, the cache)
+    and how many of them compiled."""
     t0 = time.perf_counter()
     for name in (*KERNEL_MODULES, *EVALUATION_KERNEL_MODULES):
         importlib.import_module(name)
     preload_scipy_blas()
     compiled = load_each(Kernel._all)
     return (f"v2i warm: {len(Kernel._all)} numba kernels ready ({compiled} compiled) in "
-            f"{time.perf_counter() - t0:.1f} s; cached in {cache_location([k.cache_dir() for k in Kernel._all])}")
+            f"{time.perf_counter() - t0:.1f} s; cached in {cache_location([k.cache_dir() for k in Kernel._all])}",
+            compiled)
 
 
 def load_each(kernels: list[Kernel], stream: TextIO | None = None) -> int:

@@ -28,6 +28,7 @@ SUBCOMMANDS = {
     "attack": "attack a running site near its RSU (ghosts, forgeries, replays, stolen and revoked keys, time, control) "
               "and report what was rejected and what got through",
     "pki": "the site's certificate authority: init, issue, revoke, list, a whole site, Zenoh TLS material",
+    "warm": "compile the numba kernels of the services and the evaluator ahead of the first run (once per machine)",
 }
 
 
@@ -529,6 +530,21 @@ def _service_options(module: str):
     return options
 
 
+def _warm_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--check", action="store_true", help="exit 1 when a kernel had to be compiled (the cache was "
+                   "empty or stale), e.g. to show that an image or a CI cache holds them")
+    p.set_defaults(func=cmd_warm)
+
+
+def cmd_warm(args: argparse.Namespace) -> int:
+    """``v2i warm``: every compiled kernel loaded or compiled (progress on stderr), one closing line."""
+    from fusion.jit import warm
+
+    line, compiled = warm()
+    print(line)
+    return 1 if args.check and compiled else 0
+
+
 def _pki_options(p: argparse.ArgumentParser) -> None:
     """``v2i pki``: files only, so no --zenoh-config (its configure_parser sets its ``run``)."""
     importlib.import_module("security.pki_cli").configure_parser(p)
@@ -543,6 +559,7 @@ _OPTIONS = {
     "record": _service_options("v2i.record"), "replay": _service_options("v2i.replay"),
     "attack": _service_options("evaluation.attack"),
     "pki": _pki_options,
+    "warm": _warm_options,
 }
 
 

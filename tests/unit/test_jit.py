@@ -199,7 +199,19 @@ def test_v2i_warm_loads_every_kernel_and_says_how_long_and_where():
     from fusion.jit import EVALUATION_KERNEL_MODULES
 
     load_kernels(EVALUATION_KERNEL_MODULES)  # every module that declares a kernel (the test above checks the list)
-    out = subprocess.run([sys.executable, "-m", "v2i", "warm"], capture_output=True, text=True)
-    assert out.returncode == 0, out.stderr
+    out = subprocess.run([sys.executable, "-m", "v2i", "warm", "--check"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr  # --check: all of them came from the cache
     line = out.stdout.strip()
-    assert line.startswith(f"v2i warm: {len(Kernel._all)} numba kernels ready (") and " s; cached in " in line
+    assert line.startswith(f"v2i warm: {len(Kernel._all)} numba kernels ready (0 compiled) in ") and "; cached in " in line
+
+
+def test_v2i_warm_check_fails_when_a_kernel_had_to_compile(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    code = "import fusion.jit as j; j.KERNEL_MODULES = ('fusion.wire',); j.EVALUATION_KERNEL_MODULES = (); " \
+           "from v2i.cli import main; raise SystemExit(main(['warm', '--check']))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.returncode == 1 and "compiled) in " in out.stdout and "(0 compiled)" not in out.stdout, out.stderr
