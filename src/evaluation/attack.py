@@ -24,10 +24,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import signal
 import sys
 
-from .attack_messages import KINDS, STOLEN_RSU, STOLEN_VEHICLE
+from security.attacker_keys import STOLEN_RSU, STOLEN_VEHICLE
+
+from .attack_messages import KINDS
 
 
 def configure_parser(p: argparse.ArgumentParser) -> None:
@@ -35,14 +38,21 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                      "ego (unsigned, forged, signed with stolen or revoked keys), replays of captured genuine "
                      "lists, forged time replies and link-control outages; report per kind what the OBU and the "
                      "link emulator rejected (by reason), what they let through, and whether a ghost reached the "
-                     "fused output. v2i demo logs the endpoints. Exit 1 when anything got through.")
+                     "fused output. v2i demo logs the endpoints. Exit 1 when anything got through. First make the "
+                     "attacker's keys in the site PKI the services use: v2i pki attacker DIR --rsu-id RSU_ID (a "
+                     "stolen RSU and vehicle key, and the RSU's former key, revoked; a running OBU and link emulator "
+                     "take the revocation within a second).")
     p.add_argument("--connect", required=True, metavar="EP", help="the OBU's endpoint (its --listen)")
     p.add_argument("--sniff", required=True, metavar="EP", help="the RSU's endpoint: its broadcast, captured")
     p.add_argument("--control", metavar="EP", help="the link emulator's control endpoint (kind control)")
-    p.add_argument("--pki", required=True, metavar="DIR", help="directory holding the attacker's stolen and "
-                   "revoked keys (evaluation.attack_messages.prepare_attacker_pki makes them)")
+    p.add_argument("--pki", required=True, metavar="DIR",
+                   help="the site PKI (v2i pki site) holding the attacker's keys, made by v2i pki attacker DIR "
+                        "--rsu-id RSU_ID; this reads, for each --stolen subject S, S.key and S.cert (a stolen RSU "
+                        "and vehicle certificate of the site), and RSU_ID-revoked.key and .cert (the victim RSU's "
+                        "former certificate, revoked in DIR/revoked.crl). The OBU and link emulator must verify with "
+                        "this DIR's CA and revocation list (their --pki DIR, or a copy of revoked.crl on their host)")
     p.add_argument("--stolen", default=f"{STOLEN_RSU},{STOLEN_VEHICLE}", metavar="S1,S2",
-                   help="subjects of the stolen keys in --pki (default %(default)s)")
+                   help="subjects of the stolen keys in --pki, as made by v2i pki attacker (default %(default)s)")
     p.add_argument("--rsu-id", default="rsu1", help="the victim RSU (default %(default)s)")
     p.add_argument("--vehicle-id", default="ego", help="the OBU's vehicle (default %(default)s)")
     p.add_argument("--link-id", default="link1", help="the emulator's link id (default %(default)s)")
@@ -63,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from schemas.keys import check_id
     from security.pki import PkiError
 
-    from .attack_messages import load_attacker_keys
+    from security.attacker_keys import load_attacker_keys
     from .attack_report import format_report, got_through
 
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
@@ -76,10 +86,12 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--count and --time-burst must be >= 1 and --rate-hz in (0, 10000]")
     for name in (args.rsu_id, args.vehicle_id, args.link_id):
         check_id(name)
+    stolen = tuple(s for s in args.stolen.split(",") if s)
     try:
-        attacker = load_attacker_keys(args.pki, args.rsu_id, tuple(s for s in args.stolen.split(",") if s))
+        attacker = load_attacker_keys(args.pki, args.rsu_id, stolen)
     except PkiError as exc:
-        raise ValueError(f"--pki: {exc}") from None
+        hint = prepare_command(args.pki, args.rsu_id, stolen)
+        raise ValueError(f"--pki: {exc}; make the attacker's keys with: {hint}") from None
     from .attack_live import AttackRun, NotReady
 
     attack = AttackRun(args, kinds, attacker)
@@ -98,6 +110,13 @@ def run(args: argparse.Namespace) -> int:
         attack.close()
     _emit(report, args.json, format_report(report))
     return code or (1 if got_through(report) else 0)
+
+
+def prepare_command(pki_dir: str, rsu_id: str, stolen: tuple[str, ...]) -> str:
+    """The ``v2i pki attacker`` command line that makes what this attack reads."""
+    extra = [] if stolen == (STOLEN_RSU, STOLEN_VEHICLE) else \
+        [arg for flag, s in zip(("--stolen-rsu", "--stolen-vehicle"), stolen) for arg in (flag, s)]
+    return shlex.join(["v2i", "pki", "attacker", pki_dir, "--rsu-id", rsu_id, *extra])
 
 
 def _interrupt(signum, frame):

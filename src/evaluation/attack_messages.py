@@ -9,6 +9,7 @@ The attacker holds no site key of its own. It can hold, in the acceptance scenar
   revocation is the only thing that stops it;
 - genuine envelopes it captured over the air (the RSU's broadcast), and the genuine RSU's
   certificate digest they carry.
+The keys are the lab's to give (``security.attacker_keys``, made by ``v2i pki attacker DIR``).
 
 Kinds (``KINDS``) and the :class:`security.envelope.Verifier` reason each is built to hit
 (``INTENDED``), all on the victim RSU's own keys:
@@ -37,8 +38,6 @@ a signature check. Nothing here reads a clock or touches Zenoh; randomness from 
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
-from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -50,8 +49,8 @@ from schemas.codec import encode
 from schemas.messages import LinkControl, ObjectList, ObjectListHeader, ObjectState, TimeReply, TimeRequest
 from security import algorithms as alg
 from security import certificates as certs
+from security.attacker_keys import AttackerKeys
 from security.envelope import MAGIC, PREFIX, Signer, parse, signed_bytes
-from security.pki import CA_NAME, NS_PER_DAY, Identity, Pki, PkiError, load_signer
 
 KINDS = ("unsigned", "forged", "replayed", "wrong_key", "revoked", "time", "control")
 LIST_KINDS = KINDS[:5]  # object lists on v2x/rsu/{rsu_id}/objects
@@ -64,54 +63,12 @@ INTENDED: dict[str, tuple[str, ...]] = {
 }
 TIME_VARIANTS = ("unsigned", "wrong_key", "forged")
 CONTROL_VARIANTS = ("unsigned", "wrong_key")
-STOLEN_RSU, STOLEN_VEHICLE = "rsu-evil", "stolen-vehicle"
 GHOST_AHEAD_M = 8.0
 GHOST_ID = 0xB0_0000  # the ghost's object id on the attacker's lists
 GHOST_SIZE_LWH_M = (0.6, 0.6, 1.75)  # a pedestrian
 TIME_SHIFT_NS = 400_000_000  # forged time replies move the RSU clock estimate by this much
 RSU_LATENCY_NS = 100_000_000  # a ghost list claims capture this long before its publication
-BACKDATE_NS = 3600 * 10**9  # attacker certificates are valid from an hour before preparation
 OUTAGE_S = 3600.0
-
-
-def revoked_subject(rsu_id: str) -> str:
-    """Subject of the victim RSU's former, revoked certificate."""
-    return f"{keys.check_id(rsu_id)}-revoked"
-
-
-def prepare_attacker_pki(directory: str | Path, now_ns: int, rsu_id: str, stolen_rsu: str = STOLEN_RSU,
-                         stolen_vehicle: str = STOLEN_VEHICLE, days: float = 30.0) -> Path:
-    """Issue (if absent) the keys the attacker will have stolen and the victim RSU's former key,
-    and revoke the latter: the lab's part, done with the CA before the services load the trust
-    directory. A new CA when ``directory`` has none. Idempotent; PkiError on bad files."""
-    directory = Path(directory)
-    pki = Pki.load(directory) if (directory / f"{CA_NAME}.cert").exists() else Pki.init(directory, now_ns)
-    since_ns = now_ns - BACKDATE_NS
-    old = revoked_subject(rsu_id)
-    wanted = ((stolen_rsu, "rsu", None), (stolen_vehicle, "vehicle", None),
-              (old, "rsu", certs.default_keys("rsu", rsu_id)))
-    for subject, role, key_exprs in wanted:
-        if not (directory / f"{subject}.cert").exists():
-            pki.issue(subject, role, since_ns, keys=key_exprs, days=days + BACKDATE_NS / NS_PER_DAY)
-    pki.revoke(old, now_ns)
-    return directory
-
-
-@dataclass(frozen=True)
-class AttackerKeys:
-    """The keys the attacker holds: stolen ones (not covering the victim's keys) and a revoked one."""
-
-    stolen: tuple[Identity, ...]
-    revoked: Identity
-
-
-def load_attacker_keys(directory: str | Path, rsu_id: str,
-                       stolen: tuple[str, ...] = (STOLEN_RSU, STOLEN_VEHICLE)) -> AttackerKeys:
-    """The attacker's identities from ``directory`` (see :func:`prepare_attacker_pki`); PkiError
-    naming the missing or bad file."""
-    if not stolen:
-        raise PkiError("the attacker needs at least one stolen key")
-    return AttackerKeys(tuple(load_signer(directory, s) for s in stolen), load_signer(directory, revoked_subject(rsu_id)))
 
 
 def signer_digest(envelope: bytes) -> bytes | None:

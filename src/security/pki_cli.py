@@ -2,8 +2,8 @@
 
 Thin shell over :mod:`.pki` and :mod:`.site` (the clock is read here, once per command):
 ``init`` a CA, ``issue`` a certificate, ``revoke`` one, ``list`` what the directory holds,
-``site`` to fill a directory for a whole site in one go, and ``tls`` for the X.509 material of
-Zenoh TLS (``security.tls``, imported only by that command). Errors (a :class:`PkiError`, a bad
+``site`` to fill a directory for a whole site in one go, ``attacker`` for the keys ``v2i attack``
+holds (``security.attacker_keys``), and ``tls`` for the X.509 material of Zenoh TLS (``security.tls``, imported only by that command). Errors (a :class:`PkiError`, a bad
 argument) are one line on stderr and exit code 2.
 """
 
@@ -19,6 +19,7 @@ from typing import Any
 
 from . import algorithms as alg
 from .certificates import SIGNER_ROLES, CertificateError, check_key_expr
+from .attacker_keys import STOLEN_RSU, STOLEN_VEHICLE, prepare_attacker_pki, revoked_subject
 from .pki import CA_NAME, CRL_FILE, Pki, PkiError, load_trust, read_cert
 from .site import DEFAULT_DAYS, write_site
 
@@ -40,6 +41,12 @@ Roles (what a certificate may sign; its keys are the Zenoh key expressions it ma
 Subjects are the services' ids (an RSU's --rsu-id, a vehicle's --vehicle-id); 1-64 characters
 of A-Z a-z 0-9 _ -.
 
+A red-team exercise (v2i attack) needs keys an attacker could have stolen, issued by the site's
+CA into DIR: v2i pki attacker DIR --rsu-id RSU_ID makes rsu-evil.key/.cert (a stolen RSU's),
+stolen-vehicle.key/.cert (a stolen vehicle's) and RSU_ID-revoked.key/.cert (the victim RSU's
+former certificate, covering v2x/rsu/RSU_ID/**), and revokes the last in revoked.crl. For a lab's
+site only: the stolen keys are valid certificates of the site (v2i pki revoke them afterwards).
+
 Zenoh TLS needs X.509 certificates instead: v2i pki tls DIR/tls NAME... writes a TLS CA and one
 certificate per node into a directory of its own (security.tls).
 
@@ -48,6 +55,7 @@ examples:
   v2i pki issue /etc/v2i/pki rsu2 --role rsu --days 90
   v2i pki revoke /etc/v2i/pki rsu2
   v2i pki list /etc/v2i/pki --json
+  v2i pki attacker /tmp/lab-pki --rsu-id rsu1            # then: v2i attack ... --pki /tmp/lab-pki
 """
 
 
@@ -55,7 +63,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     """Add ``v2i pki``'s sub-commands to ``parser``."""
     parser.description = DESCRIPTION
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    sub = parser.add_subparsers(dest="pki_command", metavar="{init,issue,revoke,list,site,tls}", required=True)
+    sub = parser.add_subparsers(dest="pki_command", metavar="{init,issue,revoke,list,site,attacker,tls}",
+                                required=True)
     _init_parser(_add(sub, "init", "create the site CA in DIR (refuses to overwrite one)"))
     _issue_parser(_add(sub, "issue", "issue a key pair and certificate for SUBJECT, signed by DIR's CA"))
     revoke = _add(sub, "revoke", "add SUBJECT's certificate to DIR's revocation list (re-signed by the CA)")
@@ -65,6 +74,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     listing.add_argument("directory", metavar="DIR")
     listing.add_argument("--json", action="store_true", help="one JSON document on stdout instead of a table")
     _site_parser(_add(sub, "site", "a whole site in one go: the CA if absent, then every subject without a certificate"))
+    _attacker_parser(_add(sub, "attacker", "the keys v2i attack holds, issued by DIR's CA: a stolen RSU and vehicle "
+                          "key, and the victim RSU's former key, revoked"))
     tls = _add(sub, "tls", "X.509 CA, certificates and keys for Zenoh TLS / mutual TLS (security.tls)")
     tls.add_argument("directory", metavar="DIR")
     tls.add_argument("names", metavar="NAME[@IP,IP]", nargs="+",
@@ -109,6 +120,22 @@ def _site_parser(p: argparse.ArgumentParser) -> None:
                    help="validity of a new CA and of new certificates (default %(default)s)")
 
 
+def _attacker_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("directory", metavar="DIR", help="the site PKI (v2i pki site DIR ...): its CA issues the keys")
+    p.add_argument("--rsu-id", default="rsu1", metavar="RSU_ID",
+                   help="the victim RSU, v2i attack's --rsu-id: RSU_ID-revoked.key/.cert, its former certificate "
+                        "covering v2x/rsu/RSU_ID/**, revoked in DIR/revoked.crl (default %(default)s)")
+    p.add_argument("--stolen-rsu", default=STOLEN_RSU, metavar="S",
+                   help="subject of the stolen RSU key, S.key/.cert covering v2x/rsu/S/** (default %(default)s)")
+    p.add_argument("--stolen-vehicle", default=STOLEN_VEHICLE, metavar="S",
+                   help="subject of the stolen vehicle key, S.key/.cert covering v2x/obu/S/** (default %(default)s)")
+    p.add_argument("--days", type=_positive_days, default=DEFAULT_DAYS,
+                   help="validity of new certificates (default %(default)s)")
+    p.epilog = ("Existing keys are kept (idempotent). v2i attack --pki DIR --rsu-id RSU_ID --stolen S1,S2 reads "
+                "them; the OBU and link emulator take the revocation within a second while they run. For a lab's "
+                "site only: the stolen keys are valid certificates of the site (v2i pki revoke them afterwards).")
+
+
 def _positive_days(text: str) -> float:
     value = float(text)
     if not 0.0 < value < 1e5:
@@ -125,7 +152,8 @@ def _key_expr(text: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run one ``v2i pki`` command: 0 done, 2 on any PKI or argument error (one line on stderr)."""
-    handler = {"init": _init, "issue": _issue, "revoke": _revoke, "list": _list, "site": _site, "tls": _tls}
+    handler = {"init": _init, "issue": _issue, "revoke": _revoke, "list": _list, "site": _site,
+               "attacker": _attacker, "tls": _tls}
     try:
         handler[args.pki_command](args, time.time_ns())
     except (PkiError, CertificateError, ValueError, OSError) as exc:
@@ -154,7 +182,7 @@ def _revoke(args: argparse.Namespace, now_ns: int) -> None:
     cert = read_cert(Path(args.directory) / f"{args.subject}.cert")
     crl = Pki.load(args.directory).revoke(args.subject, now_ns)
     print(f"{args.subject}: revoked (digest {cert.digest.hex()}); {CRL_FILE} lists {len(crl.revoked)} "
-          "certificate(s); services read it when they load the directory")
+          "certificate(s); a running OBU or link emulator with this --pki DIR takes it within a second")
 
 
 def _site(args: argparse.Namespace, now_ns: int) -> None:
@@ -170,6 +198,21 @@ def _site(args: argparse.Namespace, now_ns: int) -> None:
     for row in _rows(directory, now_ns):
         state = "kept" if row["file"] in before else "new"
         print(f"{state:5} {row['file']}: {row['role']} {row['subject']}, keys {', '.join(row['keys']) or '-'}")
+
+
+def _attacker(args: argparse.Namespace, now_ns: int) -> None:
+    directory = Path(args.directory)
+    if not (directory / f"{CA_NAME}.cert").exists():
+        raise PkiError(f"{directory}: no site CA ({CA_NAME}.cert) to issue the attacker's keys; make the site "
+                       f"first: v2i pki site {directory} --rsu {args.rsu_id} --vehicle ego")
+    made = prepare_attacker_pki(directory, now_ns, args.rsu_id, args.stolen_rsu, args.stolen_vehicle, args.days)
+    for cert in made:
+        print(cert.describe())
+    stolen = f"{args.stolen_rsu},{args.stolen_vehicle}"
+    print(f"{CRL_FILE} lists {len(load_trust(directory).revoked)} certificate(s), {revoked_subject(args.rsu_id)}'s "
+          "among them; a running OBU and link emulator take it within a second")
+    print(f"next: v2i attack --pki {directory} --rsu-id {args.rsu_id} --stolen {stolen} --connect OBU_EP "
+          "--sniff RSU_EP [--control LINK_CONTROL_EP]")
 
 
 def _tls(args: argparse.Namespace, now_ns: int) -> None:

@@ -26,8 +26,9 @@ from pathlib import Path
 import pytest
 import test_netns as netns  # tests/integration is on sys.path (pytest's rootdir-less import)
 
-from evaluation.attack_messages import INTENDED, KINDS, prepare_attacker_pki
+from evaluation.attack_messages import INTENDED, KINDS
 from evaluation.demo import Child
+from security.attacker_keys import prepare_attacker_pki
 from security.site import write_site
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(150)]

@@ -10,14 +10,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluation.attack_messages import (CONTROL_VARIANTS, GHOST_AHEAD_M, GHOST_ID, INTENDED, LIST_KINDS, STOLEN_RSU,
-                                        STOLEN_VEHICLE, TIME_SHIFT_NS, AttackMessages, ghost_xy,
-                                        load_attacker_keys, prepare_attacker_pki, revoked_subject, signer_digest)
+from evaluation.attack_messages import (CONTROL_VARIANTS, GHOST_AHEAD_M, GHOST_ID, INTENDED, LIST_KINDS, TIME_SHIFT_NS,
+                                        AttackMessages, ghost_xy, signer_digest)
 from fusion.frames import Pose2D
 from schemas import keys
 from schemas.classes import ObjectClass
 from schemas.codec import decode, encode
 from schemas.messages import LinkControl, ObjectList, ObjectListHeader, TimeReply, TimeRequest
+from security.attacker_keys import (STOLEN_RSU, STOLEN_VEHICLE, load_attacker_keys, prepare_attacker_pki,
+                                    revoked_subject)
 from security.envelope import Signer, Verifier
 from security.pki import Pki, PkiError, load_signer, load_trust
 from security.site import write_site

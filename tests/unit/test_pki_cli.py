@@ -1,14 +1,18 @@
-"""``v2i pki``: init / issue / revoke / list / site / tls round trips on a temporary directory, and
+"""``v2i pki``: init / issue / revoke / list / site / attacker / tls round trips on a temporary directory, and
 every error as one line on stderr with exit code 2."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import stat
 
 import pytest
 
+from evaluation.attack import configure_parser as attack_parser
+from security.attacker_keys import load_attacker_keys
+from security.envelope import Signer, Verifier
 from security.pki import load_signer, load_trust
 from v2i.cli import main
 
@@ -117,3 +121,46 @@ def test_a_corrupt_or_second_ca_is_refused(tmp_path, capsys):
     (d / "ca.cert").write_bytes(b"not a certificate")
     code, _, err = pki(capsys, "revoke", str(d), "rsu1")
     assert code == 2 and "ca.cert: corrupt certificate" in err
+
+
+def test_attacker_adds_to_a_site_what_v2i_attack_reads(tmp_path, capsys):
+    d = tmp_path / "site"
+    code, _, err = pki(capsys, "attacker", str(d))
+    assert code == 2 and "no site CA" in err and f"v2i pki site {d}" in err and not d.exists()
+    assert pki(capsys, "site", str(d), "--rsu", "rsu1", "--vehicle", "ego")[0] == 0
+    code, out, _ = pki(capsys, "attacker", str(d))
+    lines = out.splitlines()
+    assert code == 0 and [line.split()[:2] for line in lines[:3]] == [
+        ["new", "rsu-evil.key/.cert:"], ["new", "stolen-vehicle.key/.cert:"], ["new", "rsu1-revoked.key/.cert:"]]
+    assert "revoked in revoked.crl" in lines[2] and lines[-1].startswith(f"next: v2i attack --pki {d} --rsu-id rsu1")
+    rows = listing(capsys, d)
+    assert [r for r, row in rows.items() if row["revoked"]] == ["rsu1-revoked"]
+    assert rows["rsu1-revoked"]["keys"] == ["v2x/rsu/rsu1/**"] and rows["rsu-evil"]["role"] == "rsu"
+    assert rows["stolen-vehicle"]["role"] == "vehicle"
+    attacker = load_attacker_keys(d, "rsu1")  # what v2i attack loads, with its defaults
+    assert [i.cert.subject for i in attacker.stolen] == ["rsu-evil", "stolen-vehicle"]
+    verifier, key = Verifier(load_trust(d), "strict", roles=("rsu",)), "v2x/rsu/rsu1/objects"
+    t_ns = attacker.revoked.cert.valid_from_ns + 10**9
+    assert verifier.verify(Signer(attacker.revoked).sign(b"ghost", t_ns, key), key, t_ns)[1] == "revoked"
+    assert verifier.verify(Signer(attacker.stolen[0]).sign(b"ghost", t_ns, key), key, t_ns)[1] == "wrong_key"
+    crl = (d / "revoked.crl").read_bytes()
+    code, out, _ = pki(capsys, "attacker", str(d))  # again: everything kept, the list not re-signed
+    assert code == 0 and [line.split()[0] for line in out.splitlines()[:3]] == ["kept"] * 3
+    assert listing(capsys, d) == rows and (d / "revoked.crl").read_bytes() == crl
+    code, out, _ = pki(capsys, "attacker", str(d), "--rsu-id", "rsu9", "--stolen-rsu", "rx", "--stolen-vehicle", "vx")
+    assert code == 0 and "--rsu-id rsu9 --stolen rx,vx" in out
+    assert load_attacker_keys(d, "rsu9", ("rx", "vx")).revoked.cert.digest in load_trust(d).revoked
+    assert load_trust(d).revoked >= {bytes.fromhex(rows["rsu1-revoked"]["digest"])}
+    attack = argparse.ArgumentParser()
+    attack_parser(attack)
+    assert "v2i pki attacker DIR --rsu-id RSU_ID" in " ".join(attack.format_help().split())
+
+
+def test_attack_without_the_attackers_keys_says_how_to_make_them(tmp_path, capsys):
+    d = tmp_path / "site"
+    pki(capsys, "site", str(d), "--rsu", "rsu1", "--vehicle", "ego")
+    code = main(["attack", "--connect", "tcp/127.0.0.1:9", "--sniff", "tcp/127.0.0.1:9", "--pki", str(d),
+                 "--kinds", "unsigned", "--rsu-id", "rsu1", "--stolen", "thief"])
+    err = capsys.readouterr().err
+    assert code == 2 and "thief.cert: missing certificate" in err
+    assert f"make the attacker's keys with: v2i pki attacker {d} --rsu-id rsu1 --stolen-rsu thief" in err
