@@ -17,7 +17,10 @@ measured in the same run as references:
   publish stamp -> OBU receive through its clock estimate, over its 10 s window) and the
   report's clock-offset error (which that estimate carries).
 
-    python benchmarks/latency_budget.py [--duration 20] [--profile ideal] [--hop-rate-hz 20] [--startup 6] [--json FILE]
+The run starts when every service is ready (``evaluation.children``: ``--ready-timeout``, default
+120 s); the hop sender puts from the demo's launch until it ends.
+
+    python benchmarks/latency_budget.py [--duration 20] [--profile ideal] [--hop-rate-hz 20] [--ready-timeout S] [--json FILE]
 """
 
 from __future__ import annotations
@@ -33,12 +36,14 @@ import time
 import numpy as np
 import zenoh
 
+from evaluation.children import READY_TIMEOUT_S
 from evaluation.demo import Demo
 from evaluation.spec import RunSpec
 from schemas import keys
 from schemas.codec import header_of, open_body
 from schemas.messages import ObjectList, ObuMetrics
 from schemas.codec import decode
+from schemas.runtime import stop_on_signals
 from schemas.transport import free_tcp_endpoint, open_session
 
 HOP_KEYS = {"default": "v2x/bench/hop/default", "express": "v2x/bench/hop/express"}
@@ -47,7 +52,9 @@ STAMP = struct.Struct("<q")  # time.time_ns at the put
 
 
 def hop_sender(endpoint: str, rate_hz: float, duration_s: float) -> None:
-    """Child process: put stamped messages alternately on the default and the express publisher."""
+    """Child process: put stamped messages alternately on the default and the express publisher,
+    for ``duration_s`` or until SIGTERM / SIGINT."""
+    stop = stop_on_signals()
     session = open_session(connect=[endpoint])
     pubs = {"default": session.declare_publisher(HOP_KEYS["default"]),
             "express": session.declare_publisher(HOP_KEYS["express"], express=True)}
@@ -55,9 +62,9 @@ def hop_sender(endpoint: str, rate_hz: float, duration_s: float) -> None:
     period_s, end = 1.0 / rate_hz, time.monotonic() + duration_s
     next_t = time.monotonic()
     try:
-        while (now := time.monotonic()) < end:
+        while (now := time.monotonic()) < end and not stop.is_set():
             if now < next_t:
-                time.sleep(next_t - now)
+                stop.wait(next_t - now)
             for pub in pubs.values():
                 pub.put(STAMP.pack(time.time_ns()) + padding)
             next_t += period_s
@@ -90,8 +97,8 @@ class HopReceiver:
 class BudgetDemo(Demo):
     """The demo, keeping the OBU's last metrics and probing the RSU's lists one hop from the RSU."""
 
-    def __init__(self, spec: RunSpec, startup_s: float) -> None:
-        super().__init__(spec, startup_s=startup_s)
+    def __init__(self, spec: RunSpec, ready_timeout_s: float) -> None:
+        super().__init__(spec, ready_timeout_s=ready_timeout_s)
         self.last_obu_metrics: ObuMetrics | None = None
         self.probe_ms: list[float] = []
         self._probe = open_session(connect=[self.rsu_ep])  # retries until the RSU listens
@@ -125,12 +132,15 @@ def run(args: argparse.Namespace) -> dict:
         raise SystemExit("the probe reads the RSU's publish stamp as host time: no clock offset or drift")
     hop_ep = free_tcp_endpoint()
     receiver = HopReceiver(hop_ep)
-    demo = BudgetDemo(spec, args.startup)
+    demo = BudgetDemo(spec, args.ready_timeout)
+    # the sender puts until the demo ends (it is stopped then), at most for the longest the demo can take
+    longest_s = args.ready_timeout + 5.0 + args.duration
     sender = subprocess.Popen([sys.executable, __file__, "--hop-sender", hop_ep, "--hop-rate-hz", str(args.hop_rate_hz),
-                               "--duration", str(demo.startup_s + args.duration)])
+                               "--duration", str(longest_s)])
     try:
         report = demo.run()
     finally:
+        sender.terminate()
         sender.wait(30)
         demo.close_probe()
         receiver.close()
@@ -179,7 +189,8 @@ def main() -> None:
     parser.add_argument("--scenario", default="red-light-runner")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--hop-rate-hz", type=float, default=20.0)
-    parser.add_argument("--startup", type=float, default=6.0, help="s for the services to start (busy machine: more)")
+    parser.add_argument("--ready-timeout", type=float, default=READY_TIMEOUT_S,
+                        help="s every service may take to be ready (default %(default)s); the run starts when all are")
     parser.add_argument("--json", help="also write the result as JSON to this file")
     parser.add_argument("--hop-sender", help=argparse.SUPPRESS)  # the child process's endpoint
     args = parser.parse_args()

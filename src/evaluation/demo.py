@@ -1,8 +1,11 @@
 """``v2i demo``: the three services as separate OS processes on loopback Zenoh.
 
-The orchestrator picks free ports, starts RSU, OBU and link emulator with a common
-scenario start time a few seconds ahead, watches the OBU's output through its own
-Zenoh session, and scores it with the same code as the offline runner (``RunRecord``):
+The orchestrator picks free ports and starts RSU, OBU (both ``--await-start``) and link
+emulator (``evaluation.children``); when every one has said it is ready (one bound,
+``--ready-timeout``, a progress line meanwhile) it opens its own Zenoh sessions and subscribes,
+and only then sends RSU and OBU their common scenario time zero (now + ``START_LEAD_S``), so
+that the monitor hears every output from the first cycle on. It scores the OBU's output with
+the same code as the offline runner (``RunRecord``):
 the Zenoh callbacks only put the payload in a bounded queue (counting what a full queue
 drops), a worker thread decodes and scores each message as it arrives, and no message is
 kept, so the orchestrator's memory does not grow with the run. Ctrl-C or any child that
@@ -11,8 +14,9 @@ dies stops everything; only the processes started here are ended, by pid.
 A chaos timeline (``v2i chaos run``, ``evaluation.chaos``) is played at scenario time:
 link events go as ``LinkControl`` messages to the emulator's control endpoint (a free port
 given to it as ``--control-listen``), ``kill`` / ``restart`` SIGKILL a child and start it
-again with the same argv; the RSU clock step is in the RSU's start flags. ``--kill-link-at``
-is a generated timeline (kill, restart).
+again with the same argv (a restarted RSU gets the run's time zero by the same start line once
+it is ready again, within the same ``--ready-timeout``); the RSU clock step is in the RSU's start
+flags. ``--kill-link-at`` is a generated timeline (kill, restart).
 """
 
 from __future__ import annotations
@@ -21,7 +25,6 @@ import itertools
 import json
 import queue
 import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -47,21 +50,17 @@ from sim.world import World
 from telemetry.live_line import LiveLine
 
 from .chaos import ChaosEvent, ChaosTimeline
+from .children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, ahead_ms, start_all, wait_ready
 from .live_security import run_pki, security_argv
 from .metrics import mode_share
 from .spec import RunRecord, RunSpec, build_report
 
 LINK_ID = "link1"
-RESTART_READY_S = 10.0  # a restarted child must be ready within this
 CONTROL_MATCH_S = 3.0  # how long a link control waits for the emulator's control subscriber
 POLL_S = 0.02  # supervisor period: chaos events fire within this of their time
 INBOX_MESSAGES = 1000  # received messages waiting to be scored (~35 s of objects, metrics and planning)
 MODE_RUNS_SHOWN = 6  # mode changes printed per chaos event
 METRICS_PORT_OFFSETS = {"rsu": 0, "link": 1, "obu": 2}  # --metrics-ports BASE: each child's /metrics port
-
-
-class DemoError(RuntimeError):
-    """A demo that could not run to the end (a child failed, or never became ready)."""
 
 
 @dataclass(frozen=True)
@@ -75,48 +74,6 @@ class LinkOutage:
         """The same fault as a chaos timeline: kill the link, restart it ``down_s`` later."""
         return ChaosTimeline(name="kill-link", events=[ChaosEvent(at_s=self.at_s, kill="link"),
                                                        ChaosEvent(at_s=self.at_s + self.down_s, restart="link")])
-
-
-class Child:
-    """One service process; its stdout lines are read by a thread into a queue."""
-
-    def __init__(self, name: str, argv: list[str]):
-        self.name, self.argv = name, argv
-        self.lines: queue.Queue[str] = queue.Queue()
-        self.ready = False
-        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, text=True, start_new_session=True)
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        for line in self.proc.stdout:
-            self.lines.put(line)
-
-    def poll_ready(self, timeout_s: float = 0.0) -> bool:
-        """True once the child printed its ready line; waits at most ``timeout_s`` for a line."""
-        while not self.ready:
-            if self.proc.poll() is not None:
-                raise DemoError(f"{self.name} exited with code {self.proc.returncode} before it was ready")
-            try:
-                line = self.lines.get(timeout=timeout_s) if timeout_s > 0 else self.lines.get_nowait()
-            except queue.Empty:
-                return False
-            self.ready = json.loads(line).get("event") == "ready"
-        return True
-
-    def wait_ready(self, deadline: float) -> None:
-        while time.monotonic() < deadline:
-            if self.poll_ready(timeout_s=0.05):
-                return
-        raise DemoError(f"{self.name} was not ready in time (raise --startup)")
-
-    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 5.0) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
 
 
 class ControlChannel:
@@ -198,6 +155,18 @@ class InboxScoring:
         self._inbox: queue.Queue = queue.Queue(maxsize=INBOX_MESSAGES)
         self._drop_lock = threading.Lock()
         self._scoring_error: Exception | None = None
+        self._scorer: threading.Thread | None = None
+
+    def _start_scorer(self) -> None:
+        """The scorer thread, once what it scores into exists (messages queued before wait for it)."""
+        self._scorer = threading.Thread(target=self._score_inbox, name="demo-scorer", daemon=True)
+        self._scorer.start()
+
+    def _end_scoring(self) -> None:
+        """After the last message: the scorer drains the queue and ends (nothing to do if it never started)."""
+        if self._scorer is not None:
+            self._inbox.put(None)
+            self._scorer.join()
 
     def _keep(self, kind: str, sample, *context) -> None:
         """Zenoh callback: enqueue the payload for the scorer; a full inbox drops it (counted)."""
@@ -234,10 +203,11 @@ class InboxScoring:
 
 
 class Demo(InboxScoring):
-    def __init__(self, spec: RunSpec, startup_s: float = 4.0, outage: LinkOutage | None = None,
+    def __init__(self, spec: RunSpec, ready_timeout_s: float = READY_TIMEOUT_S, outage: LinkOutage | None = None,
                  chaos: ChaosTimeline | None = None, record_to: str | None = None,
                  progress: str | None = None, metrics_ports: int | None = None, pki_dir: str | None = None):
-        """``chaos``: a timeline to play; its RSU clock step must already be in ``spec`` (``with_chaos``).
+        """``ready_timeout_s``: every service must be ready within this (a restarted one too).
+        ``chaos``: a timeline to play; its RSU clock step must already be in ``spec`` (``with_chaos``).
         ``outage`` (``--kill-link-at``) is played as its generated timeline; not with ``chaos``.
         ``record_to``: an MCAP file recording both sides of the link (``evaluation.replay_demo``).
         ``pki_dir``: the site PKI to use and complete (``live_security.run_pki``); default: one in the
@@ -247,13 +217,16 @@ class Demo(InboxScoring):
         self.spec = spec
         self.world = World(load_scenario(spec.scenario))
         self.duration_s = spec.duration_s or self.world.scenario.duration_s
-        self.startup_s = startup_s
+        self.ready_timeout_s = ready_timeout_s
+        self.ready_s: float | None = None  # launch -> every service ready, s
+        self.start_ns: int | None = None  # the run's time zero, sent when every service is ready
         self.record_to = record_to
         self.metrics_ports = metrics_ports  # /metrics of the children: rsu BASE, link BASE+1, obu BASE+2; None: off
         self.outage = outage
         self.chaos = outage.timeline() if outage else chaos
         self.rsu_ep, self.obu_ep, self.control_ep = free_tcp_endpoint(), free_tcp_endpoint(), free_tcp_endpoint()
         self.children: dict[str, Child] = {}
+        self._started: dict[str, Child] = {}
         self.played: list[PlayedEvent] = []
         self.record: RunRecord | None = None  # scored as messages arrive, from run()
         self.progress = progress  # the live line's name (v2i demo; telemetry.live_line); None: no line
@@ -274,40 +247,22 @@ class Demo(InboxScoring):
         return path
 
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, before the start time, not in each child
-        start_ns = time.time_ns() + round(self.startup_s * 1e9)
-        cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
-        self.record = RunRecord(self.world, start_ns, self.duration_s, cycles)
-        recorder = None  # --record: evaluation.replay_demo.demo_recorder
-        scorer = threading.Thread(target=self._score_inbox, name="demo-scorer", daemon=True)
-        scorer.start()
-        monitor, rsu_monitor, link_monitor, subs = None, None, None, []
+        """Start the services, wait until each is ready, subscribe, send time zero, watch, score."""
+        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, not in each child
+        recorder, sessions, subs = None, [], []
         try:
             for name in ("rsu", "obu", "link"):
-                self.children[name] = Child(name, self._argv(name, start_ns))
-            deadline = time.monotonic() + (start_ns - time.time_ns()) * 1e-9
-            for child in self.children.values():
-                child.wait_ready(deadline)
-            if self.record_to:  # once the services listen, before the first time query
+                self.children[name] = self._child(name)
+            self._wait_ready()
+            sessions, subs = self._subscribe()
+            start_ns = time.time_ns() + round(START_LEAD_S * 1e9)
+            self._start_scoring(start_ns)
+            if self.record_to:  # subscribed before the start line, so from the first time query on
                 from .replay_demo import demo_recorder
 
                 recorder = demo_recorder(self, start_ns, self.record_to)
-            # Connect once the OBU listens: a session whose first attempt fails retries only after 1, 2, 4 s.
-            monitor = open_session(connect=[self.obu_ep])
-            vid = self.spec.obu_config().vehicle_id
-            subs = [monitor.declare_subscriber(keys.obu_objects(vid), lambda s: self._keep("objects", s)),
-                    monitor.declare_subscriber(keys.obu_metrics(vid), lambda s: self._keep("metrics", s)),
-                    monitor.declare_subscriber(keys.obu_planning(vid), lambda s: self._keep("planning", s)),
-                    *self._more_subscriptions(monitor, vid)]
-            rsu_monitor = open_session(connect=[self.rsu_ep])  # the RSU's metrics stay on its side of the link
-            subs.append(rsu_monitor.declare_subscriber(keys.rsu_metrics(self.spec.rsu_config().rsu_id),
-                                                       lambda s: self._keep("rsu_metrics", s)))
-            # the emulator's stats (their latency_ms) on its control side: the OBU does not forward them
-            link_monitor = open_session(connect=[self.control_ep])
-            subs.append(link_monitor.declare_subscriber(keys.link_stats(LINK_ID),
-                                                        lambda s: self._keep("link_stats", s)))
-            if not list(monitor.info.peers_zid()):
-                raise DemoError(f"cannot connect to the OBU at {self.obu_ep}")
+            start_all(self.children.values(), start_ns)
+            self._started = dict(self.children)  # as first started (a chaos restart replaces one)
             if self._has_link_controls():
                 log("demo", f"link control endpoint {self.control_ep} (v2i link set --connect {self.control_ep})")
                 self._control.open()
@@ -320,15 +275,59 @@ class Demo(InboxScoring):
             self._control.close()
             for sub in subs:
                 sub.undeclare()
-            for session in (monitor, rsu_monitor, link_monitor):
-                if session is not None:
-                    session.close()
+            for session in sessions:
+                session.close()
             self._tmp.cleanup()
-            self._inbox.put(None)  # after the last message: the scorer drains the queue and ends
-            scorer.join()
+            self._end_scoring()
         if self._scoring_error is not None:
             raise DemoError(f"scoring the OBU output failed: {self._scoring_error!r}") from self._scoring_error
         return self._report()
+
+    def _child(self, name: str) -> Child:
+        """Start service ``name`` (``rsu``, ``obu``, ``link``), its stderr lines labelled with its id."""
+        labels = {"rsu": f"rsu {self.spec.rsu_config().rsu_id}", "obu": f"obu {self.spec.obu_config().vehicle_id}",
+                  "link": f"link {LINK_ID}"}
+        return Child(name, self._argv(name), label=labels.get(name))
+
+    def _wait_ready(self) -> None:
+        """Every child ready within ``ready_timeout_s`` (a progress line meanwhile), logged."""
+        self.ready_s = wait_ready(self.children.values(), self.ready_timeout_s, self.progress)
+        log("demo", f"{', '.join(self.children)} ready after {self.ready_s:.1f} s; "
+                    f"the run starts {START_LEAD_S:g} s after its start line")
+
+    def _subscribe(self) -> tuple[list, list]:
+        """The monitor's sessions and subscriptions (OBU outputs, RSU metrics, link stats), declared
+        before time zero so that nothing the run publishes is missed."""
+        sessions, subs = [], []
+        # Connect once the OBU listens: a session whose first attempt fails retries only after 1, 2, 4 s.
+        monitor = open_session(connect=[self.obu_ep])
+        sessions.append(monitor)
+        vid = self.spec.obu_config().vehicle_id
+        subs += [monitor.declare_subscriber(keys.obu_objects(vid), lambda s: self._keep("objects", s)),
+                 monitor.declare_subscriber(keys.obu_metrics(vid), lambda s: self._keep("metrics", s)),
+                 monitor.declare_subscriber(keys.obu_planning(vid), lambda s: self._keep("planning", s)),
+                 *self._more_subscriptions(monitor, vid)]
+        if not list(monitor.info.peers_zid()):
+            raise DemoError(f"cannot connect to the OBU at {self.obu_ep}")
+        if "rsu" in self.children:
+            rsu_monitor = open_session(connect=[self.rsu_ep])  # the RSU's metrics stay on its side of the link
+            sessions.append(rsu_monitor)
+            subs.append(rsu_monitor.declare_subscriber(keys.rsu_metrics(self.spec.rsu_config().rsu_id),
+                                                       lambda s: self._keep("rsu_metrics", s)))
+        if "link" in self.children:  # the emulator's stats (their latency_ms) on its control side
+            link_monitor = open_session(connect=[self.control_ep])
+            sessions.append(link_monitor)
+            subs.append(link_monitor.declare_subscriber(keys.link_stats(LINK_ID),
+                                                        lambda s: self._keep("link_stats", s)))
+        return sessions, subs
+
+    def _start_scoring(self, start_ns: int) -> None:
+        """The run's record from time zero ``start_ns`` and the scorer thread (what the subscriptions
+        queued meanwhile is scored first)."""
+        self.start_ns = start_ns
+        cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
+        self.record = RunRecord(self.world, start_ns, self.duration_s, cycles)
+        self._start_scorer()
 
     def _more_subscriptions(self, monitor, vehicle_id: str) -> list:
         """Further OBU outputs a subclass watches (``image_fusion_demo``); none here."""
@@ -337,17 +336,17 @@ class Demo(InboxScoring):
     def _has_link_controls(self) -> bool:
         return self.chaos is not None and any(e.link_control(LINK_ID) is not None for e in self.chaos.events)
 
-    def _argv(self, name: str, start_ns: int) -> list[str]:
+    def _argv(self, name: str) -> list[str]:
         """``name``'s command line, with its ``--metrics-port`` when the demo has ``metrics_ports``."""
-        argv = self._service_argv(name, start_ns)
+        argv = self._service_argv(name)
         if self.metrics_ports is None:
             return argv
         return [*argv, "--metrics-port", str(self.metrics_ports + METRICS_PORT_OFFSETS[name])]
 
-    def _service_argv(self, name: str, start_ns: int) -> list[str]:
+    def _service_argv(self, name: str) -> list[str]:
+        """RSU and OBU wait for their start line (``--await-start``); the emulator needs no time zero."""
         s, base = self.spec, [sys.executable, "-m", "v2i", name]
-        common = ["--scenario", s.scenario, "--seed", str(s.seed), "--start-at-ns", str(start_ns),
-                  "--duration", str(self.duration_s)]
+        common = ["--scenario", s.scenario, "--seed", str(s.seed), "--await-start", "--duration", str(self.duration_s)]
         if name == "rsu":
             ahead = ["--predict-ahead"] if s.rsu_config().predict_ahead else []
             step = [] if s.rsu_clock_step_at_s is None else ["--clock-step-ms", str(s.rsu_clock_step_ms),
@@ -414,13 +413,15 @@ class Demo(InboxScoring):
             if name in self._restarting:
                 if child.poll_ready():
                     del self._restarting[name]
+                    child.start(self.start_ns)  # the run's time zero, long past: it goes on from now
                     log("demo", f"chaos: {name} is back (pid {child.proc.pid})")
                     if name == "link" and self._has_link_controls():
                         self._control.open()
                 elif time.monotonic() > self._restarting[name]:
-                    raise DemoError(f"{name} was not ready {RESTART_READY_S:g} s after its restart")
+                    raise DemoError(f"{name} was not ready {self.ready_timeout_s:g} s after its restart "
+                                    f"(--ready-timeout){child.tail()}")
             elif child.proc.poll() is not None:
-                raise DemoError(f"{name} exited with code {child.proc.returncode} during the run")
+                raise DemoError(f"{name} exited with code {child.proc.returncode} during the run{child.tail()}")
 
     def _play(self, event: ChaosEvent, start_ns: int) -> None:
         """Fire one chaos event now and remember when."""
@@ -437,7 +438,7 @@ class Demo(InboxScoring):
         elif event.kill:
             self._kill(event.kill)
         elif event.restart:
-            self._restart(event.restart, start_ns)
+            self._restart(event.restart)
         else:
             log("demo", f"chaos: {event.describe()} (set at the RSU's start)")
         self.played.append(played)
@@ -448,17 +449,20 @@ class Demo(InboxScoring):
         self._restarting.pop(name, None)
         self.children[name].stop(signal.SIGKILL)
 
-    def _restart(self, name: str, start_ns: int) -> None:
-        """Start ``name`` again with its argv; the supervisor checks that it becomes ready."""
+    def _restart(self, name: str) -> None:
+        """Start ``name`` again with its argv; the supervisor sends it the run's time zero once it is
+        ready (within ``ready_timeout_s``)."""
         log("demo", f"chaos: restarting {name}")
-        self.children[name] = Child(name, self._argv(name, start_ns))
-        self._restarting[name] = time.monotonic() + RESTART_READY_S
+        self.children[name] = self._child(name)
+        self._restarting[name] = time.monotonic() + self.ready_timeout_s
         self._down.discard(name)
 
     def _report(self) -> dict:
         record = self.record
         report = build_report(self.spec, self.world, record, driver="demo")
         report["monitor_messages_dropped"] = dict(self.dropped)
+        report["obu_output_deadline_misses"] = {self.spec.obu_config().vehicle_id: obu_own_count(record)}
+        report["startup"] = startup_summary(self.ready_s, self._started.values())
         if sum(self.dropped.values()):
             log("demo", f"the scorer fell behind: dropped {dict(self.dropped)} (scores miss them)")
         if self.outage:
@@ -467,6 +471,24 @@ class Demo(InboxScoring):
             report["chaos"] = self.chaos.name
             report["chaos_events"] = chaos_summary(self.played, self.chaos, record, self._control.outcomes)
         return report
+
+
+def obu_own_count(record: RunRecord) -> dict | None:
+    """The OBU's own count of its outputs (its last ``ObuMetrics``): cycles it published and how many
+    of them missed their deadline; None when no metrics were heard. The report's
+    ``output_deadline_miss_ratio`` counts expected cycles without an on-time output *heard by the
+    monitor*: the two agree when the monitor hears every output (it subscribes before time zero)."""
+    if record.obu_cycles is None:
+        return None
+    return {"cycles": record.obu_cycles, "misses": record.obu_output_deadline_misses,
+            "ratio": round(record.obu_output_deadline_misses / max(record.obu_cycles, 1), 4)}
+
+
+def startup_summary(ready_s: float | None, children) -> dict:
+    """How the run started: launch -> every service ready (s), the start line's lead (s), and how
+    many ms before time zero each service began (its ``started`` line; the emulator has none)."""
+    return {"ready_s": None if ready_s is None else round(ready_s, 2), "lead_s": START_LEAD_S,
+            "started_ahead_ms": {name: ms for name, ms in ahead_ms(children).items() if ms is not None}}
 
 
 def window_summary(record: RunRecord, from_s: float, to_s: float) -> dict:

@@ -31,21 +31,22 @@ from schemas.codec import decode
 from schemas.image_messages import F4, I2, U1, U4, ImageFusedBoxes, column
 from schemas.messages import ObuMetrics, RsuMetrics
 
-from .demo import Demo
+from .children import READY_TIMEOUT_S
+from .demo import Demo, startup_summary
 from .image_fusion import FusionTally, score_frame
 from .live_security import security_argv
 
 PAIRED_KEYS = ("frames", "truths", "detection_accuracy", "rsu_only_detection_accuracy", "vehicle_only_detection_accuracy",
                "mean_iou", "precision")
-# three processes build a renderer (ground rasters, textures) and load a detector on 2 cores: ~6-8 s
-MIN_STARTUP_S = 12.0
-
 
 class ImageFusionDemo(Demo):
     """The live ROIF demo: ``Demo``'s processes and supervision, its own flags, output and score."""
 
-    def __init__(self, spec, startup_s: float = MIN_STARTUP_S, pki_dir: str | None = None):
-        super().__init__(spec, startup_s=max(startup_s, MIN_STARTUP_S), pki_dir=pki_dir)
+    def __init__(self, spec, ready_timeout_s: float = READY_TIMEOUT_S, pki_dir: str | None = None,
+                 progress: str | None = None):
+        """RSU and OBU build a renderer and load a detector before they say ready (seconds each on 2
+        cores); the run starts when both have, within ``ready_timeout_s``."""
+        super().__init__(spec, ready_timeout_s=ready_timeout_s, pki_dir=pki_dir, progress=progress)
         sc = self.world.scenario
         if sc.ego_camera is None:
             raise ValueError(f"scenario {sc.name!r} has no ego_camera: --fusion roif needs one (e.g. roif-intersection)")
@@ -53,11 +54,11 @@ class ImageFusionDemo(Demo):
         self.outputs: list[ImageFusedBoxes] = []
         self.obu_metrics: ObuMetrics | None = None
 
-    def _argv(self, name: str, start_ns: int) -> list[str]:
+    def _argv(self, name: str) -> list[str]:
         """RSU and OBU argv for ROIF; one detector thread each (two processes render and detect at
         10 Hz on 2 cores: more threads only contend); the RSU signs its features and time replies and
         the OBU verifies them as in ``Demo`` (``live_security.security_argv``)."""
-        argv = super()._argv(name, start_ns)
+        argv = super()._argv(name)
         if name == "rsu":  # the camera source at the ego camera's rate, sending its features
             argv = argv[: argv.index("--source")] + ["--source", "camera", "--image-features", "--rsu-id",
                                                       self.world.scenario.rsu.id, "--rate-hz", f"{self.rate_hz:g}",
@@ -100,7 +101,8 @@ class ImageFusionDemo(Demo):
         }
         return {"driver": "demo", "scenario": self.world.scenario.name, "fusion": "roif", "profile": self.spec.profile,
                 "seed": self.spec.seed, "duration_s": self.duration_s, "detector": "onnx", "camera_rate_hz": self.rate_hz,
-                "image_fusion": tally.section(), "image_fusion_live": live}
+                "image_fusion": tally.section(), "image_fusion_live": live,
+                "startup": startup_summary(self.ready_s, self._started.values())}
 
 
 def score_outputs(world, seed: int, start_ns: int, rate_hz: float,

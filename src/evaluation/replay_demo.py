@@ -4,8 +4,8 @@
 while the demo runs (``demo_recorder``): the RSU side (``rsu``: what the RSU published, and the
 recorder's time exchanges with it), the vehicle side (``vehicle``: what reached the OBU after
 the link, and the OBU's outputs) and the emulator's control side (``link``: its JSON stats), with the run's spec, start and duration as MCAP metadata
-``run``. ``v2i replay FILE --score`` (``ReplayDemo``) starts only an OBU with that spec at a new
-start time, replays the vehicle side's RSU traffic into it (``v2i.replay.Replayer``: every stamp
+``run``. ``v2i replay FILE --score`` (``ReplayDemo``) starts only an OBU with that spec (``--await-start``),
+and once it is ready and watched, gives it a new time zero and replays the vehicle side's RSU traffic into it (``v2i.replay.Replayer``: every stamp
 moved to the new start, the RSU clock answered from the recorded exchanges) and scores its
 output with the demo's machinery (``InboxScoring``, ``build_report``): the same report keys,
 ``driver: replay``, plus ``replay`` (what was republished, how late) and ``recording``.
@@ -23,14 +23,13 @@ import threading
 import time
 
 from fusion.jit import load_kernels
-from obu_service.source import SimulatedVehicle
-from schemas import keys
 from schemas.codec import CodecError, decode
 from schemas.messages import RsuMetrics
 from schemas.transport import open_session
 
-from .demo import Child, Demo, DemoError
-from .spec import RunRecord, RunSpec, build_report
+from .children import READY_TIMEOUT_S, START_LEAD_S, DemoError, start_all
+from .demo import Demo, obu_own_count, startup_summary
+from .spec import RunSpec, build_report
 
 RUN_METADATA = "run"
 
@@ -67,38 +66,35 @@ def demo_recorder(demo: Demo, start_ns: int, path: str):
 class ReplayDemo(Demo):
     """Only the OBU runs; the recording's vehicle-side RSU traffic is replayed into it."""
 
-    def __init__(self, recording_path: str, startup_s: float = 4.0, keys_pattern: str = "v2x/rsu/**"):
+    def __init__(self, recording_path: str, ready_timeout_s: float = READY_TIMEOUT_S, keys_pattern: str = "v2x/rsu/**",
+                 progress: str | None = None):
         from telemetry.mcap_reader import Recording
         from v2i.replay import Replayer
 
         self.recording = Recording(recording_path)
         spec = spec_of(self.recording.metadata.get(RUN_METADATA, {}))
         self.recorded_security = spec.security
-        super().__init__(dataclasses.replace(spec, security=None), startup_s=startup_s)  # replayed unsigned
+        super().__init__(dataclasses.replace(spec, security=None), ready_timeout_s=ready_timeout_s,  # replayed unsigned
+                         progress=progress)
         self.replayer = Replayer(self.recording, "vehicle" if "vehicle" in self.recording.sides else None, keys_pattern)
 
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, before the start time, not in the child
-        start_ns = self.replayer.align(time.time_ns() + round(self.startup_s * 1e9))
-        cycles = SimulatedVehicle(self.world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
-        self.record = RunRecord(self.world, start_ns, self.duration_s, cycles)
-        self.record.rsu_perception = self._recorded_perception()
-        scorer = threading.Thread(target=self._score_inbox, name="replay-scorer", daemon=True)
-        scorer.start()
+        """Start the OBU, wait until it is ready, subscribe and declare the replayed RSU clocks, then
+        give it time zero (aligned to a whole ms of shift) and replay from it."""
+        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, not in the child
         stop, sessions, entities, player = threading.Event(), [], [], None
         try:
-            self.children["obu"] = Child("obu", self._argv("obu", start_ns))
-            self.children["obu"].wait_ready(time.monotonic() + (start_ns - time.time_ns()) * 1e-9)
-            monitor = open_session(connect=[self.obu_ep])
+            self.children["obu"] = self._child("obu")
+            self._wait_ready()
+            sessions, entities = self._subscribe()  # the monitor, on the OBU's outputs
             feed = open_session(connect=[self.obu_ep])  # the replay: where the link's vehicle side was
-            sessions += [monitor, feed]
-            vid = self.spec.obu_config().vehicle_id
-            entities += [monitor.declare_subscriber(keys.obu_objects(vid), lambda s: self._keep("objects", s)),
-                         monitor.declare_subscriber(keys.obu_metrics(vid), lambda s: self._keep("metrics", s)),
-                         monitor.declare_subscriber(keys.obu_planning(vid), lambda s: self._keep("planning", s)),
-                         *self.replayer.declare_clocks(feed)]
-            if not list(monitor.info.peers_zid()):
-                raise DemoError(f"cannot connect to the OBU at {self.obu_ep}")
+            sessions.append(feed)
+            start_ns = self.replayer.align(time.time_ns() + round(START_LEAD_S * 1e9))
+            entities += self.replayer.declare_clocks(feed)
+            self._start_scoring(start_ns)
+            self.record.rsu_perception = self._recorded_perception()
+            start_all(self.children.values(), start_ns)
+            self._started = dict(self.children)
             player = threading.Thread(target=self.replayer.play, args=(feed, stop), name="replay-play", daemon=True)
             player.start()
             self._supervise(start_ns)
@@ -113,8 +109,7 @@ class ReplayDemo(Demo):
             for session in sessions:
                 session.close()
             self._tmp.cleanup()
-            self._inbox.put(None)
-            scorer.join()
+            self._end_scoring()
         if self._scoring_error is not None:
             raise DemoError(f"scoring the OBU output failed: {self._scoring_error!r}") from self._scoring_error
         return self._report()
@@ -133,6 +128,8 @@ class ReplayDemo(Demo):
     def _report(self) -> dict:
         report = build_report(self.spec, self.world, self.record, driver="replay")
         report["monitor_messages_dropped"] = dict(self.dropped)
+        report["obu_output_deadline_misses"] = {self.spec.obu_config().vehicle_id: obu_own_count(self.record)}
+        report["startup"] = startup_summary(self.ready_s, self._started.values())
         report["recording"] = str(self.recording.path)
         report["replay"] = {**self.replayer.stats(), "recorded_security": self.recorded_security}
         return report

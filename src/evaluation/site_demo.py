@@ -38,7 +38,6 @@ import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -55,13 +54,12 @@ from sim.scenario import Scenario, load_scenario
 from sim.world import World
 from telemetry.live_line import LiveLine
 
-from .demo import POLL_S, Child, DemoError, InboxScoring
+from .children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
+from .demo import POLL_S, InboxScoring, obu_own_count, startup_summary
 from .live_security import run_pki, security_argv
 from .runner import v2v_config
 from .spec import RunRecord, RunSpec, site_report
 
-# least start-up time: 7 Python services importing numpy, scipy, zenoh on 2 busy cores (6-10+ s at load 9)
-SITE_STARTUP_S = 15.0
 STOP_WAIT_S = 5.0  # a child still running this long after SIGTERM is killed
 CONNECT_WAIT_S = 3.0  # the watcher must reach every service within this
 
@@ -82,9 +80,9 @@ def link_id(rsu_id: str) -> str:
 class SiteDemo(InboxScoring):
     """Every node of ``spec.scenario`` as its own process; ``run()`` returns the site report."""
 
-    def __init__(self, spec: RunSpec, startup_s: float = SITE_STARTUP_S, progress: str | None = None,
+    def __init__(self, spec: RunSpec, ready_timeout_s: float = READY_TIMEOUT_S, progress: str | None = None,
                  pki_dir: str | None = None):
-        """``startup_s``: launch -> scenario time zero; every service must be ready by then.
+        """``ready_timeout_s``: every service must be ready within this; the run starts when all are.
         ``progress``: the live line's name (``telemetry.live_line``), None for no line.
         ``pki_dir``: the site PKI to use and complete; default: one in the run's temporary directory."""
         self.progress = progress
@@ -92,7 +90,8 @@ class SiteDemo(InboxScoring):
         self.spec = spec
         self.scenario = load_scenario(spec.scenario)
         self.duration_s = spec.duration_s or self.scenario.duration_s
-        self.startup_s = startup_s
+        self.ready_timeout_s = ready_timeout_s
+        self.ready_s: float | None = None  # launch -> every service ready, s
         self.rsu_ids = [rsu.id for rsu in self.scenario.rsus]
         self.vehicle_ids = [v.name for v in self.scenario.vehicles]
         self.worlds = {name: World(self.scenario, ego=name) for name in self.vehicle_ids}
@@ -114,30 +113,25 @@ class SiteDemo(InboxScoring):
         self.pki_dir = run_pki(spec, self.scenario, pki_dir or Path(self._tmp.name) / "pki", time.time_ns())
 
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, before the start time, not in each child
-        start_ns = time.time_ns() + round(self.startup_s * 1e9)
-        for name, world in self.worlds.items():
-            cycles = SimulatedVehicle(world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
-            self.records[name] = RunRecord(world, start_ns, self.duration_s, cycles)
-        scorer = threading.Thread(target=self._score_inbox, name="site-demo-scorer", daemon=True)
-        scorer.start()
+        """Start every node, wait until each is ready, connect the watcher, send time zero, watch, score."""
+        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, not in each child
         watcher, subs = None, []
         try:
-            self._start_children(start_ns)
-            deadline = time.monotonic() + (start_ns - time.time_ns()) * 1e-9
-            launched = time.monotonic()
-            for child in self.children.values():
-                child.wait_ready(deadline)
+            self._start_children()
+            self.ready_s = wait_ready(self.children.values(), self.ready_timeout_s, self.progress)
             log("demo", "endpoints (v2i monitor --connect EP ...): OBUs " + ", ".join(
                 f"{n} {ep}" for n, ep in self.obu_eps.items()) + "; RSUs " + ", ".join(
                 f"{r} {ep}" for r, ep in self.rsu_eps.items()))
-            log("demo", f"all {len(self.children)} processes ready after {time.monotonic() - launched:.1f} s "
-                        f"(start {self.startup_s:g} s after launch)")
+            log("demo", f"all {len(self.children)} processes ready after {self.ready_s:.1f} s; "
+                        f"the run starts {START_LEAD_S:g} s after its start line")
             # connect once every service listens: a failed first attempt is retried only after 1, 2, 4 s
             watcher = open_session(connect=[*self.obu_eps.values(), *self.rsu_eps.values(),
                                             *([self.v2v_ep] if self.v2v_ep else [])])
             subs = self._subscribe(watcher)
             self._wait_connected(watcher)
+            start_ns = time.time_ns() + round(START_LEAD_S * 1e9)
+            self._start_records(start_ns)
+            start_all(self.children.values(), start_ns)
             self._supervise(start_ns)
         finally:
             self._stop_children()
@@ -146,46 +140,55 @@ class SiteDemo(InboxScoring):
             if watcher is not None:
                 watcher.close()
             self._tmp.cleanup()
-            self._inbox.put(None)  # after the last message: the scorer drains the queue and ends
-            scorer.join()
+            self._end_scoring()
         if self._scoring_error is not None:
             raise DemoError(f"scoring the OBU outputs failed: {self._scoring_error!r}") from self._scoring_error
         return self._report()
 
+    def _start_records(self, start_ns: int) -> None:
+        """Each vehicle's record from time zero ``start_ns``, then the scorer (queued messages first)."""
+        self.start_ns = start_ns
+        for name, world in self.worlds.items():
+            cycles = SimulatedVehicle(world, self.spec.seed, start_ns).cycle_times_ns(self.duration_s)
+            self.records[name] = RunRecord(world, start_ns, self.duration_s, cycles)
+        self._start_scorer()
+
     # --- processes -----------------------------------------------------------------------
-    def _start_children(self, start_ns: int) -> None:
-        """RSUs and OBUs first (they listen), then the emulators (they connect to both sides)."""
+    def _start_children(self) -> None:
+        """RSUs and OBUs first (they listen; ``--await-start``), then the emulators (they connect to
+        both sides). Each child's log lines are labelled with its node: ``[rsu rsu-nw]``, ``[obu car-2]``,
+        ``[link link-rsu-nw]``."""
         for rsu_id in self.rsu_ids:
-            self.children[f"rsu {rsu_id}"] = Child(f"rsu {rsu_id}", self._rsu_argv(rsu_id, start_ns))
+            self.children[f"rsu {rsu_id}"] = Child(f"rsu {rsu_id}", self._rsu_argv(rsu_id))
         for name in self.vehicle_ids:
-            self.children[f"obu {name}"] = Child(f"obu {name}", self._obu_argv(name, start_ns))
+            self.children[f"obu {name}"] = Child(f"obu {name}", self._obu_argv(name))
         for rsu_id in self.rsu_ids:
-            self.children[link_id(rsu_id)] = Child(link_id(rsu_id), self._link_argv(rsu_id))
+            self.children[link_id(rsu_id)] = Child(link_id(rsu_id), self._link_argv(rsu_id),
+                                                   label=f"link {link_id(rsu_id)}")
         if self.v2v is not None:
-            self.children[V2V_LINK_ID] = Child(V2V_LINK_ID, self._v2v_link_argv())
+            self.children[V2V_LINK_ID] = Child(V2V_LINK_ID, self._v2v_link_argv(), label=f"link {V2V_LINK_ID}")
         log("demo", f"site {self.spec.scenario}: {len(self.children)} processes, pids "
                     + ", ".join(f"{name} {c.proc.pid}" for name, c in self.children.items()))
 
-    def _common(self, start_ns: int) -> list[str]:
+    def _common(self) -> list[str]:
         s = self.spec
-        return ["--scenario", s.scenario, "--seed", str(s.seed), "--start-at-ns", str(start_ns),
-                "--duration", str(self.duration_s)]
+        return ["--scenario", s.scenario, "--seed", str(s.seed), "--await-start", "--duration", str(self.duration_s)]
 
-    def _rsu_argv(self, rsu_id: str, start_ns: int) -> list[str]:
+    def _rsu_argv(self, rsu_id: str) -> list[str]:
         s = self.spec
         ahead = ["--predict-ahead"] if s.rsu_config().predict_ahead else []
         step = [] if s.rsu_clock_step_at_s is None else ["--clock-step-ms", str(s.rsu_clock_step_ms),
                                                           "--clock-step-at-s", str(s.rsu_clock_step_at_s)]
         return [sys.executable, "-m", "v2i", "rsu", "--rsu-id", rsu_id, "--listen", self.rsu_eps[rsu_id],
-                *self._common(start_ns), "--clock-offset-ms", str(s.rsu_clock_offset_ms),
+                *self._common(), "--clock-offset-ms", str(s.rsu_clock_offset_ms),
                 "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead, "--source", s.rsu_source,
                 *security_argv(s, "rsu", self.pki_dir)]
 
-    def _obu_argv(self, name: str, start_ns: int) -> list[str]:
+    def _obu_argv(self, name: str) -> list[str]:
         s = self.spec
         v2v = [] if self.v2v is None else ["--v2v", "--max-peers", str(self.v2v.max_peers)]
         return [sys.executable, "-m", "v2i", "obu", "--vehicle-id", name, "--listen", self.obu_eps[name],
-                *self._common(start_ns), "--fusion", s.fusion, "--compensation", s.compensation,
+                *self._common(), "--fusion", s.fusion, "--compensation", s.compensation,
                 "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms), *v2v,
                 *security_argv(s, "obu", self.pki_dir)]
 
@@ -217,7 +220,7 @@ class SiteDemo(InboxScoring):
         while time.time_ns() < end_ns:
             for name, child in self.children.items():
                 if child.proc.poll() is not None:
-                    raise DemoError(f"{name} exited with code {child.proc.returncode} during the run")
+                    raise DemoError(f"{name} exited with code {child.proc.returncode} during the run{child.tail()}")
             time.sleep(POLL_S)
 
     def _stop_children(self) -> None:
@@ -302,6 +305,8 @@ class SiteDemo(InboxScoring):
         vehicles = [(name, self.worlds[name], self.records[name]) for name in self.vehicle_ids]
         report = site_report(self.spec, vehicles, rsus, driver="demo")
         report["monitor_messages_dropped"] = dict(self.dropped)
+        report["obu_output_deadline_misses"] = {name: obu_own_count(self.records[name]) for name in self.vehicle_ids}
+        report["startup"] = startup_summary(self.ready_s, self.children.values())
         report["rsu_lists_accepted"] = {name: self.rsu_lists_accepted.get(name, {}) for name in self.vehicle_ids}
         report["v2v"] = None if self.v2v is None else self.v2v.model_dump()
         report["security_outcomes"] = (None if self.spec.security is None else

@@ -89,6 +89,8 @@ class RunRecord:
         self.rsu_messages = 0
         self.rejected: dict[str, int] = {}  # the OBU's refused inputs by reason (codec, admission, security_*)
         self.covered_cycles = 0  # the OBU's own count: cycles with an RSU heard recently
+        self.obu_cycles: int | None = None  # live: the OBU's own count of cycles published (None: no metrics)
+        self.obu_output_deadline_misses = 0  # live: the OBU's own count of those published late
         self.rsu_deadline_misses = 0
         self.links = LinkSeries()  # per-cycle RSU link samples (live: ObuMetrics; offline: link_series=True)
 
@@ -119,6 +121,7 @@ class RunRecord:
                 self.add_offset_sample(metrics.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm)
         self.rsu_messages = sum(r.messages_accepted for r in metrics.rsus)  # every RSU's, as offline
         self.covered_cycles, self.rsu_deadline_misses = metrics.covered_cycles, metrics.rsu_deadline_misses
+        self.obu_cycles, self.obu_output_deadline_misses = metrics.cycles, metrics.output_deadline_misses
         self.rejected = dict(metrics.rejected)
         if metrics.latency_ms:
             self.latency_ms["obu"] = {stage: q.model_dump() for stage, q in metrics.latency_ms.items()}
@@ -187,8 +190,8 @@ def summary(report: dict) -> str:
         f"| {report['duration_s']:.1f} s, {report['cycles']} cycles ({report['driver']})",
         f"  target ({report['scenario']}) first seen at {_m(fd)} with V2I vs {_m(vd)} vehicle-only{gain}",
         f"  target: mean BEV IoU {_f(t['mean_bev_iou'])}, RMSE {_m(t['rmse_m'])} over {t['detected_cycles']} cycles",
-        f"  deadline misses: output {report['output_deadline_miss_ratio']:.1%}, RSU {report['rsu_deadline_miss_ratio']:.1%}"
-        f"; modes: {share}; RSU lists received {report['rsu_messages_received']}",
+        f"  deadline misses: output {report['output_deadline_miss_ratio']:.1%}{_own_count(report)}, "
+        f"RSU {report['rsu_deadline_miss_ratio']:.1%}; modes: {share}; RSU lists received {report['rsu_messages_received']}",
         f"  clock offset error p50 {_f(c['p50'])} ms, p95 {_f(c['p95'])} ms, max {_f(c['max'])} ms "
         f"(naive p95 {_f(report['clock_offset_error_naive_ms']['p95'])} ms); "
         f"drift error {_f(report['clock_drift_error_ppm'])} ppm",
@@ -209,6 +212,12 @@ def summary(report: dict) -> str:
         lines.append(f"  planning: {report['planning_handoffs']} hand-offs, displacement error "
                      f"{report['displacement_error_m']:.2f} m")
     return "\n".join(lines)
+
+
+def _own_count(report: dict) -> str:
+    """A live run's OBU's own count beside the output misses (empty offline or without its metrics)."""
+    own = next(iter((report.get("obu_output_deadline_misses") or {}).values()), None)
+    return "" if own is None else f" (the OBU's own count: {own['misses']} of {own['cycles']} late)"
 
 
 def _m(v) -> str:

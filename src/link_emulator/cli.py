@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import signal
 import sys
 import threading
@@ -171,7 +172,9 @@ def run(args: argparse.Namespace) -> int:
     except (ConfigError, MetricsPortError, PkiError) as exc:
         print(f"link emulator: {exc}", file=sys.stderr)
         return 2
-    log("link", relay.control_auth.describe())
+    name = f"link {config.link_id}"  # in its log lines, its relay's warnings too
+    logging.basicConfig(level=logging.WARNING, format=f"[{name}] %(message)s")
+    log(name, relay.control_auth.describe())
     freeze_heap()
     stop = threading.Event()
     try:

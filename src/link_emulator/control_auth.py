@@ -94,9 +94,9 @@ class ControlAuth:
     def describe(self) -> str:
         """One line for the start-up log."""
         if self.mode == "signed":
-            return (f"link control must be signed by an operator certificate of the CA in {self.directory} "
-                    f"(generated at most {self.max_age_ns / NS_PER_S:g} s before its receipt and "
-                    f"{self.max_ahead_ns / NS_PER_S:g} s ahead of it; replays refused)")
+            return (f"link control: accepted when signed by an operator of the CA in {self.directory} "
+                    f"(at most {self.max_age_ns / NS_PER_S:g} s old and {self.max_ahead_ns / NS_PER_S:g} s ahead "
+                    "on arrival, each once)")
         if self.mode == "refuse":
             return ("link control is refused: no --pki DIR given, so every control is rejected as "
                     "'unauthenticated' (--insecure-control accepts unsigned control, lab only)")

@@ -42,6 +42,11 @@ class EgoCamera:
         warm = self.renderer.render(self._camera(cfg, world.ego_at(0.0)), 0.0, np.random.default_rng(0), hide_ego=True)
         self._features(warm.image)
 
+    def start_at(self, start_ns: int) -> None:
+        """Set time zero (OBU clock): a node that waits for its start line (``--await-start``) builds
+        the camera first (renderer, detector, warm-up: seconds) and sets it once, before the first frame."""
+        self.start_ns = start_ns
+
     @property
     def period_ns(self) -> int:
         return round(1e9 / self.rate_hz)

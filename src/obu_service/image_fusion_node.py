@@ -29,7 +29,7 @@ from schemas.codec import CodecError, decode, encode
 from schemas.image_messages import RsuImageFeatures
 from schemas.intake import Intake, Item
 from schemas.messages import TimeReply
-from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
+from schemas.runtime import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
@@ -46,12 +46,16 @@ INPUTS_PER_LATE_EVENT = 8  # queued inputs taken before each overdue event (an R
 
 class ImageFusionNode:
     def __init__(self, config: ObuConfig, clock: Clock | None = None):
+        """The camera (renderer, detector) loads here; its time zero is set here too, unless
+        ``config.await_start``: then after the ready line (``_begin``)."""
         self.config = config
+        self.name = f"obu {config.vehicle_id}"  # in its log lines
         self.clock = clock or SystemClock()
-        self.start_ns = config.start_at_ns or self.clock.now_ns()
+        self.start_ns: int | None = None  # time zero (OBU clock), from _begin
         self.world = World(load_scenario(config.scenario))
         self.duration_s = config.duration_s or self.world.scenario.duration_s
-        self.camera = EgoCamera(self.world, config.seed, self.start_ns, config.roif_model, threads=config.roif_threads)
+        self.camera = EgoCamera(self.world, config.seed, config.start_at_ns or self.clock.now_ns(), config.roif_model,
+                                threads=config.roif_threads)
         known = tuple(config.registered_rsus())
         self.pipeline = ImageFusionPipeline(ImageFusionConfig(
             vehicle_id=config.vehicle_id, known_rsus=known, pair_tolerance_ms=config.roif_pair_tolerance_ms,
@@ -62,11 +66,20 @@ class ImageFusionNode:
         self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
                               config.source_burst, max_queued_bytes=config.inbox_max_bytes,
                               preferred=lambda key: keys.rsu_id_or_none(key) in known)
-        self._log, self._trim = ThrottledLog("obu"), MemoryTrim()
+        self._log, self._trim = ThrottledLog(self.name), MemoryTrim()
         self._details: dict[str, str] = {}
         self._events: list = []
+        if not config.await_start:
+            self._begin(config.start_at_ns or self.clock.now_ns())
 
-    def run(self, stop: threading.Event) -> None:
+    def _begin(self, start_ns: int) -> None:
+        """Time zero (OBU clock): the camera's frame k is captured at start + k / rate."""
+        self.start_ns = start_ns
+        self.camera.start_at(start_ns)
+
+    def run(self, stop: threading.Event, await_start=read_start_line) -> None:
+        """Declare, say ready, (``await_start``: wait for time zero, ``schemas.runtime.start_when_told``),
+        then run the frames until the run's end or ``stop``."""
         session = open_session(self.config.listen, self.config.connect)
         vid = self.config.vehicle_id
         entities = []
@@ -78,8 +91,11 @@ class ImageFusionNode:
             entities = [self._out, self._metrics,
                         session.declare_subscriber(keys.RSU_IMAGE_FEATURES_ALL, self._on_features_sample)]
             self._session = session
-            self._schedule()
             announce("ready", "obu", vehicle_id=vid, listen=self.config.listen, fusion="roif")
+            if self.start_ns is None and not start_when_told(self.name, stop, self._begin, self.clock.now_ns,
+                                                             await_start):
+                return
+            self._schedule()
             self._loop(stop)
         finally:
             for entity in entities:
@@ -87,7 +103,7 @@ class ImageFusionNode:
             session.close()
             p = self.pipeline
             self._log.flush(force=True)
-            log("obu", f"stopped: {p.cycles} image frames, {p.unpaired} without an RSU frame, "
+            log(self.name, f"stopped: {p.cycles} image frames, {p.unpaired} without an RSU frame, "
                        f"{p.deadline_misses} deadline misses, rejected {dict(p.rejected)}")
 
     # --- Zenoh callbacks: stamp and enqueue only ------------------------------------------
@@ -172,7 +188,7 @@ class ImageFusionNode:
             self._metrics.put(encode(self.pipeline.metrics(self.clock.now_ns())))
             self._trim.maybe()
             if (change := self._security.poll_trust(self.clock.now_ns())) is not None:  # a revocation while running
-                log("obu", change)
+                log(self.name, change)
 
     def _count_refusals(self) -> None:
         for reason, n in self._intake.take_counts().items():

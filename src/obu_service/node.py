@@ -32,7 +32,7 @@ from schemas.codec import CodecError, decode, encode, from_body, header_of, obje
 from schemas.intake import Intake, Item
 from schemas import list_wire
 from schemas.messages import EgoPose, ObjectList, ObuMetrics, PredictionList, TimeReply
-from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
+from schemas.runtime import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
 from schemas.sensor_screen import InputRefused, SensorLimits, SensorScreen
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
@@ -58,18 +58,21 @@ SIGNED_KINDS = ("rsu", "predictions", "time", "cpm", "sdsm")  # what the RSUs si
 
 class ObuNode:
     def __init__(self, config: ObuConfig, clock: Clock | None = None):
+        """Everything is loaded here; what depends on time zero (the vehicle's sampling, the cycle
+        clock: ``_begin``) too, unless ``config.await_start``: then after the ready line."""
         # the tracker's compiled loops load first (~0.3 s; compiled once per machine): not in a cycle, and
         # before the start time, whose first cycles would otherwise be late
         load_kernels()
         self.config = config
+        self.name = f"obu {config.vehicle_id}"  # in its log lines
         self.clock = clock or SystemClock()
-        self.start_ns = config.start_at_ns or self.clock.now_ns()
+        self.start_ns: int | None = None  # time zero (OBU clock), from _begin
         scenario = load_scenario(config.scenario)
         # this vehicle's view when the scenario has it (its LiDAR, its streams), else the ego's
         own = config.vehicle_id if config.vehicle_id in [v.name for v in scenario.vehicles] else None
         self.world = World(scenario, ego=own)
         self.duration_s = config.duration_s or self.world.scenario.duration_s
-        self.vehicle = SimulatedVehicle(self.world, config.seed, self.start_ns) if config.source == "sim" else None
+        self.vehicle: SimulatedVehicle | None = None  # --source sim, from _begin
         self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
         self._security = live_security(config.pki_dir, config.security_policy, config.planning_max_age_s,
                                        self.pipeline.clock_offset, self.pipeline.reject)
@@ -83,10 +86,8 @@ class ObuNode:
                               preferred=lambda key: key in own or keys.rsu_id_or_none(key) in known)
         self._screen = SensorScreen(vid, "base_link", SensorLimits(config.max_objects_per_list, INPUT_MAX_AGE_MS,
                                                                   config.future_tolerance_ms, config.max_message_bytes))
-        pc = self.pipeline.config
-        self._cycles = ExternalCycles(self.start_ns, round(1e9 / self.world.scenario.lidar.rate_hz),
-                                      round((pc.deadline_ms - pc.compute_margin_ms) * 1e6))
-        self._log = ThrottledLog("obu")
+        self._cycles: ExternalCycles | None = None  # --source zenoh, from _begin
+        self._log = ThrottledLog(self.name)
         self._trim = MemoryTrim()
         self._details: dict[str, str] = {}  # first codec error message per reason
         self._events: list = []
@@ -94,8 +95,23 @@ class ObuNode:
         self.latency = StageLatency()  # per-stage durations (telemetry.latency); read by other threads
         self._latency_summary = PeriodicSummary(self.latency)  # into the metrics, recomputed once a second
         self.last_metrics: ObuMetrics | None = None  # the latest published; one assignment, read by other threads
+        if not config.await_start:
+            self._begin(config.start_at_ns or self.clock.now_ns())
 
-    def run(self, stop: threading.Event) -> None:
+    def _begin(self, start_ns: int) -> None:
+        """Time zero (OBU clock): the simulated vehicle samples from it (--source sim), or the cycle
+        clock's first slot is it (--source zenoh)."""
+        self.start_ns = start_ns
+        if self.config.source == "sim":
+            self.vehicle = SimulatedVehicle(self.world, self.config.seed, start_ns)
+        else:
+            pc = self.pipeline.config
+            self._cycles = ExternalCycles(start_ns, round(1e9 / self.world.scenario.lidar.rate_hz),
+                                          round((pc.deadline_ms - pc.compute_margin_ms) * 1e6))
+
+    def run(self, stop: threading.Event, await_start=read_start_line) -> None:
+        """Declare, say ready, (``await_start``: wait for time zero, ``schemas.runtime.start_when_told``),
+        then run the cycles until the run's end or ``stop``."""
         session = open_session(self.config.listen, self.config.connect)
         vid = self.config.vehicle_id
         entities = []
@@ -116,7 +132,7 @@ class ObuNode:
                 if wire in self.config.wires:
                     list_wire.prepare(wire)
                     entities.append(session.declare_subscriber(key, lambda sample, w=wire: self._put(w, sample)))
-            if self.vehicle is None:
+            if self.config.source != "sim":
                 entities += [session.declare_subscriber(keys.sensor_vehicle_objects(vid),
                                                         lambda sample: self._put("sensor_objects", sample)),
                              session.declare_subscriber(keys.sensor_vehicle_pose(vid),
@@ -124,8 +140,11 @@ class ObuNode:
             if self._v2v is not None:
                 entities += self._v2v.declare(session, self._put)
             self._session = session
-            self._schedule()
             announce("ready", "obu", vehicle_id=vid, listen=self.config.listen)
+            if self.start_ns is None and not start_when_told(self.name, stop, self._begin, self.clock.now_ns,
+                                                             await_start):
+                return
+            self._schedule()
             self._loop(stop)
         finally:
             for entity in entities:
@@ -133,7 +152,7 @@ class ObuNode:
             session.close()
             p = self.pipeline
             self._log.flush(force=True)
-            log("obu", f"stopped: {p.cycles} cycles, {p.deadline_misses} deadline misses, rejected {dict(p.rejected)}")
+            log(self.name, f"stopped: {p.cycles} cycles, {p.deadline_misses} deadline misses, rejected {dict(p.rejected)}")
 
     # --- Zenoh callbacks: stamp and enqueue only ---------------------------------------
     def _on_rsu_sample(self, sample) -> None:
@@ -319,7 +338,7 @@ class ObuNode:
         self.last_metrics = metrics
         self._trim.maybe()  # just published: the next deadline is a cycle away
         if (change := self._security.poll_trust(self.clock.now_ns())) is not None:  # a revocation while running
-            log("obu", change)
+            log(self.name, change)
 
     def _count_refusals(self) -> None:
         """The intake's refusals into the pipeline's counters; the new ones to the throttled log."""

@@ -34,7 +34,7 @@ from schemas.list_wire import encode_list, list_key, prepare
 from schemas.intake import Intake, KeyedBuckets, TokenBucket
 from schemas.image_messages import RsuImageFeatures
 from schemas.messages import SOURCE_RSU, ObjectList, RsuMetrics, RsuPerception, TimeRequest
-from schemas.runtime import MemoryTrim, ThrottledLog, announce, log
+from schemas.runtime import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
 from schemas.sensor_screen import InputRefused, SensorLimits, SensorScreen
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
@@ -59,14 +59,19 @@ class RsuNode:
     """Publishes object lists at the camera rate and answers time queries."""
 
     def __init__(self, config: RsuConfig, true_clock: Clock | None = None):
+        """Everything is loaded here; what depends on time zero (the RSU's clock model, the source's
+        capture times: ``_begin``) too, unless ``config.await_start``: then after the ready line."""
         load_kernels()  # the tracker's compiled loops first (~0.3 s; compiled once per machine): not in a frame
         self.config = config
+        self.name = f"rsu {config.rsu_id}"  # in its log lines
         self.true_clock = true_clock or SystemClock()
-        self.start_ns = config.start_at_ns or self.true_clock.now_ns()
+        self.start_ns: int | None = None  # time zero (true clock), from _begin
+        self.clock: Clock | None = None  # the RSU's own clock (offset, drift, step from time zero), from _begin
         self.world = World(load_scenario(config.scenario), site=True)  # the RSU sees every vehicle
         self.duration_s = config.duration_s or self.world.scenario.duration_s
-        self.clock = config.clock(self.true_clock, self.start_ns)
-        self.source = None if config.source == "zenoh" else make_source(config, self.world, self.start_ns)
+        # a camera source loads its renderer and detector now (seconds); _begin sets its time zero
+        self.source = (None if config.source == "zenoh" else
+                       make_source(config, self.world, config.start_at_ns or self.true_clock.now_ns()))
         self._inputs = Intake(INPUT_QUEUE, config.input_max_bytes, INPUT_RATE_HZ, INPUT_BURST)
         self._screen = SensorScreen(config.rsu_id, "map", SensorLimits(config.input_max_objects,
                                                                       config.input_max_age_ms,
@@ -81,7 +86,7 @@ class RsuNode:
         self._lock = threading.Lock()  # rejected, time_replies and the bucket: the query callback's
         self._queries = TokenBucket(config.query_rate_hz, config.query_burst, self.true_clock.now_ns())
         self._queriers = KeyedBuckets(config.querier_rate_hz, config.querier_burst, MAX_QUERIERS)  # by obu_id
-        self._log = ThrottledLog("rsu")
+        self._log = ThrottledLog(self.name)
         self._trim = MemoryTrim()
         self._details: dict[str, str] = {}
         self._reported_ns = 0  # true clock of the last metrics
@@ -95,8 +100,19 @@ class RsuNode:
         self.perception = PerceptionTally.of_source(self.source, (rsu.position.x, rsu.position.y))
         # predict-ahead publishes a frame's second list half a frame period after the first
         self._upsample_offset_ns = round(0.5e9 / rsu.rate_hz) if self.source is None else self.source.upsample_offset_ns
+        if not config.await_start:
+            self._begin(config.start_at_ns or self.true_clock.now_ns())
 
-    def run(self, stop: threading.Event) -> None:
+    def _begin(self, start_ns: int) -> None:
+        """Time zero (true clock): the RSU's clock model and the source's capture times start from it."""
+        self.start_ns = start_ns
+        self.clock = self.config.clock(self.true_clock, start_ns)
+        if self.source is not None:
+            self.source.start_at(start_ns)
+
+    def run(self, stop: threading.Event, await_start=read_start_line) -> None:
+        """Declare, say ready, (``await_start``: wait for time zero, ``schemas.runtime.start_when_told``),
+        then publish until the run's end or ``stop``."""
         prepare(self.config.wire)  # a CPM / SDSM's ASN.1 compiles now (~0.3 s), not on the first list
         session = open_session(self.config.listen, self.config.connect)
         entities = []
@@ -112,13 +128,16 @@ class RsuNode:
             if self.source is None:
                 entities.append(session.declare_subscriber(keys.sensor_rsu_objects(rsu_id), self._on_input))
             announce("ready", "rsu", rsu_id=self.config.rsu_id, listen=self.config.listen)
+            if self.start_ns is None and not start_when_told(self.name, stop, self._begin, self.true_clock.now_ns,
+                                                             await_start):
+                return
             (self._publish_inputs if self.source is None else self._publish_frames)(publisher, stop)
         finally:
             for entity in entities:
                 entity.undeclare()
             session.close()
             self._log.flush(force=True)
-            log("rsu", f"stopped: {self.published} object lists published, {self.skipped} past frames skipped, "
+            log(self.name, f"stopped: {self.published} object lists published, {self.skipped} past frames skipped, "
                        f"rejected {dict(self._refusals())}")
 
     def _publish_frames(self, publisher, stop: threading.Event) -> None:
@@ -262,7 +281,10 @@ class RsuNode:
 
     def _on_time_query(self, query) -> None:
         # Answered in the callback: it reads only the clock and must stamp t2/t3 tightly.
-        t2_ns = self.clock.now_ns()
+        clock = self.clock
+        if clock is None:  # before time zero (--await-start) there is no clock model to answer from
+            return
+        t2_ns = clock.now_ns()
         try:
             with self._lock:
                 if not self._queries.take(self.true_clock.now_ns()):
@@ -281,7 +303,7 @@ class RsuNode:
                 self.rejected[exc.reason] += 1
                 self._details.setdefault(exc.reason, f"time query on {query.key_expr}: {exc}")
             return
-        reply = answer_time_request(request, self.config.rsu_id, t2_ns, self.clock.now_ns())
+        reply = answer_time_request(request, self.config.rsu_id, t2_ns, clock.now_ns())
         key = keys.rsu_time(self.config.rsu_id)
         query.reply(key, sign(encode(reply), self._query_signer, reply.t3_ns, key))
         with self._lock:

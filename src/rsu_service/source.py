@@ -58,6 +58,11 @@ class _Schedule:
         """Half a frame period: when the upsampled (second) list of a frame is published."""
         return round(0.5e9 / self.rate_hz)
 
+    def start_at(self, start_ns: int) -> None:
+        """Set time zero (true clock): a node that waits for its start line (``--await-start``) builds
+        the source first (a renderer and detector take seconds) and sets it once, before the first capture."""
+        self.start_ns = start_ns
+
     def capture_times_ns(self, duration_s: float) -> np.ndarray:
         """(K,) int64 true capture times within the run."""
         t_s = frame_times(self.rate_hz, duration_s)

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -34,7 +34,15 @@ class ServiceConfig(BaseModel):
     scenario: str = "red-light-runner"
     seed: int = Field(0, ge=0)
     start_at_ns: int | None = Field(None, description="scenario time zero (true clock); default: start-up time")
+    await_start: bool = Field(False, description="after the ready line, wait for the start line on stdin "
+                              "(schemas.runtime.read_start_line) for time zero; not with start_at_ns")
     duration_s: float | None = Field(None, gt=0, description="default: the scenario's duration")
+
+    @model_validator(mode="after")
+    def _one_time_zero(self):
+        if self.await_start and self.start_at_ns is not None:
+            raise ValueError("start_at_ns and await_start exclude each other: time zero comes from one of them")
+        return self
 
 
 class DuplicateKeyError(yaml.constructor.ConstructorError):

@@ -2,6 +2,15 @@
 
 A service prints exactly one JSON line ``{"event": "ready", "service": ...}`` on stdout
 once its Zenoh session is open and declared, and stops cleanly on SIGINT or SIGTERM.
+
+The start handshake (``--await-start``): a service loads everything, opens and declares its
+session, prints the ready line, then waits for one line on stdin,
+``{"event": "start", "start_at_ns": N}`` (``start_line``), N being scenario time zero in Unix ns
+(true clock). Only then does it build what depends on time zero (clock model, sources, cycle
+schedule), print ``{"event": "started", ..., "ahead_ms": ...}`` (how long before time zero it
+began) and run. EOF or SIGINT / SIGTERM before the start line: a clean exit. So an orchestrator
+starts the run when every service is ready, whatever the load, instead of guessing a time zero
+far enough ahead.
 """
 
 from __future__ import annotations
@@ -13,6 +22,8 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
+from typing import TextIO
 
 
 def stop_on_signals() -> threading.Event:
@@ -33,8 +44,80 @@ def announce(event: str, service: str, **fields) -> None:
 
 
 def log(service: str, message: str) -> None:
-    """A human-readable line on stderr, prefixed with the service name."""
-    print(f"[{service}] {message}", file=sys.stderr, flush=True)
+    """A human-readable line on stderr, prefixed with the service name (a node names itself with
+    its id: ``obu ego``, ``rsu rsu-nw``); one write, so lines of several threads never interleave."""
+    sys.stderr.write(f"[{service}] {message}\n")
+    sys.stderr.flush()
+
+
+START_POLL_S = 0.05  # how often a service waiting for its start line looks at its stop event
+
+
+def start_line(start_ns: int) -> str:
+    """The line an orchestrator writes to a service's stdin to start it at ``start_ns`` (Unix ns)."""
+    return json.dumps({"event": "start", "start_at_ns": int(start_ns)}) + "\n"
+
+
+def parse_start_line(line: str) -> int:
+    """``start_at_ns`` of a start line (``start_line``); ValueError saying what is wrong otherwise."""
+    try:
+        msg = json.loads(line)
+    except ValueError:
+        raise ValueError(f"not JSON: {line.strip()[:80]!r}") from None
+    if not isinstance(msg, dict) or msg.get("event") != "start":
+        raise ValueError(f"not a start line: {line.strip()[:80]!r}")
+    start_ns = msg.get("start_at_ns")
+    if isinstance(start_ns, bool) or not isinstance(start_ns, int) or start_ns <= 0:
+        raise ValueError(f"start_at_ns must be a positive integer (Unix ns), got {start_ns!r}")
+    return start_ns
+
+
+def read_start_line(service: str, stop: threading.Event, stream: TextIO | None = None) -> int | None:
+    """Wait for the start line on ``stream`` (default stdin); its ``start_at_ns``. None when the
+    stream ends (EOF) or ``stop`` is set first: the service then exits cleanly. A line that is not
+    a start line is logged and skipped."""
+    stream = sys.stdin if stream is None else stream
+    if stream is None:
+        log(service, "--await-start needs a stdin to read the start line from")
+        return None
+    got: list[int] = []
+    done = threading.Event()
+
+    def read() -> None:
+        try:
+            for line in stream:
+                if not line.strip():
+                    continue
+                try:
+                    got.append(parse_start_line(line))
+                    return
+                except ValueError as exc:
+                    log(service, f"ignored a line on stdin ({exc}); waiting for "
+                                 '{"event": "start", "start_at_ns": N}')
+        except (OSError, ValueError):  # stdin closed under the reader
+            pass
+        finally:
+            done.set()
+
+    threading.Thread(target=read, name="start-line", daemon=True).start()
+    while not done.wait(START_POLL_S):
+        if stop.is_set():
+            return None
+    return None if stop.is_set() or not got else got[0]
+
+
+def start_when_told(service: str, stop: threading.Event, begin: Callable[[int], None], now_ns: Callable[[], int],
+                    wait: Callable[[str, threading.Event], int | None] = read_start_line) -> bool:
+    """After the ready line (``--await-start``): wait for time zero (``wait``: the start line on stdin,
+    or an in-process driver's choice), ``begin(start_ns)``, and announce ``started`` with how many ms
+    before time zero it began (negative: late). False when stopped or stdin ended first."""
+    start_ns = wait(service, stop)
+    if start_ns is None:
+        return False
+    begin(start_ns)
+    announce("started", service, start_at_ns=start_ns,
+             ahead_ms=round((start_ns - now_ns()) * 1e-6, 1))
+    return True
 
 
 class ThrottledLog:
@@ -89,6 +172,10 @@ def add_service_options(p, config_name: str, listen_example: str, seed_of: str) 
     p.add_argument("--scenario", help="bundled scenario name or YAML path (default red-light-runner)")
     p.add_argument("--seed", type=int, help=f"seed of the {seed_of} (default 0)")
     p.add_argument("--start-at-ns", type=int, help="scenario time zero in Unix ns (true clock); default: now")
+    p.add_argument("--await-start", action="store_true", default=None,
+                   help='after the ready line, wait for {"event": "start", "start_at_ns": N} on stdin and take N '
+                        "as time zero (how v2i demo starts its services when every one is ready); EOF or a signal "
+                        "first: a clean exit. Not with --start-at-ns")
     p.add_argument("--duration", dest="duration_s", type=float, help="seconds to run (default: scenario duration)")
 
 

@@ -41,7 +41,7 @@ def _run_options(p: argparse.ArgumentParser) -> None:
                    help="fusion method (default %(default)s); roif: image-level fusion of the ego's and the RSU's "
                         "camera boxes by ORB + RANSAC homography (Maqsud's thesis) on a scenario with an ego_camera, e.g. "
                         "--scenario roif-intersection: offline in v2i eval; live in v2i demo (RSU --source camera "
-                        "--image-features at the ego camera's rate, the link, OBU --fusion roif; startup >= 12 s)")
+                        "--image-features at the ego camera's rate, the link, OBU --fusion roif)")
     p.add_argument("--fusion-mode", default="adaptive", choices=FUSION_MODES,
                    help="which RSU data a cycle fuses (IAAD, Liu et al.): intra waits for the frame of the cycle's slot, "
                         "inter uses the newest buffered one, planning hands the RSU's 5 s paths to the planner; "
@@ -115,7 +115,7 @@ _FLAG_OF_FIELD = {
     "clock_step_at_s": "--rsu-clock-step-at-s",
 }
 # flags (argparse dests) that must be finite and > 0, or finite and >= 0, when given
-_POSITIVE_FLAGS = ("duration", "startup", "link_down_s", "seeds", "workers", "count", "rate")
+_POSITIVE_FLAGS = ("duration", "startup", "ready_timeout", "link_down_s", "seeds", "workers", "count", "rate")
 _NON_NEGATIVE_FLAGS = ("kill_link_at",)
 
 
@@ -245,9 +245,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.fusion == "roif":
         return _run_roif_demo(args)
     outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
-    return _run_demo(Demo(_spec(args), startup_s=args.startup, outage=outage, record_to=args.record,
-                          progress=_progress(args), metrics_ports=args.metrics_ports, pki_dir=args.pki),
+    return _run_demo(Demo(_spec(args), outage=outage, record_to=args.record, progress=_progress(args),
+                          metrics_ports=args.metrics_ports, pki_dir=args.pki, **_ready_timeout(args)),
                      args.json, "v2i demo", args.report)
+
+
+def _ready_timeout(args: argparse.Namespace) -> dict:
+    """The demo's ``ready_timeout_s`` from ``--ready-timeout`` (absent: its default); the old
+    ``--startup`` (a guessed time zero) is accepted and ignored, with a note."""
+    if getattr(args, "startup", None) is not None:
+        print(f"v2i {args.command}: --startup is no longer used: the run starts when every service is ready "
+              "(bound: --ready-timeout)", file=sys.stderr)
+    return {} if args.ready_timeout is None else {"ready_timeout_s": args.ready_timeout}
 
 
 def _progress(args: argparse.Namespace) -> str | None:
@@ -267,14 +276,13 @@ def _is_site(scenario: str) -> bool:
 
 def _run_site_demo(args: argparse.Namespace) -> int:
     """``v2i demo`` of a scenario with several RSUs or vehicles: each node its own process."""
-    from evaluation.site_demo import SITE_STARTUP_S, SiteDemo
+    from evaluation.site_demo import SiteDemo
 
     if args.kill_link_at is not None or args.fusion == "roif":
         flag = "--kill-link-at" if args.kill_link_at is not None else "--fusion roif"
         raise ValueError(f"{flag} runs a single RSU and vehicle; scenario {args.scenario!r} has several "
                          "(v2i demo runs every node of it, without chaos or image fusion)")
-    startup_s = max(args.startup, SITE_STARTUP_S)  # every node of the site starts at once
-    return _run_demo(SiteDemo(_spec(args), startup_s=startup_s, progress=_progress(args), pki_dir=args.pki),
+    return _run_demo(SiteDemo(_spec(args), progress=_progress(args), pki_dir=args.pki, **_ready_timeout(args)),
                      args.json, "v2i demo", args.report)
 
 
@@ -285,7 +293,8 @@ def _run_roif_demo(args: argparse.Namespace) -> int:
     if args.kill_link_at is not None:
         raise ValueError("--kill-link-at is not supported with --fusion roif")
     _no_run_report(args)
-    report = _live(ImageFusionDemo(_spec(args), startup_s=args.startup, pki_dir=args.pki).run, "v2i demo")
+    report = _live(ImageFusionDemo(_spec(args), progress=_progress(args), pki_dir=args.pki,
+                                   **_ready_timeout(args)).run, "v2i demo")
     if isinstance(report, int):
         return report
     _emit(report, args.json, summary)
@@ -311,8 +320,8 @@ def cmd_chaos_run(args: argparse.Namespace) -> int:
     if unknown:
         raise ValueError(f"chaos timeline {args.timeline}: profile {unknown[0]!r} is not bundled (the emulator "
                          f"switches to bundled profiles only): {', '.join(bundled_profiles())}")
-    return _run_demo(Demo(with_chaos(_spec(args), chaos), startup_s=args.startup, chaos=chaos,
-                          record_to=args.record, progress=_progress(args), pki_dir=args.pki),
+    return _run_demo(Demo(with_chaos(_spec(args), chaos), chaos=chaos, record_to=args.record,
+                          progress=_progress(args), pki_dir=args.pki, **_ready_timeout(args)),
                      args.json, "v2i chaos run", args.report)
 
 
@@ -430,6 +439,9 @@ _PKI_HELP = ("the site PKI (v2i pki) the services sign and verify with: created 
              "temporary directory); prepare extra subjects or revocations here before the run")
 
 
+READY_TIMEOUT_HELP = ("seconds every service may take to say it is ready (default 120); the run's scenario clock "
+                      "starts when all are, so a busy machine only starts later. A progress line shows who is "
+                      "awaited; a service that dies or is not ready in time is named with its last log lines")
 QUIET_HELP = ("no live line on stderr while the run goes (elapsed s, output and RSU deadline misses, mode, RSU "
               "lists, chaos events: rewritten in place on a terminal, a plain line every 5 s otherwise)")
 
@@ -437,7 +449,8 @@ QUIET_HELP = ("no live line on stderr while the run goes (elapsed s, output and 
 def _demo_options(demo: argparse.ArgumentParser) -> None:
     _run_options(demo)
     demo.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    demo.add_argument("--startup", type=float, default=4.0, help="seconds given to the services to start (default %(default)s)")
+    demo.add_argument("--ready-timeout", type=float, metavar="S", help=READY_TIMEOUT_HELP)
+    demo.add_argument("--startup", type=float, help=argparse.SUPPRESS)  # before --ready-timeout: ignored, noted
     demo.add_argument("--kill-link-at", type=float, metavar="S", help="chaos: kill the link emulator S seconds into the run")
     demo.add_argument("--link-down-s", type=float, default=3.0, help="chaos: restart it this many seconds later (default %(default)s)")
     demo.add_argument("--record", metavar="FILE", help=_RECORD_HELP)
@@ -468,8 +481,8 @@ def _chaos_options(chaos: argparse.ArgumentParser) -> None:
     chaos_run.add_argument("timeline", metavar="FILE", help="chaos timeline YAML, e.g. examples/chaos/outage-10s.yaml")
     _run_options(chaos_run)
     chaos_run.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    chaos_run.add_argument("--startup", type=float, default=4.0,
-                           help="seconds given to the services to start (default %(default)s)")
+    chaos_run.add_argument("--ready-timeout", type=float, metavar="S", help=READY_TIMEOUT_HELP)
+    chaos_run.add_argument("--startup", type=float, help=argparse.SUPPRESS)  # before --ready-timeout: ignored, noted
     chaos_run.add_argument("--report", metavar="DIR", help=_REPORT_HELP)
     chaos_run.add_argument("--record", metavar="FILE", help=_RECORD_HELP)
     chaos_run.add_argument("--pki", metavar="DIR", help=_PKI_HELP)

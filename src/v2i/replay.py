@@ -185,8 +185,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="seconds between start-up and the recording's start (default %(default)s)")
     p.add_argument("--score", action="store_true", help="start a fresh OBU (the recording's scenario, seed and "
                    "options, from its run metadata: v2i demo --record) and score it like v2i demo")
-    p.add_argument("--startup", type=float, default=4.0, help="with --score: seconds given to the OBU to start "
-                   "(default %(default)s)")
+    p.add_argument("--ready-timeout", type=float, metavar="S", help="with --score: seconds the OBU may take to say "
+                   "it is ready (default 120); the replay starts when it is")
+    p.add_argument("--startup", type=float, help=argparse.SUPPRESS)  # before --ready-timeout: ignored, noted
     p.add_argument("--json", metavar="PATH", help="with --score: write the report JSON to PATH ('-' for stdout)")
 
 
@@ -234,7 +235,14 @@ def run_scored(args: argparse.Namespace) -> int:
         raise ValueError("--score runs the OBU in real time: --speed must be 1")
     if args.json not in (None, "-"):
         _check_writable(Path(args.json), "--json")
-    report = _live(ReplayDemo(args.recording, startup_s=args.startup, keys_pattern=args.keys).run, "v2i replay")
+    if args.startup is not None:
+        print("v2i replay: --startup is no longer used: the replay starts when the OBU is ready (bound: "
+              "--ready-timeout)", file=sys.stderr)
+    if args.ready_timeout is not None and not args.ready_timeout > 0:
+        raise ValueError(f"--ready-timeout must be > 0, got {args.ready_timeout:g}")
+    timeout = {} if args.ready_timeout is None else {"ready_timeout_s": args.ready_timeout}
+    report = _live(ReplayDemo(args.recording, keys_pattern=args.keys, progress="v2i replay", **timeout).run,
+                   "v2i replay")
     if isinstance(report, int):
         return report
     _emit(report, args.json)

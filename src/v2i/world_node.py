@@ -17,7 +17,7 @@ from pydantic import Field, field_validator
 from fusion.jit import load_kernels
 from schemas.codec import encode
 from schemas.config import ServiceConfig
-from schemas.runtime import add_service_options, announce, log, run_service
+from schemas.runtime import add_service_options, announce, log, read_start_line, run_service, start_when_told
 from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
@@ -56,21 +56,38 @@ class WorldConfig(ServiceConfig):
 
 class WorldNode:
     def __init__(self, config: WorldConfig, clock: Clock | None = None):
+        """The scenario and the feed load here (its renames checked); with ``config.await_start`` the
+        feed is built again from time zero after the ready line (``_begin``, ~1 ms)."""
         load_kernels()  # the sensors' compiled line of sight (~0.2 s), before the start time: not in the first frame
         self.config, self.clock = config, clock or SystemClock()
-        self.start_ns = config.start_at_ns or self.clock.now_ns()
-        scenario = load_scenario(config.scenario)
-        self.duration_s = config.duration_s or scenario.duration_s
-        self.feed = WorldFeed(scenario, config.seed, self.start_ns, self.duration_s, _renames(config.rsu_id),
-                              _renames(config.vehicle_id), config.lidar_delay_ms, config.truth_rate_hz)
+        self.scenario = load_scenario(config.scenario)
+        self.duration_s = config.duration_s or self.scenario.duration_s
+        self.start_ns: int | None = None  # time zero (true clock), from _begin
+        self.feed = self._feed(config.start_at_ns or self.clock.now_ns())
         self.published = self.late = 0
+        if not config.await_start:
+            self.start_ns = self.feed.start_ns
 
-    def run(self, stop: threading.Event) -> None:
+    def _feed(self, start_ns: int) -> WorldFeed:
+        c = self.config
+        return WorldFeed(self.scenario, c.seed, start_ns, self.duration_s, _renames(c.rsu_id), _renames(c.vehicle_id),
+                         c.lidar_delay_ms, c.truth_rate_hz)
+
+    def _begin(self, start_ns: int) -> None:
+        """Time zero (true clock): every sensor of the feed samples from it."""
+        self.start_ns, self.feed = start_ns, self._feed(start_ns)
+
+    def run(self, stop: threading.Event, await_start=read_start_line) -> None:
+        """Say ready, (``await_start``: wait for time zero, ``schemas.runtime.start_when_told``), then
+        publish every sensor input at its time until the run's end or ``stop``."""
         session = open_session(self.config.listen, self.config.connect)
         publishers: dict[str, object] = {}
         try:
             announce("ready", "world", rsus=sorted(self.feed.cameras), vehicles=sorted(self.feed.vehicles),
                      listen=self.config.listen)
+            if self.start_ns is None and not start_when_told("world", stop, self._begin, self.clock.now_ns,
+                                                             await_start):
+                return
             for pub in self.feed.publications():
                 if not self._sleep_until(pub.t_ns, stop):
                     return

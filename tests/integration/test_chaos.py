@@ -28,7 +28,7 @@ def report(tmp_path_factory) -> dict:
     path = tmp_path_factory.mktemp("chaos") / "outage-6s.yaml"
     path.write_text(TIMELINE)
     chaos = load_chaos(path)
-    demo = Demo(with_chaos(RunSpec(profile="lte-v2x", seed=0, duration_s=RUN_S), chaos), startup_s=5.0, chaos=chaos)
+    demo = Demo(with_chaos(RunSpec(profile="lte-v2x", seed=0, duration_s=RUN_S), chaos), chaos=chaos)
     result = demo.run()
     assert all(child.proc.poll() is not None for child in demo.children.values()), "a child outlived the demo"
     return result

@@ -21,7 +21,7 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
 @pytest.fixture(scope="module")
 def finished() -> tuple[Demo, dict]:
-    demo = Demo(RunSpec(profile="lte-v2x", seed=1, duration_s=12.0), startup_s=5.0, outage=LinkOutage(at_s=1.5, down_s=3.0))
+    demo = Demo(RunSpec(profile="lte-v2x", seed=1, duration_s=12.0), outage=LinkOutage(at_s=1.5, down_s=3.0))
     result = demo.run()
     assert all(child.proc.poll() is not None for child in demo.children.values()), "a child outlived the demo"
     return demo, result

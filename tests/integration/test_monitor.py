@@ -19,7 +19,7 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
 def test_monitor_snapshot_of_a_live_demo(capfd):
     timeline = ChaosTimeline(name="spike", events=[ChaosEvent(at_s=0.5, delay_spike=DelaySpike(duration_s=20.0, extra_ms=50.0))])
-    demo = Demo(RunSpec(profile="lte-v2x", seed=1, duration_s=9.0), startup_s=10.0, chaos=timeline, progress="v2i demo")
+    demo = Demo(RunSpec(profile="lte-v2x", seed=1, duration_s=9.0), chaos=timeline, progress="v2i demo")
     result: dict = {}
     runner = threading.Thread(target=lambda: result.update(demo.run()), daemon=True)
     runner.start()

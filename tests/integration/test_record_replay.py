@@ -19,8 +19,8 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 def runs(tmp_path_factory) -> tuple[dict, dict, Recording]:
     path = tmp_path_factory.mktemp("record") / "run.mcap"
     spec = RunSpec(profile="lte-v2x", seed=1, duration_s=8.0, security="strict")
-    live = Demo(spec, startup_s=4.0, record_to=str(path)).run()
-    replayed = ReplayDemo(str(path), startup_s=3.0).run()
+    live = Demo(spec, record_to=str(path)).run()
+    replayed = ReplayDemo(str(path)).run()
     return live, replayed, Recording(path)
 
 

@@ -12,7 +12,7 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
 
 def test_a_v2i_obu_fuses_a_cpm_rsu_through_the_emulator():
-    demo = Demo(RunSpec(profile="ideal", seed=1, duration_s=8.0, wire="cpm"), startup_s=5.0)
+    demo = Demo(RunSpec(profile="ideal", seed=1, duration_s=8.0, wire="cpm"))
     report = demo.run()
     assert all(child.proc.poll() is not None for child in demo.children.values()), "a child outlived the demo"
     # 5 Hz RSU over 8 s: every CPM relayed and accepted (measured 60 of 60 in 12 s on lte-v2x)

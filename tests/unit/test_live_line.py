@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import sys
+import threading
 import time
 
 from rich.console import Console
@@ -85,3 +87,33 @@ def test_dashboard_draws_a_snapshot():
     for expected in ("vehicle ego", "output misses 10.0%", "+2.000 ± 0.100 ms", "link1", "lte-v2x",
                      "outage on both (3 s left)", "rejected by reason", "rate", "relay_hold", "0.75"):
         assert expected in text, expected
+
+
+def test_tty_lines_of_several_threads_are_written_whole(monkeypatch):
+    """Each thread writes its lines in pieces (as print does: the text, then the newline) at the same
+    time as the others: every row on the terminal is one thread's line, whole."""
+    stream = FakeTty()
+    monkeypatch.setattr(sys, "stderr", stream)
+    live = LiveLine("v2i demo", time.time_ns(), 30.0)
+    live.start()
+    barrier = threading.Barrier(4)
+
+    def writer(tag: str) -> None:
+        for k in range(50):
+            sys.stderr.write(f"[{tag}] line {k}")
+            barrier.wait()  # every thread has half a line written
+            sys.stderr.write(" and its end")
+            sys.stderr.write("\n")
+
+    threads = [threading.Thread(target=writer, args=(tag,)) for tag in "abcd"]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    sys.stderr.write("[demo] unfinished")  # no newline yet when the line stops: still written, on its own
+    live.stop()
+    rows = [row.split(CLEAR)[-1] for row in stream.getvalue().split("\n")]
+    lines = [row for row in rows if row.startswith("[")]
+    assert len(lines) == 4 * 50 + 1
+    assert all(re.fullmatch(r"\[[abcd]\] line \d+ and its end", row) for row in lines[:-1]), lines[:5]
+    assert lines[-1] == "[demo] unfinished"
