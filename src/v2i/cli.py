@@ -26,8 +26,9 @@ SUBCOMMANDS = {
     "record": "record every v2x/** message heard at Zenoh endpoints into an MCAP file (Foxglove opens it)",
     "replay": "republish a recording on its keys in real or scaled time, or re-run a fresh OBU on it (--score)",
     "attack": "attack a running site near its RSU (ghosts, forgeries, replays, stolen and revoked keys, time, control) "
-              "and report what was rejected and what got through",
-    "pki": "the site's certificate authority: init, issue, revoke, list, a whole site, Zenoh TLS material",
+              "and report what was rejected and what got through (its keys: v2i pki attacker)",
+    "pki": "the site's certificate authority: init, issue, revoke, list, a whole site, the attacker's keys, "
+           "Zenoh TLS material",
     "warm": "compile the numba kernels of the services and the evaluator ahead of the first run (once per machine)",
 }
 
