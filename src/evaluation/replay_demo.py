@@ -18,7 +18,6 @@ report's ``security`` is None) and ``replay.recorded_security`` says what the re
 from __future__ import annotations
 
 import dataclasses
-import json
 import threading
 import time
 
@@ -29,25 +28,8 @@ from schemas.transport import open_session
 
 from .children import READY_TIMEOUT_S, START_LEAD_S, DemoError, start_all
 from .demo import Demo, obu_own_count, startup_summary
-from .spec import RunSpec, build_report
-
-RUN_METADATA = "run"
-
-
-def run_metadata(spec: RunSpec, start_ns: int, duration_s: float, vehicle_id: str, rsu_id: str) -> dict[str, str]:
-    """The MCAP metadata record that makes a recording replayable (strings only)."""
-    return {"spec": json.dumps(dataclasses.asdict(spec)), "start_ns": str(start_ns), "duration_s": repr(duration_s),
-            "vehicle_id": vehicle_id, "rsu_id": rsu_id}
-
-
-def spec_of(metadata: dict[str, str]) -> RunSpec:
-    """The recorded run's spec, its duration made explicit; ValueError when the recording has none."""
-    if "spec" not in metadata:
-        raise ValueError("the recording has no run metadata (record a run with v2i demo --record)")
-    fields = json.loads(metadata["spec"])
-    known = {f.name for f in dataclasses.fields(RunSpec)}
-    spec = RunSpec(**{k: v for k, v in fields.items() if k in known})
-    return dataclasses.replace(spec, duration_s=float(metadata["duration_s"]))
+from .recorded_run import RUN_METADATA, run_metadata, run_of, spec_of  # noqa: F401 - spec_of: the tests' import
+from .spec import build_report
 
 
 def demo_recorder(demo: Demo, start_ns: int, path: str):
@@ -67,16 +49,19 @@ class ReplayDemo(Demo):
     """Only the OBU runs; the recording's vehicle-side RSU traffic is replayed into it."""
 
     def __init__(self, recording_path: str, ready_timeout_s: float = READY_TIMEOUT_S, keys_pattern: str = "v2x/rsu/**",
-                 progress: str | None = None):
+                 progress: str | None = None, given: dict | None = None):
+        """``given``: the run's values from the command line (``recorded_run.run_of``: needed for a
+        ``v2i record`` file, which carries no run metadata)."""
         from telemetry.mcap_reader import Recording
         from v2i.replay import Replayer
 
         self.recording = Recording(recording_path)
-        spec = spec_of(self.recording.metadata.get(RUN_METADATA, {}))
+        spec, recorded_start_ns = run_of(self.recording, given or {})
         self.recorded_security = spec.security
         super().__init__(dataclasses.replace(spec, security=None), ready_timeout_s=ready_timeout_s,  # replayed unsigned
                          progress=progress)
-        self.replayer = Replayer(self.recording, "vehicle" if "vehicle" in self.recording.sides else None, keys_pattern)
+        self.replayer = Replayer(self.recording, "vehicle" if "vehicle" in self.recording.sides else None, keys_pattern,
+                                 recorded_start_ns=recorded_start_ns)
 
     def run(self) -> dict:
         """Start the OBU, wait until it is ready, subscribe and declare the replayed RSU clocks, then

@@ -4,6 +4,11 @@ A recording is untrusted input: the file is read once through at open (CRCs chec
 chunks at most ``MAX_CHUNK_BYTES`` compressed or not, every message decoded from its chunk), and
 anything wrong with it is a ``RecordingError`` (a ``ValueError``) naming the file, never a traceback.
 
+A recording that was not closed (the recorder killed by SIGKILL, its disk full, its summary cut
+short) has no usable summary: it is read from the start up to its last whole record
+(``telemetry.mcap_prefix``), ``closed`` is False and ``problem`` says what was found. Its samples
+are then gathered and sorted by log time at each pass (no index to merge them by).
+
 Signed samples (``telemetry.mcap_channels``: channel metadata ``signed``) keep their envelope in
 ``Sample.payload``; ``Sample.content`` is the message inside, and the time exchanges are read
 from it (unchecked: a recording is evidence, not a trust decision).
@@ -11,6 +16,7 @@ from it (unchecked: a recording is evidence, not a trust decision).
 
 from __future__ import annotations
 
+import io
 from collections import defaultdict
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -18,12 +24,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mcap.reader import SeekingReader
+from mcap.records import Channel, Header, Message, Metadata
 
 from schemas.codec import CodecError, decode
 from schemas.messages import TimeReply
 from security.envelope import unwrap
 
 from .mcap_channels import models_by_type
+from .mcap_prefix import MAGIC, PrefixReader
 from .time_shift import Exchange
 
 TIME_REPLY = TimeReply.TYPE
@@ -77,41 +85,109 @@ class RawChannel:
 
 
 class Recording:
-    """A ``v2i record`` file: ``channels`` (raw ones, by MCAP channel id), ``metadata`` (name -> dict)."""
+    """A ``v2i record`` file: ``channels`` (raw ones, by MCAP channel id), ``metadata`` (name -> dict);
+    ``closed`` (False: read up to its last whole record, ``problem`` says why)."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
+        self.closed, self.problem = True, None
         with self._reader() as reader:
-            summary = reader.get_summary()
-            if summary is None:
-                raise RecordingError(f"{self.path}: no MCAP summary (a recording that was not closed)")
-            big = [c.uncompressed_size for c in summary.chunk_indexes if c.uncompressed_size > MAX_CHUNK_BYTES]
-            if big:
-                raise RecordingError(f"{self.path}: a chunk of {big[0]} bytes (at most {MAX_CHUNK_BYTES})")
-            self.channels = {cid: RawChannel(str(c.topic), str(c.metadata["side"]), str(c.metadata["key"]),
-                                             str(c.metadata["kind"]), c.metadata.get("signed") == "true")
-                             for cid, c in summary.channels.items() if "side" in c.metadata}
-            self.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-            self.message_counts = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
-            for _ in reader.iter_messages():  # every chunk decompressed and checked once, here
-                pass
+            summary = self._summary(reader)
+            if summary is not None:
+                big = [c.uncompressed_size for c in summary.chunk_indexes if c.uncompressed_size > MAX_CHUNK_BYTES]
+                if big:
+                    raise RecordingError(f"{self.path}: a chunk of {big[0]} bytes (at most {MAX_CHUNK_BYTES})")
+                self._set_channels(summary.channels)
+                self.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+                self.message_counts = dict(summary.statistics.channel_message_counts) if summary.statistics else {}
+                for _ in reader.iter_messages():  # every chunk decompressed and checked once, here
+                    pass
+                self.readable_bytes = self.path.stat().st_size
+        if summary is None:
+            self._read_prefix()
+
+    def _summary(self, reader: SeekingReader):
+        """The file's summary, or None (``closed`` False, ``problem`` set) when it has none that reads."""
+        summary = None
+        with open(self.path, "rb") as f:
+            f.seek(max(f.seek(0, io.SEEK_END) - len(MAGIC), 0))
+            ends_with_magic = f.read() == MAGIC
+        if not ends_with_magic:
+            self.problem = "it has no footer"
+        else:
+            try:
+                summary = reader.get_summary()
+            except Exception as exc:  # noqa: BLE001 - a damaged footer or summary: read the records instead
+                self.problem = f"its footer or summary cannot be read ({type(exc).__name__}: {exc})"
+            else:
+                self.problem = None if summary is not None else "it has no summary"
+        self.closed = summary is not None
+        return summary
+
+    def _read_prefix(self) -> None:
+        """Channels, metadata and counts of a file without summary, read from its records."""
+        channels: dict[int, Channel] = {}
+        self.metadata, self.message_counts = {}, defaultdict(int)
+        with self._prefix() as prefix:
+            records = prefix.records()
+            first = next(records, None)
+            if first is None and prefix.ended_by:
+                raise RecordingError(f"{self.path}: holds no whole record ({self.problem}; {prefix.ended_by}): "
+                                     "the recorder stopped as it started")
+            if not isinstance(first, Header):
+                raise RecordingError(f"{self.path}: not a readable v2i recording (no MCAP header)")
+            for record in records:
+                if isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Metadata):
+                    self.metadata[record.name] = dict(record.metadata)
+                elif isinstance(record, Message):
+                    self.message_counts[record.channel_id] += 1
+        self._set_channels(channels)
+        self.readable_bytes = prefix.end_bytes
+        raw = sum(n for cid, n in self.message_counts.items() if cid in self.channels)  # derived ones not
+        self.problem = (f"{self.problem}; {prefix.ended_by}: read {raw} messages in its first {self.readable_bytes} "
+                        f"of {prefix.size_bytes} bytes")
+
+    def _set_channels(self, channels: dict[int, Channel]) -> None:
+        self.channels = {cid: RawChannel(str(c.topic), str(c.metadata["side"]), str(c.metadata["key"]),
+                                         str(c.metadata["kind"]), c.metadata.get("signed") == "true")
+                         for cid, c in channels.items() if "side" in c.metadata}
 
     @contextmanager
     def _reader(self) -> Iterator[SeekingReader]:
         """A reader of the file whose every failure is a ``RecordingError`` naming it."""
+        with self._named_errors(), open(self.path, "rb") as f:
+            yield SeekingReader(f, validate_crcs=True, record_size_limit=MAX_CHUNK_BYTES)
+
+    @contextmanager
+    def _prefix(self) -> Iterator[PrefixReader]:
+        """A prefix reader of the file (``telemetry.mcap_prefix``); failures as in ``_reader``."""
+        with self._named_errors(), open(self.path, "rb") as f:
+            yield PrefixReader(f, MAX_CHUNK_BYTES)
+
+    @contextmanager
+    def _named_errors(self) -> Iterator[None]:
         try:
-            with open(self.path, "rb") as f:
-                yield SeekingReader(f, validate_crcs=True, record_size_limit=MAX_CHUNK_BYTES)
+            yield
         except (RecordingError, OSError):
             raise
         except Exception as exc:  # noqa: BLE001 - mcap, zstd, lz4, struct, unicode, key errors of a bad file
             raise RecordingError(f"{self.path}: not a readable v2i recording ({type(exc).__name__}: {exc})") from exc
 
-    def _messages(self, topics: list[str]):
-        """(channel, message) of ``topics`` in log-time order."""
-        with self._reader() as reader:
-            for _, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
-                yield channel, message
+    def _messages(self, topics: list[str]) -> Iterator[tuple[str, Message]]:
+        """(topic, message) of ``topics`` in log-time order."""
+        if self.closed:
+            with self._reader() as reader:
+                for _, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
+                    yield channel.topic, message
+            return
+        topic_of = {cid: c.topic for cid, c in self.channels.items() if c.topic in topics}
+        with self._prefix() as prefix:
+            found = [m for m in prefix.records() if isinstance(m, Message) and m.channel_id in topic_of]
+        found.sort(key=lambda m: m.log_time)  # stable: file order among equal times
+        for message in found:
+            yield topic_of[message.channel_id], message
 
     @property
     def sides(self) -> list[str]:
@@ -125,8 +201,8 @@ class Recording:
         if not topics:
             return
         by_topic = {c.topic: c for c in self.channels.values()}
-        for channel, message in self._messages(topics):
-            c = by_topic[channel.topic]
+        for topic, message in self._messages(topics):
+            c = by_topic[topic]
             yield Sample(c.side, c.key, c.kind, message.log_time, bytes(message.data), c.signed)
 
     def exchanges(self) -> dict[str, list[Exchange]]:

@@ -12,14 +12,25 @@ Bounded: a payload over ``derive_max_bytes``, or one that does not decode, is st
 but no derived message is made; both are counted in ``skipped`` by reason. The file is chunked
 (zstd) and ``close()`` writes the summary and index, so a recording stopped by Ctrl-C / SIGTERM
 is a valid MCAP. Not thread-safe: one thread writes (``v2i.record`` has a queue in front).
+
+Crash-safe: whatever stops it, the file is a complete MCAP or a valid MCAP *prefix* (whole
+records, no summary), which ``telemetry.mcap_reader`` reads back (``Recording.closed`` False).
+The mcap ``Writer`` writes through ``_FileSink``: unbuffered (``os.write`` until every byte is
+out, so a process killed by SIGKILL leaves in the file all that was written, and ``tell()`` is
+the count of bytes really written), its end after each whole call remembered (``commit``). A
+write that fails (a full disk, an I/O error) cuts the file back to that end (``rollback``), and
+the writer refuses every later call (its ``Writer`` may hold half a chunk): ``failed`` says why.
+``flush()`` ends the chunk in progress and writes it, so a kill loses at most what came since the
+last flush (``v2i.record`` flushes every ``FLUSH_S``); a chunk of ``CHUNK_BYTES`` is written
+without waiting.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from collections import Counter
 from pathlib import Path
-from typing import BinaryIO
 
 from mcap.writer import CompressionType, Writer
 
@@ -47,14 +58,50 @@ def publish_stamp(msg: Message | None) -> int | None:
     return stamp if isinstance(stamp, int) else None
 
 
-class RunWriter:
-    """Writes samples to ``path`` (or an open binary stream) until ``close()``."""
+class _FileSink:
+    """The file under the mcap ``Writer``: every write whole and unbuffered, its length known;
+    ``commit()`` marks the end of whole records, ``rollback()`` cuts the file back to it."""
 
-    def __init__(self, path: str | Path | BinaryIO, derive_max_bytes: int = DERIVE_MAX_BYTES):
-        self._own = not hasattr(path, "write")
-        self._stream = open(path, "wb") if self._own else path  # noqa: SIM115 - closed by close()
-        self._writer = Writer(self._stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
-        self._writer.start(profile="", library=LIBRARY)
+    def __init__(self, path: str | Path):
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self.position = 0  # bytes written
+        self.committed = 0  # bytes that end with a whole record
+
+    def write(self, data: bytes) -> int:
+        view = memoryview(data)
+        while view:
+            written = os.write(self._fd, view)
+            view = view[written:]
+            self.position += written
+        return len(data)
+
+    def tell(self) -> int:
+        return self.position
+
+    def flush(self) -> None:
+        """Nothing is buffered here."""
+
+    def commit(self) -> None:
+        self.committed = self.position
+
+    def rollback(self) -> None:
+        """Cut off what was written since the last commit (a record cut short, its space freed)."""
+        os.ftruncate(self._fd, self.committed)
+        os.lseek(self._fd, self.committed, os.SEEK_SET)
+        self.position = self.committed
+
+    def close(self) -> None:
+        os.close(self._fd)
+
+
+class RunWriter:
+    """Writes samples to ``path`` until ``close()``; after a failed write, ``failed`` holds the
+    error and every call raises it again (the file keeps what was written before)."""
+
+    def __init__(self, path: str | Path, derive_max_bytes: int = DERIVE_MAX_BYTES):
+        self._sink = _FileSink(path)
+        self._writer = Writer(self._sink, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self.failed: OSError | None = None
         self.derive_max_bytes = derive_max_bytes
         self._schemas: dict[tuple[str, str], int] = {}
         self._channels: dict[tuple, int] = {}
@@ -66,35 +113,69 @@ class RunWriter:
         self.derived = 0
         self.skipped: Counter = Counter()  # derived messages not made, by reason
         self.closed = False
+        try:
+            self._guarded(self._writer.start, profile="", library=LIBRARY)
+        except OSError:
+            self._sink.close()
+            raise
 
     # ------------------------------------------------------------------ public
     def write(self, side: str, key: str, payload: bytes, log_time_ns: int) -> mc.Kind:
-        """Record one received sample (raw, and its derived message when it can be made)."""
+        """Record one received sample (raw, and its derived message when it can be made);
+        OSError when the file cannot take it (then ``failed``)."""
         kind = mc.classify(key, payload)
         msg = self._decoded(kind, payload)
         publish_ns = publish_stamp(msg) or log_time_ns
+        self._guarded(self._write, side, key, kind, payload, msg, log_time_ns, publish_ns)
+        return kind
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """An MCAP metadata record (e.g. the run's spec as ``run``); values must be strings."""
+        self._guarded(self._writer.add_metadata, name, {k: str(v) for k, v in data.items()})
+
+    def flush(self) -> None:
+        """Write the chunk in progress now (a process killed later keeps it)."""
+        self._guarded(self._writer.flush)
+
+    def close(self) -> None:
+        """Write the summary and index and close the file (idempotent). OSError when the summary
+        could not be written: the file then ends with the last whole chunk, without a summary."""
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            if self.failed is None:
+                self._guarded(self._writer.finish)
+        finally:
+            self._sink.close()
+
+    @property
+    def file_bytes(self) -> int:
+        """Bytes in the file that end with a whole record."""
+        return self._sink.committed
+
+    # ------------------------------------------------------------------ internals
+    def _guarded(self, call, *args, **kwargs) -> None:
+        """``call`` on the mcap writer, the file cut back to its last whole record if it fails."""
+        if self.failed is not None:
+            raise self.failed
+        try:
+            call(*args, **kwargs)
+        except OSError as exc:
+            self.failed = exc
+            self._sink.rollback()
+            raise
+        self._sink.commit()
+
+    def _write(self, side: str, key: str, kind: mc.Kind, payload: bytes, msg: Message | None, log_time_ns: int,
+               publish_ns: int) -> None:
         topic = self._raw_topic(side, key, kind)
         self._add(self._raw_channel(side, key, kind, topic), payload, log_time_ns, publish_ns)
         self.messages += 1
         self.bytes += len(payload)
         if msg is not None:
             self._write_derived(topic, msg, log_time_ns, publish_ns)
-        return kind
 
-    def add_metadata(self, name: str, data: dict[str, str]) -> None:
-        """An MCAP metadata record (e.g. the run's spec as ``run``); values must be strings."""
-        self._writer.add_metadata(name, {k: str(v) for k, v in data.items()})
-
-    def close(self) -> None:
-        """Write the summary and index and close the file (idempotent)."""
-        if self.closed:
-            return
-        self.closed = True
-        self._writer.finish()
-        if self._own:
-            self._stream.close()
-
-    # ------------------------------------------------------------------ internals
     def _decoded(self, kind: mc.Kind, payload: bytes) -> Message | None:
         if kind.model is None:
             return None

@@ -33,6 +33,11 @@ Design: what a replayed OBU must see to behave as the recorded one did.
   the replay's own time replies are unsigned too. The OBU fed must therefore run without
   ``--pki`` (or ``--security off``); ``--score`` starts it so. (An envelope that does not decode
   is published as recorded, like any sample that does not decode.)
+- **What it says.** A readable summary on stderr (published, lateness, RSU clocks; ``--json`` for
+  the numbers). A recording that was not closed (``telemetry.mcap_reader``: its recorder killed,
+  its disk full) is replayed as far as it was written, with a line saying so.
+- **Scoring a ``v2i record`` file** (``--score``): it carries no run metadata, so the scenario and
+  its start come from ``--scenario`` and ``--start-at-ns`` (``evaluation.recorded_run``).
 - ``--speed`` other than 1 scales the spacing; a sample's stamps then move by (its publish time -
   its log time), so each keeps its recorded age at publication. An OBU runs in real time only at 1.
 """
@@ -40,6 +45,7 @@ Design: what a replayed OBU must see to behave as the recorded one did.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import threading
 import time
@@ -55,7 +61,9 @@ DEFAULT_LEAD_S = 2.0
 class Replayer:
     """Publishes ``recording``'s samples of ``side`` matching ``pattern`` on a Zenoh session."""
 
-    def __init__(self, recording, side: str | None = None, pattern: str = "v2x/rsu/**", speed: float = 1.0):
+    def __init__(self, recording, side: str | None = None, pattern: str = "v2x/rsu/**", speed: float = 1.0,
+                 recorded_start_ns: int | None = None):
+        """``recorded_start_ns``: L0, the recorded run's start (default: its run metadata's, if any)."""
         from telemetry.time_shift import RsuClockTrack
 
         if not speed > 0:
@@ -70,7 +78,9 @@ class Replayer:
         self.recording, self.side, self.pattern, self.speed = recording, side, pattern, speed
         self.clocks = {rsu: RsuClockTrack(ex) for rsu, ex in recording.exchanges().items()}
         run = recording.metadata.get("run", {})
-        self.recorded_start_ns = int(run["start_ns"]) if "start_ns" in run else None
+        if recorded_start_ns is None and "start_ns" in run:
+            recorded_start_ns = int(run["start_ns"])
+        self.recorded_start_ns = recorded_start_ns
         self.counts: Counter = Counter()
         self.lateness_ns: list[int] = []
         self.t0_ns = self.l0_ns = 0
@@ -184,11 +194,65 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lead", type=float, default=DEFAULT_LEAD_S,
                    help="seconds between start-up and the recording's start (default %(default)s)")
     p.add_argument("--score", action="store_true", help="start a fresh OBU (the recording's scenario, seed and "
-                   "options, from its run metadata: v2i demo --record) and score it like v2i demo")
+                   "options: its run metadata, written by v2i demo --record, or the flags below) and score it like "
+                   "v2i demo")
     p.add_argument("--ready-timeout", type=float, metavar="S", help="with --score: seconds the OBU may take to say "
                    "it is ready (default 120); the replay starts when it is")
     p.add_argument("--startup", type=float, help=argparse.SUPPRESS)  # before --ready-timeout: ignored, noted
-    p.add_argument("--json", metavar="PATH", help="with --score: write the report JSON to PATH ('-' for stdout)")
+    p.add_argument("--json", metavar="PATH", help="write the JSON to PATH ('-' for stdout): with --score the report, "
+                   "else the replay's counts (default: readable lines only)")
+    run = p.add_argument_group("the recorded run, for --score", "a v2i demo --record file carries it (values given "
+                               "here win); a v2i record file does not: give at least --scenario and --start-at-ns, "
+                               "as the recorded services were started")
+    run.add_argument("--scenario", help="the scenario the recorded services ran")
+    run.add_argument("--start-at-ns", type=int, metavar="NS", help="their scenario time zero (their --start-at-ns)")
+    run.add_argument("--seed", type=int, help="their --seed (the fresh OBU's own LiDAR; default 0)")
+    run.add_argument("--duration", type=float, metavar="S", help="seconds to score (default: the recorded run's; "
+                     "for a v2i record file the recorded RSU traffic after the start)")
+    run.add_argument("--rsu-clock-offset-ms", type=float, metavar="MS", help="the RSU clock's true offset, for the "
+                     "clock-error score (default 0)")
+    run.add_argument("--rsu-clock-drift-ppm", type=float, metavar="PPM", help="its true drift (default 0)")
+
+
+_RUN_FLAGS = {"scenario": "scenario", "start_at_ns": "start_ns", "seed": "seed", "duration": "duration_s",
+              "rsu_clock_offset_ms": "rsu_clock_offset_ms", "rsu_clock_drift_ppm": "rsu_clock_drift_ppm"}
+
+
+def given_run(args: argparse.Namespace) -> dict:
+    """The run's values given on the command line (``evaluation.recorded_run.run_of``; None: not given)."""
+    if args.duration is not None and not 0 < args.duration < float("inf"):
+        raise ValueError(f"--duration must be > 0, got {args.duration:g}")
+    if args.start_at_ns is not None and args.start_at_ns <= 0:
+        raise ValueError(f"--start-at-ns must be > 0 (Unix ns), got {args.start_at_ns}")
+    return {field: getattr(args, dest) for dest, field in _RUN_FLAGS.items()}
+
+
+def replay_summary(stats: dict) -> str:
+    """``Replayer.stats`` (a --score report's ``replay``) as two or three readable lines."""
+    late = stats["lateness_ms"]
+    timing = (f"late by p50 {late['p50']:.1f} ms, p99 {late['p99']:.1f} ms, max {late['max']:.1f} ms; "
+              f"{stats.get('late', 0)} later than {LATE_NS / 1e6:g} ms") if late.get("max") is not None else "none"
+    clocks = ", ".join(f"{rsu} from {c['exchanges_used']} recorded exchanges"
+                       + (f" ({c['exchanges_dropped']} left out)" if c["exchanges_dropped"] else "")
+                       for rsu, c in stats["rsu_clocks"].items()) or "none recorded"
+    lines = [f"v2i replay: published {stats.get('published', 0)} samples of side {stats['side']} ({stats['keys']}) at "
+             f"speed {stats['speed']:g}, every stamp moved by {stats['shift_ns'] / 1e9:.3f} s; {timing}",
+             f"  RSU clocks: {clocks}; {stats.get('time_replies', 0)} time queries answered"
+             + (f", {stats['time_query_refused']} refused" if stats.get("time_query_refused") else "")]
+    notes = [f"{stats['envelopes_removed']} signed samples republished unsigned" if stats.get("envelopes_removed") else "",
+             f"{stats['unshifted']} that do not decode republished as recorded" if stats.get("unshifted") else "",
+             f"the recorded run signed ({stats['recorded_security']}), the fresh OBU does not"
+             if stats.get("recorded_security") else ""]
+    if any(notes):
+        lines.append("  " + "; ".join(n for n in notes if n))
+    return "\n".join(lines)
+
+
+def say_if_not_closed(recording) -> None:
+    """One stderr line when the recording was not closed (``Recording.closed``)."""
+    if not recording.closed:
+        print(f"v2i replay: {recording.path} was not closed (its recorder was killed, or its disk filled): "
+              f"{recording.problem}; replaying what it holds", file=sys.stderr)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -197,12 +261,30 @@ def run(args: argparse.Namespace) -> int:
 
     if not Path(args.recording).is_file():
         raise ValueError(f"{args.recording}: no such file")
+    if args.json not in (None, "-"):
+        from v2i.cli import _check_writable
+
+        _check_writable(Path(args.json), "--json")
     if args.score:
         return run_scored(args)
     if not args.connect:
         raise ValueError("v2i replay needs --connect EP (the OBU's endpoint), or --score")
-    replayer = Replayer(Recording(args.recording), args.side, args.keys, args.speed)
-    return play_standalone(replayer, args.connect, args.lead, stop_on_signals())
+    given = [f"--{dest.replace('_', '-')}" for dest in _RUN_FLAGS if getattr(args, dest) is not None]
+    if given:
+        raise ValueError(f"{', '.join(given)} go with --score (the run a fresh OBU is started for)")
+    recording = Recording(args.recording)
+    say_if_not_closed(recording)
+    replayer = Replayer(recording, args.side, args.keys, args.speed)
+    code = play_standalone(replayer, args.connect, args.lead, stop_on_signals())
+    _write_json(replayer.stats(), args.json)
+    return code
+
+
+def _write_json(stats: dict, path: str | None) -> None:
+    if path == "-":
+        print(json.dumps(stats, indent=2))
+    elif path:
+        Path(path).write_text(json.dumps(stats, indent=2) + "\n")
 
 
 def play_standalone(replayer: Replayer, connect: list[str], lead_s: float, stop: threading.Event) -> int:
@@ -220,31 +302,30 @@ def play_standalone(replayer: Replayer, connect: list[str], lead_s: float, stop:
             q.undeclare()
     finally:
         session.close()
-    print(f"v2i replay: {replayer.stats()}", file=sys.stderr)
+    print(replay_summary(replayer.stats()), file=sys.stderr)
     return 0
 
 
 def run_scored(args: argparse.Namespace) -> int:
     """``--score``: a fresh OBU on the replayed traffic, reported like ``v2i demo``."""
     from evaluation.replay_demo import ReplayDemo
-    from v2i.cli import _check_writable, _emit, _live
+    from v2i.cli import _emit, _live
 
     if args.connect:
         raise ValueError("--score starts its own OBU: leave out --connect")
     if args.speed != 1.0:
         raise ValueError("--score runs the OBU in real time: --speed must be 1")
-    if args.json not in (None, "-"):
-        _check_writable(Path(args.json), "--json")
     if args.startup is not None:
         print("v2i replay: --startup is no longer used: the replay starts when the OBU is ready (bound: "
               "--ready-timeout)", file=sys.stderr)
     if args.ready_timeout is not None and not args.ready_timeout > 0:
         raise ValueError(f"--ready-timeout must be > 0, got {args.ready_timeout:g}")
     timeout = {} if args.ready_timeout is None else {"ready_timeout_s": args.ready_timeout}
-    report = _live(ReplayDemo(args.recording, keys_pattern=args.keys, progress="v2i replay", **timeout).run,
-                   "v2i replay")
+    demo = ReplayDemo(args.recording, keys_pattern=args.keys, progress="v2i replay", given=given_run(args), **timeout)
+    say_if_not_closed(demo.recording)
+    report = _live(demo.run, "v2i replay")
     if isinstance(report, int):
         return report
     _emit(report, args.json)
-    print(f"v2i replay: {report['replay']}", file=sys.stderr)
+    print(replay_summary(report["replay"]), file=sys.stderr)
     return 0

@@ -193,15 +193,14 @@ def _small_recording(path) -> bytes:
     return path.read_bytes()
 
 
-@pytest.mark.parametrize("damage", ["truncated", "random", "bit_flips", "zeros", "empty"])
+@pytest.mark.parametrize("damage", ["random", "bit_flips", "zeros", "empty"])
 def test_a_damaged_recording_is_a_clear_error(tmp_path, damage: str):
-    """A recording is untrusted input: whatever is wrong with it is a RecordingError naming the file."""
+    """A recording is untrusted input: whatever is wrong with it is a RecordingError naming the file.
+    (A file cut short is not damaged but not closed: test_recording_crash.)"""
     good = _small_recording(tmp_path / "good.mcap")
     rng = np.random.default_rng(7)
     data = bytearray(good)
-    if damage == "truncated":
-        data = data[: len(data) // 2]
-    elif damage == "random":
+    if damage == "random":
         data = bytearray(rng.integers(0, 256, 4000, dtype=np.uint8).tobytes())
     elif damage == "bit_flips":
         for i in rng.integers(0, len(data), 40):
