@@ -14,6 +14,7 @@ from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 from obu_service.fusion_mode import MODES
 
 from .run_report import BevVehicle, Span, VehicleTimeline
+from .spec import first_seen
 
 MODE_COLOURS = {"intra": "#2ca02c", "inter": "#1f77b4", "planning": "#ff7f0e", "vehicle-only": "#8c8c8c"}
 SPAN_COLOURS = {"outage": "#d62728", "delay_spike": "#ff7f0e", "loss_burst": "#9467bd", "bandwidth_cap": "#8c564b",
@@ -41,8 +42,8 @@ def title_lines(report: dict, vehicle: str | None) -> str:
     chaos = f" | chaos {report['chaos']}" if report.get("chaos") else ""
     return (f"{report['scenario']} | profile {report['profile']} | fusion {report['fusion']} ({report['fusion_mode']}) "
             f"| seed {report['seed']} | {report['driver']}, {report['duration_s']:g} s{who}{chaos}\n"
-            f"target first seen at {_fmt(t['first_detection_distance_m'], 'm')} "
-            f"(vehicle only {_fmt(v['first_detection_distance_m'], 'm')}), RMSE {_fmt(t['rmse_m'], 'm', 2)} | "
+            f"target {first_seen(t['first_detection_distance_m'])} "
+            f"(vehicle only: {first_seen(v['first_detection_distance_m'])}), RMSE {_fmt(t['rmse_m'], 'm', 2)} | "
             f"output misses {report['output_deadline_miss_ratio']:.1%}, RSU misses {report['rsu_deadline_miss_ratio']:.1%}"
             f" | clock error p95 {_fmt(c['p95'], 'ms', 2)}")
 

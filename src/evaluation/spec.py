@@ -188,8 +188,8 @@ def summary(report: dict) -> str:
         f"{report['scenario']} | profile {report['profile']} | fusion {report['fusion']} "
         f"({report['compensation']}, mode {report['fusion_mode']}) | seed {report['seed']} "
         f"| {report['duration_s']:.1f} s, {report['cycles']} cycles ({report['driver']})",
-        f"  target ({report['scenario']}) first seen at {_m(fd)} with V2I vs {_m(vd)} vehicle-only{gain}",
-        f"  target: mean BEV IoU {_f(t['mean_bev_iou'])}, RMSE {_m(t['rmse_m'])} over {t['detected_cycles']} cycles",
+        f"  target ({report['scenario']}): {first_seen(fd)} with V2I, {first_seen(vd)} vehicle-only{gain}",
+        f"  target: {_accuracy(t)}",
         f"  deadline misses: output {report['output_deadline_miss_ratio']:.1%}{_own_count(report)}, "
         f"RSU {report['rsu_deadline_miss_ratio']:.1%}; modes: {share}; RSU lists received {report['rsu_messages_received']}",
         f"  clock offset error p50 {_f(c['p50'])} ms, p95 {_f(c['p95'])} ms, max {_f(c['max'])} ms "
@@ -204,8 +204,9 @@ def summary(report: dict) -> str:
                      + (f"; detector p50 {ms['p50']:.1f} ms, p99 {ms['p99']:.1f} ms" if ms else ""))
     for name, v in report.get("vehicles", {}).items() if len(report.get("vehicles", {})) > 1 else ():
         t = v["target"]
-        lines.append(f"  vehicle {name}: target first seen at {_m(t['first_detection_distance_m'])} "
-                     f"(vehicle-only {_m(v['vehicle_only']['first_detection_distance_m'])}), RMSE {_m(t['rmse_m'])}, "
+        lines.append(f"  vehicle {name}: target {first_seen(t['first_detection_distance_m'])} "
+                     f"(vehicle-only: {first_seen(v['vehicle_only']['first_detection_distance_m'])}), "
+                     f"RMSE {_rmse(t['rmse_m'])}, "
                      f"{t['track_ids']} track id(s), {t['id_switches']} switch(es); output misses "
                      f"{v['output_deadline_miss_ratio']:.1%}")
     if report["displacement_error_m"] is not None:
@@ -220,8 +221,21 @@ def _own_count(report: dict) -> str:
     return "" if own is None else f" (the OBU's own count: {own['misses']} of {own['cycles']} late)"
 
 
-def _m(v) -> str:
-    return "never" if v is None else f"{v:.1f} m"
+def first_seen(distance_m: float | None) -> str:
+    """Where the target was first detected (its distance from the ego), or that it was not."""
+    return "not seen" if distance_m is None else f"first seen at {distance_m:.1f} m"
+
+
+def _accuracy(target: dict) -> str:
+    """The target's BEV IoU and RMSE over the cycles it was detected in, or that there were none."""
+    if not target["detected_cycles"]:
+        return "not detected in any cycle (no IoU or RMSE)"
+    return (f"mean BEV IoU {_f(target['mean_bev_iou'])}, RMSE {_rmse(target['rmse_m'])} "
+            f"over {target['detected_cycles']} cycles")
+
+
+def _rmse(rmse_m: float | None) -> str:
+    return "n/a" if rmse_m is None else f"{rmse_m:.2f} m"
 
 
 def _f(v) -> str:

@@ -230,13 +230,13 @@ def given_run(args: argparse.Namespace) -> dict:
 def replay_summary(stats: dict) -> str:
     """``Replayer.stats`` (a --score report's ``replay``) as two or three readable lines."""
     late = stats["lateness_ms"]
-    timing = (f"late by p50 {late['p50']:.1f} ms, p99 {late['p99']:.1f} ms, max {late['max']:.1f} ms; "
-              f"{stats.get('late', 0)} later than {LATE_NS / 1e6:g} ms") if late.get("max") is not None else "none"
+    timing = (f"; late by p50 {late['p50']:.1f} ms, p99 {late['p99']:.1f} ms, max {late['max']:.1f} ms, "
+              f"{stats.get('late', 0)} later than {LATE_NS / 1e6:g} ms") if late.get("max") is not None else ""
     clocks = ", ".join(f"{rsu} from {c['exchanges_used']} recorded exchanges"
                        + (f" ({c['exchanges_dropped']} left out)" if c["exchanges_dropped"] else "")
                        for rsu, c in stats["rsu_clocks"].items()) or "none recorded"
     lines = [f"v2i replay: published {stats.get('published', 0)} samples of side {stats['side']} ({stats['keys']}) at "
-             f"speed {stats['speed']:g}, every stamp moved by {stats['shift_ns'] / 1e9:.3f} s; {timing}",
+             f"speed {stats['speed']:g}, every stamp moved by {stats['shift_ns'] / 1e9:.3f} s{timing}",
              f"  RSU clocks: {clocks}; {stats.get('time_replies', 0)} time queries answered"
              + (f", {stats['time_query_refused']} refused" if stats.get("time_query_refused") else "")]
     notes = [f"{stats['envelopes_removed']} signed samples republished unsigned" if stats.get("envelopes_removed") else "",
