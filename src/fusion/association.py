@@ -1,4 +1,4 @@
-"""Global nearest-neighbour association with gating (``fusion.lsap``: scipy's assignment algorithm, compiled).
+"""Global nearest-neighbour association with gating (``fusion.lsap``: scipy's assignment solver).
 
 ``assign`` takes a dense cost and a gate; ``assign_sparse`` takes only the K pairs that passed
 the gate (the tracker's path): the gated bipartite graph splits into connected components, and

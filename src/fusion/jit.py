@@ -1,4 +1,4 @@
-"""Compiled kernels (numba): the tracker's per-pair loops and assignment solver, the OBU's clock
+"""Compiled kernels (numba): the tracker's per-pair loops, the OBU's clock
 fit and input checks, the simulator's line of sight and body states, the rotated-box IoU, the
 codec's bit packing, the fitting of objects to the wire, lane matching and the evaluation's
 per-frame detection matching.
@@ -11,9 +11,9 @@ the numpy and filterpy references are in the tests). So are the clock fit of
 ``obu_service.clock_envelope`` (a window of exchanges, refitted every few exchanges per RSU and
 peer), ``sim.occlusion``'s test of sample points against occluders, ``sim.world``'s body states
 along their paths, ``evaluation.detection_metrics``' matches per frame, ``fusion.geometry``'s IoU
-(shapely's polygons cost ~30 us a pair), ``schemas.bit_rows`` (used once loaded: see
-``schemas.bitpack``) and ``fusion.lsap``'s assignment solver (scipy's algorithm: importing
-``scipy.optimize`` for it cost each service ~0.15 s of its start-up).
+(shapely's polygons cost ~30 us a pair) and ``schemas.bit_rows`` (used once loaded: see
+``schemas.bitpack``). A kernel stays only where it saves at least ~1 % of a cycle or of a run
+against its plain reference, which lives beside it.
 
 ``kernel(*argument_types)`` compiles a function for exactly those argument types (and no
 others) at its first call, or when ``load_kernels`` loads every kernel: the services and the
@@ -213,37 +213,45 @@ SCIPY_BLAS_MODULES = ("scipy.linalg.cython_blas", "scipy.linalg.cython_lapack")
 
 
 def preload_scipy_blas() -> list[str]:
-    """Import scipy's ``cython_blas`` and ``cython_lapack`` extension modules from their files,
-    without running the ``scipy.linalg`` package they live in; the names loaded so (none when
-    scipy.linalg is already imported, or a file is not where scipy puts it: numba then imports
-    them as usual).
+    """Import scipy's ``cython_blas`` and ``cython_lapack`` extension modules from their files
+    (``import_extension``); the names loaded so (none when scipy.linalg is already imported, or a
+    file is not where scipy puts it: numba then imports them as usual).
 
     Importing a submodule runs its package's ``__init__`` first: for scipy.linalg that is its
     decompositions and scipy's array-API layer, 0.13-0.17 s of a service's start-up (a third of
-    ``load_kernels``; ``benchmarks/cli_start.py``), for two modules that need none of it. Both are in
-    ``sys.modules`` under their own names, so numba (and scipy itself, when something imports
-    scipy.linalg later) finds the very same modules there.
+    ``load_kernels``; ``benchmarks/cli_start.py``), for two modules that need none of it.
     """
     if "scipy.linalg" in sys.modules:
         return []
-    import scipy
-
-    folder = Path(scipy.__file__).parent / "linalg"
     loaded = []
     for name in SCIPY_BLAS_MODULES:
         if name in sys.modules:
             continue
-        files = [folder / (name.rsplit(".", 1)[1] + suffix) for suffix in importlib.machinery.EXTENSION_SUFFIXES]
-        path = next((f for f in files if f.is_file()), None)
-        if path is None:
+        if import_extension(name) is None:
             return loaded
-        spec = importlib.util.spec_from_file_location(name, path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        try:
-            spec.loader.exec_module(module)
-        except BaseException:
-            del sys.modules[name]
-            raise
         loaded.append(name)
     return loaded
+
+
+def import_extension(name: str):
+    """The extension module ``name`` (e.g. ``scipy.optimize._lsap``) loaded from its file beside its
+    package's ``__init__`` without running that ``__init__`` (only the top-level package is imported); None
+    where no such file is there. It is put in ``sys.modules`` under its own name, so that the package,
+    when something imports it later, finds the very same module there."""
+    if name in sys.modules:
+        return sys.modules[name]
+    top, *middle, leaf = name.split(".")
+    folder = Path(importlib.import_module(top).__file__).parent.joinpath(*middle)  # (scipy's own __init__ is light)
+    files = [folder / (leaf + suffix) for suffix in importlib.machinery.EXTENSION_SUFFIXES]
+    path = next((f for f in files if f.is_file()), None)
+    if path is None:
+        return None
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[name]
+        raise
+    return module
