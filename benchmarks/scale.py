@@ -20,7 +20,9 @@ directly (no link emulator, so the OBU is what is measured):
   ``--objects shared`` every RSU sees the same N objects (one site, overlapping views, own
   noise), with ``distinct`` each RSU has its own N.
 
-This process subscribes to the OBU's ``objects`` and ``metrics``. The cycle compute time is
+Both run with ``--await-start`` (``evaluation.children``): the scenario starts once both are
+ready and this process is subscribed. This process subscribes to the OBU's ``objects`` and
+``metrics``. The cycle compute time is
 what the OBU stamps: its metrics message of cycle s is stamped (``t_ns``) after the cycle's
 fuse, encode and put of the fused list, whose ``publish_time_ns`` is taken just before fuse
 (``obu_service.node.ObuNode._publish``), so compute = metrics.t_ns - objects.publish_time_ns
@@ -37,7 +39,6 @@ import heapq
 import json
 import os
 import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -45,6 +46,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from evaluation.children import READY_TIMEOUT_S, Child, start_all, wait_ready
 
 PERIOD_NS = 100_000_000  # the OBU's 10 Hz cycle
 SITE_RADIUS_M = 60.0  # objects circle the ego within this
@@ -120,15 +123,15 @@ class Rsus:
         with self.lock:
             self.replies += 1
 
-    def schedule(self) -> list[tuple[int, int, int]]:
-        """(publish true ns, RSU index, capture true ns) of every list, as a heap."""
+    def schedule(self, start_ns: int) -> list[tuple[int, int, int]]:
+        """(publish true ns, RSU index, capture true ns) of every list from time zero ``start_ns``, as a heap."""
         period_ns = round(1e9 / self.args.rate_hz)
         latency_ns = round(self.args.latency_ms * 1e6)
-        end_ns = self.args.start_at_ns + round(self.args.duration_s * 1e9)
+        end_ns = start_ns + round(self.args.duration_s * 1e9)
         events = []
         for i in range(len(self.ids)):
             phase_ns = i * period_ns // len(self.ids)
-            for capture_ns in range(self.args.start_at_ns + phase_ns, end_ns, period_ns):
+            for capture_ns in range(start_ns + phase_ns, end_ns, period_ns):
                 events.append((capture_ns + latency_ns, i, capture_ns))
         heapq.heapify(events)
         return events
@@ -138,12 +141,14 @@ class Rsus:
         from schemas import keys
         from schemas.codec import encode
         from schemas.messages import ObjectList, ObjectListHeader
+        from schemas.runtime import read_start_line
 
         pubs = [self.session.declare_publisher(keys.rsu_objects(r)) for r in self.ids]
         queryables = [self.session.declare_queryable(keys.rsu_time(r), lambda q, i=i: self.on_query(i, q))
                       for i, r in enumerate(self.ids)]
         print(json.dumps({"event": "ready", "service": "scale-rsus"}), flush=True)
-        events, period_ns = self.schedule(), round(1e9 / self.args.rate_hz)
+        start_ns = read_start_line("rsus", stop)
+        events, period_ns = [] if start_ns is None else self.schedule(start_ns), round(1e9 / self.args.rate_hz)
         while events and not stop.is_set():
             due_ns, i, capture_ns = heapq.heappop(events)
             stop.wait(max(due_ns - time.time_ns(), 0) * 1e-9)
@@ -151,7 +156,7 @@ class Rsus:
             if late_ns > period_ns:  # behind by a period: skip, never send a burst of old lists
                 self.skipped += 1
                 continue
-            objs = self.sites[i].objects_at((capture_ns - self.args.start_at_ns) * 1e-9, self.noise[i])
+            objs = self.sites[i].objects_at((capture_ns - start_ns) * 1e-9, self.noise[i])
             header = ObjectListHeader(rsu_id=self.ids[i], seq=self.sent[i], capture_time_ns=capture_ns + self.offset_ns[i],
                                       publish_time_ns=time.time_ns() + self.offset_ns[i], sensor="synthetic")
             pubs[i].put(encode(ObjectList(header=header, objects=states_from_objects(objs))))
@@ -164,8 +169,7 @@ class Rsus:
 def publish_main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="scale.py publish")
     p.add_argument("--ids", required=True)
-    for name, kind in (("n", int), ("rate-hz", float), ("latency-ms", float), ("start-at-ns", int),
-                       ("duration-s", float), ("seed", int)):
+    for name, kind in (("n", int), ("rate-hz", float), ("latency-ms", float), ("duration-s", float), ("seed", int)):
         p.add_argument(f"--{name}", type=kind, required=True)
     p.add_argument("--listen", required=True)
     p.add_argument("--scenario", required=True)
@@ -227,27 +231,20 @@ class Usage:
 
 
 # --- one run ------------------------------------------------------------------------------
-def start(cmd: list[str], name: str, procs: list[subprocess.Popen], log_path: Path) -> subprocess.Popen:
-    """A child that prints its JSON ready line on stdout; stderr to ``log_path``."""
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log_path.open("w"), text=True)
-    procs.append(proc)
-    line = proc.stdout.readline()
-    if '"ready"' not in line:
-        raise RuntimeError(f"{name} did not start (exit {proc.wait()}): {log_path.read_text()[-2000:]}")
-    return proc
-
-
-def stop_all(procs: list[subprocess.Popen]) -> None:
+def stop_all(procs: list[Child]) -> None:
     """SIGINT to each child this script started (by pid), then SIGKILL after 10 s."""
-    for proc in procs:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-    for proc in procs:
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    for child in procs:
+        if child.proc.poll() is None:
+            child.proc.send_signal(signal.SIGINT)
+    for child in procs:
+        child.stop(signal.SIGINT, timeout_s=10.0)
+
+
+def done_event(child: Child, timeout_s: float = 10.0) -> dict:
+    """The publisher's closing counts."""
+    while (event := child.events.get(timeout=timeout_s)).get("event") != "done":
+        pass
+    return event
 
 
 class Collector:
@@ -283,7 +280,7 @@ def site_rsus(scenario: str, k: int) -> dict[str, list[float]]:
     return {f"rsu-{i}": [round(ego.x + 40 * np.cos(a), 2), round(ego.y + 40 * np.sin(a), 2)] for i, a in enumerate(angles)}
 
 
-def run_one(k: int, n: int, args, procs: list[subprocess.Popen], tmp: Path) -> dict:
+def run_one(k: int, n: int, args, procs: list[Child], tmp: Path) -> dict:
     """Start the K-RSU publisher and the OBU, measure the window, stop both; the row's numbers."""
     from schemas.transport import free_tcp_endpoint
 
@@ -291,20 +288,24 @@ def run_one(k: int, n: int, args, procs: list[subprocess.Popen], tmp: Path) -> d
     rsus = site_rsus(args.scenario, k)
     budget = {"max_rsu_objects_per_cycle": args.max_rsu_objects} if args.max_rsu_objects else {}
     (tmp / "obu.yaml").write_text(json.dumps({"known_rsus": rsus, **budget}))  # JSON is YAML
-    start_at_ns = time.time_ns() + round(args.startup_s * 1e9)
     run_s = args.warmup_s + args.measure_s + 2.0
-    common = ["--scenario", args.scenario, "--start-at-ns", str(start_at_ns), "--seed", str(args.seed)]
-    publisher = start([sys.executable, __file__, "publish", "--ids", ",".join(rsus), "--n", str(n), "--rate-hz",
-                       str(args.rsu_rate_hz), "--latency-ms", str(args.rsu_latency_ms), "--duration-s", str(run_s),
-                       "--listen", rsu_ep, "--objects", args.objects, *common], "rsus", procs, tmp / "rsus.log")
+    common = ["--scenario", args.scenario, "--seed", str(args.seed)]
+    publisher = Child("rsus", [sys.executable, __file__, "publish", "--ids", ",".join(rsus), "--n", str(n), "--rate-hz",
+                               str(args.rsu_rate_hz), "--latency-ms", str(args.rsu_latency_ms), "--duration-s",
+                               str(run_s), "--listen", rsu_ep, "--objects", args.objects, *common])
+    procs.append(publisher)
+    wait_ready([publisher], args.ready_timeout)  # it listens before the OBU connects
     profile = ["-m", "cProfile", "-o", args.profile_obu] if args.profile_obu else []
-    obu = start([sys.executable, *profile, "-m", "v2i", "obu", "--listen", obu_ep, "--connect", rsu_ep, "--config",
-                 str(tmp / "obu.yaml"), "--duration", str(run_s), *common], "obu", procs, tmp / "obu.log")
+    obu = Child("obu", [sys.executable, *profile, "-m", "v2i", "obu", "--listen", obu_ep, "--connect", rsu_ep, "--config",
+                        str(tmp / "obu.yaml"), "--duration", str(run_s), "--await-start", *common], label="obu ego")
+    procs.append(obu)
+    wait_ready([obu], args.ready_timeout)
     collector = Collector(obu_ep, "ego")
+    start_at_ns = start_all([publisher, obu])
     window_ns = (start_at_ns + round(args.warmup_s * 1e9), start_at_ns + round((args.warmup_s + args.measure_s) * 1e9))
     try:
         sleep_until_ns(window_ns[0])
-        usage = Usage({"obu": obu.pid, "rsus": publisher.pid, "bench": os.getpid()})
+        usage = Usage({"obu": obu.proc.pid, "rsus": publisher.proc.pid, "bench": os.getpid()})
         usage.start()
         sleep_until_ns(window_ns[1])
         used = usage.stop()
@@ -314,8 +315,8 @@ def run_one(k: int, n: int, args, procs: list[subprocess.Popen], tmp: Path) -> d
     finally:
         collector.close()
         stop_all([publisher, obu])
-    done = json.loads(publisher.stdout.read().strip().splitlines()[-1])
-    stopped = [line for line in (tmp / "obu.log").read_text().splitlines() if "stopped:" in line]
+    done = done_event(publisher)
+    stopped = [line for line in obu.stderr_tail if "stopped:" in line]
     row = summarise(collector.objects, collector.metrics, window_ns)
     row.update(used, k=k, n=n, sent=done["sent"], rsu_skipped=done["skipped"], rsu_late_p99_ms=done["late_p99_ms"],
                obu_stopped=stopped[-1] if stopped else "")
@@ -389,7 +390,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--n", type=parse_list, default=[50, 100, 200], help="objects per RSU list (default 50,100,200)")
     p.add_argument("--warmup-s", type=float, default=5.0, help="after the scenario start, not measured (default 5)")
     p.add_argument("--measure-s", type=float, default=15.0, help="measured window (default 15)")
-    p.add_argument("--startup-s", type=float, default=4.0, help="process start-up before scenario time 0 (default 4)")
+    p.add_argument("--ready-timeout", type=float, default=READY_TIMEOUT_S,
+                   help="s each process may take to be ready (default %(default)s); the scenario starts when both are")
     p.add_argument("--rsu-rate-hz", type=float, default=10.0, help="object lists per second per RSU (default 10)")
     p.add_argument("--rsu-latency-ms", type=float, default=30.0, help="RSU capture -> publish (default 30)")
     p.add_argument("--objects", choices=("shared", "distinct"), default="shared",

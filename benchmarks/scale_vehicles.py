@@ -12,7 +12,9 @@ For each V: one ``v2i rsu`` (sim source, ``--scenario``, clock offset and drift 
   OBU on the wire: decodes every RSU list, sends a ``TimeRequest`` at 10 Hz and publishes an
   ``EgoPose`` at 10 Hz, ``--light-distance-m`` east of the RSU, but runs no perception.
 
-Every process gets explicit tcp/127.0.0.1 ports (scouting is off in ``open_session``). What
+Every process gets explicit tcp/127.0.0.1 ports (scouting is off in ``open_session``). RSU and
+vehicles run with ``--await-start`` (``evaluation.children``): the scenario starts when every
+process is ready and the taps listen, however long the V processes took to start. What
 each vehicle's channel delivers is measured by a tap: a session of this script listening on
 TAP_K, to which the emulator's session for vehicle K also connects, so it hears exactly the
 puts vehicle K gets. A monitor connected to the RSU hears every list the RSU publishes.
@@ -33,35 +35,34 @@ import json
 import math
 import os
 import queue
-import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from evaluation.children import READY_TIMEOUT_S, Child, start_all, wait_ready
 from link_emulator.profile import load_profile
 from link_emulator.validate import Settings, declared_loss
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.messages import EgoPose, ObjectList, TimeRequest
+from schemas.runtime import read_start_line
 from schemas.transport import free_tcp_endpoint, open_session
 from sim.scenario import load_scenario
 
 RSU_ID = "rsu1"
 LINK_ID = "scale1"
-STARTUP_S = 6.0  # imports + Zenoh sessions before the scenario starts, plus STARTUP_PER_VEHICLE_S per vehicle
-STARTUP_PER_VEHICLE_S = 1.2  # 20 OBUs starting at once on 2 shared cores took ~21 s to be ready
-SETTLE_S = 2.0  # measurement starts this long after the scenario start and after every process is ready
+SETTLE_S = 2.0  # measurement starts this long after the scenario start
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 
 # ---- a light vehicle: the OBU's wire behaviour without its perception --------------------
 
 def light_vehicle(args: argparse.Namespace) -> int:
-    """Listen on ``--listen``; decode RSU lists, ask the time and publish a pose at 10 Hz until the end."""
+    """Listen on ``--listen``; say ready; on the start line, decode RSU lists, ask the time and publish
+    a pose at 10 Hz until time zero + ``--duration``."""
     session = open_session(listen=[args.listen])
     lists = {"received": 0, "undecodable": 0, "time_replies": 0}
 
@@ -80,7 +81,13 @@ def light_vehicle(args: argparse.Namespace) -> int:
         lists["time_replies"] += reply.ok is not None
 
     print(json.dumps({"event": "ready"}), flush=True)
-    end_ns = args.start_at_ns + round(args.duration * 1e9)
+    start_ns = read_start_line(f"light {args.vehicle_id}", threading.Event())
+    if start_ns is None:  # stopped before the start
+        sub.undeclare()
+        pose_pub.undeclare()
+        session.close()
+        return 0
+    end_ns = start_ns + round(args.duration * 1e9)
     seq = 0
     while (now_ns := time.time_ns()) < end_ns:
         seq += 1
@@ -99,51 +106,17 @@ def light_vehicle(args: argparse.Namespace) -> int:
 
 # ---- processes ------------------------------------------------------------------------------
 
-@dataclass
-class Proc:
-    name: str
-    popen: subprocess.Popen
-    lines: queue.Queue = field(default_factory=queue.Queue)
-
-    def start_reader(self) -> None:
-        def read() -> None:
-            for line in self.popen.stdout:
-                self.lines.put(line)
-        threading.Thread(target=read, daemon=True).start()
-
-    def wait_ready(self, deadline: float) -> None:
-        while time.monotonic() < deadline:
-            if self.popen.poll() is not None:
-                raise RuntimeError(f"{self.name} exited with {self.popen.returncode} before it was ready")
-            try:
-                if json.loads(self.lines.get(timeout=0.1)).get("event") == "ready":
-                    return
-            except (queue.Empty, ValueError):
-                continue
-        raise RuntimeError(f"{self.name} was not ready in time")
-
-    def done_line(self, timeout_s: float) -> dict:
-        """The light vehicle's closing counts ({} if none came)."""
-        deadline = time.monotonic() + timeout_s
-        while (remaining_s := deadline - time.monotonic()) > 0:
-            try:
-                line = json.loads(self.lines.get(timeout=remaining_s))
-            except queue.Empty:
-                break
-            except ValueError:
-                continue
-            if line.get("event") == "done":
-                return line
-        return {}
-
-    def stop(self) -> None:
-        if self.popen.poll() is None:
-            self.popen.terminate()
-            try:
-                self.popen.wait(10)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait()
+def done_line(child: Child, timeout_s: float) -> dict:
+    """The light vehicle's closing counts ({} if none came)."""
+    deadline = time.monotonic() + timeout_s
+    while (remaining_s := deadline - time.monotonic()) > 0:
+        try:
+            event = child.events.get(timeout=remaining_s)
+        except queue.Empty:
+            break
+        if event.get("event") == "done":
+            return event
+    return {}
 
 
 def cpu_ticks(pid: int) -> int | None:
@@ -210,9 +183,9 @@ class Taps:
 
 # ---- one run ------------------------------------------------------------------------------------
 
-def argv_for(args: argparse.Namespace, kind: str, start_ns: int, duration_s: float, **kw) -> list[str]:
+def argv_for(args: argparse.Namespace, kind: str, duration_s: float, **kw) -> list[str]:
     base = [sys.executable, "-m", "v2i"]
-    common = ["--scenario", args.scenario, "--start-at-ns", str(start_ns), "--duration", str(duration_s)]
+    common = ["--scenario", args.scenario, "--await-start", "--duration", str(duration_s)]
     if kind == "rsu":
         return [*base, "rsu", "--listen", kw["ep"], *common, "--rsu-id", RSU_ID, "--clock-offset-ms", "0",
                 "--clock-drift-ppm", "0", "--source", "sim"]
@@ -220,7 +193,7 @@ def argv_for(args: argparse.Namespace, kind: str, start_ns: int, duration_s: flo
         return [*base, "obu", "--listen", kw["ep"], *common, "--vehicle-id", kw["vid"]]
     if kind == "light":
         return [sys.executable, __file__, "light-vehicle", "--listen", kw["ep"], "--vehicle-id", kw["vid"],
-                "--start-at-ns", str(start_ns), "--duration", str(duration_s), "--x", str(kw["x"]), "--y", str(kw["y"])]
+                "--duration", str(duration_s), "--x", str(kw["x"]), "--y", str(kw["y"])]
     vehicles = [a for vid, (ep, tap) in kw["vehicles"].items() for a in ("--vehicle", f"{vid}={ep},{tap}")]
     return [*base, "link", "--config", kw["config"], "--link-id", LINK_ID, "--rsu-connect", kw["ep"],
             "--profile", args.profile, "--seed", "0", *vehicles]
@@ -232,48 +205,37 @@ def run_once(args: argparse.Namespace, n_vehicles: int, tmp: Path) -> dict:
     rsu_xy = (scenario.rsu.position.x, scenario.rsu.position.y)
     link_config = tmp / "link.yaml"
     link_config.write_text(json.dumps({"rsu_position": list(rsu_xy), "stats_period_s": 1.0}))
-    startup_s = STARTUP_S + STARTUP_PER_VEHICLE_S * n_vehicles
     duration_s = SETTLE_S + args.measure_s + 1.0
-    start_ns = time.time_ns() + round(startup_s * 1e9)
     rsu_ep = free_tcp_endpoint()
     vehicles = {f"car{k}": (free_tcp_endpoint(), free_tcp_endpoint()) for k in range(n_vehicles)}
-    procs: list[Proc] = []
+    procs: list[Child] = []
     taps = None
     try:
-        def start(name: str, argv: list[str]) -> None:
-            proc = Proc(name, subprocess.Popen(argv, stdout=subprocess.PIPE, text=True, start_new_session=True))
-            proc.start_reader()
-            procs.append(proc)
-
-        start("rsu", argv_for(args, "rsu", start_ns, duration_s, ep=rsu_ep))
+        procs.append(Child("rsu", argv_for(args, "rsu", duration_s, ep=rsu_ep), label=f"rsu {RSU_ID}"))
         for vid, (ep, _) in vehicles.items():
-            start(vid, argv_for(args, args.mode, start_ns, duration_s, ep=ep, vid=vid,
-                                x=rsu_xy[0] + args.light_distance_m, y=rsu_xy[1]))
-        deadline = time.monotonic() + startup_s + 30.0
-        for proc in procs:  # listening before the emulator connects (a failed connect retries after 1, 2, 4 s)
-            proc.wait_ready(deadline)
+            procs.append(Child(vid, argv_for(args, args.mode, duration_s, ep=ep, vid=vid,
+                                             x=rsu_xy[0] + args.light_distance_m, y=rsu_xy[1])))
+        # listening before the emulator connects (a failed connect retries after 1, 2, 4 s)
+        ready_s = wait_ready(procs, args.ready_timeout, progress=f"V={n_vehicles}")
         taps = Taps(rsu_ep, {vid: tap for vid, (_, tap) in vehicles.items()})
-        start("link", argv_for(args, "link", start_ns, duration_s, ep=rsu_ep, config=str(link_config),
-                               vehicles=vehicles))
-        procs[-1].wait_ready(deadline)
-        late_s = (time.time_ns() - start_ns) * 1e-9
-        if late_s > 0:
-            raise RuntimeError(f"V={n_vehicles}: processes were ready {late_s:.1f} s after the scenario start; "
-                               "raise STARTUP_PER_VEHICLE_S (the machine is slower or busier)")
+        procs.append(Child("link", argv_for(args, "link", duration_s, ep=rsu_ep, config=str(link_config),
+                                            vehicles=vehicles), label=f"link {LINK_ID}"))
+        ready_s += wait_ready(procs[-1:], args.ready_timeout)
+        start_ns = start_all(procs)
         window = (start_ns + round(SETTLE_S * 1e9), start_ns + round((SETTLE_S + args.measure_s) * 1e9))
         while time.time_ns() < window[0]:
             time.sleep(0.05)
             taps.drain()
-        ticks0 = {p.name: cpu_ticks(p.popen.pid) for p in procs}
+        ticks0 = {p.name: cpu_ticks(p.proc.pid) for p in procs}
         t0 = time.monotonic()
         while time.time_ns() < window[1] + 1_000_000_000:  # lists of the window's end still in flight
             time.sleep(0.05)
             taps.drain()
         elapsed_s = time.monotonic() - t0
-        ticks1 = {p.name: cpu_ticks(p.popen.pid) for p in procs}
-        rss = {p.name: rss_mb(p.popen.pid) for p in procs}
+        ticks1 = {p.name: cpu_ticks(p.proc.pid) for p in procs}
+        rss = {p.name: rss_mb(p.proc.pid) for p in procs}
         taps.drain()
-        done = {p.name: p.done_line(5.0) for p in procs if p.name.startswith("car")} if args.mode == "light" else {}
+        done = {p.name: done_line(p, 5.0) for p in procs if p.name.startswith("car")} if args.mode == "light" else {}
     finally:
         if taps is not None:
             taps.close()
@@ -292,7 +254,7 @@ def run_once(args: argparse.Namespace, n_vehicles: int, tmp: Path) -> dict:
     stats = taps.link_stats
     link_stats = {"lateness_ms": stats.get("lateness_ms"), "refused": stats.get("refused"),
                   "relay_delay_ms_mean": [p["downlink"]["delay_ms"]["mean"] for p in stats.get("pairs", [])]}
-    return {"vehicles": n_vehicles, "late_start_s": late_s, "per_vehicle": per_vehicle, "link_stats": link_stats,
+    return {"vehicles": n_vehicles, "ready_s": round(ready_s, 2), "per_vehicle": per_vehicle, "link_stats": link_stats,
             "rsu": {"cpu_pct": cpu["rsu"], "rss_mb": rss["rsu"]}, "link": {"cpu_pct": cpu["link"], "rss_mb": rss["link"]}}
 
 
@@ -336,7 +298,7 @@ def print_table(args: argparse.Namespace, results: list[dict]) -> None:
     for r in results:
         s = r["link_stats"]
         means = [m for m in s["relay_delay_ms_mean"] if m is not None]
-        print(f"V={r['vehicles']}: emulator lateness {s['lateness_ms']}, refused {s['refused']}, relay delay mean "
+        print(f"V={r['vehicles']}: every process ready after {r['ready_s']:.1f} s; emulator lateness {s['lateness_ms']}, refused {s['refused']}, relay delay mean "
               f"per pair {_f(min(means) if means else None)}-{_f(max(means) if means else None)} ms "
               f"(whole run, lists and time replies)")
     if args.per_vehicle:
@@ -360,7 +322,6 @@ def main(argv: list[str] | None = None) -> int:
     light = sub.add_parser("light-vehicle", help="(internal) one light vehicle process")
     light.add_argument("--listen", required=True)
     light.add_argument("--vehicle-id", required=True)
-    light.add_argument("--start-at-ns", type=int, required=True)
     light.add_argument("--duration", type=float, required=True)
     light.add_argument("--x", type=float, default=0.0)
     light.add_argument("--y", type=float, default=0.0)
@@ -371,6 +332,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--measure-s", type=float, default=10.0, help="measurement window, s (default 10)")
     parser.add_argument("--light-distance-m", type=float, default=50.0, help="light vehicles' distance to the RSU")
     parser.add_argument("--per-vehicle", action="store_true", help="also print one line per vehicle")
+    parser.add_argument("--ready-timeout", type=float, default=READY_TIMEOUT_S,
+                        help="s every process may take to be ready (default %(default)s); the scenario starts when all are")
     parser.add_argument("--json", metavar="PATH", help="write the results as JSON")
     args = parser.parse_args(argv)
     if args.command == "light-vehicle":

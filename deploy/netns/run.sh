@@ -12,6 +12,12 @@
 # address goes through its lo) until lists holding RSU objects arrive, and stops everything. Needs root and iproute2; re-running is safe (leftovers
 # of an earlier run are removed first, and everything is removed on exit, Ctrl-C included).
 #
+# Start: RSU and OBU run with --await-start, each reading its stdin from a FIFO this script holds
+# open. When every service has printed its ready line (within READY_TIMEOUT_S, however busy the
+# machine) and the watcher runs, one start line {"event": "start", "start_at_ns": T0} with
+# T0 = now + START_LEAD_MS goes to both: all namespaces share this host's clock, so T0 means the
+# same instant to each. Two real hosts do the same over ssh (README, "running on two hosts").
+#
 # ROUTERS=1: a `v2i router` host on each side; every service is a Zenoh client of its side's
 # router (V2I_ZENOH_MODE=client), the link emulator a client of both:
 #
@@ -30,7 +36,8 @@ SCENARIO=${SCENARIO:-red-light-runner}
 PROFILE=${PROFILE:-lte-v2x}
 SEED=${SEED:-0}
 DURATION_S=${DURATION_S:-30}      # scenario seconds the services run
-STARTUP_S=${STARTUP_S:-5}         # scenario time zero this far ahead: every service must be up by then
+READY_TIMEOUT_S=${READY_TIMEOUT_S:-120}  # every service must print its ready line within this
+START_LEAD_MS=${START_LEAD_MS:-1500}  # scenario time zero this long after the start line (the OBU syncs from 1 s before)
 MIN_RSU_LISTS=${MIN_RSU_LISTS:-20}  # fused lists with RSU objects to see before declaring success
 ROUTERS=${ROUTERS:-0}             # 1: a router host on each side, the services its clients
 
@@ -108,14 +115,30 @@ create_routed_topology() {
     join "$VR_OBU_IF" "$VR_NS" "$VR_OBU_ADDR" "$OBU_IF" "$OBU_NS" "$OBU_ADDR"
 }
 
-# start NAME NAMESPACE ARGS...: a service in its namespace, stdout and stderr to $LOG_DIR/NAME.*
+# start NAME NAMESPACE ARGS...: a service in its namespace, stdout and stderr to $LOG_DIR/NAME.*,
+# stdin from the FIFO $LOG_DIR/NAME.start, which this script holds open for writing (START_FDS[NAME])
 # ($MODE: the services' Zenoh mode, peer or client)
+declare -A START_FDS=()
 start() {
-    local name=$1 ns=$2
+    local name=$1 ns=$2 fd
     shift 2
+    mkfifo "$LOG_DIR/$name.start"
+    exec {fd}<>"$LOG_DIR/$name.start"  # read-write: opening it does not wait for the service
+    START_FDS[$name]=$fd
     ip netns exec "$ns" env V2I_ZENOH_MODE="$MODE" "$PYTHON" -m v2i "$name" "$@" \
-        >"$LOG_DIR/$name.out" 2>"$LOG_DIR/$name.err" &
+        <"$LOG_DIR/$name.start" >"$LOG_DIR/$name.out" 2>"$LOG_DIR/$name.err" &
     PIDS+=($!)
+}
+
+# start_services NAME...: time zero now + START_LEAD_MS, one start line to each service (then EOF)
+start_services() {
+    local t0_ns=$(($(date +%s%N) + START_LEAD_MS * 1000000)) name fd
+    for name in "$@"; do
+        fd=${START_FDS[$name]}
+        printf '{"event": "start", "start_at_ns": %s}\n' "$t0_ns" >&"$fd"
+        exec {fd}>&-
+    done
+    echo "started $* at $t0_ns ns ($START_LEAD_MS ms from now)"
 }
 
 # start_router NAME NAMESPACE ADDR...: `v2i router` listening on ADDR:$ROUTER_PORT for each ADDR
@@ -130,10 +153,11 @@ start_router() {
 }
 
 wait_ready() {
-    local name=$1 deadline=$((SECONDS + STARTUP_S + 5))
+    local name=$1 t0=$SECONDS
+    echo "waiting for $name ..."
     until grep -q '"event": "ready"' "$LOG_DIR/$name.out" 2>/dev/null; do
-        if ((SECONDS >= deadline)); then
-            echo "$name not ready; its stderr:" >&2
+        if ((SECONDS - t0 >= READY_TIMEOUT_S)); then
+            echo "$name not ready after $READY_TIMEOUT_S s (READY_TIMEOUT_S); its stderr:" >&2
             cat "$LOG_DIR/$name.err" >&2
             exit 1
         fi
@@ -160,15 +184,18 @@ refuse() {
     fi
 }
 
-# watch ENDPOINT: the fused-output watcher in the OBU namespace, waited for
+# watch ENDPOINT: the fused-output watcher in the OBU namespace; then RSU and OBU get their start
+# line, and the watcher is waited for
 watch() {
     echo "watching fused output in $OBU_NS ..."
     # In the background and waited for: bash runs a trap only once its foreground child has
     # ended, while `wait` returns at once on a signal, so that SIGTERM cleans up promptly.
     ip netns exec "$OBU_NS" env V2I_ZENOH_MODE="$MODE" "$PYTHON" "$HERE/watch_fused.py" --connect "$1" \
-        --min-rsu-lists "$MIN_RSU_LISTS" --timeout-s "$((STARTUP_S + DURATION_S))" &
+        --min-rsu-lists "$MIN_RSU_LISTS" --timeout-s "$((DURATION_S + 10))" &
     PIDS+=($!)
-    wait "${PIDS[-1]}"
+    local watcher=$!
+    start_services rsu obu
+    wait "$watcher"
 }
 
 run_peers() {
@@ -177,8 +204,7 @@ run_peers() {
     refuse "$RSU_NS" "$OBU_ADDR" 7448
     echo "topology up: $RSU_NS ($RSU_ADDR) <-> $LINK_NS ($LINK_RSU_ADDR, $LINK_OBU_ADDR) <-> $OBU_NS ($OBU_ADDR)"
     link_config
-    local t0_ns=$(($(date +%s%N) + STARTUP_S * 1000000000))
-    local common=(--scenario "$SCENARIO" --seed "$SEED" --start-at-ns "$t0_ns" --duration "$DURATION_S")
+    local common=(--scenario "$SCENARIO" --seed "$SEED" --await-start --duration "$DURATION_S")
     start rsu "$RSU_NS" --listen "$RSU_EP" "${common[@]}"
     start obu "$OBU_NS" --listen "$OBU_EP" "${common[@]}"
     start link "$LINK_NS" --config "$LOG_DIR/link.yaml" --rsu-connect "$RSU_EP" --vehicle-connect "$OBU_EP" \
@@ -201,8 +227,7 @@ run_routers() {
     refuse "$RSU_NS" "$VR_OBU_ADDR" "$ROUTER_PORT"
     refuse "$RR_NS" "$VR_LINK_ADDR" "$ROUTER_PORT"
     link_config
-    local t0_ns=$(($(date +%s%N) + STARTUP_S * 1000000000))
-    local common=(--scenario "$SCENARIO" --seed "$SEED" --start-at-ns "$t0_ns" --duration "$DURATION_S")
+    local common=(--scenario "$SCENARIO" --seed "$SEED" --await-start --duration "$DURATION_S")
     # RSU and OBU are clients of their routers; they still need an address of their own to listen on.
     start rsu "$RSU_NS" --listen "$RSU_EP" --connect "tcp/$RR_RSU_ADDR:$ROUTER_PORT" "${common[@]}"
     start obu "$OBU_NS" --listen "$OBU_EP" --connect "tcp/$VR_OBU_ADDR:$ROUTER_PORT" "${common[@]}"

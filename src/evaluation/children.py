@@ -1,11 +1,11 @@
 """The service processes an orchestrator starts, and the start handshake with them.
 
-A ``Child`` is one service process (``v2i rsu`` / ``obu`` / ``link`` / ``world`` ...): its stdout
-JSON lines are read by a thread (``ready``, and ``started`` from a service run with
-``--await-start``), its stderr lines are relayed whole by another thread to this process's stderr
-(so that a live status line, ``telemetry.live_line``, keeps them above it), each prefixed with the
-child's label (``[obu ego]``) unless the service already named itself so, and the last
-``STDERR_LINES_KEPT`` are kept for error messages. Its stdin is a pipe for the start line.
+A ``Child`` is one service process (``v2i rsu`` / ``obu`` / ``link`` / ``world`` ...). A thread
+reads its stdout JSON lines (``ready``, and ``started`` from a service run with ``--await-start``;
+every one also goes to ``events``); another relays its stderr lines whole to this process's
+stderr (so that a live status line, ``telemetry.live_line``, keeps them above it), each prefixed
+with the child's label (``[obu ego]``) unless the service already named itself so, the last
+``STDERR_LINES_KEPT`` kept for error messages. Its stdin is a pipe for the start line.
 
 The handshake (``schemas.runtime``), for children started with ``--await-start``::
 
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import collections
 import json
+import queue
 import signal
 import subprocess
 import sys
@@ -52,7 +53,8 @@ class Child:
         self.name, self.argv, self.label = name, argv, label or name
         self.ready_at: float | None = None  # time.monotonic() when the ready line was read
         self.ahead_ms: float | None = None  # from its "started" line: ms it began before time zero
-        self.lines: collections.deque[str] = collections.deque(maxlen=STDERR_LINES_KEPT)  # its last stderr lines
+        self.stderr_tail: collections.deque[str] = collections.deque(maxlen=STDERR_LINES_KEPT)  # last stderr lines
+        self.events: queue.Queue[dict] = queue.Queue()  # every JSON object it printed on stdout, in order
         self._ready = threading.Event()
         self.proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                      text=True, bufsize=1, start_new_session=True)
@@ -73,6 +75,7 @@ class Child:
                 continue
             if not isinstance(event, dict):
                 continue
+            self.events.put(event)
             if event.get("event") == "ready" and not self.ready:
                 self.ready_at = time.monotonic()
                 self._ready.set()
@@ -86,7 +89,7 @@ class Child:
             line = line.rstrip("\n")
             if not line.startswith(prefix):
                 line = f"{prefix} {line}"
-            self.lines.append(line)
+            self.stderr_tail.append(line)
             try:
                 sys.stderr.write(line + "\n")
                 sys.stderr.flush()
@@ -96,7 +99,7 @@ class Child:
     def tail(self) -> str:
         """Its last stderr lines, indented, for an error message ("" when it wrote none)."""
         self._stderr.join(0.5)  # a child that just exited: its last lines are still being read
-        return "".join(f"\n    {line}" for line in self.lines)
+        return "".join(f"\n    {line}" for line in self.stderr_tail)
 
     def poll_ready(self, timeout_s: float = 0.0) -> bool:
         """True once the child printed its ready line; waits at most ``timeout_s`` for it. DemoError

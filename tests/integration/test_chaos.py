@@ -70,3 +70,30 @@ def test_falls_back_to_planning_then_vehicle_only(outage):
 
 def test_fuses_again_within_a_second(outage):
     assert outage["fused_again_after_s"] is not None and outage["fused_again_after_s"] < 1.0
+
+
+RSU_RESTART = """\
+name: rsu-restart
+events:
+  - {at_s: 2, kill: rsu}
+  - {at_s: 3, restart: rsu}
+"""
+
+
+def test_a_restarted_rsu_gets_the_runs_time_zero(tmp_path):
+    """The restarted RSU waits for its start line like the first one and gets the run's time zero,
+    long past (it begins 3 s + its start-up after it; a fresh time zero would be ahead of it), so its
+    frames are the run's again; the OBU publishes every cycle throughout. (Its lists reach the OBU
+    again only when the emulator's session reconnects to the RSU, which Zenoh retries after 1, 2,
+    4 s: 6.3 s after the restart in one run, so that is not asserted here.)"""
+    path = tmp_path / "rsu-restart.yaml"
+    path.write_text(RSU_RESTART)
+    chaos = load_chaos(path)
+    demo = Demo(with_chaos(RunSpec(profile="ideal", seed=0, duration_s=9.0), chaos), chaos=chaos)
+    result = demo.run()
+    restarted = demo.children["rsu"]
+    assert restarted is not demo._started["rsu"]
+    assert restarted.ahead_ms is not None and restarted.ahead_ms < -3000.0  # the run's time zero, 3 s + start-up ago
+    kill = result["chaos_events"][0]
+    assert kill["event"] == "kill rsu" and kill["until_s"] == 3.0
+    assert result["outputs"] == result["cycles"] == 90

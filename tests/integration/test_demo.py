@@ -14,7 +14,7 @@ import pytest
 
 from evaluation.demo import Demo, LinkOutage
 from evaluation.run_report import chaos_spans, write_demo_report
-from evaluation.spec import RunSpec
+from evaluation.spec import RunSpec, summary
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
@@ -67,3 +67,21 @@ def test_v2i_sees_the_runner_much_earlier(report):
     assert own is not None and fused is not None
     assert fused >= 3 * own
     assert report["clock_offset_error_ms"]["samples"] > 0
+
+
+def test_the_run_started_once_every_service_was_ready(report):
+    startup = report["startup"]
+    assert startup["ready_s"] > 0 and startup["lead_s"] > 0
+    ahead = startup["started_ahead_ms"]
+    assert set(ahead) == {"rsu", "obu"}  # the emulator needs no time zero
+    assert all(0 < ms <= startup["lead_s"] * 1000 for ms in ahead.values()), ahead  # each began before time zero
+
+
+def test_the_monitor_heard_every_output_the_obu_published(report):
+    """The monitor subscribes before time zero, so its count of outputs is the OBU's own: the report's
+    output misses (an expected cycle without an on-time output heard) are the OBU's late cycles, which
+    the OBU also counts when the interval between two outputs runs over."""
+    own = report["obu_output_deadline_misses"]["ego"]
+    assert own["cycles"] == report["outputs"] == report["cycles"]
+    assert report["output_deadline_miss_ratio"] <= own["ratio"]
+    assert f"(the OBU's own count: {own['misses']} of {own['cycles']} late)" in summary(report)

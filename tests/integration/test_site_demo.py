@@ -47,6 +47,14 @@ def test_vehicles_share_through_the_v2v_emulator(demo):
         assert all(p["lists_accepted"] > 0 and p["sync_samples"] > 0 for p in scores["peers"].values()), name
 
 
+def test_the_run_started_once_all_eight_were_ready(demo):
+    startup = demo.report["startup"]
+    assert startup["ready_s"] > 0
+    ahead = startup["started_ahead_ms"]  # the emulators need no time zero
+    assert sorted(ahead) == ["obu car-2", "obu car-3", "obu ego", "rsu rsu-nw", "rsu rsu-se"]
+    assert all(ms > 0 for ms in ahead.values()), ahead  # each began before time zero
+
+
 def test_no_child_outlives_the_demo(demo):
     for name, child in demo.children.items():
         assert child.proc.poll() is not None, f"{name} still runs"
@@ -60,6 +68,8 @@ def test_every_vehicle_is_scored_with_lists_from_both_rsus(demo):
     for name, scores in vehicles.items():
         assert scores["cycles"] == 90, name
         assert scores["outputs"] > 0.9 * scores["cycles"], name  # published cycles the watcher scored
+        # subscribed before time zero, the watcher heard every output the OBU says it published
+        assert demo.report["obu_output_deadline_misses"][name]["cycles"] == scores["outputs"], name
         accepted = demo.report["rsu_lists_accepted"][name]
         assert sorted(accepted) == ["rsu-nw", "rsu-se"], name
         assert min(accepted.values()) > 0, f"{name} heard {accepted}"

@@ -1,7 +1,9 @@
 """Two OBUs (``v2i obu --v2v``) through the V2V emulator (``v2i link --v2v``) as OS processes on
 explicit loopback TCP endpoints: each learns the other's clock through the emulator and the
 ego fuses what car-3's LiDAR sees (connected-intersection, no RSU running: every cooperative
-object in the ego's output came over V2V); every process ends by itself and is reaped."""
+object in the ego's output came over V2V). The OBUs start on their start line once all three
+processes are ready and the watcher is subscribed (``evaluation.children``); each OBU ends by
+itself (``--duration``), the emulator on SIGTERM after them; all exit 0 and are reaped."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import time
 
 import pytest
 
-from evaluation.demo import Child
+from evaluation.children import Child, start_all, wait_ready
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import SOURCE_RSU, FusedObjectList, ObuMetrics
@@ -20,45 +22,46 @@ from schemas.transport import free_tcp_endpoint, open_session
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
-STARTUP_S = 14.0  # 3 Python services importing numpy, scipy and zenoh on 2 busy cores
 DURATION_S = 8.0  # scenario seconds: car-3's LiDAR sees the runner from t = 4.5 s, the ego's not before 10 s
 SCENARIO = "connected-intersection"
 
 
-def _argv_obu(vid: str, ep: str, start_ns: int) -> list[str]:
+END_WAIT_S = 30.0  # an OBU ends at time zero + duration + 1 s; more on a busy machine
+
+
+def _argv_obu(vid: str, ep: str) -> list[str]:
     return [sys.executable, "-m", "v2i", "obu", "--vehicle-id", vid, "--listen", ep, "--scenario", SCENARIO,
-            "--seed", "0", "--start-at-ns", str(start_ns), "--duration", str(DURATION_S), "--v2v"]
+            "--seed", "0", "--await-start", "--duration", str(DURATION_S), "--v2v"]
 
 
 @pytest.fixture(scope="module")
 def run() -> dict:
     eps = {"ego": free_tcp_endpoint(), "car-3": free_tcp_endpoint()}
-    start_ns = time.time_ns() + round(STARTUP_S * 1e9)
     heard: queue.Queue = queue.Queue()
     children, watcher, subs = {}, None, []
     try:
         for vid, ep in eps.items():
-            children[vid] = Child(vid, _argv_obu(vid, ep, start_ns))
+            children[vid] = Child(vid, _argv_obu(vid, ep), label=f"obu {vid}")
         link = ["--vehicle", f"ego={eps['ego']}", "--vehicle", f"car-3={eps['car-3']}"]
         children["link"] = Child("link", [sys.executable, "-m", "v2i", "link", "--v2v", "--link-id", "v2v-test",
-                                          *link, "--profile", "lte-v2x", "--seed", "1",
-                                          "--duration", str(STARTUP_S + DURATION_S + 3.0)])
-        deadline = time.monotonic() + STARTUP_S
-        for child in children.values():
-            child.wait_ready(deadline)
+                                          *link, "--profile", "lte-v2x", "--seed", "1"], label="link v2v-test")
+        wait_ready(children.values())
         watcher = open_session(connect=list(eps.values()))
         for vid in eps:
             for kind, key in (("objects", keys.obu_objects(vid)), ("peers", keys.obu_peers(vid)),
                               ("metrics", keys.obu_metrics(vid))):
                 subs.append(watcher.declare_subscriber(
                     key, lambda s, k=kind, v=vid: heard.put((k, v, s.payload.to_bytes()))))
-        end = time.monotonic() + (start_ns - time.time_ns()) * 1e-9 + DURATION_S + 6.0
+        start_ns = start_all(children.values())
+        end = time.monotonic() + (start_ns - time.time_ns()) * 1e-9 + DURATION_S + END_WAIT_S
         codes = {}
-        for name, child in children.items():  # each ends by itself (--duration)
+        for name in eps:  # each OBU ends by itself (--duration)
             try:
-                codes[name] = child.proc.wait(max(end - time.monotonic(), 0.1))
+                codes[name] = children[name].proc.wait(max(end - time.monotonic(), 0.1))
             except Exception:  # noqa: BLE001 - a hung child is stopped below and fails the test
                 codes[name] = None
+        children["link"].stop()  # SIGTERM: a clean stop
+        codes["link"] = children["link"].proc.returncode
     finally:
         for sub in subs:
             sub.undeclare()
@@ -79,7 +82,7 @@ def run() -> dict:
     return out
 
 
-def test_every_process_ended_by_itself_and_is_reaped(run):
+def test_every_process_ended_cleanly_and_is_reaped(run):
     assert run["codes"] == {"ego": 0, "car-3": 0, "link": 0}
     for child in run["children"].values():
         assert child.proc.poll() is not None
