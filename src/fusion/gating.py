@@ -7,11 +7,11 @@ S = H P H^T + R; ``either``: one of the two, within gate_max_m. Among allowed pa
 minimum-cost one-to-one assignment (``association.assign_sparse``) with cost ``distance``
 (m), ``mahalanobis`` (d2) or ``iou`` (1 - BEV IoU of the predicted and the detected box).
 
-Each pair is tested in one compiled loop over tracks and detections (``_gate``, numba): a bound
+Each pair is tested in one compiled loop over tracks and detections (``_gate_pairs``, numba): a bound
 first, distance gate |y| <= gate_m; Mahalanobis gate d2 = y^T S^-1 y >= |y|^2 / lambda_max(S) and
 lambda_max(S) <= tr(S) = tr(H P H^T) + tr(R), so a pair with |y|^2 > chi2 (tr P_xy + tr R)
 fails. The exact test and the class check run on the pairs the bound leaves. When every gated pair is
-a component of its own (most lists), that same call matches them (``_gate_single_pairs``).
+a component of its own (most lists), that same call (``_gate_single_pairs``) matches them.
 """
 
 from __future__ import annotations
@@ -58,9 +58,10 @@ def gated_pairs(config: TrackerConfig, table: TrackTable, dets: ObjectArray) -> 
     ordered by track, then detection."""
     if not len(table) or not len(dets):
         return GatedPairs(_NO_INDEX, _NO_INDEX, np.zeros(0))
-    ti, di, cost = _gate(table.x, table.p, table.cls, dets.xy, dets.cov_xy, dets.cls, _GATES[config.gate],
-                         _COSTS[config.cost], config.gate_m, config.gate_chi2, config.gate_max_m)
-    return _costed(config, table, dets, ti, di, cost)
+    _, pairs, _, _, cost = _gate_single_pairs(table.x, table.p, table.cls, dets.xy, dets.cov_xy, dets.cls,
+                                              _GATES[config.gate], _COSTS[config.cost], config.gate_m,
+                                              config.gate_chi2, config.gate_max_m)
+    return _costed(config, table, dets, pairs[:, 0], pairs[:, 1], cost)
 
 
 def _costed(config: TrackerConfig, table: TrackTable, dets: ObjectArray, ti: np.ndarray, di: np.ndarray,
@@ -73,24 +74,14 @@ def _costed(config: TrackerConfig, table: TrackTable, dets: ObjectArray, ti: np.
     return GatedPairs(ti, di, cost)
 
 
-_GATE_ARGS = (IN_F2, IN_F3, IN_I1, IN_F2, IN_F3, IN_I1, I64, I64, F64, F64, F64)
-
-
-@kernel(*_GATE_ARGS)
-def _gate(x: np.ndarray, p: np.ndarray, track_cls: np.ndarray, z: np.ndarray, r: np.ndarray, det_cls: np.ndarray,
-          gate: int, cost: int, gate_m: float, gate_chi2: float, gate_max_m: float):
-    """``_gate_pairs`` (ti, di, cost)."""
-    return _gate_pairs(x, p, track_cls, z, r, det_cls, gate, cost, gate_m, gate_chi2, gate_max_m)
-
-
-@kernel(*_GATE_ARGS)
+@kernel(IN_F2, IN_F3, IN_I1, IN_F2, IN_F3, IN_I1, I64, I64, F64, F64, F64)
 def _gate_single_pairs(x: np.ndarray, p: np.ndarray, track_cls: np.ndarray, z: np.ndarray, r: np.ndarray,
                        det_cls: np.ndarray, gate: int, cost: int, gate_m: float, gate_chi2: float, gate_max_m: float):
-    """``_gate_pairs`` as (K, 2) [track, detection] rows, and the matching when every gated pair is a component of
-    its own (its track and its detection in no other pair; ``association.assign_sparse`` matches such a pair as
-    it is): (True, the pairs = the matches, sorted by track; unmatched tracks; unmatched detections; no costs),
-    or (False, the pairs, empty, empty, their costs (K,)) when some component needs the solver. The usual list
-    in one call, returning 4 arrays instead of 8 from 3 kernels."""
+    """``_gate_pairs`` as (K, 2) [track, detection] rows with their costs (K,), and the matching when every gated
+    pair is a component of its own (its track and its detection in no other pair; ``association.assign_sparse``
+    matches such a pair as it is): (True, the pairs = the matches, sorted by track; unmatched tracks; unmatched
+    detections; the costs), or (False, the pairs, empty, empty, the costs) when some component needs the solver.
+    The usual list in one call, returning 4 arrays instead of 8 from 3 kernels."""
     ti, di, out = _gate_pairs(x, p, track_cls, z, r, det_cls, gate, cost, gate_m, gate_chi2, gate_max_m)
     n_t, n_d = x.shape[0], z.shape[0]
     count_t, count_d = np.zeros(n_t, np.int64), np.zeros(n_d, np.int64)
@@ -106,7 +97,7 @@ def _gate_single_pairs(x: np.ndarray, p: np.ndarray, track_cls: np.ndarray, z: n
             break
     if not single:
         return False, pairs, count_t[:0], count_d[:0], out
-    return True, pairs, np.flatnonzero(count_t == 0), np.flatnonzero(count_d == 0), out[:0]
+    return True, pairs, np.flatnonzero(count_t == 0), np.flatnonzero(count_d == 0), out
 
 
 @helper

@@ -11,7 +11,7 @@ from fusion.jit import Kernel, load_kernels
 def test_load_kernels_loads_every_kernel():
     load_kernels()
     names = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all}
-    assert {"fusion.kalman.update_rows", "fusion.gating._gate", "fusion.association._single_pairs",
+    assert {"fusion.kalman.update_rows", "fusion.gating._gate_single_pairs", "fusion.association._single_pairs",
             "fusion.covariance_intersection.ci_fuse_objects", "sim.occlusion._blocked"} <= names
     for k in Kernel._all:
         assert k.load().signatures == [k.argument_types]  # one compiled signature, no other
