@@ -19,12 +19,13 @@ in the names):
 - ``window_s``; ``totals``: ``vehicles``, ``cycles``, ``output_deadline_misses``,
   ``covered_cycles``, ``rsu_deadline_misses``, ``output_miss_ratio`` / ``rsu_miss_ratio``
   (``{"run", "window"}``: summed over vehicles), ``modes`` (current mode -> vehicles),
-  ``rsu_lists_received``;
+  ``rsu_lists_received``, ``vehicles_hearing_no_rsu`` (vehicles whose latest metrics name no RSU);
 - ``vehicles.{vid}``: ``messages``, ``age_s`` (since the latest), ``cycles``, ``covered_cycles``,
   ``output_deadline_misses``, ``rsu_deadline_misses``, ``output_miss_ratio`` and
   ``rsu_miss_ratio`` (``{"run", "window"}``; RSU misses per covered cycle, as the report),
   ``mode``, ``mode_share`` (run), ``mode_share_window``, ``window_span_s``, ``restarts``
-  (counters that went down), ``rsu_lists_received``, ``rsus.{rsu_id}`` (``delay_p50_ms``,
+  (counters that went down), ``rsu_lists_received``, ``rsu_heard`` (False until its metrics
+  name an RSU: before the first list arrives, ``rsus`` is empty), ``rsus.{rsu_id}`` (``delay_p50_ms``,
   ``delay_p95_ms``, ``jitter_ms``, ``loss_ratio``, ``data_age_ms``, ``clock_offset_ms``,
   ``clock_uncertainty_ms``, ``clock_drift_ppm``, ``sync_samples``, ``sync_outliers``,
   ``messages_accepted``), ``rejected`` and ``output_dropped`` (reason -> count), ``latency_ms``
@@ -95,6 +96,10 @@ class VehicleView:
     def window_delta(self) -> tuple[float, dict[str, int]]:
         return self._window.delta()
 
+    def hears_rsu(self) -> bool:
+        """True once its metrics name an RSU (an OBU reports an RSU from the first list it accepts)."""
+        return self.latest is not None and bool(self.latest.rsus)
+
     def snapshot(self, now_ns: int) -> dict[str, Any]:
         m = self.latest
         span_s, d = self._window.delta()
@@ -108,7 +113,7 @@ class VehicleView:
                                "window": ratio(d.get("rsu_deadline_misses", 0), d.get("covered_cycles", 0))},
             "mode": m.mode, "mode_share": shares(m.mode_counts), "mode_share_window": shares(window_modes),
             "window_span_s": round(span_s, 2), "restarts": self._window.resets,
-            "rsu_lists_received": sum(r.messages_accepted for r in m.rsus),
+            "rsu_lists_received": sum(r.messages_accepted for r in m.rsus), "rsu_heard": self.hears_rsu(),
             "rsus": {r.rsu_id: rsu_status_view(r) for r in m.rsus},
             "rejected": dict(m.rejected), "output_dropped": dict(m.output_dropped),
             "latency_ms": _latency(m),
@@ -250,5 +255,6 @@ class TelemetryBoard:
             "rsu_miss_ratio": {"run": ratio(run["rsu_deadline_misses"], run["covered_cycles"]),
                                "window": ratio(window["rsu_deadline_misses"], window["covered_cycles"])},
             "modes": dict(modes), "rsu_lists_received": lists,
+            "vehicles_hearing_no_rsu": sum(not v.hears_rsu() for v in self.vehicles.values()),
         }
 

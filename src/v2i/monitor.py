@@ -21,6 +21,7 @@ from typing import Any
 SUBSCRIPTIONS = ("v2x/**/metrics", "v2x/link/*/stats")
 QUEUE_MESSAGES = 10_000  # received, not yet fed to the board (~10 s of a 20-vehicle site)
 LINK_GRACE_S = 1.2  # --once: after every side's metrics, wait this long for a link's stats (1 s period)
+RSU_GRACE_S = 3.0  # --once: ... and this long for each vehicle's first RSU list, when an RSU is heard
 METRIC_KINDS = ("obu_metrics", "rsu_metrics", "link_stats")  # what a side must have delivered for --once
 
 
@@ -40,8 +41,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="Zenoh endpoint of a service, e.g. tcp/127.0.0.1:7447 (repeatable)")
     p.add_argument("--once", action="store_true",
                    help="wait until every endpoint delivered metrics or link stats (then up to 1.2 s more for a "
-                        "link's stats if none came yet), print one snapshot and exit; exit 1 when an endpoint "
-                        "delivered neither within --timeout")
+                        "link's stats if none came yet, and up to 3 s for each vehicle to hear an RSU when an "
+                        "RSU's metrics came), print one snapshot and exit; exit 1 when an endpoint delivered "
+                        "neither within --timeout. A vehicle that heard no RSU yet is shown so (rsu_heard false, "
+                        "rsus empty)")
     p.add_argument("--json", metavar="PATH", help="with --once: write the snapshot as JSON to PATH ('-': stdout; "
                    "keys documented in telemetry/snapshot.py); without it --once prints the tables")
     p.add_argument("--timeout", type=float, default=5.0, metavar="S",
@@ -125,6 +128,15 @@ class Monitor:
             source.session.close()
 
 
+def still_waiting(board, waited_s: float) -> bool:
+    """``--once``, once every endpoint delivered, ``waited_s`` later: True while a link's stats are
+    missing (up to ``LINK_GRACE_S``) or, when an RSU's metrics came, a vehicle has heard no RSU
+    yet (up to ``RSU_GRACE_S``: its first lists are on their way)."""
+    no_link = not board.links and waited_s < LINK_GRACE_S
+    deaf = bool(board.rsus) and any(not v.hears_rsu() for v in board.vehicles.values()) and waited_s < RSU_GRACE_S
+    return no_link or deaf
+
+
 def run_once(monitor: Monitor, timeout_s: float, json_path: str | None) -> int:
     """Wait for metrics or stats from every endpoint (then briefly for link stats); print one snapshot."""
     deadline = time.monotonic() + timeout_s
@@ -138,10 +150,14 @@ def run_once(monitor: Monitor, timeout_s: float, json_path: str | None) -> int:
               "is a v2i service listening there? (an OBU's or RSU's --listen, a link emulator's --control-listen)",
               file=sys.stderr)
         return 1
-    grace_end = min(deadline, time.monotonic() + LINK_GRACE_S)
-    while not monitor.board.links and time.monotonic() < grace_end:
+    grace_start = time.monotonic()
+    while time.monotonic() < deadline and still_waiting(monitor.board, time.monotonic() - grace_start):
         monitor.pump(wait_s=0.05)
     snap = monitor.snapshot()
+    deaf = [vid for vid, v in snap["vehicles"].items() if not v["rsu_heard"]]
+    if deaf:
+        print(f"v2i monitor: {', '.join(deaf)} heard no RSU yet (no RSU list accepted so far); the snapshot says so: "
+              "rsu_heard false, no RSU rows", file=sys.stderr)
     if json_path == "-":
         print(json.dumps(snap, indent=2))
     elif json_path:

@@ -48,7 +48,7 @@ def vehicle_table(vid: str, v: dict[str, Any], window_s: float) -> Table:
                       num(r["delay_p95_ms"], ".1f", " ms"), num(r["jitter_ms"], ".1f", " ms"), pct(r["loss_ratio"]),
                       num(r["data_age_ms"], ".0f", " ms"), offset, num(r["clock_drift_ppm"], ".1f", " ppm"))
     if not v["rsus"]:
-        table.add_row("(none heard)", *["-"] * 8)
+        table.add_row("(no RSU heard yet)", *["-"] * 8)
     return table
 
 
