@@ -33,6 +33,7 @@ class ImageFrames:
         self.expect_wh = expect_wh
         self.refused: Counter[str] = Counter()
         self.read = 0
+        self.skipped = 0  # frames passed over unread (``skip``)
         self.ended = False  # no frame left
         self._files: list[Path] | None = None
         self._video = None
@@ -51,6 +52,19 @@ class ImageFrames:
             self.count = count if count > 0 else None  # unknown for some containers: read to the end
         else:
             raise RecordingError(f"{self.path}: no such video file or image folder")
+
+    @property
+    def position(self) -> int:
+        """Index of the frame ``next`` or ``skip`` takes: frames read, refused and skipped so far."""
+        return self.read + self.skipped + sum(self.refused.values())
+
+    def skip(self) -> None:
+        """Pass over the next frame unread (a video frame grabbed, not decoded); ``ended`` at the end."""
+        if self._video is not None:
+            self.ended = not self._video.grab()
+        else:
+            self.ended = self.position >= len(self._files)
+        self.skipped += not self.ended
 
     def next(self) -> np.ndarray | None:
         """The next frame, or None when it is refused or the recording has ended (``ended``)."""
@@ -74,7 +88,7 @@ class ImageFrames:
         return image if ok else None
 
     def _next_file(self) -> np.ndarray | None:
-        index = self.read + sum(self.refused.values())
+        index = self.position
         if index >= len(self._files):
             self.ended = True
             return None

@@ -130,7 +130,10 @@ class RenderedCamera(_Schedule):
 
 
 class RecordedCamera(_Schedule):
-    """Frames of a video file or image folder, one per capture time, in order.
+    """Frames of a video file or image folder, one per capture time, in order: frame k is the one
+    of capture time k (``start + k / rate``), also after the RSU let capture times pass unpublished
+    (a stall: those frames are skipped unread, ``frames.skipped``), so that a stamp always names its
+    frame's time.
 
     A frame that cannot be read (corrupt file, wrong size) yields no detections and is
     counted in ``frames.refused``; the run goes on. ``capture`` gives None at the end.
@@ -147,7 +150,10 @@ class RecordedCamera(_Schedule):
         return times if self.frames.count is None else times[: self.frames.count]
 
     def capture(self, capture_true_ns: int) -> Frame | None:
-        image = self.frames.next()
+        k = round((capture_true_ns - self.start_ns) * self.rate_hz * 1e-9)  # t_k = start + k / rate
+        while self.frames.position < k and not self.frames.ended:
+            self.frames.skip()
+        image = None if self.frames.ended else self.frames.next()
         if self.frames.ended:
             return None
         if image is None:

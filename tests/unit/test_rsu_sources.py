@@ -6,8 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
+from fusion.objects import ObjectArray
 from perception.scoring import PerceptionTally, match
 from rsu_service.recording import MAX_IMAGE_PIXELS, ImageFrames, RecordingError, image_size
+from rsu_service.source import RecordedCamera
 
 W, H = 64, 48
 
@@ -68,6 +70,42 @@ def test_video_file_frames_and_rate(tmp_path):
     values = [int(frames.next()[10, 10, 1]) for _ in range(5)]
     assert values == pytest.approx([0, 40, 80, 120, 160], abs=6)
     assert frames.next() is None and frames.ended
+
+
+class _SeenPerception:
+    """An ImagePerception stand-in: no detections, notes each frame's first pixel (which frame it was)."""
+
+    def __init__(self):
+        self.seen: list[int] = []
+
+    def perceive(self, image):
+        self.seen.append(int(image[0, 0, 1]))
+        return ObjectArray.empty(), 1.0
+
+
+@pytest.mark.parametrize("kind", ["folder", "video"])
+def test_a_recording_frame_keeps_its_capture_time_after_skipped_ones(tmp_path, kind):
+    """Capture times the RSU let pass (a stall: it publishes only what is current) skip their frames
+    unread: frame k is published with capture time k, and the recording ends on time."""
+    if kind == "folder":
+        for k in range(6):
+            cv2.imwrite(str(tmp_path / f"{k:02d}.png"), _image(40 * k))
+        path = tmp_path
+    else:
+        path = tmp_path / "clip.avi"
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (W, H))
+        for k in range(6):
+            writer.write(_image(40 * k))
+        writer.release()
+    frames, perception = ImageFrames(path, expect_wh=(W, H)), _SeenPerception()
+    camera = RecordedCamera(frames, perception, start_ns=0, rate_hz=10.0)
+    camera.start_at(5_000_000_000)
+    times = camera.capture_times_ns(60.0)
+    assert len(times) == 6  # one per frame
+    for k in (0, 3, 5):  # the times of frames 1, 2 and 4 passed unpublished
+        assert camera.capture(int(times[k])).capture_true_ns == times[k]
+    assert perception.seen == pytest.approx([0, 120, 200], abs=6) and frames.skipped == 3
+    assert camera.capture(int(times[5]) + 100_000_000) is None and frames.ended  # a 7th time: the recording has ended
 
 
 def test_unusable_recordings_are_clear_errors(tmp_path):
