@@ -285,9 +285,13 @@ class Demo(InboxScoring):
 
     def _child(self, name: str) -> Child:
         """Start service ``name`` (``rsu``, ``obu``, ``link``), its stderr lines labelled with its id."""
-        labels = {"rsu": f"rsu {self.spec.rsu_config().rsu_id}", "obu": f"obu {self.spec.obu_config().vehicle_id}",
+        labels = {"rsu": f"rsu {self._rsu_id()}", "obu": f"obu {self.spec.obu_config().vehicle_id}",
                   "link": f"link {LINK_ID}"}
         return Child(name, self._argv(name), label=labels.get(name))
+
+    def _rsu_id(self) -> str:
+        """The id the RSU runs with (``image_fusion_demo``: the scenario's)."""
+        return self.spec.rsu_config().rsu_id
 
     def _wait_ready(self) -> None:
         """Every child ready within ``ready_timeout_s`` (a progress line meanwhile), logged."""

@@ -54,6 +54,9 @@ class ImageFusionDemo(Demo):
         self.outputs: list[ImageFusedBoxes] = []
         self.obu_metrics: ObuMetrics | None = None
 
+    def _rsu_id(self) -> str:
+        return self.world.scenario.rsu.id
+
     def _argv(self, name: str) -> list[str]:
         """RSU and OBU argv for ROIF; one detector thread each (two processes render and detect at
         10 Hz on 2 cores: more threads only contend); the RSU signs its features and time replies and
@@ -61,7 +64,7 @@ class ImageFusionDemo(Demo):
         argv = super()._argv(name)
         if name == "rsu":  # the camera source at the ego camera's rate, sending its features
             argv = argv[: argv.index("--source")] + ["--source", "camera", "--image-features", "--rsu-id",
-                                                      self.world.scenario.rsu.id, "--rate-hz", f"{self.rate_hz:g}",
+                                                      self._rsu_id(), "--rate-hz", f"{self.rate_hz:g}",
                                                       "--detector-threads", "1",
                                                       *security_argv(self.spec, name, self.pki_dir)]
         elif name == "obu":

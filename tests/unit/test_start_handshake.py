@@ -147,3 +147,16 @@ def test_wait_ready_names_who_is_late_after_the_bound_and_shows_progress(capsys)
     assert text.startswith("not ready after 1 s (--ready-timeout): slow") and "quick" not in text
     assert "[slow] a line without a name" in text
     assert "v2i demo: waiting for quick, slow (0.0 s)" in capsys.readouterr().err  # not a tty: a plain line
+
+
+@pytest.mark.parametrize("command", [["demo"], ["chaos", "run", "examples/chaos/outage-10s.yaml"]])
+def test_ready_timeout_flag(command, capsys):
+    from v2i.cli import _ready_timeout, build_parser, main
+
+    assert main([*command, "--ready-timeout", "0"]) == 2
+    assert "--ready-timeout must be a finite number > 0, got 0" in capsys.readouterr().err
+    args = build_parser().parse_args([*command, "--ready-timeout", "30"])
+    assert _ready_timeout(args) == {"ready_timeout_s": 30.0}
+    args = build_parser().parse_args([*command, "--startup", "4"])  # an old script's flag: accepted, not used
+    assert _ready_timeout(args) == {}
+    assert "--startup is no longer used" in capsys.readouterr().err
