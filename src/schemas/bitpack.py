@@ -5,13 +5,10 @@ integer ``sum_j d[i, j] << s_j`` with ``s_j = widths[0] + ... + widths[j-1]`` (f
 lowest bits), written little-endian in ``ceil(R / 8)`` bytes, ``R = sum(widths)``; rows follow
 each other. Equal, by test, to Python's ``int.to_bytes`` of that sum.
 
-Two implementations give the same bytes (tests/unit/test_wire_differential.py): numpy (here:
-a row is a few 64-bit lanes, field j in lane ``s_j // 64`` at shift ``s_j % 64``, its high bits
-spilling into the next lane when ``s_j % 64 + w_j > 64``), and loops compiled by numba
-(``schemas.bit_rows``), ~20 us faster per list. A process uses the compiled ones once it has
-loaded its kernels (``fusion.jit.load_kernels``: the services and ``v2i eval`` do, before they
-start); a plain user of the codec (an outside publisher, the link emulator) never loads numba, so
-that its first message is not held up by the compiler.
+In numpy: a row is a few 64-bit lanes, field j in lane ``s_j // 64`` at shift ``s_j % 64``, its
+high bits spilling into the next lane when ``s_j % 64 + w_j > 64``
+(tests/unit/test_wire_differential.py). A process that has loaded its kernels packs a whole
+objects section in one compiled loop instead (``schemas.bit_rows.pack_section``: the same bytes).
 """
 
 from __future__ import annotations
@@ -55,31 +52,8 @@ class RowLayout:
                    np.flatnonzero((s & 63) + w > 64), -(-total // 64), -(-total // 8))
 
 
-_compiled: tuple | None = None  # (pack_rows, unpack_rows) of schemas.bit_rows, once loaded
-
-
-def use_compiled(pack_rows, unpack_rows) -> None:
-    """From now on pack and unpack run ``schemas.bit_rows``' loops (called when it is loaded)."""
-    global _compiled
-    _compiled = (pack_rows, unpack_rows)
-
-
 def pack(fields: np.ndarray, widths: np.ndarray) -> bytes:
     """Bytes of (N, K) non-negative int64 ``fields``, each below ``2**widths[j]``."""
-    if _compiled is not None:
-        return _compiled[0](fields, widths, row_bytes(widths)).tobytes()
-    return pack_numpy(fields, widths)
-
-
-def unpack(data: bytes, n: int, widths: np.ndarray) -> np.ndarray:
-    """(N, K) int64 fields of ``n`` packed rows (``len(data)`` must be ``n * row_bytes``: ValueError)."""
-    if _compiled is not None:
-        return _compiled[1](np.frombuffer(data, dtype=np.uint8), n, widths, row_bytes(widths))
-    return unpack_numpy(data, n, widths)
-
-
-def pack_numpy(fields: np.ndarray, widths: np.ndarray) -> bytes:
-    """``pack`` in numpy."""
     layout = RowLayout.of(widths)
     n = len(fields)
     if layout.row_bytes == 0 or n == 0:
@@ -96,8 +70,8 @@ def pack_numpy(fields: np.ndarray, widths: np.ndarray) -> bytes:
     return rows[:, :layout.row_bytes].tobytes()
 
 
-def unpack_numpy(data: bytes, n: int, widths: np.ndarray) -> np.ndarray:
-    """``unpack`` in numpy."""
+def unpack(data: bytes, n: int, widths: np.ndarray) -> np.ndarray:
+    """(N, K) int64 fields of ``n`` packed rows (``len(data)`` must be ``n * row_bytes``: ValueError)."""
     layout = RowLayout.of(widths)
     if len(data) != n * layout.row_bytes:
         raise ValueError(f"packed rows: {len(data)} bytes, {n} rows of {layout.row_bytes} expected")

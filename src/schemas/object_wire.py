@@ -19,9 +19,8 @@ and a column with few distinct values spread over a wide range sends ``ceil(log2
 object plus its table of values, whenever that is smaller.
 Decoding checks the layout (``MalformedMessage``) and then every code against its column's range
 (``ObjectColumns.from_codes``: ``InvalidMessage`` naming ``objects.i.column``). Once the kernels are
-loaded (``fusion.jit.load_kernels``) one compiled loop (``schemas.bit_rows.unpack_codes``) unpacks the
-rows into codes and checks their ranges; a section it would refuse goes to ``from_codes`` for the
-very error (tests/unit/test_object_wire_paths.py: both paths against the numpy decoder).
+loaded (``fusion.jit.load_kernels``) one compiled loop (``schemas.bit_rows.pack_section``) packs a
+section (tests/unit/test_object_wire_paths.py: both paths to the same bytes).
 """
 
 from __future__ import annotations
@@ -100,8 +99,6 @@ def unpack_objects(section: Any, fused: bool) -> ObjectColumns:
     row_bytes = -(-sum(w) // 8)
     if len(rows) != n * row_bytes:
         raise MalformedMessage(f"objects: rows are {len(rows)} bytes, {n} objects of {row_bytes} bytes expected")
-    if _compiled_codes is not None:
-        return _columns_compiled(layout, fused, n, rows, row_bytes, (w, cols, scale, ref), indexed, tables)
     codes = np.empty((n, k), dtype=np.int64)
     codes[:] = layout.default_codes
     if cols:
@@ -113,40 +110,13 @@ def unpack_objects(section: Any, fused: bool) -> ObjectColumns:
     return ObjectColumns.from_codes(codes, fused)
 
 
-_compiled_codes = None  # schemas.bit_rows.unpack_codes, once loaded (fusion.jit.load_kernels)
-_compiled_section = None  # schemas.bit_rows.pack_section, likewise
+_compiled_section = None  # schemas.bit_rows.pack_section, once loaded (fusion.jit.load_kernels)
 
 
-def use_compiled(unpack_codes, pack_section) -> None:
-    """From now on ``unpack_objects`` builds its codes with ``schemas.bit_rows.unpack_codes`` and
-    ``pack_objects`` its section with ``pack_section``."""
-    global _compiled_codes, _compiled_section
-    _compiled_codes, _compiled_section = unpack_codes, pack_section
-
-
-def _columns_compiled(layout, fused: bool, n: int, rows: bytes, row_bytes: int, per_column: tuple[list, ...],
-                      indexed: list[bool], tables: value_tables.ValueTables | None) -> ObjectColumns:
-    """The codes of ``unpack_objects``' last steps (unpack, table lookup, ``d * scale + ref``, the range
-    and yaw checks of ``ObjectColumns.from_codes``) in one compiled loop; any refusal, or a yaw to
-    wrap, is left to ``from_codes`` itself (the same errors, the same canonical yaw)."""
-    starts, counts = [-1] * len(indexed), [0] * len(indexed)
-    if tables is not None:
-        at = [f for f, x in enumerate(indexed) if x]
-        for f, s, c in zip(at, tables.starts.tolist(), tables.counts.tolist()):
-            starts[f], counts[f] = s, c
-    params = np.array([*per_column, starts, counts], dtype=np.int64).reshape(6, len(indexed))
-    sums = tables.sums if tables is not None else _NO_SUMS
-    codes, bad, yaw_outside = _compiled_codes(np.frombuffer(rows, dtype=np.uint8), n, row_bytes, params, sums,
-                                              layout.code_table, _YAW_COL)
-    if bad == BEYOND_TABLE:
-        raise MalformedMessage("objects: a position beyond its indexed column's table")
-    if bad < 0 and not yaw_outside:
-        return ObjectColumns(codes, fused)  # every code checked and canonical: from_codes would keep it
-    return ObjectColumns.from_codes(codes, fused)
-
-
-BEYOND_TABLE = -2  # unpack_codes' verdict for an indexed position past its table
-_NO_SUMS = np.zeros(0, dtype=np.int64)
+def use_compiled(pack_section) -> None:
+    """From now on ``pack_objects`` builds its section with ``schemas.bit_rows.pack_section``."""
+    global _compiled_section
+    _compiled_section = pack_section
 
 
 @lru_cache(maxsize=256)

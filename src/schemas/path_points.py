@@ -61,23 +61,10 @@ _PATH_KEYS = frozenset({"id", "x", "y", "yaw"})
 _ID_END = 2**32
 
 
-_compiled_grid = None  # schemas.bit_rows.grid_path_points, once loaded (fusion.jit.load_kernels)
-
-
-def use_compiled(grid_path_points) -> None:
-    """From now on ``_gridded`` grids in one compiled pass (``schemas.bit_rows.grid_path_points``)."""
-    global _compiled_grid
-    _compiled_grid = grid_path_points
-
-
 def _gridded(points: np.ndarray, m: int, position_max_m: float, yaw_max: float) -> np.ndarray | None:
     """points (3 M,) [x of every point, then y, then yaw] gridded (positions on the first 2 M,
     yaws on the last M), or None when a value is out of range or NaN. Element-wise operations
-    only: each value is gridded exactly as alone (``grid_positions`` / ``grid_yaws``); once the
-    kernels are loaded by one compiled loop of the same operations (tests/unit/test_path_points.py)."""
-    if _compiled_grid is not None:
-        out = np.empty_like(points)
-        return out if _compiled_grid(points, m, position_max_m, yaw_max, q.POSITION_M, q.YAW_RAD, out) else None
+    only: each value is gridded exactly as alone (``grid_positions`` / ``grid_yaws``)."""
     xy, yaw = points[:2 * m], points[2 * m:]
     if not (bool(np.all(np.abs(xy) <= position_max_m)) and bool(np.all(np.abs(yaw) <= yaw_max))):
         return None

@@ -1,9 +1,9 @@
-"""``object_wire.unpack_objects`` (its layout read in plain Python; its codes built by numpy, or by
-``schemas.bit_rows.unpack_codes`` once the kernels are loaded) against the decoder it replaced
-(``legacy_object_wire``): on valid sections, sections with codes out of range or yaws to wrap,
-and sections with a damaged entry, both paths give the very codes or the very refusal
-(exception type, message and field). ``pack_objects`` (numpy, or ``schemas.bit_rows.pack_section``)
-against the encoder it replaced: the very section, indexed columns included."""
+"""``object_wire.unpack_objects`` (its layout read in plain Python, its codes built by numpy) against
+the decoder it replaced (``legacy_object_wire``): on valid sections, sections with codes out of range
+or yaws to wrap, and sections with a damaged entry, the very codes or the very refusal (exception
+type, message and field), with either packing path. ``pack_objects`` (numpy, or
+``schemas.bit_rows.pack_section`` once the kernels are loaded) against the encoder it replaced: the
+very section, indexed columns included."""
 
 from __future__ import annotations
 
@@ -22,14 +22,13 @@ MANY = settings(max_examples=400, deadline=None, suppress_health_check=[HealthCh
 
 @pytest.fixture(scope="module", params=["numpy", "compiled"])
 def path(request):
-    """Run the module's tests with numpy's codes, then with the compiled loop's."""
+    """Run the module's tests with numpy's packing, then with the compiled loop's."""
     from schemas import bit_rows
 
-    saved = object_wire._compiled_codes, object_wire._compiled_section
-    compiled = request.param == "compiled"
-    object_wire.use_compiled(bit_rows.unpack_codes if compiled else None, bit_rows.pack_section if compiled else None)
+    saved = object_wire._compiled_section
+    object_wire.use_compiled(bit_rows.pack_section if request.param == "compiled" else None)
     yield request.param
-    object_wire.use_compiled(*saved)
+    object_wire.use_compiled(saved)
 
 
 def outcome(fn):
@@ -138,10 +137,9 @@ def test_pack_objects_equals_the_encoder_it_replaced(path, fused: bool, n: int, 
 
 
 def test_the_compiled_path_is_the_one_the_services_use() -> None:
-    """Once the kernels are loaded (services, v2i eval), ``unpack_objects`` builds codes with the loop."""
+    """Once the kernels are loaded (services, v2i eval), ``pack_objects`` packs with the loop."""
     from fusion.jit import load_kernels
     from schemas import bit_rows
 
     load_kernels()
-    assert object_wire._compiled_codes is bit_rows.unpack_codes
     assert object_wire._compiled_section is bit_rows.pack_section
