@@ -20,14 +20,12 @@ Every refusal is counted by reason in ``rejected``.
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
 
 from fusion.frames import Pose2D, outside_box_rows
-from fusion.jit import F64, IN_F2, kernel
 from fusion.objects import ObjectArray
 from schemas.messages import ObjectListHeader
 
@@ -74,9 +72,6 @@ class Admission:
         centre = self._rsus.position(state.rsu_id) or (None if ego is None else (ego.x, ego.y))
         if centre is None or not len(objects):
             return objects
-        xy = objects.xy
-        if xy.dtype == np.float64 and _all_within(xy, float(centre[0]), float(centre[1]), float(self.limits.site_radius_m)):
-            return objects  # the usual case: no copy (the rest decided as before)
         inside = np.hypot(objects.xy[:, 0] - centre[0], objects.xy[:, 1] - centre[1]) <= self.limits.site_radius_m
         if inside.all():
             return objects
@@ -126,23 +121,3 @@ class Admission:
             state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns),
                                      est.to_obu_ns(header.publish_time_ns), receive_ns)
         return "stale"
-
-
-@kernel(IN_F2, F64, F64, F64)
-def _all_within(xy, cx, cy, radius):
-    """True when every point of xy (N, 2) is surely within radius of (cx, cy), i.e. when
-    np.hypot(x - cx, y - cy) <= radius holds for each; False when one may not (farther, or within
-    rounding of the circle, or not finite): ``on_site`` then asks np.hypot itself.
-
-    d = p - c is rounded as numpy rounds it; np.hypot is within an ulp of |d|, and sqrt(d_x^2 + d_y^2)
-    within a few (no overflow below 1e150 m): a point with sqrt(...) <= radius - 1e-12 (1 + radius)
-    has np.hypot(d) < radius.
-    """
-    reach = radius - 1e-12 * (1.0 + abs(radius))
-    if xy.shape[1] != 2:
-        return False
-    for i in range(xy.shape[0]):
-        dx, dy = xy[i, 0] - cx, xy[i, 1] - cy
-        if not math.sqrt(dx * dx + dy * dy) <= reach:  # (also NaN, inf)
-            return False
-    return True

@@ -325,17 +325,16 @@ def test_time_queries_start_early_enough_to_sync_before_the_run():
     assert sync_times_ns(T0, start, 2.0, 0.5)[0] == start - 4_000 * MS  # at least two periods
 
 
-def test_on_site_s_compiled_all_inside_agrees_with_np_hypot():
-    """admission._all_within says True only where np.hypot(p - c) <= radius holds for every point (on
-    random sites, points on the circle and an ulp or two either side, signed zeros, NaN and inf), and
-    on_site keeps exactly the rows of that numpy expression (fails with no slack: a point on the circle
-    that sqrt(dx^2 + dy^2) puts inside and np.hypot outside)."""
+def test_on_site_keeps_the_points_within_the_radius_by_np_hypot():
+    """on_site keeps exactly the rows with np.hypot(p - c) <= radius (on random sites, points on the circle and
+    an ulp or two either side, signed zeros, NaN and inf), counts the others, and returns the very list when
+    it keeps every row."""
     from collections import Counter
 
-    from obu_service.admission import Admission, Limits, _all_within
+    from obu_service.admission import Admission, Limits
 
     rng = np.random.default_rng(23)
-    surely = 0
+    whole = 0
     for trial in range(4000):
         centre = rng.uniform(-3000.0, 3000.0, 2) if trial % 5 else np.array([0.0, -0.0])
         radius = float(rng.choice([2000.0, 150.0, rng.uniform(1.0, 500.0)]))
@@ -352,9 +351,7 @@ def test_on_site_s_compiled_all_inside_agrees_with_np_hypot():
         if trial % 10 == 3:
             xy[-1] = [-0.0, 0.0]
         within = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) <= radius
-        if _all_within(xy, float(centre[0]), float(centre[1]), radius):
-            assert within.all(), trial
-            surely += 1
+        whole += within.all()
         rejected = Counter()
         admission = Admission(Limits(256, 8192, 0, 0, 0, 0, radius), RsuTable({"r": tuple(centre)}), rejected)
         state = admission._rsus.admit("r", 0)
@@ -362,4 +359,4 @@ def test_on_site_s_compiled_all_inside_agrees_with_np_hypot():
         kept = admission.on_site(state, points, None)
         assert np.array_equal(kept.xy, xy[within], equal_nan=True) and rejected["object_outside_site"] == (~within).sum()
         assert (kept is points) == within.all()
-    assert surely > 1000
+    assert 1000 < whole < 4000  # both cases, many times
