@@ -19,7 +19,6 @@ from operator import itemgetter
 
 import numpy as np
 
-from .fastnp import true_index
 from .jit import B1, F64, I64, IN_B2, IN_F1, IN_F2, IN_F3, IN_I1, OUT_B1, OUT_F1, OUT_F2, OUT_I1, kernel
 
 SOURCE_BITS = 63  # source bitmasks are int64: bit 0 own vehicle, bits 1..62 one per RSU / peer slot
@@ -150,7 +149,7 @@ class TrackStore:
 
     def keep(self, mask: np.ndarray) -> None:
         """Keep the live rows where mask (n,) is True, in order (moved down in place)."""
-        index = true_index(mask)
+        index = np.flatnonzero(mask)
         m = len(index)
         for column in self._rows.columns():
             column[:m] = column.take(index, axis=0)

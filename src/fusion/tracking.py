@@ -83,7 +83,6 @@ import numpy as np
 
 from . import kalman
 from .covariance_intersection import ci_fuse_objects
-from .fastnp import any_true, true_index
 from .frames import wrap_angle
 from .gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
     GatedPairs,
@@ -282,7 +281,7 @@ class Tracker:
         since_s = t_s - tab.updated_s
         tentative = tab.hits < self.config.confirm_hits
         doomed = (since_s > self.config.max_coast_s) | (tentative & (since_s > self.config.tentative_max_coast_s))
-        if any_true(doomed):
+        if doomed.any():
             self._store.keep(~doomed)
 
     def tracks(self, t_s: float) -> ObjectArray:
@@ -294,7 +293,7 @@ class Tracker:
         since birth; sources (see module doc).
         """
         tab = self._table
-        rows = true_index(tab.confirmed & (t_s - tab.updated_s <= self.config.max_coast_s))
+        rows = np.flatnonzero(tab.confirmed & (t_s - tab.updated_s <= self.config.max_coast_s))
         x, p = tab.x.take(rows, axis=0), tab.p.take(rows, axis=0)  # only the columns the output needs, gathered
         if self._t_s is not None and t_s != self._t_s and len(rows):
             x, p = kalman.predict(x, p, self.model, t_s - self._t_s)
@@ -346,10 +345,10 @@ class Tracker:
             return None
         tab = self._table
         first = tab.hits.take(ti) == 1
-        if not any_true(first):
+        if not first.any():
             return None
         pair = first & tab.velocity_prior.take(ti) & (tab.born_s.take(ti) < t_s) & ~known.take(di)
-        return pair if any_true(pair) else None
+        return pair if pair.any() else None
 
     def _two_point(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray, t_s: float) -> None:
         """Tracks ti take their state from their birth and the second positions di (``kalman.two_point``)."""
