@@ -2,8 +2,10 @@
 
 The target runs as its own process, as in ``v2i demo`` (``evaluation.fuzz_targets``: ``obu``
 with an RSU connected directly, ``rsu`` alone, ``link`` between the fuzzer's own RSU and
-vehicle sessions). The fuzzer's Zenoh sessions sit where an attacker would. It waits until
-the target's normal output flows, then sends ``count`` hostile messages at ``rate_hz``: every
+vehicle sessions). The fuzzer's Zenoh sessions sit where an attacker would. The services start
+with the start handshake (``evaluation.children``): once every one is ready (one bound,
+``ready_timeout_s``), the fuzzer subscribes and sends time zero. It waits until the target's
+normal output flows, then sends ``count`` hostile messages at ``rate_hz``: every
 kind of ``evaluation.hostile`` on every input the target has, plus floods (one payload again
 and again on one key), fake ids, replays of captured genuine lists and forged time replies
 (per target). It watches the normal output meanwhile and reports: messages sent by kind,
@@ -26,12 +28,17 @@ import numpy as np
 from fusion.jit import load_kernels
 from schemas.transport import open_session
 
-from .demo import Child, DemoError
+from .children import READY_TIMEOUT_S, Child, DemoError, start_all, wait_ready
 from .hostile import KINDS, HostileInputs
 
 RSU_ID, VEHICLE_ID, LINK_ID = "rsu1", "ego", "link1"
 POOL_PER_KIND = 40  # distinct payloads per (kind, message type), sent round-robin
 MS = 1_000_000
+# from time zero until the target works normally (``FuzzRun.warmed_up``): its first 5 outputs (0.5 s at
+# 10 Hz, 1 s at the RSU's 5 Hz) and the OBU's first clock estimate and accepted RSU list (its sync
+# starts 1 s before time zero); generous for a loaded machine, where a cycle can take several times longer
+WARM_UP_S = 30.0
+FLOWING_OUTPUTS = 5  # normal outputs seen before the fuzzing starts
 
 
 def rss_mb(pid: int) -> float | None:
@@ -60,16 +67,20 @@ class FuzzRun(ABC):
     name = "?"
     input_types: tuple[str, ...] = ()
 
-    def __init__(self, count: int, seed: int = 0, rate_hz: float = 2000.0, startup_s: float = 4.0,
+    def __init__(self, count: int, seed: int = 0, rate_hz: float = 2000.0, ready_timeout_s: float = READY_TIMEOUT_S,
                  settle_s: float = 3.0, deadline_ms: float = 100.0, kinds: list[str] | None = None,
                  progress=sys.stderr):
+        """``ready_timeout_s``: every service must say it is ready within this (``--ready-timeout``);
+        ``progress``: where the progress lines go (None: nowhere)."""
         if count < 1 or not rate_hz > 0:
             raise ValueError("--count must be >= 1 and --rate > 0")
         unknown = sorted(set(kinds or ()) - set(KINDS) - {"special"})
         if unknown:
             raise ValueError(f"unknown hostile kind(s) {', '.join(unknown)}; kinds: {', '.join(KINDS)}, special")
         self.kinds = list(kinds or [*KINDS, "special"])
-        self.count, self.rate_hz, self.startup_s, self.settle_s = count, rate_hz, startup_s, settle_s
+        if not ready_timeout_s > 0:
+            raise ValueError("--ready-timeout must be > 0")
+        self.count, self.rate_hz, self.ready_timeout_s, self.settle_s = count, rate_hz, ready_timeout_s, settle_s
         self.deadline_ns = round(deadline_ms * MS)
         self.rng = np.random.default_rng(seed)
         self.hostile = HostileInputs(self.rng, RSU_ID, VEHICLE_ID, LINK_ID)
@@ -78,6 +89,8 @@ class FuzzRun(ABC):
         self.outputs: list[tuple[int, bool, str | None]] = []  # (time of the normal output, late, its mode)
         self.children: dict[str, Child] = {}
         self.progress = progress
+        self.ready_s: float | None = None  # every service ready this long after they were started
+        self.warm_up_s: float | None = None  # the target working normally this long after time zero
         self.eps: dict[str, str] = {}
         self.stop = threading.Event()  # set when the run ends: the fuzzer's own threads end
         self._sessions: list = []
@@ -86,8 +99,15 @@ class FuzzRun(ABC):
 
     # --- what a target provides ---------------------------------------------------------------
     @abstractmethod
-    def argv(self, start_ns: int, duration_s: float) -> dict[str, list[str]]:
-        """Service name -> command line of each process to start; ``self.name`` is the target."""
+    def argv(self, duration_s: float) -> dict[str, list[str]]:
+        """Service name -> command line of each process to start (``common`` flags on each service's:
+        it waits for its start line); ``self.name`` is the target."""
+
+    @staticmethod
+    def common(duration_s: float) -> list[str]:
+        """The flags of every service the fuzzer starts (not the link emulator's): time zero from the
+        start line, run ``duration_s`` from it."""
+        return ["--await-start", "--duration", str(duration_s)]
 
     @abstractmethod
     def open(self) -> None:
@@ -121,16 +141,17 @@ class FuzzRun(ABC):
 
     # --- the run ------------------------------------------------------------------------------
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, before the start time, not in each child
-        duration_s = self.startup_s + 2.0 * self.count / self.rate_hz + 60.0
-        start_ns = time.time_ns() + round(self.startup_s * 1e9)
+        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, not in each child
+        # from time zero: the warm-up, the sending (twice its time at the rate) and the settling, with a margin
+        duration_s = WARM_UP_S + 2.0 * self.count / self.rate_hz + self.settle_s + 60.0
         try:
-            for name, argv in self.argv(start_ns, duration_s).items():
+            for name, argv in self.argv(duration_s).items():
                 self.children[name] = Child(name, argv)
-            for child in self.children.values():
-                child.wait_ready(time.monotonic() + self.startup_s + 10.0)
+            self.ready_s = wait_ready(self.children.values(), self.ready_timeout_s,
+                                      f"v2i fuzz {self.name}" if self.progress is not None else None)
             victim = self.children[self.name].proc.pid
-            self.open()
+            self.open()  # subscribed before time zero
+            start_ns = start_all(self.children.values())
             self._wait_for_output(start_ns)
             self._refused_at_start = self.refused()
             self.at_fuzz_start()
@@ -168,16 +189,22 @@ class FuzzRun(ABC):
         with self.lock:
             self.outputs.append((t_ns, late, mode))
 
-    def _wait_for_output(self, start_ns: int, timeout_s: float = 20.0) -> None:
-        deadline = time.monotonic() + self.startup_s + timeout_s
+    def _wait_for_output(self, start_ns: int, warm_up_s: float = WARM_UP_S) -> None:
+        """Until the target's normal output flows and it is warmed up, at most ``warm_up_s`` after time
+        zero ``start_ns``; DemoError saying what was missing after that."""
+        deadline = time.monotonic() + (start_ns - time.time_ns()) * 1e-9 + warm_up_s
         while time.monotonic() < deadline:
             self._check_alive()
             with self.lock:
-                flowing = len(self.outputs) >= 5
+                flowing = len(self.outputs) >= FLOWING_OUTPUTS
             if time.time_ns() > start_ns and flowing and self.warmed_up():
+                self.warm_up_s = (time.time_ns() - start_ns) * 1e-9
                 return
             time.sleep(0.05)
-        raise DemoError(f"{self.name}: no normal output before the fuzzing was to start")
+        with self.lock:
+            seen = len(self.outputs)
+        raise DemoError(f"{self.name}: not working normally {warm_up_s:g} s after time zero ({seen} normal "
+                        f"outputs of the {FLOWING_OUTPUTS} awaited; warmed up: {self.warmed_up()})")
 
     def _check_alive(self) -> None:
         for child in self.children.values():
@@ -203,7 +230,7 @@ class FuzzRun(ABC):
                 ahead_s = (i + 1) / self.rate_hz - (time.monotonic() - t_start)
                 if ahead_s > 0:
                     time.sleep(ahead_s)
-                if time.monotonic() - last_note > 5.0:
+                if self.progress is not None and time.monotonic() - last_note > 5.0:
                     last_note = time.monotonic()
                     print(f"v2i fuzz {self.name}: {i + 1}/{self.count} sent", file=self.progress, flush=True)
 
@@ -236,6 +263,7 @@ class FuzzRun(ABC):
                         "missing": max(expected - len(during), 0), **({"modes": dict(modes)} if modes else {})},
             "rss_mb": {"before": _r(before), "after": _r(after),
                        "growth": None if before is None or after is None else _r(after - before)},
+            "startup": {"ready_s": _r(self.ready_s), "warm_up_s": _r(self.warm_up_s)},
             **self.extra(),
         }
 
@@ -252,7 +280,9 @@ def summary(report: dict) -> str:
         f"v2i fuzz {report['target']}: {report['sent']} hostile messages in {report['fuzz_s']} s "
         f"({report['rate_hz']}/s); crashes {report['crashes']}" + (f" ({report['crash']})" if report["crash"] else ""),
         f"  outputs during fuzzing: {o['received']}/{o['expected']} expected, {o['late']} late, {o['missing']} missing"
+        + (f", {o['skipped']} skipped (their time had passed: a busy machine)" if o.get("skipped") else "")
         + (f"; modes {', '.join(f'{m} {n}' for m, n in sorted(o['modes'].items()))}" if "modes" in o else ""),
+        *([f"  hostile files read {report['hostile_read']} of {report['sent']}"] if "hostile_read" in report else []),
         f"  RSS {r['before']} -> {r['after']} MB (growth {r['growth']} MB)",
         f"  refused {report['rejected_total']}: {top}",
     ])

@@ -6,7 +6,11 @@ frames per second through the shipped detector and calibration. Kinds: random by
 truncated PNG, an empty file, a PNG header claiming 2^30 pixels, an image of another size, a
 16-bit image, and a file past the byte limit (sparse). Normal output: one object list per
 file (a refused frame yields an empty detection set, the tracker coasts), late when
-published more than 250 ms after its capture. The report has ``v2i fuzz``'s keys.
+published more than 250 ms after its capture. The RSU publishes only what is current: on a busy
+machine it lets some capture times pass (``skipped``; their files go unread). A list's capture
+time names its file (``rsu_service.source.RecordedCamera``), so the report says which hostile
+files the RSU read (``hostile_read``): each of them must be refused, and nothing else. The
+report has ``v2i fuzz``'s keys.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from schemas.codec import CodecError, decode
 from schemas.messages import ObjectList, RsuMetrics
 from schemas.transport import free_tcp_endpoint, open_session
 
-from .demo import Child
+from .children import READY_TIMEOUT_S, Child, start_all, wait_ready
 from .fuzz import RSU_ID, _r, rss_mb
 from .fuzz_targets import RSU_LATE_NS
 
@@ -59,17 +63,21 @@ def hostile_frames(genuine: bytes, size_wh: tuple[int, int]) -> dict[str, tuple[
 class FramesFuzz:
     name = "frames"
 
-    def __init__(self, count: int, seed: int = 0, rate_hz: float = 10.0, startup_s: float = 4.0, kinds=None,
-                 progress=sys.stderr):
-        if count < 1 or not rate_hz > 0:
-            raise ValueError("--count must be >= 1 and --rate > 0")
-        self.count, self.startup_s, self.progress = count, startup_s, progress
+    def __init__(self, count: int, seed: int = 0, rate_hz: float = 10.0, ready_timeout_s: float = READY_TIMEOUT_S,
+                 kinds=None, progress=sys.stderr):
+        """``ready_timeout_s``: the RSU must say it is ready within this (``--ready-timeout``);
+        ``progress``: where the progress lines go (None: nowhere)."""
+        if count < 1 or not rate_hz > 0 or not ready_timeout_s > 0:
+            raise ValueError("--count must be >= 1, --rate and --ready-timeout > 0")
+        self.count, self.ready_timeout_s, self.progress = count, ready_timeout_s, progress
         self.rate_hz = min(rate_hz, MAX_FRAME_RATE_HZ)
         self.rng = np.random.default_rng(seed)
         self.kinds = list(kinds or ())
         self.lock = threading.Lock()
-        self.lists: list[tuple[int, bool]] = []
+        self.lists: list[tuple[int, bool]] = []  # (capture time, late) of each list
+        self.plan: list[str | None] = []  # the hostile kind of each file, in order (None: a genuine frame)
         self.metrics: RsuMetrics | None = None
+        self.ready_s: float | None = None  # the RSU ready this long after it was started
 
     def _write(self, folder: Path) -> Counter[str]:
         from sim.camera import rsu_camera
@@ -87,10 +95,12 @@ class FramesFuzz:
             raise ValueError(f"unknown frame kind(s) {', '.join(unknown)}; kinds: {', '.join(pool)}")
         kinds = self.kinds or list(pool)
         sent: Counter[str] = Counter()
+        self.plan = [None] * WARMUP_FRAMES
         for i in range(WARMUP_FRAMES):
             (folder / f"0{i:06d}.png").write_bytes(genuine[i % len(genuine)])
         for i in range(self.count):
             kind = kinds[int(self.rng.integers(len(kinds)))]
+            self.plan += [None, kind]
             suffix, data = pool[kind]
             (folder / f"1{2 * i:07d}.png").write_bytes(genuine[i % len(genuine)])
             path = folder / f"1{2 * i + 1:07d}{suffix}"
@@ -103,26 +113,27 @@ class FramesFuzz:
         return sent
 
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, before the start time, not in the child
+        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, not in the child
         with tempfile.TemporaryDirectory(prefix="v2i-fuzz-frames-") as tmp:
             sent = self._write(Path(tmp))
             files = WARMUP_FRAMES + 2 * self.count
             ep = free_tcp_endpoint()
             run_s = files / self.rate_hz
-            start_ns = time.time_ns() + round(self.startup_s * 1e9)
             child = Child("rsu", [sys.executable, "-m", "v2i", "rsu", "--listen", ep, "--source", "video",
-                                  "--video", tmp, "--rate-hz", str(self.rate_hz), "--start-at-ns", str(start_ns),
+                                  "--video", tmp, "--rate-hz", str(self.rate_hz), "--await-start",
                                   "--duration", str(run_s + 30.0)])
             session = None
             try:
-                child.wait_ready(time.monotonic() + self.startup_s + 20.0)
+                self.ready_s = wait_ready([child], self.ready_timeout_s,
+                                          "v2i fuzz frames" if self.progress is not None else None)
                 session = open_session(connect=[ep])
                 subs = [session.declare_subscriber(keys.rsu_objects(RSU_ID), self._on_list),
                         session.declare_subscriber(keys.rsu_metrics(RSU_ID), self._on_metrics)]
+                start_ns = start_all([child])  # subscribed before time zero
                 crash = self._watch(child, WARMUP_FRAMES, start_ns, run_s)
                 before = rss_mb(child.proc.pid)
                 crash = crash or self._watch(child, files, start_ns, run_s)
-                report = self._report(sent, files, before, rss_mb(child.proc.pid), crash, run_s)
+                report = self._report(sent, start_ns, before, rss_mb(child.proc.pid), crash, run_s)
                 for sub in subs:
                     sub.undeclare()
                 return report
@@ -132,17 +143,19 @@ class FramesFuzz:
                 child.stop()
 
     def _watch(self, child: Child, files: int, start_ns: int, run_s: float) -> str | None:
-        """Until ``files`` lists were published (or twice the time they need passed); a crash's text."""
+        """Until the time of ``files`` frames has come, each one published or skipped, and every list
+        the RSU published arrived (or twice the time they need passed); a crash's text."""
         deadline = time.monotonic() + (start_ns - time.time_ns()) * 1e-9 + 2.0 * run_s + 10.0
         last_note = time.monotonic()
         while time.monotonic() < deadline:
             if child.proc.poll() is not None:
                 return f"rsu exited with code {child.proc.returncode}"
             with self.lock:
-                done = self.metrics is not None and self.metrics.published >= files
+                m = self.metrics
+                done = m is not None and m.published + m.skipped >= files and len(self.lists) >= m.published
             if done:
                 return None
-            if time.monotonic() - last_note > 5.0:
+            if self.progress is not None and time.monotonic() - last_note > 5.0:
                 last_note = time.monotonic()
                 print(f"v2i fuzz frames: {len(self.lists)}/{files} frames published", file=self.progress, flush=True)
             time.sleep(0.05)
@@ -154,7 +167,7 @@ class FramesFuzz:
         except CodecError:
             return
         with self.lock:
-            self.lists.append((time.time_ns(), header.publish_time_ns - header.capture_time_ns > RSU_LATE_NS))
+            self.lists.append((header.capture_time_ns, header.publish_time_ns - header.capture_time_ns > RSU_LATE_NS))
 
     def _on_metrics(self, sample) -> None:
         try:
@@ -164,17 +177,28 @@ class FramesFuzz:
         with self.lock:
             self.metrics = metrics
 
-    def _report(self, sent: Counter, files: int, before, after, crash: str | None, run_s: float) -> dict:
+    def _report(self, sent: Counter, start_ns: int, before, after, crash: str | None, run_s: float) -> dict:
+        """The report; a list's file is the one of its capture time (``start + k / rate``: the RSU's
+        clock is the true one here)."""
         with self.lock:
             lists, metrics = list(self.lists), self.metrics
+        files, skipped = len(self.plan), metrics.skipped if metrics else 0
         refused = {k: v for k, v in (metrics.rejected if metrics else {}).items() if k.startswith("frame_")}
+        kinds = [self.plan[k] if 0 <= (k := round((capture_ns - start_ns) * self.rate_hz * 1e-9)) < files else None
+                 for capture_ns, _ in lists]
+        read = Counter(kind for kind in kinds if kind is not None)
         return {
             "target": self.name, "sent": sum(sent.values()), "sent_by_kind": dict(sorted(sent.items())),
             "rate_hz": self.rate_hz, "fuzz_s": round(run_s, 2),
             "rejected": dict(sorted(refused.items())), "rejected_total": sum(refused.values()),
+            # hostile files the RSU read (the others' capture times passed unpublished): each must be refused
+            "hostile_read": sum(read.values()), "hostile_read_by_kind": dict(sorted(read.items())),
+            "hostile_late": sum(late for kind, (_, late) in zip(kinds, lists) if kind is not None),
             "crashes": 0 if crash is None else 1, "crash": crash,
+            # skipped: capture times the RSU let pass (it publishes only what is current), their files unread
             "outputs": {"expected": files, "received": len(lists), "late": sum(late for _, late in lists),
-                        "missing": max(files - len(lists), 0)},
+                        "skipped": skipped, "missing": max(files - len(lists) - skipped, 0)},
             "rss_mb": {"before": _r(before), "after": _r(after),
                        "growth": None if before is None or after is None else _r(after - before)},
+            "startup": {"ready_s": _r(self.ready_s)},
         }

@@ -81,9 +81,9 @@ class _InputsFuzz(FuzzRun):
     def input_key(self, typ: str) -> str:
         raise NotImplementedError
 
-    def argv(self, start_ns: int, duration_s: float) -> dict[str, list[str]]:
+    def argv(self, duration_s: float) -> dict[str, list[str]]:
         self.eps = {self.name: free_tcp_endpoint()}
-        base, common = [sys.executable, "-m", "v2i"], ["--start-at-ns", str(start_ns), "--duration", str(duration_s)]
+        base, common = [sys.executable, "-m", "v2i"], self.common(duration_s)
         service = self.name.removesuffix("-inputs")
         return {self.name: [*base, service, "--source", "zenoh", "--listen", self.eps[self.name], *common],
                 "world": [*base, "world", "--connect", self.eps[self.name], "--rsu-id", RSU_ID, *common]}

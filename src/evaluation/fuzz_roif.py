@@ -179,23 +179,21 @@ FEATURE_KINDS = ("malformed", "wrong_type", "unknown_keys", "non_finite", "out_o
 class ObuRoifFuzz(ObuFuzz):
     """The OBU running ``--fusion roif`` under hostile image features (module docstring)."""
 
-    def __init__(self, count: int, seed: int = 0, rate_hz: float = 2000.0, startup_s: float = 4.0,
-                 kinds: list[str] | None = None, **kw):
+    def __init__(self, count: int, seed: int = 0, rate_hz: float = 2000.0, kinds: list[str] | None = None, **kw):
         chosen = list(kinds or [*FEATURE_KINDS, "special"])
         unknown = sorted(set(chosen) - set(FEATURE_KINDS) - {"special"})
         if unknown:
             raise ValueError(f"unknown hostile kind(s) {', '.join(unknown)} for --fusion roif; kinds: "
                              f"{', '.join(FEATURE_KINDS)}, special")
-        super().__init__(count, seed=seed, rate_hz=rate_hz, startup_s=max(startup_s, 12.0),
-                         deadline_ms=IMAGE_DEADLINE_MS, **kw)
+        super().__init__(count, seed=seed, rate_hz=rate_hz, deadline_ms=IMAGE_DEADLINE_MS, **kw)
         self.kinds = chosen
         self.rsu_id = load_scenario(SCENARIO).rsu.id
         self.features = FeatureHostile(self.rng, self.rsu_id)
 
-    def argv(self, start_ns: int, duration_s: float) -> dict[str, list[str]]:
+    def argv(self, duration_s: float) -> dict[str, list[str]]:
         self.eps = {"rsu": free_tcp_endpoint(), "obu": free_tcp_endpoint()}
         base = [sys.executable, "-m", "v2i"]
-        common = ["--start-at-ns", str(start_ns), "--duration", str(duration_s), "--scenario", SCENARIO]
+        common = [*self.common(duration_s), "--scenario", SCENARIO]
         return {"rsu": [*base, "rsu", "--listen", self.eps["rsu"], *common, "--clock-offset-ms", str(CLOCK_OFFSET_MS),
                         "--rsu-id", self.rsu_id, "--source", "camera", "--image-features", "--rate-hz", "10",
                         "--detector-threads", "1"],

@@ -112,8 +112,8 @@ class ObuSignedFuzz(ObuFuzz):
         self.signed = SignedHostile(self.rng, self.hostile,
                                     {r: Signer(load_signer(self.pki, r)) for r in FUZZ_RSUS})
 
-    def argv(self, start_ns: int, duration_s: float) -> dict[str, list[str]]:
-        argv = super().argv(start_ns, duration_s)
+    def argv(self, duration_s: float) -> dict[str, list[str]]:
+        argv = super().argv(duration_s)
         argv["rsu"] += ["--pki", str(self.pki)]
         # the victim's process is looked up by the target's name
         return {"rsu": argv["rsu"], self.name: [*argv["obu"], "--pki", str(self.pki), "--security", "strict"]}

@@ -57,9 +57,9 @@ class ObuFuzz(FuzzRun):
     name = "obu"
     input_types = ("object_list", "prediction_list")
 
-    def argv(self, start_ns: int, duration_s: float) -> dict[str, list[str]]:
+    def argv(self, duration_s: float) -> dict[str, list[str]]:
         self.eps = {"rsu": free_tcp_endpoint(), "obu": free_tcp_endpoint()}
-        base, common = [sys.executable, "-m", "v2i"], ["--start-at-ns", str(start_ns), "--duration", str(duration_s)]
+        base, common = [sys.executable, "-m", "v2i"], self.common(duration_s)
         return {"rsu": [*base, "rsu", "--listen", self.eps["rsu"], *common, "--clock-offset-ms", str(CLOCK_OFFSET_MS)],
                 "obu": [*base, "obu", "--listen", self.eps["obu"], "--connect", self.eps["rsu"], *common,
                         "--wires", STANDARD_WIRES]}
@@ -191,10 +191,9 @@ class RsuFuzz(FuzzRun):
     name = "rsu"
     input_types = ("time_request",)
 
-    def argv(self, start_ns: int, duration_s: float) -> dict[str, list[str]]:
+    def argv(self, duration_s: float) -> dict[str, list[str]]:
         self.eps = {"rsu": free_tcp_endpoint()}
-        return {"rsu": [sys.executable, "-m", "v2i", "rsu", "--listen", self.eps["rsu"], "--start-at-ns",
-                        str(start_ns), "--duration", str(duration_s)]}
+        return {"rsu": [sys.executable, "-m", "v2i", "rsu", "--listen", self.eps["rsu"], *self.common(duration_s)]}
 
     def open(self) -> None:
         self.metrics: dict | None = None
@@ -268,10 +267,10 @@ class LinkFuzz(ObuFuzz):
     name = "link"
     input_types = ("object_list", "ego_pose", "link_control", "time_request")
 
-    def argv(self, start_ns: int, duration_s: float) -> dict[str, list[str]]:
+    def argv(self, duration_s: float) -> dict[str, list[str]]:
         names = ("rsu", "obu", "attacker_rsu_side", "attacker_vehicle_side")
         self.eps = {name: free_tcp_endpoint() for name in names}
-        base, common = [sys.executable, "-m", "v2i"], ["--start-at-ns", str(start_ns), "--duration", str(duration_s)]
+        base, common = [sys.executable, "-m", "v2i"], self.common(duration_s)
         return {"rsu": [*base, "rsu", "--listen", self.eps["rsu"], *common, "--clock-offset-ms", str(CLOCK_OFFSET_MS)],
                 "obu": [*base, "obu", "--listen", self.eps["obu"], *common, "--wires", STANDARD_WIRES],
                 # unauthenticated control: the hostile controls reach the decoder, not only the signature check

@@ -71,9 +71,9 @@ class ObuV2vFuzz(ObuFuzz):
         super().__init__(*args, **kwargs)
         self.hostile = V2vHostile(self.rng, "x0", "x0", "link1")
 
-    def argv(self, start_ns: int, duration_s: float) -> dict[str, list[str]]:
+    def argv(self, duration_s: float) -> dict[str, list[str]]:
         self.eps = {"rsu": free_tcp_endpoint(), "obu": free_tcp_endpoint()}
-        base, common = [sys.executable, "-m", "v2i"], ["--start-at-ns", str(start_ns), "--duration", str(duration_s)]
+        base, common = [sys.executable, "-m", "v2i"], self.common(duration_s)
         return {"rsu": [*base, "rsu", "--listen", self.eps["rsu"], *common, "--clock-offset-ms", str(CLOCK_OFFSET_MS)],
                 self.name: [*base, "obu", "--listen", self.eps["obu"], "--connect", self.eps["rsu"], *common, "--v2v"]}
 

@@ -346,7 +346,7 @@ def cmd_fuzz(args: argparse.Namespace) -> int:
         from evaluation.fuzz_roif import ObuRoifFuzz as target
     else:
         target = TARGETS[args.target]
-    run = target(args.count, seed=args.seed, rate_hz=args.rate, startup_s=args.startup, kinds=kinds)
+    run = target(args.count, seed=args.seed, rate_hz=args.rate, kinds=kinds, **_ready_timeout(args))
     report = _live(run.run, "v2i fuzz")
     if isinstance(report, int):
         return report
@@ -517,8 +517,8 @@ def _fuzz_options(fuzz: argparse.ArgumentParser) -> None:
                       "wrong_shapes, non_finite, extreme_values, absurd_times, oversized, large_malformed, and "
                       "special (the target's floods, fake ids, replays); for frames: random_bytes, truncated, "
                       "empty, pixel_bomb, wrong_size, deep, huge_file")
-    fuzz.add_argument("--startup", type=float, default=4.0,
-                      help="seconds given to the services to start (default %(default)s)")
+    fuzz.add_argument("--ready-timeout", type=float, metavar="S", help=READY_TIMEOUT_HELP)
+    fuzz.add_argument("--startup", type=float, help=argparse.SUPPRESS)  # before --ready-timeout: ignored, noted
     fuzz.add_argument("--json", metavar="PATH", help="write the report JSON to PATH ('-' for stdout)")
     fuzz.set_defaults(func=cmd_fuzz)
 
