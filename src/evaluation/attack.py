@@ -63,6 +63,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                         "genuine RSU uses 5-10 of them; faster, its rate limit refuses attack and genuine lists alike)")
     p.add_argument("--time-burst", type=int, default=3, help="forged replies per time query (the OBU asks 10 times "
                    "a second; default %(default)s)")
+    p.add_argument("--ready-timeout", type=float, default=120.0, metavar="S",
+                   help="seconds the site may take to show what the attack needs: the RSU's signed lists, the ego's "
+                        "pose, OBU metrics with a clock estimate and accepted lists (default %(default)s; a progress "
+                        "line names what is awaited)")
     p.add_argument("--warmup-s", type=float, default=3.0, help="genuine-only window before the attack (default %(default)s)")
     p.add_argument("--settle-s", type=float, default=1.5, help="wait after each kind (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of the attacker's choices (default %(default)s)")
@@ -82,8 +86,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--kinds: unknown {', '.join(unknown) or '(none given)'}; kinds: {', '.join(KINDS)}")
     if "control" in kinds and not args.control:
         raise ValueError("kind control needs --control EP (the link emulator's control endpoint)")
-    if args.count < 1 or not 0 < args.rate_hz <= 10_000 or args.time_burst < 1:
-        raise ValueError("--count and --time-burst must be >= 1 and --rate-hz in (0, 10000]")
+    if args.count < 1 or not 0 < args.rate_hz <= 10_000 or args.time_burst < 1 or not args.ready_timeout > 0:
+        raise ValueError("--count and --time-burst must be >= 1, --rate-hz in (0, 10000] and --ready-timeout > 0")
     for name in (args.rsu_id, args.vehicle_id, args.link_id):
         check_id(name)
     stolen = tuple(s for s in args.stolen.split(",") if s)

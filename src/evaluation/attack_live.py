@@ -25,6 +25,7 @@ from schemas.limits import SOURCE_RSU
 from schemas.messages import EgoPose, FusedObjectList, ObjectList, ObuMetrics, TimeRequest
 from schemas.transport import open_session
 from security.envelope import PREFIX, parse
+from telemetry.live_line import StatusLine
 
 from .attack_ghosts import GhostWatch
 from .attack_messages import (CONTROL_VARIANTS, LIST_KINDS, TIME_VARIANTS, AttackerKeys, AttackMessages, ghost_xy,
@@ -34,7 +35,7 @@ from .attack_report import counter_delta, kind_row
 REPLAY_AGE_NS = (500_000_000, 3_000_000_000)  # replay captures this old: after the original, within freshness
 INBOX_MESSAGES = 10_000
 PROGRESS_S = 5.0
-READY_TIMEOUT_S = 30.0
+READY_TIMEOUT_S = 120.0  # default --ready-timeout: the site shows what the attack needs within this
 OFFSET_SAMPLES = 32  # RSU clock offset: median of the latest this many captures
 
 
@@ -192,22 +193,34 @@ class AttackRun:
             self._phase(kind)
         return self.report()
 
+    def _missing(self) -> list[str]:
+        """What the attack needs and has not seen yet (its words, for the progress line and the error)."""
+        status = self._rsu_status()
+        return [what for what, ok in (
+            ("genuine signed lists of the RSU (is it signing? --sniff reaches it?)", len(self.captured) >= 3),
+            ("the ego's pose", self.pose is not None),
+            ("OBU metrics with an RSU clock estimate and accepted lists",
+             status is not None and status.clock_offset_ns is not None and status.messages_accepted > 0))
+            if not ok]
+
     def _wait_ready(self) -> None:
-        deadline = time.monotonic() + READY_TIMEOUT_S
-        while time.monotonic() < deadline:
-            self.pump(time.monotonic() + 0.1)
-            status = self._rsu_status()
-            missing = [what for what, ok in (
-                ("genuine signed lists of the RSU (is it signing? --sniff reaches it?)", len(self.captured) >= 3),
-                ("the ego's pose", self.pose is not None),
-                ("OBU metrics with an RSU clock estimate and accepted lists",
-                 status is not None and status.clock_offset_ns is not None and status.messages_accepted > 0))
-                if not ok]
-            if not missing:
-                self.messages = AttackMessages(self.args.rsu_id, self.attacker, self.rng, self.digest,
-                                               self.args.link_id)
-                return
-        raise NotReady(f"not ready within {READY_TIMEOUT_S:g} s: no {'; no '.join(missing)}")
+        """Until the site shows what the attack needs, at most ``--ready-timeout`` s (one bound: a site
+        started at the same time on a busy machine takes its time); a progress line on stderr meanwhile."""
+        timeout_s = getattr(self.args, "ready_timeout", None) or READY_TIMEOUT_S
+        t0 = time.monotonic()
+        missing = self._missing()
+        line = StatusLine(lambda: f"v2i attack: waiting for {'; '.join(missing) or 'nothing'} "
+                                  f"({time.monotonic() - t0:.1f} s)")
+        line.start()
+        try:
+            while missing and time.monotonic() - t0 < timeout_s:
+                self.pump(time.monotonic() + 0.1)
+                missing = self._missing()
+        finally:
+            line.stop()
+        if missing:
+            raise NotReady(f"not ready within {timeout_s:g} s (--ready-timeout): no {'; no '.join(missing)}")
+        self.messages = AttackMessages(self.args.rsu_id, self.attacker, self.rng, self.digest, self.args.link_id)
 
     def _snapshot(self) -> tuple:
         status = self._rsu_status()

@@ -41,7 +41,13 @@ from pathlib import Path
 import pytest
 import test_netns as netns  # tests/integration is on sys.path (pytest's rootdir-less import; the script's folder)
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
+from evaluation.children import READY_TIMEOUT_S
+
+# the probe process's own waits: up to 25 s for the genuine traffic, then two intruder phases and the positive
+# controls (each up to 5 s to connect, 3 s of ghosts, 1.5-5 s for what is in flight): ~70 s at most
+PROBE_S = 90.0
+RUN_S = READY_TIMEOUT_S + PROBE_S  # the services' run from time zero; stopped when the probe is done
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(2 * READY_TIMEOUT_S + PROBE_S + 30)]
 
 SRC = Path(__file__).resolve().parents[2] / "src"
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy" / "zenoh"
@@ -66,13 +72,12 @@ def _control_flags() -> list[str]:
 
 def _start(topo, tls_dir: Path, link_config: Path, children: dict) -> dict[str, str]:
     """RSU, OBU and emulator with their shipped configs; returns the endpoints."""
-    from evaluation.demo import Child
+    from evaluation.children import Child, start_all, wait_ready
 
     eps = {"rsu": f"tls/{netns.RSU_ADDR}:{netns.RSU_PORT}", "obu": f"tls/{netns.OBU_ADDR}:{netns.OBU_PORT}",
            "control": f"tls/{netns.LINK_OBU_ADDR}:{CONTROL_PORT}"}
     env = ("env", f"V2I_TLS_DIR={tls_dir}")
-    start_ns = time.time_ns() + round(netns.STARTUP_S * 1e9)
-    common = ["--scenario", netns.SCENARIO, "--seed", "0", "--start-at-ns", str(start_ns), "--duration", "40"]
+    common = ["--scenario", netns.SCENARIO, "--seed", "0", "--await-start", "--duration", str(RUN_S)]
     children["rsu"] = Child("rsu", netns._in(topo.rsu, "-m", "v2i", "rsu", "--listen", eps["rsu"], *common,
                                              "--zenoh-config", str(DEPLOY / "rsu.json5"), env=env))
     children["obu"] = Child("obu", netns._in(topo.obu, "-m", "v2i", "obu", "--listen", eps["obu"], *common,
@@ -81,9 +86,8 @@ def _start(topo, tls_dir: Path, link_config: Path, children: dict) -> dict[str, 
         topo.link, "-m", "v2i", "link", "--config", str(link_config), "--rsu-connect", eps["rsu"],
         "--vehicle-connect", eps["obu"], "--control-listen", eps["control"], "--profile", "lte-v2x",
         *_control_flags(), "--zenoh-config", str(DEPLOY / "link.json5"), env=env))
-    deadline = time.monotonic() + netns.STARTUP_S + 5.0
-    for child in children.values():
-        child.wait_ready(deadline)
+    wait_ready(children.values())
+    start_all(children.values())  # the emulator takes no time zero: it ignores the line
     return eps
 
 
@@ -103,7 +107,7 @@ def test_tls_acl_keep_an_intruder_out(tmp_path: Path) -> None:
             assert not netns._can_connect(topo.rsu, netns.OBU_ADDR, netns.OBU_PORT)  # still no bypass
             probe = netns._in(topo.obu, __file__, "probe", "--tls-dir", str(tls_dir), "--obu", eps["obu"],
                               "--control", eps["control"], "--rsu-id", _rsu_id(netns.SCENARIO))
-            result = _run_probe(probe, timeout_s=netns.STARTUP_S + 40.0)
+            result = _run_probe(probe, timeout_s=READY_TIMEOUT_S + PROBE_S)
             print(json.dumps(result))  # pytest -s shows the counts
             for name, child in children.items():
                 assert child.proc.poll() is None, f"{name} exited with {child.proc.returncode}"
