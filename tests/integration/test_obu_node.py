@@ -1,4 +1,8 @@
-"""The OBU node on real Zenoh: bad input is rejected and counted, the loop keeps publishing."""
+"""The OBU node on real Zenoh: bad input is rejected and counted, the loop keeps publishing.
+
+The nodes run in this process with the start handshake (``--await-start``): each says it is ready
+(session open, declared), and time zero is picked once every one is (``running``), so a busy
+machine only starts them later."""
 
 from __future__ import annotations
 
@@ -9,6 +13,7 @@ from contextlib import contextmanager
 
 import pytest
 
+from evaluation.children import READY_TIMEOUT_S, START_LEAD_S
 from obu_service.config import ObuConfig
 from obu_service.node import ObuNode
 from rsu_service.config import RsuConfig
@@ -18,7 +23,8 @@ from schemas.codec import decode, encode
 from schemas.messages import FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics
 from schemas.transport import free_tcp_endpoint, open_session
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(60 + READY_TIMEOUT_S)]
+RUN_S = 60.0  # the nodes' run from time zero: longer than every wait of a test; its block's end stops them
 
 
 def wait_for(q: queue.Queue, predicate, timeout_s: float):
@@ -34,15 +40,58 @@ def wait_for(q: queue.Queue, predicate, timeout_s: float):
     pytest.fail("expected message did not arrive in time")
 
 
+class StartGate:
+    """Time zero for nodes run in this process with ``await_start`` (the start line's part): each
+    node's ``run`` calls it after its ready line; once all ``parties`` have, time zero is now +
+    ``lead_s`` (negative: a time zero that has passed, a restart mid-run) and every one gets it."""
+
+    def __init__(self, parties: int, lead_s: float = START_LEAD_S):
+        self.parties, self.lead_s = parties, lead_s
+        self.start_ns: int | None = None
+        self.started = threading.Event()  # set once time zero is picked
+        self._arrived = 0
+        self._lock = threading.Lock()
+
+        self.ready = threading.Event()  # set once every node is ready
+        self.auto = True  # time zero as soon as every node is ready (False: when ``start`` is called)
+
+    def __call__(self, _service: str, stop: threading.Event) -> int | None:
+        with self._lock:
+            self._arrived += 1
+            if self._arrived == self.parties:
+                self.ready.set()
+                if self.auto:
+                    self.start()
+        while not self.started.wait(0.05):
+            if stop.is_set():
+                return None
+        return self.start_ns
+
+    def start(self) -> int:
+        """Time zero now + ``lead_s`` for every node (those not ready yet get it when they are)."""
+        self.start_ns = time.time_ns() + round(self.lead_s * 1e9)
+        self.started.set()
+        return self.start_ns
+
+
 @contextmanager
-def running(*nodes):
-    """Each node's ``run`` on a thread of its own for the block; every thread has ended after it."""
+def running(*nodes, lead_s: float = START_LEAD_S, start: bool = True):
+    """Each node's ``run`` on a thread of its own for the block, which gets their ``StartGate``: the
+    nodes built with ``await_start`` are all ready (at most ``READY_TIMEOUT_S``) and, with ``start``,
+    have time zero ``gate.start_ns`` (without: the block calls ``gate.start()``, e.g. once it has
+    subscribed); every thread has ended after the block."""
     stop = threading.Event()
-    threads = [threading.Thread(target=n.run, args=(stop,)) for n in nodes]
+    gate = StartGate(sum(bool(n.config.await_start) for n in nodes), lead_s)
+    gate.auto = start
+    threads = [threading.Thread(target=n.run, args=(stop, gate) if n.config.await_start else (stop,)) for n in nodes]
     for t in threads:
         t.start()
     try:
-        yield
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        while gate.parties and not (gate.started if start else gate.ready).wait(0.05):
+            assert all(t.is_alive() for t in threads), "a node's run ended before every node was ready"
+            assert time.monotonic() < deadline, f"the nodes were not ready within {READY_TIMEOUT_S:g} s"
+        yield gate
     finally:
         stop.set()
         for t in threads:
@@ -64,11 +113,11 @@ def probe_session(endpoint: str):
 
 def test_obu_rejects_garbage_keeps_publishing_and_syncs_with_a_direct_rsu():
     rsu_ep, obu_ep = free_tcp_endpoint(), free_tcp_endpoint()
-    start_ns = time.time_ns() + 1_000_000_000
-    rsu = RsuNode(RsuConfig(listen=[rsu_ep], start_at_ns=start_ns, duration_s=6.0, clock_offset_ms=250.0))
-    obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], start_at_ns=start_ns, duration_s=6.0))
+    rsu = RsuNode(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=RUN_S, clock_offset_ms=250.0))
+    obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], await_start=True, duration_s=RUN_S))
     outputs, metrics = queue.Queue(), queue.Queue()
-    with running(rsu, obu), probe_session(obu_ep) as (probe, entities):
+    with running(rsu, obu) as gate, probe_session(obu_ep) as (probe, entities):
+        start_ns = gate.start_ns
         entities += [
             probe.declare_subscriber(keys.obu_objects("ego"), lambda s: outputs.put(decode(s.payload.to_bytes(), FusedObjectList))),
             probe.declare_subscriber(keys.obu_metrics("ego"), lambda s: metrics.put(decode(s.payload.to_bytes(), ObuMetrics)))]
@@ -96,18 +145,19 @@ def test_obu_rejects_garbage_keeps_publishing_and_syncs_with_a_direct_rsu():
 
 
 def test_a_restarted_rsu_publishes_only_what_is_current():
-    """An RSU started 12 s into its scenario (a restart mid-run) publishes at its frame rate from
-    now on; the 60 frames it 'missed' are skipped and counted, not sent in a burst."""
+    """An RSU started 12 s into its scenario (a restart mid-run: its start line names a time zero
+    12 s ago) publishes at its frame rate from now on; the 60 frames it 'missed' are skipped and
+    counted, not sent in a burst."""
     rsu_ep = free_tcp_endpoint()
-    rsu = RsuNode(RsuConfig(listen=[rsu_ep], start_at_ns=time.time_ns() - 12_000_000_000, duration_s=30.0))
-    stop = threading.Event()
-    thread = threading.Thread(target=rsu.run, args=(stop,))
-    probe = open_session(connect=[rsu_ep])
+    rsu = RsuNode(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=30.0))
     lists = queue.Queue()
-    sub = probe.declare_subscriber(keys.rsu_objects("rsu1"), lambda s: lists.put(time.monotonic()))
-    try:
-        thread.start()
-        first = wait_for(lists, lambda t: True, 10.0)
+    with running(rsu, lead_s=-12.0, start=False) as gate, probe_session(rsu_ep) as (probe, entities):
+        entities.append(probe.declare_subscriber(keys.rsu_objects("rsu1"), lambda s: lists.put(time.monotonic())))
+        # the RSU's liveliness token answers over the same link, after the subscription: the RSU knows it now
+        replies = probe.liveliness().get(keys.rsu_alive("rsu1"), timeout=10.0)
+        assert any(r.ok is not None for r in replies), "no route to the RSU"
+        gate.start()
+        first = wait_for(lists, lambda t: True, 10.0)  # at once: the frame of now is current
         in_first_second = 1
         while (left_s := first + 1.0 - time.monotonic()) > 0:  # count what arrives within 1 s of the first
             try:
@@ -116,9 +166,3 @@ def test_a_restarted_rsu_publishes_only_what_is_current():
                 break
         assert in_first_second <= 7, f"{in_first_second} lists in the first second (5 Hz camera)"
         assert rsu.skipped >= 55 and time.monotonic() - first < 5.0
-    finally:
-        sub.undeclare()
-        probe.close()
-        stop.set()
-        thread.join(10.0)
-    assert not thread.is_alive()

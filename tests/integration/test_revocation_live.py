@@ -10,6 +10,7 @@ import time
 
 import pytest
 
+from evaluation.children import READY_TIMEOUT_S
 from obu_service.config import ObuConfig
 from obu_service.node import ObuNode
 from rsu_service.config import RsuConfig
@@ -23,12 +24,13 @@ from security.site import write_site
 
 from test_obu_node import probe_session, running, wait_for  # tests/integration is on sys.path (rootdir-less import)
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
-READY_S = 60.0  # to the first accepted RSU list: generous for a loaded machine (the nodes start in seconds)
+READY_S = 30.0  # from time zero (the nodes are ready) to the first accepted RSU list: ~1 s, generous for a busy machine
 REVOKED_S = 30.0  # to the first refusal after the revocation: the OBU looks once a second, after a cycle's output
 # After the first refusal, lists keep coming at 10 Hz (and time replies): at least this many more refused, none
 # accepted, within REVOKED_S; 5 is half a second of lists, a margin for a busy machine's late cycles.
 MORE_REFUSED = 5
+REVOKE_S = 60.0  # v2i pki revoke, a process
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(READY_TIMEOUT_S + READY_S + REVOKE_S + 2 * REVOKED_S)]
 
 
 def _rsu1(m: ObuMetrics):
@@ -43,10 +45,8 @@ def _accepted(m: ObuMetrics) -> int:
 def test_a_revocation_written_while_the_obu_runs_refuses_the_rsu_from_then_on(tmp_path, capsys):
     pki = write_site(tmp_path / "pki", time.time_ns() - 10**9, ["rsu1"], ["ego"])
     rsu_ep, obu_ep = free_tcp_endpoint(), free_tcp_endpoint()
-    start_ns = time.time_ns() + 1_000_000_000
-    rsu = RsuNode(RsuConfig(listen=[rsu_ep], start_at_ns=start_ns, duration_s=180.0, pki_dir=str(pki)))
-    obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], start_at_ns=start_ns, duration_s=180.0,
-                            pki_dir=str(pki)))
+    rsu = RsuNode(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=180.0, pki_dir=str(pki)))
+    obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], await_start=True, duration_s=180.0, pki_dir=str(pki)))
     assert obu.config.security_policy == "strict"
     metrics: queue.Queue = queue.Queue()
     with running(rsu, obu), probe_session(obu_ep) as (probe, entities):
@@ -55,7 +55,7 @@ def test_a_revocation_written_while_the_obu_runs_refuses_the_rsu_from_then_on(tm
         before = wait_for(metrics, lambda m: _accepted(m) > 0, READY_S)
         assert not any(k.startswith("security_") for k in before.rejected), before.rejected
         revoke = subprocess.run([sys.executable, "-m", "v2i", "pki", "revoke", str(pki), "rsu1"],
-                                capture_output=True, text=True, timeout=60)
+                                capture_output=True, text=True, timeout=REVOKE_S)
         assert revoke.returncode == 0 and "rsu1: revoked" in revoke.stdout, revoke.stderr
         first = wait_for(metrics, lambda m: m.rejected.get("security_revoked", 0) > 0, REVOKED_S)
         refused = first.rejected["security_revoked"]

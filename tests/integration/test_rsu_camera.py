@@ -5,25 +5,30 @@ the folder are refused, counted in its metrics, and do not stop it."""
 from __future__ import annotations
 
 import queue
-import threading
-import time
 
 import cv2
 import numpy as np
 import pytest
 
+from evaluation.children import READY_TIMEOUT_S, START_LEAD_S
 from rsu_service.config import RsuConfig
 from rsu_service.node import RsuNode
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import ObjectList, RsuMetrics
-from schemas.transport import free_tcp_endpoint, open_session
+from schemas.transport import free_tcp_endpoint
 from sim.camera import rsu_camera
 from sim.render import SceneRenderer
 from sim.scenario import load_scenario
 from sim.world import World
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
+from test_obu_node import probe_session, running, wait_for  # tests/integration is on sys.path (rootdir-less import)
+
+RATE_HZ = 5.0  # frames per second read from the folder
+FILES = 11  # 8 clean frames and 3 hostile files
+MARGIN_S = 20.0  # for a loaded machine, beyond the files' 2.2 s at the rate
+RUN_S = 60.0  # the RSU's run from time zero: longer than the wait; the block's end stops it
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(READY_TIMEOUT_S + 60)]
 
 
 def _recording(folder, times_s) -> None:
@@ -40,32 +45,22 @@ def _recording(folder, times_s) -> None:
 def test_rsu_runs_the_detector_on_a_recording_and_refuses_bad_frames(tmp_path):
     _recording(tmp_path, times_s=np.arange(6.0, 7.6, 0.2))  # the adversary 60-40 m from the camera
     ep = free_tcp_endpoint()
-    rsu = RsuNode(RsuConfig(listen=[ep], source="video", video=str(tmp_path), rate_hz=5.0,
-                            start_at_ns=time.time_ns() + 2_000_000_000, duration_s=6.0))
+    rsu = RsuNode(RsuConfig(listen=[ep], source="video", video=str(tmp_path), rate_hz=RATE_HZ, await_start=True,
+                            duration_s=RUN_S))
     lists, metrics = queue.Queue(), queue.Queue()
-    probe = open_session(connect=[ep])
-    subs = [probe.declare_subscriber(keys.rsu_objects("rsu1"), lambda s: lists.put(decode(s.payload.to_bytes(), ObjectList))),
+    with running(rsu, start=False) as gate, probe_session(ep) as (probe, entities):
+        entities += [
+            probe.declare_subscriber(keys.rsu_objects("rsu1"), lambda s: lists.put(decode(s.payload.to_bytes(), ObjectList))),
             probe.declare_subscriber(keys.rsu_metrics("rsu1"), lambda s: metrics.put(decode(s.payload.to_bytes(), RsuMetrics)))]
-    stop = threading.Event()
-    thread = threading.Thread(target=rsu.run, args=(stop,))
-    thread.start()
-    try:
-        got, last, deadline = [], None, time.monotonic() + 30.0
-        while time.monotonic() < deadline and (last is None or last.published < 11):
-            try:
-                last = metrics.get(timeout=0.1)
-            except queue.Empty:
-                continue
-        while not lists.empty():
-            got.append(lists.get())
-    finally:
-        stop.set()
-        thread.join(15.0)
-        for s in subs:
-            s.undeclare()
-        probe.close()
-    assert not thread.is_alive()
-    assert last is not None and last.published == 11, "one list per frame, refused ones included"
+        # the RSU's liveliness token answers over the same link, after the subscriptions: the RSU knows them now
+        assert any(r.ok is not None for r in probe.liveliness().get(keys.rsu_alive("rsu1"), timeout=10.0))
+        gate.start()
+        # every file's time has come: each one published, or (a stall) skipped
+        last = wait_for(metrics, lambda m: m.published + m.skipped >= FILES, START_LEAD_S + FILES / RATE_HZ + MARGIN_S)
+    got = []
+    while not lists.empty():
+        got.append(lists.get())
+    assert last.published == FILES, f"one list per frame, refused ones included ({last.skipped} skipped)"
     assert {k: v for k, v in last.rejected.items() if k.startswith("frame_")} == {
         "frame_unreadable": 1, "frame_wrong_size": 1, "frame_too_large": 1}
     assert got and got[-1].header.sensor == "camera/video"

@@ -7,6 +7,7 @@ import time
 
 import pytest
 
+from evaluation.children import READY_TIMEOUT_S
 from obu_service.config import ObuConfig
 from obu_service.node import ObuNode
 from rsu_service.config import RsuConfig
@@ -20,9 +21,9 @@ from security.envelope import Signer
 from security.pki import load_signer
 from security.site import write_site
 
-from test_obu_node import probe_session, running, wait_for  # tests/integration is on sys.path (rootdir-less import)
+from test_obu_node import RUN_S, probe_session, running, wait_for  # tests/integration is on sys.path (rootdir-less)
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(60 + READY_TIMEOUT_S)]
 INJECTED = 8  # of each kind
 
 
@@ -42,10 +43,9 @@ def _has_rsu_objects(out: FusedObjectList) -> bool:
 def test_strict_obu_fuses_the_signing_rsu_and_counts_every_injection(tmp_path):
     pki = write_site(tmp_path, time.time_ns() - 10**9, ["rsu1", "rsu2"], ["ego"])
     rsu_ep, obu_ep = free_tcp_endpoint(), free_tcp_endpoint()
-    start_ns = time.time_ns() + 1_000_000_000
-    rsu = RsuNode(RsuConfig(listen=[rsu_ep], start_at_ns=start_ns, duration_s=8.0, clock_offset_ms=250.0,
+    rsu = RsuNode(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=RUN_S, clock_offset_ms=250.0,
                             pki_dir=str(pki)))
-    obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], start_at_ns=start_ns, duration_s=8.0, pki_dir=str(pki)))
+    obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], await_start=True, duration_s=RUN_S, pki_dir=str(pki)))
     assert obu.config.security_policy == "strict"
     outputs, metrics, forged_replies = queue.Queue(), queue.Queue(), []
     with running(rsu, obu), probe_session(obu_ep) as (probe, entities):
