@@ -23,24 +23,18 @@ from __future__ import annotations
 
 import itertools
 import json
-import queue
 import signal
 import sys
 import tempfile
-import threading
 import time
-from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from fusion.jit import load_kernels
 from link_emulator.control_auth import OPERATOR, sign_control
-from obu_service.fusion_mode import TRACKING_MODES
 from obu_service.source import SimulatedVehicle
 from schemas import keys
-from schemas.codec import CodecError, decode
+from schemas.codec import decode
 from schemas.messages import FusedObjectList, LinkControl, ObuMetrics, PredictionList, RsuMetrics
 from schemas.runtime import log
 from schemas.transport import free_tcp_endpoint, open_session
@@ -50,16 +44,15 @@ from sim.world import World
 from telemetry.live_line import LiveLine
 
 from .chaos import ChaosEvent, ChaosTimeline
-from .children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, ahead_ms, start_all, wait_ready
+from .chaos_summary import PlayedEvent, chaos_summary, outage_summary
+from .children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
+from .inbox_scoring import InboxScoring, obu_own_count, startup_summary
 from .live_security import run_pki, security_argv
-from .metrics import mode_share
 from .spec import RunRecord, RunSpec, build_report
 
 LINK_ID = "link1"
 CONTROL_MATCH_S = 3.0  # how long a link control waits for the emulator's control subscriber
 POLL_S = 0.02  # supervisor period: chaos events fire within this of their time
-INBOX_MESSAGES = 1000  # received messages waiting to be scored (~35 s of objects, metrics and planning)
-MODE_RUNS_SHOWN = 6  # mode changes printed per chaos event
 METRICS_PORT_OFFSETS = {"rsu": 0, "link": 1, "obu": 2}  # --metrics-ports BASE: each child's /metrics port
 
 
@@ -130,76 +123,6 @@ class ControlChannel:
         if self._session is not None:
             self._session.close()
         self._session = self._publisher = self._subscriber = None
-
-
-@dataclass
-class PlayedEvent:
-    """A chaos event as played: when it fired (scenario s) and, for a link event, its control seq."""
-
-    event: ChaosEvent
-    fired_s: float
-    seq: int | None = None
-
-
-class InboxScoring:
-    """The bounded inbox between Zenoh callbacks and one scorer thread, shared by the demos.
-
-    ``_keep(kind, sample, *context)`` (a Zenoh callback) only enqueues (kind, *context, payload);
-    a full inbox drops it, counted by kind in ``dropped``. ``_score_inbox`` (the scorer thread)
-    calls ``self._score(kind, *context, payload)`` in arrival order until a None ends the run;
-    the first scoring error is kept in ``_scoring_error`` for ``run()`` to raise.
-    """
-
-    def _init_inbox(self) -> None:
-        self.dropped: Counter = Counter()  # messages a full inbox refused, by kind
-        self._inbox: queue.Queue = queue.Queue(maxsize=INBOX_MESSAGES)
-        self._drop_lock = threading.Lock()
-        self._scoring_error: Exception | None = None
-        self._scorer: threading.Thread | None = None
-
-    def _start_scorer(self) -> None:
-        """The scorer thread, once what it scores into exists (messages queued before wait for it)."""
-        self._scorer = threading.Thread(target=self._score_inbox, name="demo-scorer", daemon=True)
-        self._scorer.start()
-
-    def _end_scoring(self) -> None:
-        """After the last message: the scorer drains the queue and ends (nothing to do if it never started)."""
-        if self._scorer is not None:
-            self._inbox.put(None)
-            self._scorer.join()
-
-    def _keep(self, kind: str, sample, *context) -> None:
-        """Zenoh callback: enqueue the payload for the scorer; a full inbox drops it (counted)."""
-        try:
-            self._inbox.put_nowait((kind, *context, sample.payload.to_bytes()))
-        except queue.Full:
-            with self._drop_lock:
-                self.dropped[kind] += 1
-
-    def _watch_with_live_line(self, start_ns: int, events=lambda: (0, 0)) -> None:
-        """``self._watch(start_ns)`` with the live line on stderr (``self.progress`` names it; None: no
-        line); ``events()``: chaos events (played, planned)."""
-        if self.progress:
-            self._live = LiveLine(self.progress, start_ns, self.duration_s, events)
-            self._live.start()
-        try:
-            self._watch(start_ns)
-        finally:
-            if self._live is not None:
-                self._live.stop()
-
-    def _score_inbox(self) -> None:
-        """Scorer thread: decode and score each message in arrival order until the None that ends the run."""
-        while (item := self._inbox.get()) is not None:
-            if self._scoring_error is not None:
-                continue  # keep draining so that the callbacks never block; run() raises it
-            try:
-                self._score(*item)
-            except CodecError as exc:
-                source = f" from {item[1]}" if len(item) > 2 else ""
-                log("demo", f"undecodable {item[0]} message{source}: {exc}")
-            except Exception as exc:  # noqa: BLE001 - re-raised by run() as a DemoError
-                self._scoring_error = exc
 
 
 class Demo(InboxScoring):
@@ -470,101 +393,10 @@ class Demo(InboxScoring):
         if sum(self.dropped.values()):
             log("demo", f"the scorer fell behind: dropped {dict(self.dropped)} (scores miss them)")
         if self.outage:
-            report["link_outage"] = outage_summary(record, self.outage)
+            report["link_outage"] = outage_summary(record, self.outage.at_s, self.outage.down_s)
         elif self.chaos:
             report["chaos"] = self.chaos.name
-            report["chaos_events"] = chaos_summary(self.played, self.chaos, record, self._control.outcomes)
+            report["chaos_events"] = chaos_summary(self.played, self.chaos, record, self._control.outcomes, LINK_ID)
         return report
 
 
-def obu_own_count(record: RunRecord) -> dict | None:
-    """The OBU's own count of its outputs (its last ``ObuMetrics``): cycles it published and how many
-    of them missed their deadline; None when no metrics were heard. The report's
-    ``output_deadline_miss_ratio`` counts expected cycles without an on-time output *heard by the
-    monitor*: the two agree when the monitor hears every output (it subscribes before time zero)."""
-    if record.obu_cycles is None:
-        return None
-    return {"cycles": record.obu_cycles, "misses": record.obu_output_deadline_misses,
-            "ratio": round(record.obu_output_deadline_misses / max(record.obu_cycles, 1), 4)}
-
-
-def startup_summary(ready_s: float | None, children) -> dict:
-    """How the run started: launch -> every service ready (s), the start line's lead (s), and how
-    many ms before time zero each service began (its ``started`` line; the emulator has none)."""
-    return {"ready_s": None if ready_s is None else round(ready_s, 2), "lead_s": START_LEAD_S,
-            "started_ahead_ms": {name: ms for name, ms in ahead_ms(children).items() if ms is not None}}
-
-
-def window_summary(record: RunRecord, from_s: float, to_s: float) -> dict:
-    """Cycles and modes in scenario seconds ``[from_s, to_s)`` (shares, and the sequence of
-    modes as ``mode_runs``), and how soon after ``to_s`` tracking fusion (intra or inter)
-    resumed (None: not before the run ended); from the record's per-output cycle log."""
-    t_s = (np.array(record.cycles.cycle_ns, dtype=np.int64) - record.start_ns) * 1e-9  # (M,) arrival order
-    modes = record.cycles.modes()
-    during = np.flatnonzero((t_s >= from_s) & (t_s < to_s))
-    tracking = np.array([m in TRACKING_MODES for m in modes], dtype=bool).reshape(-1)
-    fused_after = np.flatnonzero((t_s >= to_s) & tracking)
-    expected_s = (record.cycle_times_ns - record.start_ns) * 1e-9
-    return {
-        "cycles_published_during": len(during),
-        "cycles_expected_during": int(np.count_nonzero((expected_s >= from_s) & (expected_s < to_s))),
-        "mode_share_during": mode_share([modes[i] for i in during]),
-        "mode_runs_during": mode_runs([(float(t_s[i]), modes[i]) for i in during]),
-        "fused_again_after_s": round(float(t_s[fused_after[0]]) - to_s, 3) if len(fused_after) else None,
-    }
-
-
-def mode_runs(cycles: list[tuple[float, str]]) -> list[list]:
-    """``[[from_s, mode], ...]``: where the fusion mode changed, in cycle order (the fallback sequence)."""
-    runs: list[list] = []
-    for t_s, mode in sorted(cycles):
-        if not runs or runs[-1][1] != mode:
-            runs.append([round(t_s, 3), mode])
-    return runs
-
-
-def outage_summary(record: RunRecord, outage: LinkOutage) -> dict:
-    """``window_summary`` of a link kill (``--kill-link-at``)."""
-    return {"kill_at_s": outage.at_s, "down_s": outage.down_s,
-            **window_summary(record, outage.at_s, outage.at_s + outage.down_s)}
-
-
-def chaos_summary(played: list[PlayedEvent], timeline: ChaosTimeline, record: RunRecord,
-                  outcomes: dict[int, dict]) -> list[dict]:
-    """Per played event: what and when; the emulator's outcome for a link control; and for a
-    fault with a duration, ``window_summary`` over it."""
-    rows = []
-    for p in played:
-        row: dict = {"at_s": p.event.at_s, "fired_s": p.fired_s, "event": p.event.describe()}
-        if p.event.link_control(LINK_ID) is not None:
-            outcome = outcomes.get(p.seq) if p.seq is not None else None
-            row["link_control"] = ("not sent (emulator down or unreachable)" if p.seq is None else
-                                   "not confirmed" if outcome is None else
-                                   outcome.get("result") or f"rejected ({outcome['rejected']}): {outcome['error']}")
-        window = timeline.fault_window_s(p.event, record.duration_s + 1.0)
-        if window is not None:
-            row["until_s"] = window[1]
-            row.update(window_summary(record, *window))
-        rows.append(row)
-    return rows
-
-
-def format_chaos(report: dict) -> str:
-    """Human lines for the chaos part of a report (empty without one)."""
-    if "chaos_events" not in report:
-        return ""
-    lines = [f"chaos timeline {report['chaos']}:"]
-    for row in report["chaos_events"]:
-        line = f"  {row['at_s']:6.1f} s  {row['event']}"
-        if "link_control" in row:
-            line += f" -> {row['link_control']}"
-        if "until_s" in row:
-            runs = row["mode_runs_during"]
-            modes = " > ".join(f"{mode} {t_s:g} s" for t_s, mode in runs[:MODE_RUNS_SHOWN])
-            more = f" > ... ({len(runs) - MODE_RUNS_SHOWN} more changes)" if len(runs) > MODE_RUNS_SHOWN else ""
-            again = row["fused_again_after_s"]
-            line += (f"\n           until {row['until_s']:g} s: {row['cycles_published_during']}/"
-                     f"{row['cycles_expected_during']} cycles published, modes {modes or 'none'}{more}; "
-                     f"tracking fusion again {'never' if again is None else f'{again:.2f} s after'}")
-        lines.append(line)
-    return "\n".join(lines)

@@ -32,7 +32,8 @@ from schemas.image_messages import F4, I2, U1, U4, ImageFusedBoxes, column
 from schemas.messages import ObuMetrics, RsuMetrics
 
 from .children import READY_TIMEOUT_S
-from .demo import Demo, startup_summary
+from .demo import Demo
+from .inbox_scoring import startup_summary
 from .image_fusion import FusionTally, score_frame
 from .live_security import security_argv
 

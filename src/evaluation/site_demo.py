@@ -55,7 +55,8 @@ from sim.world import World
 from telemetry.live_line import LiveLine
 
 from .children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
-from .demo import POLL_S, InboxScoring, obu_own_count, startup_summary
+from .demo import POLL_S
+from .inbox_scoring import InboxScoring, obu_own_count, startup_summary
 from .live_security import run_pki, security_argv
 from .runner import v2v_config
 from .spec import RunRecord, RunSpec, site_report

@@ -373,7 +373,7 @@ def _live(run, prog: str) -> dict | int:
 def _run_demo(demo, json_path: str | None, prog: str, report_dir: str | None = None) -> int:
     """Run a live demo and emit its report (and its PNGs into ``report_dir``); 1 when it failed,
     130 when interrupted."""
-    from evaluation.demo import format_chaos
+    from evaluation.chaos_summary import format_chaos
 
     report = _live(demo.run, prog)
     if isinstance(report, int):

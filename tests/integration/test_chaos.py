@@ -9,7 +9,8 @@ from __future__ import annotations
 import pytest
 
 from evaluation.chaos import load_chaos, with_chaos
-from evaluation.demo import TRACKING_MODES, Demo
+from evaluation.demo import Demo
+from obu_service.fusion_mode import TRACKING_MODES
 from evaluation.spec import RunSpec
 from v2i.cli import build_parser, cmd_chaos_run
 

@@ -11,7 +11,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from evaluation.demo import INBOX_MESSAGES, Demo
+from evaluation.demo import Demo
+from evaluation.inbox_scoring import INBOX_MESSAGES
 from evaluation.runner import OfflineRun
 from evaluation.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, build_report
 from fusion.frames import map_to_base
