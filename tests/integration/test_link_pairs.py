@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from evaluation.children import READY_TIMEOUT_S
 from link_emulator.config import LinkConfig
 from link_emulator.control_client import ControlError, send_control
 from link_emulator.relay import LinkRelay
@@ -32,7 +33,8 @@ from security.pki import load_signer
 from security.site import write_site
 from sim.clock import SystemClock
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(60 + READY_TIMEOUT_S)]
+DELIVERY_S = 5.0  # a few lists through an ideal relay on loopback (milliseconds each); generous for a busy machine
 
 RSU_ID = "rsu1"
 LINK_ID = "pairtest"
@@ -95,7 +97,7 @@ def running_relay(site: Site, profile: str, control_listen: list[str] = (),
     thread = threading.Thread(target=relay.run, args=(stop,), name="link-pairs")
     thread.start()
     try:
-        assert relay.ready.wait(5.0), "relay did not open its sessions"
+        assert relay.ready.wait(READY_TIMEOUT_S), "relay did not open its sessions"
         yield relay
     finally:
         stop.set()
@@ -122,16 +124,25 @@ def _wait_until_both_receive(site: Site, timeout_s: float = 8.0) -> None:
         seen |= {vid for vid, v in site.vehicles.items() if _drain(v.objects)}
 
 
-def _put_and_collect(site: Site, n: int, settle_s: float = 0.5) -> dict[str, set[bytes]]:
-    """Put n numbered lists; what each vehicle received of them after ``settle_s``."""
+def _put_and_collect(site: Site, n: int, expect: tuple[str, ...]) -> dict[str, set[bytes]]:
+    """Put n numbered lists; what each vehicle received of them once every vehicle of ``expect`` has
+    all n (at most ``DELIVERY_S``). The relay decides a list for every channel at once, so a vehicle
+    cut off would have had its copies by then; the tests then check the relay's counts of them."""
     for v in site.vehicles.values():
         _drain(v.objects)
     sent = [b"list-%d" % i for i in range(n)]
     for payload in sent:
         site.rsu.put(rsu_objects(RSU_ID), payload)
-        time.sleep(0.005)
-    time.sleep(settle_s)
-    return {vid: set(_drain(v.objects)) & set(sent) for vid, v in site.vehicles.items()}
+        time.sleep(0.005)  # paced, not a wait: a burst of puts is not what the test is about
+    got: dict[str, set[bytes]] = {vid: set() for vid in site.vehicles}
+    deadline = time.monotonic() + DELIVERY_S
+    while any(len(got[vid]) < n for vid in expect) and time.monotonic() < deadline:
+        for vid, v in site.vehicles.items():
+            try:
+                got[vid].add(v.objects.get(timeout=0.02))
+            except queue.Empty:
+                pass
+    return {vid: {*got[vid], *_drain(v.objects)} & set(sent) for vid, v in site.vehicles.items()}
 
 
 def _answered(site: Site, vid: str, timeout_s: float = 1.0) -> bool:
@@ -165,7 +176,7 @@ def test_a_control_naming_one_vehicle_cuts_only_its_channel(site: Site, tmp_path
         result = send_control([control_ep], LinkControl(link_id=LINK_ID, seq=11, vehicle_id="car2", outage=True,
                                                         duration_s=30.0), 5.0, operator)
         assert result == "outage on both for 30 s (vehicle car2)"
-        got = _put_and_collect(site, 20)
+        got = _put_and_collect(site, 20, expect=("car1",))
         assert len(got["car1"]) == 20 and got["car2"] == set()
         assert _answered(site, "car1") and not _answered(site, "car2", 0.5)
         with pytest.raises(ControlError, match="rejected it \\(unknown_vehicle\\)"):
@@ -179,7 +190,7 @@ def test_a_control_naming_one_vehicle_cuts_only_its_channel(site: Site, tmp_path
         assert stats["downlink"]["received"] == car1["downlink"]["received"] + car2["downlink"]["received"]
         assert stats["control"]["applied"] == 1 and stats["control"]["rejected"] == {"unknown_vehicle": 1}
         send_control([control_ep], LinkControl(link_id=LINK_ID, seq=13, clear=True), 5.0, operator)
-        got = _put_and_collect(site, 5)
+        got = _put_and_collect(site, 5, expect=VEHICLES)
         assert len(got["car1"]) == 5 and len(got["car2"]) == 5
 
 
@@ -204,7 +215,7 @@ def test_each_vehicle_has_its_own_distance(site: Site, tmp_path: Path) -> None:
         _wait_until_both_receive(site)
         _put_pose_until_heard(site, "car1", 40.0, 40.0)  # in range
         _put_pose_until_heard(site, "car2", 500.0, 500.0)  # beyond range: everything lost
-        got = _put_and_collect(site, 10)
+        got = _put_and_collect(site, 10, expect=("car1",))
         assert len(got["car1"]) == 10 and got["car2"] == set()
         stats = _stats_where(site, lambda s: _pair(s, "car2")["downlink"]["dropped"] >= 10)
         assert _pair(stats, "car2")["pose"]["vehicle_id"] == "car2"

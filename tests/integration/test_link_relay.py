@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from evaluation.children import READY_TIMEOUT_S
 from link_emulator.config import LinkConfig
 from link_emulator.control_client import ControlError, send_control
 from link_emulator.relay import LinkRelay
@@ -31,7 +32,7 @@ from security.pki import load_signer
 from security.site import write_site
 from sim.clock import SystemClock
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(60 + READY_TIMEOUT_S)]
 
 RSU_ID = "rsu1"
 LINK_ID = "linktest"
@@ -107,7 +108,7 @@ def running_relay(
     thread = threading.Thread(target=relay.run, args=(stop,), name="link-relay")
     thread.start()
     try:
-        assert relay.ready.wait(5.0), "relay did not open its sessions"
+        assert relay.ready.wait(READY_TIMEOUT_S), "relay did not open its sessions"
         yield relay
     finally:
         stop.set()
