@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .jit import I64, IN_F1, IN_F2, IN_I1, OUT_I1, kernel
+from .jit import I64, IN_F1, IN_F2, IN_I1, kernel
 from .lsap import linear_sum_assignment
 
 _BIG = 1e12
@@ -76,62 +76,48 @@ def assign_sparse(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n_a: int, n_b:
     sorts them by a without a sort. The bookkeeping around the solver runs compiled (numba).
     """
     a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
-    mate, rest = _single_pairs(a, b, n_a, n_b)
-    if len(rest):
-        rows, cols, sub = _sub_problem(a, b, np.asarray(cost, dtype=float), rest, n_a, n_b)
-        r, c = linear_sum_assignment(sub)
-        _take_solution(mate, rows, cols, sub, r, c)
-    return Assignment(*_matching(mate, n_b))
+    mate, rows, cols, sub = _split(a, b, np.asarray(cost, dtype=float), n_a, n_b)
+    r, c = linear_sum_assignment(sub) if sub.size else (_NONE, _NONE)
+    return Assignment(*_matching(mate, rows, cols, sub, r, c, n_b))
 
 
-@kernel(IN_I1, IN_I1, I64, I64)
-def _single_pairs(a: np.ndarray, b: np.ndarray, n_a: int, n_b: int) -> tuple[np.ndarray, np.ndarray]:
-    """mate (n_a,) with the pairs that are a component of their own (their a and b in no other pair)
-    matched, -1 elsewhere; rest (R,) the indices of the other pairs."""
+_NONE = np.zeros(0, np.int64)
+
+
+@kernel(IN_I1, IN_I1, IN_F1, I64, I64)
+def _split(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n_a: int, n_b: int):
+    """(mate, rows, cols, sub): mate (n_a,) with the pairs that are a component of their own (their a and b
+    in no other pair) matched, -1 elsewhere; the other pairs as a dense problem over their distinct rows
+    (sorted, (r,)) and columns ((c,)): sub (r, c) their cost, _BIG elsewhere (empty when there are none)."""
     count_a, count_b = np.zeros(n_a, np.int64), np.zeros(n_b, np.int64)
     for k in range(len(a)):
         count_a[a[k]] += 1
         count_b[b[k]] += 1
     mate = np.full(n_a, -1, np.int64)
-    rest = np.empty(len(a), np.int64)
-    n_rest = 0
+    row_of, col_of = np.full(n_a, -1, np.int64), np.full(n_b, -1, np.int64)
     for k in range(len(a)):
         if count_a[a[k]] == 1 and count_b[b[k]] == 1:
             mate[a[k]] = b[k]
         else:
-            rest[n_rest] = k
-            n_rest += 1
-    return mate, rest[:n_rest]
-
-
-@kernel(IN_I1, IN_I1, IN_F1, IN_I1, I64, I64)
-def _sub_problem(a: np.ndarray, b: np.ndarray, cost: np.ndarray, rest: np.ndarray, n_a: int,
-                 n_b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The pairs rest (R,) as a dense problem over their distinct rows (sorted, (r,)) and columns ((c,)):
-    sub (r, c) their cost, _BIG elsewhere."""
-    row_of, col_of = np.full(n_a, -1, np.int64), np.full(n_b, -1, np.int64)
-    for k in rest:
-        row_of[a[k]], col_of[b[k]] = 0, 0
+            row_of[a[k]], col_of[b[k]] = 0, 0
     rows, cols = np.flatnonzero(row_of == 0), np.flatnonzero(col_of == 0)
     row_of[rows], col_of[cols] = np.arange(len(rows)), np.arange(len(cols))
     sub = np.full((len(rows), len(cols)), _BIG)
-    for k in rest:
-        sub[row_of[a[k]], col_of[b[k]]] = cost[k]
-    return rows, cols, sub
+    for k in range(len(a)):
+        if count_a[a[k]] != 1 or count_b[b[k]] != 1:
+            sub[row_of[a[k]], col_of[b[k]]] = cost[k]
+    return mate, rows, cols, sub
 
 
-@kernel(OUT_I1, IN_I1, IN_I1, IN_F2, IN_I1, IN_I1)
-def _take_solution(mate: np.ndarray, rows: np.ndarray, cols: np.ndarray, sub: np.ndarray, r: np.ndarray,
-                   c: np.ndarray) -> None:
-    """The solver's pairs (r, c) of sub that are allowed (cost below _BIG) into mate."""
+@kernel(IN_I1, IN_I1, IN_I1, IN_F2, IN_I1, IN_I1, I64)
+def _matching(mate: np.ndarray, rows: np.ndarray, cols: np.ndarray, sub: np.ndarray, r: np.ndarray, c: np.ndarray,
+              n_b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """matches (K, 2) sorted by a, unmatched a, unmatched b: mate (n_a,) with the solver's pairs (r, c) of sub
+    that are allowed (cost below _BIG) added (on a copy)."""
+    mate = mate.copy()
     for k in range(len(r)):
         if sub[r[k], c[k]] < _BIG:
             mate[rows[r[k]]] = cols[c[k]]
-
-
-@kernel(IN_I1, I64)
-def _matching(mate: np.ndarray, n_b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """matches (K, 2) sorted by a, unmatched a, unmatched b from mate (n_a,)."""
     matched = mate >= 0
     ma = np.flatnonzero(matched)
     matches = np.empty((len(ma), 2), np.int64)
