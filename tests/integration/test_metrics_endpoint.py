@@ -13,9 +13,10 @@ import urllib.request
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
+from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, Child, start_all, wait_ready
 from schemas.transport import free_tcp_endpoint
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(2 * READY_TIMEOUT_S + 30)]
 
 
 def free_port() -> int:
@@ -40,7 +41,7 @@ def cycles_total(url: str) -> float | None:
 def wait_for_cycles(url: str, proc: subprocess.Popen, at_least: float, timeout_s: float) -> float:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        assert proc.poll() is None, f"the OBU exited early: {proc.communicate()[1][-2000:]}"
+        assert proc.poll() is None, f"the OBU exited early with {proc.returncode}"
         value = cycles_total(url)
         if value is not None and value >= at_least:
             return value
@@ -51,20 +52,19 @@ def wait_for_cycles(url: str, proc: subprocess.Popen, at_least: float, timeout_s
 def test_a_running_obu_serves_growing_cycle_counts_and_a_taken_port_is_a_start_up_error():
     port = free_port()
     url = f"http://127.0.0.1:{port}/metrics"
-    argv = [sys.executable, "-m", "v2i", "obu", "--duration", "30", "--metrics-port", str(port)]
-    obu = subprocess.Popen([*argv, "--listen", free_tcp_endpoint()], stdout=subprocess.DEVNULL,
-                           stderr=subprocess.PIPE, text=True)
+    argv = [sys.executable, "-m", "v2i", "obu", "--duration", "60", "--metrics-port", str(port)]
+    obu = Child("obu", [*argv, "--listen", free_tcp_endpoint(), "--await-start"])
     try:
-        first = wait_for_cycles(url, obu, 1, 40.0)
-        wait_for_cycles(url, obu, first + 3, 10.0)  # read at scrape time: it follows the running node
-        second = subprocess.run([*argv, "--listen", free_tcp_endpoint()], capture_output=True, text=True, timeout=60)
+        wait_ready([obu])  # its /metrics is served from before the ready line
+        start_all([obu])
+        # the first cycle at time zero, 10 Hz: the counter grows within a second; 10 s for a busy machine
+        first = wait_for_cycles(url, obu.proc, 1, START_LEAD_S + 10.0)
+        wait_for_cycles(url, obu.proc, first + 3, 10.0)  # read at scrape time: it follows the running node
+        # a second OBU (not awaiting a start: the port is checked at start-up), up to its start-up bound
+        second = subprocess.run([*argv, "--listen", free_tcp_endpoint()], capture_output=True, text=True,
+                                timeout=READY_TIMEOUT_S)
         assert second.returncode == 2
         assert f"--metrics-port {port}: cannot listen on 127.0.0.1:{port}" in second.stderr
     finally:
-        obu.terminate()
-        try:
-            obu.wait(10)
-        except subprocess.TimeoutExpired:
-            obu.kill()
-            obu.wait()
-    assert obu.returncode == 0
+        obu.stop(timeout_s=10.0)
+    assert obu.proc.returncode == 0

@@ -19,8 +19,9 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from evaluation.demo import Child
+from evaluation.children import READY_TIMEOUT_S, Child, wait_ready
 from schemas.transport import (
+    CLIENT_CONNECT_TIMEOUT_MS,
     SESSION_MODE_ENV,
     free_tcp_endpoint,
     open_session,
@@ -28,11 +29,13 @@ from schemas.transport import (
     session_mode,
 )
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(90 + 3 * READY_TIMEOUT_S)]  # three routers at most
 
 ROUTER_CONFIG = Path(__file__).resolve().parents[2] / "deploy" / "router.json5"
-READY_S = 15.0  # an interpreter with zenoh starting on two shared cores
 DELIVERY_S = 5.0  # a message through a ready router, including the clients' interest exchange
+# how long v2i's client waits for its router before giving up (s); a router process was ready 1.1-1.2 s after
+# its start with two busy loops on the 2 cores (load ~12)
+CLIENT_WAIT_S = CLIENT_CONNECT_TIMEOUT_MS / 1000
 KEY = "v2x/test/router"
 
 
@@ -41,7 +44,7 @@ def router(*args: str) -> Iterator[Child]:
     """A ``v2i router`` process, ready; stopped with SIGTERM afterwards."""
     child = Child("router", [sys.executable, "-m", "v2i", "router", *args])
     try:
-        child.wait_ready(time.monotonic() + READY_S)
+        wait_ready([child])
         yield child
     finally:
         child.stop()
@@ -110,7 +113,7 @@ def test_a_client_started_before_its_router_waits_for_it() -> None:
     time.sleep(1.0)
     assert opened.empty(), "the client gave up (or connected) before any router was up"
     with router("--listen", ep):
-        early = opened.get(timeout=READY_S)
+        early = opened.get(timeout=CLIENT_WAIT_S)  # it connected, or gave up, within its own wait
         assert isinstance(early, zenoh.Session), f"the early client failed: {early}"
         try:
             with client(ep) as late:
@@ -148,15 +151,25 @@ def test_router_stops_on_sigterm_and_after_its_duration_and_logs_endpoints() -> 
     ep = free_tcp_endpoint()
     proc = subprocess.Popen([sys.executable, "-m", "v2i", "router", "--listen", ep, "--duration", "60"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines: queue.Queue[str] = queue.Queue()
+    reader = threading.Thread(target=lambda: [lines.put(line) for line in proc.stderr], daemon=True)
+    reader.start()
     try:
         ready = json.loads(proc.stdout.readline())  # blocks until ready; the test's timeout bounds it
         assert ready["event"] == "ready" and ready["listen"] == [ep] and ready["connect"] == []
-        with client(ep):
-            time.sleep(0.5)  # its transport event reaches the router's log
+        err, deadline = [], time.monotonic() + DELIVERY_S
+        with client(ep):  # until its transport event is in the router's log
+            while not any("connected" in line for line in err) and (left_s := deadline - time.monotonic()) > 0:
+                try:
+                    err.append(lines.get(timeout=left_s))
+                except queue.Empty:
+                    break
         t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=10.0)
+        proc.wait(timeout=10.0)
         assert proc.returncode == 0 and time.monotonic() - t0 < 5.0
+        reader.join(5.0)
+        err = "".join(err) + "".join(lines.get() for _ in range(lines.qsize()))
         assert f"listening on {ep}" in err and "client" in err and "connected" in err and "stopped" in err
     finally:
         if proc.poll() is None:
