@@ -149,7 +149,8 @@ def test_wait_ready_names_who_is_late_after_the_bound_and_shows_progress(capsys)
     assert "v2i demo: waiting for quick, slow (0.0 s)" in capsys.readouterr().err  # not a tty: a plain line
 
 
-@pytest.mark.parametrize("command", [["demo"], ["chaos", "run", "examples/chaos/outage-10s.yaml"]])
+@pytest.mark.parametrize("command", [["demo"], ["chaos", "run", "examples/chaos/outage-10s.yaml"],
+                                     ["fuzz", "--target", "rsu"]])
 def test_ready_timeout_flag(command, capsys):
     from v2i.cli import _ready_timeout, build_parser, main
 
