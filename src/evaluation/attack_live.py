@@ -219,7 +219,7 @@ class AttackRun:
         finally:
             line.stop()
         if missing:
-            raise NotReady(f"not ready within {timeout_s:g} s (--ready-timeout): no {'; no '.join(missing)}")
+            raise NotReady(f"not ready within {timeout_s:g} s (--ready-timeout): still waiting for {'; '.join(missing)}")
         self.messages = AttackMessages(self.args.rsu_id, self.attacker, self.rng, self.digest, self.args.link_id)
 
     def _snapshot(self) -> tuple:
