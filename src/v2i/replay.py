@@ -271,7 +271,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("v2i replay needs --connect EP (the OBU's endpoint), or --score")
     given = [f"--{dest.replace('_', '-')}" for dest in _RUN_FLAGS if getattr(args, dest) is not None]
     if given:
-        raise ValueError(f"{', '.join(given)} go with --score (the run a fresh OBU is started for)")
+        raise ValueError(f"{', '.join(given)}: only with --score (the run a fresh OBU is started for)")
     recording = Recording(args.recording)
     say_if_not_closed(recording)
     replayer = Replayer(recording, args.side, args.keys, args.speed)
