@@ -244,7 +244,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                      "time exchanges with the RSUs (--time-from) so that v2i replay can rebuild their clocks. Signed "
                      "messages (RSUs with --pki) are kept with their envelopes and signatures, as on the wire; the "
                      "Foxglove channels and v2i replay read the payload inside (unchecked). Ctrl-C / SIGTERM close the "
-                     "file with its summary; a recorder killed otherwise (SIGKILL, power) loses at most its last "
+                     "file with its summary; a recorder killed by SIGKILL loses at most its last "
                      "second and a full disk stops it (exit 1): either file still reads back (v2i replay says it "
                      "was not closed).")
     p.add_argument("--connect", action="append", required=True, metavar="[LABEL=]EP",
