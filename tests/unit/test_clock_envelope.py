@@ -1,4 +1,5 @@
-"""The compiled clock statistics (obu_service.clock_envelope) equal their numpy / scipy definitions."""
+"""The compiled clock statistics (obu_service.clock_envelope) equal their numpy / scipy definitions
+(obu_service.envelope_reference), the whole window fit included."""
 
 import math
 
@@ -6,92 +7,11 @@ import numpy as np
 import pytest
 from scipy.stats import theilslopes
 
-from obu_service.clock_envelope import (QUEUED_NS, _order, _quantile, _tail_mean_sd, consensus, fit_drift,
+from obu_service import envelope_reference as ref
+from obu_service.clock_envelope import (QUEUED_NS, _order, _quantile, _tail_mean_sd, consensus, fit_drift, fit_window,
                                         leg_envelope, shared_slope, theil_sen_slope)
 
 PRIOR = (0.0, 100_000.0)  # ns/s: 0 +- 100 ppm
-
-
-# --- numpy definitions ---------------------------------------------------------------------------
-
-def tail_size(n, q):
-    return min(n, max(1, math.ceil(q * n)))
-
-
-def ref_tail_mean_sd(r, q):
-    tail = np.sort(r)[:tail_size(len(r), q)]
-    dev = tail - tail[-1]
-    return np.sqrt(max(np.mean(dev**2) / q - np.mean(dev) ** 2, 0.0))
-
-
-def ref_bin_points(t, r, sign, d, bin_s, phase_s, q):
-    """(mean t, sign E + d t) of each bin of un-queued readings holding at least half the median count."""
-    bins = np.floor((t + phase_s) / bin_s)
-    keep = r <= r.min() + QUEUED_NS
-    t, r, bins = t[keep], r[keep], bins[keep]
-    values, counts = np.unique(bins, return_counts=True)
-    points = [(t[bins == v].mean(), sign * np.sort(r[bins == v])[:tail_size(c, q)].mean())
-              for v, c in zip(values, counts) if c >= 0.5 * np.median(counts)]
-    return [(tb, e + d * tb) for tb, e in points]
-
-
-def ref_shared_slope(groups, min_resid):
-    """Least squares with one slope column and an intercept column per group (np.linalg.lstsq)."""
-    groups = [g for g in groups if len(g) >= 2]
-    if sum(len(g) >= 3 for g in groups) < 2:
-        return None
-    design = np.zeros((sum(map(len, groups)), 1 + len(groups)))
-    y, row = np.empty(len(design)), 0
-    for k, g in enumerate(groups):
-        design[row:row + len(g), 0], design[row:row + len(g), 1 + k] = [p[0] for p in g], 1.0
-        y[row:row + len(g)] = [p[1] for p in g]
-        row += len(g)
-    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
-    rss = float(np.sum((y - design @ coef) ** 2))
-    sxx = sum(np.sum((np.array([p[0] for p in g]) - np.mean([p[0] for p in g])) ** 2) for g in groups)
-    return coef[0], np.sqrt(max(rss / max(1, len(y) - len(groups) - 1), min_resid**2) / sxx)
-
-
-def ref_fit_drift(legs, bin_s, phase_s, q, prior, min_resid):
-    """fit_drift of legs [(t, z, sign)] as its docstring defines it."""
-    legs = [leg for leg in legs if len(leg[0]) >= 3]
-    if sum(len(np.unique(np.floor((t + phase_s) / bin_s))) >= 3 for t, _, _ in legs) < 2:
-        return prior
-    (d0, sd0), d = prior, prior[0]
-    n = sum(len(t) for t, _, _ in legs)
-    for _ in range(2):
-        detrended = [z - s * d * t for t, z, s in legs]
-        groups = [ref_bin_points(t, r, s, d, bin_s, phase_s, q) for (t, _, s), r in zip(legs, detrended)]
-        floor = max(min_resid, max(ref_tail_mean_sd(r, q) for r in detrended)
-                    / np.sqrt(max(1.0, n / max(sum(map(len, groups)), 1))))
-        slopes = [(b[1] - a[1]) / (b[0] - a[0])
-                  for g in groups for i, a in enumerate(g) for b in g[i + 1:] if b[0] != a[0]]
-        if slopes:
-            robust = np.median(slopes)
-            groups = [g if len(g) < 4 else [p for p, e in zip(g, excess) if e <= np.percentile(excess, 25) + 3 * floor]
-                      for g, (_, _, s) in zip(groups, legs) for excess in [[s * (y - robust * t) for t, y in g]]]
-        fit = ref_shared_slope(groups, floor)
-        if fit is None:
-            return prior
-        s, se = fit
-        d, sd = d0 + sd0**2 / (sd0**2 + se**2) * (s - d0), (1 / sd0**2 + 1 / se**2) ** -0.5
-    return d, sd
-
-
-def ref_leg_envelope(t, z, sign, drift, drift_bound, q, horizon_s, margin_ns, min_readings=3):
-    r = z - sign * drift * t
-    usable = np.flatnonzero(r <= r.min() + QUEUED_NS)
-    order = usable[np.argsort(-t[usable], kind="stable")]
-    ages, best, h = -t[order], None, horizon_s
-    while True:
-        rows = order[:max(min(min_readings, len(order)), int(np.searchsorted(ages, h, side="right")))]
-        low = rows[np.argsort(r[rows], kind="stable")[:tail_size(len(rows), q)]]
-        env = (r[low].mean(), max(0.0, -t[low].mean()))
-        if best is None or env[0] + drift_bound * env[1] < best[0] + drift_bound * best[1] - margin_ns:
-            best = env
-        if h >= ages[-1]:
-            return best
-        h *= 2.0
 
 
 # --- windows -------------------------------------------------------------------------------------
@@ -114,8 +34,8 @@ def window(rng, n, drift_ns_per_s=40_000.0, segments=1):
 
 
 def legs_of(t_up, z_up, t_down, z_down, group):
-    return [leg for g in range(group.max() + 1) for leg in ((t_up[group == g], z_up[group == g], 1),
-                                                           (t_down[group == g], z_down[group == g], -1))]
+    return [leg for g in range(group.max() + 1) for leg in ((t_up[group == g], z_up[group == g], 1.0),
+                                                           (t_down[group == g], z_down[group == g], -1.0))]
 
 
 # --- the tests ------------------------------------------------------------------------------------
@@ -128,7 +48,7 @@ def test_the_sort_and_quantiles_equal_numpy():
             s = np.sort(x)
             for p in (0.25, 0.5):
                 assert _quantile(s, p) == pytest.approx(np.percentile(x, 100 * p), rel=1e-12, abs=1e-9)
-            assert _tail_mean_sd(x, 0.1) == pytest.approx(ref_tail_mean_sd(x, 0.1), rel=1e-9, abs=1e-6)
+            assert _tail_mean_sd(x, 0.1) == pytest.approx(ref.tail_mean_sd(x, 0.1), rel=1e-9, abs=1e-6)
 
 
 def test_shared_slope_and_theil_sen_equal_the_library_fits():
@@ -137,7 +57,7 @@ def test_shared_slope_and_theil_sen_equal_the_library_fits():
     ys = [3.0 * t + c + rng.normal(0, 0.5, len(t)) for t, c in zip(groups, (10.0, -4.0, 100.0))]
     t, y, first = np.concatenate(groups), np.concatenate(ys), np.array([0, 7, 19, 24])
     ok, d, se = shared_slope(t, y, first, 0.0)
-    want = ref_shared_slope([list(zip(a, b)) for a, b in zip(groups, ys)], 0.0)
+    want = ref.shared_slope([list(zip(a, b)) for a, b in zip(groups, ys)], 0.0)
     assert ok and d == pytest.approx(want[0], rel=1e-9) and se == pytest.approx(want[1], rel=1e-9)
     assert theil_sen_slope(groups[1], ys[1], np.array([0, 12])) == pytest.approx(theilslopes(ys[1], groups[1]).slope,
                                                                                   rel=1e-12)
@@ -154,13 +74,13 @@ def test_fit_drift_and_the_leg_envelope_equal_their_numpy_definitions():
         t_up, z_up, t_down, z_down, group = window(rng, n, segments=segments)
         phase = float(rng.uniform(0, 2))
         got = fit_drift(t_up, z_up, t_down, z_down, group, 2.0, phase, 0.1, *PRIOR, 50_000.0)
-        want = ref_fit_drift(legs_of(t_up, z_up, t_down, z_down, group), 2.0, phase, 0.1, PRIOR, 50_000.0)
+        want = ref.fit_drift(legs_of(t_up, z_up, t_down, z_down, group), 2.0, phase, 0.1, PRIOR, 50_000.0)
         assert got == pytest.approx(want, rel=1e-9, abs=1e-6)
         fitted += got != PRIOR
         mine = group == group.max()
         for t, z, sign in ((t_up[mine], z_up[mine], 1), (t_down[mine], z_down[mine], -1)):
             args = (sign, got[0], 3 * got[1], 0.1, float(rng.choice([2.0, 10.0, 30.0])), 2e6)
-            assert leg_envelope(t, z, *args, 3) == pytest.approx(ref_leg_envelope(t, z, *args), rel=1e-9, abs=1e-6)
+            assert leg_envelope(t, z, *args, 3) == pytest.approx(ref.leg_envelope(t, z, *args), rel=1e-9, abs=1e-6)
     assert fitted > 40  # most windows are old enough for a fit (the rest: the prior, on both sides)
 
 
@@ -174,17 +94,6 @@ def test_a_young_window_fits_the_prior_and_three_bins_on_two_legs_fit_the_readin
     assert sd < PRIOR[1] and abs(drift - 40_000.0) < 3 * sd
 
 
-def _consensus_by_lexsort(t_up, z_up, t_down, z_down, drift, slack_ns, among):
-    """Marzullo's point as np.lexsort of (-kinds, points) defines it (an opening before a closing)."""
-    lo, hi = -(z_down + drift * t_down) - slack_ns, (z_up - drift * t_up) + slack_ns
-    points = np.concatenate((lo[among], hi[among]))
-    voters = int(np.count_nonzero(among))
-    kinds = np.concatenate((np.ones(voters), -np.ones(voters)))
-    order = np.lexsort((-kinds, points))
-    theta = points[order][int(np.argmax(np.cumsum(kinds[order])))]
-    return (lo <= theta) & (theta <= hi)
-
-
 def test_consensus_equals_the_lexsort_of_openings_before_closings():
     """Ties everywhere (integer readings: an opening and a closing at the same value, equal
     openings), every exchange or a subset voting, a few exchanges or many: the same agreement."""
@@ -196,7 +105,7 @@ def test_consensus_equals_the_lexsort_of_openings_before_closings():
                 float(rng.choice([0.0, 0.5, -1.25])), rng.integers(0, 3, n).astype(float))
         among = np.ones(n, bool) if rng.random() < 0.5 else rng.random(n) < 0.7
         among[0] = True
-        assert np.array_equal(consensus(*args, among), _consensus_by_lexsort(*args, among))
+        assert np.array_equal(consensus(*args, among), ref.consensus(*args, among))
 
 
 def test_the_sort_s_shortcuts_and_the_k_least_equal_numpy_s_stable_argsort():
@@ -220,3 +129,39 @@ def test_the_sort_s_shortcuts_and_the_k_least_equal_numpy_s_stable_argsort():
         x[rng.integers(0, n)] = np.nan  # _lowest falls back to _order
         for k in (1, n):
             assert np.array_equal(_lowest(x, k), _order(x)[:k])
+
+
+def exchanges(rng, n, segments):
+    """n four-timestamp exchanges at ~10 Hz (times (n, 4) int64 ns, segment (n,)): an RSU clock 2 s ahead
+    drifting by 40 ppm, stepping between segments, exponential delays, a few queued replies and forgeries."""
+    t1 = 1_700_000_000 * 10**9 + np.cumsum(rng.integers(90, 110, n)) * 10**6
+    segment = np.minimum(np.arange(n) * segments // n, segments - 1)
+    theta = 2e9 + 40e3 * (t1 - t1[0]) / 1e9 + np.array([0.0, 3e8, -2e8])[segment]
+    up, down = rng.exponential(3e6, n) + 1e6, rng.exponential(3e6, n) + 1e6
+    down[rng.random(n) < 0.03] += 3e8  # a reply queued for a while
+    t2 = t1 + up + theta
+    t3 = t2 + rng.integers(10_000, 200_000, n)
+    t4 = t3 - theta + down
+    forged = rng.random(n) < 0.04
+    t2[forged] += rng.choice([-1.0, 1.0], forged.sum()) * 5e7  # replies that disagree
+    return np.column_stack([t1, t2, t3, t4]).astype(np.int64), segment.astype(np.int64)
+
+
+def test_fit_window_equals_its_numpy_reference():
+    """The whole compiled window fit against envelope_reference.fit_window on windows of 1-300 exchanges over up
+    to three clock segments with queued and forged replies, young and old fits: the same exchanges left out and
+    the same arming, every number to rounding."""
+    rng = np.random.default_rng(8)
+    armed = 0
+    for trial in range(120):
+        n, segments = int(rng.integers(1, 300)), int(rng.integers(1, 4))
+        times, segment = exchanges(rng, n, min(segments, n))
+        prev = (float(rng.choice([0.0, 35e3])), float(rng.choice([100e3, 5e3])))
+        args = (times, segment, *prev, 0.0, 100e3, 2 * 10**9, 0.1, 500e3, 3.0, 30.0, 2e6, 10, 30, 50e3)
+        got, want = fit_window(*args), ref.fit_window(*args)
+        assert np.array_equal(got[0], want[0]) and got[10] == want[10] and got[1] == want[1], trial
+        assert got[7] == want[7] and got[9] == want[9], trial  # the t1 and t4 of the least readings
+        for a, b in zip(got[2:10], want[2:10]):
+            assert a == pytest.approx(b, rel=1e-9, abs=1e-3), trial
+        armed += got[10]
+    assert 10 < armed < 110  # both young and armed windows
