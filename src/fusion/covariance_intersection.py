@@ -352,11 +352,12 @@ def ci_fuse_objects(x: np.ndarray, p: np.ndarray, rows: np.ndarray, xy: np.ndarr
             for b in range(2):
                 r[k, a, b], r[k, 2 + a, 2 + b] = cov_xy[j, a, b], cov_vxy[j, a, b]
         dim[k] = m
-        w[k] = _weight(p[rows[k]], r[k, :m, :m], 0)
+        # (R's block as a contiguous copy, the layout _update_pair's S has: one compile of _inverse_cholesky)
+        w[k] = _weight(p[rows[k]], r[k, :m, :m].copy(), 0)
     for k in range(n_pairs):
         if w[k] < 1.0:
             m = dim[k]
-            _update_pair(x[rows[k]], p[rows[k]], z[k, :m], r[k, :m, :m], w[k], 0)
+            _update_pair(x[rows[k]], p[rows[k]], z[k, :m], r[k, :m, :m].copy(), w[k], 0)
 
 
 def covariance_intersection(x1: np.ndarray, p1: np.ndarray, x2: np.ndarray, p2: np.ndarray,

@@ -116,7 +116,7 @@ def _intersection_area(a: np.ndarray, b: np.ndarray) -> float:
     bx, by = np.empty(4), np.empty(4)
     _corners(a, px, py)
     _corners(b, bx, by)
-    m = 4
+    m = len(bx)  # 4 corners, an int64 (the constant 4 is a literal type: _clip would compile twice)
     for e in range(4):
         m = _clip(px, py, m, bx[e], by[e], bx[(e + 1) % 4], by[(e + 1) % 4], qx, qy)
         px, qx, py, qy = qx, px, qy, py
