@@ -40,7 +40,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .identity_memo import IdentityMemo
-from .jit import F64, IN_F2, OUT_I1, kernel
 from .objects import ObjectArray
 
 _S = np.array([[0.0, -1.0], [1.0, 0.0]])  # R(pi/2): dR(yaw)/dyaw = S R(yaw)
@@ -148,46 +147,9 @@ def map_to_base_points(xy: np.ndarray, ego: Pose2D) -> np.ndarray:
 
 def outside_box_rows(xy: np.ndarray, ego: Pose2D, half_l_m: float, half_w_m: float) -> np.ndarray:
     """Indices (M,) of the points xy (N, 2) in map that lie outside the box |x_b| <= half_l_m,
-    |y_b| <= half_w_m around the ego (p_b = ``map_to_base_points(xy, ego)``), ascending: exactly the
-    rows ``flatnonzero(~((|x_b| <= half_l_m) & (|y_b| <= half_w_m)))`` of that numpy expression.
-
-    One compiled pass (``_outside_rows``) decides every point farther than rounding from the box's
-    edges; a list with a point nearer (or not finite) takes the numpy expression itself."""
-    xy = np.asarray(xy, dtype=float)
-    if xy.ndim == 2 and xy.shape[1] == 2:  # (what the pass reads)
-        keep = np.empty(len(xy), np.int64)
-        m = _outside_rows(xy, float(ego.x), float(ego.y), math.cos(ego.yaw), math.sin(ego.yaw), half_l_m, half_w_m,
-                          keep)
-        if m >= 0:
-            return keep[:m]
+    |y_b| <= half_w_m around the ego (p_b = ``map_to_base_points(xy, ego)``), ascending."""
     local = map_to_base_points(xy, ego)
     return np.flatnonzero(~((np.abs(local[:, 0]) <= half_l_m) & (np.abs(local[:, 1]) <= half_w_m)))
-
-
-@kernel(IN_F2, F64, F64, F64, F64, F64, F64, OUT_I1)
-def _outside_rows(xy, x, y, c, s, half_l, half_w, keep):
-    """``outside_box_rows``' pass: the rows outside the box into keep[:m], returns m; -1 when a point
-    lies within ``slack`` of an edge or is not finite.
-
-    numpy's p_b = (p - t) @ R(yaw) rounds d = p - t as here and then forms each coordinate, a sum of
-    two products, in an order of its BLAS's choosing (fused multiply-adds or not): any such order is
-    within gamma_2 (|d_x| + |d_y|) of the exact sum (gamma_2 = 2u / (1 - 2u), u = 2^-53), and so is
-    this one; its c, s come from math.cos / math.sin, a few ulps at most from numpy's np.cos / np.sin,
-    which moves the exact sum by a few u (|d_x| + |d_y|). All of it is below ~2e-15 (|d_x| + |d_y|),
-    so a coordinate farther than slack = 1e-12 (1 + |d_x| + |d_y|) from its edge compares alike in both.
-    """
-    m = 0
-    for i in range(xy.shape[0]):
-        dx, dy = xy[i, 0] - x, xy[i, 1] - y
-        ex = abs(dx * c + dy * s) - half_l  # > 0: outside in x_b = d_x c + d_y s
-        ey = abs(dy * c - dx * s) - half_w  # > 0: outside in y_b = -d_x s + d_y c
-        slack = 1e-12 * (1.0 + abs(dx) + abs(dy))
-        if not (abs(ex) > slack and abs(ey) > slack):  # near an edge, or NaN
-            return -1
-        if ex > 0.0 or ey > 0.0:
-            keep[m] = i
-            m += 1
-    return m
 
 
 def base_to_map_points(xy: np.ndarray, ego: Pose2D) -> np.ndarray:
