@@ -37,6 +37,10 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(60 + READY_TIMEOUT_S)
 RSU_ID = "rsu1"
 LINK_ID = "linktest"
 NS_PER_MS = 1_000_000
+# What a busy machine adds to a delivery on top of a profile's delay (ms): with two busy loops on the 2 cores
+# (load ~13) a 50 ms delay took 68 ms end to end and the relay fired 4.9-9.5 ms after the due time (mean 6.6).
+# Half the test profile's 50 ms: a delay applied twice, or not at all, is still told apart.
+BUSY_MS = 25.0
 
 
 @dataclass
@@ -189,13 +193,13 @@ def test_fixed_delay_profile_delays_each_direction(sides: Sides, tmp_path: Path)
             sides.rsu.put(rsu_objects(RSU_ID), payload)
             receive_ns = _wait_for_payload(sides.objects, payload, 2.0)
             assert receive_ns is not None
-            assert 50.0 <= (receive_ns - send_ns) / NS_PER_MS < 65.0
+            assert 50.0 <= (receive_ns - send_ns) / NS_PER_MS < 50.0 + BUSY_MS  # never early; the delay once
         _wait_until_queries_answered(sides)
         replies, rtt_ms = _time_query(sides, b"t1", 2.0)
         assert replies and replies[0].startswith(b"t1|")
-        assert 100.0 <= rtt_ms < 160.0
+        assert 100.0 <= rtt_ms < 100.0 + 2 * BUSY_MS  # each direction's delay, once
     lateness = relay.stats_snapshot(time.time_ns())["lateness_ms"]
-    assert lateness["count"] > 0 and lateness["mean"] < 5.0
+    assert lateness["count"] > 0 and lateness["mean"] < BUSY_MS
 
 
 def test_total_downlink_loss_delivers_nothing(sides: Sides, tmp_path: Path) -> None:
