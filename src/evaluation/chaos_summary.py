@@ -95,6 +95,6 @@ def format_chaos(report: dict) -> str:
             again = row["fused_again_after_s"]
             line += (f"\n           until {row['until_s']:g} s: {row['cycles_published_during']}/"
                      f"{row['cycles_expected_during']} cycles published, modes {modes or 'none'}{more}; "
-                     f"tracking fusion again {'never' if again is None else f'{again:.2f} s after'}")
+                     f"tracking fusion again {'not before the end' if again is None else f'{again:.2f} s after'}")
         lines.append(line)
     return "\n".join(lines)

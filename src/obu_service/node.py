@@ -344,7 +344,10 @@ class ObuNode:
         """The intake's refusals into the pipeline's counters; the new ones to the throttled log."""
         for reason, n in self._intake.take_counts().items():
             self.pipeline.reject(reason, n)
-        self._log.totals(self.pipeline.rejected, self._details)
+        # an RSU or a peer that sees this vehicle reports it too: dropping that is normal work, not a refusal
+        # worth a log line (still counted in the metrics)
+        refused = {r: n for r, n in self.pipeline.rejected.items() if not r.endswith("ego_self_detection")}
+        self._log.totals(refused, self._details)
 
     def _do_sync(self, _due_ns: int, _) -> None:
         if self._v2v is not None:
