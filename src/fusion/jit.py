@@ -20,7 +20,8 @@ others) at its first call, or when ``load_kernels`` loads every kernel: the serv
 offline evaluator do that before they start, so that no cycle ever waits for the compiler. The
 machine code is cached under ``__pycache__`` (or the user's cache directory where the package is
 not writable): compiled once per machine (``v2i warm`` does it ahead; a compile says so on stderr
-within a second, ``CompileProgress``), then loaded in ~0.3-0.4 s per process (most of it numba's own set-up at the first load; its check for
+within a second, ``CompileProgress``; the kernels not in the cache compile in one worker process per
+core, whole modules each, ``compile_apart``), then loaded in ~0.3-0.4 s per process (most of it numba's own set-up at the first load; its check for
 BLAS and LAPACK reaches scipy's two Cython modules directly: ``preload_scipy_blas``). Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
 arrays convert to them), the arrays a kernel writes ``OUT_*``; an array of another dtype is a
 ``TypeError`` (callers pass float64 and int64). ``helper`` is for the functions the kernels
@@ -35,8 +36,12 @@ from __future__ import annotations
 import importlib
 import importlib.machinery
 import importlib.util
+import inspect
 import os
+import queue
+import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Callable, TextIO
@@ -134,19 +139,117 @@ def warm() -> tuple[str, int]:
             compiled)
 
 
-def load_each(kernels: list[Kernel], stream: TextIO | None = None) -> int:
-    """Load (or compile) these kernels; how many of them compiled. Nothing is printed unless one compiles."""
+def load_each(kernels: list[Kernel], stream: TextIO | None = None, workers: int | None = None) -> int:
+    """Load (or compile) these kernels; how many of them compiled. Nothing is printed unless one compiles.
+    Those not in the cache are compiled first by ``workers`` processes at once (default: one per core, at
+    most ``MAX_WORKERS``; ``compile_apart``), then all of them load here."""
     pending = [k for k in kernels if k._compiled is None]
     if not pending:
         return 0
     progress = CompileProgress(len(pending), cache_location([k.cache_dir() for k in pending]),
                                sys.stderr if stream is None else stream)
+    missing = [k for k in pending if in_cache(k) is False]
+    apart = compile_apart(missing, progress, _cores() if workers is None else workers)
     with event.install_listener("numba:compile", progress):
         for k in pending:
             k._compile()
-            progress.loaded()
+            if k not in apart:
+                progress.loaded()
     progress.finish()
     return progress.compiled
+
+
+def in_cache(k: Kernel) -> bool | None:
+    """Whether numba's cache holds k's machine code for this source (None: this numba cannot be asked;
+    its ``Cache`` internals, as ``Dispatcher.compile`` reads them)."""
+    try:
+        dispatcher = k._lazy_dispatcher()
+        dispatcher.targetctx.refresh()
+        cache = dispatcher._cache
+        return cache._index_key(k.argument_types, dispatcher.targetctx.codegen()) in cache._cache_file._load_index()
+    except Exception:  # noqa: BLE001  (any other numba: the kernels compile here, one after the other)
+        return None
+
+
+MAX_WORKERS = 4
+_WORKER = "import sys; from fusion.jit import compile_named; compile_named(sys.argv[1:])"
+
+
+def compile_apart(kernels: list[Kernel], progress: CompileProgress, workers: int) -> set[Kernel]:
+    """Compile these kernels into the cache in ``workers`` processes at once, the kernels of one module in one
+    process (a kernel's helpers live in its module: no two processes write one cache index), and say so in
+    ``progress``; the kernels they compiled. Nothing (they compile here) for one worker or one module."""
+    groups = _groups(kernels, workers)
+    if len(groups) < 2:
+        return set()
+    progress.started(len(groups))
+    by_name = {_name(k): k for k in kernels}
+    lines: queue.SimpleQueue = queue.SimpleQueue()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    procs = [subprocess.Popen([sys.executable, "-c", _WORKER, *map(_name, g)], stdout=subprocess.PIPE,
+                              stderr=subprocess.DEVNULL, text=True, env=env) for g in groups]
+    for proc in procs:
+        threading.Thread(target=_pump, args=(proc.stdout, lines), daemon=True).start()
+    done, running = set(), len(procs)
+    while running:
+        line = lines.get()
+        if line is None:
+            running -= 1
+        elif by_name.get(line.strip()) is not None and by_name[line.strip()] not in done:
+            done.add(by_name[line.strip()])
+            progress.loaded(compiled=True)
+    for proc in procs:
+        proc.wait()
+    return done
+
+
+def compile_named(names: list[str]) -> None:
+    """A worker of ``compile_apart``: compile the kernels ``module:name`` into the cache, a line per kernel done."""
+    for name in names:
+        module, _, fn = name.partition(":")
+        importlib.import_module(module)
+        kernel = next(k for k in Kernel._all if _name(k) == name)
+        kernel._compile()
+        print(name, flush=True)
+
+
+def _name(k: Kernel) -> str:
+    return f"{k.fn.__module__}:{k.fn.__qualname__}"
+
+
+def _pump(stream: TextIO, lines: queue.SimpleQueue) -> None:
+    for line in stream:
+        lines.put(line)
+    lines.put(None)
+
+
+def _groups(kernels: list[Kernel], workers: int) -> list[list[Kernel]]:
+    """The kernels in at most ``workers`` groups of whole modules, the larger modules (by the size of their
+    compiled source, ``_jitted_size``: what a compile's time follows) first, each to the lightest group."""
+    modules: dict[str, list[Kernel]] = {}
+    for k in kernels:
+        modules.setdefault(k.fn.__module__, []).append(k)
+    size = {m: _jitted_size(sys.modules[m]) for m in modules}
+    groups: list[list[Kernel]] = [[] for _ in range(max(1, min(workers, len(modules))))]
+    weight = [0] * len(groups)
+    for m in sorted(modules, key=lambda m: -size[m]):
+        lightest = weight.index(min(weight))
+        groups[lightest] += modules[m]
+        weight[lightest] += size[m]
+    return [g for g in groups if g]
+
+
+def _jitted_size(module) -> int:
+    """Characters of source of a module's kernels and helpers (numba dispatchers: their ``py_func``)."""
+    functions = [obj.fn if isinstance(obj, Kernel) else getattr(obj, "py_func", None) for obj in vars(module).values()]
+    return sum(len(inspect.getsource(f)) for f in functions
+               if inspect.isfunction(f) and f.__module__ == module.__name__)
+
+
+def _cores() -> int:
+    """Worker processes for a compile: the cores this process may run on, at most MAX_WORKERS."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return min(cores, MAX_WORKERS)
 
 
 def cache_location(folders: list[str]) -> str:
@@ -174,20 +277,27 @@ class CompileProgress(event.Listener):
         self._compiling = False  # a compile event since the last kernel loaded
         self._t0 = self._last_line = None
         self._tty = stream.isatty()
+        self._where = ""
 
     def on_start(self, ev) -> None:
         self._compiling = True
-        if self._t0 is None:
-            self._t0 = self.clock()
-            self._show()
+        self.started()
 
     def on_end(self, ev) -> None:
         pass
 
-    def loaded(self) -> None:
-        """One more kernel loaded (or compiled)."""
+    def started(self, processes: int = 1) -> None:
+        """A compile begins (here, or in ``processes`` worker processes): the first line, once."""
+        if processes > 1:
+            self._where = f", {processes} processes"
+        if self._t0 is None:
+            self._t0 = self.clock()
+            self._show()
+
+    def loaded(self, compiled: bool = False) -> None:
+        """One more kernel loaded, or compiled (here, or in a worker process: ``compiled``)."""
         self.done += 1
-        self.compiled += self._compiling
+        self.compiled += self._compiling or compiled
         self._compiling = False
         if self._t0 is not None and (self._tty or self.clock() - self._last_line >= self.LINE_EVERY_S):
             self._show()
@@ -199,7 +309,7 @@ class CompileProgress(event.Listener):
 
     def _show(self) -> None:
         self._last_line = self.clock()
-        self._write(f"v2i: compiling numba kernels {self.done}/{self.total} (once per machine; cached in "
+        self._write(f"v2i: compiling numba kernels {self.done}/{self.total} (once per machine{self._where}; cached in "
                     f"{self.cache})", end="" if self._tty else "\n")
 
     def _write(self, text: str, end: str) -> None:

@@ -11,7 +11,7 @@ from fusion.jit import Kernel, load_kernels
 def test_load_kernels_loads_every_kernel():
     load_kernels()
     names = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all}
-    assert {"fusion.kalman.update_rows", "fusion.gating._gate_single_pairs", "fusion.association._single_pairs",
+    assert {"fusion.kalman.update_rows", "fusion.gating._gate_single_pairs", "fusion.association._split",
             "fusion.covariance_intersection.ci_fuse_objects", "sim.occlusion._blocked"} <= names
     for k in Kernel._all:
         assert k.load().signatures == [k.argument_types]  # one compiled signature, no other
@@ -215,3 +215,61 @@ def test_v2i_warm_check_fails_when_a_kernel_had_to_compile(tmp_path):
            "from v2i.cli import main; raise SystemExit(main(['warm', '--check']))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 1 and "compiled) in " in out.stdout and "(0 compiled)" not in out.stdout, out.stderr
+
+
+def test_kernels_of_two_modules_compile_in_two_worker_processes(tmp_path):
+    """Two kernel modules, an empty cache and two workers (a fresh interpreter): each module's kernel compiles
+    in a worker process and this process loads both from the cache (numba's cache hits, no miss here); the
+    progress says so and counts both."""
+    import os
+    import subprocess
+    import sys
+
+    for name, body in (("tiny_a", "x + 1"), ("tiny_b", "x * 3")):
+        (tmp_path / f"{name}.py").write_text(f"from fusion.jit import I64, kernel\n\n\n@kernel(I64)\ndef f(x):\n"
+                                            f"    return {body}\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
+           "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+    code = ("import tiny_a, tiny_b; from fusion.jit import Kernel, load_each; "
+            "mine = [k for k in Kernel._all if k.fn.__module__.startswith('tiny_')]; "
+            "print(load_each(mine, workers=2), tiny_a.f(2), tiny_b.f(2), "
+            "[(sum(k._compiled.stats.cache_hits.values()), sum(k._compiled.stats.cache_misses.values())) for k in mine])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "2 3 6 [(1, 0), (1, 0)]"
+    lines = out.stderr.splitlines()
+    assert lines[0].startswith("v2i: compiling numba kernels 0/2 (once per machine, 2 processes; cached in ")
+    assert lines[-1].startswith("v2i: compiled 2 numba kernels in ")
+
+
+def test_compile_groups_keep_a_module_whole_and_balance_the_source():
+    from fusion.jit import _groups, _jitted_size
+
+    load_kernels()
+    groups = _groups(Kernel._all, 2)
+    modules = [{k.fn.__module__ for k in g} for g in groups]
+    assert len(groups) == 2 and not modules[0] & modules[1]  # no module in both
+    assert sorted(k for g in groups for k in map(id, g)) == sorted(map(id, Kernel._all))
+    import sys
+
+    sizes = [sum(_jitted_size(sys.modules[m]) for m in ms) for ms in modules]
+    assert max(sizes) < 0.7 * sum(sizes)  # the largest module (the clock fit) does not take all
+    assert len(_groups(Kernel._all, 1)) == 1 and sorted(map(id, _groups(Kernel._all, 1)[0])) == sorted(map(id, Kernel._all))
+
+
+def test_kernels_compile_here_when_the_worker_processes_fail(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    for name in ("tiny_c", "tiny_d"):
+        (tmp_path / f"{name}.py").write_text("from fusion.jit import I64, kernel\n\n\n@kernel(I64)\ndef f(x):\n"
+                                            "    return x - 1\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
+           "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+    code = ("import tiny_c, tiny_d; import fusion.jit as j; j._WORKER = 'import sys; sys.exit(3)'; "
+            "mine = [k for k in j.Kernel._all if k.fn.__module__.startswith('tiny_')]; "
+            "print(j.load_each(mine, workers=2), tiny_c.f(2), tiny_d.f(5), "
+            "[sum(k._compiled.stats.cache_misses.values()) for k in mine])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.returncode == 0 and out.stdout.strip() == "2 1 4 [1, 1]", out.stderr
