@@ -4,7 +4,7 @@
   criterion, as OTVIC (Zhu et al., Sec. V-B) reports it: thresholds {0.5, 1, 2, 4} m, range bins
   0-40 m / 40-80 m / overall. ``CenterDistanceAp`` computes the same frame by frame, keeping
   10 bytes per prediction (its confidence and true-positive flags), not the frames; its per-frame
-  matching runs compiled (numba, ``_frame_flags``; ``_greedy_matches`` is its numpy reference).
+  matching runs compiled (numba, ``_frame_flags``; ``frame_flags_reference`` is its numpy reference).
 - ``mot_metrics``: CLEAR-MOT (MOTA) and identity (IDF1) metrics through ``motmetrics`` (the
   reference). ``MotTally`` computes the same frame by frame, keeping counts per id and id pair
   instead of motmetrics' table of every event.
@@ -251,6 +251,28 @@ class CenterDistanceAp:
             result["mAP"] = float(np.mean(aps)) if num_truth else None
             out[bin_label(lo, hi)] = result
         return out
+
+
+def frame_flags_reference(ap: CenterDistanceAp, truth_xy: np.ndarray, pred_xy: np.ndarray,
+                          confidence: np.ndarray) -> tuple[list[int], list[int]]:
+    """``CenterDistanceAp``'s flag words (one per prediction) and truths per bin of one frame, by
+    ``_greedy_matches`` per bin: ``_frame_flags``' plain reference (on the frames of whole evals 9-13x slower:
+    59 against 6.3 ms per connected-intersection run, 34 against 2.6 ms per red-light-runner)."""
+    rank = np.empty(len(confidence), dtype=np.int64)
+    rank[_confidence_order(confidence)] = np.arange(len(confidence))
+    cost = center_distance_cost(truth_xy, pred_xy) if len(truth_xy) and len(pred_xy) else \
+        np.zeros((len(truth_xy), len(pred_xy)))
+    d_truth, d_pred = np.hypot(truth_xy[:, 0], truth_xy[:, 1]), np.hypot(pred_xy[:, 0], pred_xy[:, 1])
+    flags, truths, stride = [0] * len(pred_xy), [], 1 + len(ap.thresholds_m)
+    for b, (lo, hi) in enumerate(ap.range_bins_m):
+        keep_t, keep_p = (d_truth >= lo) & (d_truth < hi), (d_pred >= lo) & (d_pred < hi)
+        truths.append(int(keep_t.sum()))
+        tp = _greedy_matches(cost[keep_t][:, keep_p].T, rank[keep_p], ap.thresholds_m)  # (T, P_b)
+        for col, pred in enumerate(np.flatnonzero(keep_p)):
+            flags[pred] |= 1 << (b * stride)
+            for k in range(len(ap.thresholds_m)):
+                flags[pred] |= int(tp[k, col]) << (b * stride + 1 + k)
+    return flags, truths
 
 
 @kernel(IN_F2, IN_F1, IN_F1, IN_I1, IN_F1, IN_F1, IN_F1)

@@ -1,36 +1,39 @@
-"""Compiled kernels (numba): the tracker's per-pair loops, the OBU's clock
-fit and input checks, the simulator's line of sight and body states, the rotated-box IoU, the
-codec's bit packing, the fitting of objects to the wire, lane matching and the evaluation's
-per-frame detection matching.
+"""Compiled kernels (numba): 18 of them, for the tracker's per-pair loops, the OBU's clock fit, the
+simulator's line of sight and body states, the rotated-box IoU, the codec's section packing and
+quantising, the fitting of objects to the wire, lane matching and the evaluation's per-frame
+detection matching.
 
-The tracker updates a few hundred tracks with lists of a few to a few hundred objects, ten
-times a second per source: numpy's fixed cost per call (~1 us, some 200 calls per update) was
-the whole cost, so association, the Kalman updates, covariance intersection and the matched
-tracks' bookkeeping are loops over the pairs, compiled by numba (``benchmarks/cycle_compute.py``;
-the numpy and filterpy references are in the tests). So are the clock fit of
-``obu_service.clock_envelope`` (a window of exchanges, refitted every few exchanges per RSU and
-peer), ``sim.occlusion``'s test of sample points against occluders, ``sim.world``'s body states
-along their paths, ``evaluation.detection_metrics``' matches per frame, ``fusion.geometry``'s IoU
-(shapely's polygons cost ~30 us a pair) and ``schemas.bit_rows`` (used once loaded: see
-``schemas.bitpack``). A kernel stays only where it saves at least ~1 % of a cycle or of a run
-against its plain reference, which lives beside it.
+A kernel stays only where it saves at least ~1 % of a cycle (``benchmarks/cycle_compute.py``) or
+of a whole ``v2i eval`` of some bundled scenario against its plain numpy / scipy / shapely
+reference, which lives beside it in ``src/`` with a test holding the two equal. The tracker updates
+a few hundred tracks with lists of a few to a few hundred objects, ten times a second per source:
+numpy's fixed cost per call was the whole cost, so gating, association's bookkeeping, the Kalman
+updates, covariance intersection and the matched tracks' bookkeeping are loops over the pairs
+(each several times faster than its numpy form on the recorded calls). So are the clock fit of
+``obu_service.clock_envelope`` (~26 against ~690 us per fit), ``sim.occlusion``'s line of sight,
+``sim.world``'s body states, ``evaluation.detection_metrics``' matches per frame, ``fusion.geometry``'s
+IoU, ``fusion.lane_match`` and ``schemas.bit_rows``. The commits that removed the others (scipy's
+own assignment solver, the codec's unpacking, one-line checks) give their measurements.
 
-``kernel(*argument_types)`` compiles a function for exactly those argument types (and no
-others) at its first call, or when ``load_kernels`` loads every kernel: the services and the
-offline evaluator do that before they start, so that no cycle ever waits for the compiler. The
-machine code is cached under ``__pycache__`` (or the user's cache directory where the package is
-not writable): compiled once per machine (``v2i warm`` does it ahead; a compile says so on stderr
-within a second, ``CompileProgress``; the kernels not in the cache compile in one worker process per
-core, whole modules each, ``compile_apart``), then loaded in ~0.3-0.4 s per process (most of it numba's own set-up at the first load; its check for
-BLAS and LAPACK reaches scipy's two Cython modules directly: ``preload_scipy_blas``). Inputs are declared read-only arrays of any layout (``IN_*``: writable and strided
-arrays convert to them), the arrays a kernel writes ``OUT_*``; an array of another dtype is a
-``TypeError`` (callers pass float64 and int64). ``helper`` is for the functions the kernels
-call (compiled into them). numba checks a cached kernel against its own source file only: the
-helpers a kernel calls live in its module, and after a change to ``OPTIONS`` here the cached
-files (``__pycache__/*.nbi``, ``*.nbc``) must be deleted. Kernels are loops, not numpy's array
-expressions, sorts or quantiles where they can be: each of those adds ~0.1-1 s to a compile.
+``kernel(*argument_types)`` compiles a function for exactly those argument types (and no others)
+at its first call, or when ``load_kernels`` loads every kernel: the services and the offline
+evaluator do that before they start, so that no cycle ever waits for the compiler. The machine
+code is cached under ``__pycache__`` (or the user's cache directory where the package is not
+writable): compiled once per machine (``v2i warm`` does it ahead), then loaded in ~0.35-0.45 s
+per process (most of it numba's own set-up at the first load; its check for BLAS and LAPACK
+reaches scipy's two Cython modules directly: ``preload_scipy_blas``). A compile says so on stderr
+within a second (``CompileProgress``), and the kernels not in the cache compile in one worker
+process per core, whole modules each (``compile_apart``): ~28 s on a 2-core machine at load ~2
+for all 18 (the 30 before took ~46 s on a quiet one). Inputs are declared read-only arrays of
+any layout (``IN_*``: writable and strided arrays convert to them), the arrays a kernel writes
+``OUT_*``; an array of another dtype is a ``TypeError`` (callers pass float64 and int64).
+``helper`` is for the functions the kernels call (compiled into them). numba checks a cached
+kernel against its own source file only: the helpers a kernel calls live in its module, and
+after a change to ``OPTIONS`` here the cached files (``__pycache__/*.nbi``, ``*.nbc``) must be
+deleted. Kernels are loops, not numpy's array expressions, sorts or quantiles where they can be:
+each of those adds ~0.1-1 s to a compile; and a helper called with an int constant compiles for
+that literal value (pass a float or a variable), once per constant.
 """
-
 from __future__ import annotations
 
 import importlib

@@ -12,7 +12,7 @@ Per object i and centreline segment j (start a_j, unit tangent t_j, length L_j, 
     cost = (dist / w)^2 + (dpsi / scale)^2 if ok else inf
 
 and the best segment by numpy's ``argmin`` rule (the first NaN, else the first lowest; every cost inf:
-segment 0). The numpy expression is the reference of tests/unit/test_lane_match.py (bit for bit on
+segment 0). That numpy expression is ``match_reference`` (tests/unit/test_lane_match.py: bit for bit on
 every bundled map). The headings (arctan2) stay with numpy: its SIMD transcendental functions may
 differ from libm's in the last bit.
 
@@ -28,6 +28,7 @@ import math
 import numpy as np
 from numba import types
 
+from .frames import wrap_angle
 from .jit import F64, IN_F1, IN_F2, IN_I1, IN_I2, OUT_F1, OUT_F3, OUT_I1, helper, kernel
 
 IN_B1 = types.Array(types.boolean, 1, "A", readonly=True)
@@ -125,3 +126,40 @@ def chain_frame_points(key: np.ndarray, first: np.ndarray, last: np.ndarray, ver
                 along = s_pt - cum[j]
                 out[p, part * t_n + t, 0] = vertex[j, 0] + along * tangent[j, 0]
                 out[p, part * t_n + t, 1] = vertex[j, 1] + along * tangent[j, 1]
+
+
+def match_reference(config, seg, map_classes: np.ndarray, objs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``LanePredictor.match`` by the numpy expression of the module docstring, the candidate pairs as arrays:
+    ``match_segments``' plain reference (on the matches of whole evals 7-12x slower: 29.5 against 2.6 ms per
+    connected-intersection run, 25.0 against 3.0 ms per highway-merge). ``config``: the predictor's
+    LanePredictorConfig, ``seg``: its segments (``LanePredictor._seg``), ``map_classes``: the classes on the map;
+    objs: an ObjectArray."""
+    n = len(objs)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
+    moving = np.hypot(objs.vxy[:, 0], objs.vxy[:, 1]) > config.min_speed_for_heading_mps
+    heading = np.where(moving, np.arctan2(objs.vxy[:, 1], objs.vxy[:, 0]), objs.yaw)
+    off_x, off_y = np.subtract.outer(objs.xy[:, 0], seg.mid[:, 0]), np.subtract.outer(objs.xy[:, 1], seg.mid[:, 1])
+    row, k = np.nonzero(off_x * off_x + off_y * off_y <= seg.reach_sq)
+    if not len(row):
+        return np.full(n, -1, dtype=seg.lane.dtype), np.zeros(n), np.zeros(n)
+    rel = objs.xy[row] - seg.a[k]
+    t, length, hw = seg.t[k], seg.length[k], seg.half_w[k]
+    along = rel[:, 0] * t[:, 0] + rel[:, 1] * t[:, 1]
+    lateral = t[:, 0] * rel[:, 1] - t[:, 1] * rel[:, 0]
+    dist = np.hypot(along - np.clip(along, 0.0, length), lateral)
+    half_w = np.where(lateral >= 0.0, hw[:, 0], hw[:, 1])
+    dpsi = wrap_angle(heading[row] - seg.psi[k])
+    ok = (dist <= half_w + config.lateral_margin_m) & (np.abs(dpsi) <= config.heading_tolerance_rad)
+    ok &= ~(seg.first[k] & (along < -EDGE_M)) & ~(seg.last[k] & (along > length + EDGE_M))
+    ok &= np.isin(objs.cls, map_classes)[row]
+    cost = np.full((n, len(seg.lane)), np.inf)
+    cost[row, k] = np.where(ok, (dist / half_w) ** 2 + (dpsi / config.heading_scale_rad) ** 2, np.inf)
+    best = np.argmin(cost, axis=1)
+    rows = np.arange(n)
+    matched = np.isfinite(cost[rows, best])
+    key = row * len(seg.lane) + k
+    at = np.minimum(np.searchsorted(key, rows * len(seg.lane) + best), len(key) - 1)
+    lane = np.where(matched, seg.lane[best], -1)
+    s0 = seg.s0[best] + np.clip(along[at], 0.0, seg.length[best])
+    return lane, np.where(matched, s0, 0.0), np.where(matched, lateral[at], 0.0)

@@ -8,7 +8,7 @@ import pytest
 
 from evaluation.detection_metrics import (
     CenterDistanceAp, MotTally, _confidence_order, _frame_flags, _greedy_match, _greedy_matches, average_precision,
-    bin_label, center_distance_ap, mot_metrics, nees, nees_values,
+    bin_label, center_distance_ap, frame_flags_reference, mot_metrics, nees, nees_values,
 )
 from fusion.association import center_distance_cost
 from fusion.objects import ObjectArray
@@ -310,26 +310,6 @@ def test_greedy_matches_at_every_threshold_equal_the_plain_walk():
         assert [g.tolist() for g in got] == [_greedy_match_walk(dist, rank, th).tolist() for th in thresholds]
 
 
-def _frame_flags_numpy(ap: CenterDistanceAp, truth_xy, pred_xy, confidence) -> tuple[list, list]:
-    """CenterDistanceAp's flag words and truths per bin of one frame, by _greedy_matches per bin (the numpy
-    reference of the compiled _frame_flags)."""
-    rank = np.empty(len(confidence), dtype=np.int64)
-    rank[_confidence_order(confidence)] = np.arange(len(confidence))
-    cost = center_distance_cost(truth_xy, pred_xy) if len(truth_xy) and len(pred_xy) else \
-        np.zeros((len(truth_xy), len(pred_xy)))
-    d_truth, d_pred = np.hypot(truth_xy[:, 0], truth_xy[:, 1]), np.hypot(pred_xy[:, 0], pred_xy[:, 1])
-    flags, truths, stride = [0] * len(pred_xy), [], 1 + len(ap.thresholds_m)
-    for b, (lo, hi) in enumerate(ap.range_bins_m):
-        keep_t, keep_p = (d_truth >= lo) & (d_truth < hi), (d_pred >= lo) & (d_pred < hi)
-        truths.append(int(keep_t.sum()))
-        tp = _greedy_matches(cost[keep_t][:, keep_p].T, rank[keep_p], ap.thresholds_m)  # (T, P_b)
-        for col, p in enumerate(np.flatnonzero(keep_p)):
-            flags[p] |= 1 << (b * stride)
-            for k in range(len(ap.thresholds_m)):
-                flags[p] |= int(tp[k, col]) << (b * stride + 1 + k)
-    return flags, truths
-
-
 def test_compiled_frame_flags_equal_the_greedy_matches_per_bin():
     """Every frame's flag words and truth counts, bit for bit, on generated frames (ties within a frame,
     tied rivals, every bin edge) and on coarse grids (tied distances at the thresholds)."""
@@ -347,7 +327,7 @@ def test_compiled_frame_flags_equal_the_greedy_matches_per_bin():
                 np.zeros((len(truth_xy), len(pred_xy)))
             d_truth, d_pred = np.hypot(truth_xy[:, 0], truth_xy[:, 1]), np.hypot(pred_xy[:, 0], pred_xy[:, 1])
             flags, truths = _frame_flags(cost, d_truth, d_pred, _confidence_order(confidence), *ap._bins)
-            assert (flags.tolist(), truths.tolist()) == _frame_flags_numpy(ap, truth_xy, pred_xy, confidence)
+            assert (flags.tolist(), truths.tolist()) == frame_flags_reference(ap, truth_xy, pred_xy, confidence)
             matched += sum(bin(f).count("1") for f in flags.tolist())
     assert matched > 5000
 

@@ -4,8 +4,7 @@ pair's distance and Mahalanobis distance, the gate and the class rule, in the sa
 import numpy as np
 import pytest
 
-from fusion import kalman
-from fusion.gating import assign_pairs, associate, compatible_classes, gated_pairs
+from fusion.gating import assign_pairs, associate, gated_pairs, gated_pairs_reference
 from fusion.objects import ObjectArray
 from fusion.track_table import TrackTable
 from fusion.tracking import TrackerConfig
@@ -29,17 +28,6 @@ def scene(rng, n_tracks, n_dets):
     return table, dets
 
 
-def dense_reference(config, table, dets):
-    """(ti, di, cost) of every allowed pair in row-major order, from (N, M) matrices."""
-    d2 = kalman.mahalanobis_sq(table.x, table.p, dets.xy, dets.cov_xy)
-    dist = np.hypot(dets.xy[None, :, 0] - table.x[:, None, 0], dets.xy[None, :, 1] - table.x[:, None, 1])
-    inside = {"distance": dist <= config.gate_m, "mahalanobis": d2 <= config.gate_chi2,
-              "either": (dist <= config.gate_m) | ((d2 <= config.gate_chi2) & (dist <= config.gate_max_m))}
-    allowed = inside[config.gate] & compatible_classes(table.cls[:, None], dets.cls[None, :])
-    ti, di = np.nonzero(allowed)
-    return ti, di, (dist if config.cost == "distance" else d2)[ti, di]
-
-
 @pytest.mark.parametrize("gate", ["distance", "mahalanobis", "either"])
 @pytest.mark.parametrize("cost", ["distance", "mahalanobis"])
 def test_compiled_gate_equals_the_dense_definition(gate, cost):
@@ -49,7 +37,7 @@ def test_compiled_gate_equals_the_dense_definition(gate, cost):
     for n_tracks, n_dets in [(1, 1), (3, 40), (60, 5), (200, 120)] * 5:
         table, dets = scene(rng, n_tracks, n_dets)
         got = gated_pairs(config, table, dets)
-        ti, di, ref_cost = dense_reference(config, table, dets)
+        ti, di, ref_cost = gated_pairs_reference(config, table, dets)
         np.testing.assert_array_equal(got.track, ti)
         np.testing.assert_array_equal(got.det, di)
         np.testing.assert_allclose(got.cost, ref_cost, rtol=1e-12, atol=0)

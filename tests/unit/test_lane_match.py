@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fusion.frames import wrap_angle
-from fusion.lane_match import chain_frame_points, match_segments
+from fusion.lane_match import chain_frame_points, match_reference, match_segments
 from fusion.lane_prediction import HEADING_BASE_M, LanePredictor, chain_points
 from fusion.objects import ObjectArray
 from schemas.classes import ObjectClass
@@ -14,37 +13,7 @@ from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, bundled_maps, map_p
 
 
 def _match_numpy(pred: LanePredictor, objs: ObjectArray):
-    """LanePredictor.match before the kernel: the candidate pairs as numpy arrays (the reference)."""
-    cfg, seg = pred.config, pred._seg
-    n = len(objs)
-    if n == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
-    moving = np.hypot(objs.vxy[:, 0], objs.vxy[:, 1]) > cfg.min_speed_for_heading_mps
-    heading = np.where(moving, np.arctan2(objs.vxy[:, 1], objs.vxy[:, 0]), objs.yaw)
-    off_x, off_y = np.subtract.outer(objs.xy[:, 0], seg.mid[:, 0]), np.subtract.outer(objs.xy[:, 1], seg.mid[:, 1])
-    row, k = np.nonzero(off_x * off_x + off_y * off_y <= seg.reach_sq)
-    if not len(row):
-        return np.full(n, -1, dtype=seg.lane.dtype), np.zeros(n), np.zeros(n)
-    rel = objs.xy[row] - seg.a[k]
-    t, length, hw = seg.t[k], seg.length[k], seg.half_w[k]
-    along = rel[:, 0] * t[:, 0] + rel[:, 1] * t[:, 1]
-    lateral = t[:, 0] * rel[:, 1] - t[:, 1] * rel[:, 0]
-    dist = np.hypot(along - np.clip(along, 0.0, length), lateral)
-    half_w = np.where(lateral >= 0.0, hw[:, 0], hw[:, 1])
-    dpsi = wrap_angle(heading[row] - seg.psi[k])
-    ok = (dist <= half_w + cfg.lateral_margin_m) & (np.abs(dpsi) <= cfg.heading_tolerance_rad)
-    ok &= ~(seg.first[k] & (along < -1e-6)) & ~(seg.last[k] & (along > length + 1e-6))
-    ok &= np.isin(objs.cls, pred._map_classes)[row]
-    cost = np.full((n, len(seg.lane)), np.inf)
-    cost[row, k] = np.where(ok, (dist / half_w) ** 2 + (dpsi / cfg.heading_scale_rad) ** 2, np.inf)
-    best = np.argmin(cost, axis=1)
-    rows = np.arange(n)
-    matched = np.isfinite(cost[rows, best])
-    key = row * len(seg.lane) + k
-    at = np.minimum(np.searchsorted(key, rows * len(seg.lane) + best), len(key) - 1)
-    lane = np.where(matched, seg.lane[best], -1)
-    s0 = seg.s0[best] + np.clip(along[at], 0.0, seg.length[best])
-    return lane, np.where(matched, s0, 0.0), np.where(matched, lateral[at], 0.0)
+    return match_reference(pred.config, pred._seg, pred._map_classes, objs)
 
 
 def _objects(pred: LanePredictor, rng: np.random.Generator, n: int) -> ObjectArray:

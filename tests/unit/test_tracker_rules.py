@@ -5,18 +5,9 @@ import numpy as np
 import pytest
 
 from fusion.covariance_intersection import ci_fuse_objects, ci_fuse_objects_reference
-from fusion.track_table import estimate_rules
+from fusion.track_table import (_mask_columns, estimate_rules, estimate_rules_reference, mask_columns_reference,
+                                record_matches, record_matches_reference)
 from schemas.messages import UNKNOWN_VELOCITY_VAR
-
-
-def _reference_rules(seen_s, ti, cols, di, col_values, mask, t_s, max_coast_s):
-    """Tracker.update's former numpy expressions: (order, n_alone, n_intersect)."""
-    other = ((t_s - seen_s.take(ti, axis=0)) <= max_coast_s) & ~cols.take(di, axis=0)
-    shared_any = np.logical_or.reduce(other, axis=1)
-    shared = np.logical_or.reduce(other & ((col_values & mask) != 0), axis=1)
-    alone, ci = np.flatnonzero(~shared_any), np.flatnonzero(shared_any & shared)
-    rest = np.flatnonzero(shared_any & ~shared)
-    return np.concatenate([alone, ci, rest]), len(alone), len(ci)
 
 
 @pytest.mark.parametrize("seed", range(40))
@@ -32,7 +23,7 @@ def test_estimate_rules_group_the_pairs_as_the_numpy_expressions(seed):
     ti, di = rng.permutation(n_tracks)[:k].astype(np.int64), rng.permutation(n_dets)[:k].astype(np.int64)
     for mask in (int(rng.integers(0, 256)), -1, 0):
         order, n_alone, n_ci = estimate_rules(seen_s, ti, cols, di, col_values, mask, t_s, max_coast_s)
-        want = _reference_rules(seen_s, ti, cols, di, col_values, mask, t_s, max_coast_s)
+        want = estimate_rules_reference(seen_s, ti, cols, di, col_values, mask, t_s, max_coast_s)
         assert order.tolist() == want[0].tolist() and (n_alone, n_ci) == want[1:]
 
 
@@ -138,3 +129,38 @@ def test_tracks_are_the_confirmed_rows_of_the_table_as_before():
             assert len(got) > 0 or step == 0
             for name, column in want.items():
                 np.testing.assert_array_equal(getattr(got, name), column, err_msg=name)
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_record_matches_equals_its_numpy_reference(seed):
+    """Every column the bookkeeping writes, bit for bit: unknown and known classes, boxes taken by a smaller
+    variance (1 % slack) or an old shape, confirmations by hits or estimates, seen columns by source."""
+    rng = np.random.default_rng(seed)
+    n, m, bits = int(rng.integers(1, 15)), int(rng.integers(1, 15)), int(rng.integers(1, 5))
+    k = int(rng.integers(0, min(n, m) + 1))
+    ti, di = rng.permutation(n)[:k].astype(np.int64), rng.permutation(m)[:k].astype(np.int64)
+    tracks = [rng.integers(0, 3, n), rng.normal(size=n), rng.random((n, 3)), rng.normal(0, 4, n),
+              rng.choice([0.5, 1.0, 2.0], n), rng.choice([0.0, 9.0], n), rng.random(n), rng.integers(0, 4, n),
+              rng.random(n) < 0.3, rng.random(n), np.where(rng.random((n, bits)) < 0.5, -np.inf, 5.0)]
+    dets = [rng.integers(0, 3, m), rng.normal(size=m), rng.random((m, 3)), rng.normal(0, 10, m),
+            _spd(rng, m, 2, rng.choice([0.5, 1.0])), rng.random(m), rng.random((m, bits)) < 0.5]
+    var = dets[4][:, 0, 0] + dets[4][:, 1, 1]
+    tracks[4][ti] = var[di] / rng.choice([0.5, 0.995, 1.005, 1.02], k)  # around the 1 % slack
+    for estimates in (False, True):
+        got, want = [c.copy() for c in tracks], [c.copy() for c in tracks]
+        args = (ti, di, *dets, 10.0, estimates, 3, 1.5)
+        record_matches(*got, *args)
+        record_matches_reference(*want, *args)
+        for a, b in zip(got, want):
+            assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+
+
+def test_mask_columns_equal_its_numpy_reference():
+    rng = np.random.default_rng(2)
+    col_values = np.int64(1) << np.array([0, 3, 5, 40], dtype=np.int64)
+    for k in (0, 1, 7):
+        masks = rng.integers(0, 2**45, k).astype(np.int64)
+        for extra in (0, 8, 2**40):
+            cols, union = _mask_columns(masks, extra, col_values)
+            want_cols, want_union = mask_columns_reference(masks, extra, col_values)
+            assert np.array_equal(cols, want_cols) and union == want_union
