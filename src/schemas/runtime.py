@@ -67,8 +67,8 @@ def parse_start_line(line: str) -> int:
     if not isinstance(msg, dict) or msg.get("event") != "start":
         raise ValueError(f"not a start line: {line.strip()[:80]!r}")
     start_ns = msg.get("start_at_ns")
-    if isinstance(start_ns, bool) or not isinstance(start_ns, int) or start_ns <= 0:
-        raise ValueError(f"start_at_ns must be a positive integer (Unix ns), got {start_ns!r}")
+    if isinstance(start_ns, bool) or not isinstance(start_ns, int) or not 0 < start_ns < 2**63:
+        raise ValueError(f"start_at_ns must be a positive 64-bit integer (Unix ns), got {start_ns!r}")
     return start_ns
 
 

@@ -45,7 +45,8 @@ def test_start_line_round_trip_and_refusals():
     for line, why in [("garbage", "not JSON"), ('{"event": "ready"}', "not a start line"),
                       ('{"event": "start"}', "start_at_ns"), ('{"event": "start", "start_at_ns": true}', "start_at_ns"),
                       ('{"event": "start", "start_at_ns": -5}', "start_at_ns"),
-                      ('{"event": "start", "start_at_ns": 1.5e18}', "start_at_ns"), ("[1, 2]", "not a start line")]:
+                      ('{"event": "start", "start_at_ns": 1.5e18}', "start_at_ns"), ("[1, 2]", "not a start line"),
+                      ('{"event": "start", "start_at_ns": 9223372036854775808}', "64-bit")]:  # 2**63: past int64
         with pytest.raises(ValueError, match=why):
             parse_start_line(line)
 
