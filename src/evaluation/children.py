@@ -51,7 +51,6 @@ class Child:
 
     def __init__(self, name: str, argv: list[str], label: str | None = None):
         self.name, self.argv, self.label = name, argv, label or name
-        self.ready_at: float | None = None  # time.monotonic() when the ready line was read
         self.ahead_ms: float | None = None  # from its "started" line: ms it began before time zero
         self.stderr_tail: collections.deque[str] = collections.deque(maxlen=STDERR_LINES_KEPT)  # last stderr lines
         self.events: queue.Queue[dict] = queue.Queue()  # every JSON object it printed on stdout, in order
@@ -76,8 +75,7 @@ class Child:
             if not isinstance(event, dict):
                 continue
             self.events.put(event)
-            if event.get("event") == "ready" and not self.ready:
-                self.ready_at = time.monotonic()
+            if event.get("event") == "ready":
                 self._ready.set()
             elif event.get("event") == "started" and isinstance(event.get("ahead_ms"), (int, float)):
                 self.ahead_ms = float(event["ahead_ms"])
@@ -112,12 +110,6 @@ class Child:
                 return True
             raise DemoError(f"{self.name} exited with code {self.proc.returncode} before it was ready{self.tail()}")
         return False
-
-    def wait_ready(self, deadline: float) -> None:
-        """Wait until ready or ``deadline`` (time.monotonic()); DemoError after it."""
-        while not self.poll_ready(min(POLL_S, max(deadline - time.monotonic(), 0.0))):
-            if time.monotonic() >= deadline:
-                raise DemoError(f"{self.name} was not ready in time{self.tail()}")
 
     def start(self, start_ns: int) -> None:
         """Send the start line (time zero ``start_ns``, Unix ns) and close stdin; a child that already

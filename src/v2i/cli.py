@@ -443,6 +443,12 @@ _PKI_HELP = ("the site PKI (v2i pki) the services sign and verify with: created 
 READY_TIMEOUT_HELP = ("seconds every service may take to say it is ready (default 120); the run's scenario clock "
                       "starts when all are, so a busy machine only starts later. A progress line shows who is "
                       "awaited; a service that dies or is not ready in time is named with its last log lines")
+
+
+def _add_ready_timeout(p: argparse.ArgumentParser) -> None:
+    """``--ready-timeout S``, and the old ``--startup`` (a guessed time zero), hidden: ignored with a note."""
+    p.add_argument("--ready-timeout", type=float, metavar="S", help=READY_TIMEOUT_HELP)
+    p.add_argument("--startup", type=float, help=argparse.SUPPRESS)
 QUIET_HELP = ("no live line on stderr while the run goes (elapsed s, output and RSU deadline misses, mode, RSU "
               "lists, chaos events: rewritten in place on a terminal, a plain line every 5 s otherwise)")
 
@@ -450,8 +456,7 @@ QUIET_HELP = ("no live line on stderr while the run goes (elapsed s, output and 
 def _demo_options(demo: argparse.ArgumentParser) -> None:
     _run_options(demo)
     demo.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    demo.add_argument("--ready-timeout", type=float, metavar="S", help=READY_TIMEOUT_HELP)
-    demo.add_argument("--startup", type=float, help=argparse.SUPPRESS)  # before --ready-timeout: ignored, noted
+    _add_ready_timeout(demo)
     demo.add_argument("--kill-link-at", type=float, metavar="S", help="chaos: kill the link emulator S seconds into the run")
     demo.add_argument("--link-down-s", type=float, default=3.0, help="chaos: restart it this many seconds later (default %(default)s)")
     demo.add_argument("--record", metavar="FILE", help=_RECORD_HELP)
@@ -482,8 +487,7 @@ def _chaos_options(chaos: argparse.ArgumentParser) -> None:
     chaos_run.add_argument("timeline", metavar="FILE", help="chaos timeline YAML, e.g. examples/chaos/outage-10s.yaml")
     _run_options(chaos_run)
     chaos_run.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    chaos_run.add_argument("--ready-timeout", type=float, metavar="S", help=READY_TIMEOUT_HELP)
-    chaos_run.add_argument("--startup", type=float, help=argparse.SUPPRESS)  # before --ready-timeout: ignored, noted
+    _add_ready_timeout(chaos_run)
     chaos_run.add_argument("--report", metavar="DIR", help=_REPORT_HELP)
     chaos_run.add_argument("--record", metavar="FILE", help=_RECORD_HELP)
     chaos_run.add_argument("--pki", metavar="DIR", help=_PKI_HELP)
@@ -517,8 +521,7 @@ def _fuzz_options(fuzz: argparse.ArgumentParser) -> None:
                       "wrong_shapes, non_finite, extreme_values, absurd_times, oversized, large_malformed, and "
                       "special (the target's floods, fake ids, replays); for frames: random_bytes, truncated, "
                       "empty, pixel_bomb, wrong_size, deep, huge_file")
-    fuzz.add_argument("--ready-timeout", type=float, metavar="S", help=READY_TIMEOUT_HELP)
-    fuzz.add_argument("--startup", type=float, help=argparse.SUPPRESS)  # before --ready-timeout: ignored, noted
+    _add_ready_timeout(fuzz)
     fuzz.add_argument("--json", metavar="PATH", help="write the report JSON to PATH ('-' for stdout)")
     fuzz.set_defaults(func=cmd_fuzz)
 
