@@ -30,7 +30,7 @@ import sys
 
 from security.attacker_keys import STOLEN_RSU, STOLEN_VEHICLE
 
-from .attack_messages import KINDS
+from evaluation.attack_messages import KINDS
 
 
 def configure_parser(p: argparse.ArgumentParser) -> None:
@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from security.pki import PkiError
 
     from security.attacker_keys import load_attacker_keys
-    from .attack_report import format_report, got_through
+    from evaluation.attack_report import format_report, got_through
 
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
     unknown = sorted(set(kinds) - set(KINDS))
@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     except PkiError as exc:
         hint = prepare_command(args.pki, args.rsu_id, stolen)
         raise ValueError(f"--pki: {exc}; make the attacker's keys with: {hint}") from None
-    from .attack_live import AttackRun, NotReady
+    from evaluation.attack_live import AttackRun, NotReady
 
     attack = AttackRun(args, kinds, attacker)
     for sig in (signal.SIGINT, signal.SIGTERM):

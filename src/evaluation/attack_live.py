@@ -27,10 +27,10 @@ from schemas.transport import open_session
 from security.envelope import PREFIX, parse
 from telemetry.live_line import StatusLine
 
-from .attack_ghosts import GhostWatch
-from .attack_messages import (CONTROL_VARIANTS, LIST_KINDS, TIME_VARIANTS, AttackerKeys, AttackMessages, ghost_xy,
+from evaluation.attack_ghosts import GhostWatch
+from evaluation.attack_messages import (CONTROL_VARIANTS, LIST_KINDS, TIME_VARIANTS, AttackerKeys, AttackMessages, ghost_xy,
                               signer_digest)
-from .attack_report import counter_delta, kind_row
+from evaluation.attack_report import counter_delta, kind_row
 
 REPLAY_AGE_NS = (500_000_000, 3_000_000_000)  # replay captures this old: after the original, within freshness
 INBOX_MESSAGES = 10_000

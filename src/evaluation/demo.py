@@ -43,12 +43,12 @@ from sim.scenario import load_scenario
 from sim.world import World
 from telemetry.live_line import LiveLine
 
-from .chaos import ChaosEvent, ChaosTimeline
-from .chaos_summary import PlayedEvent, chaos_summary, outage_summary
-from .children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
-from .inbox_scoring import InboxScoring, obu_own_count, startup_summary
-from .live_security import run_pki, security_argv
-from .spec import RunRecord, RunSpec, build_report
+from evaluation.chaos import ChaosEvent, ChaosTimeline
+from evaluation.chaos_summary import PlayedEvent, chaos_summary, outage_summary
+from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
+from evaluation.inbox_scoring import InboxScoring, obu_own_count, startup_summary
+from evaluation.live_security import run_pki, security_argv
+from evaluation.spec import RunRecord, RunSpec, build_report
 
 LINK_ID = "link1"
 CONTROL_MATCH_S = 3.0  # how long a link control waits for the emulator's control subscriber
@@ -181,7 +181,7 @@ class Demo(InboxScoring):
             start_ns = time.time_ns() + round(START_LEAD_S * 1e9)
             self._start_scoring(start_ns)
             if self.record_to:  # subscribed before the start line, so from the first time query on
-                from .replay_demo import demo_recorder
+                from evaluation.replay_demo import demo_recorder
 
                 recorder = demo_recorder(self, start_ns, self.record_to)
             start_all(self.children.values(), start_ns)

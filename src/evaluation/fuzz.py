@@ -28,8 +28,8 @@ import numpy as np
 from fusion.jit import load_kernels
 from schemas.transport import open_session
 
-from .children import READY_TIMEOUT_S, Child, DemoError, start_all, wait_ready
-from .hostile import KINDS, HostileInputs
+from evaluation.children import READY_TIMEOUT_S, Child, DemoError, start_all, wait_ready
+from evaluation.hostile import KINDS, HostileInputs
 
 RSU_ID, VEHICLE_ID, LINK_ID = "rsu1", "ego", "link1"
 POOL_PER_KIND = 40  # distinct payloads per (kind, message type), sent round-robin

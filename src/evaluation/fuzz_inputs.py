@@ -28,8 +28,8 @@ from schemas.transport import free_tcp_endpoint
 from schemas.wire_view import pack_view, unpack_view
 from sim.scenario import load_scenario
 
-from .fuzz import MS, RSU_ID, VEHICLE_ID, FuzzRun
-from .hostile import HostileInputs
+from evaluation.fuzz import MS, RSU_ID, VEHICLE_ID, FuzzRun
+from evaluation.hostile import HostileInputs
 
 RSU_LATE_NS = 250 * MS
 

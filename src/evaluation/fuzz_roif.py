@@ -43,8 +43,8 @@ from schemas.image_messages import (
 from schemas.transport import free_tcp_endpoint
 from sim.scenario import load_scenario
 
-from .fuzz import MS, VEHICLE_ID
-from .fuzz_targets import CLOCK_OFFSET_MS, REPLAY_AGE_NS, ObuFuzz
+from evaluation.fuzz import MS, VEHICLE_ID
+from evaluation.fuzz_targets import CLOCK_OFFSET_MS, REPLAY_AGE_NS, ObuFuzz
 
 SCENARIO = "roif-intersection"
 W, H = 1280, 720

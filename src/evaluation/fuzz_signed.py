@@ -36,9 +36,9 @@ from security.envelope import PREFIX, Signer
 from security.pki import load_signer
 from security.site import write_site
 
-from .fuzz import POOL_PER_KIND
-from .fuzz_targets import CLOCK_OFFSET_MS, ObuFuzz
-from .hostile import KINDS as HOSTILE_KINDS
+from evaluation.fuzz import POOL_PER_KIND
+from evaluation.fuzz_targets import CLOCK_OFFSET_MS, ObuFuzz
+from evaluation.hostile import KINDS as HOSTILE_KINDS
 
 SIGNED_KINDS = ("garbage_prefix", "truncated", "huge_fields", "bit_flips", "signed_hostile")
 FUZZ_RSUS = tuple(f"x{i}" for i in range(8))

@@ -38,8 +38,8 @@ from schemas.messages import FusedObjectList, ObjectList, ObuMetrics, RsuMetrics
 from schemas.transport import free_tcp_endpoint
 from sim.scenario import load_scenario
 
-from .fuzz import LINK_ID, MS, RSU_ID, VEHICLE_ID, FuzzRun
-from .fuzz_standard import StandardHostile
+from evaluation.fuzz import LINK_ID, MS, RSU_ID, VEHICLE_ID, FuzzRun
+from evaluation.fuzz_standard import StandardHostile
 
 STANDARD_WIRES = "v2i,cpm,sdsm"  # the OBU takes every encoding: hostile CPM / SDSM reach it too
 
@@ -357,6 +357,6 @@ class LinkFuzz(ObuFuzz):
                 "genuine_lists": {"published": published1 - published0, "accepted_by_obu": accepted1 - accepted0}}
 
 
-from .fuzz_inputs import ObuInputsFuzz, RsuInputsFuzz  # noqa: E402 (they build on FuzzRun, not on this module)
+from evaluation.fuzz_inputs import ObuInputsFuzz, RsuInputsFuzz  # noqa: E402 (they build on FuzzRun, not on this module)
 
 TARGETS = {"obu": ObuFuzz, "rsu": RsuFuzz, "link": LinkFuzz, "obu-inputs": ObuInputsFuzz, "rsu-inputs": RsuInputsFuzz}

@@ -28,9 +28,9 @@ from schemas.codec import encode
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, TimeReply
 from schemas.transport import free_tcp_endpoint
 
-from .fuzz import VEHICLE_ID
-from .fuzz_targets import CLOCK_OFFSET_MS, ObuFuzz
-from .hostile import MS, HostileInputs
+from evaluation.fuzz import VEHICLE_ID
+from evaluation.fuzz_targets import CLOCK_OFFSET_MS, ObuFuzz
+from evaluation.hostile import MS, HostileInputs
 
 V2V_TYPES = ("fused_object_list", "time_request", "time_reply")
 

@@ -31,11 +31,11 @@ from schemas.codec import decode
 from schemas.image_messages import F4, I2, U1, U4, ImageFusedBoxes, column
 from schemas.messages import ObuMetrics, RsuMetrics
 
-from .children import READY_TIMEOUT_S
-from .demo import Demo
-from .inbox_scoring import startup_summary
-from .image_fusion import FusionTally, score_frame
-from .live_security import security_argv
+from evaluation.children import READY_TIMEOUT_S
+from evaluation.demo import Demo
+from evaluation.inbox_scoring import startup_summary
+from evaluation.image_fusion import FusionTally, score_frame
+from evaluation.live_security import security_argv
 
 PAIRED_KEYS = ("frames", "truths", "detection_accuracy", "rsu_only_detection_accuracy", "vehicle_only_detection_accuracy",
                "mean_iou", "precision")
@@ -172,7 +172,7 @@ def _percentiles(values: list) -> dict:
 
 def summary(report: dict) -> str:
     """Human lines of a live ROIF report."""
-    from .image_fusion import summary as offline_summary
+    from evaluation.image_fusion import summary as offline_summary
 
     live = report["image_fusion_live"]
     return "\n".join([offline_summary(report),

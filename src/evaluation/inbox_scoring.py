@@ -12,8 +12,8 @@ from schemas.codec import CodecError
 from schemas.runtime import log
 from telemetry.live_line import LiveLine
 
-from .children import START_LEAD_S, ahead_ms
-from .spec import RunRecord
+from evaluation.children import START_LEAD_S, ahead_ms
+from evaluation.spec import RunRecord
 
 INBOX_MESSAGES = 1000  # received messages waiting to be scored (~35 s of objects, metrics and planning)
 

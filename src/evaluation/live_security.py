@@ -13,7 +13,7 @@ from pathlib import Path
 from security.site import write_site
 from sim.scenario import Scenario
 
-from .spec import RunSpec
+from evaluation.spec import RunSpec
 
 
 def run_pki(spec: RunSpec, scenario: Scenario, directory: str | Path, now_ns: int) -> Path:

@@ -17,7 +17,7 @@ import dataclasses
 import json
 from typing import Any
 
-from .spec import RunSpec
+from evaluation.spec import RunSpec
 
 RUN_METADATA = "run"
 REQUIRED_FLAGS = {"scenario": "--scenario", "start_ns": "--start-at-ns"}  # what a score cannot guess

@@ -26,11 +26,11 @@ from schemas.codec import CodecError, decode
 from schemas.messages import RsuMetrics
 from schemas.transport import open_session
 
-from .children import READY_TIMEOUT_S, START_LEAD_S, DemoError, start_all
-from .demo import Demo
-from .inbox_scoring import obu_own_count, startup_summary
-from .recorded_run import RUN_METADATA, run_metadata, run_of, spec_of  # noqa: F401 - spec_of: the tests' import
-from .spec import build_report
+from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, DemoError, start_all
+from evaluation.demo import Demo
+from evaluation.inbox_scoring import obu_own_count, startup_summary
+from evaluation.recorded_run import RUN_METADATA, run_metadata, run_of, spec_of  # noqa: F401 - spec_of: the tests' import
+from evaluation.spec import build_report
 
 
 def demo_recorder(demo: Demo, start_ns: int, path: str):

@@ -31,9 +31,9 @@ from fusion.frames import base_to_map_points
 from sim.clock import SystemClock
 from sim.world import World
 
-from .chaos import ChaosEvent, ChaosTimeline
-from .metrics import TargetSeries
-from .spec import RunRecord, RunSpec
+from evaluation.chaos import ChaosEvent, ChaosTimeline
+from evaluation.metrics import TargetSeries
+from evaluation.spec import RunRecord, RunSpec
 
 BEV_STEP_S = 0.1  # truth paths sampled every 0.1 s
 
@@ -201,7 +201,7 @@ def write_run_report(folder: Path, report: dict, spec: RunSpec, vehicles: Sequen
                      spans: Sequence[Span] = ()) -> list[Path]:
     """Write the timeline(s), the BEV and ``report.json`` into ``folder`` (made if missing);
     the paths written. ``vehicles``: (name, world, record), the ego first."""
-    from . import report_plots
+    from evaluation import report_plots
 
     folder.mkdir(parents=True, exist_ok=True)
     written = []

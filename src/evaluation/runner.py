@@ -45,9 +45,9 @@ from sim.clock import SimClock
 from sim.scenario import RsuCameraConfig, V2vConfig, load_scenario
 from sim.world import World
 
-from .chaos import SERVICES, ChaosTimeline
-from .decode_memo import DecodeMemo
-from .spec import EVAL_EPOCH_NS, RunRecord, RunSpec, site_report
+from evaluation.chaos import SERVICES, ChaosTimeline
+from evaluation.decode_memo import DecodeMemo
+from evaluation.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, site_report
 
 RSU_REPLY_NS = 50_000  # RSU time between receiving a time query and answering it
 

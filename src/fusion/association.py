@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .jit import I64, IN_F1, IN_F2, IN_I1, kernel
-from .lsap import linear_sum_assignment
+from fusion.jit import I64, IN_F1, IN_F2, IN_I1, kernel
+from fusion.lsap import linear_sum_assignment
 
 _BIG = 1e12
 

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .association import assign
-from .roif import iou_matrix
+from fusion.association import assign
+from fusion.roif import iou_matrix
 
 DIM_X, DIM_Z = 8, 4
 H_BOX = np.hstack([np.eye(DIM_Z), np.zeros((DIM_Z, DIM_Z))])  # z = H x

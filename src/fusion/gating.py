@@ -22,15 +22,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .association import Assignment, assign_sparse
-from .geometry import iou_rows
-from .jit import F64, I64, IN_F2, IN_F3, IN_I1, helper, kernel
-from .kalman import mahalanobis_sq
-from .objects import ObjectArray
+from fusion.association import Assignment, assign_sparse
+from fusion.geometry import iou_rows
+from fusion.jit import F64, I64, IN_F2, IN_F3, IN_I1, helper, kernel
+from fusion.kalman import mahalanobis_sq
+from fusion.objects import ObjectArray
 
 if TYPE_CHECKING:
-    from .track_table import TrackTable
-    from .tracking import TrackerConfig
+    from fusion.track_table import TrackTable
+    from fusion.tracking import TrackerConfig
 
 _NO_INDEX = np.zeros(0, np.int64)
 

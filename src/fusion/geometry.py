@@ -13,8 +13,8 @@ import math
 import numpy as np
 import shapely
 
-from .jit import IN_F2, helper, kernel
-from .objects import ObjectArray
+from fusion.jit import IN_F2, helper, kernel
+from fusion.objects import ObjectArray
 
 
 def bev_boxes(objs: ObjectArray) -> np.ndarray:

@@ -13,7 +13,7 @@ in ``benchmarks/cycle_compute.py``, 0.7 against 2.0 us in a connected-intersecti
 
 from __future__ import annotations
 
-from .jit import import_extension
+from fusion.jit import import_extension
 
 _lsap = import_extension("scipy.optimize._lsap")
 if _lsap is None:  # pragma: no cover  (a scipy without the extension module where 1.17 has it)

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import bev_boxes, bev_iou_matrix
-from .objects import ObjectArray
+from fusion.geometry import bev_boxes, bev_iou_matrix
+from fusion.objects import ObjectArray
 
 
 def iou_merge(vehicle: ObjectArray, rsu: ObjectArray, iou_threshold: float = 0.1) -> ObjectArray:

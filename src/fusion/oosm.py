@@ -21,8 +21,8 @@ from __future__ import annotations
 import bisect
 from dataclasses import dataclass
 
-from .objects import ObjectArray
-from .tracking import Tracker, TrackerSnapshot
+from fusion.objects import ObjectArray
+from fusion.tracking import Tracker, TrackerSnapshot
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ import bisect
 import math
 from collections import deque
 
-from .frames import Pose2D, PoseUncertainty
+from fusion.frames import Pose2D, PoseUncertainty
 
 _TWO_PI = 2.0 * math.pi
 

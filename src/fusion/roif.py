@@ -48,8 +48,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from .association import assign
-from .roif_features import ViewFeatures, view_features
+from fusion.association import assign
+from fusion.roif_features import ViewFeatures, view_features
 
 SOURCE_RSU = 1  # bit of a fused box: the RSU camera saw it
 SOURCE_OBU = 2  # bit: the OBU camera saw it (mapped into the RSU view)

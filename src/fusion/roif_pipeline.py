@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .box_tracker import BoxTracker, BoxTrackerConfig, BoxTracks
-from .roif import SOURCE_OBU, FusedBoxes, RoifConfig, RoifResult, roif_fuse
-from .roif_features import ViewFeatures
+from fusion.box_tracker import BoxTracker, BoxTrackerConfig, BoxTracks
+from fusion.roif import SOURCE_OBU, FusedBoxes, RoifConfig, RoifResult, roif_fuse
+from fusion.roif_features import ViewFeatures
 
 VIEW_RSU, VIEW_EGO = "rsu", "ego"  # the image a frame's output boxes are in
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .association import assign, center_distance_cost
-from .objects import ObjectArray
+from fusion.association import assign, center_distance_cost
+from fusion.objects import ObjectArray
 
 
 def two_frame_velocity(prev: ObjectArray, curr: ObjectArray, dt_s: float, gate_m: float = 5.0) -> np.ndarray:

@@ -81,10 +81,10 @@ from typing import Literal
 
 import numpy as np
 
-from . import kalman
-from .covariance_intersection import ci_fuse_objects
-from .frames import wrap_angle
-from .gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
+from fusion import kalman
+from fusion.covariance_intersection import ci_fuse_objects
+from fusion.frames import wrap_angle
+from fusion.gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
     GatedPairs,
     assign_gated,
     assign_pairs,
@@ -94,8 +94,8 @@ from .gating import (  # noqa: F401  (re-exported: association is part of the tr
     gated_pairs,
     paired_bev_iou,
 )
-from .objects import ObjectArray
-from .track_table import SOURCE_BITS, TrackStore, TrackTable, estimate_rules, record_matches
+from fusion.objects import ObjectArray
+from fusion.track_table import SOURCE_BITS, TrackStore, TrackTable, estimate_rules, record_matches
 
 _BIT_VALUES = 1 << np.arange(SOURCE_BITS)
 

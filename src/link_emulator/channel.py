@@ -32,18 +32,18 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .channel_scalar import (_U_DUP, _U_IMPAIR, _U_LOSS, _U_PDR, _U_SPIKE, _Z_DUP, _Z_JITTER,  # noqa: F401
+from link_emulator.channel_scalar import (_U_DUP, _U_IMPAIR, _U_LOSS, _U_PDR, _U_SPIKE, _Z_DUP, _Z_JITTER,  # noqa: F401
                              _Z_SPIKE, NONE_NS, ScalarPath, _clipped_ns, _interp, _jitter_ms)
-from .impairment import DIRECTIONS, Effects, Impairment, effects
-from .processes import (
+from link_emulator.impairment import DIRECTIONS, Effects, Impairment, effects
+from link_emulator.processes import (
     NS_PER_MS,
     GaussianAR1,
     GilbertElliott,
     OutageTimeline,
     TraceClock,
 )
-from .profile import DirectionProfile, LinkProfile
-from .trace import load_trace
+from link_emulator.profile import DirectionProfile, LinkProfile
+from link_emulator.trace import load_trace
 
 __all__ = ["NS_PER_MS", "Channel", "Deliveries", "Impairment", "LinkModel"]
 

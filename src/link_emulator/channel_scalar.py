@@ -20,7 +20,7 @@ from bisect import bisect_right
 
 import numpy as np
 
-from .processes import NS_PER_MS
+from link_emulator.processes import NS_PER_MS
 
 NONE_NS = -1  # "no delivery" (channel.NONE_NS)
 # per-message variates: normals (jitter innovation, spike size, duplicate's jitter),

@@ -30,12 +30,12 @@ from security.pki import PkiError
 from sim.clock import SystemClock
 from telemetry.metrics_cli import MetricsPortError, add_metrics_options, metrics_server
 
-from .config import MAX_VEHICLES, LinkConfig
-from .control_client import SET_DESCRIPTION, configure_set_parser, positive_seconds
-from .profile import DirectionProfile, TraceReplay, bundled_profiles, load_profile
-from .relay import LinkRelay
-from .v2v_relay import V2vRelay
-from .validate import P50_Z, Settings, validate_direction
+from link_emulator.config import MAX_VEHICLES, LinkConfig
+from link_emulator.control_client import SET_DESCRIPTION, configure_set_parser, positive_seconds
+from link_emulator.profile import DirectionProfile, TraceReplay, bundled_profiles, load_profile
+from link_emulator.relay import LinkRelay
+from link_emulator.v2v_relay import V2vRelay
+from link_emulator.validate import P50_Z, Settings, validate_direction
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

@@ -7,9 +7,9 @@ from collections.abc import Callable
 from schemas.codec import CodecError, decode
 from schemas.messages import LinkControl
 
-from .channel import LinkModel
-from .control_auth import ControlAuth
-from .profile import bundled_profiles, load_profile
+from link_emulator.channel import LinkModel
+from link_emulator.control_auth import ControlAuth
+from link_emulator.profile import bundled_profiles, load_profile
 
 Reject = Callable[[str, "int | None", str], object]  # reason, control seq (None: undecodable), error
 

@@ -24,7 +24,7 @@ from schemas.messages import LinkControl
 from schemas.transport import open_session
 from security.pki import Identity, PkiError, load_signer
 
-from .control_auth import OPERATOR, sign_control
+from link_emulator.control_auth import OPERATOR, sign_control
 
 SET_DESCRIPTION = """\
 change a running link emulator through its control endpoint.

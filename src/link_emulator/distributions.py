@@ -27,7 +27,7 @@ from pydantic import (
 )
 from scipy.special import log_ndtr, ndtr, ndtri
 
-from .trace import load_trace
+from link_emulator.trace import load_trace
 
 
 def _normal_pdf(z: float) -> float:

@@ -18,7 +18,7 @@ from schemas.intake import KeyedBuckets, TokenBucket
 from schemas.messages import EgoPose
 from sim.clock import Clock
 
-from .config import LinkConfig
+from link_emulator.config import LinkConfig
 
 
 class Gate:

@@ -15,12 +15,12 @@ from typing import Any
 
 from schemas.messages import LinkControl
 
-from .channel import LinkModel
-from .config import VehicleSide
-from .control import apply_control
-from .gate import InFlight, VehiclePosition
-from .profile import LinkProfile
-from .stats import DirectionStats, RunningStats
+from link_emulator.channel import LinkModel
+from link_emulator.config import VehicleSide
+from link_emulator.control import apply_control
+from link_emulator.gate import InFlight, VehiclePosition
+from link_emulator.profile import LinkProfile
+from link_emulator.stats import DirectionStats, RunningStats
 
 DIRECTIONS = ("uplink", "downlink")
 

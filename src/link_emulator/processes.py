@@ -11,8 +11,8 @@ import math
 
 import numpy as np
 
-from .profile import OutageSpec
-from .trace import DelayTrace
+from link_emulator.profile import OutageSpec
+from link_emulator.trace import DelayTrace
 
 NS_PER_S = 1_000_000_000
 NS_PER_MS = 1_000_000

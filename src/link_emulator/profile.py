@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from schemas.config import ConfigError, bundled_names, load_bundled_or_file
 
-from .distributions import (  # re-exported: the jitter models are part of a profile
+from link_emulator.distributions import (  # re-exported: the jitter models are part of a profile
     DelaySummary,
     EmpiricalJitter,
     ExponentialJitter,
@@ -37,7 +37,7 @@ from .distributions import (  # re-exported: the jitter models are part of a pro
     ParetoJitter,
     UniformJitter,
 )
-from .trace import load_trace
+from link_emulator.trace import load_trace
 
 __all__ = [
     "DelaySummary", "DirectionProfile", "EmpiricalJitter", "ExponentialJitter", "Jitter", "LinkProfile",

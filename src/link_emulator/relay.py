@@ -65,16 +65,16 @@ from schemas.transport import open_session
 from sim.clock import Clock
 from telemetry.latency import StageLatency
 
-from .channel import NS_PER_MS
-from .config import LinkConfig
-from .control import admitted_control
-from .control_auth import ControlAuth
-from .gate import Gate
-from .pair import Delivery, VehiclePair, apply_to_pairs, control_targets, pairs_summary
-from .profile import LinkProfile, load_profile
-from .scheduler import Action, EventScheduler
-from .stats import ControlStats, RunningStats
-from .time_queries import TimeQueryRelay
+from link_emulator.channel import NS_PER_MS
+from link_emulator.config import LinkConfig
+from link_emulator.control import admitted_control
+from link_emulator.control_auth import ControlAuth
+from link_emulator.gate import Gate
+from link_emulator.pair import Delivery, VehiclePair, apply_to_pairs, control_targets, pairs_summary
+from link_emulator.profile import LinkProfile, load_profile
+from link_emulator.scheduler import Action, EventScheduler
+from link_emulator.stats import ControlStats, RunningStats
+from link_emulator.time_queries import TimeQueryRelay
 
 __all__ = ["Delivery", "DeliveryObserver", "LinkRelay"]
 

@@ -18,10 +18,10 @@ import zenoh
 
 from sim.clock import Clock
 
-from .config import LinkConfig
-from .gate import Gate
-from .pair import Delivery, VehiclePair
-from .scheduler import EventScheduler
+from link_emulator.config import LinkConfig
+from link_emulator.gate import Gate
+from link_emulator.pair import Delivery, VehiclePair
+from link_emulator.scheduler import EventScheduler
 
 FORWARD_TIMEOUT_S = 5.0  # how long a forwarded time query waits for RSU replies
 

@@ -48,15 +48,15 @@ from schemas.transport import open_session
 from sim.clock import Clock
 from telemetry.latency import StageLatency
 
-from .channel import NS_PER_MS, LinkModel
-from .config import LinkConfig
-from .control import admitted_control, apply_control
-from .control_auth import ControlAuth
-from .gate import Gate, InFlight, VehiclePosition
-from .pair import Delivery, merged_direction, pair_seed
-from .profile import load_profile
-from .scheduler import EventScheduler
-from .stats import ControlStats, DirectionStats, RunningStats
+from link_emulator.channel import NS_PER_MS, LinkModel
+from link_emulator.config import LinkConfig
+from link_emulator.control import admitted_control, apply_control
+from link_emulator.control_auth import ControlAuth
+from link_emulator.gate import Gate, InFlight, VehiclePosition
+from link_emulator.pair import Delivery, merged_direction, pair_seed
+from link_emulator.profile import load_profile
+from link_emulator.scheduler import EventScheduler
+from link_emulator.stats import ControlStats, DirectionStats, RunningStats
 
 __all__ = ["V2vPair", "V2vRelay"]
 

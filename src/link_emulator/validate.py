@@ -38,10 +38,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.special import ndtri
 
-from .channel import NS_PER_MS, Channel
-from .processes import GilbertElliott, merge_windows
-from .profile import DirectionProfile
-from .trace import DelayTrace, load_trace, mean_run_length, overtaken_ratio
+from link_emulator.channel import NS_PER_MS, Channel
+from link_emulator.processes import GilbertElliott, merge_windows
+from link_emulator.profile import DirectionProfile
+from link_emulator.trace import DelayTrace, load_trace, mean_run_length, overtaken_ratio
 
 QUANTILES = {"p50_ms": 0.50, "p95_ms": 0.95, "p99_ms": 0.99}
 MONTE_CARLO_SAMPLES = 2_000_000

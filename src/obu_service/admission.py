@@ -29,7 +29,7 @@ from fusion.frames import Pose2D, outside_box_rows
 from fusion.objects import ObjectArray
 from schemas.messages import ObjectListHeader
 
-from .rsu_table import RsuState, RsuTable
+from obu_service.rsu_table import RsuState, RsuTable
 
 
 @dataclass(frozen=True)

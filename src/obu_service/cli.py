@@ -7,8 +7,8 @@ import argparse
 from schemas.runtime import add_service_options, run_service
 from telemetry.metrics_cli import add_metrics_options, export_node
 
-from .config import ObuConfig
-from .pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES
+from obu_service.config import ObuConfig
+from obu_service.pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES
 
 
 def configure_parser(p: argparse.ArgumentParser) -> None:
@@ -77,9 +77,9 @@ def _node(config: ObuConfig):
     if config.fusion == "roif":
         if config.source != "sim":
             raise ValueError("--source zenoh feeds object-level fusion; --fusion roif renders its own camera")
-        from .image_fusion_node import ImageFusionNode
+        from obu_service.image_fusion_node import ImageFusionNode
 
         return ImageFusionNode(config)
-    from .node import ObuNode
+    from obu_service.node import ObuNode
 
     return ObuNode(config)

@@ -9,8 +9,8 @@ from pydantic import Field, field_validator, model_validator
 from schemas.config import ServiceConfig
 from schemas.keys import check_id
 
-from .methods import check_fusion
-from .pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES, ObuPipelineConfig
+from obu_service.methods import check_fusion
+from obu_service.pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES, ObuPipelineConfig
 
 
 class ObuConfig(ServiceConfig):

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from .clock_envelope import NS_PER_S, QUEUED_NS
+from obu_service.clock_envelope import NS_PER_S, QUEUED_NS
 
 
 def tail_size(n: int, q: float) -> int:

@@ -35,11 +35,11 @@ from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 from sim.world import World
 
-from .config import ObuConfig
-from .ego_camera import EgoCamera
-from .image_fusion import ImageFusionConfig, ImageFusionPipeline
-from .inbound_security import live_security
-from .time_requests import sync_times_ns
+from obu_service.config import ObuConfig
+from obu_service.ego_camera import EgoCamera
+from obu_service.image_fusion import ImageFusionConfig, ImageFusionPipeline
+from obu_service.inbound_security import live_security
+from obu_service.time_requests import sync_times_ns
 
 INPUTS_PER_LATE_EVENT = 8  # queued inputs taken before each overdue event (an RSU frame of 41 kB decodes in ~0.06 ms)
 

@@ -20,8 +20,8 @@ from operator import attrgetter, is_
 from fusion.objects import ObjectArray
 from schemas.messages import PredictionList
 
-from .methods import RsuFrame
-from .rsu_table import RsuState, RsuTable
+from obu_service.methods import RsuFrame
+from obu_service.rsu_table import RsuState, RsuTable
 
 DEFAULT_RSU_PERIOD_NS = 200_000_000  # until two RSU captures have been seen (5 Hz camera)
 MIN_SLOT_TOLERANCE_NS = 1_000_000  # intra: captures this close to the cycle's count as its slot, at least

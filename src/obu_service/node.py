@@ -40,12 +40,12 @@ from sim.scenario import load_scenario
 from sim.world import World
 from telemetry.latency import PeriodicSummary, StageLatency
 
-from .config import ObuConfig
-from .inbound_security import live_security
-from .pipeline import ObuPipeline
-from .source import ExternalCycles, OwnFrame, SimulatedVehicle, detections_of, pose_of
-from .time_requests import sync_times_ns
-from .v2v_shell import KINDS as V2V_KINDS, V2vShell
+from obu_service.config import ObuConfig
+from obu_service.inbound_security import live_security
+from obu_service.pipeline import ObuPipeline
+from obu_service.source import ExternalCycles, OwnFrame, SimulatedVehicle, detections_of, pose_of
+from obu_service.time_requests import sync_times_ns
+from obu_service.v2v_shell import KINDS as V2V_KINDS, V2vShell
 
 
 INPUT_MAX_AGE_MS = 1000.0  # --source zenoh: older detection frames or poses are stale

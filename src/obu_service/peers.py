@@ -61,12 +61,12 @@ from fusion.wire import objects_from_states
 from schemas.columns import ObjectColumns
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObjectListHeader, TimeReply, TimeRequest
 
-from .admission import Admission
-from .clock_sync import OffsetEstimate
-from .methods import RsuFrame
-from .mode_inputs import ModeInputs, Received
-from .rsu_table import RSU_ID_BASE, RsuState, RsuTable
-from .time_requests import TimeRequests
+from obu_service.admission import Admission
+from obu_service.clock_sync import OffsetEstimate
+from obu_service.methods import RsuFrame
+from obu_service.mode_inputs import ModeInputs, Received
+from obu_service.rsu_table import RSU_ID_BASE, RsuState, RsuTable
+from obu_service.time_requests import TimeRequests
 
 MAX_PEERS = 8  # peer slots (tracker source bits) an OBU gives to V2V peers by default
 PEER_REPLY_NS = 50_000  # an OBU's time between receiving a peer's time request and answering it (offline)
@@ -114,7 +114,7 @@ class PeerIntake:
     """
 
     def __init__(self, config, rejected: Counter, poses: PoseHistory, first_slot: int, max_peers: int = MAX_PEERS):
-        from .pipeline import MAX_RSUS  # the slot space is the pipeline's
+        from obu_service.pipeline import MAX_RSUS  # the slot space is the pipeline's
 
         if not 1 <= max_peers or first_slot + max_peers > MAX_RSUS:
             raise ValueError(f"V2V: {max_peers} peer slots after {first_slot} RSU slots exceed the "

@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 
 from schemas.messages import PredictionList
 
-from .clock_sync import ClockSync
-from .link_monitor import LinkMonitor
+from obu_service.clock_sync import ClockSync
+from obu_service.link_monitor import LinkMonitor
 
 RECENT_KEYS = 512  # (seq, capture) keys remembered per RSU and stream for duplicate detection
 RSU_ID_BASE = 1_000_000  # output ids of a slot's objects: RSU_ID_BASE * (slot index + 1) + track id mod base

@@ -18,7 +18,7 @@ import numpy as np
 
 from sim.clock import DriftingClock
 
-from .clock_sync import NS_PER_S, ClockSync, SyncSample
+from obu_service.clock_sync import NS_PER_S, ClockSync, SyncSample
 
 NS_PER_MS = 1_000_000
 

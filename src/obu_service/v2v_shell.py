@@ -26,7 +26,7 @@ from schemas.intake import Item
 from schemas.messages import FusedObjectList, TimeReply, TimeRequest
 from sim.clock import Clock
 
-from .peers import PeerIntake, shared_list
+from obu_service.peers import PeerIntake, shared_list
 
 KINDS = ("v2v_objects", "v2v_time", "v2v_reply")
 

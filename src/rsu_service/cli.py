@@ -8,7 +8,7 @@ from schemas.list_wire import WIRES
 from schemas.runtime import add_service_options, run_service
 from telemetry.metrics_cli import add_metrics_options, export_node
 
-from .config import PREDICTORS, SOURCES, RsuConfig
+from rsu_service.config import PREDICTORS, SOURCES, RsuConfig
 
 
 def configure_parser(p: argparse.ArgumentParser) -> None:
@@ -65,7 +65,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     def make_node(config: RsuConfig):
-        from .node import RsuNode
+        from rsu_service.node import RsuNode
 
         return export_node(RsuNode(config), "rsu", args)
 

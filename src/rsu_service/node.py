@@ -44,10 +44,10 @@ from security.envelope import Signer, sign
 from security.pki import PkiError, load_signer
 from telemetry.latency import PeriodicSummary, StageLatency
 
-from .config import RsuConfig
-from .pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
-from .prediction import make_predictor
-from .source import Frame, make_source
+from rsu_service.config import RsuConfig
+from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
+from rsu_service.prediction import make_predictor
+from rsu_service.source import Frame, make_source
 
 
 MAX_QUERIERS = 1024  # querier buckets kept

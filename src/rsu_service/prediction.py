@@ -9,8 +9,8 @@ from fusion.lane_prediction import LanePredictor  # (imported here: its compiled
 from fusion.motion import trajectories_cv
 from sim.maps import lane_predictor, scenario_map
 
-from .config import PREDICTORS
-from .pipeline import TrajectoryPredictor
+from rsu_service.config import PREDICTORS
+from rsu_service.pipeline import TrajectoryPredictor
 
 
 def make_predictor(kind: str, scenario: str) -> TrajectoryPredictor:

@@ -27,10 +27,10 @@ from sim.seeding import stream
 from sim.sensors import RsuCamera, frame_times
 from sim.world import World
 
-from .image_perception import ImagePerception
+from rsu_service.image_perception import ImagePerception
 
 if TYPE_CHECKING:
-    from .recording import ImageFrames
+    from rsu_service.recording import ImageFrames
 
 SOURCES = ("sim", "camera", "video", "zenoh")
 
@@ -180,7 +180,7 @@ def make_source(config, world: World, start_ns: int):
         return RenderedCamera(world, config.seed, start_ns, perception, config.rate_hz, features_max, config.rsu_id)
     if config.video is None:
         raise ValueError("--source video needs --video PATH (a video file or a folder of images)")
-    from .recording import ImageFrames  # (OpenCV: ~15 ms of every RSU's start, here only where a video is read)
+    from rsu_service.recording import ImageFrames  # (OpenCV: ~15 ms of every RSU's start, here only where a video is read)
 
     cal = perception.calibration
     return RecordedCamera(ImageFrames(config.video, (cal.width, cal.height)), perception, start_ns, config.rate_hz,

@@ -1,8 +1,8 @@
 """Wire contract: message models, the msgpack codec and key expressions (no Zenoh here)."""
 
-from . import keys
-from .classes import ObjectClass
-from .codec import (
+from schemas import keys
+from schemas.classes import ObjectClass
+from schemas.codec import (
     MAX_MESSAGE_BYTES,
     CodecError,
     InvalidMessage,
@@ -13,7 +13,7 @@ from .codec import (
     decode,
     encode,
 )
-from .messages import (
+from schemas.messages import (
     MAX_OBJECTS,
     SCHEMA_VERSION,
     SOURCE_RSU,

@@ -19,9 +19,9 @@ import numpy as np
 
 from fusion.jit import I64, IN_F2, IN_I2, helper, kernel
 
-from . import columns, object_wire
-from .columns import _YAW_HALF_TURN as YAW_HALF_TURN  # yaw codes live in [-1800, 1800)
-from .quantize import YAW_RAD
+from schemas import columns, object_wire
+from schemas.columns import _YAW_HALF_TURN as YAW_HALF_TURN  # yaw codes live in [-1800, 1800)
+from schemas.quantize import YAW_RAD
 
 _SCALED, _INDEXED = object_wire._SCALED, object_wire._INDEXED  # a column's flag bits in its width byte
 

@@ -26,14 +26,14 @@ from typing import Any, TypeVar
 import msgpack
 from pydantic import PlainSerializer, ValidationError, WrapSerializer
 
-from .columns import OBJECT_SPECS, ObjectColumns
-from .errors import (CodecError, InvalidMessage, MalformedMessage, MessageTooLarge,  # noqa: F401 (re-exported)
+from schemas.columns import OBJECT_SPECS, ObjectColumns
+from schemas.errors import (CodecError, InvalidMessage, MalformedMessage, MessageTooLarge,  # noqa: F401 (re-exported)
                      SchemaVersionError, WrongMessageType)
-from .messages import (SCHEMA_VERSION, FusedObjectList, Message, ObjectList, ObjectListHeader, PredictedPath,
+from schemas.messages import (SCHEMA_VERSION, FusedObjectList, Message, ObjectList, ObjectListHeader, PredictedPath,
                        PredictionList)
-from .object_wire import EMPTY_SECTION, unpack_objects
-from .object_wire import object_count as _section_count
-from .sensor_messages import GroundTruth, SensorObjects
+from schemas.object_wire import EMPTY_SECTION, unpack_objects
+from schemas.object_wire import object_count as _section_count
+from schemas.sensor_messages import GroundTruth, SensorObjects
 
 MAX_MESSAGE_BYTES = 1 << 20
 # Largest msgpack array/map accepted. The unpacker pre-allocates a container from its

@@ -19,13 +19,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from . import limits as m
-from . import quantize as q
-from .classes import ObjectClass
-from .errors import InvalidMessage
+from schemas import limits as m
+from schemas import quantize as q
+from schemas.classes import ObjectClass
+from schemas.errors import InvalidMessage
 
 if TYPE_CHECKING:
-    from .messages import ObjectState
+    from schemas.messages import ObjectState
 
 _INT, _GRID, _YAW = "int", "grid", "yaw"
 _YAW_HALF_TURN = round(math.pi / q.YAW_RAD)  # 1800 codes: yaw codes live in [-1800, 1800)
@@ -264,7 +264,7 @@ class ObjectColumns:
         each validated by its model (a loop: for small, hand-made lists)."""
         if isinstance(states, ObjectColumns):
             return states.as_fused(fused)
-        from .messages import FusedObject, ObjectState
+        from schemas.messages import FusedObject, ObjectState
 
         model = FusedObject if fused else ObjectState
         _check_count(len(states))
@@ -295,7 +295,7 @@ class ObjectColumns:
     def wire_section(self) -> tuple:
         """The msgpack-ready objects section (``object_wire.pack_objects``), packed once: a list
         and a prediction list carrying the same (immutable) columns share it."""
-        from .object_wire import pack_objects
+        from schemas.object_wire import pack_objects
 
         return tuple(pack_objects(self))
 
@@ -314,7 +314,7 @@ class ObjectColumns:
 
     def row(self, i: int) -> ObjectState:
         """Object ``i`` as its model (``FusedObject`` when fused): convenient, not fast."""
-        from .messages import FusedObject, ObjectState
+        from schemas.messages import FusedObject, ObjectState
 
         model = FusedObject if self.fused else ObjectState
         integer = layout_of(self.fused).integer

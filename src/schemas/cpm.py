@@ -44,10 +44,10 @@ from typing import Any
 
 import numpy as np
 
-from . import standard_wire as sw
-from .classes import ObjectClass
-from .codec import InvalidMessage, WrongMessageType
-from .messages import UNKNOWN_VELOCITY_VAR, ObjectListHeader
+from schemas import standard_wire as sw
+from schemas.classes import ObjectClass
+from schemas.codec import InvalidMessage, WrongMessageType
+from schemas.messages import UNKNOWN_VELOCITY_VAR, ObjectListHeader
 
 ASN1_FILE = "V2I-CPM.asn"
 MESSAGE_ID = 14

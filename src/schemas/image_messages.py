@@ -22,8 +22,8 @@ from typing import Annotated, ClassVar, Literal
 import numpy as np
 from pydantic import Field, Strict, model_validator
 
-from .classes import ObjectClass
-from .messages import SCHEMA_VERSION, Count, Message, NodeId, SchemaVersion, Seq, TimeNs
+from schemas.classes import ObjectClass
+from schemas.messages import SCHEMA_VERSION, Count, Message, NodeId, SchemaVersion, Seq, TimeNs
 
 MAX_BOXES = 256  # boxes per frame
 MAX_KEYPOINTS = 4096  # keypoints per frame (an RSU caps its ORB well below: --image-features-max, 1000)

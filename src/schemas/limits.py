@@ -2,7 +2,7 @@
 
 import math
 
-from . import quantize as q
+from schemas import quantize as q
 
 MAX_OBJECTS = 1024
 

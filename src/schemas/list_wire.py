@@ -17,10 +17,10 @@ from typing import Any, Literal
 
 import numpy as np
 
-from . import keys
-from . import standard_wire as sw
-from .codec import MAX_MESSAGE_BYTES, decode, encode
-from .messages import ObjectList
+from schemas import keys
+from schemas import standard_wire as sw
+from schemas.codec import MAX_MESSAGE_BYTES, decode, encode
+from schemas.messages import ObjectList
 
 Wire = Literal["v2i", "cpm", "sdsm"]
 WIRES: tuple[str, ...] = ("v2i", "cpm", "sdsm")
@@ -29,11 +29,11 @@ TOPIC_WIRE = {"objects": "v2i", "cpm": "cpm", "sdsm": "sdsm"}
 
 def _module(wire: str):
     if wire == "cpm":
-        from . import cpm
+        from schemas import cpm
 
         return cpm
     if wire == "sdsm":
-        from . import sdsm
+        from schemas import sdsm
 
         return sdsm
     raise ValueError(f"unknown wire {wire!r}; one of {', '.join(WIRES)}")

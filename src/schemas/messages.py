@@ -12,12 +12,12 @@ from typing import Annotated, ClassVar, Literal
 from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, PlainSerializer, PlainValidator,
                       ValidatorFunctionWrapHandler, WrapValidator, model_validator)
 
-from . import quantize as q
-from .classes import ObjectClass
-from .columns import ObjectColumns, objects_field
-from .limits import (ACCEL_MAX_MPS2, AGE_MAX_S, HEIGHT_MAX_M, MAX_OBJECTS, POSITION_MAX_M, SIZE_MAX_M,  # noqa: F401
+from schemas import quantize as q
+from schemas.classes import ObjectClass
+from schemas.columns import ObjectColumns, objects_field
+from schemas.limits import (ACCEL_MAX_MPS2, AGE_MAX_S, HEIGHT_MAX_M, MAX_OBJECTS, POSITION_MAX_M, SIZE_MAX_M,  # noqa: F401
                      SOURCE_RSU, SOURCE_VEHICLE, SPEED_MAX_MPS, UNKNOWN_VELOCITY_VAR, VARIANCE_MAX, YAW_RATE_MAX)
-from .path_points import grid_positions, grid_yaws, paths_from_array, paths_from_dicts, points_validator
+from schemas.path_points import grid_positions, grid_yaws, paths_from_array, paths_from_dicts, points_validator
 
 # 2: velocity covariance cov_vxx, cov_vxy, cov_vyy on objects
 # 3: header schema_version checked; RsuMetrics; ObuMetrics.output_dropped; RsuLinkStatus.sync_outliers

@@ -30,10 +30,10 @@ from typing import Any
 
 import numpy as np
 
-from . import bitpack, value_tables
-from .columns import COLUMN, ObjectColumns, layout_of
-from .errors import InvalidMessage, MalformedMessage
-from .limits import MAX_OBJECTS
+from schemas import bitpack, value_tables
+from schemas.columns import COLUMN, ObjectColumns, layout_of
+from schemas.errors import InvalidMessage, MalformedMessage
+from schemas.limits import MAX_OBJECTS
 
 SECTION_LEN = 7
 _WIDTH_BITS, _SCALED, _INDEXED = 0x3F, 0x40, 0x80

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidatorFunctionWrapHandler, WrapValidator
 
-from . import quantize as q
+from schemas import quantize as q
 
 _FLOAT_ONLY = frozenset({float})
 

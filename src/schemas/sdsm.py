@@ -42,11 +42,11 @@ from typing import Any
 
 import numpy as np
 
-from . import standard_wire as sw
-from .classes import ObjectClass
-from .codec import InvalidMessage
-from .cpm import station_id
-from .messages import UNKNOWN_VELOCITY_VAR, ObjectListHeader
+from schemas import standard_wire as sw
+from schemas.classes import ObjectClass
+from schemas.codec import InvalidMessage
+from schemas.cpm import station_id
+from schemas.messages import UNKNOWN_VELOCITY_VAR, ObjectListHeader
 
 ASN1_FILE = "V2I-SDSM.asn"
 MAX_OBJECTS = 255

@@ -26,7 +26,7 @@ from typing import Annotated, ClassVar, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from .messages import (EMPTY_OBJECTS, SCHEMA_VERSION, VARIANCE_MAX, Message, NodeId, Objects, Position, SchemaVersion,
+from schemas.messages import (EMPTY_OBJECTS, SCHEMA_VERSION, VARIANCE_MAX, Message, NodeId, Objects, Position, SchemaVersion,
                        Seq, Size, Speed, TimeNs, Yaw)
 
 SENSOR_FRAMES = ("map", "base_link")

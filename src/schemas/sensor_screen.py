@@ -20,8 +20,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .codec import MAX_MESSAGE_BYTES, CodecError, from_body, object_count, open_body
-from .sensor_messages import LocalizationPose, SensorObjects
+from schemas.codec import MAX_MESSAGE_BYTES, CodecError, from_body, object_count, open_body
+from schemas.sensor_messages import LocalizationPose, SensorObjects
 
 MS = 1_000_000
 

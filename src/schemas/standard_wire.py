@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from .codec import CodecError, InvalidMessage, MalformedMessage, MessageTooLarge
-from .messages import UNKNOWN_VELOCITY_VAR, ObjectList, ObjectListHeader, ObjectState
+from schemas.codec import CodecError, InvalidMessage, MalformedMessage, MessageTooLarge
+from schemas.messages import UNKNOWN_VELOCITY_VAR, ObjectList, ObjectListHeader, ObjectState
 
 ASN1_DIR = Path(__file__).with_name("asn1")
 COLUMN_NAMES = ("id", "cls", "x", "y", "z", "length", "width", "height", "yaw", "vx", "vy", "ax", "ay", "yaw_rate",
@@ -126,7 +126,7 @@ def object_list(header: ObjectListHeader, columns: dict[str, np.ndarray]) -> Obj
     """The validated ObjectList of a decoded header and columns (every v2i model rule)."""
     table = np.column_stack([columns[k] for k in COLUMN_NAMES]).reshape(len(columns["id"]), len(COLUMN_NAMES))
     try:
-        from .columns import ObjectColumns
+        from schemas.columns import ObjectColumns
     except ImportError:  # before the columnar object lists (schemas.columns): per-object models
         rows = [dict(zip(COLUMN_NAMES, row)) for row in table.tolist()]
         for row in rows:

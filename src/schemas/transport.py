@@ -21,7 +21,7 @@ from pathlib import Path
 
 import zenoh
 
-from .codec import MAX_MESSAGE_BYTES
+from schemas.codec import MAX_MESSAGE_BYTES
 
 # Services are Zenoh peers unless this variable says ``client``: behind a ``v2i router`` they
 # must be clients, because a Zenoh 1.10 router forwards for its clients, never between peers.

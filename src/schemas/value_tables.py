@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from . import bitpack
-from .errors import MalformedMessage
+from schemas import bitpack
+from schemas.errors import MalformedMessage
 
 NO_TABLES: tuple = ()
 _ITEMSIZES = np.array([1, 2, 4, 8])

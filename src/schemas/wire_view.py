@@ -14,9 +14,9 @@ from typing import Any
 
 import msgpack
 
-from .codec import LIST_TAGS, _layout
-from .messages import FusedObjectList, Message, ObjectList, PredictionList
-from .sensor_messages import GroundTruth, SensorObjects
+from schemas.codec import LIST_TAGS, _layout
+from schemas.messages import FusedObjectList, Message, ObjectList, PredictionList
+from schemas.sensor_messages import GroundTruth, SensorObjects
 
 SECTION_KEYS = ("n", "present", "widths", "refs", "scales", "rows", "tables")
 _MODELS: dict[int, type[Message]] = {LIST_TAGS[m.TYPE]: m for m in

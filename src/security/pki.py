@@ -22,9 +22,9 @@ import stat
 from dataclasses import dataclass
 from pathlib import Path
 
-from . import algorithms as alg
-from . import certificates as certs
-from .certificates import Certificate, CertificateError, RevocationList
+from security import algorithms as alg
+from security import certificates as certs
+from security.certificates import Certificate, CertificateError, RevocationList
 
 NS_PER_DAY = 86_400 * 10**9
 CA_NAME = "ca"

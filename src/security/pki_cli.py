@@ -17,11 +17,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from . import algorithms as alg
-from .certificates import SIGNER_ROLES, CertificateError, check_key_expr
-from .attacker_keys import STOLEN_RSU, STOLEN_VEHICLE, prepare_attacker_pki, revoked_subject
-from .pki import CA_NAME, CRL_FILE, Pki, PkiError, load_trust, read_cert
-from .site import DEFAULT_DAYS, write_site
+from security import algorithms as alg
+from security.certificates import SIGNER_ROLES, CertificateError, check_key_expr
+from security.attacker_keys import STOLEN_RSU, STOLEN_VEHICLE, prepare_attacker_pki, revoked_subject
+from security.pki import CA_NAME, CRL_FILE, Pki, PkiError, load_trust, read_cert
+from security.site import DEFAULT_DAYS, write_site
 
 DESCRIPTION = """\
 the site's certificate authority (CA) on a directory: create it, issue and revoke certificates.
@@ -216,7 +216,7 @@ def _attacker(args: argparse.Namespace, now_ns: int) -> None:
 
 
 def _tls(args: argparse.Namespace, now_ns: int) -> None:
-    from . import tls  # the transport's X.509 material: only this command needs it
+    from security import tls  # the transport's X.509 material: only this command needs it
 
     for path in tls.issue_tls(args.directory, args.names, now_ns, args.days):
         print(f"wrote {path}")

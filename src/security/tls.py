@@ -32,9 +32,9 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from .pki import CA_NAME as SIGNING_CA_NAME
-from .pki import PkiError
-from .pki import _write as write_atomic
+from security.pki import CA_NAME as SIGNING_CA_NAME
+from security.pki import PkiError
+from security.pki import _write as write_atomic
 
 TLS_CA = "tls-ca"
 NS_PER_DAY = 86_400 * 10**9

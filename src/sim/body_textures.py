@@ -15,7 +15,7 @@ import numpy as np
 
 from schemas.classes import ObjectClass
 
-from .textures import (
+from sim.textures import (
     BODY_COLOURS,
     BODY_RES_M,
     CLOTHES,

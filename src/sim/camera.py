@@ -25,7 +25,7 @@ import numpy as np
 
 from fusion.frames import Pose2D
 
-from .scenario import RsuCameraConfig, VehicleCameraConfig
+from sim.scenario import RsuCameraConfig, VehicleCameraConfig
 
 
 def rotation_from_angles(yaw_rad: float, pitch_rad: float, roll_rad: float = 0.0) -> np.ndarray:

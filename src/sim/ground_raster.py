@@ -16,8 +16,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from .maps.road_network import CENTRE, DASHED, EDGE, SOLID, RoadNetwork, lane_bounds
-from .textures import mip_levels, smooth_noise
+from sim.maps.road_network import CENTRE, DASHED, EDGE, SOLID, RoadNetwork, lane_bounds
+from sim.textures import mip_levels, smooth_noise
 
 ASPHALT, SIDEWALK, KERB, GRASS, GRAVEL = (72, 73, 76), (150, 152, 150), (185, 185, 182), (60, 118, 84), (110, 125, 135)
 WHITE, YELLOW = (228, 230, 230), (40, 185, 215)
@@ -186,7 +186,7 @@ def ground_view(layers: list[GroundRaster], K: np.ndarray, R: np.ndarray, t: np.
     than it; each row is sampled from the mip level of its median footprint:
     sqrt|det J| of H_g^-1 = sqrt|det M / (m_3 . p)^3| m per pixel.
     """
-    from .raster import inverse_depth_plane
+    from sim.raster import inverse_depth_plane
 
     Hg = K @ np.column_stack([R[:, 0], R[:, 1], t])
     a, b, e = inverse_depth_plane(np.linalg.inv(K), R[:, 2], t)
@@ -243,7 +243,7 @@ def sky_and_haze(K, R, t, width: int, height: int, ground: np.ndarray, inv_depth
     fog colour); out = (1 - f) ground + f far, f = 1 - exp(-depth / FOG_M), 1 for sky. Both
     are smooth, so they are evaluated every ``step_px`` pixels and interpolated.
     """
-    from .raster import inverse_depth_plane
+    from sim.raster import inverse_depth_plane
 
     u = np.arange(0, width + step_px, step_px, dtype=np.float32)
     v = np.arange(0, height + step_px, step_px, dtype=np.float32)

@@ -29,10 +29,10 @@ import scipy.stats
 
 from fusion.objects import ObjectArray
 
-from . import raster
-from .body_textures import FIGURES, body_parts
-from .camera import PinholeCamera
-from .ground_raster import (
+from sim import raster
+from sim.body_textures import FIGURES, body_parts
+from sim.camera import PinholeCamera
+from sim.ground_raster import (
     HAZE,
     GroundRaster,
     build_ground,
@@ -40,9 +40,9 @@ from .ground_raster import (
     fog_fraction,
     ground_view,
 )
-from .maps.road_network import road_network
-from .scenario import bundled_scenarios
-from .scene_faces import (
+from sim.maps.road_network import road_network
+from sim.scenario import bundled_scenarios
+from sim.scene_faces import (
     WorldFace,
     body_faces,
     box_corners,
@@ -50,7 +50,7 @@ from .scene_faces import (
     detail_extent,
     scene_extent,
 )
-from .world import World
+from sim.world import World
 
 AMBIENT, DIFFUSE = 0.6, 0.45  # face gain = AMBIENT + DIFFUSE max(0, n . sun)
 SUN_ELEVATION_RAD = np.deg2rad(50.0)

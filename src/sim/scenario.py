@@ -32,7 +32,7 @@ from shapely.validation import explain_validity
 from schemas.classes import ObjectClass
 from schemas.config import ConfigError, bundled_names, load_bundled_or_file
 
-from .paths import rounded_path, speed_keys_from_distance
+from sim.paths import rounded_path, speed_keys_from_distance
 
 Point2 = tuple[float, float]
 PosFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .textures import FACES, facade_style, facade_texture, mip_levels, roof_texture
-from .world import World
+from sim.textures import FACES, facade_style, facade_texture, mip_levels, roof_texture
+from sim.world import World
 
 WALL_CHUNK_M = 8.0
 

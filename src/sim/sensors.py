@@ -14,9 +14,9 @@ from fusion.objects import ObjectArray
 from schemas.classes import ObjectClass
 from schemas.messages import UNKNOWN_VELOCITY_VAR
 
-from .occlusion import visible_fraction
-from .scenario import LidarConfig, LocalizationConfig, RsuCameraConfig
-from .world import World
+from sim.occlusion import visible_fraction
+from sim.scenario import LidarConfig, LocalizationConfig, RsuCameraConfig
+from sim.world import World
 
 SOURCE_VEHICLE = 1
 SOURCE_RSU = 2

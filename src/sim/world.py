@@ -27,7 +27,7 @@ from fusion.identity_memo import IdentityMemo
 from fusion.jit import IN_F1, IN_F2, IN_F3, IN_I1, kernel
 from fusion.objects import ObjectArray, read_only
 
-from .scenario import Building, Scenario, Trajectory
+from sim.scenario import Building, Scenario, Trajectory
 
 
 def _pad(rows: list[np.ndarray], fill_last: bool, fill: float = np.inf) -> np.ndarray:

@@ -17,7 +17,7 @@ import math
 import re
 from typing import Any
 
-from .windowed import WindowedCounters, ratio
+from telemetry.windowed import WindowedCounters, ratio
 
 DIRECTION_KEYS = ("downlink", "uplink", "v2v")
 MAX_IMPAIRMENTS = 16  # in force at once, per link (the emulator repeats its latest 16 outcomes)

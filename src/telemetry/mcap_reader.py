@@ -30,9 +30,9 @@ from schemas.codec import CodecError, decode
 from schemas.messages import TimeReply
 from security.envelope import unwrap
 
-from .mcap_channels import models_by_type
-from .mcap_prefix import MAGIC, PrefixReader
-from .time_shift import Exchange
+from telemetry.mcap_channels import models_by_type
+from telemetry.mcap_prefix import MAGIC, PrefixReader
+from telemetry.time_shift import Exchange
 
 TIME_REPLY = TimeReply.TYPE
 MAX_CHUNK_BYTES = 64 << 20  # v2i record writes chunks of ~1 MB

@@ -38,7 +38,7 @@ from schemas.codec import CodecError, decode
 from schemas.messages import Message
 from security.envelope import unwrap
 
-from . import mcap_channels as mc
+from telemetry import mcap_channels as mc
 
 DERIVE_MAX_BYTES = 256 * 1024  # larger payloads are recorded raw only
 CHUNK_BYTES = 1 << 20

@@ -56,8 +56,8 @@ def metrics_server(node: Any, service: str, args: argparse.Namespace) -> Any:
     port = getattr(args, "metrics_port", 0)
     if not port:
         return None
-    from .prometheus import serve
-    from .prometheus_collectors import collector_for
+    from telemetry.prometheus import serve
+    from telemetry.prometheus_collectors import collector_for
 
     return serve(collector_for(service, node), port, getattr(args, "metrics_address", DEFAULT_ADDRESS))
 

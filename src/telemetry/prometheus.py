@@ -25,8 +25,8 @@ from prometheus_client import CollectorRegistry, ProcessCollector, start_http_se
 from prometheus_client.core import HistogramMetricFamily
 from prometheus_client.utils import floatToGoString
 
-from .latency import BUCKETS_S
-from .metrics_cli import DEFAULT_ADDRESS, MetricsPortError
+from telemetry.latency import BUCKETS_S
+from telemetry.metrics_cli import DEFAULT_ADDRESS, MetricsPortError
 
 MAX_LABEL_VALUES = 32  # distinct values per label of a family; later ones are summed under OTHER
 MAX_LABEL_CHARS = 64

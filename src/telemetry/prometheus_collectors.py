@@ -22,7 +22,7 @@ from typing import Any
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, SummaryMetricFamily
 from prometheus_client.registry import Collector
 
-from .prometheus import MAX_LABEL_VALUES, OTHER, LabelCap, stage_histogram, stage_histograms
+from telemetry.prometheus import MAX_LABEL_VALUES, OTHER, LabelCap, stage_histogram, stage_histograms
 
 RSU_TO_OBU = "rsu_to_obu"
 DIRECTIONS = ("uplink", "downlink", "v2v")

@@ -54,8 +54,8 @@ from schemas.codec import CodecError, decode
 from schemas.keys import ID_PATTERN
 from schemas.messages import ObuMetrics, RsuLinkStatus, RsuMetrics
 
-from .link_view import LinkView
-from .windowed import WindowedCounters, ratio, shares
+from telemetry.link_view import LinkView
+from telemetry.windowed import WindowedCounters, ratio, shares
 
 WINDOW_S = 10.0
 MAX_NODES = 64  # vehicles, RSUs and links tracked, each

@@ -166,7 +166,7 @@ def run_once(monitor: Monitor, timeout_s: float, json_path: str | None) -> int:
     else:
         from rich.console import Console
 
-        from .monitor_view import dashboard
+        from v2i.monitor_view import dashboard
 
         Console().print(dashboard(snap, snap["sources"]))
     return 0
@@ -176,7 +176,7 @@ def run_live(monitor: Monitor, refresh_hz: float, duration_s: float | None) -> i
     """The dashboard, redrawn ``refresh_hz`` times a second until Ctrl-C or ``duration_s``."""
     from rich.live import Live
 
-    from .monitor_view import dashboard
+    from v2i.monitor_view import dashboard
 
     period_s = 1.0 / refresh_hz
     end = None if duration_s is None else time.monotonic() + duration_s

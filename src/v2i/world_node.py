@@ -22,7 +22,7 @@ from schemas.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 
-from .world_feed import WorldFeed
+from v2i.world_feed import WorldFeed
 
 LATE_NS = 50_000_000  # a publication this far behind its time is counted late
 

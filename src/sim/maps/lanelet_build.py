@@ -28,8 +28,8 @@ from lanelet2.core import (
 from lanelet2.io import Origin
 from lanelet2.projection import LocalCartesianProjector
 
-from . import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG
-from .road_network import (
+from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG
+from sim.maps.road_network import (
     CENTRE,
     DASHED,
     EDGE,
