@@ -33,7 +33,7 @@ from filterpy.kalman import KalmanFilter
 
 from fusion import kalman
 from fusion.covariance_intersection import ci_update, ci_weights
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.tracking import (
     SOURCE_BITS,
     Tracker,

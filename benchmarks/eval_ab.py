@@ -47,7 +47,7 @@ def _run(tree: Path, args: list[str]) -> str:
 
 
 # every kernel of a tree (the services' and the evaluator's) loaded, compiled first where its cache lacks it
-WARM = ("import importlib; from fusion.jit import load_kernels; "
+WARM = ("import importlib; from v2i.core.jit import load_kernels; "
         "importlib.import_module('evaluation.detection_metrics'); load_kernels()")
 
 

@@ -35,7 +35,7 @@ from sim.scenario import bundled_scenarios
 from schemas.runtime import freeze_heap
 from v2i.cli import _spec, build_parser
 
-from fusion.jit import load_kernels
+from v2i.core.jit import load_kernels
 
 load_kernels()  # the tracker's compiled loops: loaded once per process, like the imports
 IMPORT_S = time.perf_counter() - _T0

@@ -29,7 +29,7 @@ import json
 
 import numpy as np
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.tracking import Tracker, TrackerConfig, slot_source
 from schemas.messages import SOURCE_VEHICLE
 

@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from fusion.frames import wrap_angle
+from v2i.core.frames import wrap_angle
 from fusion.lane_prediction import LanePredictionConfig, LanePredictor
 from schemas.classes import ObjectClass
 from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, map_path

@@ -72,7 +72,7 @@ class Site:
 
     def objects_at(self, t_s: float, rng: np.random.Generator, std_m: float = 0.3, v_std_mps: float = 0.3):
         """ObjectArray (map frame) of the N objects at scenario time t_s as one RSU sees them."""
-        from fusion.objects import ObjectArray
+        from v2i.core.objects import ObjectArray
 
         ego = self.world.ego_at(t_s)
         a = self.w_rps * t_s + self.phi

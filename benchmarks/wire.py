@@ -42,8 +42,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "unit"))
 import legacy_codec as v3  # noqa: E402
 
-from fusion.jit import load_kernels  # noqa: E402
-from fusion.objects import ObjectArray  # noqa: E402
+from v2i.core.jit import load_kernels  # noqa: E402
+from v2i.core.objects import ObjectArray  # noqa: E402
 from fusion.wire import objects_from_states, states_from_objects  # noqa: E402
 from schemas.codec import decode, encode  # noqa: E402
 from schemas.messages import ObjectList, ObjectListHeader, ObjectState  # noqa: E402

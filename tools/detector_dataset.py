@@ -30,8 +30,8 @@ import numpy as np
 import shapely
 
 from detector_samples import INPUT_HW
-from fusion.frames import Pose2D
-from fusion.objects import ObjectArray
+from v2i.core.frames import Pose2D
+from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
 from sim.camera import PinholeCamera, rsu_camera
 from sim.maps.road_network import road_network

@@ -28,7 +28,7 @@ from collections import deque
 
 import numpy as np
 
-from fusion.frames import Pose2D, base_to_map_points
+from v2i.core.frames import Pose2D, base_to_map_points
 from schemas.classes import ObjectClass
 from schemas.limits import SOURCE_RSU
 from schemas.messages import FusedObjectList

@@ -18,7 +18,7 @@ from collections import Counter, deque
 
 import numpy as np
 
-from fusion.frames import Pose2D
+from v2i.core.frames import Pose2D
 from schemas import keys
 from schemas.codec import CodecError, decode
 from schemas.limits import SOURCE_RSU

@@ -42,7 +42,7 @@ import itertools
 import msgpack
 import numpy as np
 
-from fusion.frames import Pose2D
+from v2i.core.frames import Pose2D
 from schemas import keys
 from schemas.classes import ObjectClass
 from schemas.codec import encode

@@ -30,7 +30,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from fusion.jit import load_kernels
+from v2i.core.jit import load_kernels
 from link_emulator.control_auth import OPERATOR, sign_control
 from obu_service.source import SimulatedVehicle
 from schemas import keys
@@ -171,7 +171,7 @@ class Demo(InboxScoring):
 
     def run(self) -> dict:
         """Start the services, wait until each is ready, subscribe, send time zero, watch, score."""
-        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, not in each child
+        load_kernels()  # compiled once per machine (v2i.core.jit: tens of seconds) here, not in each child
         recorder, sessions, subs = None, [], []
         try:
             for name in ("rsu", "obu", "link"):

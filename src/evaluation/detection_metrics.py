@@ -25,9 +25,9 @@ import numpy as np
 from scipy.special import gammaincinv
 
 from fusion.association import center_distance_cost
-from fusion.jit import IN_F1, IN_F2, IN_I1, kernel
+from v2i.core.jit import IN_F1, IN_F2, IN_I1, kernel
 from fusion.lsap import linear_sum_assignment
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 # nuScenes' detection-eval constants (nuscenes-devkit, eval/detection/algo.py, configs/detection_cvpr_2019.json)
 RECALL_SAMPLES = 101  # precision re-sampled at recall 0.00, 0.01, ..., 1.00

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.jit import load_kernels
+from v2i.core.jit import load_kernels
 from schemas.transport import open_session
 
 from evaluation.children import READY_TIMEOUT_S, Child, DemoError, start_all, wait_ready
@@ -141,7 +141,7 @@ class FuzzRun(ABC):
 
     # --- the run ------------------------------------------------------------------------------
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, not in each child
+        load_kernels()  # compiled once per machine (v2i.core.jit: tens of seconds) here, not in each child
         # from time zero: the warm-up, the sending (twice its time at the rate) and the settling, with a margin
         duration_s = WARM_UP_S + 2.0 * self.count / self.rate_hz + self.settle_s + 60.0
         try:

@@ -26,7 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fusion.jit import load_kernels
+from v2i.core.jit import load_kernels
 from schemas import keys
 from schemas.codec import CodecError, decode
 from schemas.messages import ObjectList, RsuMetrics
@@ -113,7 +113,7 @@ class FramesFuzz:
         return sent
 
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, not in the child
+        load_kernels()  # compiled once per machine (v2i.core.jit: tens of seconds) here, not in the child
         with tempfile.TemporaryDirectory(prefix="v2i-fuzz-frames-") as tmp:
             sent = self._write(Path(tmp))
             files = WARMUP_FRAMES + 2 * self.count

@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.wire import states_from_objects
 from schemas import keys
 from schemas.codec import encode

@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.wire import states_from_objects
 from schemas.codec import encode
 from schemas.wire_view import pack_view, unpack_view

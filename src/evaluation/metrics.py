@@ -17,9 +17,9 @@ from functools import cached_property
 import numpy as np
 
 from fusion.association import assign, center_distance_cost
-from fusion.frames import map_to_base
+from v2i.core.frames import map_to_base
 from fusion.geometry import bev_iou_pairs
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.wire import objects_from_states
 from schemas.messages import FusedObjectList, PredictionList
 

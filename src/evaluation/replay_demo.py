@@ -21,7 +21,7 @@ import dataclasses
 import threading
 import time
 
-from fusion.jit import load_kernels
+from v2i.core.jit import load_kernels
 from schemas.codec import CodecError, decode
 from schemas.messages import RsuMetrics
 from schemas.transport import open_session
@@ -67,7 +67,7 @@ class ReplayDemo(Demo):
     def run(self) -> dict:
         """Start the OBU, wait until it is ready, subscribe and declare the replayed RSU clocks, then
         give it time zero (aligned to a whole ms of shift) and replay from it."""
-        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, not in the child
+        load_kernels()  # compiled once per machine (v2i.core.jit: tens of seconds) here, not in the child
         stop, sessions, entities, player = threading.Event(), [], [], None
         try:
             self.children["obu"] = self._child("obu")

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.frames import base_to_map_points
+from v2i.core.frames import base_to_map_points
 from sim.clock import SystemClock
 from sim.world import World
 

@@ -23,7 +23,7 @@ from functools import cached_property
 
 import numpy as np
 
-from fusion.jit import load_kernels
+from v2i.core.jit import load_kernels
 from link_emulator.channel import LinkModel
 from link_emulator.control import apply_control
 from link_emulator.profile import LinkProfile, load_profile

@@ -42,7 +42,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from fusion.jit import load_kernels
+from v2i.core.jit import load_kernels
 from obu_service.source import SimulatedVehicle
 from perception.scoring import PerceptionTally
 from schemas import keys
@@ -115,7 +115,7 @@ class SiteDemo(InboxScoring):
 
     def run(self) -> dict:
         """Start every node, wait until each is ready, connect the watcher, send time zero, watch, score."""
-        load_kernels()  # compiled once per machine (fusion.jit: tens of seconds) here, not in each child
+        load_kernels()  # compiled once per machine (v2i.core.jit: tens of seconds) here, not in each child
         watcher, subs = None, []
         try:
             self._start_children()

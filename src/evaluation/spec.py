@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObuMetrics, PredictionList
 from obu_service.config import ObuConfig
 from perception.scoring import PerceptionTally

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.jit import I64, IN_F1, IN_F2, IN_I1, kernel
+from v2i.core.jit import I64, IN_F1, IN_F2, IN_I1, kernel
 from fusion.lsap import linear_sum_assignment
 
 _BIG = 1e12

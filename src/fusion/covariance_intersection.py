@@ -60,7 +60,7 @@ import numpy as np
 
 from schemas.messages import UNKNOWN_VELOCITY_VAR  # per-axis velocity variance meaning "no velocity"
 
-from fusion.jit import B1, IN_F2, IN_F3, IN_I1, OUT_F2, OUT_F3, helper, kernel
+from v2i.core.jit import B1, IN_F2, IN_F3, IN_I1, OUT_F2, OUT_F3, helper, kernel
 
 W_MIN = 1e-6  # smallest weight of the track (full observations: w -> 0 takes the estimate)
 W_TOL = 1e-12  # Newton stops once a step is below this (module docstring)

@@ -1,4 +1,4 @@
-"""A tracker in the map as the ego's drifting pose estimate places it (map', ``fusion.frames``).
+"""A tracker in the map as the ego's drifting pose estimate places it (map', ``v2i.core.frames``).
 
 The OBU moves its own detections into map with its estimated pose and its tracks back with
 the same pose, so its tracker lives in map': the pose error cancels for what the tracker
@@ -18,7 +18,7 @@ tracks at 50-100 m: RMS error 0.104 m against a stated 0.067 m; NEES 4.8).
 
 from __future__ import annotations
 
-from fusion.frames import Pose2D, pose_cov_map
+from v2i.core.frames import Pose2D, pose_cov_map
 from fusion.tracking import Tracker, TrackerConfig
 
 

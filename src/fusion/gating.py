@@ -24,9 +24,9 @@ import numpy as np
 
 from fusion.association import Assignment, assign_sparse
 from fusion.geometry import iou_rows
-from fusion.jit import F64, I64, IN_F2, IN_F3, IN_I1, helper, kernel
+from v2i.core.jit import F64, I64, IN_F2, IN_F3, IN_I1, helper, kernel
 from fusion.kalman import mahalanobis_sq
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 if TYPE_CHECKING:
     from fusion.track_table import TrackTable

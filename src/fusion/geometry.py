@@ -1,6 +1,6 @@
 """Bird's-eye-view boxes: corners, polygons (shapely) and rotated-box IoU.
 
-The IoU of two boxes is a compiled kernel (``iou_rows``: numba, ``fusion.jit``): the intersection
+The IoU of two boxes is a compiled kernel (``iou_rows``: numba, ``v2i.core.jit``): the intersection
 of two convex quadrilaterals by Sutherland-Hodgman clipping, its area by the shoelace formula.
 It equals shapely's polygon intersection to rounding (tests/unit/test_fusion_geometry.py) and
 costs ~1 us instead of ~30 us per pair.
@@ -13,8 +13,8 @@ import math
 import numpy as np
 import shapely
 
-from fusion.jit import IN_F2, helper, kernel
-from fusion.objects import ObjectArray
+from v2i.core.jit import IN_F2, helper, kernel
+from v2i.core.objects import ObjectArray
 
 
 def bev_boxes(objs: ObjectArray) -> np.ndarray:

@@ -31,8 +31,8 @@ from typing import Protocol
 
 import numpy as np
 
-from fusion.frames import wrap_angle
-from fusion.jit import I64, IN_F2, IN_F3, IN_I1, OUT_F2, OUT_F3, kernel
+from v2i.core.frames import wrap_angle
+from v2i.core.jit import I64, IN_F2, IN_F3, IN_I1, OUT_F2, OUT_F3, kernel
 
 POSITION_DIM = 2
 CHI2_2DOF_99 = 9.21  # chi-square 99 % quantile, 2 degrees of freedom

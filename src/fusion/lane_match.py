@@ -28,8 +28,8 @@ import math
 import numpy as np
 from numba import types
 
-from fusion.frames import wrap_angle
-from fusion.jit import F64, IN_F1, IN_F2, IN_I1, IN_I2, OUT_F1, OUT_F3, OUT_I1, helper, kernel
+from v2i.core.frames import wrap_angle
+from v2i.core.jit import F64, IN_F1, IN_F2, IN_I1, IN_I2, OUT_F1, OUT_F3, OUT_I1, helper, kernel
 
 IN_B1 = types.Array(types.boolean, 1, "A", readonly=True)
 

@@ -46,10 +46,10 @@ import numpy as np
 
 from schemas.classes import ObjectClass
 
-from fusion.frames import wrap_angle
+from v2i.core.frames import wrap_angle
 from fusion.lane_match import chain_frame_points, match_segments
 from fusion.motion import predict_cv
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 EXTEND_M = 1000.0  # straight extension before / after every lane sequence
 HEADING_BASE_M = 0.5  # half base of the central chord giving the lane heading

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from fusion.geometry import bev_boxes, bev_iou_matrix
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 
 def iou_merge(vehicle: ObjectArray, rsu: ObjectArray, iou_threshold: float = 0.1) -> ObjectArray:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 
 def predict_cv(objs: ObjectArray, dt_s) -> ObjectArray:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from fusion.geometry import bev_boxes, bev_iou_matrix
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 
 def nms_fuse(own: ObjectArray, rsu: ObjectArray, iou_threshold: float = 0.1) -> ObjectArray:

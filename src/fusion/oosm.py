@@ -21,7 +21,7 @@ from __future__ import annotations
 import bisect
 from dataclasses import dataclass
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.tracking import Tracker, TrackerSnapshot
 
 

@@ -15,7 +15,7 @@ import bisect
 import math
 from collections import deque
 
-from fusion.frames import Pose2D, PoseUncertainty
+from v2i.core.frames import Pose2D, PoseUncertainty
 
 _TWO_PI = 2.0 * math.pi
 
@@ -56,7 +56,7 @@ class PoseHistory:
 
 
 def _wrap(rad: float) -> float:
-    """``fusion.frames.wrap_angle`` of one Python float, to [-pi, pi): the same IEEE operations (a float's
+    """``v2i.core.frames.wrap_angle`` of one Python float, to [-pi, pi): the same IEEE operations (a float's
     ``%`` is numpy's remainder: fmod, then the divisor's sign), without the 0-d arrays."""
     return (rad + math.pi) % _TWO_PI - math.pi
 

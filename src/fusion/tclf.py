@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from fusion.association import assign, center_distance_cost
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 
 def two_frame_velocity(prev: ObjectArray, curr: ObjectArray, dt_s: float, gate_m: float = 5.0) -> np.ndarray:

@@ -19,7 +19,7 @@ from operator import itemgetter
 
 import numpy as np
 
-from fusion.jit import B1, F64, I64, IN_B2, IN_F1, IN_F2, IN_F3, IN_I1, OUT_B1, OUT_F1, OUT_F2, OUT_I1, kernel
+from v2i.core.jit import B1, F64, I64, IN_B2, IN_F1, IN_F2, IN_F3, IN_I1, OUT_B1, OUT_F1, OUT_F2, OUT_I1, kernel
 
 SOURCE_BITS = 63  # source bitmasks are int64: bit 0 own vehicle, bits 1..62 one per RSU / peer slot
 _ALL_BITS = np.arange(SOURCE_BITS)

@@ -83,7 +83,7 @@ import numpy as np
 
 from fusion import kalman
 from fusion.covariance_intersection import ci_fuse_objects
-from fusion.frames import wrap_angle
+from v2i.core.frames import wrap_angle
 from fusion.gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
     GatedPairs,
     assign_gated,
@@ -94,7 +94,7 @@ from fusion.gating import (  # noqa: F401  (re-exported: association is part of 
     gated_pairs,
     paired_bev_iou,
 )
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.track_table import SOURCE_BITS, TrackStore, TrackTable, estimate_rules, record_matches
 
 _BIT_VALUES = 1 << np.arange(SOURCE_BITS)

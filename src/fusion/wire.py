@@ -18,9 +18,9 @@ from schemas import messages as m
 from schemas.columns import COLUMN, ObjectColumns
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, ObjectState
 
-from fusion.frames import wrap_angle
-from fusion.jit import F64, I64, IN_F1, IN_I1, OUT_F2, OUT_I1, kernel
-from fusion.objects import ObjectArray
+from v2i.core.frames import wrap_angle
+from v2i.core.jit import F64, I64, IN_F1, IN_I1, OUT_F2, OUT_I1, kernel
+from v2i.core.objects import ObjectArray
 
 _C = COLUMN
 _COV = np.array([_C["cov_xx"], _C["cov_xy"], _C["cov_xy"], _C["cov_yy"]])  # row-major [[xx, xy], [xy, yy]]

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.frames import Pose2D, outside_box_rows
-from fusion.objects import ObjectArray
+from v2i.core.frames import Pose2D, outside_box_rows
+from v2i.core.objects import ObjectArray
 from schemas.messages import ObjectListHeader
 
 from obu_service.rsu_table import RsuState, RsuTable

@@ -8,7 +8,7 @@ theta(0). With sign s = +1 (up) or -1 (down): z - s d t is the detrended reading
 
 A vehicle refits each RSU's and each peer's window (up to a few hundred exchanges) every few
 exchanges; written as numpy the fit was some 200 calls of ~1 us fixed cost each, so the
-statistics are loops compiled by numba (``fusion.jit``): one kernel, ``fit_window``, per fit
+statistics are loops compiled by numba (``v2i.core.jit``): one kernel, ``fit_window``, per fit
 (loops, not array expressions or numpy's sorts and quantiles: each of those adds ~0.1-1 s to the
 kernel's compile). Their numpy definitions, which they equal to rounding
 (tests/unit/test_clock_envelope.py), are ``obu_service.envelope_reference``: ~690 us per fit
@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from fusion.jit import F64, I64, IN_I1, IN_I2, helper, kernel
+from v2i.core.jit import F64, I64, IN_I1, IN_I2, helper, kernel
 
 # Readings more than this above their leg's least (detrended) reading are buffered or queued
 # far beyond any drift trend (500 ppm x 60 s = 30 ms): never part of a lower envelope.

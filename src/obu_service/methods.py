@@ -37,11 +37,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusion.ego_map_tracker import EgoMapTracker
-from fusion.frames import Pose2D, add_pose_uncertainty, base_to_map, map_to_base
+from v2i.core.frames import Pose2D, add_pose_uncertainty, base_to_map, map_to_base
 from fusion.merger import iou_merge
 from fusion.motion import predict_ca
 from fusion.nms import nms_fuse
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.oosm import OosmTracker
 from fusion.tclf import tclf_compensate, tclf_fuse
 from fusion.tracking import TrackerConfig, slot_source
@@ -117,7 +117,7 @@ class KalmanFusion:
         if self._ref_ns is None:
             self._ref_ns = cycle_ns
         t_s = self._t(cycle_ns)
-        # the tracker lives in map as the estimated pose places it (fusion.frames): own objects
+        # the tracker lives in map as the estimated pose places it (v2i.core.frames): own objects
         # enter it and tracks leave it without the pose covariance, RSU objects (true map) with it
         self._ego_map.ego = ego
         if self.use_own:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from functools import cached_property
 from operator import attrgetter, is_
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from schemas.messages import PredictionList
 
 from obu_service.methods import RsuFrame

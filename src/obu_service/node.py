@@ -25,8 +25,8 @@ import time
 
 import zenoh
 
-from fusion.jit import load_kernels
-from fusion.objects import ObjectArray
+from v2i.core.jit import load_kernels
+from v2i.core.objects import ObjectArray
 from schemas import keys
 from schemas.codec import CodecError, decode, encode, from_body, header_of, object_count, open_body, path_point_count
 from schemas.intake import Intake, Item

@@ -52,9 +52,9 @@ from collections import Counter
 import numpy as np
 from pydantic import ValidationError
 
-from fusion.frames import Pose2D, base_to_map
-from fusion.identity_memo import IdentityMemo
-from fusion.objects import ObjectArray, read_only
+from v2i.core.frames import Pose2D, base_to_map
+from v2i.core.identity_memo import IdentityMemo
+from v2i.core.objects import ObjectArray, read_only
 from fusion.pose_history import PoseHistory
 from fusion.tracking import slot_source
 from fusion.wire import objects_from_states

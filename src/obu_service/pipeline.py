@@ -28,10 +28,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.frames import Pose2D, map_to_base
-from fusion.identity_memo import IdentityMemo
+from v2i.core.frames import Pose2D, map_to_base
+from v2i.core.identity_memo import IdentityMemo
 from fusion.merger import iou_merge
-from fusion.objects import ObjectArray, read_only
+from v2i.core.objects import ObjectArray, read_only
 from fusion.pose_history import PoseHistory
 from fusion.tracking import SOURCE_BITS, slot_source
 from fusion.wire import objects_from_states, wire_columns

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.wire import objects_from_states
 from schemas.messages import ObjectListHeader, PredictionList
 

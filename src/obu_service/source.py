@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.frames import Pose2D, PoseUncertainty
-from fusion.objects import ObjectArray
+from v2i.core.frames import Pose2D, PoseUncertainty
+from v2i.core.objects import ObjectArray
 from fusion.wire import objects_from_states
 from schemas.messages import SOURCE_VEHICLE
 from schemas.sensor_messages import LocalizationPose, SensorObjects

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
 from schemas.messages import SOURCE_RSU
 from sim.sensors import CLASS_DEFAULT_LWH

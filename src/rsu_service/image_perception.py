@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 
 class ImagePerception:

@@ -27,7 +27,7 @@ import numpy as np
 
 from perception.scoring import PerceptionTally
 from schemas import keys
-from fusion.jit import load_kernels
+from v2i.core.jit import load_kernels
 from fusion.wire import objects_from_states
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
 from schemas.list_wire import encode_list, list_key, prepare

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fusion.motion import predict_ca, trajectories_cv
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.tracking import Tracker, TrackerConfig
 from fusion.wire import fit_to_wire, states_from_objects
 from schemas.columns import ObjectColumns

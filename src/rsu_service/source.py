@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from sim.seeding import stream
 from sim.sensors import RsuCamera, frame_times
 from sim.world import World

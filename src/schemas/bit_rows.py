@@ -1,8 +1,8 @@
-"""The codec's loops, compiled (numba: ``fusion.jit``): an objects section packed (``pack_section``)
+"""The codec's loops, compiled (numba: ``v2i.core.jit``): an objects section packed (``pack_section``)
 and a float table checked and quantised (``quantize_values``), each in one pass instead of ~15-60
 numpy calls on a few rows.
 
-Imported by ``fusion.jit.load_kernels`` only; from then on ``object_wire.pack_objects`` and
+Imported by ``v2i.core.jit.load_kernels`` only; from then on ``object_wire.pack_objects`` and
 ``ObjectColumns.from_values`` use them (their numpy paths stay for processes without kernels and
 are their references: tests/unit/test_object_wire_paths.py and test_columns_paths.py hold both to
 the same results). On the calls recorded in a whole ``v2i eval`` (alternating, median of 9, a busy
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.jit import I64, IN_F2, IN_I2, helper, kernel
+from v2i.core.jit import I64, IN_F2, IN_I2, helper, kernel
 
 from schemas import columns, object_wire
 from schemas.columns import _YAW_HALF_TURN as YAW_HALF_TURN  # yaw codes live in [-1800, 1800)

@@ -162,7 +162,7 @@ class Layout:
 
 OBJECTS, FUSED = Layout(OBJECT_SPECS), Layout(FUSED_SPECS)
 _YAW_COL = COLUMN["yaw"]
-_compiled_values = None  # schemas.bit_rows.quantize_values, once loaded (fusion.jit.load_kernels)
+_compiled_values = None  # schemas.bit_rows.quantize_values, once loaded (v2i.core.jit.load_kernels)
 
 
 def use_compiled(quantize_values) -> None:

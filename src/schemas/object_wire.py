@@ -19,7 +19,7 @@ and a column with few distinct values spread over a wide range sends ``ceil(log2
 object plus its table of values, whenever that is smaller.
 Decoding checks the layout (``MalformedMessage``) and then every code against its column's range
 (``ObjectColumns.from_codes``: ``InvalidMessage`` naming ``objects.i.column``). Once the kernels are
-loaded (``fusion.jit.load_kernels``) one compiled loop (``schemas.bit_rows.pack_section``) packs a
+loaded (``v2i.core.jit.load_kernels``) one compiled loop (``schemas.bit_rows.pack_section``) packs a
 section (tests/unit/test_object_wire_paths.py: both paths to the same bytes).
 """
 
@@ -110,7 +110,7 @@ def unpack_objects(section: Any, fused: bool) -> ObjectColumns:
     return ObjectColumns.from_codes(codes, fused)
 
 
-_compiled_section = None  # schemas.bit_rows.pack_section, once loaded (fusion.jit.load_kernels)
+_compiled_section = None  # schemas.bit_rows.pack_section, once loaded (v2i.core.jit.load_kernels)
 
 
 def use_compiled(pack_section) -> None:

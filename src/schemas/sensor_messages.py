@@ -10,7 +10,7 @@ These are the open inputs of the RSU and OBU services (``--source zenoh``) and w
   RSU ``ObjectList`` (``messages.ObjectState``; ``id`` is the sensor's detection or track id).
 - ``LocalizationPose`` on ``v2x/sensor/vehicle/{vehicle_id}/pose``: the vehicle's pose
   estimate in ``map`` with its error covariance. ``messages.EgoPose`` does not fit: the OBU
-  propagates the pose error into the RSU objects' covariance (``fusion.frames``), so the input
+  propagates the pose error into the RSU objects' covariance (``v2i.core.frames``), so the input
   must state it.
 - ``GroundTruth`` on ``v2x/world/truth``: the simulated world's actors and vehicles per time,
   for scoring and monitors; nothing in a service consumes it.

@@ -108,7 +108,7 @@ def columns_of(objects: Any) -> dict[str, np.ndarray]:
         return {k: np.asarray(objects[k], dtype=np.float64) for k in COLUMN_NAMES}
     if hasattr(objects, "codes") and hasattr(objects, "column"):  # schemas.columns.ObjectColumns
         return {k: objects.column(k).astype(np.float64) for k in COLUMN_NAMES}
-    if hasattr(objects, "xy"):  # fusion.objects.ObjectArray
+    if hasattr(objects, "xy"):  # v2i.core.objects.ObjectArray
         o = objects
         return {
             "id": o.ids.astype(np.float64), "cls": o.cls.astype(np.float64), "x": o.xy[:, 0], "y": o.xy[:, 1],

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from fusion.frames import Pose2D
+from v2i.core.frames import Pose2D
 
 from sim.scenario import RsuCameraConfig, VehicleCameraConfig
 

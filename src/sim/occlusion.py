@@ -18,9 +18,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from fusion.identity_memo import IdentityMemo
-from fusion.jit import B1, IN_F1, IN_F2, IN_I1, IN_U1, helper, kernel
-from fusion.objects import ObjectArray
+from v2i.core.identity_memo import IdentityMemo
+from v2i.core.jit import B1, IN_F1, IN_F2, IN_I1, IN_U1, helper, kernel
+from v2i.core.objects import ObjectArray
 
 _NO_EDGES = np.zeros(0, np.int64)
 

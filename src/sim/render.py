@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import scipy.stats
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 from sim import raster
 from sim.body_textures import FIGURES, body_parts

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.frames import Pose2D, PoseUncertainty, base_to_map_points, map_to_base, wrap_angle
-from fusion.objects import ObjectArray
+from v2i.core.frames import Pose2D, PoseUncertainty, base_to_map_points, map_to_base, wrap_angle
+from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
 from schemas.messages import UNKNOWN_VELOCITY_VAR
 

@@ -22,10 +22,10 @@ from bisect import bisect_right
 
 import numpy as np
 
-from fusion.frames import Pose2D
-from fusion.identity_memo import IdentityMemo
-from fusion.jit import IN_F1, IN_F2, IN_F3, IN_I1, kernel
-from fusion.objects import ObjectArray, read_only
+from v2i.core.frames import Pose2D
+from v2i.core.identity_memo import IdentityMemo
+from v2i.core.jit import IN_F1, IN_F2, IN_F3, IN_I1, kernel
+from v2i.core.objects import ObjectArray, read_only
 
 from sim.scenario import Building, Scenario, Trajectory
 

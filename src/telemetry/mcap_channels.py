@@ -47,7 +47,7 @@ import msgpack
 import numpy as np
 from pydantic.json_schema import GenerateJsonSchema
 
-from fusion.frames import Pose2D, base_to_map_points
+from v2i.core.frames import Pose2D, base_to_map_points
 from schemas import image_messages, messages, sensor_messages  # noqa: F401 (register every Message type)
 from schemas.codec import LIST_TAGS, MAX_CONTAINER_LEN
 from schemas.messages import FusedObjectList, Message, ObjectList

@@ -555,7 +555,7 @@ def _warm_options(p: argparse.ArgumentParser) -> None:
 
 def cmd_warm(args: argparse.Namespace) -> int:
     """``v2i warm``: every compiled kernel loaded or compiled (progress on stderr), one closing line."""
-    from fusion.jit import warm
+    from v2i.core.jit import warm
 
     line, compiled = warm()
     print(line)

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.frames import Pose2D
-from fusion.objects import ObjectArray
+from v2i.core.frames import Pose2D
+from v2i.core.objects import ObjectArray
 from fusion.wire import fit_to_wire, states_from_objects
 from obu_service.source import SimulatedVehicle
 from rsu_service.source import SimulatedCamera

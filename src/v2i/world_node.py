@@ -14,7 +14,7 @@ import threading
 
 from pydantic import Field, field_validator
 
-from fusion.jit import load_kernels
+from v2i.core.jit import load_kernels
 from schemas.codec import encode
 from schemas.config import ServiceConfig
 from schemas.runtime import add_service_options, announce, log, read_start_line, run_service, start_when_told

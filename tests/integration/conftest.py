@@ -4,7 +4,7 @@ where they were never compiled (a fresh clone), they are compiled here, once, be
 
 import pytest
 
-from fusion.jit import EVALUATION_KERNEL_MODULES, load_kernels
+from v2i.core.jit import EVALUATION_KERNEL_MODULES, load_kernels
 
 
 @pytest.fixture(scope="session", autouse=True)

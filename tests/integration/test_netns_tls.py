@@ -193,7 +193,7 @@ class Judge:
 
     def drain(self, until: float) -> None:
         """Judge every fused list until ``until`` (monotonic s)."""
-        from fusion.frames import Pose2D
+        from v2i.core.frames import Pose2D
         from schemas.codec import decode
         from schemas.limits import SOURCE_RSU
         from schemas.messages import FusedObjectList

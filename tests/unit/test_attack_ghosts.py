@@ -6,7 +6,7 @@ import numpy as np
 
 from evaluation.attack_ghosts import GhostWatch
 from evaluation.attack_messages import ghost_xy
-from fusion.frames import Pose2D, map_to_base_points
+from v2i.core.frames import Pose2D, map_to_base_points
 from schemas.classes import ObjectClass
 from schemas.limits import SOURCE_RSU, SOURCE_VEHICLE
 from schemas.messages import FusedObject, FusedObjectList

@@ -12,7 +12,7 @@ import pytest
 
 from evaluation.attack_messages import (CONTROL_VARIANTS, GHOST_AHEAD_M, GHOST_ID, INTENDED, LIST_KINDS, TIME_SHIFT_NS,
                                         AttackMessages, ghost_xy, signer_digest)
-from fusion.frames import Pose2D
+from v2i.core.frames import Pose2D
 from schemas import keys
 from schemas.classes import ObjectClass
 from schemas.codec import decode, encode

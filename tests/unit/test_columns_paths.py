@@ -58,7 +58,7 @@ def tables(draw):
 
 @pytest.fixture(scope="module", autouse=True)
 def kernels():
-    from fusion.jit import load_kernels
+    from v2i.core.jit import load_kernels
 
     load_kernels()
     assert columns._compiled_values is not None

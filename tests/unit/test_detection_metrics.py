@@ -11,7 +11,7 @@ from evaluation.detection_metrics import (
     bin_label, center_distance_ap, frame_flags_reference, mot_metrics, nees, nees_values,
 )
 from fusion.association import center_distance_cost
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 
 def objs(xy, confidence=None) -> ObjectArray:

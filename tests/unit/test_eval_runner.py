@@ -15,7 +15,7 @@ from evaluation.demo import Demo
 from evaluation.inbox_scoring import INBOX_MESSAGES
 from evaluation.runner import OfflineRun
 from evaluation.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, build_report
-from fusion.frames import map_to_base
+from v2i.core.frames import map_to_base
 from fusion.wire import states_from_objects
 from schemas.codec import decode, encode
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObuMetrics, RsuLinkStatus

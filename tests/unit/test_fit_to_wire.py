@@ -6,8 +6,8 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from fusion.frames import wrap_angle
-from fusion.objects import ObjectArray
+from v2i.core.frames import wrap_angle
+from v2i.core.objects import ObjectArray
 from fusion.wire import fit_to_wire, states_from_objects, wire_columns
 from schemas import messages as m
 from schemas.errors import InvalidMessage

@@ -1,16 +1,16 @@
 """The faster frame changes equal the expressions they replace, bit for bit.
 
-References: ``fusion.frames`` before the kept axes (``_Axes``: R(yaw), the origin and the zero velocity
+References: ``v2i.core.frames`` before the kept axes (``_Axes``: R(yaw), the origin and the zero velocity
 offset per pose), and ``predict_ca`` before its shared step (``motion.ca_step``).
 """
 
 import numpy as np
 import pytest
 
-from fusion import frames
-from fusion.frames import Pose2D, PoseUncertainty, add_pose_uncertainty, base_to_map, map_to_base
+from v2i.core import frames
+from v2i.core.frames import Pose2D, PoseUncertainty, add_pose_uncertainty, base_to_map, map_to_base
 from fusion.motion import predict_ca
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 _S = np.array([[0.0, -1.0], [1.0, 0.0]])
 _COLUMNS = ("ids", "cls", "xy", "z", "lwh", "yaw", "vxy", "axy", "yaw_rate", "cov_xy", "confidence", "cov_vxy",

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from fusion.frames import (Pose2D, PoseUncertainty, base_to_map, base_to_map_points, map_to_base, map_to_base_points,
+from v2i.core.frames import (Pose2D, PoseUncertainty, base_to_map, base_to_map_points, map_to_base, map_to_base_points,
                           pose_jacobian, rotation)
 from fusion.motion import predict_ca, predict_cv
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.pose_history import PoseHistory
 
 
@@ -138,7 +138,7 @@ def test_monte_carlo_nees_of_rsu_objects_moved_with_a_noisy_pose():
 def test_outside_box_rows_are_the_points_outside_the_ego_box():
     """Points around a turned ego: inside the box (base_link |x| <= half_l, |y| <= half_w), near its corner,
     just past them and far away; the rows outside, ascending, as int64."""
-    from fusion.frames import outside_box_rows
+    from v2i.core.frames import outside_box_rows
 
     ego = Pose2D(12.5, -3.0, 0.7)
     base = np.array([[1.0, 0.2], [5.0, 0.0], [-2.3, 0.85], [2.4, 0.0], [0.0, -0.95], [-300.0, 40.0], [0.0, 0.0]])

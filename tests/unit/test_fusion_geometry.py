@@ -10,7 +10,7 @@ from fusion.geometry import (
     box_polygons,
 )
 from fusion.merger import iou_merge
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 
 def boxes_objs(boxes):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from fusion.gating import assign_pairs, associate, gated_pairs, gated_pairs_reference
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.track_table import TrackTable
 from fusion.tracking import TrackerConfig
 

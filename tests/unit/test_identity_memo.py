@@ -1,8 +1,8 @@
-"""fusion.identity_memo: one computation per object (by identity, not equality), the first entry forgotten past capacity."""
+"""v2i.core.identity_memo: one computation per object (by identity, not equality), the first entry forgotten past capacity."""
 
 from collections import Counter
 
-from fusion.identity_memo import IdentityMemo
+from v2i.core.identity_memo import IdentityMemo
 
 
 def test_one_computation_per_object_matched_by_identity():

@@ -1,11 +1,11 @@
-"""fusion.jit: kernels compile for their declared argument types only, take read-only and strided
+"""v2i.core.jit: kernels compile for their declared argument types only, take read-only and strided
 inputs, refuse other dtypes, and load_kernels loads every kernel of the tracker."""
 
 import numpy as np
 import pytest
 
 from fusion import kalman
-from fusion.jit import Kernel, load_kernels
+from v2i.core.jit import Kernel, load_kernels
 
 
 def test_load_kernels_loads_every_kernel():
@@ -47,7 +47,7 @@ def test_load_kernels_loads_the_simulator_and_every_kernel_imported_before():
     the call (the evaluation's matching, imported by the offline evaluator) is loaded too."""
     import importlib
 
-    from fusion.jit import KERNEL_MODULES
+    from v2i.core.jit import KERNEL_MODULES
 
     assert "sim.world" in KERNEL_MODULES
     importlib.import_module("evaluation.detection_metrics")
@@ -66,14 +66,14 @@ def test_kernel_modules_name_every_module_a_service_runs_kernels_of():
     src = Path(__file__).resolve().parents[2] / "src"
     declared = {str(p.relative_to(src).with_suffix("")).replace("/", ".") for p in src.rglob("*.py")
                 if "@kernel(" in p.read_text()}
-    code = ("from fusion.jit import Kernel, load_kernels; load_kernels(); "
+    code = ("from v2i.core.jit import Kernel, load_kernels; load_kernels(); "
             "print(' '.join(sorted({k.fn.__module__ for k in Kernel._all if k._compiled is not None})))")
     loaded = set(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split())
     assert {m for m in declared if not m.startswith("evaluation.")} <= loaded
 
 
 def test_load_kernels_reaches_scipys_blas_modules_without_importing_scipy_linalg():
-    """load_kernels loads scipy's cython_blas / cython_lapack from their files (fusion.jit.preload_scipy_blas), not
+    """load_kernels loads scipy's cython_blas / cython_lapack from their files (v2i.core.jit.preload_scipy_blas), not
     through scipy.linalg's package (a tenth of a second of a service's start); scipy.linalg imported afterwards works
     and finds those very modules, and numba's BLAS and LAPACK still serve a kernel (a fresh interpreter)."""
     import subprocess
@@ -82,7 +82,7 @@ def test_load_kernels_reaches_scipys_blas_modules_without_importing_scipy_linalg
     code = """
 import sys
 import numpy as np
-from fusion.jit import SCIPY_BLAS_MODULES, load_kernels
+from v2i.core.jit import SCIPY_BLAS_MODULES, load_kernels
 load_kernels()
 assert "scipy.linalg" not in sys.modules, "load_kernels imported scipy.linalg"
 preloaded = [sys.modules[name] for name in SCIPY_BLAS_MODULES]
@@ -105,7 +105,7 @@ print("ok")
 def test_preloading_scipys_blas_modules_is_skipped_once_scipy_linalg_is_imported():
     import scipy.linalg  # noqa: F401  (this test process: the package is there, its modules are its own)
 
-    from fusion.jit import preload_scipy_blas
+    from v2i.core.jit import preload_scipy_blas
 
     assert preload_scipy_blas() == []
 
@@ -127,7 +127,7 @@ class _Stream:
 
 
 def test_compile_progress_prints_at_the_first_compile_then_a_line_every_ten_seconds_and_a_closing_line():
-    from fusion.jit import CompileProgress
+    from v2i.core.jit import CompileProgress
 
     now = [100.0]
     stream = _Stream(tty=False)
@@ -148,7 +148,7 @@ def test_compile_progress_prints_at_the_first_compile_then_a_line_every_ten_seco
 
 
 def test_compile_progress_rewrites_one_line_on_a_terminal_and_says_nothing_without_a_compile():
-    from fusion.jit import CompileProgress
+    from v2i.core.jit import CompileProgress
 
     stream = _Stream(tty=True)
     progress = CompileProgress(2, "/cache", stream)
@@ -178,10 +178,10 @@ def test_a_cold_compile_says_so_on_stderr_and_a_cached_load_says_nothing(tmp_pat
     import sys
 
     (tmp_path / "tiny_kernels.py").write_text(
-        "from fusion.jit import I64, kernel\n\n\n@kernel(I64)\ndef plus_one(x):\n    return x + 1\n")
+        "from v2i.core.jit import I64, kernel\n\n\n@kernel(I64)\ndef plus_one(x):\n    return x + 1\n")
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
            "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
-    code = ("import tiny_kernels; from fusion.jit import Kernel, load_each; "
+    code = ("import tiny_kernels; from v2i.core.jit import Kernel, load_each; "
             "print(load_each([k for k in Kernel._all if k.fn.__module__ == 'tiny_kernels']), tiny_kernels.plus_one(2))")
     runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
             for _ in range(2)]
@@ -196,7 +196,7 @@ def test_v2i_warm_loads_every_kernel_and_says_how_long_and_where():
     import subprocess
     import sys
 
-    from fusion.jit import EVALUATION_KERNEL_MODULES
+    from v2i.core.jit import EVALUATION_KERNEL_MODULES
 
     load_kernels(EVALUATION_KERNEL_MODULES)  # every module that declares a kernel (the test above checks the list)
     out = subprocess.run([sys.executable, "-m", "v2i", "warm", "--check"], capture_output=True, text=True)
@@ -211,7 +211,7 @@ def test_v2i_warm_check_fails_when_a_kernel_had_to_compile(tmp_path):
     import sys
 
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
-    code = "import fusion.jit as j; j.KERNEL_MODULES = ('fusion.wire',); j.EVALUATION_KERNEL_MODULES = (); " \
+    code = "import v2i.core.jit as j; j.KERNEL_MODULES = ('fusion.wire',); j.EVALUATION_KERNEL_MODULES = (); " \
            "from v2i.cli import main; raise SystemExit(main(['warm', '--check']))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 1 and "compiled) in " in out.stdout and "(0 compiled)" not in out.stdout, out.stderr
@@ -226,11 +226,11 @@ def test_kernels_of_two_modules_compile_in_two_worker_processes(tmp_path):
     import sys
 
     for name, body in (("tiny_a", "x + 1"), ("tiny_b", "x * 3")):
-        (tmp_path / f"{name}.py").write_text(f"from fusion.jit import I64, kernel\n\n\n@kernel(I64)\ndef f(x):\n"
+        (tmp_path / f"{name}.py").write_text(f"from v2i.core.jit import I64, kernel\n\n\n@kernel(I64)\ndef f(x):\n"
                                             f"    return {body}\n")
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
            "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
-    code = ("import tiny_a, tiny_b; from fusion.jit import Kernel, load_each; "
+    code = ("import tiny_a, tiny_b; from v2i.core.jit import Kernel, load_each; "
             "mine = [k for k in Kernel._all if k.fn.__module__.startswith('tiny_')]; "
             "print(load_each(mine, workers=2), tiny_a.f(2), tiny_b.f(2), "
             "[(sum(k._compiled.stats.cache_hits.values()), sum(k._compiled.stats.cache_misses.values())) for k in mine])")
@@ -243,7 +243,7 @@ def test_kernels_of_two_modules_compile_in_two_worker_processes(tmp_path):
 
 
 def test_compile_groups_keep_a_module_whole_and_balance_the_source():
-    from fusion.jit import _groups, _jitted_size
+    from v2i.core.jit import _groups, _jitted_size
 
     load_kernels()
     groups = _groups(Kernel._all, 2)
@@ -263,11 +263,11 @@ def test_kernels_compile_here_when_the_worker_processes_fail(tmp_path):
     import sys
 
     for name in ("tiny_c", "tiny_d"):
-        (tmp_path / f"{name}.py").write_text("from fusion.jit import I64, kernel\n\n\n@kernel(I64)\ndef f(x):\n"
+        (tmp_path / f"{name}.py").write_text("from v2i.core.jit import I64, kernel\n\n\n@kernel(I64)\ndef f(x):\n"
                                             "    return x - 1\n")
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
            "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
-    code = ("import tiny_c, tiny_d; import fusion.jit as j; j._WORKER = 'import sys; sys.exit(3)'; "
+    code = ("import tiny_c, tiny_d; import v2i.core.jit as j; j._WORKER = 'import sys; sys.exit(3)'; "
             "mine = [k for k in j.Kernel._all if k.fn.__module__.startswith('tiny_')]; "
             "print(j.load_each(mine, workers=2), tiny_c.f(2), tiny_d.f(5), "
             "[sum(k._compiled.stats.cache_misses.values()) for k in mine])")

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from fusion import lane_prediction as lp
-from fusion.frames import wrap_angle
+from v2i.core.frames import wrap_angle
 from fusion.lane_prediction import LanePredictor, chain_frame, propagate_along
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, map_path
 
 

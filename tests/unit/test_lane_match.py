@@ -7,7 +7,7 @@ import pytest
 
 from fusion.lane_match import chain_frame_points, match_reference, match_segments
 from fusion.lane_prediction import HEADING_BASE_M, LanePredictor, chain_points
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
 from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, bundled_maps, map_path
 

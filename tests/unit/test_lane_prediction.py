@@ -6,7 +6,7 @@ import lanelet2
 import numpy as np
 import pytest
 
-from fusion.frames import wrap_angle
+from v2i.core.frames import wrap_angle
 from fusion.lane_prediction import (
     HEADING_BASE_M,
     LaneGeometry,
@@ -19,7 +19,7 @@ from fusion.lane_prediction import (
     propagate_along,
 )
 from fusion.motion import predict_cv
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
 from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, bundled_maps, map_path
 from sim.maps.lanelet_build import load_map, write_map

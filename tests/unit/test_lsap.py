@@ -1,5 +1,5 @@
 """``fusion.lsap.linear_sum_assignment`` is scipy's own function, loaded from its extension module without
-importing the ``scipy.optimize`` package (fusion.jit.import_extension)."""
+importing the ``scipy.optimize`` package (v2i.core.jit.import_extension)."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ print(rows.tolist(), cols.tolist())
 
 
 def test_import_extension_finds_extension_modules_only():
-    from fusion.jit import import_extension
+    from v2i.core.jit import import_extension
 
     lsap = import_extension("scipy.optimize._lsap")
     assert sys.modules["scipy.optimize._lsap"] is lsap

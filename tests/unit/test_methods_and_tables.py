@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from evaluation.tables import dropout_profile, fixed_delay_profile, to_markdown, _stats
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from link_emulator.channel import Channel
 from link_emulator.profile import load_profile
 from obu_service.config import ObuConfig

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from obu_service.clock_sync import OffsetEstimate, SyncSample
 from obu_service.mode_inputs import ModeInputs, Received, rsu_period_ns
 from obu_service.pipeline import ObuPipelineConfig

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fusion.motion import predict_ca
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 
 def _reference_ca(objs: ObjectArray, dt_s) -> ObjectArray:

@@ -11,8 +11,8 @@ from fusion.covariance_intersection import (
     ci_weights,
     covariance_intersection,
 )
-from fusion.frames import Pose2D
-from fusion.objects import ObjectArray
+from v2i.core.frames import Pose2D
+from v2i.core.objects import ObjectArray
 from fusion.tracking import SOURCE_BITS, Tracker, TrackerConfig, slot_source
 from fusion.wire import states_from_objects, wire_sources
 from obu_service.pipeline import MAX_RSUS, ObuPipeline, ObuPipelineConfig

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from schemas.messages import UNKNOWN_VELOCITY_VAR
 
 

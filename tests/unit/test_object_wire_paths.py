@@ -138,7 +138,7 @@ def test_pack_objects_equals_the_encoder_it_replaced(path, fused: bool, n: int, 
 
 def test_the_compiled_path_is_the_one_the_services_use() -> None:
     """Once the kernels are loaded (services, v2i eval), ``pack_objects`` packs with the loop."""
-    from fusion.jit import load_kernels
+    from v2i.core.jit import load_kernels
     from schemas import bit_rows
 
     load_kernels()

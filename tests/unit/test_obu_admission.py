@@ -4,8 +4,8 @@ refused input is counted by reason, and a flood of names never locks a real RSU 
 import numpy as np
 import pytest
 
-from fusion.frames import Pose2D
-from fusion.objects import ObjectArray
+from v2i.core.frames import Pose2D
+from v2i.core.objects import ObjectArray
 from fusion.wire import fit_to_wire, states_from_objects
 from schemas.wire_view import pack_view, unpack_view
 from obu_service.pipeline import ObuPipeline, ObuPipelineConfig

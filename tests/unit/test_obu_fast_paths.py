@@ -6,7 +6,7 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from fusion.frames import Pose2D, PoseUncertainty, wrap_angle
+from v2i.core.frames import Pose2D, PoseUncertainty, wrap_angle
 from fusion.pose_history import PoseHistory, _interpolate, _wrap
 from obu_service.clock_sync import ClockSync, SyncSample
 from obu_service.link_monitor import LinkMonitor, gap_loss
@@ -164,7 +164,7 @@ def _finite_hostile(rng, n):
         a[rng.random(a.shape) < 0.05] = -0.0
         return a
 
-    from fusion.objects import ObjectArray
+    from v2i.core.objects import ObjectArray
 
     return ObjectArray(
         ids=rng.integers(-2**40, 2**40, n), cls=rng.integers(0, 5, n), xy=rng.uniform(-5000.0, 5000.0, (n, 2)),

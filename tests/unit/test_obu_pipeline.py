@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from fusion.frames import Pose2D
-from fusion.objects import ObjectArray
+from v2i.core.frames import Pose2D
+from v2i.core.objects import ObjectArray
 from fusion.wire import states_from_objects
 from obu_service.pipeline import ObuPipeline, ObuPipelineConfig
 from rsu_service.pipeline import answer_time_request

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from sim import occlusion
 from sim.occlusion import box_points, visible_fraction
 

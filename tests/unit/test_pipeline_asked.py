@@ -4,7 +4,7 @@ input came in since (``_asked``, keyed by ``_inputs_version``)."""
 import numpy as np
 import pytest
 
-from fusion.frames import Pose2D
+from v2i.core.frames import Pose2D
 from obu_service.pipeline import ObuPipeline
 from schemas.messages import SOURCE_RSU
 from rsu_service.pipeline import answer_time_request

@@ -4,7 +4,7 @@ the same frames, in the same order, and the same ``rsu_objects_over_budget`` cou
 import numpy as np
 import pytest
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from obu_service.methods import RsuFrame
 from obu_service.pipeline import ObuPipeline, ObuPipelineConfig
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from fusion.ego_map_tracker import EgoMapTracker
-from fusion.frames import (Pose2D, PoseUncertainty, add_pose_uncertainty, base_to_map, base_to_map_points, map_to_base,
+from v2i.core.frames import (Pose2D, PoseUncertainty, add_pose_uncertainty, base_to_map, base_to_map_points, map_to_base,
                           pose_cov_map, rotation)
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.pose_history import PoseHistory
 from fusion.tracking import Tracker, TrackerConfig
 from obu_service.methods import RsuFrame, make_fusion

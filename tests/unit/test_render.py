@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from shapely.geometry import Polygon, box
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
 from sim import raster
 from sim.camera import PinholeCamera, rsu_camera

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp
 
 T0 = 1_767_225_600 * 10**9

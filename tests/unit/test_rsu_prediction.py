@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from rsu_service.prediction import make_predictor, shared_lane_predictor
 from sim.maps import lane_predictor, map_path
 

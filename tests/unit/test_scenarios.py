@@ -5,7 +5,7 @@ import pytest
 import shapely
 from shapely.strtree import STRtree
 
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from sim.occlusion import box_points
 from sim.scenario import bundled_scenarios, load_scenario
 from sim.sensors import Lidar, RsuCamera

@@ -4,7 +4,7 @@ bit for bit: ranges from the ego, a box's BEV row, a pair's squared error."""
 import numpy as np
 
 from evaluation.metrics import _bev_row, _ranges_m
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 
 
 def _hard_points(rng: np.random.Generator, n: int) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from fusion.frames import Pose2D, base_to_map_points
+from v2i.core.frames import Pose2D, base_to_map_points
 from sim.scenario import load_scenario
 from sim.sensors import Lidar, _confidence_clip
 

@@ -4,8 +4,8 @@ the construction of every actor's row followed by a take of the kept ones (the r
 import numpy as np
 import pytest
 
-from fusion.frames import map_to_base, wrap_angle
-from fusion.objects import ObjectArray
+from v2i.core.frames import map_to_base, wrap_angle
+from v2i.core.objects import ObjectArray
 from sim.scenario import load_scenario
 from sim.sensors import (_MIN_SIZE_M, SOURCE_RSU, SOURCE_VEHICLE, Lidar, RsuCamera, _default_lwh,
                          _diagonal_covariances, mean_error_at, per_axis_sigma)

@@ -9,8 +9,8 @@ import pytest
 import yaml
 from shapely.geometry import LineString, Polygon
 
-from fusion.frames import map_to_base_points
-from fusion.objects import ObjectArray
+from v2i.core.frames import map_to_base_points
+from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
 from sim.occlusion import box_points, segments_hit_boxes, segments_hit_polygons, visible_fraction
 from sim.scenario import Scenario, ScenarioError, bundled_scenarios, load_scenario
@@ -487,7 +487,7 @@ def test_actors_at_adds_the_kinematics_to_read_only_static_columns(name):
     first, second = untimed.actors_at(1.0), untimed.actors_at(2.0)
     assert first.ids is second.ids and not first.ids.flags.writeable
     assert first.xy is not second.xy and first.xy.flags.writeable
-    # every column of the shared static truth is read-only (fusion.objects.read_only), whichever ObjectArray has
+    # every column of the shared static truth is read-only (v2i.core.objects.read_only), whichever ObjectArray has
     for world in (untimed, World(load_scenario("two-rsu-corridor"))):
         world.actors_at(3.7)
         for static in (world._static, *world._static_present.values()):

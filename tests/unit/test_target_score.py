@@ -6,8 +6,8 @@ import pytest
 
 from evaluation.metrics import MATCH_GATE_M, _match_target_xy, score_target
 from fusion.association import assign, center_distance_cost
-from fusion.frames import Pose2D
-from fusion.objects import ObjectArray
+from v2i.core.frames import Pose2D
+from v2i.core.objects import ObjectArray
 from fusion.wire import states_from_objects
 from schemas.messages import FusedObjectList
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from fusion.covariance_intersection import ci_update, ci_update_into, ci_weights
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.track_table import SOURCE_BITS, TrackStore, TrackTable
 from fusion.tracking import Tracker, TrackerConfig, slot_source
 

@@ -62,7 +62,7 @@ def test_ci_fuse_objects_equals_its_numpy_reference(seed):
 def test_record_matches_wraps_the_heading_and_takes_the_variance_as_the_tracker_did():
     """The box heading is frames.wrap_angle's and its variance the trace of cov_xy, bit for bit (the kernel
     computes both per matched pair; the tracker computed them for the whole list before)."""
-    from fusion.frames import wrap_angle
+    from v2i.core.frames import wrap_angle
     from fusion.track_table import record_matches
 
     rng = np.random.default_rng(5)
@@ -100,7 +100,7 @@ def test_mask_columns_are_the_numpy_expression(seed):
 
 def test_tracks_are_the_confirmed_rows_of_the_table_as_before():
     """Tracker.tracks gathers the columns it outputs; the former body took the whole table first."""
-    from fusion.objects import ObjectArray
+    from v2i.core.objects import ObjectArray
     from fusion.tracking import Tracker, TrackerConfig
     from fusion import kalman
 

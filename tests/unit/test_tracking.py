@@ -3,7 +3,7 @@ import pytest
 
 from fusion.association import assign, center_distance_cost
 from fusion.geometry import bev_iou_matrix
-from fusion.objects import ObjectArray
+from v2i.core.objects import ObjectArray
 from fusion.oosm import OosmTracker
 from fusion.tracking import Tracker, TrackerConfig, assign_gated, association_cost, compatible_classes
 

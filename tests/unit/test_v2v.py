@@ -6,8 +6,8 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from fusion.frames import Pose2D, map_to_base_points
-from fusion.objects import ObjectArray
+from v2i.core.frames import Pose2D, map_to_base_points
+from v2i.core.objects import ObjectArray
 from fusion.tracking import slot_source
 from fusion.wire import states_from_objects
 from obu_service.peers import MAX_PEERS, shared_list

@@ -5,7 +5,7 @@ each peer's clock learned over the V2V channels; nothing shared ever echoes back
 import numpy as np
 import pytest
 
-from fusion.frames import Pose2D, base_to_map_points
+from v2i.core.frames import Pose2D, base_to_map_points
 
 from evaluation.runner import OfflineRun
 from evaluation.spec import RunSpec

@@ -112,7 +112,7 @@ def kernel(*argument_types) -> Callable[[Callable], Kernel]:
 # the modules that declare kernels (with the modules they import): load_kernels imports them. The
 # evaluation's (EVALUATION_KERNEL_MODULES) are not listed, so that no service imports them: the
 # offline evaluator has imported them before it calls load_kernels, which loads those too
-KERNEL_MODULES = ("fusion.tracking", "fusion.wire", "fusion.frames", "fusion.geometry", "fusion.lane_match",
+KERNEL_MODULES = ("fusion.tracking", "fusion.wire", "v2i.core.frames", "fusion.geometry", "fusion.lane_match",
                   "sim.occlusion", "sim.world", "obu_service.admission", "obu_service.clock_envelope", "schemas.bit_rows")
 EVALUATION_KERNEL_MODULES = ("evaluation.detection_metrics",)
 
@@ -175,7 +175,7 @@ def in_cache(k: Kernel) -> bool | None:
 
 
 MAX_WORKERS = 4
-_WORKER = "import sys; from fusion.jit import compile_named; compile_named(sys.argv[1:])"
+_WORKER = "import sys; from v2i.core.jit import compile_named; compile_named(sys.argv[1:])"
 
 
 def compile_apart(kernels: list[Kernel], progress: CompileProgress, workers: int) -> set[Kernel]:

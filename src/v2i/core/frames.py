@@ -39,8 +39,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.identity_memo import IdentityMemo
-from fusion.objects import ObjectArray
+from v2i.core.identity_memo import IdentityMemo
+from v2i.core.objects import ObjectArray
 
 _S = np.array([[0.0, -1.0], [1.0, 0.0]])  # R(pi/2): dR(yaw)/dyaw = S R(yaw)
 _EYE2 = np.eye(2)
