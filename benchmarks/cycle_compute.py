@@ -9,11 +9,11 @@ covariance intersection into a track another RSU also updates (the issue 15 conf
 "200 objects from LiDAR + 4 RSUs"), and confirms a new track on its first list; a track born
 without a velocity (clutter) whose second hit is a position only is initialised from its two
 positions. ``--rsu-bits shared`` gives the four RSUs one bit (the configuration before RSU
-slots: no covariance intersection). The batched ``fusion.tracking.Tracker`` is timed against
+slots: no covariance intersection). The batched ``v2i.fusion.tracking.Tracker`` is timed against
 a per-track filterpy loop (one ``filterpy.kalman.KalmanFilter`` per track) doing the same
 association and life cycle on the same lists, in the same run; both must end with the same
-tracks. The reference takes its two-point initialisations from ``fusion.kalman.two_point``
-and its covariance intersections from ``fusion.covariance_intersection`` one track at a time
+tracks. The reference takes its two-point initialisations from ``v2i.fusion.kalman.two_point``
+and its covariance intersections from ``v2i.fusion.covariance_intersection`` one track at a time
 (filterpy has neither; the closed form is checked against filterpy's KalmanFilter in
 tests/unit/test_kalman.py, CI against its information form in tests/unit/test_multi_source.py).
 
@@ -31,10 +31,10 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from fusion import kalman
-from fusion.covariance_intersection import ci_update, ci_weights
+from v2i.fusion import kalman
+from v2i.fusion.covariance_intersection import ci_update, ci_weights
 from v2i.core.objects import ObjectArray
-from fusion.tracking import (
+from v2i.fusion.tracking import (
     SOURCE_BITS,
     Tracker,
     TrackerConfig,

@@ -3,7 +3,7 @@
 Truth: ``--targets`` targets 1 km apart (association is never in doubt), each moving at
 constant velocity with white acceleration noise (sigma ``--accel-std`` m/s^2, piecewise
 constant over the 0.1 s step), for ``--duration`` s at 10 Hz. RSU A and RSU B each run their
-own ``fusion.tracking.Tracker`` (CV) over their own noisy positions of the targets (std
+own ``v2i.fusion.tracking.Tracker`` (CV) over their own noisy positions of the targets (std
 ``--std-a`` / ``--std-b`` m), so each RSU's estimates are correlated with its own past and
 the two RSUs' errors share the targets' process noise. The OBU's Tracker gets, each cycle
 t: predict(t); optionally its own LiDAR positions (std ``--std-lidar`` m, raw measurements,
@@ -30,7 +30,7 @@ import json
 import numpy as np
 
 from v2i.core.objects import ObjectArray
-from fusion.tracking import Tracker, TrackerConfig, slot_source
+from v2i.fusion.tracking import Tracker, TrackerConfig, slot_source
 from schemas.messages import SOURCE_VEHICLE
 
 STEP_S = 0.1

@@ -5,8 +5,8 @@ moving at t0 (speed > 0.5 m/s): predict from the true state at t0 and compare wi
 positions at t0 + 0.1 .. 5 s (World(load_scenario(name))). Displacement error e_k = |p_k - p_true,k|;
 ADE(h) = mean of e_k over t_k <= h, FDE(h) = e at t = h; averaged over (actor, t0) samples.
 
-Methods: cv (x + v t), ca (x + v t + a t^2 / 2, as fusion.motion.predict_ca: reverses after a
-stop), map (fusion.lane_prediction, most probable lane sequence, constant speed along the lane),
+Methods: cv (x + v t), ca (x + v t + a t^2 / 2, as v2i.fusion.motion.predict_ca: reverses after a
+stop), map (v2i.fusion.lane_prediction, most probable lane sequence, constant speed along the lane),
 map-ca (the same with constant acceleration along the lane, stopping instead of reversing), and
 map-ca-min2: the better of the two most probable lane sequences per sample (minADE_2 / minFDE_2,
 an oracle pick, showing what the multi-hypothesis output ``predict_hypotheses`` covers).
@@ -28,7 +28,7 @@ import time
 import numpy as np
 
 from v2i.core.frames import wrap_angle
-from fusion.lane_prediction import LanePredictionConfig, LanePredictor
+from v2i.fusion.lane_prediction import LanePredictionConfig, LanePredictor
 from schemas.classes import ObjectClass
 from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, map_path
 from sim.scenario import bundled_scenarios, load_scenario

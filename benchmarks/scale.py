@@ -137,7 +137,7 @@ class Rsus:
         return events
 
     def run(self, stop: threading.Event) -> None:
-        from fusion.wire import states_from_objects
+        from v2i.fusion.wire import states_from_objects
         from schemas import keys
         from schemas.codec import encode
         from schemas.messages import ObjectList, ObjectListHeader

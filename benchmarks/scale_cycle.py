@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from scale import CLOCK_OFFSET_STEP_NS, PERIOD_NS, Site, parse_list, site_rsus
 
-from fusion.wire import states_from_objects
+from v2i.fusion.wire import states_from_objects
 from obu_service.config import ObuConfig
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import SimulatedVehicle

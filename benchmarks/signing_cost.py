@@ -35,7 +35,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
-from fusion.wire import states_from_objects
+from v2i.fusion.wire import states_from_objects
 from schemas.codec import encode
 from schemas.messages import ObjectList
 from security import algorithms as alg

@@ -10,7 +10,7 @@ decodes to out (what the OBU then fuses: an ``ObjectArray`` for v2i):
 - ``v2i``: ``states_from_objects`` + ``ObjectList`` + ``schemas.codec.encode``; decode is
   ``schemas.codec.decode`` + ``objects_from_states`` (the OBU's receive path);
 - ``v3``: the same with today's codec before schema 4 (``tests/unit/legacy_codec.py``: fixed-width
-  columns, one pydantic model per object) and its per-object ``fusion.wire`` conversions (copied
+  columns, one pydantic model per object) and its per-object ``v2i.fusion.wire`` conversions (copied
   below), the baseline of the ratios;
 - ``cpm`` / ``sdsm``: ``schemas.cpm`` / ``schemas.sdsm`` (UPER, at most 255 objects).
 
@@ -44,7 +44,7 @@ import legacy_codec as v3  # noqa: E402
 
 from v2i.core.jit import load_kernels  # noqa: E402
 from v2i.core.objects import ObjectArray  # noqa: E402
-from fusion.wire import objects_from_states, states_from_objects  # noqa: E402
+from v2i.fusion.wire import objects_from_states, states_from_objects  # noqa: E402
 from schemas.codec import decode, encode  # noqa: E402
 from schemas.messages import ObjectList, ObjectListHeader, ObjectState  # noqa: E402
 
@@ -56,7 +56,7 @@ HEADER = ObjectListHeader(rsu_id="rsu-0", seq=123_456, capture_time_ns=T0, publi
 
 
 def v3_states(objs: ObjectArray) -> tuple[ObjectState, ...]:
-    """fusion.wire.states_from_objects before schema 4: one model per object."""
+    """v2i.fusion.wire.states_from_objects before schema 4: one model per object."""
     out = []
     for i in range(len(objs)):
         out.append(ObjectState(
@@ -77,7 +77,7 @@ _NAMES = ("id", "cls", "x", "y", "z", "length", "width", "height", "yaw", "vx", 
 
 
 def v3_objects(states) -> ObjectArray:
-    """fusion.wire.objects_from_states before schema 4: attribute reads per object."""
+    """v2i.fusion.wire.objects_from_states before schema 4: attribute reads per object."""
     if not states:
         return ObjectArray.empty()
     c = {k: np.array([getattr(s, k) for s in states]) for k in _NAMES}

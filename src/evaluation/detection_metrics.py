@@ -24,9 +24,9 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.special import gammaincinv
 
-from fusion.association import center_distance_cost
+from v2i.fusion.association import center_distance_cost
 from v2i.core.jit import IN_F1, IN_F2, IN_I1, kernel
-from fusion.lsap import linear_sum_assignment
+from v2i.fusion.lsap import linear_sum_assignment
 from v2i.core.objects import ObjectArray
 
 # nuScenes' detection-eval constants (nuscenes-devkit, eval/detection/algo.py, configs/detection_cvpr_2019.json)

@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from v2i.core.objects import ObjectArray
-from fusion.wire import states_from_objects
+from v2i.fusion.wire import states_from_objects
 from schemas import keys
 from schemas.codec import encode
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, TimeReply

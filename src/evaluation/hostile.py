@@ -15,7 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from v2i.core.objects import ObjectArray
-from fusion.wire import states_from_objects
+from v2i.fusion.wire import states_from_objects
 from schemas.codec import encode
 from schemas.wire_view import pack_view, unpack_view
 from schemas.messages import (MAX_TIME_NS, MIN_TIME_NS, SCHEMA_VERSION, EgoPose, LinkControl, ObjectList,

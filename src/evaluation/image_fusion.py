@@ -4,9 +4,9 @@ At the ego camera's rate (``scenario.ego_camera.rate_hz``), frame k at t_k = k /
 render the RSU view (``sim.camera.rsu_camera``, swaying as the live RSU's) and the ego view
 (``sim.camera.vehicle_camera`` at the ego's true pose, the ego itself hidden) with
 ``sim.render.SceneRenderer``; detect boxes in both (the RSU at the live RSU's score threshold,
-ORB features up to its per-frame cap: ``RSU_DEFAULTS``); fuse them with ROIF (``fusion.roif``:
+ORB features up to its per-frame cap: ``RSU_DEFAULTS``); fuse them with ROIF (``v2i.fusion.roif``:
 ORB + RANSAC homography, OBU boxes mapped into the RSU view, eq. 5.6-5.11); track the fused
-boxes (``fusion.box_tracker``); score against the RSU view's ground-truth labels.
+boxes (``v2i.fusion.box_tracker``); score against the RSU view's ground-truth labels.
 
 Detectors: ``"onnx"`` (``perception.detector.OnnxDetector``, the shipped model or
 ``model_path``; the RSU's at ``v2i rsu``'s score threshold, the OBU's at the detector's
@@ -50,9 +50,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.association import assign
-from fusion.box_tracker import BoxTrackerConfig
-from fusion.roif import (
+from v2i.fusion.association import assign
+from v2i.fusion.box_tracker import BoxTrackerConfig
+from v2i.fusion.roif import (
     MAPPED_FRAME,
     MAPPED_NONE,
     MAPPED_OWN,
@@ -61,8 +61,8 @@ from fusion.roif import (
     iou_matrix,
     map_boxes,
 )
-from fusion.roif_features import ViewFeatures, view_features
-from fusion.roif_pipeline import RoifFrame, RoifFramePipeline
+from v2i.fusion.roif_features import ViewFeatures, view_features
+from v2i.fusion.roif_pipeline import RoifFrame, RoifFramePipeline
 from rsu_service.config import RsuConfig
 from sim.camera import rsu_camera, rsu_sway, vehicle_camera
 from sim.scenario import load_scenario

@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.box_tracker import BoxTracks
-from fusion.roif import BoxMapping, FusedBoxes, HomographyFit, RoifResult
-from fusion.roif_features import ViewFeatures
-from fusion.roif_pipeline import RoifFrame
+from v2i.fusion.box_tracker import BoxTracks
+from v2i.fusion.roif import BoxMapping, FusedBoxes, HomographyFit, RoifResult
+from v2i.fusion.roif_features import ViewFeatures
+from v2i.fusion.roif_pipeline import RoifFrame
 from schemas import keys
 from schemas.codec import decode
 from schemas.image_messages import F4, I2, U1, U4, ImageFusedBoxes, column

@@ -16,11 +16,11 @@ from functools import cached_property
 
 import numpy as np
 
-from fusion.association import assign, center_distance_cost
+from v2i.fusion.association import assign, center_distance_cost
 from v2i.core.frames import map_to_base
-from fusion.geometry import bev_iou_pairs
+from v2i.fusion.geometry import bev_iou_pairs
 from v2i.core.objects import ObjectArray
-from fusion.wire import objects_from_states
+from v2i.fusion.wire import objects_from_states
 from schemas.messages import FusedObjectList, PredictionList
 
 from obu_service.fusion_mode import MODES
@@ -179,7 +179,7 @@ class TargetTally:
 
     A detected cycle's IoU and NEES wait with the pair's boxes, error and covariance (144 bytes) until
     ``PENDING`` cycles have gathered (or a score is asked for), then are computed for all of them at
-    once (``fusion.geometry.bev_iou_pairs``, ``nees_values``: row by row the numbers of one pair alone)."""
+    once (``v2i.fusion.geometry.bev_iou_pairs``, ``nees_values``: row by row the numbers of one pair alone)."""
 
     PENDING = 64
 

@@ -4,7 +4,7 @@ Frame k is captured at start + k / ``scenario.ego_camera.rate_hz`` (OBU clock, t
 in simulation): the scenario rendered (``sim.render.SceneRenderer``, textures by the run's seed,
 as the RSU's renderer, so both cameras see the same surfaces) by ``sim.camera.vehicle_camera``
 at the ego's pose, the ego itself hidden; boxes from the ONNX detector (the shipped model, or
-``model_path``); ORB features inside them (``fusion.roif_features``). The same steps as
+``model_path``); ORB features inside them (``v2i.fusion.roif_features``). The same steps as
 ``v2i eval --fusion roif``'s ego view.
 """
 
@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.roif import RoifConfig
-from fusion.roif_features import ViewFeatures, view_features
+from v2i.fusion.roif import RoifConfig
+from v2i.fusion.roif_features import ViewFeatures, view_features
 from schemas.image_messages import MAX_BOXES
 from sim.seeding import stream
 from sim.sensors import frame_times

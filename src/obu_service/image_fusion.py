@@ -30,10 +30,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.box_tracker import BoxTrackerConfig
-from fusion.roif import MAPPED_NONE, RoifConfig
-from fusion.roif_features import ViewFeatures
-from fusion.roif_pipeline import RoifFrame, RoifFramePipeline
+from v2i.fusion.box_tracker import BoxTrackerConfig
+from v2i.fusion.roif import MAPPED_NONE, RoifConfig
+from v2i.fusion.roif_features import ViewFeatures
+from v2i.fusion.roif_pipeline import RoifFrame, RoifFramePipeline
 from schemas.image_messages import (
     F4,
     I2,

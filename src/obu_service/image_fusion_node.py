@@ -23,7 +23,7 @@ import threading
 import numpy as np
 import zenoh
 
-from fusion.roif_features import ViewFeatures
+from v2i.fusion.roif_features import ViewFeatures
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.image_messages import RsuImageFeatures

@@ -13,11 +13,11 @@ returns the fused objects in base_link at the cycle time.
   frame once (Bidare's KF poster); with ``oosm`` compensation RSU frames are out-of-sequence
   measurements at their capture time and the filter is re-run from there. RSU objects
   are the RSU tracker's estimates (position and velocity with covariances), each RSU slot
-  its own source bit (``fusion.tracking.slot_source``): a track only this RSU has seen
+  its own source bit (``v2i.fusion.tracking.slot_source``): a track only this RSU has seen
   takes the newest one as its state, since it already holds what the older ones said; a
   track another RSU also updates fuses it by covariance intersection (the two filters'
   errors are correlated); a track only the LiDAR also sees fuses its position in a Kalman
-  update (``Tracker.update(..., estimates=True)``, rules in ``fusion.tracking``).
+  update (``Tracker.update(..., estimates=True)``, rules in ``v2i.fusion.tracking``).
   ``kf-vehicle`` and ``kf-rsu`` are the same tracker fed by one source only (Bidare's poster's
   "LiDAR only KF" and "camera only KF" ablations).
 
@@ -36,15 +36,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.ego_map_tracker import EgoMapTracker
+from v2i.fusion.ego_map_tracker import EgoMapTracker
 from v2i.core.frames import Pose2D, add_pose_uncertainty, base_to_map, map_to_base
-from fusion.merger import iou_merge
-from fusion.motion import predict_ca
-from fusion.nms import nms_fuse
+from v2i.fusion.merger import iou_merge
+from v2i.fusion.motion import predict_ca
+from v2i.fusion.nms import nms_fuse
 from v2i.core.objects import ObjectArray
-from fusion.oosm import OosmTracker
-from fusion.tclf import tclf_compensate, tclf_fuse
-from fusion.tracking import TrackerConfig, slot_source
+from v2i.fusion.oosm import OosmTracker
+from v2i.fusion.tclf import tclf_compensate, tclf_fuse
+from v2i.fusion.tracking import TrackerConfig, slot_source
 
 FUSION_METHODS = ("kf", "iou-merge", "nms", "tclf", "rsu-only", "vehicle-only", "kf-vehicle", "kf-rsu")
 COMPENSATIONS = ("predict", "none", "track-predict", "lane", "oosm")
@@ -162,7 +162,7 @@ def check_fusion(method: str, compensation: str) -> None:
 
 def make_fusion(method: str, compensation: str, iou_threshold: float = 0.1, lanes=None):
     """The fusion object for a method and compensation (validated); ``lanes`` (a
-    ``fusion.lane_prediction.LanePredictor``) is needed by the ``lane`` compensation."""
+    ``v2i.fusion.lane_prediction.LanePredictor``) is needed by the ``lane`` compensation."""
     check_fusion(method, compensation)
     motion = predict_ca
     if compensation == "lane":

@@ -34,10 +34,10 @@ as the sender's own perception are dropped (``v2v_not_own_perception``: the rece
 rely on the sender's filtering); then the objects go base_link -> map with the header's pose,
 those off the site or on this vehicle itself (the peer sees us) are dropped, and each peer's
 objects get the peer's own source bit (a *peer slot*, after the RSU slots in the tracker's
-bits, ``fusion.tracking.slot_source``) and ids ``RSU_ID_BASE * (slot + 1) + id``.
+bits, ``v2i.fusion.tracking.slot_source``) and ids ``RSU_ID_BASE * (slot + 1) + id``.
 
 Fusion: a peer's lists are tracker estimates like an RSU's (covariance intersection where
-another source's estimate shares the track, ``fusion.tracking``). Peers' cycles are not
+another source's estimate shares the track, ``v2i.fusion.tracking``). Peers' cycles are not
 aligned with ours (each runs on its own LiDAR), so their lists are fused inter-frame in every
 cycle (newest of each peer, each list once, predicted to the cycle time), whatever mode the
 RSU data put the cycle in; the mode policy stays about RSUs. So no link statistics are kept per
@@ -55,9 +55,9 @@ from pydantic import ValidationError
 from v2i.core.frames import Pose2D, base_to_map
 from v2i.core.identity_memo import IdentityMemo
 from v2i.core.objects import ObjectArray, read_only
-from fusion.pose_history import PoseHistory
-from fusion.tracking import slot_source
-from fusion.wire import objects_from_states
+from v2i.fusion.pose_history import PoseHistory
+from v2i.fusion.tracking import slot_source
+from v2i.fusion.wire import objects_from_states
 from schemas.columns import ObjectColumns
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObjectListHeader, TimeReply, TimeRequest
 

@@ -16,7 +16,7 @@ input is admitted or refused from its header before any object is decoded
 (``obu_service.admission``: slots in the ``RsuTable``, object and path counts, predictions,
 duplicates, future and stale stamps, the site radius); a cycle fuses at most
 ``max_rsu_objects_per_cycle`` RSU objects (known RSUs and newer frames first); the output is
-fitted to the wire (``fusion.wire.fit_to_wire``: clip, drop, truncate, each counted in
+fitted to the wire (``v2i.fusion.wire.fit_to_wire``: clip, drop, truncate, each counted in
 ``output_dropped``), never raising. Every refusal is counted by reason in ``rejected``.
 """
 
@@ -30,11 +30,11 @@ import numpy as np
 
 from v2i.core.frames import Pose2D, map_to_base
 from v2i.core.identity_memo import IdentityMemo
-from fusion.merger import iou_merge
+from v2i.fusion.merger import iou_merge
 from v2i.core.objects import ObjectArray, read_only
-from fusion.pose_history import PoseHistory
-from fusion.tracking import SOURCE_BITS, slot_source
-from fusion.wire import objects_from_states, wire_columns
+from v2i.fusion.pose_history import PoseHistory
+from v2i.fusion.tracking import SOURCE_BITS, slot_source
+from v2i.fusion.wire import objects_from_states, wire_columns
 from schemas.messages import (MAX_OBJECTS, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics,
                               PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
 

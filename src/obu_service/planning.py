@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from v2i.core.objects import ObjectArray
-from fusion.wire import objects_from_states
+from v2i.fusion.wire import objects_from_states
 from schemas.messages import ObjectListHeader, PredictionList
 
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from v2i.core.frames import Pose2D, PoseUncertainty
 from v2i.core.objects import ObjectArray
-from fusion.wire import objects_from_states
+from v2i.fusion.wire import objects_from_states
 from schemas.messages import SOURCE_VEHICLE
 from schemas.sensor_messages import LocalizationPose, SensorObjects
 from sim.seeding import stream

@@ -2,7 +2,7 @@
 detections in ``map`` against the ground truth it could see, frame by frame.
 
 Per frame, detections and the visible ground truth are matched one-to-one by centre
-distance (Hungarian: ``fusion.lsap``) within ``MATCH_GATE_M``. Then
+distance (Hungarian: ``v2i.fusion.lsap``) within ``MATCH_GATE_M``. Then
 
     recall    = matched truths / visible truths       (per range bin and overall)
     precision = matched detections / detections
@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.association import center_distance_cost
-from fusion.lsap import linear_sum_assignment
+from v2i.fusion.association import center_distance_cost
+from v2i.fusion.lsap import linear_sum_assignment
 
 MATCH_GATE_M = 5.0  # a detection farther than this from every visible truth is a false positive
 ERROR_BINS_M = ((0.0, 50.0), (50.0, 120.0))

@@ -56,9 +56,9 @@ class ImagePerception:
         return objects, self.detector.last_ms
 
     def features(self, image: np.ndarray, max_features: int):
-        """ROIF features (``fusion.roif_features.ViewFeatures``) of the image ``perceive`` last saw:
+        """ROIF features (``v2i.fusion.roif_features.ViewFeatures``) of the image ``perceive`` last saw:
         its detector boxes and at most ``max_features`` ORB keypoints + descriptors inside them."""
-        from fusion.roif import RoifConfig
-        from fusion.roif_features import view_features
+        from v2i.fusion.roif import RoifConfig
+        from v2i.fusion.roif_features import view_features
 
         return view_features(image, self.last_detections, RoifConfig(), max_features)

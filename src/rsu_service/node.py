@@ -28,7 +28,7 @@ import numpy as np
 from perception.scoring import PerceptionTally
 from schemas import keys
 from v2i.core.jit import load_kernels
-from fusion.wire import objects_from_states
+from v2i.fusion.wire import objects_from_states
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
 from schemas.list_wire import encode_list, list_key, prepare
 from schemas.intake import Intake, KeyedBuckets, TokenBucket

@@ -22,10 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.motion import predict_ca, trajectories_cv
+from v2i.fusion.motion import predict_ca, trajectories_cv
 from v2i.core.objects import ObjectArray
-from fusion.tracking import Tracker, TrackerConfig
-from fusion.wire import fit_to_wire, states_from_objects
+from v2i.fusion.tracking import Tracker, TrackerConfig
+from v2i.fusion.wire import fit_to_wire, states_from_objects
 from schemas.columns import ObjectColumns
 from schemas.messages import ObjectList, ObjectListHeader, PredictionList, TimeReply, TimeRequest, predicted_paths
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-from fusion.lane_prediction import LanePredictor  # (imported here: its compiled loops load with the service's kernels)
-from fusion.motion import trajectories_cv
+from v2i.fusion.lane_prediction import LanePredictor  # (imported here: its compiled loops load with the service's kernels)
+from v2i.fusion.motion import trajectories_cv
 from sim.maps import lane_predictor, scenario_map
 
 from rsu_service.config import PREDICTORS

@@ -44,7 +44,7 @@ class Frame:
     detections: ObjectArray
     visible_truth_xy: np.ndarray | None = None  # (T, 2) m: the truth this frame could see (simulation only)
     detector_ms: float | None = None  # the detector's own time on this frame
-    image_features: object | None = None  # fusion.roif_features.ViewFeatures when the RSU sends them (ROIF)
+    image_features: object | None = None  # v2i.fusion.roif_features.ViewFeatures when the RSU sends them (ROIF)
 
 
 class _Schedule:

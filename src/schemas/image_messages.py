@@ -136,8 +136,8 @@ class RsuImageFeatures(Message):
         return self
 
     def view(self):
-        """The frame as ``fusion.roif_features.ViewFeatures`` (float64 px, uint8 descriptors)."""
-        from fusion.roif_features import ViewFeatures
+        """The frame as ``v2i.fusion.roif_features.ViewFeatures`` (float64 px, uint8 descriptors)."""
+        from v2i.fusion.roif_features import ViewFeatures
 
         k = self.n_keypoints
         return ViewFeatures.of(*self.boxes.arrays(), column(self.keypoints, F4, k, 2, "keypoints").astype(float),
@@ -167,7 +167,7 @@ class ImageFusedBoxes(Message):
     image, ``obu_mapping`` (M,) ``u1`` 0 not mapped / 1 frame homography / 2 own transform,
     ``obu_mapped`` (M, 4) ``<f4`` in the RSU view (NaN rows: not mapped), ``obu_transform``
     (M, 9) ``<f4`` (row-major 3 x 3, NaN: none), ``obu_inlier_error_px`` (M,) ``<f4``. ``rsu``: the
-    paired RSU frame's boxes. ``status``: the frame homography's (``fusion.roif``).
+    paired RSU frame's boxes. ``status``: the frame homography's (``v2i.fusion.roif``).
     """
 
     TYPE: ClassVar[str] = "image_fused_boxes"

@@ -10,9 +10,9 @@ UNKNOWN_VELOCITY_VAR = 1e4  # m^2/s^2 (100 m/s std): no velocity measured; equal
 
 # Sources of a fused object (FusedObject.sources, one byte on the wire): SOURCE_VEHICLE, the
 # vehicle's own sensors; SOURCE_RSU, any cooperative source (an RSU or, later, a peer vehicle).
-# Inside the OBU the tracker keeps one bit per source in an int64 (fusion.tracking.SOURCE_BITS):
-# bit 0 own vehicle, bit 1 + i the OBU's RSU slot i (fusion.tracking.slot_source; slot 0 is
-# SOURCE_RSU), and fusion.wire.wire_sources folds bits 1..62 into SOURCE_RSU on the way out.
+# Inside the OBU the tracker keeps one bit per source in an int64 (v2i.fusion.tracking.SOURCE_BITS):
+# bit 0 own vehicle, bit 1 + i the OBU's RSU slot i (v2i.fusion.tracking.slot_source; slot 0 is
+# SOURCE_RSU), and v2i.fusion.wire.wire_sources folds bits 1..62 into SOURCE_RSU on the way out.
 SOURCE_VEHICLE = 1
 SOURCE_RSU = 2
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from v2i.core.frames import Pose2D
 from v2i.core.objects import ObjectArray
-from fusion.wire import fit_to_wire, states_from_objects
+from v2i.fusion.wire import fit_to_wire, states_from_objects
 from obu_service.source import SimulatedVehicle
 from rsu_service.source import SimulatedCamera
 from schemas import keys

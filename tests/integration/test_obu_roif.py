@@ -12,8 +12,8 @@ import pytest
 import zenoh
 
 from evaluation.children import READY_TIMEOUT_S, START_LEAD_S
-from fusion.roif import RoifConfig
-from fusion.roif_features import view_features
+from v2i.fusion.roif import RoifConfig
+from v2i.fusion.roif_features import view_features
 from obu_service.config import ObuConfig
 from obu_service.image_fusion_node import ImageFusionNode
 from perception.detector import OnnxDetector

@@ -6,7 +6,7 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
-from fusion.association import assign_sparse, center_distance_cost
+from v2i.fusion.association import assign_sparse, center_distance_cost
 
 BIG = 1e12
 

@@ -558,7 +558,7 @@ def test_prediction_list_needs_one_matching_path_per_object() -> None:
 
 
 def test_velocity_covariance_round_trips_and_defaults_to_unknown() -> None:
-    from fusion.wire import objects_from_states, states_from_objects
+    from v2i.fusion.wire import objects_from_states, states_from_objects
 
     plain = objects_from_states(decode(encode(ObjectList(header=header(), objects=(car(1),))), ObjectList).objects)
     assert not plain.velocity_known()[0]  # a sender that states no velocity covariance

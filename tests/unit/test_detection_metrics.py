@@ -10,7 +10,7 @@ from evaluation.detection_metrics import (
     CenterDistanceAp, MotTally, _confidence_order, _frame_flags, _greedy_match, _greedy_matches, average_precision,
     bin_label, center_distance_ap, frame_flags_reference, mot_metrics, nees, nees_values,
 )
-from fusion.association import center_distance_cost
+from v2i.fusion.association import center_distance_cost
 from v2i.core.objects import ObjectArray
 
 

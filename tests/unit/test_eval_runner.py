@@ -16,7 +16,7 @@ from evaluation.inbox_scoring import INBOX_MESSAGES
 from evaluation.runner import OfflineRun
 from evaluation.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, build_report
 from v2i.core.frames import map_to_base
-from fusion.wire import states_from_objects
+from v2i.fusion.wire import states_from_objects
 from schemas.codec import decode, encode
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObuMetrics, RsuLinkStatus
 from sim.scenario import load_scenario
@@ -198,7 +198,7 @@ def test_the_two_target_tallies_score_a_shared_frame_as_their_own_frames():
     (CycleFrame.pair_values): scores and series equal those of tallies each given a fresh frame,
     and a pair's numbers equal the ones computed from the arrays (IoU: bev_iou_matrix)."""
     from evaluation.metrics import CycleFrame, TargetTally
-    from fusion.geometry import bev_iou_matrix, bev_iou_pairs
+    from v2i.fusion.geometry import bev_iou_matrix, bev_iou_pairs
 
     def box(objs, r):
         return np.r_[objs.xy[r], objs.lwh[r, :2], objs.yaw[r]][None]

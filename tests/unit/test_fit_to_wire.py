@@ -1,4 +1,4 @@
-"""fusion.wire.fit_to_wire (one stacked (N, 22) table) against the per-column reference it replaced, and
+"""v2i.fusion.wire.fit_to_wire (one stacked (N, 22) table) against the per-column reference it replaced, and
 wire_columns (fit and wire columns from one table) against fit_to_wire then states_from_objects."""
 
 from collections import Counter
@@ -8,7 +8,7 @@ import pytest
 
 from v2i.core.frames import wrap_angle
 from v2i.core.objects import ObjectArray
-from fusion.wire import fit_to_wire, states_from_objects, wire_columns
+from v2i.fusion.wire import fit_to_wire, states_from_objects, wire_columns
 from schemas import messages as m
 from schemas.errors import InvalidMessage
 
@@ -140,7 +140,7 @@ def test_every_row_kept_fast_path_equals_the_reference():
 
 def test_gathered_covariances_are_advanced_indexing_values_and_layout():
     """objects_from_states' covariance columns (``_gathered``): the values and the strides of v[:, columns]."""
-    from fusion import wire
+    from v2i.fusion import wire
 
     rng = np.random.default_rng(4)
     for n in (0, 1, 2, 6, 41):

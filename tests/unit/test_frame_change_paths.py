@@ -9,7 +9,7 @@ import pytest
 
 from v2i.core import frames
 from v2i.core.frames import Pose2D, PoseUncertainty, add_pose_uncertainty, base_to_map, map_to_base
-from fusion.motion import predict_ca
+from v2i.fusion.motion import predict_ca
 from v2i.core.objects import ObjectArray
 
 _S = np.array([[0.0, -1.0], [1.0, 0.0]])

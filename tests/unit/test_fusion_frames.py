@@ -3,9 +3,9 @@ import pytest
 
 from v2i.core.frames import (Pose2D, PoseUncertainty, base_to_map, base_to_map_points, map_to_base, map_to_base_points,
                           pose_jacobian, rotation)
-from fusion.motion import predict_ca, predict_cv
+from v2i.fusion.motion import predict_ca, predict_cv
 from v2i.core.objects import ObjectArray
-from fusion.pose_history import PoseHistory
+from v2i.fusion.pose_history import PoseHistory
 
 
 def one(x, y, yaw=0.0, vx=0.0, vy=0.0):

@@ -2,14 +2,14 @@ import numpy as np
 import pytest
 import shapely
 
-from fusion.geometry import (
+from v2i.fusion.geometry import (
     bev_iou,
     bev_iou_matrix,
     bev_iou_pairs,
     box_corners,
     box_polygons,
 )
-from fusion.merger import iou_merge
+from v2i.fusion.merger import iou_merge
 from v2i.core.objects import ObjectArray
 
 
@@ -93,7 +93,7 @@ def test_the_compiled_iou_equals_shapely_on_hard_pairs():
     """iou_rows (Sutherland-Hodgman clipping) against shapely's intersection: random overlapping
     pairs, equal boxes, nested ones, the same centre turned 90 degrees, edges that touch or are
     collinear, slivers, and degenerate boxes of zero width."""
-    from fusion.geometry import iou_rows
+    from v2i.fusion.geometry import iou_rows
 
     rng = np.random.default_rng(17)
     n = 4000

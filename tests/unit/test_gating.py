@@ -1,13 +1,13 @@
-"""fusion.gating's compiled gate against the dense numpy definition: every (track, detection)
+"""v2i.fusion.gating's compiled gate against the dense numpy definition: every (track, detection)
 pair's distance and Mahalanobis distance, the gate and the class rule, in the same order."""
 
 import numpy as np
 import pytest
 
-from fusion.gating import assign_pairs, associate, gated_pairs, gated_pairs_reference
+from v2i.fusion.gating import assign_pairs, associate, gated_pairs, gated_pairs_reference
 from v2i.core.objects import ObjectArray
-from fusion.track_table import TrackTable
-from fusion.tracking import TrackerConfig
+from v2i.fusion.track_table import TrackTable
+from v2i.fusion.tracking import TrackerConfig
 
 
 def random_spd(rng, k, scale):

@@ -4,15 +4,15 @@ inputs, refuse other dtypes, and load_kernels loads every kernel of the tracker.
 import numpy as np
 import pytest
 
-from fusion import kalman
+from v2i.fusion import kalman
 from v2i.core.jit import Kernel, load_kernels
 
 
 def test_load_kernels_loads_every_kernel():
     load_kernels()
     names = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all}
-    assert {"fusion.kalman.update_rows", "fusion.gating._gate_single_pairs", "fusion.association._split",
-            "fusion.covariance_intersection.ci_fuse_objects", "sim.occlusion._blocked"} <= names
+    assert {"v2i.fusion.kalman.update_rows", "v2i.fusion.gating._gate_single_pairs", "v2i.fusion.association._split",
+            "v2i.fusion.covariance_intersection.ci_fuse_objects", "sim.occlusion._blocked"} <= names
     for k in Kernel._all:
         assert k.load().signatures == [k.argument_types]  # one compiled signature, no other
 
@@ -211,7 +211,7 @@ def test_v2i_warm_check_fails_when_a_kernel_had_to_compile(tmp_path):
     import sys
 
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
-    code = "import v2i.core.jit as j; j.KERNEL_MODULES = ('fusion.wire',); j.EVALUATION_KERNEL_MODULES = (); " \
+    code = "import v2i.core.jit as j; j.KERNEL_MODULES = ('v2i.fusion.wire',); j.EVALUATION_KERNEL_MODULES = (); " \
            "from v2i.cli import main; raise SystemExit(main(['warm', '--check']))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 1 and "compiled) in " in out.stdout and "(0 compiled)" not in out.stdout, out.stderr

@@ -5,8 +5,8 @@ import pytest
 from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
 from scipy.stats import chi2
 
-from fusion import kalman
-from fusion.kalman import (
+from v2i.fusion import kalman
+from v2i.fusion.kalman import (
     ConstantAcceleration,
     ConstantVelocity,
     Ctrv,

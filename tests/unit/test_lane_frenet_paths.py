@@ -8,9 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from fusion import lane_prediction as lp
+from v2i.fusion import lane_prediction as lp
 from v2i.core.frames import wrap_angle
-from fusion.lane_prediction import LanePredictor, chain_frame, propagate_along
+from v2i.fusion.lane_prediction import LanePredictor, chain_frame, propagate_along
 from v2i.core.objects import ObjectArray
 from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, map_path
 

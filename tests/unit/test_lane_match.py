@@ -1,12 +1,12 @@
-"""The lane predictor's compiled segment match (fusion.lane_match) against its numpy expression."""
+"""The lane predictor's compiled segment match (v2i.fusion.lane_match) against its numpy expression."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fusion.lane_match import chain_frame_points, match_reference, match_segments
-from fusion.lane_prediction import HEADING_BASE_M, LanePredictor, chain_points
+from v2i.fusion.lane_match import chain_frame_points, match_reference, match_segments
+from v2i.fusion.lane_prediction import HEADING_BASE_M, LanePredictor, chain_points
 from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
 from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, bundled_maps, map_path

@@ -1,4 +1,4 @@
-"""Lanelet2 maps of the bundled scenarios and lane-following prediction (fusion.lane_prediction)."""
+"""Lanelet2 maps of the bundled scenarios and lane-following prediction (v2i.fusion.lane_prediction)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from v2i.core.frames import wrap_angle
-from fusion.lane_prediction import (
+from v2i.fusion.lane_prediction import (
     HEADING_BASE_M,
     LaneGeometry,
     LanePredictionConfig,
@@ -18,7 +18,7 @@ from fusion.lane_prediction import (
     lane_sequences,
     propagate_along,
 )
-from fusion.motion import predict_cv
+from v2i.fusion.motion import predict_cv
 from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
 from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, bundled_maps, map_path

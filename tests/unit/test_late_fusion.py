@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from fusion.nms import nms_fuse
+from v2i.fusion.nms import nms_fuse
 from v2i.core.objects import ObjectArray
-from fusion.tclf import tclf_compensate, tclf_fuse, two_frame_velocity
+from v2i.fusion.tclf import tclf_compensate, tclf_fuse, two_frame_velocity
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE
 
 

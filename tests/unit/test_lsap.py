@@ -1,4 +1,4 @@
-"""``fusion.lsap.linear_sum_assignment`` is scipy's own function, loaded from its extension module without
+"""``v2i.fusion.lsap.linear_sum_assignment`` is scipy's own function, loaded from its extension module without
 importing the ``scipy.optimize`` package (v2i.core.jit.import_extension)."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ import numpy as np
 
 
 def test_it_is_scipys_function_without_the_scipy_optimize_package():
-    """A fresh interpreter: fusion.lsap loads no scipy.optimize package; scipy.optimize imported afterwards
+    """A fresh interpreter: v2i.fusion.lsap loads no scipy.optimize package; scipy.optimize imported afterwards
     exports the very same function, and it matches (scipy's own example)."""
     code = """
 import sys
-from fusion.lsap import linear_sum_assignment
+from v2i.fusion.lsap import linear_sum_assignment
 assert "scipy.optimize" not in sys.modules, sorted(m for m in sys.modules if m.startswith("scipy.optimize"))
 rows, cols = linear_sum_assignment([[4, 1, 3], [2, 0, 5], [3, 2, 2]])
 import scipy.optimize

@@ -6,8 +6,8 @@ from collections import Counter
 import numpy as np
 
 from evaluation.detection_metrics import MotTally, _distance_matrix, _id_list
-from fusion.association import center_distance_cost
-from fusion.lsap import linear_sum_assignment
+from v2i.fusion.association import center_distance_cost
+from v2i.fusion.lsap import linear_sum_assignment
 
 from test_detection_metrics import generated_tracks
 

@@ -1,9 +1,9 @@
-"""fusion.motion.predict_ca's scalar step equals the broadcast (N, 1) column of the original expression bit for bit."""
+"""v2i.fusion.motion.predict_ca's scalar step equals the broadcast (N, 1) column of the original expression bit for bit."""
 
 import numpy as np
 import pytest
 
-from fusion.motion import predict_ca
+from v2i.fusion.motion import predict_ca
 from v2i.core.objects import ObjectArray
 
 

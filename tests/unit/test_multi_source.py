@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
-from fusion.covariance_intersection import (
+from v2i.fusion.covariance_intersection import (
     W_MIN,
     ci_update,
     ci_weights,
@@ -13,8 +13,8 @@ from fusion.covariance_intersection import (
 )
 from v2i.core.frames import Pose2D
 from v2i.core.objects import ObjectArray
-from fusion.tracking import SOURCE_BITS, Tracker, TrackerConfig, slot_source
-from fusion.wire import states_from_objects, wire_sources
+from v2i.fusion.tracking import SOURCE_BITS, Tracker, TrackerConfig, slot_source
+from v2i.fusion.wire import states_from_objects, wire_sources
 from obu_service.pipeline import MAX_RSUS, ObuPipeline, ObuPipelineConfig
 from rsu_service.pipeline import answer_time_request
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, ObjectList, ObjectListHeader
@@ -141,7 +141,7 @@ def test_ci_fuse_rows_is_weights_then_update_on_the_table_rows():
     """The tracker's in-place kernel on rows of a larger table equals ci_weights + ci_update on the
     gathered rows, leaves the other rows alone, and skips pairs whose weight is 1 (position, and
     position with velocity)."""
-    from fusion.covariance_intersection import ci_fuse_rows
+    from v2i.fusion.covariance_intersection import ci_fuse_rows
 
     rng = np.random.default_rng(7)
     for m in (2, 4):

@@ -6,7 +6,7 @@ import pytest
 
 from v2i.core.frames import Pose2D
 from v2i.core.objects import ObjectArray
-from fusion.wire import fit_to_wire, states_from_objects
+from v2i.fusion.wire import fit_to_wire, states_from_objects
 from schemas.wire_view import pack_view, unpack_view
 from obu_service.pipeline import ObuPipeline, ObuPipelineConfig
 from obu_service.rsu_table import RsuTable

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from v2i.core.frames import Pose2D, PoseUncertainty, wrap_angle
-from fusion.pose_history import PoseHistory, _interpolate, _wrap
+from v2i.fusion.pose_history import PoseHistory, _interpolate, _wrap
 from obu_service.clock_sync import ClockSync, SyncSample
 from obu_service.link_monitor import LinkMonitor, gap_loss
 
@@ -145,7 +145,7 @@ def test_a_pose_without_its_uncertainty_is_the_same_pose():
 
 
 def test_covariance_columns_written_by_slices_equal_the_gathered_ones():
-    from fusion.wire import _put_cov
+    from v2i.fusion.wire import _put_cov
 
     rng = np.random.default_rng(6)
     cov = rng.normal(size=(7, 2, 2))
@@ -174,7 +174,7 @@ def _finite_hostile(rng, n):
 
 
 def test_compiled_row_fit_equals_numpy_clip_and_wrap_bit_for_bit():
-    from fusion import wire
+    from v2i.fusion import wire
 
     rng = np.random.default_rng(8)
     for n in (0, 1, 7, 500):
@@ -208,7 +208,7 @@ def test_compiled_row_fit_equals_numpy_clip_and_wrap_bit_for_bit():
 
 
 def test_wire_columns_compiled_path_equals_fit_to_wire_then_states_from_objects():
-    from fusion.wire import fit_to_wire, states_from_objects, wire_columns
+    from v2i.fusion.wire import fit_to_wire, states_from_objects, wire_columns
 
     rng = np.random.default_rng(9)
     for n in (0, 1, 6, 300):
@@ -223,7 +223,7 @@ def test_wire_columns_compiled_path_equals_fit_to_wire_then_states_from_objects(
 
 def _table_fit(objs):
     """fit_to_wire's general (numpy) path when every row is kept: the table clipped by np.clip, yaw wrapped."""
-    from fusion import wire
+    from v2i.fusion import wire
 
     table = wire._table(objs)
     clipped = np.clip(table, wire._LO, wire._HI)
@@ -237,7 +237,7 @@ def test_fit_to_wire_compiled_path_equals_the_numpy_table_path_and_the_per_colum
     import importlib.util
     from pathlib import Path
 
-    from fusion.wire import fit_to_wire
+    from v2i.fusion.wire import fit_to_wire
 
     spec = importlib.util.spec_from_file_location("fit_reference", Path(__file__).with_name("test_fit_to_wire.py"))
     reference = importlib.util.module_from_spec(spec)

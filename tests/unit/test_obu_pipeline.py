@@ -3,7 +3,7 @@ import pytest
 
 from v2i.core.frames import Pose2D
 from v2i.core.objects import ObjectArray
-from fusion.wire import states_from_objects
+from v2i.fusion.wire import states_from_objects
 from obu_service.pipeline import ObuPipeline, ObuPipelineConfig
 from rsu_service.pipeline import answer_time_request
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, ObjectList, ObjectListHeader, PredictedPath, PredictionList

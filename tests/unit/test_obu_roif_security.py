@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from fusion.roif_features import ViewFeatures
+from v2i.fusion.roif_features import ViewFeatures
 from obu_service.config import ObuConfig
 from obu_service.image_fusion_node import ImageFusionNode
 from schemas import keys

@@ -5,12 +5,12 @@ detections (Monte-Carlo NEES against the true base_link)."""
 import numpy as np
 import pytest
 
-from fusion.ego_map_tracker import EgoMapTracker
+from v2i.fusion.ego_map_tracker import EgoMapTracker
 from v2i.core.frames import (Pose2D, PoseUncertainty, add_pose_uncertainty, base_to_map, base_to_map_points, map_to_base,
                           pose_cov_map, rotation)
 from v2i.core.objects import ObjectArray
-from fusion.pose_history import PoseHistory
-from fusion.tracking import Tracker, TrackerConfig
+from v2i.fusion.pose_history import PoseHistory
+from v2i.fusion.tracking import Tracker, TrackerConfig
 from obu_service.methods import RsuFrame, make_fusion
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE
 from sim.scenario import LocalizationConfig

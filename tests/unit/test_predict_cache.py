@@ -4,7 +4,7 @@ model's transition and process noise computed afresh, on the first call and on t
 import numpy as np
 import pytest
 
-from fusion import kalman
+from v2i.fusion import kalman
 
 
 def _reference(x, p, model, dt_s):

@@ -7,9 +7,9 @@ import pytest
 import shapely
 from filterpy.kalman import KalmanFilter
 
-from fusion import box_tracker
-from fusion.box_tracker import BoxTracker, BoxTrackerConfig
-from fusion.roif import (
+from v2i.fusion import box_tracker
+from v2i.fusion.box_tracker import BoxTracker, BoxTrackerConfig
+from v2i.fusion.roif import (
     FEW_FEATURES,
     MAPPED_FRAME,
     MAPPED_OWN,

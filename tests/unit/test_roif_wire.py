@@ -6,20 +6,20 @@ import msgpack
 import numpy as np
 import pytest
 
-from fusion.roif import (
+from v2i.fusion.roif import (
     RoifConfig,
     fit_homography,
     match_descriptors,
     roif_fuse,
     roif_fuse_images,
 )
-from fusion.roif_features import (
+from v2i.fusion.roif_features import (
     ViewFeatures,
     box_mask,
     keypoint_box_index,
     view_features,
 )
-from fusion.roif_pipeline import VIEW_EGO, VIEW_RSU, RoifFramePipeline
+from v2i.fusion.roif_pipeline import VIEW_EGO, VIEW_RSU, RoifFramePipeline
 from obu_service.image_fusion import ImageFusionConfig, ImageFusionPipeline
 from schemas.codec import (
     CodecError,

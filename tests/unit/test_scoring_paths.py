@@ -55,7 +55,7 @@ def _hard_boxes(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def test_bev_iou_pairs_equal_the_matrix_row_by_row_on_hard_boxes():
-    from fusion.geometry import bev_iou_matrix, bev_iou_pairs
+    from v2i.fusion.geometry import bev_iou_matrix, bev_iou_pairs
 
     rng = np.random.default_rng(6)
     for n in (0, 1, 3, 2000):
@@ -78,7 +78,7 @@ class _ReferenceTargetTally:
     def add(self, frame) -> None:
         from evaluation.detection_metrics import nees_values
         from evaluation.metrics import _match_target_cost
-        from fusion.geometry import bev_iou_matrix
+        from v2i.fusion.geometry import bev_iou_matrix
 
         truth, out = frame.truth, frame.out
         rows = np.flatnonzero(truth.ids == self.target_id)

@@ -5,7 +5,7 @@ import numpy as np
 
 from evaluation.detection_metrics import CenterDistanceAp, MotTally, _distance_matrix, _lsa_nan
 from evaluation.metrics import MAX_RANGE_M, RANGE_BINS_M, CycleFrame, DetectionTally, TargetTally, _match_target_xy
-from fusion.association import center_distance_cost
+from v2i.fusion.association import center_distance_cost
 from v2i.core.objects import ObjectArray
 
 from test_detection_metrics import generated_tracks

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from evaluation.metrics import MATCH_GATE_M, _match_target_xy, score_target
-from fusion.association import assign, center_distance_cost
+from v2i.fusion.association import assign, center_distance_cost
 from v2i.core.frames import Pose2D
 from v2i.core.objects import ObjectArray
-from fusion.wire import states_from_objects
+from v2i.fusion.wire import states_from_objects
 from schemas.messages import FusedObjectList
 
 T0 = 1_767_225_600 * 10**9

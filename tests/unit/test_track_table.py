@@ -4,10 +4,10 @@ and the covariance-intersection fast paths against the row-by-row ones."""
 import numpy as np
 import pytest
 
-from fusion.covariance_intersection import ci_update, ci_update_into, ci_weights
+from v2i.fusion.covariance_intersection import ci_update, ci_update_into, ci_weights
 from v2i.core.objects import ObjectArray
-from fusion.track_table import SOURCE_BITS, TrackStore, TrackTable
-from fusion.tracking import Tracker, TrackerConfig, slot_source
+from v2i.fusion.track_table import SOURCE_BITS, TrackStore, TrackTable
+from v2i.fusion.tracking import Tracker, TrackerConfig, slot_source
 
 
 def random_rows(rng: np.random.Generator, n: int, seen_bits: np.ndarray, first_id: int) -> TrackTable:

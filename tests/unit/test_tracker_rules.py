@@ -4,8 +4,8 @@ object lists its numpy reference, to rounding."""
 import numpy as np
 import pytest
 
-from fusion.covariance_intersection import ci_fuse_objects, ci_fuse_objects_reference
-from fusion.track_table import (_mask_columns, estimate_rules, estimate_rules_reference, mask_columns_reference,
+from v2i.fusion.covariance_intersection import ci_fuse_objects, ci_fuse_objects_reference
+from v2i.fusion.track_table import (_mask_columns, estimate_rules, estimate_rules_reference, mask_columns_reference,
                                 record_matches, record_matches_reference)
 from schemas.messages import UNKNOWN_VELOCITY_VAR
 
@@ -63,7 +63,7 @@ def test_record_matches_wraps_the_heading_and_takes_the_variance_as_the_tracker_
     """The box heading is frames.wrap_angle's and its variance the trace of cov_xy, bit for bit (the kernel
     computes both per matched pair; the tracker computed them for the whole list before)."""
     from v2i.core.frames import wrap_angle
-    from fusion.track_table import record_matches
+    from v2i.fusion.track_table import record_matches
 
     rng = np.random.default_rng(5)
     yaws = np.concatenate([rng.normal(0, 10, 400), rng.normal(0, 1e6, 50), np.pi * np.arange(-9, 10),
@@ -86,7 +86,7 @@ def test_record_matches_wraps_the_heading_and_takes_the_variance_as_the_tracker_
 
 @pytest.mark.parametrize("seed", range(20))
 def test_mask_columns_are_the_numpy_expression(seed):
-    from fusion.track_table import _mask_columns
+    from v2i.fusion.track_table import _mask_columns
 
     rng = np.random.default_rng(seed)
     masks = rng.integers(0, 1 << 12, int(rng.integers(0, 9))).astype(np.int64)
@@ -101,8 +101,8 @@ def test_mask_columns_are_the_numpy_expression(seed):
 def test_tracks_are_the_confirmed_rows_of_the_table_as_before():
     """Tracker.tracks gathers the columns it outputs; the former body took the whole table first."""
     from v2i.core.objects import ObjectArray
-    from fusion.tracking import Tracker, TrackerConfig
-    from fusion import kalman
+    from v2i.fusion.tracking import Tracker, TrackerConfig
+    from v2i.fusion import kalman
 
     rng = np.random.default_rng(11)
     tracker = Tracker(TrackerConfig(gate="either"))

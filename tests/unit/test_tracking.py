@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from fusion.association import assign, center_distance_cost
-from fusion.geometry import bev_iou_matrix
+from v2i.fusion.association import assign, center_distance_cost
+from v2i.fusion.geometry import bev_iou_matrix
 from v2i.core.objects import ObjectArray
-from fusion.oosm import OosmTracker
-from fusion.tracking import Tracker, TrackerConfig, assign_gated, association_cost, compatible_classes
+from v2i.fusion.oosm import OosmTracker
+from v2i.fusion.tracking import Tracker, TrackerConfig, assign_gated, association_cost, compatible_classes
 
 
 def dets(xy, cls=1, std=0.5):

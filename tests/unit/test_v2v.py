@@ -8,8 +8,8 @@ import pytest
 
 from v2i.core.frames import Pose2D, map_to_base_points
 from v2i.core.objects import ObjectArray
-from fusion.tracking import slot_source
-from fusion.wire import states_from_objects
+from v2i.fusion.tracking import slot_source
+from v2i.fusion.wire import states_from_objects
 from obu_service.peers import MAX_PEERS, shared_list
 from obu_service.pipeline import MAX_RSUS, RSU_ID_BASE, ObuPipeline, ObuPipelineConfig
 from schemas.codec import decode, encode

@@ -39,8 +39,8 @@ def scenario_map(scenario: str) -> Path | None:
 
 
 def lane_predictor(scenario: str):
-    """A ``fusion.lane_prediction.LanePredictor`` on the scenario's map; ValueError without one."""
-    from fusion.lane_prediction import LanePredictor
+    """A ``v2i.fusion.lane_prediction.LanePredictor`` on the scenario's map; ValueError without one."""
+    from v2i.fusion.lane_prediction import LanePredictor
 
     path = scenario_map(scenario)
     if path is None:

@@ -70,7 +70,7 @@ class PoseUncertainty:
     @classmethod
     def trusted(cls, cov: np.ndarray, correlation_time_s: float) -> PoseUncertainty:
         """One made from a (3, 3) float64 array that nothing else holds and a tau >= 0 (a blend of two
-        valid ones, ``fusion.pose_history``), without the checks and the copy: made read-only here."""
+        valid ones, ``v2i.fusion.pose_history``), without the checks and the copy: made read-only here."""
         cov.setflags(write=False)
         out = object.__new__(cls)
         object.__setattr__(out, "cov", cov)

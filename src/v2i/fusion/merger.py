@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.geometry import bev_boxes, bev_iou_matrix
+from v2i.fusion.geometry import bev_boxes, bev_iou_matrix
 from v2i.core.objects import ObjectArray
 
 

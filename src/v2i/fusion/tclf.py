@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.association import assign, center_distance_cost
+from v2i.fusion.association import assign, center_distance_cost
 from v2i.core.objects import ObjectArray
 
 

@@ -4,7 +4,7 @@ Per frame, with the detections of both cameras (boxes in their own images):
 
 1. ORB keypoints and descriptors, detected only inside the detection boxes of each image
    (a mask; the thesis's Sec. 5.3: features outside the boxes gave false matches, Fig. 6.3):
-   ``fusion.roif_features.ViewFeatures``, computed by each camera's own node (the RSU sends
+   ``v2i.fusion.roif_features.ViewFeatures``, computed by each camera's own node (the RSU sends
    its features, never its image); ``roif_fuse`` takes the two views' features.
 2. Brute-force Hamming matching (``cv2.BFMatcher(cv2.NORM_HAMMING)``), OBU -> RSU. A match
    is kept when (a) its normalised Hamming distance d = bits / 256 is below
@@ -31,7 +31,7 @@ Per frame, with the detections of both cameras (boxes in their own images):
    the 4 mapped corners, clipped to the RSU image (a corner with w' <= 0, behind the
    view, or a box left with no area drops it).
 5. IoU of every (RSU, mapped OBU) pair, eq. 5.1-5.5; pairs with IoU >= ``iou_gate`` (0.1)
-   may fuse; a one-to-one assignment minimises sum(1 - IoU) (Hungarian: ``fusion.lsap``).
+   may fuse; a one-to-one assignment minimises sum(1 - IoU) (Hungarian: ``v2i.fusion.lsap``).
 6. Each assigned pair fuses by confidence-weighted corner averaging, eq. 5.6-5.11; the
    fused confidence is the larger of the two, the class that of the more confident box.
    Unassigned boxes of either side pass through unchanged (OBU boxes mapped), so the
@@ -48,8 +48,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from fusion.association import assign
-from fusion.roif_features import ViewFeatures, view_features
+from v2i.fusion.association import assign
+from v2i.fusion.roif_features import ViewFeatures, view_features
 
 SOURCE_RSU = 1  # bit of a fused box: the RSU camera saw it
 SOURCE_OBU = 2  # bit: the OBU camera saw it (mapped into the RSU view)
@@ -170,7 +170,7 @@ def match_descriptors(desc_obu: np.ndarray, desc_rsu: np.ndarray, config: RoifCo
 
 
 def fit_homography(obu: ViewFeatures, rsu: ViewFeatures, config: RoifConfig = RoifConfig()) -> HomographyFit:
-    """Steps 2-3 on the features of both views (step 1, ``fusion.roif_features.view_features``):
+    """Steps 2-3 on the features of both views (step 1, ``v2i.fusion.roif_features.view_features``):
     matching, RANSAC homography OBU -> RSU."""
     kp_o, desc_o, kp_r, desc_r = obu.keypoints, obu.descriptors, rsu.keypoints, rsu.descriptors
 

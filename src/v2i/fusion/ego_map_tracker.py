@@ -19,7 +19,7 @@ tracks at 50-100 m: RMS error 0.104 m against a stated 0.067 m; NEES 4.8).
 from __future__ import annotations
 
 from v2i.core.frames import Pose2D, pose_cov_map
-from fusion.tracking import Tracker, TrackerConfig
+from v2i.fusion.tracking import Tracker, TrackerConfig
 
 
 class EgoMapTracker(Tracker):

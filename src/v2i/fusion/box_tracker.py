@@ -11,7 +11,7 @@ State x = [cx, cy, w, h, vcx, vcy, vw, vh] (px, px/s), measurement z = [cx, cy, 
 
 Association (Sec. 4.7.2): cost C(i, j) = 1 - IoU(D_i, T_j) (eq. 5.1-5.5) between detections and
 predicted track boxes; pairs need IoU >= ``iou_gate``; minimum total cost one-to-one
-(``fusion.association.assign``, the shortest augmenting path solver of ``fusion.lsap``).
+(``v2i.fusion.association.assign``, the shortest augmenting path solver of ``v2i.fusion.lsap``).
 
 Track management (Sec. 4.7.3): an unmatched detection starts a tentative track (velocity 0,
 ``init_velocity_std_pxps``); ``confirm_hits`` hits confirm it; a tentative track is deleted at its
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.association import assign
-from fusion.roif import iou_matrix
+from v2i.fusion.association import assign
+from v2i.fusion.roif import iou_matrix
 
 DIM_X, DIM_Z = 8, 4
 H_BOX = np.hstack([np.eye(DIM_Z), np.zeros((DIM_Z, DIM_Z))])  # z = H x

@@ -5,7 +5,7 @@ update time of each source bit *in use*: column j stands for source bit ``seen_b
 with 8 RSUs uses 9 of the 63 bits, so the table carries 9 columns, not 63); a table built
 without ``seen_bits`` has one column per bit, 0 .. SOURCE_BITS - 1.
 
-``TrackStore`` is the table a ``fusion.tracking.Tracker`` updates in place: the columns are
+``TrackStore`` is the table a ``v2i.fusion.tracking.Tracker`` updates in place: the columns are
 allocated for ``capacity`` rows (doubled when full, so N spawns cost O(N) copies in all, not one
 copy of the whole table per spawn), the first ``n`` rows are the live tracks and ``view`` is the
 TrackTable of those rows (views into the store: writing into it writes the store). Deleting
@@ -229,7 +229,7 @@ def record_matches(cls, z, lwh, yaw, shape_var, shape_s, confidence, hits, confi
 
 @kernel(IN_F2, IN_I1, IN_B2, IN_I1, IN_I1, I64, F64, F64)
 def estimate_rules(seen_s, ti, det_cols, di, col_values, intersecting_mask, t_s, max_coast_s):
-    """The fusion rule of each pair (track ti[k], estimate di[k]) (``fusion.tracking``'s module docstring), from
+    """The fusion rule of each pair (track ti[k], estimate di[k]) (``v2i.fusion.tracking``'s module docstring), from
     the sources outside the estimate's bits (det_cols (M, B) False) that updated the track within max_coast_s
     (t_s - seen_s <= max_coast_s): none: rule 1 (alone); one whose column value (col_values (B,)) has a bit
     of intersecting_mask: rule 2 (intersect); else rule 3. Returns (order (K,), n_alone, n_intersect):

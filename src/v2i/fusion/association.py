@@ -1,4 +1,4 @@
-"""Global nearest-neighbour association with gating (``fusion.lsap``: scipy's assignment solver).
+"""Global nearest-neighbour association with gating (``v2i.fusion.lsap``: scipy's assignment solver).
 
 ``assign`` takes a dense cost and a gate; ``assign_sparse`` takes only the K pairs that passed
 the gate (the tracker's path): the gated bipartite graph splits into connected components, and
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from v2i.core.jit import I64, IN_F1, IN_F2, IN_I1, kernel
-from fusion.lsap import linear_sum_assignment
+from v2i.fusion.lsap import linear_sum_assignment
 
 _BIG = 1e12
 

@@ -1,4 +1,4 @@
-"""Gating and assignment of detections to tracks (the association step of ``fusion.tracking``).
+"""Gating and assignment of detections to tracks (the association step of ``v2i.fusion.tracking``).
 
 A pair (track, detection) is allowed when the classes are compatible (equal, or either is
 UNKNOWN = 0) and the pair passes the gate (``TrackerConfig.gate``): ``distance``: centre
@@ -22,15 +22,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fusion.association import Assignment, assign_sparse
-from fusion.geometry import iou_rows
+from v2i.fusion.association import Assignment, assign_sparse
+from v2i.fusion.geometry import iou_rows
 from v2i.core.jit import F64, I64, IN_F2, IN_F3, IN_I1, helper, kernel
-from fusion.kalman import mahalanobis_sq
+from v2i.fusion.kalman import mahalanobis_sq
 from v2i.core.objects import ObjectArray
 
 if TYPE_CHECKING:
-    from fusion.track_table import TrackTable
-    from fusion.tracking import TrackerConfig
+    from v2i.fusion.track_table import TrackTable
+    from v2i.fusion.tracking import TrackerConfig
 
 _NO_INDEX = np.zeros(0, np.int64)
 
@@ -176,14 +176,14 @@ def gated_pairs_reference(config: TrackerConfig, table: TrackTable, dets: Object
 def paired_bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """IoU (K,) of paired BEV boxes a[k], b[k] (K, 5) [x, y, l, w, yaw]: |A n B| / (|A| + |B| - |A n B|).
 
-    ``fusion.geometry.iou_rows``: one intersection per pair instead of a whole matrix.
+    ``v2i.fusion.geometry.iou_rows``: one intersection per pair instead of a whole matrix.
     """
     return iou_rows(np.asarray(a, dtype=float), np.asarray(b, dtype=float)) if len(a) else np.zeros(0)
 
 
 def assign_pairs(pairs: GatedPairs, n_tracks: int, n_dets: int) -> Assignment:
     """Minimum-cost one-to-one matching among the gated pairs (``association.assign_sparse``:
-    per connected component of the gated graph, ``fusion.lsap`` for those of more than one pair)."""
+    per connected component of the gated graph, ``v2i.fusion.lsap`` for those of more than one pair)."""
     return assign_sparse(pairs.track, pairs.det, pairs.cost, n_tracks, n_dets)
 
 

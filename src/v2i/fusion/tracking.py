@@ -1,9 +1,9 @@
-"""Multi-object tracker over the batched Kalman filters of ``fusion.kalman`` (map frame).
+"""Multi-object tracker over the batched Kalman filters of ``v2i.fusion.kalman`` (map frame).
 
 Cycle (Bidare's KF poster: two updates per cycle): ``predict(t)``, ``update(lidar, t, SOURCE_VEHICLE)``,
 ``update(rsu, t, SOURCE_RSU)`` for each RSU list, ``prune(t)``, ``tracks(t)``; ``step(dets, t)``
 does one predict / update / prune / tracks. Times are seconds on any fixed origin; the
-filter never goes back in time (``fusion.oosm.OosmTracker`` re-filters late measurements).
+filter never goes back in time (``v2i.fusion.oosm.OosmTracker`` re-filters late measurements).
 
 Motion (``TrackerConfig.motion``): ``cv`` [x, y, vx, vy], ``ca`` [x, y, vx, vy, ax, ay],
 ``ctrv`` [x, y, v, psi, omega] (EKF); process noise sigmas ``accel_std_mps2`` (CV, CTRV v-dot),
@@ -25,7 +25,7 @@ d2 = y^T S^-1 y <= ``gate_chi2`` (9.21: 99 % for 2 dof); ``gate="either"``: one 
 within ``gate_max_m`` (a young track whose velocity is still uncertain reaches as far as its
 covariance says, but not across a junction on an unknown velocity's 100 m/s prior; an
 established one at least ``gate_m`` however small its covariance). Among allowed pairs a
-minimum-cost one-to-one assignment (``fusion.lsap``, scipy's algorithm compiled) with cost
+minimum-cost one-to-one assignment (``v2i.fusion.lsap``, scipy's algorithm compiled) with cost
 ``distance`` (m), ``mahalanobis`` (d2) or ``iou`` (1 - BEV IoU of the predicted box and the
 detected box). Matched tracks get a Kalman update of the position and, for CV / CA with
 ``velocity_updates``, of the velocity where the detection measured one (``cov_vxy`` below
@@ -50,7 +50,7 @@ of ``SOURCE_BITS`` (63) bits, so an int64; the OBU gives bit 0 to its own vehicl
 wire folds them into one byte). A track's ``sources`` is the OR of the bits that updated it
 within the last ``max_coast_s``. Ids are unique within a Tracker instance, starting at 1.
 The tracks live in preallocated rows (``track_table.TrackStore``) with one last-update column per
-source bit in use, not 63; association (gating, cost, assignment) is ``fusion.gating``.
+source bit in use, not 63; association (gating, cost, assignment) is ``v2i.fusion.gating``.
 
 Fusing another tracker's estimates (``update(..., estimates=True)``, e.g. an RSU's tracks).
 A matched pair (track, estimate with bits b) is fused by exactly one rule, in this order:
@@ -62,7 +62,7 @@ A matched pair (track, estimate with bits b) is fused by exactly one rule, in th
    The track then holds another filter's estimates, whose errors are correlated with this
    one's in an unknown way (common process noise, the same source's earlier estimates
    reaching it through the other's), so a Kalman update would count shared information
-   twice. CI (``fusion.covariance_intersection``): the Kalman update with P / w and
+   twice. CI (``v2i.fusion.covariance_intersection``): the Kalman update with P / w and
    R / (1 - w), i.e. P+^-1 = w P^-1 + (1 - w) H^T R^-1 H,
    x+ = P+ (w P^-1 x + (1 - w) H^T R^-1 z), w minimising det P+; H observes the position,
    and also the velocity where the estimate measured one (CV / CA with ``velocity_updates``;
@@ -81,10 +81,10 @@ from typing import Literal
 
 import numpy as np
 
-from fusion import kalman
-from fusion.covariance_intersection import ci_fuse_objects
+from v2i.fusion import kalman
+from v2i.fusion.covariance_intersection import ci_fuse_objects
 from v2i.core.frames import wrap_angle
-from fusion.gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
+from v2i.fusion.gating import (  # noqa: F401  (re-exported: association is part of the tracker's interface)
     GatedPairs,
     assign_gated,
     assign_pairs,
@@ -95,7 +95,7 @@ from fusion.gating import (  # noqa: F401  (re-exported: association is part of 
     paired_bev_iou,
 )
 from v2i.core.objects import ObjectArray
-from fusion.track_table import SOURCE_BITS, TrackStore, TrackTable, estimate_rules, record_matches
+from v2i.fusion.track_table import SOURCE_BITS, TrackStore, TrackTable, estimate_rules, record_matches
 
 _BIT_VALUES = 1 << np.arange(SOURCE_BITS)
 
@@ -326,7 +326,7 @@ class Tracker:
 
     def _check_time(self, t_s: float) -> None:
         if self._t_s is not None and t_s < self._t_s:
-            raise ValueError(f"t_s={t_s} precedes the filter time {self._t_s}; use fusion.oosm.OosmTracker")
+            raise ValueError(f"t_s={t_s} precedes the filter time {self._t_s}; use v2i.fusion.oosm.OosmTracker")
 
     def _intersect(self, ti: np.ndarray, di: np.ndarray, dets: ObjectArray) -> None:
         """Covariance intersection of tracks ti with estimates di: the position, or the position and

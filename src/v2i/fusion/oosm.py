@@ -22,7 +22,7 @@ import bisect
 from dataclasses import dataclass
 
 from v2i.core.objects import ObjectArray
-from fusion.tracking import Tracker, TrackerSnapshot
+from v2i.fusion.tracking import Tracker, TrackerSnapshot
 
 
 @dataclass(frozen=True)

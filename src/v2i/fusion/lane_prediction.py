@@ -17,7 +17,7 @@ the lowest cost (dist / half_width)^2 + (dpsi / heading_scale)^2 among those it 
 the lanelet's half width + margin, not before its first / after its last vertex) whose heading
 agrees with its own (velocity direction when moving, else yaw) within ``heading_tolerance_rad``.
 Unmatched objects (pedestrians, unknown class, off the road, wrong way) get constant velocity,
-exactly ``fusion.motion.predict_cv``.
+exactly ``v2i.fusion.motion.predict_cv``.
 
 Successors (choice documented): the path is a lane sequence from the matched lanelet through the
 routing graph's successors (no lane changes), ``lookahead_m`` beyond it; past the end of the map
@@ -31,7 +31,7 @@ agrees), so a turning vehicle is predicted straight until it turns in, and along
 
 Cost: centrelines are cached at construction as flat numpy polylines with cumulative arc length,
 one per lane sequence, stacked with disjoint arc-length keys, so that a call is one segment match
-(a compiled loop: ``fusion.lane_match``) and one ``searchsorted`` for all objects and steps; lanelet2 is only used
+(a compiled loop: ``v2i.fusion.lane_match``) and one ``searchsorted`` for all objects and steps; lanelet2 is only used
 to load the map and build the routing graph.
 """
 
@@ -47,8 +47,8 @@ import numpy as np
 from schemas.classes import ObjectClass
 
 from v2i.core.frames import wrap_angle
-from fusion.lane_match import chain_frame_points, match_segments
-from fusion.motion import predict_cv
+from v2i.fusion.lane_match import chain_frame_points, match_segments
+from v2i.fusion.motion import predict_cv
 from v2i.core.objects import ObjectArray
 
 EXTEND_M = 1000.0  # straight extension before / after every lane sequence
@@ -329,7 +329,7 @@ class LanePredictor:
         object lies within sqrt(``reach_sq``) of the segment's midpoint can pass the lateral test
         (distance to the segment <= half width + margin, and |p - mid| <= that distance + length / 2):
         the others cost inf without being computed. The pairs in one compiled loop
-        (``fusion.lane_match``: the numpy expression's operations, bit for bit); the headings here.
+        (``v2i.fusion.lane_match``: the numpy expression's operations, bit for bit); the headings here.
         """
         cfg = self.config
         n = len(objs)

@@ -2,7 +2,7 @@
 
 ROIF splits at the wire: the RSU computes its ``ViewFeatures`` next to its detector and sends
 them (``schemas.image_messages.RsuImageFeatures``); the OBU computes its own from its camera
-and fuses the two (``fusion.roif.roif_fuse``). Neither side needs the other's image.
+and fuses the two (``v2i.fusion.roif.roif_fuse``). Neither side needs the other's image.
 
 Pure: arrays in, arrays out; no clock, no I/O.
 """
@@ -100,7 +100,7 @@ def orb_features(image: np.ndarray, xyxy: np.ndarray, max_features: int, fast_th
 
 def view_features(image: np.ndarray, detections: tuple, config, max_features: int | None = None) -> ViewFeatures:
     """The ``ViewFeatures`` of an image (H, W, 3) BGR and its detections (xyxy (N, 4), scores (N,),
-    cls (N,)); ORB as ``config`` (a ``fusion.roif.RoifConfig``) says, at most ``max_features``
+    cls (N,)); ORB as ``config`` (a ``v2i.fusion.roif.RoifConfig``) says, at most ``max_features``
     keypoints (default ``config.orb_features``)."""
     xyxy, scores, cls = detections
     xyxy = np.asarray(xyxy, float).reshape(-1, 4)

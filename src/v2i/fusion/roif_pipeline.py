@@ -3,8 +3,8 @@
 ``v2i eval --fusion roif`` (``evaluation.image_fusion``) and the live OBU
 (``obu_service.image_fusion``) feed it the same way: per OBU camera frame, the OBU's
 ``ViewFeatures``, the RSU's paired ``ViewFeatures`` (or None: no RSU frame pairs with this one)
-and the frame time; it fuses them (``fusion.roif.roif_fuse``) and steps the box tracker
-(``fusion.box_tracker``) on the fused boxes, which are in the RSU view.
+and the frame time; it fuses them (``v2i.fusion.roif.roif_fuse``) and steps the box tracker
+(``v2i.fusion.box_tracker``) on the fused boxes, which are in the RSU view.
 
 A frame without an RSU partner has no RSU view to fuse into: its output is the OBU's own boxes
 in its own (ego) view, ``view == VIEW_EGO``, and the tracker (RSU view) is stepped with no
@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.box_tracker import BoxTracker, BoxTrackerConfig, BoxTracks
-from fusion.roif import SOURCE_OBU, FusedBoxes, RoifConfig, RoifResult, roif_fuse
-from fusion.roif_features import ViewFeatures
+from v2i.fusion.box_tracker import BoxTracker, BoxTrackerConfig, BoxTracks
+from v2i.fusion.roif import SOURCE_OBU, FusedBoxes, RoifConfig, RoifResult, roif_fuse
+from v2i.fusion.roif_features import ViewFeatures
 
 VIEW_RSU, VIEW_EGO = "rsu", "ego"  # the image a frame's output boxes are in
 
