@@ -25,7 +25,7 @@ import numpy as np
 
 from link_emulator.channel import Channel, LinkModel
 from link_emulator.profile import load_profile
-from obu_service.clock_sync import NS_PER_S
+from v2i.clock.clock_sync import NS_PER_S
 from obu_service.sync_sim import exchanges, run_sync
 from sim.clock import ClockStep, DriftingClock, SimClock
 

@@ -54,7 +54,7 @@ STAGES = {
     "OBU on_rsu_message": "obu_service.pipeline:ObuPipeline.on_rsu_message",
     "OBU on_detections": "obu_service.pipeline:ObuPipeline.on_detections",
     "OBU fuse": "obu_service.pipeline:ObuPipeline.fuse",
-    "OBU clock estimate": "obu_service.clock_sync:ClockSync.estimate_at",
+    "OBU clock estimate": "v2i.clock.clock_sync:ClockSync.estimate_at",
     "scoring outputs": "evaluation.spec:RunRecord.add_output",
 }
 

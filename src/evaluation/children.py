@@ -35,7 +35,7 @@ from telemetry.live_line import StatusLine
 
 READY_TIMEOUT_S = 120.0  # every child must be ready within this (a cold start on a busy 2-core machine: ~10 s)
 # time zero this far after the start line is sent: the OBU's clock sync queries the RSU from 1 s before
-# time zero (obu_service.time_requests.SYNC_LEAD_NS), plus the line's delivery and the services' _begin
+# time zero (v2i.clock.time_requests.SYNC_LEAD_NS), plus the line's delivery and the services' _begin
 START_LEAD_S = 1.5
 STDERR_LINES_KEPT = 12  # a child's last stderr lines, shown when it dies or is not ready
 POLL_S = 0.05  # how often wait_ready looks at each child

@@ -47,8 +47,8 @@ from schemas.image_messages import (
 )
 from schemas.messages import ObuMetrics, RsuLinkStatus, TimeReply, TimeRequest
 
-from obu_service.clock_sync import ClockSync, OffsetEstimate
-from obu_service.time_requests import TimeRequests
+from v2i.clock.clock_sync import ClockSync, OffsetEstimate
+from v2i.clock.time_requests import TimeRequests
 
 NS_PER_MS = 1_000_000
 RECENT_FRAMES = 256  # (rsu id, seq, t_rsu) keys remembered for duplicates

@@ -39,7 +39,7 @@ from obu_service.config import ObuConfig
 from obu_service.ego_camera import EgoCamera
 from obu_service.image_fusion import ImageFusionConfig, ImageFusionPipeline
 from obu_service.inbound_security import live_security
-from obu_service.time_requests import sync_times_ns
+from v2i.clock.time_requests import sync_times_ns
 
 INPUTS_PER_LATE_EVENT = 8  # queued inputs taken before each overdue event (an RSU frame of 41 kB decodes in ~0.06 ms)
 

@@ -44,7 +44,7 @@ from obu_service.config import ObuConfig
 from obu_service.inbound_security import live_security
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import ExternalCycles, OwnFrame, SimulatedVehicle, detections_of, pose_of
-from obu_service.time_requests import sync_times_ns
+from v2i.clock.time_requests import sync_times_ns
 from obu_service.v2v_shell import KINDS as V2V_KINDS, V2vShell
 
 

@@ -62,11 +62,11 @@ from schemas.columns import ObjectColumns
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObjectListHeader, TimeReply, TimeRequest
 
 from obu_service.admission import Admission
-from obu_service.clock_sync import OffsetEstimate
+from v2i.clock.clock_sync import OffsetEstimate
 from obu_service.methods import RsuFrame
 from obu_service.mode_inputs import ModeInputs, Received
 from obu_service.rsu_table import RSU_ID_BASE, RsuState, RsuTable
-from obu_service.time_requests import TimeRequests
+from v2i.clock.time_requests import TimeRequests
 
 MAX_PEERS = 8  # peer slots (tracker source bits) an OBU gives to V2V peers by default
 PEER_REPLY_NS = 50_000  # an OBU's time between receiving a peer's time request and answering it (offline)

@@ -39,14 +39,14 @@ from schemas.messages import (MAX_OBJECTS, SOURCE_VEHICLE, FusedObjectList, Obje
                               PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
 
 from obu_service.admission import Admission, Limits
-from obu_service.clock_sync import OffsetEstimate
+from v2i.clock.clock_sync import OffsetEstimate
 from obu_service.fusion_mode import FUSION_MODES, MODES, Feasible, ModePolicy
 from obu_service.methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_fusion, make_fusion
 from obu_service.mode_inputs import ModeInputs, Received
 from obu_service.peers import MAX_PEERS, PeerIntake
 from obu_service.planning import objects_at, retimed
 from obu_service.rsu_table import RSU_ID_BASE, RsuState, RsuTable
-from obu_service.time_requests import TimeRequests
+from v2i.clock.time_requests import TimeRequests
 
 __all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "RSU_ID_BASE", "ObuPipeline", "ObuPipelineConfig"]
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 from schemas.messages import PredictionList
 
-from obu_service.clock_sync import ClockSync
+from v2i.clock.clock_sync import ClockSync
 from obu_service.link_monitor import LinkMonitor
 
 RECENT_KEYS = 512  # (seq, capture) keys remembered per RSU and stream for duplicate detection

@@ -18,7 +18,7 @@ import numpy as np
 
 from sim.clock import DriftingClock
 
-from obu_service.clock_sync import NS_PER_S, ClockSync, SyncSample
+from v2i.clock.clock_sync import NS_PER_S, ClockSync, SyncSample
 
 NS_PER_MS = 1_000_000
 

@@ -25,7 +25,7 @@ import annotated_types
 import numpy as np
 from scipy.ndimage import median_filter
 
-from obu_service.clock_sync import SyncSample
+from v2i.clock.clock_sync import SyncSample
 from schemas import list_wire
 from schemas.codec import decode, encode
 from schemas.messages import MAX_TIME_NS, MIN_TIME_NS, Message, ObjectList

@@ -1,5 +1,5 @@
-"""The compiled clock statistics (obu_service.clock_envelope) equal their numpy / scipy definitions
-(obu_service.envelope_reference), the whole window fit included."""
+"""The compiled clock statistics (v2i.clock.clock_envelope) equal their numpy / scipy definitions
+(v2i.clock.envelope_reference), the whole window fit included."""
 
 import math
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.stats import theilslopes
 
-from obu_service import envelope_reference as ref
-from obu_service.clock_envelope import (QUEUED_NS, _order, _quantile, _tail_mean_sd, consensus, fit_drift, fit_window,
+from v2i.clock import envelope_reference as ref
+from v2i.clock.clock_envelope import (QUEUED_NS, _order, _quantile, _tail_mean_sd, consensus, fit_drift, fit_window,
                                         leg_envelope, shared_slope, theil_sen_slope)
 
 PRIOR = (0.0, 100_000.0)  # ns/s: 0 +- 100 ppm
@@ -112,7 +112,7 @@ def test_the_sort_s_shortcuts_and_the_k_least_equal_numpy_s_stable_argsort():
     """_order's shortcuts (readings by time, ages by time) and _lowest (the k least, stable) give
     np.argsort(kind="stable") exactly: sorted, reversed, tied, constant, random, -0.0 beside 0.0 and
     NaN inputs (_lowest: its first k, for every k)."""
-    from obu_service.clock_envelope import _lowest
+    from v2i.clock.clock_envelope import _lowest
 
     rng = np.random.default_rng(17)
     for n in range(1, 120):

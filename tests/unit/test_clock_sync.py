@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from link_emulator.channel import LinkModel
 from link_emulator.profile import load_profile
-from obu_service.clock_sync import ClockSync, SyncSample
+from v2i.clock.clock_sync import ClockSync, SyncSample
 from obu_service.sync_sim import (LTE_DOWNLINK, LTE_UPLINK, BufferedLeg, buffer_episodes, exchanges, forged,
                                   run_sync)
 from sim.clock import ClockStep, DriftingClock, SimClock

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from v2i.core.objects import ObjectArray
-from obu_service.clock_sync import OffsetEstimate, SyncSample
+from v2i.clock.clock_sync import OffsetEstimate, SyncSample
 from obu_service.mode_inputs import ModeInputs, Received, rsu_period_ns
 from obu_service.pipeline import ObuPipelineConfig
 from obu_service.rsu_table import RsuTable

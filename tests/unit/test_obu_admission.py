@@ -10,7 +10,7 @@ from v2i.fusion.wire import fit_to_wire, states_from_objects
 from schemas.wire_view import pack_view, unpack_view
 from obu_service.pipeline import ObuPipeline, ObuPipelineConfig
 from obu_service.rsu_table import RsuTable
-from obu_service.time_requests import TimeRequests
+from v2i.clock.time_requests import TimeRequests
 from rsu_service.pipeline import answer_time_request
 from schemas.codec import SchemaVersionError, decode, encode
 from schemas.messages import (MAX_OBJECTS, SCHEMA_VERSION, FusedObjectList, ObjectList, ObjectListHeader,
@@ -194,7 +194,7 @@ def test_unknown_rsus_expire_and_established_ones_keep_their_slot():
 
 
 def _sample(t_ns):
-    from obu_service.clock_sync import SyncSample
+    from v2i.clock.clock_sync import SyncSample
 
     return SyncSample(t_ns, t_ns + 5 * MS, t_ns + 5 * MS, t_ns + 10 * MS)
 
@@ -314,7 +314,7 @@ def test_the_rsu_detection_of_the_ego_itself_is_dropped_and_counted():
 def test_time_queries_start_early_enough_to_sync_before_the_run():
     """Queries begin a second before the run (the first reply is held 150 ms before the clock
     filter sees it), never in the past, and stop at the run's end."""
-    from obu_service.time_requests import sync_times_ns
+    from v2i.clock.time_requests import sync_times_ns
 
     start = T0 + 20_000 * MS
     early = sync_times_ns(T0, start, 2.0, 10.0)

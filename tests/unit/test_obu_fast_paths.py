@@ -8,7 +8,7 @@ import pytest
 
 from v2i.core.frames import Pose2D, PoseUncertainty, wrap_angle
 from v2i.fusion.pose_history import PoseHistory, _interpolate, _wrap
-from obu_service.clock_sync import ClockSync, SyncSample
+from v2i.clock.clock_sync import ClockSync, SyncSample
 from obu_service.link_monitor import LinkMonitor, gap_loss
 
 MS = 1_000_000

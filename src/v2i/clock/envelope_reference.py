@@ -1,4 +1,4 @@
-"""The plain numpy definitions of ``obu_service.clock_envelope``'s compiled window fit (its reference).
+"""The plain numpy definitions of ``v2i.clock.clock_envelope``'s compiled window fit (its reference).
 
 ``fit_window`` here computes what the kernel ``clock_envelope.fit_window`` computes, by the numpy
 and Python expressions its docstrings state (sorts, ``np.unique``, medians and percentiles,
@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from obu_service.clock_envelope import NS_PER_S, QUEUED_NS
+from v2i.clock.clock_envelope import NS_PER_S, QUEUED_NS
 
 
 def tail_size(n: int, q: float) -> int:

@@ -21,7 +21,7 @@ import numpy as np
 
 from schemas.messages import TimeReply, TimeRequest
 
-from obu_service.clock_sync import SyncSample
+from v2i.clock.clock_sync import SyncSample
 
 
 @dataclass

@@ -67,7 +67,7 @@ from operator import itemgetter
 
 import numpy as np
 
-from obu_service.clock_envelope import fit_window
+from v2i.clock.clock_envelope import fit_window
 
 NS_PER_S = 1_000_000_000
 PPM_NS_PER_S = 1_000.0  # 1 ppm = 1 us per s = 1000 ns per s

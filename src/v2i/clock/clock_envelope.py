@@ -11,7 +11,7 @@ exchanges; written as numpy the fit was some 200 calls of ~1 us fixed cost each,
 statistics are loops compiled by numba (``v2i.core.jit``): one kernel, ``fit_window``, per fit
 (loops, not array expressions or numpy's sorts and quantiles: each of those adds ~0.1-1 s to the
 kernel's compile). Their numpy definitions, which they equal to rounding
-(tests/unit/test_clock_envelope.py), are ``obu_service.envelope_reference``: ~690 us per fit
+(tests/unit/test_clock_envelope.py), are ``v2i.clock.envelope_reference``: ~690 us per fit
 against the kernel's ~26-30 us on the fits of a connected-intersection run.
 A window's exchanges are arrays of shape (n,): ``t_up`` (s, t1 - t_ref), ``z_up`` (ns, x_up),
 ``t_down`` (s, t4 - t_ref), ``z_down`` (ns, x_down).
