@@ -4,7 +4,7 @@
 
 Each command runs as its own process (``python -m v2i ...``, as the services are started by
 ``v2i demo``); the median and the spread of ``--runs`` runs are printed, in seconds.
-Ready = the service's ``{"event": "ready", ...}`` line on stdout (``schemas.runtime``: printed
+Ready = the service's ``{"event": "ready", ...}`` line on stdout (``v2i.runtime.process``: printed
 once its Zenoh session is open and declared; the link emulator prints it once both sides are
 open). Per run: the RSU and the OBU start (each on a free loopback port), then the link
 emulator connecting the two; each is timed from its spawn to its ready line; then all three

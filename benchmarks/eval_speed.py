@@ -32,7 +32,7 @@ from evaluation.chaos import with_chaos
 from evaluation.runner import OfflineRun
 from sim import occlusion
 from sim.scenario import bundled_scenarios
-from schemas.runtime import freeze_heap
+from v2i.runtime.process import freeze_heap
 from v2i.cli import _spec, build_parser
 
 from v2i.core.jit import load_kernels

@@ -2,7 +2,7 @@
 
 `cryptography` releases the GIL during an ECDSA verify; the loop then waits for it back until the
 thread holding it is forced to switch (``sys.setswitchinterval``, 5 ms by default). Services run
-with ``schemas.runtime.SWITCH_INTERVAL_S``. Prints verify p50 / p95 (us) idle and next to a busy
+with ``v2i.runtime.process.SWITCH_INTERVAL_S``. Prints verify p50 / p95 (us) idle and next to a busy
 thread, at the default interval and at the services' one.
 
     python benchmarks/gil_switch.py [--n 1000]
@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from schemas.runtime import SWITCH_INTERVAL_S
+from v2i.runtime.process import SWITCH_INTERVAL_S
 from security.envelope import Signer, Verifier
 from security.site import memory_site
 

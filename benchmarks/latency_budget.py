@@ -43,8 +43,8 @@ from schemas import keys
 from schemas.codec import header_of, open_body
 from schemas.messages import ObjectList, ObuMetrics
 from schemas.codec import decode
-from schemas.runtime import stop_on_signals
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.process import stop_on_signals
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 
 HOP_KEYS = {"default": "v2x/bench/hop/default", "express": "v2x/bench/hop/express"}
 HOP_BYTES = 1024

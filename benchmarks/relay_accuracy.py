@@ -36,7 +36,7 @@ import numpy as np
 from link_emulator.config import LinkConfig
 from link_emulator.relay import Delivery, LinkRelay
 from schemas.keys import rsu_objects
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 from sim.clock import SystemClock
 
 NS_PER_MS = 1_000_000

@@ -31,7 +31,7 @@ from contextlib import ExitStack, contextmanager
 import numpy as np
 import zenoh
 
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 
 KEY = "v2x/bench/router_hop"
 HEADER = struct.Struct("<qq")  # (sequence number, send time in perf_counter ns)

@@ -141,7 +141,7 @@ class Rsus:
         from schemas import keys
         from schemas.codec import encode
         from schemas.messages import ObjectList, ObjectListHeader
-        from schemas.runtime import read_start_line
+        from v2i.runtime.process import read_start_line
 
         pubs = [self.session.declare_publisher(keys.rsu_objects(r)) for r in self.ids]
         queryables = [self.session.declare_queryable(keys.rsu_time(r), lambda q, i=i: self.on_query(i, q))
@@ -175,8 +175,8 @@ def publish_main(argv: list[str]) -> int:
     p.add_argument("--scenario", required=True)
     p.add_argument("--objects", choices=("shared", "distinct"), required=True)
     args = p.parse_args(argv)
-    from schemas.runtime import stop_on_signals
-    from schemas.transport import open_session
+    from v2i.runtime.process import stop_on_signals
+    from v2i.runtime.transport import open_session
 
     stop = stop_on_signals()
     session = open_session([args.listen], [])
@@ -252,7 +252,7 @@ class Collector:
 
     def __init__(self, obu_endpoint: str, vehicle_id: str):
         from schemas import keys
-        from schemas.transport import open_session
+        from v2i.runtime.transport import open_session
 
         self.objects, self.metrics = [], []
         self.session = open_session([], [obu_endpoint])
@@ -282,7 +282,7 @@ def site_rsus(scenario: str, k: int) -> dict[str, list[float]]:
 
 def run_one(k: int, n: int, args, procs: list[Child], tmp: Path) -> dict:
     """Start the K-RSU publisher and the OBU, measure the window, stop both; the row's numbers."""
-    from schemas.transport import free_tcp_endpoint
+    from v2i.runtime.transport import free_tcp_endpoint
 
     obu_ep, rsu_ep = free_tcp_endpoint(), free_tcp_endpoint()
     rsus = site_rsus(args.scenario, k)

@@ -48,8 +48,8 @@ from link_emulator.validate import Settings, declared_loss
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.messages import EgoPose, ObjectList, TimeRequest
-from schemas.runtime import read_start_line
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.process import read_start_line
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 from sim.scenario import load_scenario
 
 RSU_ID = "rsu1"

@@ -25,7 +25,7 @@ import time
 from schemas.codec import CodecError, decode
 from schemas.keys import obu_objects
 from schemas.messages import SOURCE_RSU, FusedObjectList
-from schemas.transport import open_session
+from v2i.runtime.transport import open_session
 
 
 def _summary(fused: FusedObjectList) -> dict:

@@ -23,7 +23,7 @@ from schemas import keys
 from schemas.codec import CodecError, decode
 from schemas.limits import SOURCE_RSU
 from schemas.messages import EgoPose, FusedObjectList, ObjectList, ObuMetrics, TimeRequest
-from schemas.transport import open_session
+from v2i.runtime.transport import open_session
 from security.envelope import PREFIX, parse
 from telemetry.live_line import StatusLine
 

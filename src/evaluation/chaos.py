@@ -24,7 +24,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from schemas.config import ConfigError, read_yaml, validate
+from v2i.runtime.config import ConfigError, read_yaml, validate
 from schemas.messages import LinkControl
 
 from evaluation.spec import RunSpec

@@ -7,7 +7,7 @@ stderr (so that a live status line, ``telemetry.live_line``, keeps them above it
 with the child's label (``[obu ego]``) unless the service already named itself so, the last
 ``STDERR_LINES_KEPT`` kept for error messages. Its stdin is a pipe for the start line.
 
-The handshake (``schemas.runtime``), for children started with ``--await-start``::
+The handshake (``v2i.runtime.process``), for children started with ``--await-start``::
 
     children = {"rsu": Child("rsu", [..., "--await-start"], label="rsu rsu1"), ...}
     ready_s = wait_ready(children.values(), progress="v2i demo")  # one bound for all, a progress line
@@ -30,7 +30,7 @@ import threading
 import time
 from collections.abc import Iterable
 
-from schemas.runtime import start_line
+from v2i.runtime.process import start_line
 from telemetry.live_line import StatusLine
 
 READY_TIMEOUT_S = 120.0  # every child must be ready within this (a cold start on a busy 2-core machine: ~10 s)

@@ -36,8 +36,8 @@ from obu_service.source import SimulatedVehicle
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import FusedObjectList, LinkControl, ObuMetrics, PredictionList, RsuMetrics
-from schemas.runtime import log
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.process import log
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 from security.pki import Identity, load_signer
 from sim.scenario import load_scenario
 from sim.world import World

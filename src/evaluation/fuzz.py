@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from v2i.core.jit import load_kernels
-from schemas.transport import open_session
+from v2i.runtime.transport import open_session
 
 from evaluation.children import READY_TIMEOUT_S, Child, DemoError, start_all, wait_ready
 from evaluation.hostile import KINDS, HostileInputs

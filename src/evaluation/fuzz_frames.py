@@ -30,7 +30,7 @@ from v2i.core.jit import load_kernels
 from schemas import keys
 from schemas.codec import CodecError, decode
 from schemas.messages import ObjectList, RsuMetrics
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 
 from evaluation.children import READY_TIMEOUT_S, Child, start_all, wait_ready
 from evaluation.fuzz import RSU_ID, _r, rss_mb

@@ -24,7 +24,7 @@ from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.messages import FusedObjectList, ObjectList, ObuMetrics, RsuMetrics
 from schemas.sensor_messages import LocalizationPose, SensorHeader, SensorObjects
-from schemas.transport import free_tcp_endpoint
+from v2i.runtime.transport import free_tcp_endpoint
 from schemas.wire_view import pack_view, unpack_view
 from sim.scenario import load_scenario
 

@@ -40,7 +40,7 @@ from schemas.image_messages import (
     RsuImageFeatures,
     to_bytes,
 )
-from schemas.transport import free_tcp_endpoint
+from v2i.runtime.transport import free_tcp_endpoint
 from sim.scenario import load_scenario
 
 from evaluation.fuzz import MS, VEHICLE_ID

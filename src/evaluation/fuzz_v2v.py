@@ -26,7 +26,7 @@ from v2i.fusion.wire import states_from_objects
 from schemas import keys
 from schemas.codec import encode
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, TimeReply
-from schemas.transport import free_tcp_endpoint
+from v2i.runtime.transport import free_tcp_endpoint
 
 from evaluation.fuzz import VEHICLE_ID
 from evaluation.fuzz_targets import CLOCK_OFFSET_MS, ObuFuzz

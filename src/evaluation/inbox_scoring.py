@@ -9,7 +9,7 @@ import threading
 from collections import Counter
 
 from schemas.codec import CodecError
-from schemas.runtime import log
+from v2i.runtime.process import log
 from telemetry.live_line import LiveLine
 
 from evaluation.children import START_LEAD_S, ahead_ms

@@ -24,7 +24,7 @@ import time
 from v2i.core.jit import load_kernels
 from schemas.codec import CodecError, decode
 from schemas.messages import RsuMetrics
-from schemas.transport import open_session
+from v2i.runtime.transport import open_session
 
 from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, DemoError, start_all
 from evaluation.demo import Demo

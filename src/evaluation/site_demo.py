@@ -48,8 +48,8 @@ from perception.scoring import PerceptionTally
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import FusedObjectList, ObuMetrics, PredictionList, RsuMetrics
-from schemas.runtime import log
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.process import log
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 from sim.scenario import Scenario, load_scenario
 from sim.world import World
 from telemetry.live_line import LiveLine

@@ -24,8 +24,8 @@ from contextlib import contextmanager
 
 import zenoh
 
-from schemas.config import ConfigError, load_config, one_line_error
-from schemas.runtime import freeze_heap, limit_malloc_arenas, log
+from v2i.runtime.config import ConfigError, load_config, one_line_error
+from v2i.runtime.process import freeze_heap, limit_malloc_arenas, log
 from security.pki import PkiError
 from sim.clock import SystemClock
 from telemetry.metrics_cli import MetricsPortError, add_metrics_options, metrics_server

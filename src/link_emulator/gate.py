@@ -14,7 +14,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
-from schemas.intake import KeyedBuckets, TokenBucket
+from v2i.runtime.intake import KeyedBuckets, TokenBucket
 from schemas.messages import EgoPose
 from sim.clock import Clock
 

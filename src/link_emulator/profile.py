@@ -24,7 +24,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from schemas.config import ConfigError, bundled_names, load_bundled_or_file
+from v2i.runtime.config import ConfigError, bundled_names, load_bundled_or_file
 
 from link_emulator.distributions import (  # re-exported: the jitter models are part of a profile
     DelaySummary,

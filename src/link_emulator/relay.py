@@ -60,8 +60,8 @@ from schemas.keys import (
     link_stats,
 )
 from schemas.messages import EgoPose
-from schemas.runtime import MemoryTrim
-from schemas.transport import open_session
+from v2i.runtime.process import MemoryTrim
+from v2i.runtime.transport import open_session
 from sim.clock import Clock
 from telemetry.latency import StageLatency
 

@@ -43,8 +43,8 @@ import zenoh
 from schemas.codec import CodecError, decode
 from schemas.keys import link_control, link_stats, obu_pose, v2v_from
 from schemas.messages import EgoPose
-from schemas.runtime import MemoryTrim
-from schemas.transport import open_session
+from v2i.runtime.process import MemoryTrim
+from v2i.runtime.transport import open_session
 from sim.clock import Clock
 from telemetry.latency import StageLatency
 

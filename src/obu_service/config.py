@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from schemas.config import ServiceConfig
+from v2i.runtime.config import ServiceConfig
 from schemas.keys import check_id
 
 from obu_service.methods import check_fusion
@@ -54,7 +54,7 @@ class ObuConfig(ServiceConfig):
     wires: tuple[Literal["v2i", "cpm", "sdsm"], ...] = Field(
         ("v2i",), min_length=1, description="RSU list encodings subscribed to (RSU --wire): v2i, and the standard "
         "cpm / sdsm, whose ASN.1 is compiled at start-up (~0.3 s of CPU, before the service is ready)")
-    # the node's intake (schemas.intake)
+    # the node's intake (v2i.runtime.intake)
     max_message_bytes: int = Field(262_144, ge=1024, le=1 << 20, description="larger payloads are refused unread")
     source_rate_hz: float = Field(50.0, gt=0, le=10_000, description="messages per second accepted per key")
     source_burst: int = Field(25, ge=1, le=10_000)

@@ -27,10 +27,10 @@ from v2i.fusion.roif_features import ViewFeatures
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.image_messages import RsuImageFeatures
-from schemas.intake import Intake, Item
+from v2i.runtime.intake import Intake, Item
 from schemas.messages import TimeReply
-from schemas.runtime import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
-from schemas.transport import open_session
+from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
+from v2i.runtime.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 from sim.world import World
@@ -78,7 +78,7 @@ class ImageFusionNode:
         self.camera.start_at(start_ns)
 
     def run(self, stop: threading.Event, await_start=read_start_line) -> None:
-        """Declare, say ready, (``await_start``: wait for time zero, ``schemas.runtime.start_when_told``),
+        """Declare, say ready, (``await_start``: wait for time zero, ``v2i.runtime.process.start_when_told``),
         then run the frames until the run's end or ``stop``."""
         session = open_session(self.config.listen, self.config.connect)
         vid = self.config.vehicle_id

@@ -8,7 +8,7 @@ envelope and header first, and its objects only if the pipeline admits the heade
 
 With ``--source zenoh`` the vehicle's own detections and pose come from outside, on
 ``v2x/sensor/vehicle/{vehicle_id}/objects`` and ``.../pose`` (``schemas.sensor_messages``),
-through the same intake; the loop screens them (``schemas.sensor_screen``, refusals counted as
+through the same intake; the loop screens them (``v2i.runtime.sensor_screen``, refusals counted as
 ``input_<reason>``) and feeds ``on_pose`` / ``on_detections`` exactly as the embedded vehicle
 does. The cycle clock (``source.ExternalCycles``): one cycle per accepted detection frame, at
 its capture time; when the next frame has not come by its slot's fuse-by time (expected
@@ -29,12 +29,12 @@ from v2i.core.jit import load_kernels
 from v2i.core.objects import ObjectArray
 from schemas import keys
 from schemas.codec import CodecError, decode, encode, from_body, header_of, object_count, open_body, path_point_count
-from schemas.intake import Intake, Item
+from v2i.runtime.intake import Intake, Item
 from schemas import list_wire
 from schemas.messages import EgoPose, ObjectList, ObuMetrics, PredictionList, TimeReply
-from schemas.runtime import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
-from schemas.sensor_screen import InputRefused, SensorLimits, SensorScreen
-from schemas.transport import open_session
+from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
+from v2i.runtime.sensor_screen import InputRefused, SensorLimits, SensorScreen
+from v2i.runtime.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 from sim.world import World
@@ -110,7 +110,7 @@ class ObuNode:
                                           round((pc.deadline_ms - pc.compute_margin_ms) * 1e6))
 
     def run(self, stop: threading.Event, await_start=read_start_line) -> None:
-        """Declare, say ready, (``await_start``: wait for time zero, ``schemas.runtime.start_when_told``),
+        """Declare, say ready, (``await_start``: wait for time zero, ``v2i.runtime.process.start_when_told``),
         then run the cycles until the run's end or ``stop``."""
         session = open_session(self.config.listen, self.config.connect)
         vid = self.config.vehicle_id

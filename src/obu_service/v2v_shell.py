@@ -22,7 +22,7 @@ import zenoh
 
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
-from schemas.intake import Item
+from v2i.runtime.intake import Item
 from schemas.messages import FusedObjectList, TimeReply, TimeRequest
 from sim.clock import Clock
 

@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.config import ConfigError, validate
+from v2i.runtime.config import ConfigError, validate
 
 SCHEMA = "v2i-calibration/1"
 MIN_POINTS = 6  # Saravanan et al. Sec. II: at least six point correspondences

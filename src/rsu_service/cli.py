@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from schemas.list_wire import WIRES
-from schemas.runtime import add_service_options, run_service
+from v2i.runtime.process import add_service_options, run_service
 from telemetry.metrics_cli import add_metrics_options, export_node
 
 from rsu_service.config import PREDICTORS, SOURCES, RsuConfig

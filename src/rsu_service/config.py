@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator
 
-from schemas.config import ServiceConfig
+from v2i.runtime.config import ServiceConfig
 from schemas.keys import check_id
 from schemas.list_wire import WIRES
 from sim.clock import Clock, ClockStep, DriftingClock

@@ -11,7 +11,7 @@ summary.
 With ``--source zenoh`` the RSU runs no camera of its own: it subscribes to
 ``v2x/sensor/rsu/{rsu_id}/objects`` (``SensorObjects`` in ``map``, stamped in this host's
 clock), hands each payload from the Zenoh callback to a bounded, rate-limited ``Intake``, and
-its loop screens it (``schemas.sensor_screen``: codec rules, sensor id, frame, stale, future,
+its loop screens it (``v2i.runtime.sensor_screen``: codec rules, sensor id, frame, stale, future,
 out-of-order, object count; refusals counted as ``input_<reason>``) and processes the frame on
 receipt exactly as a simulated camera's frame at its ready time.
 """
@@ -31,12 +31,12 @@ from v2i.core.jit import load_kernels
 from v2i.fusion.wire import objects_from_states
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
 from schemas.list_wire import encode_list, list_key, prepare
-from schemas.intake import Intake, KeyedBuckets, TokenBucket
+from v2i.runtime.intake import Intake, KeyedBuckets, TokenBucket
 from schemas.image_messages import RsuImageFeatures
 from schemas.messages import SOURCE_RSU, ObjectList, RsuMetrics, RsuPerception, TimeRequest
-from schemas.runtime import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
-from schemas.sensor_screen import InputRefused, SensorLimits, SensorScreen
-from schemas.transport import open_session
+from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
+from v2i.runtime.sensor_screen import InputRefused, SensorLimits, SensorScreen
+from v2i.runtime.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 from sim.world import World
@@ -111,7 +111,7 @@ class RsuNode:
             self.source.start_at(start_ns)
 
     def run(self, stop: threading.Event, await_start=read_start_line) -> None:
-        """Declare, say ready, (``await_start``: wait for time zero, ``schemas.runtime.start_when_told``),
+        """Declare, say ready, (``await_start``: wait for time zero, ``v2i.runtime.process.start_when_told``),
         then publish until the run's end or ``stop``."""
         prepare(self.config.wire)  # a CPM / SDSM's ASN.1 compiles now (~0.3 s), not on the first list
         session = open_session(self.config.listen, self.config.connect)

@@ -30,7 +30,7 @@ from shapely.geometry import Polygon
 from shapely.validation import explain_validity
 
 from schemas.classes import ObjectClass
-from schemas.config import ConfigError, bundled_names, load_bundled_or_file
+from v2i.runtime.config import ConfigError, bundled_names, load_bundled_or_file
 
 from sim.paths import rounded_path, speed_keys_from_distance
 

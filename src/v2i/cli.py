@@ -184,7 +184,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
         chaos = load_chaos(args.chaos)
     from evaluation.chaos import with_chaos
-    from schemas.runtime import freeze_heap
+    from v2i.runtime.process import freeze_heap
 
     freeze_heap()  # the start-up's objects: no full collection of them during the run
     run = OfflineRun(with_chaos(_spec(args), chaos), chaos=chaos, link_series=bool(args.report))
@@ -601,12 +601,12 @@ def main(argv: list[str] | None = None) -> int:
     prog = f"v2i {args.command}" + (f" {sub_command}" if sub_command else "")
     try:
         if getattr(args, "site_zenoh_config", None):  # --zenoh-config: checked, then the process's site config
-            from schemas.transport import use_config_file
+            from v2i.runtime.transport import use_config_file
 
             use_config_file(args.site_zenoh_config)
         return args.func(args)
     except (ValueError, OSError) as exc:  # pydantic's ValidationError is a ValueError
-        from schemas.config import one_line_error
+        from v2i.runtime.config import one_line_error
 
         print(f"{prog}: {one_line_error(exc, _FLAG_OF_FIELD)}", file=sys.stderr)
     return 2

@@ -83,7 +83,7 @@ class Monitor:
         self.endpoints = endpoints
 
     def open(self) -> None:
-        from schemas.transport import open_session
+        from v2i.runtime.transport import open_session
 
         for index, endpoint in enumerate(self.endpoints):
             session = open_session(connect=[endpoint])
@@ -196,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
     """``v2i monitor``: 0 when done (Ctrl-C in the live view), 1 when --once got no metrics, 2 on bad input."""
     import zenoh
 
-    from schemas.runtime import zenoh_problem
+    from v2i.runtime.process import zenoh_problem
 
     for flag, value in (("--timeout", args.timeout), ("--refresh-hz", args.refresh_hz), ("--window-s", args.window_s),
                         ("--duration", args.duration)):

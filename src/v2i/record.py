@@ -83,7 +83,7 @@ class Recorder:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        from schemas.transport import open_session
+        from v2i.runtime.transport import open_session
 
         self.started_ns = time.time_ns()
         self.writer.add_metadata("recording", {"started_ns": str(self.started_ns),
@@ -258,7 +258,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from schemas.runtime import stop_on_signals
+    from v2i.runtime.process import stop_on_signals
 
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be > 0, got {args.duration:g}")

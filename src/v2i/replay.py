@@ -256,7 +256,7 @@ def say_if_not_closed(recording) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from schemas.runtime import stop_on_signals
+    from v2i.runtime.process import stop_on_signals
     from telemetry.mcap_reader import Recording
 
     if not Path(args.recording).is_file():
@@ -289,7 +289,7 @@ def _write_json(stats: dict, path: str | None) -> None:
 
 def play_standalone(replayer: Replayer, connect: list[str], lead_s: float, stop: threading.Event) -> int:
     """Replay into the OBU at ``connect`` starting ``lead_s`` from now; a summary on stderr."""
-    from schemas.transport import open_session
+    from v2i.runtime.transport import open_session
 
     session = open_session(connect=connect)
     try:

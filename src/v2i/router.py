@@ -4,10 +4,10 @@ instead of a full mesh of peers.
 Zenoh 1.10 routers forward for their *clients* only: two peers attached to one router reach
 each other only over a direct connection (failover brokering between peers is gone), so the
 services behind a router run as clients (``V2I_ZENOH_MODE=client``, see
-``schemas.transport``). Scouting and gossip are off, as in every v2i session, unless a
+``v2i.runtime.transport``). Scouting and gossip are off, as in every v2i session, unless a
 ``--config`` file turns them on; routers meet only through ``--connect`` endpoints.
 
-The process follows the services' conventions (``schemas.runtime``): one JSON ready line on
+The process follows the services' conventions (``v2i.runtime.process``): one JSON ready line on
 stdout once the router listens, human lines on stderr (each client, peer or router that
 connects or leaves), clean exit on SIGINT / SIGTERM or after ``--duration`` seconds.
 """
@@ -43,7 +43,7 @@ class RouterConfig(BaseModel):
 def zenoh_router_config(config: RouterConfig):
     """The ``zenoh.Config`` of the router and the endpoints it will listen on and connect to.
 
-    Without a file: ``schemas.transport.session_config`` in router mode (no scouting, gossip or
+    Without a file: ``v2i.runtime.transport.session_config`` in router mode (no scouting, gossip or
     shared memory, v2i's message size bound), listening on ``DEFAULT_LISTEN`` when no endpoint
     is given. With a file: the file, in router mode (ValueError when it names another mode),
     with scouting and gossip off where it leaves them unset, and the CLI endpoints in place of
@@ -51,7 +51,7 @@ def zenoh_router_config(config: RouterConfig):
     """
     import zenoh
 
-    from schemas.transport import session_config
+    from v2i.runtime.transport import session_config
 
     if config.zenoh_config is None:
         listen = config.listen or ([] if config.connect else list(DEFAULT_LISTEN))
@@ -94,7 +94,7 @@ class RouterNode:
     def run(self, stop: threading.Event) -> None:
         import zenoh
 
-        from schemas.runtime import announce, log
+        from v2i.runtime.process import announce, log
 
         self._opened_kind = zenoh.SampleKind.PUT  # a transport event of this kind opened; DELETE: closed
         session = zenoh.open(self.zenoh_config)
@@ -125,7 +125,7 @@ class RouterNode:
                 continue
 
     def _note(self, opened: bool, whatami: str, zid: str) -> None:
-        from schemas.runtime import log
+        from v2i.runtime.process import log
 
         if opened:
             self.sessions_seen += zid not in self.connected
@@ -160,8 +160,8 @@ def run(args: argparse.Namespace) -> int:
     import zenoh
     from pydantic import ValidationError
 
-    from schemas.config import one_line_error
-    from schemas.runtime import limit_malloc_arenas, stop_on_signals, zenoh_problem
+    from v2i.runtime.config import one_line_error
+    from v2i.runtime.process import limit_malloc_arenas, stop_on_signals, zenoh_problem
 
     limit_malloc_arenas()
     fields = {f: getattr(args, f) for f in RouterConfig.model_fields if getattr(args, f, None) is not None}

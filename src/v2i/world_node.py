@@ -16,9 +16,9 @@ from pydantic import Field, field_validator
 
 from v2i.core.jit import load_kernels
 from schemas.codec import encode
-from schemas.config import ServiceConfig
-from schemas.runtime import add_service_options, announce, log, read_start_line, run_service, start_when_told
-from schemas.transport import open_session
+from v2i.runtime.config import ServiceConfig
+from v2i.runtime.process import add_service_options, announce, log, read_start_line, run_service, start_when_told
+from v2i.runtime.transport import open_session
 from sim.clock import Clock, SystemClock
 from sim.scenario import load_scenario
 
@@ -78,7 +78,7 @@ class WorldNode:
         self.start_ns, self.feed = start_ns, self._feed(start_ns)
 
     def run(self, stop: threading.Event, await_start=read_start_line) -> None:
-        """Say ready, (``await_start``: wait for time zero, ``schemas.runtime.start_when_told``), then
+        """Say ready, (``await_start``: wait for time zero, ``v2i.runtime.process.start_when_told``), then
         publish every sensor input at its time until the run's end or ``stop``."""
         session = open_session(self.config.listen, self.config.connect)
         publishers: dict[str, object] = {}

@@ -183,7 +183,7 @@ _SECURITY_PROBE = """
 import json, os, sys, time, urllib.request
 from prometheus_client.parser import text_string_to_metric_families
 from schemas.keys import obu_objects, rsu_objects
-from schemas.transport import open_session
+from v2i.runtime.transport import open_session
 window_s, unsigned_puts = float(sys.argv[1]), int(sys.argv[2])
 wrong_name = {"transport": {"link": {"tls": {"root_ca_certificate": "/pki/tls/tls-ca.pem",
     "connect_certificate": "/pki/tls/operator.pem", "connect_private_key": "/pki/tls/operator.key",

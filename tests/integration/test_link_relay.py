@@ -27,7 +27,7 @@ from link_emulator.relay import LinkRelay
 from schemas.codec import encode
 from schemas.keys import link_stats, obu_pose, rsu_objects, rsu_time
 from schemas.messages import EgoPose, LinkControl
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 from security.pki import load_signer
 from security.site import write_site
 from sim.clock import SystemClock

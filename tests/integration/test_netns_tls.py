@@ -147,7 +147,7 @@ def _run_probe(argv: list[str], timeout_s: float) -> dict:
 # ----------------------------------------------------------------------------- the probe (in the OBU namespace)
 def _session(config: Path | None, tls_dir: Path, connect: list[str]):
     """A peer session connecting to ``connect`` with this Zenoh site config (None: none)."""
-    from schemas.transport import CONFIG_FILE_ENV, TLS_DIR_ENV, open_session
+    from v2i.runtime.transport import CONFIG_FILE_ENV, TLS_DIR_ENV, open_session
 
     os.environ[TLS_DIR_ENV] = str(tls_dir)
     os.environ.pop(CONFIG_FILE_ENV, None)

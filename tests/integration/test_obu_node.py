@@ -21,7 +21,7 @@ from rsu_service.node import RsuNode
 from schemas import keys
 from schemas.codec import decode, encode
 from schemas.messages import FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60 + READY_TIMEOUT_S)]
 RUN_S = 60.0  # the nodes' run from time zero: longer than every wait of a test; its block's end stops them

@@ -21,7 +21,7 @@ from schemas import keys
 from schemas.codec import decode, encode
 from schemas.image_messages import ImageFusedBoxes, RsuImageFeatures
 from schemas.messages import ObuMetrics, TimeReply, TimeRequest
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 from sim.camera import rsu_camera
 from sim.render import SceneRenderer
 from sim.scenario import load_scenario

@@ -1,6 +1,6 @@
 """Open inputs on real Zenoh and real processes: an outside publisher feeds ``v2i obu --source
 zenoh``; ``v2i world`` feeds ``v2i rsu --source zenoh``. Explicit tcp/127.0.0.1 endpoints,
-scouting off (schemas.transport), deadlines rather than sleeps, every process stopped."""
+scouting off (v2i.runtime.transport), deadlines rather than sleeps, every process stopped."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from evaluation.children import READY_TIMEOUT_S, Child, start_all, wait_ready
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObjectList, ObuMetrics, RsuMetrics
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(READY_TIMEOUT_S + 60)]
 

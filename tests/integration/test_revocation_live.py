@@ -18,7 +18,7 @@ from rsu_service.node import RsuNode
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import ObuMetrics
-from schemas.transport import free_tcp_endpoint
+from v2i.runtime.transport import free_tcp_endpoint
 from security.pki import CRL_FILE
 from security.site import write_site
 

@@ -20,7 +20,7 @@ import pytest
 import zenoh
 
 from evaluation.children import READY_TIMEOUT_S, Child, wait_ready
-from schemas.transport import (
+from v2i.runtime.transport import (
     CLIENT_CONNECT_TIMEOUT_MS,
     SESSION_MODE_ENV,
     free_tcp_endpoint,

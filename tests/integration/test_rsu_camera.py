@@ -16,7 +16,7 @@ from rsu_service.node import RsuNode
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import ObjectList, RsuMetrics
-from schemas.transport import free_tcp_endpoint
+from v2i.runtime.transport import free_tcp_endpoint
 from sim.camera import rsu_camera
 from sim.render import SceneRenderer
 from sim.scenario import load_scenario

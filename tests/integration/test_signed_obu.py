@@ -16,7 +16,7 @@ from schemas import keys
 from schemas.codec import decode, encode
 from schemas.limits import SOURCE_RSU
 from schemas.messages import FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics, TimeReply, TimeRequest
-from schemas.transport import free_tcp_endpoint
+from v2i.runtime.transport import free_tcp_endpoint
 from security.envelope import Signer
 from security.pki import load_signer
 from security.site import write_site

@@ -18,7 +18,7 @@ from evaluation.children import Child, start_all, wait_ready
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import SOURCE_RSU, FusedObjectList, ObuMetrics
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 

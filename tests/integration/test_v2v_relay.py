@@ -23,7 +23,7 @@ from link_emulator.v2v_relay import V2vRelay
 from schemas.codec import encode
 from schemas.keys import link_stats, obu_pose, v2v_objects
 from schemas.messages import EgoPose, LinkControl
-from schemas.transport import free_tcp_endpoint, open_session
+from v2i.runtime.transport import free_tcp_endpoint, open_session
 from sim.clock import SystemClock
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60 + READY_TIMEOUT_S)]

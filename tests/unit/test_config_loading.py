@@ -17,7 +17,7 @@ from evaluation.chaos import ChaosError, load_chaos
 from link_emulator.profile import ProfileError, load_profile
 from obu_service.config import ObuConfig
 from rsu_service.config import RsuConfig
-from schemas.config import ConfigError, UniqueKeyLoader, load_config, parse_yaml, validation_problems
+from v2i.runtime.config import ConfigError, UniqueKeyLoader, load_config, parse_yaml, validation_problems
 from sim.maps import bundled_maps, map_path
 from sim.scenario import ScenarioError, load_scenario
 from v2i.cli import main

@@ -5,8 +5,8 @@ import threading
 
 import pytest
 
-from schemas.intake import Intake, TokenBucket
-from schemas.runtime import ThrottledLog
+from v2i.runtime.intake import Intake, TokenBucket
+from v2i.runtime.process import ThrottledLog
 
 S = 1_000_000_000
 
@@ -107,7 +107,7 @@ def test_throttled_log_reports_first_refusal_then_one_summary_per_interval(capsy
 
 
 def test_memory_trim_runs_at_most_once_a_period():
-    from schemas.runtime import MemoryTrim, limit_malloc_arenas
+    from v2i.runtime.process import MemoryTrim, limit_malloc_arenas
 
     clock = FakeClock()
     trim = MemoryTrim(period_s=5.0, clock_s=lambda: clock.t_ns / S)

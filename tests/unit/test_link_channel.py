@@ -17,7 +17,7 @@ from link_emulator.profile import (
 )
 from link_emulator.trace import mean_run_length
 from link_emulator.validate import Settings, declared
-from schemas.config import ConfigError
+from v2i.runtime.config import ConfigError
 
 N_SAMPLES = 20_000
 T0_NS = 1_700_000_000 * 10**9

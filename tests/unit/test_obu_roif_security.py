@@ -15,7 +15,7 @@ from obu_service.image_fusion_node import ImageFusionNode
 from schemas import keys
 from schemas.codec import encode
 from schemas.image_messages import RsuImageFeatures
-from schemas.intake import Item
+from v2i.runtime.intake import Item
 from schemas.messages import TimeReply
 from security.envelope import Signer
 from security.pki import load_signer

@@ -227,17 +227,17 @@ def test_sensor_keys_never_meet_what_the_link_relays_or_the_obu_publishes() -> N
     assert keys.rsu_id_or_none(keys.sensor_rsu_objects("rsu1")) is None
 
 
-# --- the nodes' screening of sensor inputs (schemas.sensor_screen) --------------------------------
+# --- the nodes' screening of sensor inputs (v2i.runtime.sensor_screen) --------------------------------
 
 
 def screen(**limits):
-    from schemas.sensor_screen import SensorLimits, SensorScreen
+    from v2i.runtime.sensor_screen import SensorLimits, SensorScreen
 
     return SensorScreen("rsu1", "map", SensorLimits(**limits))
 
 
 def refused(fn, *args) -> str:
-    from schemas.sensor_screen import InputRefused
+    from v2i.runtime.sensor_screen import InputRefused
 
     with pytest.raises(InputRefused) as info:
         fn(*args)
@@ -272,7 +272,7 @@ def test_screen_refuses_large_payloads_before_reading_them() -> None:
 
 
 def test_screen_checks_poses_by_vehicle() -> None:
-    from schemas.sensor_screen import SensorScreen
+    from v2i.runtime.sensor_screen import SensorScreen
 
     s = SensorScreen("ego", "base_link")
     assert s.pose(encode(pose()), T0 + 5 * MS).x == 1.5

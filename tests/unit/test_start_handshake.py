@@ -1,4 +1,4 @@
-"""The start handshake: a service waits for its start line (``schemas.runtime``), an orchestrator
+"""The start handshake: a service waits for its start line (``v2i.runtime.process``), an orchestrator
 waits until every child is ready and then sends it (``evaluation.children``), and a child's log
 lines are relayed whole and labelled."""
 
@@ -18,8 +18,8 @@ import pytest
 from evaluation.children import Child, DemoError, start_all, wait_ready
 from rsu_service.config import RsuConfig
 from rsu_service.node import RsuNode
-from schemas.config import ConfigError, load_config
-from schemas.runtime import parse_start_line, read_start_line, start_line, start_when_told
+from v2i.runtime.config import ConfigError, load_config
+from v2i.runtime.process import parse_start_line, read_start_line, start_line, start_when_told
 
 # A stand-in service: two stderr lines, ready after argv[1] s, then the start line -> "started", exit argv[2].
 FAKE = r"""

@@ -1,4 +1,4 @@
-"""security.tls (X.509 material for Zenoh mTLS) and the site Zenoh config merged by schemas.transport."""
+"""security.tls (X.509 material for Zenoh mTLS) and the site Zenoh config merged by v2i.runtime.transport."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from schemas.codec import MAX_MESSAGE_BYTES
-from schemas.transport import CONFIG_FILE_ENV, TLS_DIR_ENV, load_config_file, session_config
+from v2i.runtime.transport import CONFIG_FILE_ENV, TLS_DIR_ENV, load_config_file, session_config
 from security.pki import Pki, PkiError
 from security.tls import issue_tls, parse_name
 

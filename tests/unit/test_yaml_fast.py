@@ -11,8 +11,8 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from schemas import config
-from schemas.config import FastUniqueKeyLoader, UniqueKeyLoader
+from v2i.runtime import config
+from v2i.runtime.config import FastUniqueKeyLoader, UniqueKeyLoader
 from sim.scenario import ScenarioError, bundled_scenarios, load_scenario
 
 REPO = Path(__file__).resolve().parents[2]

@@ -35,7 +35,7 @@ class ServiceConfig(BaseModel):
     seed: int = Field(0, ge=0)
     start_at_ns: int | None = Field(None, description="scenario time zero (true clock); default: start-up time")
     await_start: bool = Field(False, description="after the ready line, wait for the start line on stdin "
-                              "(schemas.runtime.read_start_line) for time zero; not with start_at_ns")
+                              "(v2i.runtime.process.read_start_line) for time zero; not with start_at_ns")
     duration_s: float | None = Field(None, gt=0, description="default: the scenario's duration")
 
     @model_validator(mode="after")

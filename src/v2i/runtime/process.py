@@ -256,7 +256,7 @@ def run_service(name: str, model, args, make_node) -> int:
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     import zenoh
 
-    from schemas.config import ConfigError, load_config, one_line_error
+    from v2i.runtime.config import ConfigError, load_config, one_line_error
 
     overrides = {f: getattr(args, f) for f in model.model_fields if hasattr(args, f)}
     try:
