@@ -26,8 +26,8 @@ import numpy as np
 from link_emulator.channel import Channel, LinkModel
 from link_emulator.profile import load_profile
 from v2i.clock.clock_sync import NS_PER_S
-from obu_service.sync_sim import exchanges, run_sync
-from sim.clock import ClockStep, DriftingClock, SimClock
+from v2i.sim.sync_sim import exchanges, run_sync
+from v2i.sim.clock import ClockStep, DriftingClock, SimClock
 
 T0 = 1_767_225_600 * NS_PER_S
 NS_PER_MS = 1_000_000

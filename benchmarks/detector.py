@@ -27,10 +27,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 from detector_dataset import SCENARIOS, render_frame  # noqa: E402
 from perception.detector import OnnxDetector  # noqa: E402
 from schemas.classes import ObjectClass  # noqa: E402
-from sim.camera import PinholeCamera, rsu_camera  # noqa: E402
-from sim.render import SceneRenderer  # noqa: E402
-from sim.scenario import load_scenario  # noqa: E402
-from sim.world import World  # noqa: E402
+from v2i.sim.camera import PinholeCamera, rsu_camera  # noqa: E402
+from v2i.sim.render import SceneRenderer  # noqa: E402
+from v2i.sim.scenario import load_scenario  # noqa: E402
+from v2i.sim.world import World  # noqa: E402
 
 BINS_M = ((0.0, 50.0), (50.0, 80.0), (80.0, 120.0))
 MIN_VISIBLE = 0.3

@@ -7,7 +7,7 @@ Each scenario runs in this process exactly as ``v2i eval --scenario NAME --seed 
 reported apart as ``import_s``, with the loading of the tracker's compiled kernels). One line per scenario: simulated seconds, the median wall
 seconds of ``--repeats`` runs (spec -> execute -> report) and their ratio. ``--reference``
 also times each scenario with the numpy reference of the occlusion test
-(``sim.occlusion.COMPILED = False``) in the same run, prints the speed-up and whether the two reports
+(``v2i.sim.occlusion.COMPILED = False``) in the same run, prints the speed-up and whether the two reports
 (the JSON of ``v2i eval --json``) are equal. ``--profile N`` runs each
 scenario once more under cProfile and prints its N costliest functions (cumulative).
 ``--stages`` runs each scenario once more with a timer around each function of ``STAGES``
@@ -30,8 +30,8 @@ import time
 _T0 = time.perf_counter()
 from evaluation.chaos import with_chaos
 from evaluation.runner import OfflineRun
-from sim import occlusion
-from sim.scenario import bundled_scenarios
+from v2i.sim import occlusion
+from v2i.sim.scenario import bundled_scenarios
 from v2i.runtime.process import freeze_heap
 from v2i.cli import _spec, build_parser
 
@@ -43,10 +43,10 @@ freeze_heap()  # as v2i eval does before its run
 
 # label -> "module:qualified name" of the functions timed by --stages
 STAGES = {
-    "scenario YAML": "sim.scenario:load_scenario",
+    "scenario YAML": "v2i.sim.scenario:load_scenario",
     "LiDAR + localisation sim": "obu_service.source:SimulatedVehicle.capture",
     "RSU camera sim": "rsu_service.source:SimulatedCamera.capture",
-    "occlusion": "sim.occlusion:visible_fraction",
+    "occlusion": "v2i.sim.occlusion:visible_fraction",
     "RSU on_frame": "rsu_service.pipeline:RsuPipeline.on_frame",
     "RSU predictions": "rsu_service.pipeline:RsuPipeline.predictions",
     "codec encode": "schemas.codec:encode",

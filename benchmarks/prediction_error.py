@@ -30,9 +30,9 @@ import numpy as np
 from v2i.core.frames import wrap_angle
 from v2i.fusion.lane_prediction import LanePredictionConfig, LanePredictor
 from schemas.classes import ObjectClass
-from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, map_path
-from sim.scenario import bundled_scenarios, load_scenario
-from sim.world import World
+from v2i.sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, map_path
+from v2i.sim.scenario import bundled_scenarios, load_scenario
+from v2i.sim.world import World
 
 HORIZONS_S = (0.5, 1.0, 2.0, 3.0, 5.0)
 STEP_S = 0.1

@@ -37,7 +37,7 @@ from link_emulator.config import LinkConfig
 from link_emulator.relay import Delivery, LinkRelay
 from schemas.keys import rsu_objects
 from v2i.runtime.transport import free_tcp_endpoint, open_session
-from sim.clock import SystemClock
+from v2i.sim.clock import SystemClock
 
 NS_PER_MS = 1_000_000
 KEY = rsu_objects("bench")

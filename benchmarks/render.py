@@ -1,4 +1,4 @@
-"""Renderer cost per frame (sim.render), the RSU camera path of ``v2i eval --rsu-source camera``.
+"""Renderer cost per frame (v2i.sim.render), the RSU camera path of ``v2i eval --rsu-source camera``.
 
     python benchmarks/render.py [--frames 50]
 
@@ -15,10 +15,10 @@ import time
 
 import numpy as np
 
-from sim.camera import rsu_camera, vehicle_camera
-from sim.render import SceneRenderer
-from sim.scenario import VehicleCameraConfig, load_scenario
-from sim.world import World
+from v2i.sim.camera import rsu_camera, vehicle_camera
+from v2i.sim.render import SceneRenderer
+from v2i.sim.scenario import VehicleCameraConfig, load_scenario
+from v2i.sim.world import World
 
 
 def bench(world: World, renderer: SceneRenderer, view: str, frames: int, noise: bool) -> tuple[float, np.ndarray, str]:

@@ -91,8 +91,8 @@ class Rsus:
     """K synthetic RSUs in one Zenoh session: object lists on a schedule, time replies in the callback."""
 
     def __init__(self, args, session):
-        from sim.scenario import load_scenario
-        from sim.world import World
+        from v2i.sim.scenario import load_scenario
+        from v2i.sim.world import World
 
         world = World(load_scenario(args.scenario))
         self.ids, self.args, self.session = args.ids.split(","), args, session
@@ -272,8 +272,8 @@ def sleep_until_ns(t_ns: int) -> None:
 
 def site_rsus(scenario: str, k: int) -> dict[str, list[float]]:
     """K RSU ids -> map positions on a 40 m ring around the ego's start (the OBU's known_rsus)."""
-    from sim.scenario import load_scenario
-    from sim.world import World
+    from v2i.sim.scenario import load_scenario
+    from v2i.sim.world import World
 
     ego = World(load_scenario(scenario)).ego_at(0.0)
     angles = 2 * np.pi * np.arange(k) / k

@@ -39,8 +39,8 @@ from obu_service.source import SimulatedVehicle
 from rsu_service.pipeline import answer_time_request
 from schemas.codec import encode, from_body, header_of, object_count, open_body
 from schemas.messages import ObjectList, ObjectListHeader
-from sim.scenario import load_scenario
-from sim.world import World
+from v2i.sim.scenario import load_scenario
+from v2i.sim.world import World
 
 START_NS = 1_700_000_000_000_000_000
 FUSE_DELAY_NS = 50_000_000  # ObuConfig.fuse_delay_ms

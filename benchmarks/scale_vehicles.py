@@ -50,7 +50,7 @@ from schemas.codec import CodecError, decode, encode
 from schemas.messages import EgoPose, ObjectList, TimeRequest
 from v2i.runtime.process import read_start_line
 from v2i.runtime.transport import free_tcp_endpoint, open_session
-from sim.scenario import load_scenario
+from v2i.sim.scenario import load_scenario
 
 RSU_ID = "rsu1"
 LINK_ID = "scale1"

@@ -13,9 +13,9 @@ import time
 
 import numpy as np
 
-from sim.scenario import Scenario, load_scenario
-from sim.sensors import Lidar
-from sim.world import World
+from v2i.sim.scenario import Scenario, load_scenario
+from v2i.sim.sensors import Lidar
+from v2i.sim.world import World
 
 
 def with_extra_cars(name: str, extra: int) -> Scenario:

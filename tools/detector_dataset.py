@@ -33,11 +33,11 @@ from detector_samples import INPUT_HW
 from v2i.core.frames import Pose2D
 from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
-from sim.camera import PinholeCamera, rsu_camera
-from sim.maps.road_network import road_network
-from sim.render import SceneRenderer
-from sim.scenario import load_scenario
-from sim.world import World
+from v2i.sim.camera import PinholeCamera, rsu_camera
+from v2i.sim.maps.road_network import road_network
+from v2i.sim.render import SceneRenderer
+from v2i.sim.scenario import load_scenario
+from v2i.sim.world import World
 
 C = ObjectClass
 # class: (probability, (l lo, l hi), (w lo, w hi), (h lo, h hi)) m

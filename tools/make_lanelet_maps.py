@@ -1,9 +1,9 @@
-"""Write the Lanelet2 maps of the bundled scenarios into the package (src/sim/maps/<name>.osm).
+"""Write the Lanelet2 maps of the bundled scenarios into the package (src/v2i/sim/maps/<name>.osm).
 
     python tools/make_lanelet_maps.py [--out DIR] [--check]
 
-Builds each road network of ``sim.maps.road_network``, writes it as Lanelet2 OSM (local-cartesian
-projection about ``sim.maps.MAP_ORIGIN_*``), loads it back and checks that every lanelet's
+Builds each road network of ``v2i.sim.maps.road_network``, writes it as Lanelet2 OSM (local-cartesian
+projection about ``v2i.sim.maps.MAP_ORIGIN_*``), loads it back and checks that every lanelet's
 centreline round-trips within 1 mm and that the routing graph has the expected successors.
 ``--check`` only compares freshly built maps with the shipped files (exit 1 if they differ).
 """
@@ -18,8 +18,8 @@ from pathlib import Path
 import lanelet2
 import numpy as np
 
-from sim.maps.lanelet_build import load_map, write_map
-from sim.maps.road_network import NETWORKS, road_network
+from v2i.sim.maps.lanelet_build import load_map, write_map
+from v2i.sim.maps.road_network import NETWORKS, road_network
 
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "src" / "sim" / "maps"
 

@@ -4,24 +4,24 @@ For each bundled scenario, the landmarks a surveyor measures (RTK GNSS / total s
 ~2 cm) and can find in the camera image:
 
 - lane-marking ends: the ends of every dash of the dashed lines (the renderer's pattern,
-  ``sim.ground_raster``: 3 m on / 6 m off in town, 6 m / 12 m on a highway, from each lane's
+  ``v2i.sim.ground_raster``: 3 m on / 6 m off in town, 6 m / 12 m on a highway, from each lane's
   start) and the ends of solid, centre, edge and kerb lines where the line stops or changes kind;
-- stop-line ends (``sim.maps.road_network`` signals);
+- stop-line ends (``v2i.sim.maps.road_network`` signals);
 - building corners on the ground and 4 m and 8 m up the corner edge (the rendered buildings are
   12-25 m tall).
 
 Kept: those in the image (3 px margin), in front, within min(range_m, 150 m) of the pole and not
-hidden by a building (2-D line of sight from the pole, as ``sim.occlusion``); then spread out by
+hidden by a building (2-D line of sight from the pole, as ``v2i.sim.occlusion``); then spread out by
 farthest-point sampling in the image (at most 24, at least 12 px apart). They are projected
-through the TRUE camera (``sim.camera.rsu_camera``), clicked with Gaussian noise (0.7 px per
+through the TRUE camera (``v2i.sim.camera.rsu_camera``), clicked with Gaussian noise (0.7 px per
 axis), surveyed with 2 cm noise (3 cm vertical on buildings; road marks are on the ground
 plane z = 0), and one click is a gross mistake (20-40 px off) that RANSAC must reject. The
-points go to ``src/sim/calibrations/<scenario>.points.csv``; then ``v2i camera calibrate`` (its
+points go to ``src/v2i/sim/calibrations/<scenario>.points.csv``; then ``v2i camera calibrate`` (its
 very ``run``) fits them with K from the lens's field of view and writes ``<scenario>.calib.json``,
 and the map error on the visible lane centres at 20 / 50 / 80 m is printed. The RSU loads that
 file, never the true pose.
 
-    python tools/survey_points.py [--seed 0] [--out-dir src/sim/calibrations] [--scenario NAME ...]
+    python tools/survey_points.py [--seed 0] [--out-dir src/v2i/sim/calibrations] [--scenario NAME ...]
 """
 
 from __future__ import annotations
@@ -35,14 +35,14 @@ from pathlib import Path
 import numpy as np
 
 from perception.calibration import load_calibration
-from sim.camera import PinholeCamera, rsu_camera
-from sim.maps.road_network import CENTRE, DASHED, EDGE, KERB, SOLID, RoadNetwork, lane_bounds, road_network
-from sim.occlusion import segments_hit_boxes, segments_hit_polygons
-from sim.scenario import Scenario, bundled_scenarios, load_scenario
-from sim.world import World
+from v2i.sim.camera import PinholeCamera, rsu_camera
+from v2i.sim.maps.road_network import CENTRE, DASHED, EDGE, KERB, SOLID, RoadNetwork, lane_bounds, road_network
+from v2i.sim.occlusion import segments_hit_boxes, segments_hit_polygons
+from v2i.sim.scenario import Scenario, bundled_scenarios, load_scenario
+from v2i.sim.world import World
 from v2i import camera_calibrate
 
-URBAN_DASH_M, HIGHWAY_DASH_M = (3.0, 6.0), (6.0, 12.0)  # (on, off), as sim.ground_raster paints them
+URBAN_DASH_M, HIGHWAY_DASH_M = (3.0, 6.0), (6.0, 12.0)  # (on, off), as v2i.sim.ground_raster paints them
 LINE_KINDS = (SOLID, CENTRE, EDGE, KERB)  # continuous lines: their ends are landmarks
 BUILDING_HEIGHTS_M = (0.0, 4.0, 8.0)
 CLICK_SIGMA_PX = 0.7

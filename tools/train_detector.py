@@ -2,7 +2,7 @@
 
 Two steps, each seeded and reproducible (same seed, same data, same thread count -> same model):
 
-    # 1. render the training set (needs the v2i venv: sim.render)
+    # 1. render the training set (needs the v2i venv: v2i.sim.render)
     python tools/train_detector.py render --out /tmp/v2i-det-data --frames 3000 --seed 0
     # 2. train and export (needs torch: pip install -e '.[train]', or /work/train-venv)
     python tools/train_detector.py train --data /tmp/v2i-det-data --out src/perception/models/v2i-det.onnx

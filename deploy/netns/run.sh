@@ -170,7 +170,7 @@ link_config() {
     # The RSU position feeds the distance-dependent channel; the scenario knows it.
     "$PYTHON" - "$SCENARIO" >"$LOG_DIR/link.yaml" <<'EOF'
 import json, sys
-from sim.scenario import load_scenario
+from v2i.sim.scenario import load_scenario
 p = load_scenario(sys.argv[1]).rsu.position
 print(json.dumps({"rsu_position": [p.x, p.y]}))
 EOF

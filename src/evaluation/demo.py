@@ -39,8 +39,8 @@ from schemas.messages import FusedObjectList, LinkControl, ObuMetrics, Predictio
 from v2i.runtime.process import log
 from v2i.runtime.transport import free_tcp_endpoint, open_session
 from security.pki import Identity, load_signer
-from sim.scenario import load_scenario
-from sim.world import World
+from v2i.sim.scenario import load_scenario
+from v2i.sim.world import World
 from telemetry.live_line import LiveLine
 
 from evaluation.chaos import ChaosEvent, ChaosTimeline

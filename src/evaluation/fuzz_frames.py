@@ -80,10 +80,10 @@ class FramesFuzz:
         self.ready_s: float | None = None  # the RSU ready this long after it was started
 
     def _write(self, folder: Path) -> Counter[str]:
-        from sim.camera import rsu_camera
-        from sim.render import SceneRenderer
-        from sim.scenario import load_scenario
-        from sim.world import World
+        from v2i.sim.camera import rsu_camera
+        from v2i.sim.render import SceneRenderer
+        from v2i.sim.scenario import load_scenario
+        from v2i.sim.world import World
 
         world = World(load_scenario("red-light-runner"))
         camera = rsu_camera(world.scenario.rsu)

@@ -26,7 +26,7 @@ from schemas.messages import FusedObjectList, ObjectList, ObuMetrics, RsuMetrics
 from schemas.sensor_messages import LocalizationPose, SensorHeader, SensorObjects
 from v2i.runtime.transport import free_tcp_endpoint
 from schemas.wire_view import pack_view, unpack_view
-from sim.scenario import load_scenario
+from v2i.sim.scenario import load_scenario
 
 from evaluation.fuzz import MS, RSU_ID, VEHICLE_ID, FuzzRun
 from evaluation.hostile import HostileInputs

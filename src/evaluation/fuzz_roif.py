@@ -41,7 +41,7 @@ from schemas.image_messages import (
     to_bytes,
 )
 from v2i.runtime.transport import free_tcp_endpoint
-from sim.scenario import load_scenario
+from v2i.sim.scenario import load_scenario
 
 from evaluation.fuzz import MS, VEHICLE_ID
 from evaluation.fuzz_targets import CLOCK_OFFSET_MS, REPLAY_AGE_NS, ObuFuzz

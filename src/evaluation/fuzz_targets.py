@@ -36,7 +36,7 @@ from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.messages import FusedObjectList, ObjectList, ObuMetrics, RsuMetrics, TimeReply, TimeRequest
 from v2i.runtime.transport import free_tcp_endpoint
-from sim.scenario import load_scenario
+from v2i.sim.scenario import load_scenario
 
 from evaluation.fuzz import LINK_ID, MS, RSU_ID, VEHICLE_ID, FuzzRun
 from evaluation.fuzz_standard import StandardHostile

@@ -1,9 +1,9 @@
 """Offline driver of image-level fusion (``v2i eval --fusion roif``; Maqsud's ROIF thesis Ch. 5-6).
 
 At the ego camera's rate (``scenario.ego_camera.rate_hz``), frame k at t_k = k / rate:
-render the RSU view (``sim.camera.rsu_camera``, swaying as the live RSU's) and the ego view
-(``sim.camera.vehicle_camera`` at the ego's true pose, the ego itself hidden) with
-``sim.render.SceneRenderer``; detect boxes in both (the RSU at the live RSU's score threshold,
+render the RSU view (``v2i.sim.camera.rsu_camera``, swaying as the live RSU's) and the ego view
+(``v2i.sim.camera.vehicle_camera`` at the ego's true pose, the ego itself hidden) with
+``v2i.sim.render.SceneRenderer``; detect boxes in both (the RSU at the live RSU's score threshold,
 ORB features up to its per-frame cap: ``RSU_DEFAULTS``); fuse them with ROIF (``v2i.fusion.roif``:
 ORB + RANSAC homography, OBU boxes mapped into the RSU view, eq. 5.6-5.11); track the fused
 boxes (``v2i.fusion.box_tracker``); score against the RSU view's ground-truth labels.
@@ -64,10 +64,10 @@ from v2i.fusion.roif import (
 from v2i.fusion.roif_features import ViewFeatures, view_features
 from v2i.fusion.roif_pipeline import RoifFrame, RoifFramePipeline
 from rsu_service.config import RsuConfig
-from sim.camera import rsu_camera, rsu_sway, vehicle_camera
-from sim.scenario import load_scenario
-from sim.seeding import stream
-from sim.world import World
+from v2i.sim.camera import rsu_camera, rsu_sway, vehicle_camera
+from v2i.sim.scenario import load_scenario
+from v2i.sim.seeding import stream
+from v2i.sim.world import World
 
 MIN_VISIBLE = 0.3  # least visible fraction of a truth that counts
 MATCH_IOU = 0.5  # IoU a box needs to match a truth
@@ -331,7 +331,7 @@ def run_image_fusion(scenario: str = DEFAULT_SCENARIO, seed: int = 0, duration_s
     RSU's per-frame ORB cap (default the live RSU's, ``RSU_DEFAULTS``); ``wire``: the RSU's
     features reach the fusion through an encoded ``RsuImageFeatures`` (as on the live link; the
     report's ``rsu_features`` gives the message sizes)."""
-    from sim.render import SceneRenderer
+    from v2i.sim.render import SceneRenderer
 
     sc = load_scenario(scenario)
     if sc.ego_camera is None:

@@ -113,9 +113,9 @@ def score_outputs(world, seed: int, start_ns: int, rate_hz: float,
                   outputs: list[ImageFusedBoxes]) -> tuple[FusionTally, FusionTally]:
     """The offline eval's tally over the OBU's outputs, in frame order, against rendered truth
     labels; and the same over the frames that paired with an RSU frame only."""
-    from sim.camera import rsu_camera, rsu_sway, vehicle_camera
-    from sim.render import SceneRenderer
-    from sim.seeding import stream
+    from v2i.sim.camera import rsu_camera, rsu_sway, vehicle_camera
+    from v2i.sim.render import SceneRenderer
+    from v2i.sim.seeding import stream
 
     sc = world.scenario
     renderer = SceneRenderer(world, seed)

@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from security.site import write_site
-from sim.scenario import Scenario
+from v2i.sim.scenario import Scenario
 
 from evaluation.spec import RunSpec
 

@@ -163,7 +163,7 @@ class CycleFrame:
     def of(cls, world, msg: FusedObjectList, start_ns: int,
            truth: tuple[float, ObjectArray] | None = None) -> CycleFrame:
         """``truth``: (t_s, the truth in the true base_link at t_s) already derived in this step
-        (the LiDAR's frame, ``sim.sensors.Lidar.last_truth``); taken when t_s is this cycle's."""
+        (the LiDAR's frame, ``v2i.sim.sensors.Lidar.last_truth``); taken when t_s is this cycle's."""
         t_s = (msg.cycle_time_ns - start_ns) * 1e-9
         if truth is not None and truth[0] == t_s:
             return cls(msg.cycle_time_ns, t_s, truth[1], objects_from_states(msg.objects))

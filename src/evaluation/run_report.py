@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from v2i.core.frames import base_to_map_points
-from sim.clock import SystemClock
-from sim.world import World
+from v2i.sim.clock import SystemClock
+from v2i.sim.world import World
 
 from evaluation.chaos import ChaosEvent, ChaosTimeline
 from evaluation.metrics import TargetSeries

@@ -41,9 +41,9 @@ from schemas.list_wire import decode_list, encode_list, list_key
 from schemas.messages import FusedObjectList, ObjectList, PredictionList, TimeReply, TimeRequest
 from security.envelope import Signer, sign
 from security.site import memory_site
-from sim.clock import SimClock
-from sim.scenario import RsuCameraConfig, V2vConfig, load_scenario
-from sim.world import World
+from v2i.sim.clock import SimClock
+from v2i.sim.scenario import RsuCameraConfig, V2vConfig, load_scenario
+from v2i.sim.world import World
 
 from evaluation.chaos import SERVICES, ChaosTimeline
 from evaluation.decode_memo import DecodeMemo
@@ -78,7 +78,7 @@ class _Rsu:
     cfg: RsuCameraConfig
     camera: object  # a rsu_service.source source
     pipeline: RsuPipeline
-    clock: object  # sim.clock.DriftingClock
+    clock: object  # v2i.sim.clock.DriftingClock
     signer: Signer | None  # RunSpec.security: signs what it sends as the live RSU does
     list_key: str  # its key expressions: object lists (in the run's wire), predictions, time queries
     predictions_key: str

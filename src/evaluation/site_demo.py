@@ -50,8 +50,8 @@ from schemas.codec import decode
 from schemas.messages import FusedObjectList, ObuMetrics, PredictionList, RsuMetrics
 from v2i.runtime.process import log
 from v2i.runtime.transport import free_tcp_endpoint, open_session
-from sim.scenario import Scenario, load_scenario
-from sim.world import World
+from v2i.sim.scenario import Scenario, load_scenario
+from v2i.sim.world import World
 from telemetry.live_line import LiveLine
 
 from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready

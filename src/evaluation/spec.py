@@ -13,8 +13,8 @@ from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObuMetrics, Predic
 from obu_service.config import ObuConfig
 from perception.scoring import PerceptionTally
 from rsu_service.config import RsuConfig
-from sim.clock import SystemClock
-from sim.world import World
+from v2i.sim.clock import SystemClock
+from v2i.sim.world import World
 
 from evaluation.link_series import LinkSeries
 from evaluation.metrics import (CycleFrame, CycleLog, DetectionTally, DisplacementTally, TargetTally, clock_errors,

@@ -114,7 +114,7 @@ class ObuConfig(ServiceConfig):
     def _lane_needs_a_map(self) -> "ObuConfig":
         from pathlib import Path
 
-        from sim.maps import bundled_maps, scenario_map
+        from v2i.sim.maps import bundled_maps, scenario_map
 
         if self.compensation == "lane" and scenario_map(self.scenario) is None:
             raise ValueError(
@@ -125,7 +125,7 @@ class ObuConfig(ServiceConfig):
 
     def lanes(self):
         """The scenario's lane predictor when the ``lane`` compensation needs it, else None."""
-        from sim.maps import lane_predictor
+        from v2i.sim.maps import lane_predictor
 
         return lane_predictor(self.scenario) if self.compensation == "lane" else None
 
@@ -133,13 +133,13 @@ class ObuConfig(ServiceConfig):
         """known_rsus, or the scenario's RSUs when none are configured."""
         if self.known_rsus is not None:
             return dict(self.known_rsus)
-        from sim.scenario import load_scenario
+        from v2i.sim.scenario import load_scenario
 
         return {rsu.id: (rsu.position.x, rsu.position.y) for rsu in load_scenario(self.scenario).rsus}
 
     def own_size_m(self) -> tuple[float, float]:
         """Length, width (m) of this vehicle: the scenario's vehicle of this id, else its ego."""
-        from sim.scenario import load_scenario
+        from v2i.sim.scenario import load_scenario
 
         scenario = load_scenario(self.scenario)
         names = [v.name for v in scenario.vehicles]

@@ -1,8 +1,8 @@
 """The vehicle's front camera for image-level fusion (``--fusion roif``): render, detect, ORB.
 
 Frame k is captured at start + k / ``scenario.ego_camera.rate_hz`` (OBU clock, the true clock
-in simulation): the scenario rendered (``sim.render.SceneRenderer``, textures by the run's seed,
-as the RSU's renderer, so both cameras see the same surfaces) by ``sim.camera.vehicle_camera``
+in simulation): the scenario rendered (``v2i.sim.render.SceneRenderer``, textures by the run's seed,
+as the RSU's renderer, so both cameras see the same surfaces) by ``v2i.sim.camera.vehicle_camera``
 at the ego's pose, the ego itself hidden; boxes from the ONNX detector (the shipped model, or
 ``model_path``); ORB features inside them (``v2i.fusion.roif_features``). The same steps as
 ``v2i eval --fusion roif``'s ego view.
@@ -15,17 +15,17 @@ import numpy as np
 from v2i.fusion.roif import RoifConfig
 from v2i.fusion.roif_features import ViewFeatures, view_features
 from schemas.image_messages import MAX_BOXES
-from sim.seeding import stream
-from sim.sensors import frame_times
-from sim.world import World
+from v2i.sim.seeding import stream
+from v2i.sim.sensors import frame_times
+from v2i.sim.world import World
 
 
 class EgoCamera:
     def __init__(self, world: World, seed: int, start_ns: int, model_path: str | None = None,
                  roif: RoifConfig | None = None, threads: int | None = None):
         from perception.detector import OnnxDetector
-        from sim.camera import vehicle_camera
-        from sim.render import SceneRenderer
+        from v2i.sim.camera import vehicle_camera
+        from v2i.sim.render import SceneRenderer
 
         cfg = world.scenario.ego_camera
         if cfg is None:

@@ -31,9 +31,9 @@ from v2i.runtime.intake import Intake, Item
 from schemas.messages import TimeReply
 from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
 from v2i.runtime.transport import open_session
-from sim.clock import Clock, SystemClock
-from sim.scenario import load_scenario
-from sim.world import World
+from v2i.sim.clock import Clock, SystemClock
+from v2i.sim.scenario import load_scenario
+from v2i.sim.world import World
 
 from obu_service.config import ObuConfig
 from obu_service.ego_camera import EgoCamera

@@ -12,9 +12,9 @@ from v2i.core.objects import ObjectArray
 from v2i.fusion.wire import objects_from_states
 from schemas.messages import SOURCE_VEHICLE
 from schemas.sensor_messages import LocalizationPose, SensorObjects
-from sim.seeding import stream
-from sim.sensors import Lidar, Localization, frame_times
-from sim.world import World
+from v2i.sim.seeding import stream
+from v2i.sim.sensors import Lidar, Localization, frame_times
+from v2i.sim.world import World
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ boxes back to the original image's pixels. Class names (metadata ``names``, ultr
 and counted (``dropped_unmapped``), so a COCO YOLOv8n export works unchanged.
 
 The shipped model (``SHIPPED_MODEL``) is trained by ``tools/train_detector.py`` on frames the
-renderer (``sim.render``) draws of the bundled scenarios, and on nothing else: it is for those
+renderer (``v2i.sim.render``) draws of the bundled scenarios, and on nothing else: it is for those
 scenes. On real camera images it is no detector (on a street photo of a city bus with
 pedestrians it found 11 boxes, none of them the bus). For real images pass a model trained on
 real images, e.g. a COCO YOLOv8n export (ultralytics ``yolo export model=yolov8n.pt

@@ -9,7 +9,7 @@ from pydantic import Field, field_validator
 from v2i.runtime.config import ServiceConfig
 from schemas.keys import check_id
 from schemas.list_wire import WIRES
-from sim.clock import Clock, ClockStep, DriftingClock
+from v2i.sim.clock import Clock, ClockStep, DriftingClock
 
 PREDICTORS = ("auto", "lane", "cv")  # long-horizon path predictors, see rsu_service.prediction
 SOURCES = ("sim", "camera", "video", "zenoh")  # perception sources, see rsu_service.source

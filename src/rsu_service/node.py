@@ -37,9 +37,9 @@ from schemas.messages import SOURCE_RSU, ObjectList, RsuMetrics, RsuPerception, 
 from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
 from v2i.runtime.sensor_screen import InputRefused, SensorLimits, SensorScreen
 from v2i.runtime.transport import open_session
-from sim.clock import Clock, SystemClock
-from sim.scenario import load_scenario
-from sim.world import World
+from v2i.sim.clock import Clock, SystemClock
+from v2i.sim.scenario import load_scenario
+from v2i.sim.world import World
 from security.envelope import Signer, sign
 from security.pki import PkiError, load_signer
 from telemetry.latency import PeriodicSummary, StageLatency

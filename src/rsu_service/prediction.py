@@ -7,7 +7,7 @@ from functools import lru_cache
 
 from v2i.fusion.lane_prediction import LanePredictor  # (imported here: its compiled loops load with the service's kernels)
 from v2i.fusion.motion import trajectories_cv
-from sim.maps import lane_predictor, scenario_map
+from v2i.sim.maps import lane_predictor, scenario_map
 
 from rsu_service.config import PREDICTORS
 from rsu_service.pipeline import TrajectoryPredictor
@@ -24,7 +24,7 @@ def make_predictor(kind: str, scenario: str) -> TrajectoryPredictor:
 
 
 def shared_lane_predictor(scenario: str) -> LanePredictor:
-    """``sim.maps.lane_predictor(scenario)``, loaded once per map file (its path, modification time and
+    """``v2i.sim.maps.lane_predictor(scenario)``, loaded once per map file (its path, modification time and
     size; ~26 ms a load): a LanePredictor is read-only once built, so the RSUs of a run, a restarted
     RSU and the runs of one process share it. No map: lane_predictor's error."""
     path = scenario_map(scenario)

@@ -3,7 +3,7 @@
 - ``SimulatedCamera`` (``--source sim``, the fast default): the scenario's noise model on
   ground truth.
 - ``RenderedCamera`` (``--source camera``): the simulated world rendered by the RSU's camera
-  (``sim.render``), through the ONNX detector and the calibrated ground homography.
+  (``v2i.sim.render``), through the ONNX detector and the calibrated ground homography.
 - ``RecordedCamera`` (``--source video``): frames of a video file or an image folder (the
   user's own recording, model and calibration), through the same detector and homography.
 - ``--source zenoh`` has no source object here: the node receives ``SensorObjects`` on
@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from v2i.core.objects import ObjectArray
-from sim.seeding import stream
-from sim.sensors import RsuCamera, frame_times
-from sim.world import World
+from v2i.sim.seeding import stream
+from v2i.sim.sensors import RsuCamera, frame_times
+from v2i.sim.world import World
 
 from rsu_service.image_perception import ImagePerception
 
@@ -99,8 +99,8 @@ class RenderedCamera(_Schedule):
         """``rate_hz``: frames per second (default the scenario's RSU rate); ``features_max``:
         with a number, each frame also carries ROIF features (at most that many ORB keypoints);
         ``rsu_id`` as for ``SimulatedCamera``."""
-        from sim.camera import rsu_camera, rsu_sway
-        from sim.render import SceneRenderer
+        from v2i.sim.camera import rsu_camera, rsu_sway
+        from v2i.sim.render import SceneRenderer
 
         index = world.scenario.rsu_index(rsu_id) if rsu_id else 0
         cfg = world.scenario.rsus[index]

@@ -18,7 +18,7 @@ import numpy as np
 
 VIEWS = ("rsu", "ego")
 DESCRIPTION = """\
-Render what a scenario's camera sees (sim.render) and write the frames with their ground-truth
+Render what a scenario's camera sees (v2i.sim.render) and write the frames with their ground-truth
 boxes: for training and checking the detector, and for image-level fusion.
 
 --view rsu: the RSU's physical camera (the scenario's rsu.image: yaw, pitch, fov, size,
@@ -66,8 +66,8 @@ def _check(args) -> None:
 def _camera_setup(world, view: str, sway_rng):
     """(camera at time t function, rate_hz, first capture time, noise stream name, hide_ego);
     the RSU's pole sways when ``sway_rng`` (numpy Generator) is given."""
-    from sim.camera import Sway, rsu_camera, rsu_sway, vehicle_camera
-    from sim.scenario import VehicleCameraConfig
+    from v2i.sim.camera import Sway, rsu_camera, rsu_sway, vehicle_camera
+    from v2i.sim.scenario import VehicleCameraConfig
 
     sc = world.scenario
     if view == "rsu":
@@ -112,10 +112,10 @@ def _label_line(name: str, t_s: float, labels, camera) -> dict:
 def run(args: argparse.Namespace) -> int:
     import cv2
 
-    from sim.render import SceneRenderer
-    from sim.scenario import load_scenario
-    from sim.seeding import stream
-    from sim.world import World
+    from v2i.sim.render import SceneRenderer
+    from v2i.sim.scenario import load_scenario
+    from v2i.sim.seeding import stream
+    from v2i.sim.world import World
 
     _check(args)
     world = World(load_scenario(args.scenario))

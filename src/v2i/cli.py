@@ -125,7 +125,7 @@ def _check_inputs(args: argparse.Namespace) -> None:
     be loaded, a bad flag value, RSU/OBU configs that do not validate, an output path that cannot be
     written (before a run of many seconds, not after it)."""
     from link_emulator.profile import load_profile
-    from sim.scenario import load_scenario
+    from v2i.sim.scenario import load_scenario
 
     load_scenario(args.scenario)
     load_profile(args.profile)
@@ -207,7 +207,7 @@ def _wrote(paths: list[Path], prog: str) -> None:
 def cmd_eval_roif(args: argparse.Namespace) -> int:
     """Image-level fusion (Maqsud's ROIF thesis), offline: the ``image_fusion`` report."""
     from evaluation.image_fusion import run_image_fusion, summary
-    from sim.scenario import load_scenario
+    from v2i.sim.scenario import load_scenario
 
     load_scenario(args.scenario)
     _check_numbers(args)
@@ -270,7 +270,7 @@ def _progress(args: argparse.Namespace) -> str | None:
 def _is_site(scenario: str) -> bool:
     """More than one RSU or vehicle: ``v2i demo`` runs every node (``evaluation.site_demo``)."""
     from evaluation.site_demo import is_site
-    from sim.scenario import load_scenario
+    from v2i.sim.scenario import load_scenario
 
     return is_site(load_scenario(scenario))
 

@@ -30,9 +30,9 @@ from rsu_service.source import SimulatedCamera
 from schemas import keys
 from schemas.messages import Message
 from schemas.sensor_messages import GroundTruth, LocalizationPose, SensorHeader, SensorObjects, VehicleTruth
-from sim.scenario import Scenario
-from sim.sensors import frame_times
-from sim.world import World
+from v2i.sim.scenario import Scenario
+from v2i.sim.sensors import frame_times
+from v2i.sim.world import World
 
 
 @dataclass(frozen=True)
@@ -142,7 +142,7 @@ class WorldFeed:
 
     def truth(self, t_ns: int, seq: int = 0) -> GroundTruth:
         """The site at true time ``t_ns``: every actor present (and every vehicle as an actor,
-        ids as ``sim.world``) and each vehicle's true pose and size."""
+        ids as ``v2i.sim.world``) and each vehicle's true pose and size."""
         t_s = (t_ns - self.start_ns) * 1e-9
         actors, _ = fit_to_wire(self.site.actors_at(t_s))
         vehicles = []

@@ -19,8 +19,8 @@ from schemas.codec import encode
 from v2i.runtime.config import ServiceConfig
 from v2i.runtime.process import add_service_options, announce, log, read_start_line, run_service, start_when_told
 from v2i.runtime.transport import open_session
-from sim.clock import Clock, SystemClock
-from sim.scenario import load_scenario
+from v2i.sim.clock import Clock, SystemClock
+from v2i.sim.scenario import load_scenario
 
 from v2i.world_feed import WorldFeed
 

@@ -30,7 +30,7 @@ from schemas.messages import EgoPose, LinkControl
 from v2i.runtime.transport import free_tcp_endpoint, open_session
 from security.pki import load_signer
 from security.site import write_site
-from sim.clock import SystemClock
+from v2i.sim.clock import SystemClock
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60 + READY_TIMEOUT_S)]
 

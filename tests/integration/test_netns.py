@@ -37,7 +37,7 @@ from pathlib import Path
 import pytest
 
 from evaluation.children import READY_TIMEOUT_S, Child, start_all, wait_ready
-from sim.scenario import load_scenario
+from v2i.sim.scenario import load_scenario
 
 
 RSU_ADDR, LINK_RSU_ADDR, LINK_OBU_ADDR, OBU_ADDR = "10.10.1.1", "10.10.1.2", "10.10.2.1", "10.10.2.2"

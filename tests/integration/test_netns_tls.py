@@ -129,7 +129,7 @@ def test_tls_acl_keep_an_intruder_out(tmp_path: Path) -> None:
 
 
 def _rsu_id(scenario: str) -> str:
-    from sim.scenario import load_scenario
+    from v2i.sim.scenario import load_scenario
 
     return load_scenario(scenario).rsu.id
 

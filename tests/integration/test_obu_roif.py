@@ -22,10 +22,10 @@ from schemas.codec import decode, encode
 from schemas.image_messages import ImageFusedBoxes, RsuImageFeatures
 from schemas.messages import ObuMetrics, TimeReply, TimeRequest
 from v2i.runtime.transport import free_tcp_endpoint, open_session
-from sim.camera import rsu_camera
-from sim.render import SceneRenderer
-from sim.scenario import load_scenario
-from sim.world import World
+from v2i.sim.camera import rsu_camera
+from v2i.sim.render import SceneRenderer
+from v2i.sim.scenario import load_scenario
+from v2i.sim.world import World
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 SCENARIO, RSU_ID, FRAMES, RATE_HZ = "roif-intersection", "rsu-roif", 15, 10.0

@@ -17,10 +17,10 @@ from schemas import keys
 from schemas.codec import decode
 from schemas.messages import ObjectList, RsuMetrics
 from v2i.runtime.transport import free_tcp_endpoint
-from sim.camera import rsu_camera
-from sim.render import SceneRenderer
-from sim.scenario import load_scenario
-from sim.world import World
+from v2i.sim.camera import rsu_camera
+from v2i.sim.render import SceneRenderer
+from v2i.sim.scenario import load_scenario
+from v2i.sim.world import World
 
 from test_obu_node import probe_session, running, wait_for  # tests/integration is on sys.path (rootdir-less import)
 

@@ -16,7 +16,7 @@ import pytest
 from evaluation.runner import OfflineRun
 from evaluation.site_demo import SiteDemo, is_site
 from evaluation.spec import RunSpec
-from sim.scenario import load_scenario
+from v2i.sim.scenario import load_scenario
 from v2i.cli import main
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(150)]

@@ -24,7 +24,7 @@ from schemas.codec import encode
 from schemas.keys import link_stats, obu_pose, v2v_objects
 from schemas.messages import EgoPose, LinkControl
 from v2i.runtime.transport import free_tcp_endpoint, open_session
-from sim.clock import SystemClock
+from v2i.sim.clock import SystemClock
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60 + READY_TIMEOUT_S)]
 DELIVERY_S = 5.0  # a few messages through an ideal relay on loopback (milliseconds each); generous for a busy machine

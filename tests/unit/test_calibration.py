@@ -21,9 +21,9 @@ from perception.calibration import (
 from perception.ground import bottom_centre, centre_offset, ground_contact, homography_jacobian, pixels_to_map
 from schemas.classes import ObjectClass
 from schemas.messages import SOURCE_RSU
-from sim.camera import PinholeCamera, rsu_camera
-from sim.maps.road_network import road_network
-from sim.scenario import bundled_scenarios, load_scenario
+from v2i.sim.camera import PinholeCamera, rsu_camera
+from v2i.sim.maps.road_network import road_network
+from v2i.sim.scenario import bundled_scenarios, load_scenario
 from v2i import camera_calibrate
 
 CORE = ("red-light-runner", "dense-intersection", "highway-merge")  # these must ship a calibration

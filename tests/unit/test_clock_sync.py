@@ -8,9 +8,9 @@ from hypothesis import strategies as st
 from link_emulator.channel import LinkModel
 from link_emulator.profile import load_profile
 from v2i.clock.clock_sync import ClockSync, SyncSample
-from obu_service.sync_sim import (LTE_DOWNLINK, LTE_UPLINK, BufferedLeg, buffer_episodes, exchanges, forged,
+from v2i.sim.sync_sim import (LTE_DOWNLINK, LTE_UPLINK, BufferedLeg, buffer_episodes, exchanges, forged,
                                   run_sync)
-from sim.clock import ClockStep, DriftingClock, SimClock
+from v2i.sim.clock import ClockStep, DriftingClock, SimClock
 
 T0 = 1_767_225_600 * 10**9
 S, MS = 10**9, 10**6

@@ -18,8 +18,8 @@ from link_emulator.profile import ProfileError, load_profile
 from obu_service.config import ObuConfig
 from rsu_service.config import RsuConfig
 from v2i.runtime.config import ConfigError, UniqueKeyLoader, load_config, parse_yaml, validation_problems
-from sim.maps import bundled_maps, map_path
-from sim.scenario import ScenarioError, load_scenario
+from v2i.sim.maps import bundled_maps, map_path
+from v2i.sim.scenario import ScenarioError, load_scenario
 from v2i.cli import main
 
 REPO = Path(__file__).resolve().parents[2]

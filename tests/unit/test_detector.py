@@ -182,10 +182,10 @@ def test_providers_default_to_cpu_without_cuda(tmp_path, monkeypatch):
 def test_shipped_model_finds_the_cars_in_rendered_rsu_frames():
     """The RSU camera of red-light-runner and dense-intersection: cars and vans within 80 m that
     are at least half visible and 12 px wide are found (IoU >= 0.5), box bottom within 1.5 px (median)."""
-    from sim.camera import rsu_camera
-    from sim.render import SceneRenderer
-    from sim.scenario import load_scenario
-    from sim.world import World
+    from v2i.sim.camera import rsu_camera
+    from v2i.sim.render import SceneRenderer
+    from v2i.sim.scenario import load_scenario
+    from v2i.sim.world import World
 
     assert SHIPPED_MODEL.is_file() and SHIPPED_MODEL.stat().st_size <= 10e6
     det = OnnxDetector(providers=["CPUExecutionProvider"])

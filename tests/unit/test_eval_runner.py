@@ -19,8 +19,8 @@ from v2i.core.frames import map_to_base
 from v2i.fusion.wire import states_from_objects
 from schemas.codec import decode, encode
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObuMetrics, RsuLinkStatus
-from sim.scenario import load_scenario
-from sim.world import World
+from v2i.sim.scenario import load_scenario
+from v2i.sim.world import World
 from v2i.cli import main
 
 REQUIRED = {"scenario", "profile", "fusion", "seed", "duration_s", "cycles", "output_deadline_miss_ratio",

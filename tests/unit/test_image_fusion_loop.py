@@ -10,7 +10,7 @@ import threading
 from obu_service.config import ObuConfig
 from obu_service.image_fusion_node import INPUTS_PER_LATE_EVENT, ImageFusionNode
 from schemas import keys
-from sim.clock import SimClock
+from v2i.sim.clock import SimClock
 
 SCENARIO, RSU_ID = "roif-intersection", "rsu-roif"
 CAPTURE_COST_NS = 150_000_000  # 1.5 camera periods: every later event is overdue

@@ -12,7 +12,7 @@ def test_load_kernels_loads_every_kernel():
     load_kernels()
     names = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all}
     assert {"v2i.fusion.kalman.update_rows", "v2i.fusion.gating._gate_single_pairs", "v2i.fusion.association._split",
-            "v2i.fusion.covariance_intersection.ci_fuse_objects", "sim.occlusion._blocked"} <= names
+            "v2i.fusion.covariance_intersection.ci_fuse_objects", "v2i.sim.occlusion._blocked"} <= names
     for k in Kernel._all:
         assert k.load().signatures == [k.argument_types]  # one compiled signature, no other
 
@@ -43,17 +43,17 @@ def test_a_division_by_zero_in_a_kernel_gives_nan_as_numpy_does():
 
 
 def test_load_kernels_loads_the_simulator_and_every_kernel_imported_before():
-    """sim.world's body states are in KERNEL_MODULES (the services import it); a kernel of a module imported before
+    """v2i.sim.world's body states are in KERNEL_MODULES (the services import it); a kernel of a module imported before
     the call (the evaluation's matching, imported by the offline evaluator) is loaded too."""
     import importlib
 
     from v2i.core.jit import KERNEL_MODULES
 
-    assert "sim.world" in KERNEL_MODULES
+    assert "v2i.sim.world" in KERNEL_MODULES
     importlib.import_module("evaluation.detection_metrics")
     load_kernels()
     loaded = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all if k._compiled is not None}
-    assert {"sim.world._states", "evaluation.detection_metrics._frame_flags"} <= loaded
+    assert {"v2i.sim.world._states", "evaluation.detection_metrics._frame_flags"} <= loaded
 
 
 def test_kernel_modules_name_every_module_a_service_runs_kernels_of():

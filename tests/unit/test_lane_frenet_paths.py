@@ -12,7 +12,7 @@ from v2i.fusion import lane_prediction as lp
 from v2i.core.frames import wrap_angle
 from v2i.fusion.lane_prediction import LanePredictor, chain_frame, propagate_along
 from v2i.core.objects import ObjectArray
-from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, map_path
+from v2i.sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, map_path
 
 
 def _frenet_ref(self, objs, chain, s0, d0, t, motion=True):

@@ -9,7 +9,7 @@ from v2i.fusion.lane_match import chain_frame_points, match_reference, match_seg
 from v2i.fusion.lane_prediction import HEADING_BASE_M, LanePredictor, chain_points
 from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
-from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, bundled_maps, map_path
+from v2i.sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, bundled_maps, map_path
 
 
 def _match_numpy(pred: LanePredictor, objs: ObjectArray):

@@ -21,11 +21,11 @@ from v2i.fusion.lane_prediction import (
 from v2i.fusion.motion import predict_cv
 from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
-from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, bundled_maps, map_path
-from sim.maps.lanelet_build import load_map, write_map
-from sim.maps.road_network import lane_bounds, road_network
-from sim.scenario import bundled_scenarios, load_scenario
-from sim.world import World
+from v2i.sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG, bundled_maps, map_path
+from v2i.sim.maps.lanelet_build import load_map, write_map
+from v2i.sim.maps.road_network import lane_bounds, road_network
+from v2i.sim.scenario import bundled_scenarios, load_scenario
+from v2i.sim.world import World
 
 LANELET_COUNTS = {"red-light-runner": 40, "dense-intersection": 40, "highway-merge": 18}
 CAR = int(ObjectClass.CAR)

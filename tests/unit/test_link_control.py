@@ -10,7 +10,7 @@ from link_emulator.control_client import SetAction, control_from_action
 from link_emulator.relay import LinkRelay
 from schemas.codec import encode
 from schemas.messages import LinkControl
-from sim.clock import SystemClock
+from v2i.sim.clock import SystemClock
 
 EP = "tcp/127.0.0.1:1"
 

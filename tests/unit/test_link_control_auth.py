@@ -21,7 +21,7 @@ from schemas.messages import LinkControl
 from security.envelope import MAGIC, PREFIX
 from security.pki import NS_PER_DAY, Pki, PkiError, load_signer
 from security.site import write_site
-from sim.clock import SystemClock
+from v2i.sim.clock import SystemClock
 from v2i.cli import main
 
 EP = ["tcp/127.0.0.1:1"]

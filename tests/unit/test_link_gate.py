@@ -4,7 +4,7 @@ from link_emulator.config import LinkConfig
 from link_emulator.gate import Gate, InFlight
 from link_emulator.gate import VehiclePosition
 from schemas.messages import EgoPose
-from sim.clock import SimClock
+from v2i.sim.clock import SimClock
 
 T0 = 1_767_225_600 * 10**9
 S = 1_000_000_000

@@ -18,7 +18,7 @@ from link_emulator.profile import load_profile
 from link_emulator.relay import LinkRelay
 from schemas.codec import encode
 from schemas.messages import EgoPose, LinkControl
-from sim.clock import SystemClock
+from v2i.sim.clock import SystemClock
 
 EP = ["tcp/127.0.0.1:1"]
 S = 1_000_000_000

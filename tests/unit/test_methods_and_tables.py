@@ -60,7 +60,7 @@ def test_table_statistics_and_markdown():
 def test_lane_compensation_needs_a_map_and_follows_the_lane(tmp_path):
     from obu_service.methods import RsuFrame, compensate
     from rsu_service.prediction import make_predictor
-    from sim.maps import lane_predictor
+    from v2i.sim.maps import lane_predictor
 
     with pytest.raises(ValueError, match="Lanelet2"):
         make_fusion("kf", "lane")

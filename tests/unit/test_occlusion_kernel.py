@@ -1,4 +1,4 @@
-"""The compiled line-of-sight test (sim.occlusion._blocked) against the numpy reference (every segment
+"""The compiled line-of-sight test (v2i.sim.occlusion._blocked) against the numpy reference (every segment
 against every occluder as arrays): the same visible fractions, bit for bit."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from v2i.core.objects import ObjectArray
-from sim import occlusion
-from sim.occlusion import box_points, visible_fraction
+from v2i.sim import occlusion
+from v2i.sim.occlusion import box_points, visible_fraction
 
 
 def _targets(rng, n: int, span_m: float) -> ObjectArray:

@@ -13,8 +13,8 @@ from v2i.fusion.pose_history import PoseHistory
 from v2i.fusion.tracking import Tracker, TrackerConfig
 from obu_service.methods import RsuFrame, make_fusion
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE
-from sim.scenario import LocalizationConfig
-from sim.sensors import Localization
+from v2i.sim.scenario import LocalizationConfig
+from v2i.sim.sensors import Localization
 
 SIGMA = np.diag([0.05**2, 0.05**2, 0.005**2])
 

@@ -21,7 +21,7 @@ from link_emulator.config import LinkConfig
 from link_emulator.relay import LinkRelay
 from link_emulator.v2v_relay import V2vRelay
 from schemas.messages import ObuMetrics, RsuLinkStatus, RsuMetrics, RsuPerception
-from sim.clock import SystemClock
+from v2i.sim.clock import SystemClock
 from telemetry.latency import BUCKETS_S, StageLatency
 from telemetry.metrics_cli import MetricsPortError
 from telemetry.prometheus import OTHER, LabelCap, MetricsServer, bucket_pairs, registry_for, serve

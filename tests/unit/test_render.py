@@ -10,13 +10,13 @@ from shapely.geometry import Polygon, box
 
 from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
-from sim import raster
-from sim.camera import PinholeCamera, rsu_camera
-from sim.maps.road_network import lane_bounds, road_network
-from sim.render import SceneRenderer
-from sim.scenario import Scenario, load_scenario
-from sim.scene_faces import box_corners
-from sim.world import World
+from v2i.sim import raster
+from v2i.sim.camera import PinholeCamera, rsu_camera
+from v2i.sim.maps.road_network import lane_bounds, road_network
+from v2i.sim.render import SceneRenderer
+from v2i.sim.scenario import Scenario, load_scenario
+from v2i.sim.scene_faces import box_corners
+from v2i.sim.world import World
 
 
 def _body(name, xy_path, cls="car", size=(4.6, 1.85, 1.5), speed=0.0, yaw_deg=None):
@@ -228,7 +228,7 @@ def test_turned_camera_matches_the_pose_angles_it_stands_for():
 
 
 def test_sway_is_stationary_with_its_sigma_and_a_function_of_time_only():
-    from sim.camera import Sway
+    from v2i.sim.camera import Sway
 
     sway = Sway.draw(0.1, 1.0, np.random.default_rng(3))
     t = np.arange(0.0, 600.0, 0.05)

@@ -10,7 +10,7 @@ import pytest
 
 from v2i.core.objects import ObjectArray
 from rsu_service.prediction import make_predictor, shared_lane_predictor
-from sim.maps import lane_predictor, map_path
+from v2i.sim.maps import lane_predictor, map_path
 
 
 def test_the_predictor_of_a_map_is_loaded_once_and_predicts_as_a_fresh_one():

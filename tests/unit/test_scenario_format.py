@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
-from sim.paths import rounded_path, speed_keys_from_distance
-from sim.scenario import Scenario, ScenarioError, load_scenario
-from sim.world import World
+from v2i.sim.paths import rounded_path, speed_keys_from_distance
+from v2i.sim.scenario import Scenario, ScenarioError, load_scenario
+from v2i.sim.world import World
 
 RLR = "red-light-runner"
 

@@ -6,10 +6,10 @@ import shapely
 from shapely.strtree import STRtree
 
 from v2i.core.objects import ObjectArray
-from sim.occlusion import box_points
-from sim.scenario import bundled_scenarios, load_scenario
-from sim.sensors import Lidar, RsuCamera
-from sim.world import World
+from v2i.sim.occlusion import box_points
+from v2i.sim.scenario import bundled_scenarios, load_scenario
+from v2i.sim.sensors import Lidar, RsuCamera
+from v2i.sim.world import World
 
 NEW = ("highway-merge", "dense-intersection", "two-rsu-corridor", "connected-intersection")
 KMH = 1.0 / 3.6  # m/s per km/h

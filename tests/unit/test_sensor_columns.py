@@ -1,10 +1,10 @@
-"""The sensors' kept columns and short expressions against what they replace (sim.sensors), bit for bit."""
+"""The sensors' kept columns and short expressions against what they replace (v2i.sim.sensors), bit for bit."""
 
 import numpy as np
 
 from v2i.core.frames import Pose2D, base_to_map_points
-from sim.scenario import load_scenario
-from sim.sensors import Lidar, _confidence_clip
+from v2i.sim.scenario import load_scenario
+from v2i.sim.sensors import Lidar, _confidence_clip
 
 
 def test_confidence_clip_equals_np_clip():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from schemas.classes import ObjectClass
-from sim.sensors import CLASS_DEFAULT_LWH, _default_lwh
+from v2i.sim.sensors import CLASS_DEFAULT_LWH, _default_lwh
 
 
 def test_prior_sizes_by_class_code_match_the_table():

@@ -12,10 +12,10 @@ from shapely.geometry import LineString, Polygon
 from v2i.core.frames import map_to_base_points
 from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
-from sim.occlusion import box_points, segments_hit_boxes, segments_hit_polygons, visible_fraction
-from sim.scenario import Scenario, ScenarioError, bundled_scenarios, load_scenario
-from sim.sensors import Lidar, Localization, RsuCamera, frame_times, mean_error_at
-from sim.world import Trajectories, World
+from v2i.sim.occlusion import box_points, segments_hit_boxes, segments_hit_polygons, visible_fraction
+from v2i.sim.scenario import Scenario, ScenarioError, bundled_scenarios, load_scenario
+from v2i.sim.sensors import Lidar, Localization, RsuCamera, frame_times, mean_error_at
+from v2i.sim.world import Trajectories, World
 
 RLR = "red-light-runner"
 

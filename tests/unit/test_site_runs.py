@@ -6,9 +6,9 @@ import pytest
 
 from evaluation.runner import OfflineRun
 from evaluation.spec import RunSpec
-from sim.scenario import load_scenario
-from sim.sensors import RsuCamera
-from sim.world import World
+from v2i.sim.scenario import load_scenario
+from v2i.sim.sensors import RsuCamera
+from v2i.sim.world import World
 
 
 def _in_view(scenario: str) -> dict[str, np.ndarray]:

@@ -194,7 +194,7 @@ def test_peer_clock_offset_is_learned_from_time_exchanges():
 def test_the_node_shell_counts_what_it_cannot_read():
     from obu_service.v2v_shell import V2vShell
     from v2i.runtime.intake import Item
-    from sim.clock import SimClock
+    from v2i.sim.clock import SimClock
 
     p = ObuPipeline(ObuPipelineConfig(vehicle_id="ego"))
     shell = V2vShell("ego", p.enable_v2v(), SimClock(T0), 1 << 18)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from v2i.runtime import config
 from v2i.runtime.config import FastUniqueKeyLoader, UniqueKeyLoader
-from sim.scenario import ScenarioError, bundled_scenarios, load_scenario
+from v2i.sim.scenario import ScenarioError, bundled_scenarios, load_scenario
 
 REPO = Path(__file__).resolve().parents[2]
 RLR = REPO / "src" / "sim" / "scenarios" / "red-light-runner.yaml"

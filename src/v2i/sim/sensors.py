@@ -14,9 +14,9 @@ from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
 from schemas.messages import UNKNOWN_VELOCITY_VAR
 
-from sim.occlusion import visible_fraction
-from sim.scenario import LidarConfig, LocalizationConfig, RsuCameraConfig
-from sim.world import World
+from v2i.sim.occlusion import visible_fraction
+from v2i.sim.scenario import LidarConfig, LocalizationConfig, RsuCameraConfig
+from v2i.sim.world import World
 
 SOURCE_VEHICLE = 1
 SOURCE_RSU = 2

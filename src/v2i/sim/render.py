@@ -1,10 +1,10 @@
 """Camera images of the simulated world, with exact box labels (numpy + OpenCV, no GPU).
 
-``SceneRenderer(world, seed).render(camera, t_s)`` draws what ``camera`` (``sim.camera``) sees
+``SceneRenderer(world, seed).render(camera, t_s)`` draws what ``camera`` (``v2i.sim.camera``) sees
 at scenario time t_s: sky, a textured ground (roads, markings, sidewalks from the road
-network; ``sim.ground_raster``), buildings extruded from their footprints with window facades,
-and every actor (and the ego, id 0) as a textured, sun-shaded 3-D box (``sim.textures``).
-Occlusion is a per-pixel inverse-depth test (``sim.raster``); faces are backface-culled and
+network; ``v2i.sim.ground_raster``), buildings extruded from their footprints with window facades,
+and every actor (and the ego, id 0) as a textured, sun-shaded 3-D box (``v2i.sim.textures``).
+Occlusion is a per-pixel inverse-depth test (``v2i.sim.raster``); faces are backface-culled and
 clipped to the view frustum in camera coordinates. A distorted camera is rendered on an ideal
 canvas that covers its field of view, then resampled with ``cv2.remap``.
 
@@ -29,10 +29,10 @@ import scipy.stats
 
 from v2i.core.objects import ObjectArray
 
-from sim import raster
-from sim.body_textures import FIGURES, body_parts
-from sim.camera import PinholeCamera
-from sim.ground_raster import (
+from v2i.sim import raster
+from v2i.sim.body_textures import FIGURES, body_parts
+from v2i.sim.camera import PinholeCamera
+from v2i.sim.ground_raster import (
     HAZE,
     GroundRaster,
     build_ground,
@@ -40,9 +40,9 @@ from sim.ground_raster import (
     fog_fraction,
     ground_view,
 )
-from sim.maps.road_network import road_network
-from sim.scenario import bundled_scenarios
-from sim.scene_faces import (
+from v2i.sim.maps.road_network import road_network
+from v2i.sim.scenario import bundled_scenarios
+from v2i.sim.scene_faces import (
     WorldFace,
     body_faces,
     box_corners,
@@ -50,7 +50,7 @@ from sim.scene_faces import (
     detail_extent,
     scene_extent,
 )
-from sim.world import World
+from v2i.sim.world import World
 
 AMBIENT, DIFFUSE = 0.6, 0.45  # face gain = AMBIENT + DIFFUSE max(0, n . sun)
 SUN_ELEVATION_RAD = np.deg2rad(50.0)

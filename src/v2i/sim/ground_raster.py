@@ -3,7 +3,7 @@
 Drawn once per scene on a regular grid in ``map`` (texel (i, j) is centred at
 x = x0 + (i + 1/2) r, y = y1 - (j + 1/2) r, r the texel size in m) and mip-mapped; the renderer
 warps it into each view through the ground homography. Roads come from the bundled road
-network (``sim.maps.road_network``): lane polygons are asphalt, boundary kinds become paint
+network (``v2i.sim.maps.road_network``): lane polygons are asphalt, boundary kinds become paint
 (dashed / solid / double yellow centre line / edge line), stop lines and zebra crossings come
 from the signals. Without a network the ground is one paved plaza.
 """
@@ -16,8 +16,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from sim.maps.road_network import CENTRE, DASHED, EDGE, SOLID, RoadNetwork, lane_bounds
-from sim.textures import mip_levels, smooth_noise
+from v2i.sim.maps.road_network import CENTRE, DASHED, EDGE, SOLID, RoadNetwork, lane_bounds
+from v2i.sim.textures import mip_levels, smooth_noise
 
 ASPHALT, SIDEWALK, KERB, GRASS, GRAVEL = (72, 73, 76), (150, 152, 150), (185, 185, 182), (60, 118, 84), (110, 125, 135)
 WHITE, YELLOW = (228, 230, 230), (40, 185, 215)
@@ -186,7 +186,7 @@ def ground_view(layers: list[GroundRaster], K: np.ndarray, R: np.ndarray, t: np.
     than it; each row is sampled from the mip level of its median footprint:
     sqrt|det J| of H_g^-1 = sqrt|det M / (m_3 . p)^3| m per pixel.
     """
-    from sim.raster import inverse_depth_plane
+    from v2i.sim.raster import inverse_depth_plane
 
     Hg = K @ np.column_stack([R[:, 0], R[:, 1], t])
     a, b, e = inverse_depth_plane(np.linalg.inv(K), R[:, 2], t)
@@ -243,7 +243,7 @@ def sky_and_haze(K, R, t, width: int, height: int, ground: np.ndarray, inv_depth
     fog colour); out = (1 - f) ground + f far, f = 1 - exp(-depth / FOG_M), 1 for sky. Both
     are smooth, so they are evaluated every ``step_px`` pixels and interpolated.
     """
-    from sim.raster import inverse_depth_plane
+    from v2i.sim.raster import inverse_depth_plane
 
     u = np.arange(0, width + step_px, step_px, dtype=np.float32)
     v = np.arange(0, height + step_px, step_px, dtype=np.float32)

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.textures import FACES, facade_style, facade_texture, mip_levels, roof_texture
-from sim.world import World
+from v2i.sim.textures import FACES, facade_style, facade_texture, mip_levels, roof_texture
+from v2i.sim.world import World
 
 WALL_CHUNK_M = 8.0
 

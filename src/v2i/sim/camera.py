@@ -25,7 +25,7 @@ import numpy as np
 
 from v2i.core.frames import Pose2D
 
-from sim.scenario import RsuCameraConfig, VehicleCameraConfig
+from v2i.sim.scenario import RsuCameraConfig, VehicleCameraConfig
 
 
 def rotation_from_angles(yaw_rad: float, pitch_rad: float, roll_rad: float = 0.0) -> np.ndarray:

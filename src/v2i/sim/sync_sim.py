@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.clock import DriftingClock
+from v2i.sim.clock import DriftingClock
 
 from v2i.clock.clock_sync import NS_PER_S, ClockSync, SyncSample
 

@@ -27,7 +27,7 @@ from v2i.core.identity_memo import IdentityMemo
 from v2i.core.jit import IN_F1, IN_F2, IN_F3, IN_I1, kernel
 from v2i.core.objects import ObjectArray, read_only
 
-from sim.scenario import Building, Scenario, Trajectory
+from v2i.sim.scenario import Building, Scenario, Trajectory
 
 
 def _pad(rows: list[np.ndarray], fill_last: bool, fill: float = np.inf) -> np.ndarray:

@@ -9,7 +9,7 @@ arcs of ``corner_radius_m``, and a speed profile, either by time ``speed: [[t_s,
 (piecewise linear in time, constant before the first and after the last key) or by distance
 along the path ``speed_at_m: [[s_m, mps], ...]`` (constant acceleration between keys, so it
 converts exactly to time keys: t_{k+1} = t_k + 2 (s_{k+1} - s_k) / (v_k + v_{k+1})); see
-``sim.world`` for the kinematics. An actor may exist only from ``spawn_s`` to ``despawn_s``;
+``v2i.sim.world`` for the kinematics. An actor may exist only from ``spawn_s`` to ``despawn_s``;
 its trajectory's clock starts at ``spawn_s``.
 
 A site has RSUs (``rsus:``, each a roadside camera with its id, pose, rate, delay and an
@@ -32,7 +32,7 @@ from shapely.validation import explain_validity
 from schemas.classes import ObjectClass
 from v2i.runtime.config import ConfigError, bundled_names, load_bundled_or_file
 
-from sim.paths import rounded_path, speed_keys_from_distance
+from v2i.sim.paths import rounded_path, speed_keys_from_distance
 
 Point2 = tuple[float, float]
 PosFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
@@ -169,7 +169,7 @@ def _carom_bands() -> list[ErrorBand]:
 
 
 class ImageConfig(_Frozen):
-    """The physical camera behind an image source: what ``sim.camera`` renders and the
+    """The physical camera behind an image source: what ``v2i.sim.camera`` renders and the
     detector sees. Unset angles come from the sensor they belong to; ``pitch_deg`` None on an
     RSU aims the optical axis at the ground 0.45 range_m out. ``distortion``: OpenCV k1, k2."""
 
@@ -181,7 +181,7 @@ class ImageConfig(_Frozen):
     distortion: tuple[Finite, Finite] = (0.0, 0.0)
     # Wind sway of the mount: the standard deviation of each of yaw, pitch and roll (deg) about
     # the nominal pose, oscillating near the mount's first natural frequency ``sway_hz``
-    # (``sim.camera.Sway``). None: the mount's default (an RSU pole RSU_SWAY_DEG, a vehicle 0).
+    # (``v2i.sim.camera.Sway``). None: the mount's default (an RSU pole RSU_SWAY_DEG, a vehicle 0).
     sway_deg: Annotated[float, Field(ge=0.0, le=5.0)] | None = None
     sway_hz: Annotated[float, Field(gt=0.0, le=50.0)] = 1.0
 
@@ -202,7 +202,7 @@ class RsuCameraConfig(_Frozen):
     yaw_noise_std_rad: NonNeg = 0.05
     size_noise_std_m: NonNeg = 0.1
     min_visible_fraction: Probability = 0.3
-    # The rendered camera of ``--rsu-source camera`` (sim.camera.rsu_camera); the noise model
+    # The rendered camera of ``--rsu-source camera`` (v2i.sim.camera.rsu_camera); the noise model
     # above keeps its own fov. A wide sim fov (> 120 deg) needs image.fov_deg here.
     image: ImageConfig = Field(default_factory=ImageConfig)
     # The link between this RSU and each vehicle (a bundled profile name or a YAML path);

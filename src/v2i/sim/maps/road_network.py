@@ -1,7 +1,7 @@
 """Road networks of the bundled scenarios as lane specifications (pure numpy, no Lanelet2).
 
 A lane is a centreline polyline in the scenario's map frame (x east, y north, metres) in its
-driving direction, a width and the kinds of its two boundary lines. ``sim.maps.lanelet_build``
+driving direction, a width and the kinds of its two boundary lines. ``v2i.sim.maps.lanelet_build``
 turns lanes into Lanelet2 lanelets whose boundaries are the centreline offset by +-width / 2;
 lanelets whose boundaries meet at the same points become successors in the routing graph, and
 lanes that share a boundary line become neighbours.

@@ -1,7 +1,7 @@
 """Textures and part boxes of the rendered bodies: vehicles, pedestrians, riders.
 
 A body is one or more boxes (``Part``) in its own frame (x forward, y left, z up from its
-bottom), each with five textured faces (``sim.textures`` conventions). A car is two boxes,
+bottom), each with five textured faces (``v2i.sim.textures`` conventions). A car is two boxes,
 a body up to the bonnet and a narrower glass cabin on it, so that it reads as a car from any
 side; vans, trucks and buses are single boxes; pedestrians and riders are single boxes whose
 BGRA textures are transparent around the figure.
@@ -15,7 +15,7 @@ import numpy as np
 
 from schemas.classes import ObjectClass
 
-from sim.textures import (
+from v2i.sim.textures import (
     BODY_COLOURS,
     BODY_RES_M,
     CLOTHES,

@@ -1,4 +1,4 @@
-"""Paths and speed profiles as scenario authors write them, turned into what ``sim.world`` drives.
+"""Paths and speed profiles as scenario authors write them, turned into what ``v2i.sim.world`` drives.
 
 - ``rounded_path``: a polyline whose corners are replaced by circular arcs of radius r, so a
   turn needs no hand-densified points. At a corner turning by phi the arc is tangent to both
@@ -6,7 +6,7 @@
   tangent point along the inward normal. Arcs are sampled every ``ARC_STEP_DEG`` at most.
 - ``speed_keys_from_distance``: a speed profile by distance along the path, [[s_m, mps], ...],
   with constant acceleration between keys, converted exactly into the time keys
-  [[t_s, mps], ...] that ``sim.world`` integrates: between keys k and k+1
+  [[t_s, mps], ...] that ``v2i.sim.world`` integrates: between keys k and k+1
   (v_k + v_{k+1}) / 2 is the mean speed, so t_{k+1} = t_k + 2 (s_{k+1} - s_k) / (v_k + v_{k+1}).
 """
 

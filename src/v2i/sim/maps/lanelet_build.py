@@ -28,8 +28,8 @@ from lanelet2.core import (
 from lanelet2.io import Origin
 from lanelet2.projection import LocalCartesianProjector
 
-from sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG
-from sim.maps.road_network import (
+from v2i.sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG
+from v2i.sim.maps.road_network import (
     CENTRE,
     DASHED,
     EDGE,
