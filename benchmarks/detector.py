@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 
 from detector_dataset import SCENARIOS, render_frame  # noqa: E402
-from perception.detector import OnnxDetector  # noqa: E402
+from v2i.perception.detector import OnnxDetector  # noqa: E402
 from schemas.classes import ObjectClass  # noqa: E402
 from v2i.sim.camera import PinholeCamera, rsu_camera  # noqa: E402
 from v2i.sim.render import SceneRenderer  # noqa: E402

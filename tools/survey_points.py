@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from perception.calibration import load_calibration
+from v2i.perception.calibration import load_calibration
 from v2i.sim.camera import PinholeCamera, rsu_camera
 from v2i.sim.maps.road_network import CENTRE, DASHED, EDGE, KERB, SOLID, RoadNetwork, lane_bounds, road_network
 from v2i.sim.occlusion import segments_hit_boxes, segments_hit_polygons

@@ -1,11 +1,11 @@
-"""Train the shipped image detector (``src/perception/models/v2i-det.onnx``) on rendered frames.
+"""Train the shipped image detector (``src/v2i/perception/models/v2i-det.onnx``) on rendered frames.
 
 Two steps, each seeded and reproducible (same seed, same data, same thread count -> same model):
 
     # 1. render the training set (needs the v2i venv: v2i.sim.render)
     python tools/train_detector.py render --out /tmp/v2i-det-data --frames 3000 --seed 0
     # 2. train and export (needs torch: pip install -e '.[train]', or /work/train-venv)
-    python tools/train_detector.py train --data /tmp/v2i-det-data --out src/perception/models/v2i-det.onnx
+    python tools/train_detector.py train --data /tmp/v2i-det-data --out src/v2i/perception/models/v2i-det.onnx
 
 Model: a small plain-conv encoder (strides 2..32, ReLU, BatchNorm) with a top-down FPN back to
 stride 4, and one anchor-free head at stride 4 (96 x 160 cells on a 384 x 640 input):
@@ -15,7 +15,7 @@ cell, focal loss; ltrb regression (GIoU + size-normalised L1, bottom edge weight
 the RSU puts the box's bottom centre on the ground) at the cells near the centre inside the box.
 Boxes less than ``--min-visible`` visible (occluded) are ignored, not penalised: the heat loss
 is masked inside them. The export decodes to the YOLOv8 layout [1, 4 + nc, A] (cx, cy, w, h in
-input px, sigmoid scores) that ``perception.detector.OnnxDetector`` reads; NMS happens there.
+input px, sigmoid scores) that ``v2i.perception.detector.OnnxDetector`` reads; NMS happens there.
 
 Training: AdamW (lr 2e-3, warm-up then cosine), batches of 16 random 224 x 352 crops of the
 rendered frames (scaled 0.5-1.5 x, flipped, colour-jittered; crops centred on rare classes more
@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--workers", type=int, default=1, help="processes rendering disjoint frame ranges")
     t = sub.add_parser("train", help="train on a rendered cache and export ONNX (torch)")
     t.add_argument("--data", type=Path, default=Path("/tmp/v2i-det-data"))
-    t.add_argument("--out", type=Path, default=ROOT / "src/perception/models/v2i-det.onnx")
+    t.add_argument("--out", type=Path, default=ROOT / "src/v2i/perception/models/v2i-det.onnx")
     t.add_argument("--steps", type=int, default=12000)
     t.add_argument("--batch", type=int, default=16)
     t.add_argument("--crop", type=int, nargs=2, default=(224, 352), metavar=("H", "W"))

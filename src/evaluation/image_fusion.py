@@ -8,7 +8,7 @@ ORB features up to its per-frame cap: ``RSU_DEFAULTS``); fuse them with ROIF (``
 ORB + RANSAC homography, OBU boxes mapped into the RSU view, eq. 5.6-5.11); track the fused
 boxes (``v2i.fusion.box_tracker``); score against the RSU view's ground-truth labels.
 
-Detectors: ``"onnx"`` (``perception.detector.OnnxDetector``, the shipped model or
+Detectors: ``"onnx"`` (``v2i.perception.detector.OnnxDetector``, the shipped model or
 ``model_path``; the RSU's at ``v2i rsu``'s score threshold, the OBU's at the detector's
 default) or ``"labels"``, a stand-in that reads the renderer's ``BoxLabels``: each label with
 visible fraction v >= 0.3 is detected with probability p_detect min(1, v / 0.6), its corners
@@ -108,12 +108,12 @@ class LabelDetector:
 
 
 class OnnxBoxes:
-    """``perception.detector.OnnxDetector`` on the frame's image."""
+    """``v2i.perception.detector.OnnxDetector`` on the frame's image."""
 
     name = "onnx"
 
     def __init__(self, model_path=None, score_threshold: float | None = None):
-        from perception.detector import OnnxDetector
+        from v2i.perception.detector import OnnxDetector
 
         kw = {} if score_threshold is None else {"score_threshold": score_threshold}
         self.detector = OnnxDetector(model_path, **kw)

@@ -31,7 +31,7 @@ from obu_service.inbound_security import InboundSecurity, make_verifier
 from obu_service.peers import PEER_REPLY_NS, shared_list
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import OwnFrame, SimulatedVehicle
-from perception.scoring import PerceptionTally
+from v2i.perception.scoring import PerceptionTally
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from rsu_service.prediction import make_predictor
 from rsu_service.source import Frame, make_source

@@ -44,7 +44,7 @@ from pathlib import Path
 
 from v2i.core.jit import load_kernels
 from obu_service.source import SimulatedVehicle
-from perception.scoring import PerceptionTally
+from v2i.perception.scoring import PerceptionTally
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import FusedObjectList, ObuMetrics, PredictionList, RsuMetrics

@@ -11,7 +11,7 @@ import numpy as np
 from v2i.core.objects import ObjectArray
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObuMetrics, PredictionList
 from obu_service.config import ObuConfig
-from perception.scoring import PerceptionTally
+from v2i.perception.scoring import PerceptionTally
 from rsu_service.config import RsuConfig
 from v2i.sim.clock import SystemClock
 from v2i.sim.world import World

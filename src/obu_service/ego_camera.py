@@ -23,7 +23,7 @@ from v2i.sim.world import World
 class EgoCamera:
     def __init__(self, world: World, seed: int, start_ns: int, model_path: str | None = None,
                  roif: RoifConfig | None = None, threads: int | None = None):
-        from perception.detector import OnnxDetector
+        from v2i.perception.detector import OnnxDetector
         from v2i.sim.camera import vehicle_camera
         from v2i.sim.render import SceneRenderer
 

@@ -1,8 +1,8 @@
 """Image perception of the RSU: detector boxes through the calibrated ground homography.
 
-An image (H, W, 3) BGR goes through the ONNX detector (``perception.detector``); each box's
+An image (H, W, 3) BGR goes through the ONNX detector (``v2i.perception.detector``); each box's
 ground contact goes through the calibration's inverse homography into ``map``, with its
-covariance propagated from the pixel error (``perception.ground``).
+covariance propagated from the pixel error (``v2i.perception.ground``).
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ class ImagePerception:
     def open(cls, calibration_path: str | Path, model_path: str | Path | None, score_threshold: float,
              camera_xy=None, threads: int | None = None, max_range_m: float | None = None) -> "ImagePerception":
         """The shipped model (or ``model_path``) and the calibration file at ``calibration_path``."""
-        from perception.calibration import load_calibration
-        from perception.detector import OnnxDetector
+        from v2i.perception.calibration import load_calibration
+        from v2i.perception.detector import OnnxDetector
 
         calibration = load_calibration(calibration_path)
         if camera_xy is None and calibration.camera_xy is None:
@@ -44,7 +44,7 @@ class ImagePerception:
 
     def perceive(self, image: np.ndarray) -> tuple[ObjectArray, float]:
         """Objects in map and the detector's time on this image (ms)."""
-        from perception.ground import pixels_to_map
+        from v2i.perception.ground import pixels_to_map
 
         boxes = self.detector.detect(image)
         self.last_detections = (np.asarray(boxes.xyxy, float).reshape(-1, 4), np.asarray(boxes.scores, float),

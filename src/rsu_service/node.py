@@ -25,7 +25,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from perception.scoring import PerceptionTally
+from v2i.perception.scoring import PerceptionTally
 from schemas import keys
 from v2i.core.jit import load_kernels
 from v2i.fusion.wire import objects_from_states

@@ -182,7 +182,7 @@ def make_source(config, world: World, start_ns: int):
         raise ValueError("--source video needs --video PATH (a video file or a folder of images)")
     from rsu_service.recording import ImageFrames  # (OpenCV: ~15 ms of every RSU's start, here only where a video is read)
 
-    cal = perception.calibration
+    cal = v2i.perception.calibration
     return RecordedCamera(ImageFrames(config.video, (cal.width, cal.height)), perception, start_ns, config.rate_hz,
                           features_max)
 
@@ -190,7 +190,7 @@ def make_source(config, world: World, start_ns: int):
 def open_perception(config, world: World) -> ImagePerception:
     """Detector and calibration of an image source: the given files, else the shipped model and
     the scenario's shipped calibration."""
-    from perception.calibration import calibration_path
+    from v2i.perception.calibration import calibration_path
 
     if config.calibration is not None:  # the user's camera: its own pose, no scenario range
         return ImagePerception.open(config.calibration, config.model, config.score_threshold,

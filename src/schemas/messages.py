@@ -366,7 +366,7 @@ NonNegative = Annotated[float, Field(ge=0.0, le=1e9, allow_inf_nan=False)]
 
 class RsuPerception(Message):
     """The RSU's raw detections scored against the simulated truth its camera could see
-    (simulation only; ``perception.scoring``): the report's ``rsu_perception``."""
+    (simulation only; ``v2i.perception.scoring``): the report's ``rsu_perception``."""
 
     frames: Count
     recall: Ratio | None = None

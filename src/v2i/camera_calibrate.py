@@ -1,6 +1,6 @@
 """``v2i camera calibrate``: fit a camera calibration from surveyed pixel <-> map points.
 
-Reads a points CSV, fits (``perception.calibration.fit_calibration``), prints the
+Reads a points CSV, fits (``v2i.perception.calibration.fit_calibration``), prints the
 re-projection error per point and in summary, and writes the calibration JSON the RSU loads.
 """
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from perception.calibration import (
+from v2i.perception.calibration import (
     DEFAULT_RANSAC_PX,
     Calibration,
     CalibrationError,

@@ -16,7 +16,7 @@ from v2i.fusion.roif import RoifConfig
 from v2i.fusion.roif_features import view_features
 from obu_service.config import ObuConfig
 from obu_service.image_fusion_node import ImageFusionNode
-from perception.detector import OnnxDetector
+from v2i.perception.detector import OnnxDetector
 from schemas import keys
 from schemas.codec import decode, encode
 from schemas.image_messages import ImageFusedBoxes, RsuImageFeatures

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from perception.calibration import (
+from v2i.perception.calibration import (
     Calibration,
     CalibrationError,
     calibration_path,
@@ -18,7 +18,7 @@ from perception.calibration import (
     reprojection_errors,
     save_calibration,
 )
-from perception.ground import bottom_centre, centre_offset, ground_contact, homography_jacobian, pixels_to_map
+from v2i.perception.ground import bottom_centre, centre_offset, ground_contact, homography_jacobian, pixels_to_map
 from schemas.classes import ObjectClass
 from schemas.messages import SOURCE_RSU
 from v2i.sim.camera import PinholeCamera, rsu_camera

@@ -7,7 +7,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from perception.detector import (
+from v2i.perception.detector import (
     SHIPPED_MODEL, DetectorModelError, Letterbox, OnnxDetector, class_table, letterbox, parse_names,
 )
 from schemas.classes import ObjectClass

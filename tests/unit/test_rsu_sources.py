@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from v2i.core.objects import ObjectArray
-from perception.scoring import PerceptionTally, match
+from v2i.perception.scoring import PerceptionTally, match
 from rsu_service.recording import MAX_IMAGE_PIXELS, ImageFrames, RecordingError, image_size
 from rsu_service.source import RecordedCamera
 

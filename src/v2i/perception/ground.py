@@ -38,7 +38,7 @@ from schemas.classes import ObjectClass
 from schemas.messages import SOURCE_RSU
 from v2i.sim.sensors import CLASS_DEFAULT_LWH
 
-from perception.calibration import Calibration
+from v2i.perception.calibration import Calibration
 
 _UNDISTORT_STEP_PX = 0.5  # central-difference step of the undistortion Jacobian
 _MIN_COS = 0.3  # n . d floor: a ray 73 deg off the row normal is beyond any useful pinhole view
