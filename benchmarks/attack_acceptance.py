@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 from evaluation.attack_messages import KINDS
-from security.attacker_keys import prepare_attacker_pki
+from v2i.security.attacker_keys import prepare_attacker_pki
 
 ENDPOINTS = re.compile(r"endpoints: OBU (\S+), RSU (\S+), link (\S+)")
 READY_S = 60.0

@@ -18,8 +18,8 @@ import time
 import numpy as np
 
 from v2i.runtime.process import SWITCH_INTERVAL_S
-from security.envelope import Signer, Verifier
-from security.site import memory_site
+from v2i.security.envelope import Signer, Verifier
+from v2i.security.site import memory_site
 
 KEY = "v2x/rsu/rsu1/objects"
 

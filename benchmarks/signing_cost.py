@@ -38,9 +38,9 @@ import numpy as np
 from v2i.fusion.wire import states_from_objects
 from schemas.codec import encode
 from schemas.messages import ObjectList
-from security import algorithms as alg
-from security.envelope import Signer, Verifier, signed_bytes
-from security.pki import Pki, load_signer, load_trust
+from v2i.security import algorithms as alg
+from v2i.security.envelope import Signer, Verifier, signed_bytes
+from v2i.security.pki import Pki, load_signer, load_trust
 from wire import HEADER, rsu_tracks  # benchmarks/wire.py: the same list as the wire benchmark
 
 T0 = 1_700_000_000 * 10**9

@@ -28,7 +28,7 @@ import shlex
 import signal
 import sys
 
-from security.attacker_keys import STOLEN_RSU, STOLEN_VEHICLE
+from v2i.security.attacker_keys import STOLEN_RSU, STOLEN_VEHICLE
 
 from evaluation.attack_messages import KINDS
 
@@ -75,9 +75,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from schemas.keys import check_id
-    from security.pki import PkiError
+    from v2i.security.pki import PkiError
 
-    from security.attacker_keys import load_attacker_keys
+    from v2i.security.attacker_keys import load_attacker_keys
     from evaluation.attack_report import format_report, got_through
 
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]

@@ -24,7 +24,7 @@ from schemas.codec import CodecError, decode
 from schemas.limits import SOURCE_RSU
 from schemas.messages import EgoPose, FusedObjectList, ObjectList, ObuMetrics, TimeRequest
 from v2i.runtime.transport import open_session
-from security.envelope import PREFIX, parse
+from v2i.security.envelope import PREFIX, parse
 from telemetry.live_line import StatusLine
 
 from evaluation.attack_ghosts import GhostWatch

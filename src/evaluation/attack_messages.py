@@ -9,9 +9,9 @@ The attacker holds no site key of its own. It can hold, in the acceptance scenar
   revocation is the only thing that stops it;
 - genuine envelopes it captured over the air (the RSU's broadcast), and the genuine RSU's
   certificate digest they carry.
-The keys are the lab's to give (``security.attacker_keys``, made by ``v2i pki attacker DIR``).
+The keys are the lab's to give (``v2i.security.attacker_keys``, made by ``v2i pki attacker DIR``).
 
-Kinds (``KINDS``) and the :class:`security.envelope.Verifier` reason each is built to hit
+Kinds (``KINDS``) and the :class:`v2i.security.envelope.Verifier` reason each is built to hit
 (``INTENDED``), all on the victim RSU's own keys:
 
 - ``unsigned``: a plain v2i ObjectList with one ghost pedestrian ``GHOST_AHEAD_M`` ahead of the
@@ -47,10 +47,10 @@ from schemas import keys
 from schemas.classes import ObjectClass
 from schemas.codec import encode
 from schemas.messages import LinkControl, ObjectList, ObjectListHeader, ObjectState, TimeReply, TimeRequest
-from security import algorithms as alg
-from security import certificates as certs
-from security.attacker_keys import AttackerKeys
-from security.envelope import MAGIC, PREFIX, Signer, parse, signed_bytes
+from v2i.security import algorithms as alg
+from v2i.security import certificates as certs
+from v2i.security.attacker_keys import AttackerKeys
+from v2i.security.envelope import MAGIC, PREFIX, Signer, parse, signed_bytes
 
 KINDS = ("unsigned", "forged", "replayed", "wrong_key", "revoked", "time", "control")
 LIST_KINDS = KINDS[:5]  # object lists on v2x/rsu/{rsu_id}/objects

@@ -38,7 +38,7 @@ from schemas.codec import decode
 from schemas.messages import FusedObjectList, LinkControl, ObuMetrics, PredictionList, RsuMetrics
 from v2i.runtime.process import log
 from v2i.runtime.transport import free_tcp_endpoint, open_session
-from security.pki import Identity, load_signer
+from v2i.security.pki import Identity, load_signer
 from v2i.sim.scenario import load_scenario
 from v2i.sim.world import World
 from telemetry.live_line import LiveLine

@@ -32,9 +32,9 @@ import msgpack
 import numpy as np
 
 from schemas import keys
-from security.envelope import PREFIX, Signer
-from security.pki import load_signer
-from security.site import write_site
+from v2i.security.envelope import PREFIX, Signer
+from v2i.security.pki import load_signer
+from v2i.security.site import write_site
 
 from evaluation.fuzz import POOL_PER_KIND
 from evaluation.fuzz_targets import CLOCK_OFFSET_MS, ObuFuzz

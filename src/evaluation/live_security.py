@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from security.site import write_site
+from v2i.security.site import write_site
 from v2i.sim.scenario import Scenario
 
 from evaluation.spec import RunSpec

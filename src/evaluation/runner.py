@@ -39,8 +39,8 @@ from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.list_wire import decode_list, encode_list, list_key
 from schemas.messages import FusedObjectList, ObjectList, PredictionList, TimeReply, TimeRequest
-from security.envelope import Signer, sign
-from security.site import memory_site
+from v2i.security.envelope import Signer, sign
+from v2i.security.site import memory_site
 from v2i.sim.clock import SimClock
 from v2i.sim.scenario import RsuCameraConfig, V2vConfig, load_scenario
 from v2i.sim.world import World

@@ -2,12 +2,12 @@
 
 Three modes, chosen at start-up (``LinkConfig.pki`` / ``insecure_control``):
 
-- ``signed`` (``--pki DIR``): a control must be a signed envelope (:mod:`security.envelope`) for
+- ``signed`` (``--pki DIR``): a control must be a signed envelope (:mod:`v2i.security.envelope`) for
   the key ``v2x/link/{link_id}/control``, from a certificate of DIR's CA whose role is
   ``operator`` and whose keys cover that key, generated at most ``max_age`` before and at most
   ``max_ahead`` after its receipt by the emulator's own clock, and never seen before (a per-signer
   replay window as long as ``max_age``). Rejections: the envelope verifier's reasons
-  (``security.envelope.REJECTIONS``), ``wrong_role`` among them (a valid certificate of another
+  (``v2i.security.envelope.REJECTIONS``), ``wrong_role`` among them (a valid certificate of another
   role, e.g. an RSU's, even one issued with control keys: the verifier takes operators only).
 - ``refuse`` (the default: no ``--pki``): every control is rejected as ``unauthenticated``.
 - ``insecure`` (``--insecure-control``, lab only): unsigned control is accepted as before issue
@@ -20,7 +20,7 @@ NTP keeps hosts of one site within tens of milliseconds, and 0.5 s ahead / 2 s o
 badly synchronised host while keeping a captured control useless 2 s later (and within those
 2 s the replay window refuses it). Both are ``LinkConfig`` fields.
 
-The revocation list is re-read (``security.trust_reload``: at most once per ``reload_s``, on a
+The revocation list is re-read (``v2i.security.trust_reload``: at most once per ``reload_s``, on a
 control's arrival, if its file changed; a list that does not verify is refused and logged, the one
 in force kept) so that revoking an operator needs no restart. Verification runs on the thread
 that calls :meth:`ControlAuth.open` (the relay's scheduler thread) and never raises on any bytes.
@@ -35,9 +35,9 @@ from pathlib import Path
 from schemas.codec import encode
 from schemas.keys import link_control
 from schemas.messages import LinkControl
-from security.envelope import PREFIX, Signer, Verifier, parse, sign
-from security.pki import Identity
-from security.trust_reload import TrustReload
+from v2i.security.envelope import PREFIX, Signer, Verifier, parse, sign
+from v2i.security.pki import Identity
+from v2i.security.trust_reload import TrustReload
 
 log = logging.getLogger(__name__)
 

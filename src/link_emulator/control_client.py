@@ -22,7 +22,7 @@ from pydantic import ValidationError
 from schemas.keys import check_id, link_control, link_stats
 from schemas.messages import LinkControl
 from v2i.runtime.transport import open_session
-from security.pki import Identity, PkiError, load_signer
+from v2i.security.pki import Identity, PkiError, load_signer
 
 from link_emulator.control_auth import OPERATOR, sign_control
 

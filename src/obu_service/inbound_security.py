@@ -1,7 +1,7 @@
 """What the OBU lets through from the RSUs' signed messages (pure; the node and the evaluator share it).
 
 Every RSU object list (any wire), prediction list and time reply is verified
-(``security.envelope.Verifier``) before anything decodes it:
+(``v2i.security.envelope.Verifier``) before anything decodes it:
 
 - freshness is judged in the *signer's* clock: ``now_rsu_ns = receive_ns + theta_hat``, theta_hat
   the OBU's offset estimate of that RSU (theta = rsu - obu) at the receive time. Before the first
@@ -16,7 +16,7 @@ unchanged, as before signing existed.
 
 A live OBU (:func:`live_security`) also takes a revocation while it runs: its node calls
 :meth:`InboundSecurity.poll_trust` from its loop after each cycle's output (never per message), which
-looks at ``DIR/revoked.crl`` at most once a second (``security.trust_reload``); a new list signed by the
+looks at ``DIR/revoked.crl`` at most once a second (``v2i.security.trust_reload``); a new list signed by the
 CA applies from the next message on (the revoked RSU's messages dropped as ``security_revoked``), one
 that does not parse, is not the CA's or is older than the list in force is refused and logged.
 """
@@ -26,9 +26,9 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from schemas.keys import rsu_id_or_none
-from security.envelope import REJECTIONS, Verifier
-from security.pki import PkiError, Trust
-from security.trust_reload import TrustReload
+from v2i.security.envelope import REJECTIONS, Verifier
+from v2i.security.pki import PkiError, Trust
+from v2i.security.trust_reload import TrustReload
 
 FUTURE_S = 1.0  # how far ahead of the estimated RSU clock a generation time may be
 ClockOffset = Callable[[str, int], "object | None"]  # (rsu_id, obu t_ns) -> estimate with .offset_ns, or None

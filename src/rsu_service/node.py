@@ -40,8 +40,8 @@ from v2i.runtime.transport import open_session
 from v2i.sim.clock import Clock, SystemClock
 from v2i.sim.scenario import load_scenario
 from v2i.sim.world import World
-from security.envelope import Signer, sign
-from security.pki import PkiError, load_signer
+from v2i.security.envelope import Signer, sign
+from v2i.security.pki import PkiError, load_signer
 from telemetry.latency import PeriodicSummary, StageLatency
 
 from rsu_service.config import RsuConfig

@@ -15,11 +15,11 @@ obu_metrics..)
 ``unknown``     ``application/octet-stream`` (none)            anything else, kept byte for byte
 ==============  =========================  ==================  ====================================
 
-Signed messages (an RSU run with ``--pki``: ``security.envelope``) are recorded as they were
+Signed messages (an RSU run with ``--pki``: ``v2i.security.envelope``) are recorded as they were
 on the wire, envelope and signature included (that is the evidence); their kind is that of the
 payload inside, ``Kind.signed`` is set and the channel's message encoding is ``v2i-signed+``
 followed by the payload's (e.g. ``v2i-signed+v2i-msgpack``): the schema describes the payload,
-``security.envelope.unwrap`` gives it. Readers (derived channels, time exchanges, ``v2i replay``)
+``v2i.security.envelope.unwrap`` gives it. Readers (derived channels, time exchanges, ``v2i replay``)
 unwrap without checking the signature: the recording is evidence, not a trust decision.
 
 Honest note on ``v2i-msgpack``: the bytes are the project's codec envelope (``schemas.codec``:
@@ -51,7 +51,7 @@ from v2i.core.frames import Pose2D, base_to_map_points
 from schemas import image_messages, messages, sensor_messages  # noqa: F401 (register every Message type)
 from schemas.codec import LIST_TAGS, MAX_CONTAINER_LEN
 from schemas.messages import FusedObjectList, Message, ObjectList
-from security.envelope import unwrap
+from v2i.security.envelope import unwrap
 
 V2I_ENCODING = "v2i-msgpack"
 SIGNED_ENCODING = "v2i-signed+"  # prefix of a signed channel's message encoding (+ the payload's)

@@ -28,7 +28,7 @@ from mcap.records import Channel, Header, Message, Metadata
 
 from schemas.codec import CodecError, decode
 from schemas.messages import TimeReply
-from security.envelope import unwrap
+from v2i.security.envelope import unwrap
 
 from telemetry.mcap_channels import models_by_type
 from telemetry.mcap_prefix import MAGIC, PrefixReader

@@ -36,7 +36,7 @@ from mcap.writer import CompressionType, Writer
 
 from schemas.codec import CodecError, decode
 from schemas.messages import Message
-from security.envelope import unwrap
+from v2i.security.envelope import unwrap
 
 from telemetry import mcap_channels as mc
 

@@ -564,7 +564,7 @@ def cmd_warm(args: argparse.Namespace) -> int:
 
 def _pki_options(p: argparse.ArgumentParser) -> None:
     """``v2i pki``: files only, so no --zenoh-config (its configure_parser sets its ``run``)."""
-    importlib.import_module("security.pki_cli").configure_parser(p)
+    importlib.import_module("v2i.security.pki_cli").configure_parser(p)
 
 
 # command -> the function adding its options (and importing its modules: only when it is parsed)

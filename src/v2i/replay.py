@@ -26,7 +26,7 @@ Design: what a replayed OBU must see to behave as the recorded one did.
   as they arrived at the OBU, after the link) whose key matches ``--keys`` (default
   ``v2x/rsu/**``), the recorder's own time replies excepted. A sample that does not decode is
   published unchanged (counted ``unshifted``): a hostile input stays hostile.
-- **Signed recordings** (RSUs run with ``--pki``: ``security.envelope``). A signature covers the
+- **Signed recordings** (RSUs run with ``--pki``: ``v2i.security.envelope``). A signature covers the
   stamps, so a shifted message cannot keep it, and the replay holds no RSU key to sign anew: a
   signed sample is republished *unsigned*, its payload taken out of the envelope and shifted
   (counted ``envelopes_removed``); the recorder's exchanges are read from inside theirs, and

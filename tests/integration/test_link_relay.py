@@ -28,8 +28,8 @@ from schemas.codec import encode
 from schemas.keys import link_stats, obu_pose, rsu_objects, rsu_time
 from schemas.messages import EgoPose, LinkControl
 from v2i.runtime.transport import free_tcp_endpoint, open_session
-from security.pki import load_signer
-from security.site import write_site
+from v2i.security.pki import load_signer
+from v2i.security.site import write_site
 from v2i.sim.clock import SystemClock
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60 + READY_TIMEOUT_S)]

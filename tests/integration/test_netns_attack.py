@@ -28,8 +28,8 @@ import test_netns as netns  # tests/integration is on sys.path (pytest's rootdir
 
 from evaluation.attack_messages import INTENDED, KINDS
 from evaluation.children import READY_TIMEOUT_S, Child, start_all, wait_ready
-from security.attacker_keys import prepare_attacker_pki
-from security.site import write_site
+from v2i.security.attacker_keys import prepare_attacker_pki
+from v2i.security.site import write_site
 
 CONTROL_EP = f"tcp/{netns.LINK_OBU_ADDR}:7449"
 COUNT = 100

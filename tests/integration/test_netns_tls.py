@@ -6,7 +6,7 @@ Topology and helpers are ``test_netns``'s (imported, not copied):
     rsu 10.10.1.1 <-veth-> 10.10.1.2 link 10.10.2.1 <-veth-> 10.10.2.2 obu (+ intruder, judge)
 
 The link emulator also listens for link control on ``tls/10.10.2.1:7450``. Certificates
-(``security.tls.issue_tls``): ``rsu@10.10.1.1``, ``obu@10.10.2.2``, ``link@10.10.2.1``,
+(``v2i.security.tls.issue_tls``): ``rsu@10.10.1.1``, ``obu@10.10.2.2``, ``link@10.10.2.1``,
 ``operator``, ``monitor`` and ``vehicle-2``, a valid certificate of the site with the wrong name.
 
 This file is also the program run inside the OBU namespace (``python test_netns_tls.py probe``):
@@ -92,7 +92,7 @@ def _start(topo, tls_dir: Path, link_config: Path, children: dict) -> dict[str, 
 
 
 def test_tls_acl_keep_an_intruder_out(tmp_path: Path) -> None:
-    from security.tls import issue_tls
+    from v2i.security.tls import issue_tls
 
     token = secrets.token_hex(3)
     topo = netns.Topology(f"v2it-{token}-rsu", f"v2it-{token}-link", f"v2it-{token}-obu")

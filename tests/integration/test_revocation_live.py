@@ -19,8 +19,8 @@ from schemas import keys
 from schemas.codec import decode
 from schemas.messages import ObuMetrics
 from v2i.runtime.transport import free_tcp_endpoint
-from security.pki import CRL_FILE
-from security.site import write_site
+from v2i.security.pki import CRL_FILE
+from v2i.security.site import write_site
 
 from test_obu_node import probe_session, running, wait_for  # tests/integration is on sys.path (rootdir-less import)
 

@@ -17,9 +17,9 @@ from schemas.codec import decode, encode
 from schemas.limits import SOURCE_RSU
 from schemas.messages import FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics, TimeReply, TimeRequest
 from v2i.runtime.transport import free_tcp_endpoint
-from security.envelope import Signer
-from security.pki import load_signer
-from security.site import write_site
+from v2i.security.envelope import Signer
+from v2i.security.pki import load_signer
+from v2i.security.site import write_site
 
 from test_obu_node import RUN_S, probe_session, running, wait_for  # tests/integration is on sys.path (rootdir-less)
 

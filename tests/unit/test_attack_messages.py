@@ -1,6 +1,6 @@
 """Attack messages (evaluation.attack_messages) against the verifier they are built to fool.
 
-Each kind must be refused by ``security.envelope.Verifier`` under ``strict`` with the reason it
+Each kind must be refused by ``v2i.security.envelope.Verifier`` under ``strict`` with the reason it
 was built for; and the same bytes must carry an accepted ghost when nothing checks (``off``), or
 the attack would not be an attack.
 """
@@ -17,11 +17,11 @@ from schemas import keys
 from schemas.classes import ObjectClass
 from schemas.codec import decode, encode
 from schemas.messages import LinkControl, ObjectList, ObjectListHeader, TimeReply, TimeRequest
-from security.attacker_keys import (STOLEN_RSU, STOLEN_VEHICLE, load_attacker_keys, prepare_attacker_pki,
+from v2i.security.attacker_keys import (STOLEN_RSU, STOLEN_VEHICLE, load_attacker_keys, prepare_attacker_pki,
                                     revoked_subject)
-from security.envelope import Signer, Verifier
-from security.pki import Pki, PkiError, load_signer, load_trust
-from security.site import write_site
+from v2i.security.envelope import Signer, Verifier
+from v2i.security.pki import Pki, PkiError, load_signer, load_trust
+from v2i.security.site import write_site
 
 NOW_NS = 1_800_000_000 * 10**9  # when the site was made
 T_NS = NOW_NS + 10 * 10**9  # when the attack happens

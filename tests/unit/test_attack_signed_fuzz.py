@@ -12,9 +12,9 @@ from evaluation.hostile import HostileInputs
 from schemas import keys
 from schemas.codec import CodecError, decode
 from schemas.messages import ObjectList, PredictionList
-from security.envelope import REJECTIONS, Signer, Verifier
-from security.pki import load_signer, load_trust
-from security.site import write_site
+from v2i.security.envelope import REJECTIONS, Signer, Verifier
+from v2i.security.pki import load_signer, load_trust
+from v2i.security.site import write_site
 
 NOW_NS = 1_800_000_000 * 10**9
 EXPECTED = {

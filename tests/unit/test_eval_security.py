@@ -4,7 +4,7 @@ from dataclasses import replace
 
 from evaluation.runner import OfflineRun
 from evaluation.spec import RunSpec
-from security.envelope import Signer
+from v2i.security.envelope import Signer
 
 SPEC = RunSpec(scenario="red-light-runner", seed=2, duration_s=8.0)
 

@@ -4,8 +4,8 @@ from collections import Counter
 from types import SimpleNamespace
 
 from obu_service.inbound_security import InboundSecurity, make_verifier
-from security.envelope import Signer
-from security.site import memory_site
+from v2i.security.envelope import Signer
+from v2i.security.site import memory_site
 
 NOW_NS = 1_800_000_000 * 10**9
 OFFSET_NS = 3 * 10**9  # the RSU's clock runs 3 s ahead of the OBU's

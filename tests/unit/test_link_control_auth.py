@@ -18,9 +18,9 @@ from link_emulator.relay import LinkRelay
 from link_emulator.v2v_relay import V2vRelay
 from schemas.codec import encode
 from schemas.messages import LinkControl
-from security.envelope import MAGIC, PREFIX
-from security.pki import NS_PER_DAY, Pki, PkiError, load_signer
-from security.site import write_site
+from v2i.security.envelope import MAGIC, PREFIX
+from v2i.security.pki import NS_PER_DAY, Pki, PkiError, load_signer
+from v2i.security.site import write_site
 from v2i.sim.clock import SystemClock
 from v2i.cli import main
 

@@ -17,9 +17,9 @@ from schemas.codec import encode
 from schemas.image_messages import RsuImageFeatures
 from v2i.runtime.intake import Item
 from schemas.messages import TimeReply
-from security.envelope import Signer
-from security.pki import load_signer
-from security.site import write_site
+from v2i.security.envelope import Signer
+from v2i.security.pki import load_signer
+from v2i.security.site import write_site
 
 SCENARIO, RSU_ID = "roif-intersection", "rsu-roif"
 THETA_NS = 25_000_000  # rsu - obu

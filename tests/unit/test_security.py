@@ -9,11 +9,11 @@ import msgpack
 import numpy as np
 import pytest
 
-from security import algorithms as alg
-from security import certificates as certs
-from security.envelope import MAGIC, PREFIX, REJECTIONS, Signer, Verifier, sign, signed_bytes
-from security.pki import NS_PER_DAY, Pki, PkiError, Trust, load_signer, load_trust
-from security.replay_window import ReplayWindow
+from v2i.security import algorithms as alg
+from v2i.security import certificates as certs
+from v2i.security.envelope import MAGIC, PREFIX, REJECTIONS, Signer, Verifier, sign, signed_bytes
+from v2i.security.pki import NS_PER_DAY, Pki, PkiError, Trust, load_signer, load_trust
+from v2i.security.replay_window import ReplayWindow
 
 T0 = 1_700_000_000 * 10**9
 MS = 1_000_000

@@ -1,10 +1,10 @@
-"""security.site: a whole site's PKI in one call, idempotent, and its in-memory twin."""
+"""v2i.security.site: a whole site's PKI in one call, idempotent, and its in-memory twin."""
 
 import pytest
 
-from security.envelope import Signer, Verifier
-from security.pki import Pki, load_trust
-from security.site import memory_site, write_site
+from v2i.security.envelope import Signer, Verifier
+from v2i.security.pki import Pki, load_trust
+from v2i.security.site import memory_site, write_site
 
 NOW_NS = 1_800_000_000 * 10**9
 

@@ -1,4 +1,4 @@
-"""Signed RSU messages (``security.envelope``) in recordings: kept as on the wire, read and
+"""Signed RSU messages (``v2i.security.envelope``) in recordings: kept as on the wire, read and
 replayed from inside their envelopes (``telemetry.mcap_*``, ``v2i.replay``)."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from mcap.reader import make_reader
 
 from schemas.codec import decode, encode
 from schemas.messages import ObjectList, ObjectListHeader, TimeReply
-from security.envelope import PREFIX, Signer, unwrap
-from security.site import memory_site
+from v2i.security.envelope import PREFIX, Signer, unwrap
+from v2i.security.site import memory_site
 from telemetry import mcap_channels as mc
 from telemetry.mcap_reader import Recording
 from telemetry.mcap_writer import RunWriter

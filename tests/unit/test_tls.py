@@ -1,4 +1,4 @@
-"""security.tls (X.509 material for Zenoh mTLS) and the site Zenoh config merged by v2i.runtime.transport."""
+"""v2i.security.tls (X.509 material for Zenoh mTLS) and the site Zenoh config merged by v2i.runtime.transport."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from schemas.codec import MAX_MESSAGE_BYTES
 from v2i.runtime.transport import CONFIG_FILE_ENV, TLS_DIR_ENV, load_config_file, session_config
-from security.pki import Pki, PkiError
-from security.tls import issue_tls, parse_name
+from v2i.security.pki import Pki, PkiError
+from v2i.security.tls import issue_tls, parse_name
 
 NOW_NS = 1_790_000_000 * 10**9
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy" / "zenoh"

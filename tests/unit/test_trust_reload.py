@@ -1,4 +1,4 @@
-"""security.trust_reload and the OBU's use of it: a revocation list written while a verifier runs is
+"""v2i.security.trust_reload and the OBU's use of it: a revocation list written while a verifier runs is
 taken within the poll interval; a bad, foreign, older or removed list is refused and the list in force kept."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ import msgpack
 import pytest
 
 from obu_service.inbound_security import live_security
-from security.envelope import Signer, Verifier
-from security.pki import CRL_FILE, Pki, load_signer
-from security.site import write_site
-from security.trust_reload import TrustReload
+from v2i.security.envelope import Signer, Verifier
+from v2i.security.pki import CRL_FILE, Pki, load_signer
+from v2i.security.site import write_site
+from v2i.security.trust_reload import TrustReload
 
 T0 = 1_800_000_000 * 10**9
 S = 1_000_000_000

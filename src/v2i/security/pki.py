@@ -22,9 +22,9 @@ import stat
 from dataclasses import dataclass
 from pathlib import Path
 
-from security import algorithms as alg
-from security import certificates as certs
-from security.certificates import Certificate, CertificateError, RevocationList
+from v2i.security import algorithms as alg
+from v2i.security import certificates as certs
+from v2i.security.certificates import Certificate, CertificateError, RevocationList
 
 NS_PER_DAY = 86_400 * 10**9
 CA_NAME = "ca"

@@ -15,7 +15,7 @@ address as an IP SAN: ask for ``NAME@IP,IP`` (e.g. ``rsu@10.10.1.1``).
 
 Use a directory of its own (e.g. ``PKI/tls``): a signing PKI (:mod:`.pki`) also writes ``NAME.key``.
 Times are arguments (``now_ns``, Unix epoch nanoseconds); nothing here reads a clock. Errors name
-the file (:class:`~security.pki.PkiError`).
+the file (:class:`~v2i.security.pki.PkiError`).
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from security.pki import CA_NAME as SIGNING_CA_NAME
-from security.pki import PkiError
-from security.pki import _write as write_atomic
+from v2i.security.pki import CA_NAME as SIGNING_CA_NAME
+from v2i.security.pki import PkiError
+from v2i.security.pki import _write as write_atomic
 
 TLS_CA = "tls-ca"
 NS_PER_DAY = 86_400 * 10**9

@@ -23,8 +23,8 @@ from pathlib import Path
 
 from schemas.keys import check_id
 
-from security import certificates as certs
-from security.pki import CA_NAME, NS_PER_DAY, Identity, Pki, PkiError, load_signer, load_trust, read_cert
+from v2i.security import certificates as certs
+from v2i.security.pki import CA_NAME, NS_PER_DAY, Identity, Pki, PkiError, load_signer, load_trust, read_cert
 
 STOLEN_RSU, STOLEN_VEHICLE = "rsu-evil", "stolen-vehicle"
 BACKDATE_NS = 3600 * 10**9  # attacker certificates are valid from an hour before preparation

@@ -51,11 +51,11 @@ from dataclasses import dataclass
 
 import msgpack
 
-from security import algorithms as alg
-from security import certificates as certs
-from security.certificates import Certificate, CertificateError
-from security.pki import Identity, Trust
-from security.replay_window import ReplayWindow
+from v2i.security import algorithms as alg
+from v2i.security import certificates as certs
+from v2i.security.certificates import Certificate, CertificateError
+from v2i.security.pki import Identity, Trust
+from v2i.security.replay_window import ReplayWindow
 
 MAGIC = 0x5601
 PREFIX = bytes([0x95, 0xCD, 0x56, 0x01])

@@ -3,7 +3,7 @@
 Thin shell over :mod:`.pki` and :mod:`.site` (the clock is read here, once per command):
 ``init`` a CA, ``issue`` a certificate, ``revoke`` one, ``list`` what the directory holds,
 ``site`` to fill a directory for a whole site in one go, ``attacker`` for the keys ``v2i attack``
-holds (``security.attacker_keys``), and ``tls`` for the X.509 material of Zenoh TLS (``security.tls``, imported only by that command). Errors (a :class:`PkiError`, a bad
+holds (``v2i.security.attacker_keys``), and ``tls`` for the X.509 material of Zenoh TLS (``v2i.security.tls``, imported only by that command). Errors (a :class:`PkiError`, a bad
 argument) are one line on stderr and exit code 2.
 """
 
@@ -17,11 +17,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from security import algorithms as alg
-from security.certificates import SIGNER_ROLES, CertificateError, check_key_expr
-from security.attacker_keys import STOLEN_RSU, STOLEN_VEHICLE, prepare_attacker_pki, revoked_subject
-from security.pki import CA_NAME, CRL_FILE, Pki, PkiError, load_trust, read_cert
-from security.site import DEFAULT_DAYS, write_site
+from v2i.security import algorithms as alg
+from v2i.security.certificates import SIGNER_ROLES, CertificateError, check_key_expr
+from v2i.security.attacker_keys import STOLEN_RSU, STOLEN_VEHICLE, prepare_attacker_pki, revoked_subject
+from v2i.security.pki import CA_NAME, CRL_FILE, Pki, PkiError, load_trust, read_cert
+from v2i.security.site import DEFAULT_DAYS, write_site
 
 DESCRIPTION = """\
 the site's certificate authority (CA) on a directory: create it, issue and revoke certificates.
@@ -48,7 +48,7 @@ former certificate, covering v2x/rsu/RSU_ID/**), and revokes the last in revoked
 site only: the stolen keys are valid certificates of the site (v2i pki revoke them afterwards).
 
 Zenoh TLS needs X.509 certificates instead: v2i pki tls DIR/tls NAME... writes a TLS CA and one
-certificate per node into a directory of its own (security.tls).
+certificate per node into a directory of its own (v2i.security.tls).
 
 examples:
   v2i pki site /etc/v2i/pki --rsu rsu1 --vehicle ego --operator operator
@@ -76,7 +76,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     _site_parser(_add(sub, "site", "a whole site in one go: the CA if absent, then every subject without a certificate"))
     _attacker_parser(_add(sub, "attacker", "the keys v2i attack holds, issued by DIR's CA: a stolen RSU and vehicle "
                           "key, and the victim RSU's former key, revoked"))
-    tls = _add(sub, "tls", "X.509 CA, certificates and keys for Zenoh TLS / mutual TLS (security.tls)")
+    tls = _add(sub, "tls", "X.509 CA, certificates and keys for Zenoh TLS / mutual TLS (v2i.security.tls)")
     tls.add_argument("directory", metavar="DIR")
     tls.add_argument("names", metavar="NAME[@IP,IP]", nargs="+",
                      help="a certificate per node: CN and DNS SAN NAME (what Zenoh's access control matches), "
@@ -216,7 +216,7 @@ def _attacker(args: argparse.Namespace, now_ns: int) -> None:
 
 
 def _tls(args: argparse.Namespace, now_ns: int) -> None:
-    from security import tls  # the transport's X.509 material: only this command needs it
+    from v2i.security import tls  # the transport's X.509 material: only this command needs it
 
     for path in tls.issue_tls(args.directory, args.names, now_ns, args.days):
         print(f"wrote {path}")

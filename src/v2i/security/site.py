@@ -18,7 +18,7 @@ import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
-from security.pki import CA_NAME, Identity, Pki, Trust, load_signer, load_trust
+from v2i.security.pki import CA_NAME, Identity, Pki, Trust, load_signer, load_trust
 
 DEFAULT_DAYS = 30.0
 

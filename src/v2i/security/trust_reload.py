@@ -27,8 +27,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from security.certificates import RevocationList
-from security.pki import CRL_FILE, PkiError, Trust, load_trust, read_crl
+from v2i.security.certificates import RevocationList
+from v2i.security.pki import CRL_FILE, PkiError, Trust, load_trust, read_crl
 
 NS_PER_S = 1_000_000_000
 INTERVAL_S = 1.0

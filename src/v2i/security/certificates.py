@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import msgpack
 
-from security import algorithms as alg
+from v2i.security import algorithms as alg
 
 VERSION = 1
 ROLES = ("ca", "rsu", "vehicle", "operator")
