@@ -3,7 +3,7 @@
 Runs ``v2i demo`` (``evaluation.demo.Demo``: three service processes, scouting off, TCP on
 127.0.0.1) for ``--duration`` s on ``--profile`` (default ``ideal``: no emulated delay, so what
 remains is the software's) and prints each service's per-stage latency as it reports it
-(``latency_ms`` of the RSU and OBU metrics and of the link stats; ``telemetry.latency``), with,
+(``latency_ms`` of the RSU and OBU metrics and of the link stats; ``v2i.telemetry.latency``), with,
 measured in the same run as references:
 
 - ``raw hop``: a child process puts 1 kB messages at ``--hop-rate-hz`` on two publishers, the

@@ -25,7 +25,7 @@ from schemas.limits import SOURCE_RSU
 from schemas.messages import EgoPose, FusedObjectList, ObjectList, ObuMetrics, TimeRequest
 from v2i.runtime.transport import open_session
 from v2i.security.envelope import PREFIX, parse
-from telemetry.live_line import StatusLine
+from v2i.telemetry.live_line import StatusLine
 
 from evaluation.attack_ghosts import GhostWatch
 from evaluation.attack_messages import (CONTROL_VARIANTS, LIST_KINDS, TIME_VARIANTS, AttackerKeys, AttackMessages, ghost_xy,

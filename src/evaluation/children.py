@@ -3,7 +3,7 @@
 A ``Child`` is one service process (``v2i rsu`` / ``obu`` / ``link`` / ``world`` ...). A thread
 reads its stdout JSON lines (``ready``, and ``started`` from a service run with ``--await-start``;
 every one also goes to ``events``); another relays its stderr lines whole to this process's
-stderr (so that a live status line, ``telemetry.live_line``, keeps them above it), each prefixed
+stderr (so that a live status line, ``v2i.telemetry.live_line``, keeps them above it), each prefixed
 with the child's label (``[obu ego]``) unless the service already named itself so, the last
 ``STDERR_LINES_KEPT`` kept for error messages. Its stdin is a pipe for the start line.
 
@@ -31,7 +31,7 @@ import time
 from collections.abc import Iterable
 
 from v2i.runtime.process import start_line
-from telemetry.live_line import StatusLine
+from v2i.telemetry.live_line import StatusLine
 
 READY_TIMEOUT_S = 120.0  # every child must be ready within this (a cold start on a busy 2-core machine: ~10 s)
 # time zero this far after the start line is sent: the OBU's clock sync queries the RSU from 1 s before

@@ -41,7 +41,7 @@ from v2i.runtime.transport import free_tcp_endpoint, open_session
 from v2i.security.pki import Identity, load_signer
 from v2i.sim.scenario import load_scenario
 from v2i.sim.world import World
-from telemetry.live_line import LiveLine
+from v2i.telemetry.live_line import LiveLine
 
 from evaluation.chaos import ChaosEvent, ChaosTimeline
 from evaluation.chaos_summary import PlayedEvent, chaos_summary, outage_summary
@@ -152,7 +152,7 @@ class Demo(InboxScoring):
         self._started: dict[str, Child] = {}
         self.played: list[PlayedEvent] = []
         self.record: RunRecord | None = None  # scored as messages arrive, from run()
-        self.progress = progress  # the live line's name (v2i demo; telemetry.live_line); None: no line
+        self.progress = progress  # the live line's name (v2i demo; v2i.telemetry.live_line); None: no line
         self._live: LiveLine | None = None  # the live line while the run goes
         self._init_inbox()
         self._down: set[str] = set()  # services killed on purpose and not yet restarted

@@ -10,7 +10,7 @@ from collections import Counter
 
 from schemas.codec import CodecError
 from v2i.runtime.process import log
-from telemetry.live_line import LiveLine
+from v2i.telemetry.live_line import LiveLine
 
 from evaluation.children import START_LEAD_S, ahead_ms
 from evaluation.spec import RunRecord

@@ -42,7 +42,7 @@ def spec_of(metadata: dict[str, str]) -> RunSpec:
 
 
 def run_of(recording, given: dict[str, Any]) -> tuple[RunSpec, int]:
-    """(spec, scenario start in ns) of ``recording`` (a ``telemetry.mcap_reader.Recording``):
+    """(spec, scenario start in ns) of ``recording`` (a ``v2i.telemetry.mcap_reader.Recording``):
     its run metadata, with the values ``given`` (``RunSpec`` fields and ``start_ns``; None: not
     given) over it. ValueError naming the flags to give when neither has the scenario or start."""
     metadata = recording.metadata.get(RUN_METADATA, {})

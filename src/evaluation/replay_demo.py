@@ -53,7 +53,7 @@ class ReplayDemo(Demo):
                  progress: str | None = None, given: dict | None = None):
         """``given``: the run's values from the command line (``recorded_run.run_of``: needed for a
         ``v2i record`` file, which carries no run metadata)."""
-        from telemetry.mcap_reader import Recording
+        from v2i.telemetry.mcap_reader import Recording
         from v2i.replay import Replayer
 
         self.recording = Recording(recording_path)

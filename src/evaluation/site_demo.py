@@ -52,7 +52,7 @@ from v2i.runtime.process import log
 from v2i.runtime.transport import free_tcp_endpoint, open_session
 from v2i.sim.scenario import Scenario, load_scenario
 from v2i.sim.world import World
-from telemetry.live_line import LiveLine
+from v2i.telemetry.live_line import LiveLine
 
 from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
 from evaluation.demo import POLL_S
@@ -84,7 +84,7 @@ class SiteDemo(InboxScoring):
     def __init__(self, spec: RunSpec, ready_timeout_s: float = READY_TIMEOUT_S, progress: str | None = None,
                  pki_dir: str | None = None):
         """``ready_timeout_s``: every service must be ready within this; the run starts when all are.
-        ``progress``: the live line's name (``telemetry.live_line``), None for no line.
+        ``progress``: the live line's name (``v2i.telemetry.live_line``), None for no line.
         ``pki_dir``: the site PKI to use and complete; default: one in the run's temporary directory."""
         self.progress = progress
         self._live: LiveLine | None = None

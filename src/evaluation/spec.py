@@ -83,7 +83,7 @@ class RunRecord:
         self._offsets = (array("q"), array("q"), array("q"), array("d"))
         self.perception = PerceptionTally()  # the RSU's raw detections against the truth it could see
         # live runs: each service's latest per-stage latency ("rsu", "link", "obu": {stage: {count, p50, p95,
-        # p99}} in ms, telemetry.latency); offline none (its clock is simulated)
+        # p99}} in ms, v2i.telemetry.latency); offline none (its clock is simulated)
         self.latency_ms: dict[str, dict] = {}
         self.rsu_perception: dict | None = None  # or the RSU's own scores (live: from its metrics)
         self.rsu_messages = 0

@@ -63,7 +63,7 @@ from schemas.messages import EgoPose
 from v2i.runtime.process import MemoryTrim
 from v2i.runtime.transport import open_session
 from v2i.sim.clock import Clock
-from telemetry.latency import StageLatency
+from v2i.telemetry.latency import StageLatency
 
 from link_emulator.channel import NS_PER_MS
 from link_emulator.config import LinkConfig
@@ -113,7 +113,7 @@ class LinkRelay:
                                        self._distance_m)
         self._declared: list[Any] = []  # subscribers and queryables to undeclare
         self._observer = observer  # benchmarks and tests: sees every delivery, in the scheduler thread
-        self.latency = StageLatency()  # relay_hold, relay_late (telemetry.latency); read by other threads
+        self.latency = StageLatency()  # relay_hold, relay_late (v2i.telemetry.latency); read by other threads
         self.last_stats: dict[str, Any] | None = None  # the latest published stats; one assignment
         self._rsu: zenoh.Session | None = None
         self._control_session: zenoh.Session | None = None

@@ -46,7 +46,7 @@ from schemas.messages import EgoPose
 from v2i.runtime.process import MemoryTrim
 from v2i.runtime.transport import open_session
 from v2i.sim.clock import Clock
-from telemetry.latency import StageLatency
+from v2i.telemetry.latency import StageLatency
 
 from link_emulator.channel import NS_PER_MS, LinkModel
 from link_emulator.config import LinkConfig
@@ -105,7 +105,7 @@ class V2vRelay:
                                         config.control_max_age_s, config.control_max_ahead_s)
         self._trim = MemoryTrim()
         self._observer = observer  # tests and benchmarks: every delivery, in the scheduler thread
-        self.latency = StageLatency()  # relay_hold, relay_late (telemetry.latency); read by other threads
+        self.latency = StageLatency()  # relay_hold, relay_late (v2i.telemetry.latency); read by other threads
         self.last_stats: dict[str, Any] | None = None  # the latest published stats; one assignment
         self._declared: list[Any] = []
         self._sessions: dict[str, zenoh.Session] = {}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from v2i.runtime.process import add_service_options, run_service
-from telemetry.metrics_cli import add_metrics_options, export_node
+from v2i.telemetry.metrics_cli import add_metrics_options, export_node
 
 from obu_service.config import ObuConfig
 from obu_service.pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES

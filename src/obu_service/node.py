@@ -38,7 +38,7 @@ from v2i.runtime.transport import open_session
 from v2i.sim.clock import Clock, SystemClock
 from v2i.sim.scenario import load_scenario
 from v2i.sim.world import World
-from telemetry.latency import PeriodicSummary, StageLatency
+from v2i.telemetry.latency import PeriodicSummary, StageLatency
 
 from obu_service.config import ObuConfig
 from obu_service.inbound_security import live_security
@@ -92,7 +92,7 @@ class ObuNode:
         self._details: dict[str, str] = {}  # first codec error message per reason
         self._events: list = []
         self._held: Item | None = None  # a large input held until after the next event
-        self.latency = StageLatency()  # per-stage durations (telemetry.latency); read by other threads
+        self.latency = StageLatency()  # per-stage durations (v2i.telemetry.latency); read by other threads
         self._latency_summary = PeriodicSummary(self.latency)  # into the metrics, recomputed once a second
         self.last_metrics: ObuMetrics | None = None  # the latest published; one assignment, read by other threads
         if not config.await_start:

@@ -376,7 +376,7 @@ class ObuPipeline:
 
     # --- reporting -------------------------------------------------------------------
     def metrics(self, now_ns: int, latency_ms: dict | None = None) -> ObuMetrics:
-        """The counters at ``now_ns``; ``latency_ms``: the node's per-stage latency (telemetry.latency)."""
+        """The counters at ``now_ns``; ``latency_ms``: the node's per-stage latency (v2i.telemetry.latency)."""
         return ObuMetrics(
             vehicle_id=self.config.vehicle_id, t_ns=now_ns, cycles=self.cycles,
             output_deadline_misses=self.deadline_misses, rsu_deadline_misses=self.rsu_deadline_misses,

@@ -6,7 +6,7 @@ import argparse
 
 from schemas.list_wire import WIRES
 from v2i.runtime.process import add_service_options, run_service
-from telemetry.metrics_cli import add_metrics_options, export_node
+from v2i.telemetry.metrics_cli import add_metrics_options, export_node
 
 from rsu_service.config import PREDICTORS, SOURCES, RsuConfig
 

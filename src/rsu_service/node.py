@@ -42,7 +42,7 @@ from v2i.sim.scenario import load_scenario
 from v2i.sim.world import World
 from v2i.security.envelope import Signer, sign
 from v2i.security.pki import PkiError, load_signer
-from telemetry.latency import PeriodicSummary, StageLatency
+from v2i.telemetry.latency import PeriodicSummary, StageLatency
 
 from rsu_service.config import RsuConfig
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
@@ -90,7 +90,7 @@ class RsuNode:
         self._trim = MemoryTrim()
         self._details: dict[str, str] = {}
         self._reported_ns = 0  # true clock of the last metrics
-        self.latency = StageLatency()  # per-stage durations (telemetry.latency); read by other threads
+        self.latency = StageLatency()  # per-stage durations (v2i.telemetry.latency); read by other threads
         self._latency_summary = PeriodicSummary(self.latency)  # into the metrics, recomputed once a second
         self.last_metrics: RsuMetrics | None = None  # the latest published; one assignment, read by other threads
         # one signer per thread (loop, time-query callback): each decides when its certificate travels

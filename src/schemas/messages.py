@@ -318,7 +318,7 @@ LatencyMsValue = Annotated[float, Field(ge=0.0, le=1e9, allow_inf_nan=False)]
 
 
 class StageLatencyMs(Message):
-    """One pipeline stage's durations (``telemetry.latency.StageLatency.summary_ms``): observations
+    """One pipeline stage's durations (``v2i.telemetry.latency.StageLatency.summary_ms``): observations
     since start, and p50 <= p95 <= p99 in ms over the latest ones."""
 
     TYPE: ClassVar[str] = "stage_latency"
@@ -334,7 +334,7 @@ class StageLatencyMs(Message):
         return self
 
 
-# per-stage latency of a service, by stage name (``latency_ms`` of the metrics); bounded like telemetry.latency
+# per-stage latency of a service, by stage name (``latency_ms`` of the metrics); bounded like v2i.telemetry.latency
 LatencyMs = Annotated[dict[StageName, StageLatencyMs], Field(max_length=32)]
 
 
@@ -356,7 +356,7 @@ class ObuMetrics(Message):
     )
     # output objects dropped (or clipped) to fit the wire, by reason
     output_dropped: dict[Annotated[str, Field(max_length=64)], Count] = Field(default_factory=dict, max_length=16)
-    latency_ms: LatencyMs = Field(default_factory=dict)  # per stage (telemetry.latency): queue, decode, fuse, ...
+    latency_ms: LatencyMs = Field(default_factory=dict)  # per stage (v2i.telemetry.latency): queue, decode, fuse, ...
 
 
 Ratio = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
@@ -389,7 +389,7 @@ class RsuMetrics(Message):
     time_replies: Count = 0
     rejected: dict[Annotated[str, Field(max_length=64)], Count] = Field(default_factory=dict, max_length=64)
     perception: RsuPerception | None = None  # simulated sources: detections scored against the truth
-    latency_ms: LatencyMs = Field(default_factory=dict)  # per stage (telemetry.latency): detect, encode, put, ...
+    latency_ms: LatencyMs = Field(default_factory=dict)  # per stage (v2i.telemetry.latency): detect, encode, put, ...
 
 
 class LinkControl(Message):

@@ -4,7 +4,7 @@ One Zenoh session per ``--connect`` endpoint (scouting and gossip off, as every 
 one session per endpoint so that the monitor never joins the RSU side to the vehicle side behind
 the link emulator's back). Each subscribes ``v2x/**/metrics`` and ``v2x/link/*/stats``; the
 callbacks only enqueue ``(source, key, payload, receive time)`` in a bounded queue (a full one
-drops, counted), and the main loop feeds ``telemetry.snapshot.TelemetryBoard`` and draws
+drops, counted), and the main loop feeds ``v2i.telemetry.snapshot.TelemetryBoard`` and draws
 ``v2i.monitor_view`` with ``rich`` at ``--refresh-hz``, or with ``--once`` prints one snapshot.
 """
 
@@ -73,7 +73,7 @@ class Monitor:
     """The sessions, the inbox and the board; ``pump`` feeds what arrived so far."""
 
     def __init__(self, endpoints: list[str], window_s: float):
-        from telemetry.snapshot import TelemetryBoard
+        from v2i.telemetry.snapshot import TelemetryBoard
 
         self.board = TelemetryBoard(window_s=window_s)
         self.sources: list[Source] = []

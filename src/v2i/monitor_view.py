@@ -1,4 +1,4 @@
-"""``v2i monitor``'s dashboard: a ``telemetry.snapshot`` dict drawn as ``rich`` tables (no I/O).
+"""``v2i monitor``'s dashboard: a ``v2i.telemetry.snapshot`` dict drawn as ``rich`` tables (no I/O).
 
 One table per vehicle (misses over the run and the window, mode and shares, per RSU the one-way
 delay p50/p95, loss, data age, clock offset +- uncertainty), one for the RSUs, one for the link

@@ -5,20 +5,20 @@ to its clients (a Zenoh 1.x peer session would hear only the endpoint's own publ
 separate sessions never bridge two endpoints (an RSU and an OBU side must stay apart: the link
 emulator is the only path between them). Each endpoint is a *side* (``--connect rsu=tcp/...``;
 default ``ep0``, ``ep1``, ...), and a sample is recorded on topic ``/<side>/<key>`` with its
-receive time (``telemetry.mcap_writer``).
+receive time (``v2i.telemetry.mcap_writer``).
 
 Time replies are not samples, so no subscriber hears the OBU's exchanges. To carry the RSU clock
 into a recording, the recorder runs its own four-timestamp exchanges (``TimeRequest`` as querier
 ``recorder``, ``--sync-rate-hz``) on the ``--time-from`` side (default: the first; best the RSU
 side, where they bypass the link and do not draw from its channel model) and records each reply
 on ``/<side>/v2x/rsu/<id>/time``, log time = t4 (the reply carries t1, t2, t3). ``v2i replay``
-rebuilds the RSU clock from them (``telemetry.time_shift.RsuClockTrack``). Host clocks: t1 and t4
+rebuilds the RSU clock from them (``v2i.telemetry.time_shift.RsuClockTrack``). Host clocks: t1 and t4
 are this host's wall clock; the replay is faithful where the recorded OBU ran on the same host
 (``v2i demo``) or on one synchronised with it.
 
 Zenoh callbacks only enqueue (bounded; a full queue drops, counted); one writer thread writes.
 Ctrl-C / SIGTERM / ``--duration`` end it with the MCAP summary written. Crash-safe
-(``telemetry.mcap_writer``): the writer thread writes the chunk in progress every ``FLUSH_S``, so
+(``v2i.telemetry.mcap_writer``): the writer thread writes the chunk in progress every ``FLUSH_S``, so
 a recorder killed by SIGKILL leaves all but its last ~second in a file without summary, which
 ``v2i replay`` reads (and says it was not closed); a write that fails (a full disk) stops the
 recording, the file cut back to its last whole chunk (exit 1). The signal handlers are set before
@@ -60,7 +60,7 @@ class Recorder:
 
     def __init__(self, endpoints: list[tuple[str, str]], out: str | Path, time_from: str | None = "",
                  sync_rate_hz: float = 10.0, metadata: dict[str, dict[str, str]] | None = None):
-        from telemetry.mcap_writer import RunWriter
+        from v2i.telemetry.mcap_writer import RunWriter
 
         if not endpoints:
             raise ValueError("v2i record needs at least one --connect endpoint")

@@ -6,7 +6,7 @@ Design: what a replayed OBU must see to behave as the recorded one did.
   scenario start, MCAP metadata ``run.start_ns``, else the first replayed sample's log time).
   The replay maps it to ``T0`` (the new OBU's ``--start-at-ns``; standalone: now + ``--lead``)
   and moves every clock by ``shift = T0 - L0``, rounded to a whole millisecond
-  (``telemetry.time_shift``): a sample logged at ``l`` is published at ``T0 + (l - L0) / speed``,
+  (``v2i.telemetry.time_shift``): a sample logged at ``l`` is published at ``T0 + (l - L0) / speed``,
   and each stamp it carries (``capture_time_ns``, ``publish_time_ns``, ... in the RSU's clock)
   moves by ``shift`` (decoded and encoded with ``schemas.codec``; a CPM / SDSM through
   ``schemas.list_wire``, exact because the shift is whole ms). The fresh OBU simulates its own
@@ -34,7 +34,7 @@ Design: what a replayed OBU must see to behave as the recorded one did.
   ``--pki`` (or ``--security off``); ``--score`` starts it so. (An envelope that does not decode
   is published as recorded, like any sample that does not decode.)
 - **What it says.** A readable summary on stderr (published, lateness, RSU clocks; ``--json`` for
-  the numbers). A recording that was not closed (``telemetry.mcap_reader``: its recorder killed,
+  the numbers). A recording that was not closed (``v2i.telemetry.mcap_reader``: its recorder killed,
   its disk full) is replayed as far as it was written, with a line saying so.
 - **Scoring a ``v2i record`` file** (``--score``): it carries no run metadata, so the scenario and
   its start come from ``--scenario`` and ``--start-at-ns`` (``evaluation.recorded_run``).
@@ -64,7 +64,7 @@ class Replayer:
     def __init__(self, recording, side: str | None = None, pattern: str = "v2x/rsu/**", speed: float = 1.0,
                  recorded_start_ns: int | None = None):
         """``recorded_start_ns``: L0, the recorded run's start (default: its run metadata's, if any)."""
-        from telemetry.time_shift import RsuClockTrack
+        from v2i.telemetry.time_shift import RsuClockTrack
 
         if not speed > 0:
             raise ValueError(f"--speed must be > 0, got {speed:g}")
@@ -96,7 +96,7 @@ class Replayer:
 
     def align(self, t0_ns: int) -> int:
         """Fix the mapping L0 -> ``t0_ns`` (moved to a whole ms of shift); returns the T0 used."""
-        from telemetry.time_shift import round_shift_ns
+        from v2i.telemetry.time_shift import round_shift_ns
 
         self.l0_ns = self.reference_ns()
         self.t0_ns = self.l0_ns + round_shift_ns(t0_ns - self.l0_ns)
@@ -132,7 +132,7 @@ class Replayer:
 
     def play(self, session, stop: threading.Event) -> None:
         """Publish every selected sample at its time (``align`` first); returns at the end or on ``stop``."""
-        from telemetry.time_shift import shift_payload
+        from v2i.telemetry.time_shift import shift_payload
 
         publishers = {}
         for sample in self.recording.samples(self.side, self.pattern):
@@ -153,7 +153,7 @@ class Replayer:
     def _shifted(self, sample, due_ns: int, shift_payload) -> bytes:
         from schemas.codec import CodecError
         from schemas.keys import rsu_id_or_none
-        from telemetry.time_shift import round_shift_ns
+        from v2i.telemetry.time_shift import round_shift_ns
 
         shift_ns = (self.t0_ns - self.l0_ns) if self.speed == 1.0 else round_shift_ns(due_ns - sample.log_time_ns)
         try:
@@ -257,7 +257,7 @@ def say_if_not_closed(recording) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from v2i.runtime.process import stop_on_signals
-    from telemetry.mcap_reader import Recording
+    from v2i.telemetry.mcap_reader import Recording
 
     if not Path(args.recording).is_file():
         raise ValueError(f"{args.recording}: no such file")

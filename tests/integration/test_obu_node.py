@@ -132,7 +132,7 @@ def test_obu_rejects_garbage_keeps_publishing_and_syncs_with_a_direct_rsu():
         assert abs(offset - 250_000_000) < 5_000_000  # direct loopback: error well under 5 ms
         fused = wait_for(outputs, lambda o: o.mode == "inter", 10.0)
         assert fused.cycle_time_ns >= start_ns
-        # per-stage latency (telemetry.latency) in the metrics: the RSU's 250 ms clock offset is taken out
+        # per-stage latency (v2i.telemetry.latency) in the metrics: the RSU's 250 ms clock offset is taken out
         m = wait_for(metrics, lambda m: {"rsu_to_obu", "queue", "decode", "ingest", "fuse", "publish"} <= set(m.latency_ms),
                      10.0)
         for stage, q in m.latency_ms.items():

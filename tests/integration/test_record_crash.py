@@ -20,7 +20,7 @@ import pytest
 from schemas.codec import decode, encode
 from schemas.messages import ObjectList, ObjectListHeader
 from v2i.runtime.transport import free_tcp_endpoint, open_session
-from telemetry.mcap_reader import Recording, RecordingError
+from v2i.telemetry.mcap_reader import Recording, RecordingError
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 

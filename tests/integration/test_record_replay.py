@@ -10,8 +10,8 @@ import pytest
 from evaluation.demo import Demo
 from evaluation.replay_demo import ReplayDemo
 from evaluation.spec import RunSpec
-from telemetry.mcap_reader import Recording
-from telemetry.mcap_writer import RunWriter
+from v2i.telemetry.mcap_reader import Recording
+from v2i.telemetry.mcap_writer import RunWriter
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 

@@ -1,4 +1,4 @@
-"""telemetry.latency.StageLatency: quantiles, histogram, thread safety, invalid inputs."""
+"""v2i.telemetry.latency.StageLatency: quantiles, histogram, thread safety, invalid inputs."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import threading
 import numpy as np
 import pytest
 
-from telemetry.latency import BUCKETS_S, MAX_STAGES, RING_SIZE, TOO_MANY_STAGES, StageLatency
+from v2i.telemetry.latency import BUCKETS_S, MAX_STAGES, RING_SIZE, TOO_MANY_STAGES, StageLatency
 
 
 def test_buckets_are_log_spaced_from_100_us_to_10_s():
@@ -194,7 +194,7 @@ def test_bad_latency_on_the_wire_is_a_codec_error():
 
 
 def test_periodic_summary_recomputes_once_per_period():
-    from telemetry.latency import PeriodicSummary
+    from v2i.telemetry.latency import PeriodicSummary
 
     latency = StageLatency()
     latency.observe("fuse", 1e-3)

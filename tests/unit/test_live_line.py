@@ -1,4 +1,4 @@
-"""telemetry.live_line: the demo's compact line (format, tty redraw with log lines above it, plain
+"""v2i.telemetry.live_line: the demo's compact line (format, tty redraw with log lines above it, plain
 lines elsewhere) and the monitor's dashboard drawing every key of a snapshot."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import time
 from rich.console import Console
 
 from schemas.messages import ObuMetrics, RsuLinkStatus
-from telemetry.live_line import CLEAR, LiveLine, format_line
-from telemetry.snapshot import TelemetryBoard
+from v2i.telemetry.live_line import CLEAR, LiveLine, format_line
+from v2i.telemetry.snapshot import TelemetryBoard
 from v2i.monitor_view import dashboard
 
 T0 = 1_767_225_600 * 10**9

@@ -9,7 +9,7 @@ import json
 from rich.console import Console
 
 from schemas.messages import ObuMetrics, RsuLinkStatus, RsuMetrics
-from telemetry.snapshot import TelemetryBoard
+from v2i.telemetry.snapshot import TelemetryBoard
 from v2i.monitor import LINK_GRACE_S, RSU_GRACE_S, still_waiting
 from v2i.monitor_view import dashboard
 

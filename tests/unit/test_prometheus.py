@@ -1,4 +1,4 @@
-"""``/metrics`` collectors (``telemetry.prometheus_collectors``) against nodes without Zenoh: names,
+"""``/metrics`` collectors (``v2i.telemetry.prometheus_collectors``) against nodes without Zenoh: names,
 labels and values equal to the metrics message they read, histograms cumulative, label values
 capped, and the HTTP exporter's start-up errors."""
 
@@ -22,10 +22,10 @@ from link_emulator.relay import LinkRelay
 from link_emulator.v2v_relay import V2vRelay
 from schemas.messages import ObuMetrics, RsuLinkStatus, RsuMetrics, RsuPerception
 from v2i.sim.clock import SystemClock
-from telemetry.latency import BUCKETS_S, StageLatency
-from telemetry.metrics_cli import MetricsPortError
-from telemetry.prometheus import OTHER, LabelCap, MetricsServer, bucket_pairs, registry_for, serve
-from telemetry.prometheus_collectors import LinkCollector, ObuCollector, RsuCollector, collector_for
+from v2i.telemetry.latency import BUCKETS_S, StageLatency
+from v2i.telemetry.metrics_cli import MetricsPortError
+from v2i.telemetry.prometheus import OTHER, LabelCap, MetricsServer, bucket_pairs, registry_for, serve
+from v2i.telemetry.prometheus_collectors import LinkCollector, ObuCollector, RsuCollector, collector_for
 
 T0 = 1_767_225_600_000_000_000
 EP = ["tcp/127.0.0.1:1"]

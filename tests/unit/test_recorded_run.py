@@ -10,8 +10,8 @@ from evaluation.recorded_run import RUN_METADATA, run_metadata, run_of
 from evaluation.spec import RunSpec
 from schemas.codec import encode
 from schemas.messages import ObjectList, ObjectListHeader
-from telemetry.mcap_reader import Recording
-from telemetry.mcap_writer import RunWriter
+from v2i.telemetry.mcap_reader import Recording
+from v2i.telemetry.mcap_writer import RunWriter
 from v2i.replay import replay_summary
 
 T_NS = 1_795_545_547_592_119_513

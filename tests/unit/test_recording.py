@@ -15,10 +15,10 @@ from schemas import list_wire
 from schemas.codec import decode, encode
 from schemas.messages import (SCHEMA_VERSION, FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics, PredictedPath,
                               PredictionList, TimeReply)
-from telemetry import mcap_channels as mc
-from telemetry.mcap_reader import Recording, RecordingError, key_matches
-from telemetry.mcap_writer import RunWriter
-from telemetry.time_shift import Exchange, RsuClockTrack, round_shift_ns, shift_message, shift_payload
+from v2i.telemetry import mcap_channels as mc
+from v2i.telemetry.mcap_reader import Recording, RecordingError, key_matches
+from v2i.telemetry.mcap_writer import RunWriter
+from v2i.telemetry.time_shift import Exchange, RsuClockTrack, round_shift_ns, shift_message, shift_payload
 
 T_NS = 1_795_545_547_592_119_513
 OBJ = {"id": 7, "x": 10.0, "y": -3.0, "length": 4.5, "width": 1.8, "yaw": 0.5}

@@ -13,9 +13,9 @@ import pytest
 
 from schemas.codec import encode
 from schemas.messages import ObjectList, ObjectListHeader
-from telemetry import mcap_writer
-from telemetry.mcap_reader import Recording, RecordingError
-from telemetry.mcap_writer import RunWriter
+from v2i.telemetry import mcap_writer
+from v2i.telemetry.mcap_reader import Recording, RecordingError
+from v2i.telemetry.mcap_writer import RunWriter
 from v2i.record import _signals_deferred
 
 T_NS = 1_795_545_547_592_119_513

@@ -13,10 +13,10 @@ from schemas.codec import decode, encode
 from schemas.messages import ObjectList, ObjectListHeader, TimeReply
 from v2i.security.envelope import PREFIX, Signer, unwrap
 from v2i.security.site import memory_site
-from telemetry import mcap_channels as mc
-from telemetry.mcap_reader import Recording
-from telemetry.mcap_writer import RunWriter
-from telemetry.time_shift import shift_message, shift_payload
+from v2i.telemetry import mcap_channels as mc
+from v2i.telemetry.mcap_reader import Recording
+from v2i.telemetry.mcap_writer import RunWriter
+from v2i.telemetry.time_shift import shift_message, shift_payload
 from v2i.replay import Replayer
 
 T_NS = 1_795_545_547_592_119_513

@@ -1,4 +1,4 @@
-"""telemetry.snapshot / windowed / link_view: ratios from cumulative counters, mode shares,
+"""v2i.telemetry.snapshot / windowed / link_view: ratios from cumulative counters, mode shares,
 impairments in force, caps and hostile payloads."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import pytest
 
 from schemas.codec import encode
 from schemas.messages import ObuMetrics, RsuLinkStatus, RsuMetrics
-from telemetry.snapshot import TelemetryBoard
-from telemetry.windowed import WindowedCounters, shares
+from v2i.telemetry.snapshot import TelemetryBoard
+from v2i.telemetry.windowed import WindowedCounters, shares
 
 S = 1_000_000_000
 T0 = 1_767_225_600 * S  # message stamps must be after 2000

@@ -1,4 +1,4 @@
-"""Scrape-time collectors of the services' ``v2i_*`` series (``telemetry.prometheus`` serves them).
+"""Scrape-time collectors of the services' ``v2i_*`` series (``v2i.telemetry.prometheus`` serves them).
 
 Each collector reads, once per scrape, the node's latest published metrics object (one
 attribute read: the node assigns it atomically) and its ``latency`` (``StageLatency``):
@@ -22,7 +22,7 @@ from typing import Any
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, SummaryMetricFamily
 from prometheus_client.registry import Collector
 
-from telemetry.prometheus import MAX_LABEL_VALUES, OTHER, LabelCap, stage_histogram, stage_histograms
+from v2i.telemetry.prometheus import MAX_LABEL_VALUES, OTHER, LabelCap, stage_histogram, stage_histograms
 
 RSU_TO_OBU = "rsu_to_obu"
 DIRECTIONS = ("uplink", "downlink", "v2v")
@@ -80,7 +80,7 @@ class ObuCollector(Collector):
         if metrics is not None:
             yield from self._counts(metrics, ids)
             yield from self._rsus(metrics, ids)
-        yield stage_histograms("v2i_obu_stage_seconds", "OBU pipeline stage durations (telemetry.latency)",
+        yield stage_histograms("v2i_obu_stage_seconds", "OBU pipeline stage durations (v2i.telemetry.latency)",
                                ids, latency, self._cap("v2i_obu_stage_seconds"))
         yield stage_histogram("v2i_obu_rsu_delay_seconds", "one-way delay, RSU publish stamp -> OBU receive "
                               "(OBU time, through the clock estimate; all RSUs)", ids, latency, RSU_TO_OBU)
@@ -164,7 +164,7 @@ class RsuCollector(Collector):
             if m.perception is not None:
                 yield from self._perception(m.perception, ids)
         latency = getattr(self.node, "latency", None)
-        yield stage_histograms("v2i_rsu_stage_seconds", "RSU pipeline stage durations (telemetry.latency)", ids,
+        yield stage_histograms("v2i_rsu_stage_seconds", "RSU pipeline stage durations (v2i.telemetry.latency)", ids,
                                latency, self._cap("stage"))
 
     @staticmethod

@@ -1,10 +1,10 @@
 """Prometheus ``/metrics`` of a service process (``--metrics-port``), thin I/O over ``prometheus_client``.
 
 Each service builds one ``CollectorRegistry`` holding a collector of its own
-(``telemetry.prometheus_collectors``) and the process collector (CPU seconds, resident
+(``v2i.telemetry.prometheus_collectors``) and the process collector (CPU seconds, resident
 memory, open file descriptors). The collectors hold no counters: at scrape time they read
 what the node last published (``node.last_metrics``, the relay's ``node.last_stats``) and its
-``node.latency`` (``telemetry.latency.StageLatency``), so a scrape shows exactly the numbers of
+``node.latency`` (``v2i.telemetry.latency.StageLatency``), so a scrape shows exactly the numbers of
 the metrics messages that ``v2i demo`` scores, never a second count that could drift from them.
 
 Label values come from validated ids and bounded reason strings; ``LabelCap`` also bounds how
@@ -25,8 +25,8 @@ from prometheus_client import CollectorRegistry, ProcessCollector, start_http_se
 from prometheus_client.core import HistogramMetricFamily
 from prometheus_client.utils import floatToGoString
 
-from telemetry.latency import BUCKETS_S
-from telemetry.metrics_cli import DEFAULT_ADDRESS, MetricsPortError
+from v2i.telemetry.latency import BUCKETS_S
+from v2i.telemetry.metrics_cli import DEFAULT_ADDRESS, MetricsPortError
 
 MAX_LABEL_VALUES = 32  # distinct values per label of a family; later ones are summed under OTHER
 MAX_LABEL_CHARS = 64

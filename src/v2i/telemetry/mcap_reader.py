@@ -6,10 +6,10 @@ anything wrong with it is a ``RecordingError`` (a ``ValueError``) naming the fil
 
 A recording that was not closed (the recorder killed by SIGKILL, its disk full, its summary cut
 short) has no usable summary: it is read from the start up to its last whole record
-(``telemetry.mcap_prefix``), ``closed`` is False and ``problem`` says what was found. Its samples
+(``v2i.telemetry.mcap_prefix``), ``closed`` is False and ``problem`` says what was found. Its samples
 are then gathered and sorted by log time at each pass (no index to merge them by).
 
-Signed samples (``telemetry.mcap_channels``: channel metadata ``signed``) keep their envelope in
+Signed samples (``v2i.telemetry.mcap_channels``: channel metadata ``signed``) keep their envelope in
 ``Sample.payload``; ``Sample.content`` is the message inside, and the time exchanges are read
 from it (unchecked: a recording is evidence, not a trust decision).
 """
@@ -30,9 +30,9 @@ from schemas.codec import CodecError, decode
 from schemas.messages import TimeReply
 from v2i.security.envelope import unwrap
 
-from telemetry.mcap_channels import models_by_type
-from telemetry.mcap_prefix import MAGIC, PrefixReader
-from telemetry.time_shift import Exchange
+from v2i.telemetry.mcap_channels import models_by_type
+from v2i.telemetry.mcap_prefix import MAGIC, PrefixReader
+from v2i.telemetry.time_shift import Exchange
 
 TIME_REPLY = TimeReply.TYPE
 MAX_CHUNK_BYTES = 64 << 20  # v2i record writes chunks of ~1 MB
@@ -162,7 +162,7 @@ class Recording:
 
     @contextmanager
     def _prefix(self) -> Iterator[PrefixReader]:
-        """A prefix reader of the file (``telemetry.mcap_prefix``); failures as in ``_reader``."""
+        """A prefix reader of the file (``v2i.telemetry.mcap_prefix``); failures as in ``_reader``."""
         with self._named_errors(), open(self.path, "rb") as f:
             yield PrefixReader(f, MAX_CHUNK_BYTES)
 

@@ -5,7 +5,7 @@ second kind on the same key gets ``/<side>/<key>~<kind label>``, e.g. ``~signed-
 with the channel metadata ``side``, ``key``, ``kind`` and ``signed`` (``true`` / ``false``) that
 ``v2i replay`` reads; a signed sample is written as received, envelope included, and its derived
 message is made from the payload inside; the kinds, encodings and derived channels are described in
-``telemetry.mcap_channels``. A message's ``log_time`` is its receive time and ``publish_time``
+``v2i.telemetry.mcap_channels``. A message's ``log_time`` is its receive time and ``publish_time``
 the sender's publish stamp where the message has one (else the receive time), both ns.
 
 Bounded: a payload over ``derive_max_bytes``, or one that does not decode, is still written raw,
@@ -14,7 +14,7 @@ but no derived message is made; both are counted in ``skipped`` by reason. The f
 is a valid MCAP. Not thread-safe: one thread writes (``v2i.record`` has a queue in front).
 
 Crash-safe: whatever stops it, the file is a complete MCAP or a valid MCAP *prefix* (whole
-records, no summary), which ``telemetry.mcap_reader`` reads back (``Recording.closed`` False).
+records, no summary), which ``v2i.telemetry.mcap_reader`` reads back (``Recording.closed`` False).
 The mcap ``Writer`` writes through ``_FileSink``: unbuffered (``os.write`` until every byte is
 out, so a process killed by SIGKILL leaves in the file all that was written, and ``tell()`` is
 the count of bytes really written), its end after each whole call remembered (``commit``). A
@@ -38,7 +38,7 @@ from schemas.codec import CodecError, decode
 from schemas.messages import Message
 from v2i.security.envelope import unwrap
 
-from telemetry import mcap_channels as mc
+from v2i.telemetry import mcap_channels as mc
 
 DERIVE_MAX_BYTES = 256 * 1024  # larger payloads are recorded raw only
 CHUNK_BYTES = 1 << 20

@@ -1,6 +1,6 @@
 """``--metrics-port`` / ``--metrics-address`` of the services, and the node wrapper that serves them.
 
-Kept apart from ``telemetry.prometheus`` so that parsing a service's options (``v2i obu --help``)
+Kept apart from ``v2i.telemetry.prometheus`` so that parsing a service's options (``v2i obu --help``)
 does not import ``prometheus_client``; the exporter is imported only when a port is given.
 """
 
@@ -56,8 +56,8 @@ def metrics_server(node: Any, service: str, args: argparse.Namespace) -> Any:
     port = getattr(args, "metrics_port", 0)
     if not port:
         return None
-    from telemetry.prometheus import serve
-    from telemetry.prometheus_collectors import collector_for
+    from v2i.telemetry.prometheus import serve
+    from v2i.telemetry.prometheus_collectors import collector_for
 
     return serve(collector_for(service, node), port, getattr(args, "metrics_address", DEFAULT_ADDRESS))
 

@@ -1,7 +1,7 @@
 """Reading an MCAP file that was not closed (``v2i record`` killed, or its disk full): its records
 from the start up to the last whole one.
 
-``telemetry.mcap_writer`` leaves such a file a valid MCAP *prefix*: the magic, the header, whole
+``v2i.telemetry.mcap_writer`` leaves such a file a valid MCAP *prefix*: the magic, the header, whole
 records, and at most one record cut short at the end (the process was killed while writing it).
 The mcap library reads a file without a summary only with its linear reader, which cannot tell
 a record cut short from a damaged one; this scan can, from the file's size: a record that runs

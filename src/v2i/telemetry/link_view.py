@@ -17,7 +17,7 @@ import math
 import re
 from typing import Any
 
-from telemetry.windowed import WindowedCounters, ratio
+from v2i.telemetry.windowed import WindowedCounters, ratio
 
 DIRECTION_KEYS = ("downlink", "uplink", "v2v")
 MAX_IMPAIRMENTS = 16  # in force at once, per link (the emulator repeats its latest 16 outcomes)
@@ -79,7 +79,7 @@ def direction_view(stats: Any) -> dict[str, Any] | None:
 
 
 def latency_view(value: Any, limit: int = 32) -> dict[str, dict[str, float | int | None]] | None:
-    """The stats' ``latency_ms`` (stage -> count, p50, p95, p99 in ms; ``telemetry.latency``), or None."""
+    """The stats' ``latency_ms`` (stage -> count, p50, p95, p99 in ms; ``v2i.telemetry.latency``), or None."""
     if not isinstance(value, dict) or not value:
         return None
     return {stage[:32]: {"count": count(q.get("count")), **{k: number(q.get(k)) for k in ("p50", "p95", "p99")}}
@@ -154,7 +154,7 @@ class LinkView:
                 for i in self._impairments if i["from_ns"] <= t_ns < i["until_ns"]]
 
     def snapshot(self, now_ns: int) -> dict[str, Any]:
-        """The link's JSON-ready view (see ``telemetry.snapshot`` for the keys)."""
+        """The link's JSON-ready view (see ``v2i.telemetry.snapshot`` for the keys)."""
         span_s, delta = self._window.delta()
         recent = {d: ratio(delta.get(f"{d}_dropped", 0), delta.get(f"{d}_received", 0))
                   for d in self.latest.get("directions", {})}

@@ -6,9 +6,9 @@
 - ``ObuMetrics`` on ``v2x/obu/{vid}/metrics`` (every cycle): running totals of cycles, output and
   RSU deadline misses, modes, rejected inputs, and per RSU the link and clock view;
 - ``RsuMetrics`` on ``v2x/rsu/{id}/metrics``: lists published, frames skipped, refusals;
-- the link emulators' stats JSON on ``v2x/link/{id}/stats`` (``telemetry.link_view``).
+- the link emulators' stats JSON on ``v2x/link/{id}/stats`` (``v2i.telemetry.link_view``).
 
-It keeps the latest of each and, from successive totals (``telemetry.windowed``), the ratios over
+It keeps the latest of each and, from successive totals (``v2i.telemetry.windowed``), the ratios over
 the last ``window_s``. Memory is bounded whatever arrives: at most ``max_nodes`` vehicles, RSUs
 and links each (later ones are counted in ``intake.ignored``), each message's maps bounded by its
 schema; payloads that do not decode are counted in ``intake.undecodable``, never raised.
@@ -54,8 +54,8 @@ from schemas.codec import CodecError, decode
 from schemas.keys import ID_PATTERN
 from schemas.messages import ObuMetrics, RsuLinkStatus, RsuMetrics
 
-from telemetry.link_view import LinkView
-from telemetry.windowed import WindowedCounters, ratio, shares
+from v2i.telemetry.link_view import LinkView
+from v2i.telemetry.windowed import WindowedCounters, ratio, shares
 
 WINDOW_S = 10.0
 MAX_NODES = 64  # vehicles, RSUs and links tracked, each

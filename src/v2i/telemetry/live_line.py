@@ -23,7 +23,7 @@ from typing import Any, TextIO
 
 from schemas.messages import ObuMetrics
 
-from telemetry.snapshot import TelemetryBoard
+from v2i.telemetry.snapshot import TelemetryBoard
 
 REFRESH_S = 0.5
 PLAIN_EVERY_S = 5.0
