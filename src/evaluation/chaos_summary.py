@@ -11,7 +11,7 @@ import numpy as np
 from obu_service.fusion_mode import TRACKING_MODES
 
 from evaluation.chaos import ChaosEvent, ChaosTimeline
-from evaluation.metrics import mode_share
+from v2i.scoring.metrics import mode_share
 from evaluation.spec import RunRecord
 
 MODE_RUNS_SHOWN = 6  # mode changes printed per chaos event

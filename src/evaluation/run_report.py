@@ -32,7 +32,7 @@ from v2i.sim.clock import SystemClock
 from v2i.sim.world import World
 
 from evaluation.chaos import ChaosEvent, ChaosTimeline
-from evaluation.metrics import TargetSeries
+from v2i.scoring.metrics import TargetSeries
 from evaluation.spec import RunRecord, RunSpec
 
 BEV_STEP_S = 0.1  # truth paths sampled every 0.1 s

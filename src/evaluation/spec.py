@@ -16,8 +16,8 @@ from rsu_service.config import RsuConfig
 from v2i.sim.clock import SystemClock
 from v2i.sim.world import World
 
-from evaluation.link_series import LinkSeries
-from evaluation.metrics import (CycleFrame, CycleLog, DetectionTally, DisplacementTally, TargetTally, clock_errors,
+from v2i.scoring.link_series import LinkSeries
+from v2i.scoring.metrics import (CycleFrame, CycleLog, DetectionTally, DisplacementTally, TargetTally, clock_errors,
                       deadline_miss_ratio, mode_share)
 
 # Offline runs start at a fixed epoch (2026-01-01T00:00:00Z) so that reports are reproducible.

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from evaluation.detection_metrics import (
+from v2i.scoring.detection_metrics import (
     CenterDistanceAp, MotTally, _confidence_order, _frame_flags, _greedy_match, _greedy_matches, average_precision,
     bin_label, center_distance_ap, frame_flags_reference, mot_metrics, nees, nees_values,
 )

@@ -172,7 +172,7 @@ def test_the_lidar_frames_truth_is_the_cycles_truth_and_a_stale_one_is_not_taken
     """RunRecord.add_output(..., truth=lidar.last_truth): the truth the LiDAR derived at the
     cycle's capture equals, array for array, the one CycleFrame.of derives itself; the scores of a
     record fed it equal those of one that is not; a truth of another time is not used."""
-    from evaluation.metrics import CycleFrame
+    from v2i.scoring.metrics import CycleFrame
     from obu_service.source import SimulatedVehicle
 
     world = World(load_scenario("red-light-runner"))
@@ -197,7 +197,7 @@ def test_the_two_target_tallies_score_a_shared_frame_as_their_own_frames():
     """RunRecord's tallies (all sources, vehicle only) share each CycleFrame and its pair numbers
     (CycleFrame.pair_values): scores and series equal those of tallies each given a fresh frame,
     and a pair's numbers equal the ones computed from the arrays (IoU: bev_iou_matrix)."""
-    from evaluation.metrics import CycleFrame, TargetTally
+    from v2i.scoring.metrics import CycleFrame, TargetTally
     from v2i.fusion.geometry import bev_iou_matrix, bev_iou_pairs
 
     def box(objs, r):

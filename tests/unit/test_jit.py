@@ -50,10 +50,10 @@ def test_load_kernels_loads_the_simulator_and_every_kernel_imported_before():
     from v2i.core.jit import KERNEL_MODULES
 
     assert "v2i.sim.world" in KERNEL_MODULES
-    importlib.import_module("evaluation.detection_metrics")
+    importlib.import_module("v2i.scoring.detection_metrics")
     load_kernels()
     loaded = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all if k._compiled is not None}
-    assert {"v2i.sim.world._states", "evaluation.detection_metrics._frame_flags"} <= loaded
+    assert {"v2i.sim.world._states", "v2i.scoring.detection_metrics._frame_flags"} <= loaded
 
 
 def test_kernel_modules_name_every_module_a_service_runs_kernels_of():

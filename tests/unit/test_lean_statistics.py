@@ -5,7 +5,7 @@ import numpy as np
 import scipy.stats as st
 from scipy.special import ndtr, ndtri
 
-from evaluation.detection_metrics import chi2_ppf
+from v2i.scoring.detection_metrics import chi2_ppf
 from link_emulator.distributions import NormalJitter, _normal_pdf
 
 

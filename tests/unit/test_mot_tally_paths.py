@@ -5,7 +5,7 @@ from collections import Counter
 
 import numpy as np
 
-from evaluation.detection_metrics import MotTally, _distance_matrix, _id_list
+from v2i.scoring.detection_metrics import MotTally, _distance_matrix, _id_list
 from v2i.fusion.association import center_distance_cost
 from v2i.fusion.lsap import linear_sum_assignment
 

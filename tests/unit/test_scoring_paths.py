@@ -1,9 +1,9 @@
-"""The scoring's shorter expressions (evaluation.metrics) against the numpy expressions they replace,
+"""The scoring's shorter expressions (v2i.scoring.metrics) against the numpy expressions they replace,
 bit for bit: ranges from the ego, a box's BEV row, a pair's squared error."""
 
 import numpy as np
 
-from evaluation.metrics import _bev_row, _ranges_m
+from v2i.scoring.metrics import _bev_row, _ranges_m
 from v2i.core.objects import ObjectArray
 
 
@@ -76,8 +76,8 @@ class _ReferenceTargetTally:
         self.rows: list[tuple] = []
 
     def add(self, frame) -> None:
-        from evaluation.detection_metrics import nees_values
-        from evaluation.metrics import _match_target_cost
+        from v2i.scoring.detection_metrics import nees_values
+        from v2i.scoring.metrics import _match_target_cost
         from v2i.fusion.geometry import bev_iou_matrix
 
         truth, out = frame.truth, frame.out
@@ -98,8 +98,8 @@ class _ReferenceTargetTally:
                           float(np.linalg.norm(truth.xy[i])), int(out.ids[k])))
 
     def score(self):
-        from evaluation.detection_metrics import nees_summary
-        from evaluation.metrics import TargetScore
+        from v2i.scoring.detection_metrics import nees_summary
+        from v2i.scoring.metrics import TargetScore
 
         order = np.argsort(np.array([r[0] for r in self.rows], dtype=np.int64), kind="stable")
         col = {name: np.array([r[j] for r in self.rows], dtype=float)[order]
@@ -120,7 +120,7 @@ class _ReferenceTargetTally:
 def _frames(rng: np.random.Generator, count: int) -> list:
     """CycleFrames of 1-6 truths (the target id 7 among them most of the time) and noisy outputs, in a
     shuffled cycle order, with random position covariances."""
-    from evaluation.metrics import CycleFrame
+    from v2i.scoring.metrics import CycleFrame
 
     frames = []
     for c in rng.permutation(count):
@@ -147,7 +147,7 @@ def _frames(rng: np.random.Generator, count: int) -> list:
 def test_target_tally_scores_as_each_pair_scored_alone(monkeypatch):
     """IoU and NEES computed in batches of pending cycles (``PENDING``, or at ``score``) give the scores
     of the previous per-pair computation, bit for bit (fails with the batches' order shuffled)."""
-    from evaluation.metrics import TargetTally
+    from v2i.scoring.metrics import TargetTally
 
     rng = np.random.default_rng(7)
     for pending in (64, 3, 1):

@@ -3,8 +3,8 @@ and every tally takes its rows and columns: the same bits as each tally's own ``
 
 import numpy as np
 
-from evaluation.detection_metrics import CenterDistanceAp, MotTally, _distance_matrix, _lsa_nan
-from evaluation.metrics import MAX_RANGE_M, RANGE_BINS_M, CycleFrame, DetectionTally, TargetTally, _match_target_xy
+from v2i.scoring.detection_metrics import CenterDistanceAp, MotTally, _distance_matrix, _lsa_nan
+from v2i.scoring.metrics import MAX_RANGE_M, RANGE_BINS_M, CycleFrame, DetectionTally, TargetTally, _match_target_xy
 from v2i.fusion.association import center_distance_cost
 from v2i.core.objects import ObjectArray
 

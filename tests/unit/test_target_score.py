@@ -4,7 +4,7 @@ the target is scored in cycle order, whatever order the outputs arrive in."""
 import numpy as np
 import pytest
 
-from evaluation.metrics import MATCH_GATE_M, _match_target_xy, score_target
+from v2i.scoring.metrics import MATCH_GATE_M, _match_target_xy, score_target
 from v2i.fusion.association import assign, center_distance_cost
 from v2i.core.frames import Pose2D
 from v2i.core.objects import ObjectArray

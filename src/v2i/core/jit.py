@@ -11,7 +11,7 @@ numpy's fixed cost per call was the whole cost, so gating, association's bookkee
 updates, covariance intersection and the matched tracks' bookkeeping are loops over the pairs
 (each several times faster than its numpy form on the recorded calls). So are the clock fit of
 ``v2i.clock.clock_envelope`` (~26 against ~690 us per fit), ``v2i.sim.occlusion``'s line of sight,
-``v2i.sim.world``'s body states, ``evaluation.detection_metrics``' matches per frame, ``v2i.fusion.geometry``'s
+``v2i.sim.world``'s body states, ``v2i.scoring.detection_metrics``' matches per frame, ``v2i.fusion.geometry``'s
 IoU, ``v2i.fusion.lane_match`` and ``schemas.bit_rows``. The commits that removed the others (scipy's
 own assignment solver, the codec's unpacking, one-line checks) give their measurements.
 
@@ -114,7 +114,7 @@ def kernel(*argument_types) -> Callable[[Callable], Kernel]:
 # offline evaluator has imported them before it calls load_kernels, which loads those too
 KERNEL_MODULES = ("v2i.fusion.tracking", "v2i.fusion.wire", "v2i.core.frames", "v2i.fusion.geometry", "v2i.fusion.lane_match",
                   "v2i.sim.occlusion", "v2i.sim.world", "obu_service.admission", "v2i.clock.clock_envelope", "schemas.bit_rows")
-EVALUATION_KERNEL_MODULES = ("evaluation.detection_metrics",)
+EVALUATION_KERNEL_MODULES = ("v2i.scoring.detection_metrics",)
 
 
 def load_kernels(extra_modules: tuple[str, ...] = ()) -> float:

@@ -396,7 +396,7 @@ def load_calibration(path: str | Path) -> Calibration:
 
 def bundled_calibration_dir() -> Path:
     """The folder of the shipped calibrations, ``sim/calibrations``."""
-    return Path(str(resources.files("sim") / "calibrations"))
+    return Path(str(resources.files("v2i.sim") / "calibrations"))
 
 
 def calibration_path(scenario: str | Path) -> Path | None:

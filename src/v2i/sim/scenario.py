@@ -401,9 +401,9 @@ class Scenario(_Frozen):
 
 def bundled_scenarios() -> list[str]:
     """Names of the scenarios shipped in ``sim/scenarios/*.yaml``, sorted."""
-    return bundled_names("sim", "scenarios")
+    return bundled_names("v2i.sim", "scenarios")
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """A bundled scenario by name (e.g. ``"red-light-runner"``) or a YAML file by path."""
-    return load_bundled_or_file(Scenario, name_or_path, "sim", "scenarios", "scenario", ScenarioError)
+    return load_bundled_or_file(Scenario, name_or_path, "v2i.sim", "scenarios", "scenario", ScenarioError)

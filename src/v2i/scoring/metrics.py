@@ -26,7 +26,7 @@ from schemas.messages import FusedObjectList, PredictionList
 from obu_service.fusion_mode import MODES
 from obu_service.planning import path_array
 
-from evaluation.detection_metrics import CenterDistanceAp, MotTally, nees_summary, nees_values
+from v2i.scoring.detection_metrics import CenterDistanceAp, MotTally, nees_summary, nees_values
 
 MAX_RANGE_M = 80.0  # detection metrics cover actors within this distance of the ego
 MATCH_GATE_M = 4.0  # an output object within 4 m of a true actor (nuScenes' widest threshold) is its detection
