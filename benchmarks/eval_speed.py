@@ -28,8 +28,8 @@ import sys
 import time
 
 _T0 = time.perf_counter()
-from evaluation.chaos import with_chaos
-from evaluation.runner import OfflineRun
+from v2i.offline.chaos import with_chaos
+from v2i.offline.runner import OfflineRun
 from v2i.sim import occlusion
 from v2i.sim.scenario import bundled_scenarios
 from v2i.runtime.process import freeze_heap
@@ -55,7 +55,7 @@ STAGES = {
     "OBU on_detections": "obu_service.pipeline:ObuPipeline.on_detections",
     "OBU fuse": "obu_service.pipeline:ObuPipeline.fuse",
     "OBU clock estimate": "v2i.clock.clock_sync:ClockSync.estimate_at",
-    "scoring outputs": "evaluation.spec:RunRecord.add_output",
+    "scoring outputs": "v2i.offline.spec:RunRecord.add_output",
 }
 
 

@@ -38,7 +38,7 @@ import zenoh
 
 from evaluation.children import READY_TIMEOUT_S
 from evaluation.demo import Demo
-from evaluation.spec import RunSpec
+from v2i.offline.spec import RunSpec
 from schemas import keys
 from schemas.codec import header_of, open_body
 from schemas.messages import ObjectList, ObuMetrics

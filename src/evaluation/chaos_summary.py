@@ -10,9 +10,9 @@ import numpy as np
 
 from obu_service.fusion_mode import TRACKING_MODES
 
-from evaluation.chaos import ChaosEvent, ChaosTimeline
+from v2i.offline.chaos import ChaosEvent, ChaosTimeline
 from v2i.scoring.metrics import mode_share
-from evaluation.spec import RunRecord
+from v2i.offline.spec import RunRecord
 
 MODE_RUNS_SHOWN = 6  # mode changes printed per chaos event
 

@@ -11,7 +11,7 @@ drops), a worker thread decodes and scores each message as it arrives, and no me
 kept, so the orchestrator's memory does not grow with the run. Ctrl-C or any child that
 dies stops everything; only the processes started here are ended, by pid.
 
-A chaos timeline (``v2i chaos run``, ``evaluation.chaos``) is played at scenario time:
+A chaos timeline (``v2i chaos run``, ``v2i.offline.chaos``) is played at scenario time:
 link events go as ``LinkControl`` messages to the emulator's control endpoint (a free port
 given to it as ``--control-listen``), ``kill`` / ``restart`` SIGKILL a child and start it
 again with the same argv (a restarted RSU gets the run's time zero by the same start line once
@@ -43,12 +43,12 @@ from v2i.sim.scenario import load_scenario
 from v2i.sim.world import World
 from v2i.telemetry.live_line import LiveLine
 
-from evaluation.chaos import ChaosEvent, ChaosTimeline
+from v2i.offline.chaos import ChaosEvent, ChaosTimeline
 from evaluation.chaos_summary import PlayedEvent, chaos_summary, outage_summary
 from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
 from evaluation.inbox_scoring import InboxScoring, obu_own_count, startup_summary
 from evaluation.live_security import run_pki, security_argv
-from evaluation.spec import RunRecord, RunSpec, build_report
+from v2i.offline.spec import RunRecord, RunSpec, build_report
 
 LINK_ID = "link1"
 CONTROL_MATCH_S = 3.0  # how long a link control waits for the emulator's control subscriber

@@ -4,7 +4,7 @@ The RSU renders its camera (``--source camera``) at the ego camera's rate, detec
 each frame's boxes + ORB features (``--image-features``); the link emulator relays them; the OBU
 (``--fusion roif``) renders its own camera, pairs, fuses, tracks and publishes ``ImageFusedBoxes``
 per frame. The demo keeps those messages (one per ego frame: ``duration x rate`` of them) and,
-after the run, scores them with the offline eval's tally (``evaluation.image_fusion.score_frame``)
+after the run, scores them with the offline eval's tally (``v2i.offline.image_fusion.score_frame``)
 against truth labels it renders itself, so the OBU never sees truth:
 
 - RSU view truth: the RSU camera (with its seeded wind sway, as the RSU renders it) at the
@@ -34,7 +34,7 @@ from schemas.messages import ObuMetrics, RsuMetrics
 from evaluation.children import READY_TIMEOUT_S
 from evaluation.demo import Demo
 from evaluation.inbox_scoring import startup_summary
-from evaluation.image_fusion import FusionTally, score_frame
+from v2i.offline.image_fusion import FusionTally, score_frame
 from evaluation.live_security import security_argv
 
 PAIRED_KEYS = ("frames", "truths", "detection_accuracy", "rsu_only_detection_accuracy", "vehicle_only_detection_accuracy",
@@ -172,7 +172,7 @@ def _percentiles(values: list) -> dict:
 
 def summary(report: dict) -> str:
     """Human lines of a live ROIF report."""
-    from evaluation.image_fusion import summary as offline_summary
+    from v2i.offline.image_fusion import summary as offline_summary
 
     live = report["image_fusion_live"]
     return "\n".join([offline_summary(report),

@@ -13,7 +13,7 @@ from pathlib import Path
 from v2i.security.site import write_site
 from v2i.sim.scenario import Scenario
 
-from evaluation.spec import RunSpec
+from v2i.offline.spec import RunSpec
 
 
 def run_pki(spec: RunSpec, scenario: Scenario, directory: str | Path, now_ns: int) -> Path:

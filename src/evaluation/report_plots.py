@@ -14,7 +14,7 @@ from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 from obu_service.fusion_mode import MODES
 
 from evaluation.run_report import BevVehicle, Span, VehicleTimeline
-from evaluation.spec import first_seen
+from v2i.offline.spec import first_seen
 
 MODE_COLOURS = {"intra": "#2ca02c", "inter": "#1f77b4", "planning": "#ff7f0e", "vehicle-only": "#8c8c8c"}
 SPAN_COLOURS = {"outage": "#d62728", "delay_spike": "#ff7f0e", "loss_burst": "#9467bd", "bandwidth_cap": "#8c564b",

@@ -31,9 +31,9 @@ from v2i.core.frames import base_to_map_points
 from v2i.sim.clock import SystemClock
 from v2i.sim.world import World
 
-from evaluation.chaos import ChaosEvent, ChaosTimeline
+from v2i.offline.chaos import ChaosEvent, ChaosTimeline
 from v2i.scoring.metrics import TargetSeries
-from evaluation.spec import RunRecord, RunSpec
+from v2i.offline.spec import RunRecord, RunSpec
 
 BEV_STEP_S = 0.1  # truth paths sampled every 0.1 s
 

@@ -58,8 +58,8 @@ from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError,
 from evaluation.demo import POLL_S
 from evaluation.inbox_scoring import InboxScoring, obu_own_count, startup_summary
 from evaluation.live_security import run_pki, security_argv
-from evaluation.runner import v2v_config
-from evaluation.spec import RunRecord, RunSpec, site_report
+from v2i.offline.runner import v2v_config
+from v2i.offline.spec import RunRecord, RunSpec, site_report
 
 STOP_WAIT_S = 5.0  # a child still running this long after SIGTERM is killed
 CONNECT_WAIT_S = 3.0  # the watcher must reach every service within this

@@ -20,7 +20,7 @@ exchange sees the radio's delays. Replies are matched and held by ``TimeRequests
 samples, drift); theta = peer clock - own clock. The error left is at most half the delay
 asymmetry of the samples kept (``OffsetEstimate.uncertainty_ns``); vehicles' clocks being
 GNSS-disciplined in a real V2X stack, theta is close to 0 there and the exchange bounds it.
-Measured in the offline runner (``evaluation.runner``, vehicles on one true clock, so the
+Measured in the offline runner (``v2i.offline.runner``, vehicles on one true clock, so the
 estimate *is* the error) and reported per vehicle and peer.
 
 How the receiver uses a peer's list (``PeerIntake.on_list``), screened like an RSU's

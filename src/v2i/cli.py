@@ -75,7 +75,7 @@ def _run_options(p: argparse.ArgumentParser) -> None:
 
 
 def _spec(args: argparse.Namespace):
-    from evaluation.spec import RunSpec
+    from v2i.offline.spec import RunSpec
 
     return RunSpec(
         scenario=args.scenario, profile=args.profile, fusion=args.fusion, compensation=args.compensation,
@@ -96,10 +96,10 @@ def _security(args: argparse.Namespace) -> str | None:
 
 
 def _emit(report: dict, json_path: str | None, summary=None) -> None:
-    """Human summary (stderr when the JSON goes to stdout; default ``evaluation.spec.summary``) and
+    """Human summary (stderr when the JSON goes to stdout; default ``v2i.offline.spec.summary``) and
     the JSON report."""
     if summary is None:
-        from evaluation.spec import summary
+        from v2i.offline.spec import summary
 
     print(summary(report), file=sys.stderr if json_path == "-" else sys.stdout)
     if json_path == "-":
@@ -171,7 +171,7 @@ def _check_folder(path: Path, flag: str) -> None:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from evaluation.runner import OfflineRun
+    from v2i.offline.runner import OfflineRun
 
     if args.fusion == "roif":
         return cmd_eval_roif(args)
@@ -180,10 +180,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         return cmd_tables(args)
     chaos = None
     if args.chaos:
-        from evaluation.chaos import load_chaos
+        from v2i.offline.chaos import load_chaos
 
         chaos = load_chaos(args.chaos)
-    from evaluation.chaos import with_chaos
+    from v2i.offline.chaos import with_chaos
     from v2i.runtime.process import freeze_heap
 
     freeze_heap()  # the start-up's objects: no full collection of them during the run
@@ -206,7 +206,7 @@ def _wrote(paths: list[Path], prog: str) -> None:
 
 def cmd_eval_roif(args: argparse.Namespace) -> int:
     """Image-level fusion (Maqsud's ROIF thesis), offline: the ``image_fusion`` report."""
-    from evaluation.image_fusion import run_image_fusion, summary
+    from v2i.offline.image_fusion import run_image_fusion, summary
     from v2i.sim.scenario import load_scenario
 
     load_scenario(args.scenario)
@@ -220,7 +220,7 @@ def cmd_eval_roif(args: argparse.Namespace) -> int:
 
 
 def cmd_tables(args: argparse.Namespace) -> int:
-    from evaluation.tables import run_tables, seed_tables, to_markdown, write_report
+    from v2i.offline.tables import run_tables, seed_tables, to_markdown, write_report
 
     seeds = list(range(args.seed, args.seed + args.seeds))
     tables = seed_tables(_spec(args))
@@ -308,7 +308,7 @@ def _no_run_report(args: argparse.Namespace) -> None:
 
 
 def cmd_chaos_run(args: argparse.Namespace) -> int:
-    from evaluation.chaos import load_chaos, with_chaos
+    from v2i.offline.chaos import load_chaos, with_chaos
     from evaluation.demo import Demo
     from link_emulator.profile import bundled_profiles
 

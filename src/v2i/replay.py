@@ -37,7 +37,7 @@ Design: what a replayed OBU must see to behave as the recorded one did.
   the numbers). A recording that was not closed (``v2i.telemetry.mcap_reader``: its recorder killed,
   its disk full) is replayed as far as it was written, with a line saying so.
 - **Scoring a ``v2i record`` file** (``--score``): it carries no run metadata, so the scenario and
-  its start come from ``--scenario`` and ``--start-at-ns`` (``evaluation.recorded_run``).
+  its start come from ``--scenario`` and ``--start-at-ns`` (``v2i.offline.recorded_run``).
 - ``--speed`` other than 1 scales the spacing; a sample's stamps then move by (its publish time -
   its log time), so each keeps its recorded age at publication. An OBU runs in real time only at 1.
 """
@@ -219,7 +219,7 @@ _RUN_FLAGS = {"scenario": "scenario", "start_at_ns": "start_ns", "seed": "seed",
 
 
 def given_run(args: argparse.Namespace) -> dict:
-    """The run's values given on the command line (``evaluation.recorded_run.run_of``; None: not given)."""
+    """The run's values given on the command line (``v2i.offline.recorded_run.run_of``; None: not given)."""
     if args.duration is not None and not 0 < args.duration < float("inf"):
         raise ValueError(f"--duration must be > 0, got {args.duration:g}")
     if args.start_at_ns is not None and args.start_at_ns <= 0:

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import pytest
 
-from evaluation.chaos import load_chaos, with_chaos
+from v2i.offline.chaos import load_chaos, with_chaos
 from evaluation.demo import Demo
 from obu_service.fusion_mode import TRACKING_MODES
-from evaluation.spec import RunSpec
+from v2i.offline.spec import RunSpec
 from v2i.cli import build_parser, cmd_chaos_run
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]

@@ -14,7 +14,7 @@ import pytest
 
 from evaluation.demo import Demo, LinkOutage
 from evaluation.run_report import chaos_spans, write_demo_report
-from evaluation.spec import RunSpec, summary
+from v2i.offline.spec import RunSpec, summary
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 

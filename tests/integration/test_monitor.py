@@ -16,9 +16,9 @@ import time
 
 import pytest
 
-from evaluation.chaos import ChaosEvent, ChaosTimeline, DelaySpike
+from v2i.offline.chaos import ChaosEvent, ChaosTimeline, DelaySpike
 from evaluation.demo import Demo
-from evaluation.spec import RunSpec
+from v2i.offline.spec import RunSpec
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 

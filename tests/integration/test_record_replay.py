@@ -9,7 +9,7 @@ import pytest
 
 from evaluation.demo import Demo
 from evaluation.replay_demo import ReplayDemo
-from evaluation.spec import RunSpec
+from v2i.offline.spec import RunSpec
 from v2i.telemetry.mcap_reader import Recording
 from v2i.telemetry.mcap_writer import RunWriter
 

@@ -13,9 +13,9 @@ import os
 
 import pytest
 
-from evaluation.runner import OfflineRun
+from v2i.offline.runner import OfflineRun
 from evaluation.site_demo import SiteDemo, is_site
-from evaluation.spec import RunSpec
+from v2i.offline.spec import RunSpec
 from v2i.sim.scenario import load_scenario
 from v2i.cli import main
 

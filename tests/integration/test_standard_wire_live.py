@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from evaluation.demo import Demo
-from evaluation.spec import RunSpec
+from v2i.offline.spec import RunSpec
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 

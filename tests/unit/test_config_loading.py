@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import BaseModel, Field, ValidationError
 
-from evaluation.chaos import ChaosError, load_chaos
+from v2i.offline.chaos import ChaosError, load_chaos
 from link_emulator.profile import ProfileError, load_profile
 from obu_service.config import ObuConfig
 from rsu_service.config import RsuConfig

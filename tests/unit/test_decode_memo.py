@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from evaluation.decode_memo import DecodeMemo
+from v2i.offline.decode_memo import DecodeMemo
 from schemas.codec import CodecError, MalformedMessage
 
 

@@ -13,8 +13,8 @@ import pytest
 
 from evaluation.demo import Demo
 from evaluation.inbox_scoring import INBOX_MESSAGES
-from evaluation.runner import OfflineRun
-from evaluation.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, build_report
+from v2i.offline.runner import OfflineRun
+from v2i.offline.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, build_report
 from v2i.core.frames import map_to_base
 from v2i.fusion.wire import states_from_objects
 from schemas.codec import decode, encode

@@ -2,8 +2,8 @@
 
 from dataclasses import replace
 
-from evaluation.runner import OfflineRun
-from evaluation.spec import RunSpec
+from v2i.offline.runner import OfflineRun
+from v2i.offline.spec import RunSpec
 from v2i.security.envelope import Signer
 
 SPEC = RunSpec(scenario="red-light-runner", seed=2, duration_s=8.0)

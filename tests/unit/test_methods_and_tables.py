@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from evaluation.tables import dropout_profile, fixed_delay_profile, to_markdown, _stats
+from v2i.offline.tables import dropout_profile, fixed_delay_profile, to_markdown, _stats
 from v2i.core.objects import ObjectArray
 from link_emulator.channel import Channel
 from link_emulator.profile import load_profile

@@ -1,4 +1,4 @@
-"""Which run a recording is of (``evaluation.recorded_run.run_of``): a ``v2i demo --record`` file
+"""Which run a recording is of (``v2i.offline.recorded_run.run_of``): a ``v2i demo --record`` file
 says it, a ``v2i record`` file needs the scenario and start from the command line; and how
 ``v2i replay`` says what it did (readable lines, not a dict)."""
 
@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from evaluation.recorded_run import RUN_METADATA, run_metadata, run_of
-from evaluation.spec import RunSpec
+from v2i.offline.recorded_run import RUN_METADATA, run_metadata, run_of
+from v2i.offline.spec import RunSpec
 from schemas.codec import encode
 from schemas.messages import ObjectList, ObjectListHeader
 from v2i.telemetry.mcap_reader import Recording

@@ -10,7 +10,7 @@ import pytest
 from mcap.reader import make_reader
 
 from evaluation.replay_demo import run_metadata, spec_of
-from evaluation.spec import RunSpec
+from v2i.offline.spec import RunSpec
 from schemas import list_wire
 from schemas.codec import decode, encode
 from schemas.messages import (SCHEMA_VERSION, FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics, PredictedPath,

@@ -148,7 +148,7 @@ def test_too_few_features_gives_no_mapping_and_the_rsu_list():
 
 
 def test_a_frame_without_mapping_is_counted_by_reason():
-    from evaluation.image_fusion import FusionTally, _count_mapping
+    from v2i.offline.image_fusion import FusionTally, _count_mapping
 
     flat = np.full((H, W, 3), 128, np.uint8)
     tally = FusionTally()
@@ -227,7 +227,7 @@ def test_tracker_keeps_ids_through_a_short_miss():
 
 def test_driver_fuses_better_than_the_vehicle_alone():
     """A short run of ``v2i eval --fusion roif``'s driver on roif-intersection (label stand-in detector)."""
-    from evaluation.image_fusion import run_image_fusion
+    from v2i.offline.image_fusion import run_image_fusion
 
     report = run_image_fusion("roif-intersection", seed=3, duration_s=2.0, detector="labels")
     f = report["image_fusion"]
@@ -239,14 +239,14 @@ def test_driver_fuses_better_than_the_vehicle_alone():
 
 
 def test_driver_is_deterministic_for_a_seed():
-    from evaluation.image_fusion import run_image_fusion
+    from v2i.offline.image_fusion import run_image_fusion
 
     runs = [run_image_fusion("roif-intersection", seed=5, duration_s=0.5, detector="labels") for _ in range(2)]
     assert runs[0] == runs[1]
 
 
 def test_driver_needs_an_ego_camera():
-    from evaluation.image_fusion import run_image_fusion
+    from v2i.offline.image_fusion import run_image_fusion
 
     with pytest.raises(ValueError, match="ego_camera"):
         run_image_fusion("red-light-runner", duration_s=0.1, detector="labels")

@@ -8,12 +8,12 @@ import struct
 import numpy as np
 import pytest
 
-from evaluation.chaos import ChaosTimeline, load_chaos, with_chaos
+from v2i.offline.chaos import ChaosTimeline, load_chaos, with_chaos
 from v2i.scoring.link_series import LinkSeries
 from v2i.scoring.metrics import deadline_miss_ratio
 from evaluation.run_report import chaos_spans, missed_cycles_ns, rsu_traces, vehicle_timeline, write_offline_report
-from evaluation.runner import OfflineRun
-from evaluation.spec import RunSpec
+from v2i.offline.runner import OfflineRun
+from v2i.offline.spec import RunSpec
 from schemas.messages import RsuLinkStatus
 from v2i.cli import main
 

@@ -4,8 +4,8 @@ channel, and the target kept under one track id through the RSU hand-over."""
 import numpy as np
 import pytest
 
-from evaluation.runner import OfflineRun
-from evaluation.spec import RunSpec
+from v2i.offline.runner import OfflineRun
+from v2i.offline.spec import RunSpec
 from v2i.sim.scenario import load_scenario
 from v2i.sim.sensors import RsuCamera
 from v2i.sim.world import World

@@ -159,8 +159,8 @@ def test_mutated_messages_raise_only_codec_errors(draw) -> None:
 
 
 def _target(wire: str) -> dict:
-    from evaluation.runner import OfflineRun
-    from evaluation.spec import RunSpec
+    from v2i.offline.runner import OfflineRun
+    from v2i.offline.spec import RunSpec
 
     run = OfflineRun(RunSpec(scenario="red-light-runner", seed=1, wire=wire))
     run.execute()

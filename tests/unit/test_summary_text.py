@@ -1,4 +1,4 @@
-"""The human lines of a report (``evaluation.spec.summary`` for eval and demo, the report PNGs'
+"""The human lines of a report (``v2i.offline.spec.summary`` for eval and demo, the report PNGs'
 titles): a target that was not detected reads "not seen", not "first seen at never"."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import copy
 
 from evaluation.report_plots import title_lines
-from evaluation.spec import summary
+from v2i.offline.spec import summary
 
 SEEN = {"first_detection_distance_m": 79.46, "mean_bev_iou": 0.754, "rmse_m": 0.503, "detected_cycles": 134,
         "track_ids": 1, "id_switches": 0}

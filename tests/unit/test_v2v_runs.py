@@ -1,4 +1,4 @@
-"""V2V offline (``evaluation.runner``): on connected-intersection, sharing what each vehicle's
+"""V2V offline (``v2i.offline.runner``): on connected-intersection, sharing what each vehicle's
 own LiDAR sees gives the ego and car-2 the red-light runner earlier, through peer slots, with
 each peer's clock learned over the V2V channels; nothing shared ever echoes back."""
 
@@ -7,8 +7,8 @@ import pytest
 
 from v2i.core.frames import Pose2D, base_to_map_points
 
-from evaluation.runner import OfflineRun
-from evaluation.spec import RunSpec
+from v2i.offline.runner import OfflineRun
+from v2i.offline.spec import RunSpec
 from schemas.codec import decode
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList
 

@@ -1,6 +1,6 @@
 """ROIF per frame (Maqsud's ROIF thesis Ch. 5): the one pure object both drivers step.
 
-``v2i eval --fusion roif`` (``evaluation.image_fusion``) and the live OBU
+``v2i eval --fusion roif`` (``v2i.offline.image_fusion``) and the live OBU
 (``obu_service.image_fusion``) feed it the same way: per OBU camera frame, the OBU's
 ``ViewFeatures``, the RSU's paired ``ViewFeatures`` (or None: no RSU frame pairs with this one)
 and the frame time; it fuses them (``v2i.fusion.roif.roif_fuse``) and steps the box tracker

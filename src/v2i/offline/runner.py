@@ -45,9 +45,9 @@ from v2i.sim.clock import SimClock
 from v2i.sim.scenario import RsuCameraConfig, V2vConfig, load_scenario
 from v2i.sim.world import World
 
-from evaluation.chaos import SERVICES, ChaosTimeline
-from evaluation.decode_memo import DecodeMemo
-from evaluation.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, site_report
+from v2i.offline.chaos import SERVICES, ChaosTimeline
+from v2i.offline.decode_memo import DecodeMemo
+from v2i.offline.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, site_report
 
 RSU_REPLY_NS = 50_000  # RSU time between receiving a time query and answering it
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from link_emulator.profile import DirectionProfile, LinkProfile, load_profile
 
-from evaluation.spec import RunSpec
+from v2i.offline.spec import RunSpec
 
 DELAY_BINS_MS = ((0, 300), (300, 600), (600, 900), (900, 1200))  # OTVIC Table IV
 DROPOUTS = (0.25, 0.5, 0.75, 1.0)
@@ -122,7 +122,7 @@ def robustness_tables(hw: RunSpec) -> list[Table]:
 
 
 def _run(job: tuple[RunSpec, LinkProfile | None]) -> dict:
-    from evaluation.runner import OfflineRun
+    from v2i.offline.runner import OfflineRun
 
     spec, profile = job
     run = OfflineRun(spec, link_profile=profile)

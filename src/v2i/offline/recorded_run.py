@@ -17,7 +17,7 @@ import dataclasses
 import json
 from typing import Any
 
-from evaluation.spec import RunSpec
+from v2i.offline.spec import RunSpec
 
 RUN_METADATA = "run"
 REQUIRED_FLAGS = {"scenario": "--scenario", "start_ns": "--start-at-ns"}  # what a score cannot guess

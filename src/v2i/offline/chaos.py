@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from v2i.runtime.config import ConfigError, read_yaml, validate
 from schemas.messages import LinkControl
 
-from evaluation.spec import RunSpec
+from v2i.offline.spec import RunSpec
 
 SERVICES = ("link", "rsu")  # what a timeline may kill and restart (the OBU is the system under test)
 Direction = Literal["uplink", "downlink", "both"]
