@@ -44,7 +44,7 @@ from v2i.sim.world import World
 from v2i.telemetry.live_line import LiveLine
 
 from v2i.offline.chaos import ChaosEvent, ChaosTimeline
-from evaluation.chaos_summary import PlayedEvent, chaos_summary, outage_summary
+from v2i.reports.chaos_summary import PlayedEvent, chaos_summary, outage_summary
 from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
 from evaluation.inbox_scoring import InboxScoring, obu_own_count, startup_summary
 from evaluation.live_security import run_pki, security_argv

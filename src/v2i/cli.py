@@ -194,7 +194,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         report["chaos"] = chaos.name
     _emit(report, args.json)
     if args.report:
-        from evaluation.run_report import write_offline_report
+        from v2i.reports.run_report import write_offline_report
 
         _wrote(write_offline_report(Path(args.report), report, run), "v2i eval")
     return 0
@@ -373,7 +373,7 @@ def _live(run, prog: str) -> dict | int:
 def _run_demo(demo, json_path: str | None, prog: str, report_dir: str | None = None) -> int:
     """Run a live demo and emit its report (and its PNGs into ``report_dir``); 1 when it failed,
     130 when interrupted."""
-    from evaluation.chaos_summary import format_chaos
+    from v2i.reports.chaos_summary import format_chaos
 
     report = _live(demo.run, prog)
     if isinstance(report, int):
@@ -382,7 +382,7 @@ def _run_demo(demo, json_path: str | None, prog: str, report_dir: str | None = N
     if chaos := format_chaos(report):
         print(chaos, file=sys.stderr if json_path == "-" else sys.stdout)
     if report_dir:
-        from evaluation.run_report import write_demo_report
+        from v2i.reports.run_report import write_demo_report
 
         _wrote(write_demo_report(Path(report_dir), report, demo), prog)
     return 0

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from evaluation.demo import Demo, LinkOutage
-from evaluation.run_report import chaos_spans, write_demo_report
+from v2i.reports.run_report import chaos_spans, write_demo_report
 from v2i.offline.spec import RunSpec, summary
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]

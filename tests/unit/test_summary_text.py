@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import copy
 
-from evaluation.report_plots import title_lines
+from v2i.reports.report_plots import title_lines
 from v2i.offline.spec import summary
 
 SEEN = {"first_detection_distance_m": 79.46, "mean_bev_iou": 0.754, "rmse_m": 0.503, "detected_cycles": 134,

@@ -66,7 +66,7 @@ class RunRecord:
     (``CycleLog``) and 10 bytes per predicted object in range (``CenterDistanceAp``), 56
     bytes per cycle the target is detected (twice: fused and vehicle-only), 32 bytes per
     clock-offset sample; plus counts per track id for IDF1. For the run report
-    (``evaluation.run_report``): 17 more bytes per cycle the target is detected (twice), and
+    (``v2i.reports.run_report``): 17 more bytes per cycle the target is detected (twice), and
     41 bytes per RSU per OBU metrics sample (one per cycle; ``link_series.LinkSeries``).
     """
 

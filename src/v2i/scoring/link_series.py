@@ -1,5 +1,5 @@
 """Per-cycle RSU link samples of a run (what the OBU knew about each RSU, cycle by cycle), kept
-compactly for the run report's timeline (``evaluation.run_report``).
+compactly for the run report's timeline (``v2i.reports.run_report``).
 
 The live driver feeds it from each ``ObuMetrics`` message (the OBU publishes one per cycle);
 the offline runner from ``ObuPipeline.metrics`` after each cycle (``OfflineRun(link_series=True)``),

@@ -201,7 +201,7 @@ def write_run_report(folder: Path, report: dict, spec: RunSpec, vehicles: Sequen
                      spans: Sequence[Span] = ()) -> list[Path]:
     """Write the timeline(s), the BEV and ``report.json`` into ``folder`` (made if missing);
     the paths written. ``vehicles``: (name, world, record), the ego first."""
-    from evaluation import report_plots
+    from v2i.reports import report_plots
 
     folder.mkdir(parents=True, exist_ok=True)
     written = []

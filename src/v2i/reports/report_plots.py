@@ -1,4 +1,4 @@
-"""The run report's pictures (``evaluation.run_report``): matplotlib's object API on the Agg
+"""The run report's pictures (``v2i.reports.run_report``): matplotlib's object API on the Agg
 canvas (no pyplot, no global backend), imported only when a report is written."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from obu_service.fusion_mode import MODES
 
-from evaluation.run_report import BevVehicle, Span, VehicleTimeline
+from v2i.reports.run_report import BevVehicle, Span, VehicleTimeline
 from v2i.offline.spec import first_seen
 
 MODE_COLOURS = {"intra": "#2ca02c", "inter": "#1f77b4", "planning": "#ff7f0e", "vehicle-only": "#8c8c8c"}
