@@ -1,6 +1,6 @@
 """Latency budget of an RSU object list, stage by stage: RSU + link emulator + OBU on loopback.
 
-Runs ``v2i demo`` (``evaluation.demo.Demo``: three service processes, scouting off, TCP on
+Runs ``v2i demo`` (``v2i.orchestration.demo.Demo``: three service processes, scouting off, TCP on
 127.0.0.1) for ``--duration`` s on ``--profile`` (default ``ideal``: no emulated delay, so what
 remains is the software's) and prints each service's per-stage latency as it reports it
 (``latency_ms`` of the RSU and OBU metrics and of the link stats; ``v2i.telemetry.latency``), with,
@@ -17,7 +17,7 @@ measured in the same run as references:
   publish stamp -> OBU receive through its clock estimate, over its 10 s window) and the
   report's clock-offset error (which that estimate carries).
 
-The run starts when every service is ready (``evaluation.children``: ``--ready-timeout``, default
+The run starts when every service is ready (``v2i.orchestration.children``: ``--ready-timeout``, default
 120 s); the hop sender puts from the demo's launch until it ends.
 
     python benchmarks/latency_budget.py [--duration 20] [--profile ideal] [--hop-rate-hz 20] [--ready-timeout S] [--json FILE]
@@ -36,8 +36,8 @@ import time
 import numpy as np
 import zenoh
 
-from evaluation.children import READY_TIMEOUT_S
-from evaluation.demo import Demo
+from v2i.orchestration.children import READY_TIMEOUT_S
+from v2i.orchestration.demo import Demo
 from v2i.offline.spec import RunSpec
 from schemas import keys
 from schemas.codec import header_of, open_body

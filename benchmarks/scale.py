@@ -20,7 +20,7 @@ directly (no link emulator, so the OBU is what is measured):
   ``--objects shared`` every RSU sees the same N objects (one site, overlapping views, own
   noise), with ``distinct`` each RSU has its own N.
 
-Both run with ``--await-start`` (``evaluation.children``): the scenario starts once both are
+Both run with ``--await-start`` (``v2i.orchestration.children``): the scenario starts once both are
 ready and this process is subscribed. This process subscribes to the OBU's ``objects`` and
 ``metrics``. The cycle compute time is
 what the OBU stamps: its metrics message of cycle s is stamped (``t_ns``) after the cycle's
@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from evaluation.children import READY_TIMEOUT_S, Child, start_all, wait_ready
+from v2i.orchestration.children import READY_TIMEOUT_S, Child, start_all, wait_ready
 
 PERIOD_NS = 100_000_000  # the OBU's 10 Hz cycle
 SITE_RADIUS_M = 60.0  # objects circle the ego within this

@@ -13,7 +13,7 @@ For each V: one ``v2i rsu`` (sim source, ``--scenario``, clock offset and drift 
   ``EgoPose`` at 10 Hz, ``--light-distance-m`` east of the RSU, but runs no perception.
 
 Every process gets explicit tcp/127.0.0.1 ports (scouting is off in ``open_session``). RSU and
-vehicles run with ``--await-start`` (``evaluation.children``): the scenario starts when every
+vehicles run with ``--await-start`` (``v2i.orchestration.children``): the scenario starts when every
 process is ready and the taps listen, however long the V processes took to start. What
 each vehicle's channel delivers is measured by a tap: a session of this script listening on
 TAP_K, to which the emulator's session for vehicle K also connects, so it hears exactly the
@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from evaluation.children import READY_TIMEOUT_S, Child, start_all, wait_ready
+from v2i.orchestration.children import READY_TIMEOUT_S, Child, start_all, wait_ready
 from link_emulator.profile import load_profile
 from link_emulator.validate import Settings, declared_loss
 from schemas import keys

@@ -3,7 +3,7 @@
 The target runs as its own process, as in ``v2i demo`` (``evaluation.fuzz_targets``: ``obu``
 with an RSU connected directly, ``rsu`` alone, ``link`` between the fuzzer's own RSU and
 vehicle sessions). The fuzzer's Zenoh sessions sit where an attacker would. The services start
-with the start handshake (``evaluation.children``): once every one is ready (one bound,
+with the start handshake (``v2i.orchestration.children``): once every one is ready (one bound,
 ``ready_timeout_s``), the fuzzer subscribes and sends time zero. It waits until the target's
 normal output flows, then sends ``count`` hostile messages at ``rate_hz``: every
 kind of ``evaluation.hostile`` on every input the target has, plus floods (one payload again
@@ -28,7 +28,7 @@ import numpy as np
 from v2i.core.jit import load_kernels
 from v2i.runtime.transport import open_session
 
-from evaluation.children import READY_TIMEOUT_S, Child, DemoError, start_all, wait_ready
+from v2i.orchestration.children import READY_TIMEOUT_S, Child, DemoError, start_all, wait_ready
 from evaluation.hostile import KINDS, HostileInputs
 
 RSU_ID, VEHICLE_ID, LINK_ID = "rsu1", "ego", "link1"

@@ -32,7 +32,7 @@ from schemas.codec import CodecError, decode
 from schemas.messages import ObjectList, RsuMetrics
 from v2i.runtime.transport import free_tcp_endpoint, open_session
 
-from evaluation.children import READY_TIMEOUT_S, Child, start_all, wait_ready
+from v2i.orchestration.children import READY_TIMEOUT_S, Child, start_all, wait_ready
 from evaluation.fuzz import RSU_ID, _r, rss_mb
 from evaluation.fuzz_targets import RSU_LATE_NS
 

@@ -234,7 +234,7 @@ def cmd_tables(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from evaluation.demo import Demo, LinkOutage
+    from v2i.orchestration.demo import Demo, LinkOutage
 
     _check_inputs(args)
     if args.record and (args.fusion == "roif" or _is_site(args.scenario)):
@@ -268,8 +268,8 @@ def _progress(args: argparse.Namespace) -> str | None:
 
 
 def _is_site(scenario: str) -> bool:
-    """More than one RSU or vehicle: ``v2i demo`` runs every node (``evaluation.site_demo``)."""
-    from evaluation.site_demo import is_site
+    """More than one RSU or vehicle: ``v2i demo`` runs every node (``v2i.orchestration.site_demo``)."""
+    from v2i.orchestration.site_demo import is_site
     from v2i.sim.scenario import load_scenario
 
     return is_site(load_scenario(scenario))
@@ -277,7 +277,7 @@ def _is_site(scenario: str) -> bool:
 
 def _run_site_demo(args: argparse.Namespace) -> int:
     """``v2i demo`` of a scenario with several RSUs or vehicles: each node its own process."""
-    from evaluation.site_demo import SiteDemo
+    from v2i.orchestration.site_demo import SiteDemo
 
     if args.kill_link_at is not None or args.fusion == "roif":
         flag = "--kill-link-at" if args.kill_link_at is not None else "--fusion roif"
@@ -289,7 +289,7 @@ def _run_site_demo(args: argparse.Namespace) -> int:
 
 def _run_roif_demo(args: argparse.Namespace) -> int:
     """``v2i demo --fusion roif``: RSU camera + features, link, OBU image fusion; the ``image_fusion`` report."""
-    from evaluation.image_fusion_demo import ImageFusionDemo, summary
+    from v2i.orchestration.image_fusion_demo import ImageFusionDemo, summary
 
     if args.kill_link_at is not None:
         raise ValueError("--kill-link-at is not supported with --fusion roif")
@@ -309,7 +309,7 @@ def _no_run_report(args: argparse.Namespace) -> None:
 
 def cmd_chaos_run(args: argparse.Namespace) -> int:
     from v2i.offline.chaos import load_chaos, with_chaos
-    from evaluation.demo import Demo
+    from v2i.orchestration.demo import Demo
     from link_emulator.profile import bundled_profiles
 
     _check_inputs(args)
@@ -357,7 +357,7 @@ def cmd_fuzz(args: argparse.Namespace) -> int:
 def _live(run, prog: str) -> dict | int:
     """The report of a live run (services as processes), or its exit code: 1 when it failed,
     130 when interrupted (SIGINT or SIGTERM); the run stops its services either way."""
-    from evaluation.demo import DemoError
+    from v2i.orchestration.demo import DemoError
 
     _interrupt_on(signal.SIGINT, signal.SIGTERM)
     try:

@@ -308,7 +308,7 @@ def play_standalone(replayer: Replayer, connect: list[str], lead_s: float, stop:
 
 def run_scored(args: argparse.Namespace) -> int:
     """``--score``: a fresh OBU on the replayed traffic, reported like ``v2i demo``."""
-    from evaluation.replay_demo import ReplayDemo
+    from v2i.orchestration.replay_demo import ReplayDemo
     from v2i.cli import _emit, _live
 
     if args.connect:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import pytest
 
 from v2i.offline.chaos import load_chaos, with_chaos
-from evaluation.demo import Demo
+from v2i.orchestration.demo import Demo
 from obu_service.fusion_mode import TRACKING_MODES
 from v2i.offline.spec import RunSpec
 from v2i.cli import build_parser, cmd_chaos_run

@@ -12,7 +12,7 @@ import json
 import numpy as np
 import pytest
 
-from evaluation.demo import Demo, LinkOutage
+from v2i.orchestration.demo import Demo, LinkOutage
 from v2i.reports.run_report import chaos_spans, write_demo_report
 from v2i.offline.spec import RunSpec, summary
 

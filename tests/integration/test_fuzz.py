@@ -3,7 +3,7 @@ survives and keeps its normal output on time (a short run; the full one is in th
 
 import pytest
 
-from evaluation.children import READY_TIMEOUT_S
+from v2i.orchestration.children import READY_TIMEOUT_S
 from evaluation.fuzz_targets import TARGETS
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(READY_TIMEOUT_S + 120)]

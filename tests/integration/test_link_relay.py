@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from evaluation.children import READY_TIMEOUT_S
+from v2i.orchestration.children import READY_TIMEOUT_S
 from link_emulator.config import LinkConfig
 from link_emulator.control_client import ControlError, send_control
 from link_emulator.relay import LinkRelay

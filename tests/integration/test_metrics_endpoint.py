@@ -13,7 +13,7 @@ import urllib.request
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, Child, start_all, wait_ready
+from v2i.orchestration.children import READY_TIMEOUT_S, START_LEAD_S, Child, start_all, wait_ready
 from v2i.runtime.transport import free_tcp_endpoint
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(2 * READY_TIMEOUT_S + 30)]

@@ -17,7 +17,7 @@ import time
 import pytest
 
 from v2i.offline.chaos import ChaosEvent, ChaosTimeline, DelaySpike
-from evaluation.demo import Demo
+from v2i.orchestration.demo import Demo
 from v2i.offline.spec import RunSpec
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import pytest
 
-from evaluation.children import READY_TIMEOUT_S, Child, start_all, wait_ready
+from v2i.orchestration.children import READY_TIMEOUT_S, Child, start_all, wait_ready
 from v2i.sim.scenario import load_scenario
 
 

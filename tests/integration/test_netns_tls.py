@@ -41,7 +41,7 @@ from pathlib import Path
 import pytest
 import test_netns as netns  # tests/integration is on sys.path (pytest's rootdir-less import; the script's folder)
 
-from evaluation.children import READY_TIMEOUT_S
+from v2i.orchestration.children import READY_TIMEOUT_S
 
 # the probe process's own waits: up to 25 s for the genuine traffic, then two intruder phases and the positive
 # controls (each up to 5 s to connect, 3 s of ghosts, 1.5-5 s for what is in flight): ~70 s at most
@@ -72,7 +72,7 @@ def _control_flags() -> list[str]:
 
 def _start(topo, tls_dir: Path, link_config: Path, children: dict) -> dict[str, str]:
     """RSU, OBU and emulator with their shipped configs; returns the endpoints."""
-    from evaluation.children import Child, start_all, wait_ready
+    from v2i.orchestration.children import Child, start_all, wait_ready
 
     eps = {"rsu": f"tls/{netns.RSU_ADDR}:{netns.RSU_PORT}", "obu": f"tls/{netns.OBU_ADDR}:{netns.OBU_PORT}",
            "control": f"tls/{netns.LINK_OBU_ADDR}:{CONTROL_PORT}"}

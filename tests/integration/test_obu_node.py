@@ -13,7 +13,7 @@ from contextlib import contextmanager
 
 import pytest
 
-from evaluation.children import READY_TIMEOUT_S, START_LEAD_S
+from v2i.orchestration.children import READY_TIMEOUT_S, START_LEAD_S
 from obu_service.config import ObuConfig
 from obu_service.node import ObuNode
 from rsu_service.config import RsuConfig

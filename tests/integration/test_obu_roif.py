@@ -11,7 +11,7 @@ import time
 import pytest
 import zenoh
 
-from evaluation.children import READY_TIMEOUT_S, START_LEAD_S
+from v2i.orchestration.children import READY_TIMEOUT_S, START_LEAD_S
 from v2i.fusion.roif import RoifConfig
 from v2i.fusion.roif_features import view_features
 from obu_service.config import ObuConfig

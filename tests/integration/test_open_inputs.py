@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from evaluation.children import READY_TIMEOUT_S, Child, start_all, wait_ready
+from v2i.orchestration.children import READY_TIMEOUT_S, Child, start_all, wait_ready
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObjectList, ObuMetrics, RsuMetrics

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import pytest
 
-from evaluation.demo import Demo
-from evaluation.replay_demo import ReplayDemo
+from v2i.orchestration.demo import Demo
+from v2i.orchestration.replay_demo import ReplayDemo
 from v2i.offline.spec import RunSpec
 from v2i.telemetry.mcap_reader import Recording
 from v2i.telemetry.mcap_writer import RunWriter

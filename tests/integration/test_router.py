@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from evaluation.children import READY_TIMEOUT_S, Child, wait_ready
+from v2i.orchestration.children import READY_TIMEOUT_S, Child, wait_ready
 from v2i.runtime.transport import (
     CLIENT_CONNECT_TIMEOUT_MS,
     SESSION_MODE_ENV,

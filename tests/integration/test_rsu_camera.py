@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from evaluation.children import READY_TIMEOUT_S, START_LEAD_S
+from v2i.orchestration.children import READY_TIMEOUT_S, START_LEAD_S
 from rsu_service.config import RsuConfig
 from rsu_service.node import RsuNode
 from schemas import keys

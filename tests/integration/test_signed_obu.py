@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from evaluation.children import READY_TIMEOUT_S
+from v2i.orchestration.children import READY_TIMEOUT_S
 from obu_service.config import ObuConfig
 from obu_service.node import ObuNode
 from rsu_service.config import RsuConfig

@@ -1,5 +1,5 @@
 """``v2i demo`` of a site: connected-intersection's 2 RSUs, 2 link emulators and 3 OBUs as
-real OS processes on loopback Zenoh (``evaluation.site_demo``), scored per vehicle.
+real OS processes on loopback Zenoh (``v2i.orchestration.site_demo``), scored per vehicle.
 
 One short run: every vehicle publishes and is scored, every OBU hears both RSUs through
 its own channels, the report has the offline runner's keys, no child outlives the demo. The
@@ -14,7 +14,7 @@ import os
 import pytest
 
 from v2i.offline.runner import OfflineRun
-from evaluation.site_demo import SiteDemo, is_site
+from v2i.orchestration.site_demo import SiteDemo, is_site
 from v2i.offline.spec import RunSpec
 from v2i.sim.scenario import load_scenario
 from v2i.cli import main

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from evaluation.demo import Demo
+from v2i.orchestration.demo import Demo
 from v2i.offline.spec import RunSpec
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]

@@ -2,7 +2,7 @@
 explicit loopback TCP endpoints: each learns the other's clock through the emulator and the
 ego fuses what car-3's LiDAR sees (connected-intersection, no RSU running: every cooperative
 object in the ego's output came over V2V). The OBUs start on their start line once all three
-processes are ready and the watcher is subscribed (``evaluation.children``); each OBU ends by
+processes are ready and the watcher is subscribed (``v2i.orchestration.children``); each OBU ends by
 itself (``--duration``), the emulator on SIGTERM after them; all exit 0 and are reaped."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import time
 
 import pytest
 
-from evaluation.children import Child, start_all, wait_ready
+from v2i.orchestration.children import Child, start_all, wait_ready
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import SOURCE_RSU, FusedObjectList, ObuMetrics

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import pytest
 import zenoh
 
-from evaluation.children import READY_TIMEOUT_S
+from v2i.orchestration.children import READY_TIMEOUT_S
 from link_emulator.config import LinkConfig
 from link_emulator.control_client import send_control
 from link_emulator.v2v_relay import V2vRelay

@@ -11,8 +11,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from evaluation.demo import Demo
-from evaluation.inbox_scoring import INBOX_MESSAGES
+from v2i.orchestration.demo import Demo
+from v2i.orchestration.inbox_scoring import INBOX_MESSAGES
 from v2i.offline.runner import OfflineRun
 from v2i.offline.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, build_report
 from v2i.core.frames import map_to_base

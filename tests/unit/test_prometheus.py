@@ -16,7 +16,7 @@ import yaml
 from prometheus_client import generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
-from evaluation.demo import METRICS_PORT_OFFSETS
+from v2i.orchestration.demo import METRICS_PORT_OFFSETS
 from link_emulator.config import LinkConfig
 from link_emulator.relay import LinkRelay
 from link_emulator.v2v_relay import V2vRelay

@@ -1,5 +1,5 @@
 """The start handshake: a service waits for its start line (``v2i.runtime.process``), an orchestrator
-waits until every child is ready and then sends it (``evaluation.children``), and a child's log
+waits until every child is ready and then sends it (``v2i.orchestration.children``), and a child's log
 lines are relayed whole and labelled."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from evaluation.children import Child, DemoError, start_all, wait_ready
+from v2i.orchestration.children import Child, DemoError, start_all, wait_ready
 from rsu_service.config import RsuConfig
 from rsu_service.node import RsuNode
 from v2i.runtime.config import ConfigError, load_config

@@ -3,7 +3,7 @@
 ``StatusLine``: one line on stderr that a thread redraws every ``REFRESH_S`` from a text
 function. On a terminal the line is rewritten in place (``\\r``, cut to the terminal's width)
 and every other stderr line of this process (the demo's log, its children's lines relayed by
-``evaluation.children``) is printed whole above it, never cut by it nor mixed with another
+``v2i.orchestration.children``) is printed whole above it, never cut by it nor mixed with another
 thread's; elsewhere (a file, a pipe, CI) a plain line every ``PLAIN_EVERY_S``. stdout is never
 touched, so ``--json -`` stays clean. The demo shows one while it waits for its services
 ("waiting for rsu, obu (3.2 s)"), then the ``LiveLine``: its scorer feeds each ``ObuMetrics``

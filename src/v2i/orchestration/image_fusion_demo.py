@@ -31,11 +31,11 @@ from schemas.codec import decode
 from schemas.image_messages import F4, I2, U1, U4, ImageFusedBoxes, column
 from schemas.messages import ObuMetrics, RsuMetrics
 
-from evaluation.children import READY_TIMEOUT_S
-from evaluation.demo import Demo
-from evaluation.inbox_scoring import startup_summary
+from v2i.orchestration.children import READY_TIMEOUT_S
+from v2i.orchestration.demo import Demo
+from v2i.orchestration.inbox_scoring import startup_summary
 from v2i.offline.image_fusion import FusionTally, score_frame
-from evaluation.live_security import security_argv
+from v2i.orchestration.live_security import security_argv
 
 PAIRED_KEYS = ("frames", "truths", "detection_accuracy", "rsu_only_detection_accuracy", "vehicle_only_detection_accuracy",
                "mean_iou", "precision")

@@ -15,15 +15,15 @@ received / delivered / dropped and delay) and hears each OBU's peers (``v2x/obu/
 
 One watcher session connects to every OBU and every RSU (a peer does not forward between
 the peers it connects to, Zenoh's default ``peer_to_peer`` routing, so it adds no path
-around the emulators). As in ``evaluation.demo``: the callbacks only enqueue the payload
+around the emulators). As in ``v2i.orchestration.demo``: the callbacks only enqueue the payload
 into a bounded inbox (a full inbox drops, counted), a scorer thread decodes and scores,
 each vehicle has its ``RunRecord`` (fused lists routed by their ``vehicle_id``), each OBU's
 metrics feed its record, each RSU's metrics give its perception scores. The report is
 ``site_report`` (the keys of ``v2i eval`` on the same scenario), plus the monitor's drops
 and the RSU lists each OBU accepted per RSU. Every child is stopped in ``finally``, by pid;
-nothing else is touched. Chaos timelines are single-link only (``evaluation.demo``).
+nothing else is touched. Chaos timelines are single-link only (``v2i.orchestration.demo``).
 
-Security as in ``evaluation.demo``: one site PKI for every node (``live_security.run_pki``: every
+Security as in ``v2i.orchestration.demo``: one site PKI for every node (``live_security.run_pki``: every
 RSU and vehicle of the scenario, the operator), each RSU signs and each OBU verifies under
 ``spec.security`` (``live_security.security_argv``); every link emulator gets ``--pki`` too, so
 it applies only the operator's signed control (``v2i link set --pki DIR``). The report's ``security_outcomes`` (the
@@ -54,10 +54,10 @@ from v2i.sim.scenario import Scenario, load_scenario
 from v2i.sim.world import World
 from v2i.telemetry.live_line import LiveLine
 
-from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
-from evaluation.demo import POLL_S
-from evaluation.inbox_scoring import InboxScoring, obu_own_count, startup_summary
-from evaluation.live_security import run_pki, security_argv
+from v2i.orchestration.children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
+from v2i.orchestration.demo import POLL_S
+from v2i.orchestration.inbox_scoring import InboxScoring, obu_own_count, startup_summary
+from v2i.orchestration.live_security import run_pki, security_argv
 from v2i.offline.runner import v2v_config
 from v2i.offline.spec import RunRecord, RunSpec, site_report
 

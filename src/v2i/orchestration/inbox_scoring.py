@@ -12,7 +12,7 @@ from schemas.codec import CodecError
 from v2i.runtime.process import log
 from v2i.telemetry.live_line import LiveLine
 
-from evaluation.children import START_LEAD_S, ahead_ms
+from v2i.orchestration.children import START_LEAD_S, ahead_ms
 from v2i.offline.spec import RunRecord
 
 INBOX_MESSAGES = 1000  # received messages waiting to be scored (~35 s of objects, metrics and planning)

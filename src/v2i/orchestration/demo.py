@@ -1,7 +1,7 @@
 """``v2i demo``: the three services as separate OS processes on loopback Zenoh.
 
 The orchestrator picks free ports and starts RSU, OBU (both ``--await-start``) and link
-emulator (``evaluation.children``); when every one has said it is ready (one bound,
+emulator (``v2i.orchestration.children``); when every one has said it is ready (one bound,
 ``--ready-timeout``, a progress line meanwhile) it opens its own Zenoh sessions and subscribes,
 and only then sends RSU and OBU their common scenario time zero (now + ``START_LEAD_S``), so
 that the monitor hears every output from the first cycle on. It scores the OBU's output with
@@ -45,9 +45,9 @@ from v2i.telemetry.live_line import LiveLine
 
 from v2i.offline.chaos import ChaosEvent, ChaosTimeline
 from v2i.reports.chaos_summary import PlayedEvent, chaos_summary, outage_summary
-from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
-from evaluation.inbox_scoring import InboxScoring, obu_own_count, startup_summary
-from evaluation.live_security import run_pki, security_argv
+from v2i.orchestration.children import READY_TIMEOUT_S, START_LEAD_S, Child, DemoError, start_all, wait_ready
+from v2i.orchestration.inbox_scoring import InboxScoring, obu_own_count, startup_summary
+from v2i.orchestration.live_security import run_pki, security_argv
 from v2i.offline.spec import RunRecord, RunSpec, build_report
 
 LINK_ID = "link1"
@@ -132,7 +132,7 @@ class Demo(InboxScoring):
         """``ready_timeout_s``: every service must be ready within this (a restarted one too).
         ``chaos``: a timeline to play; its RSU clock step must already be in ``spec`` (``with_chaos``).
         ``outage`` (``--kill-link-at``) is played as its generated timeline; not with ``chaos``.
-        ``record_to``: an MCAP file recording both sides of the link (``evaluation.replay_demo``).
+        ``record_to``: an MCAP file recording both sides of the link (``v2i.orchestration.replay_demo``).
         ``pki_dir``: the site PKI to use and complete (``live_security.run_pki``); default: one in the
         run's temporary directory."""
         if outage is not None and chaos is not None:
@@ -181,7 +181,7 @@ class Demo(InboxScoring):
             start_ns = time.time_ns() + round(START_LEAD_S * 1e9)
             self._start_scoring(start_ns)
             if self.record_to:  # subscribed before the start line, so from the first time query on
-                from evaluation.replay_demo import demo_recorder
+                from v2i.orchestration.replay_demo import demo_recorder
 
                 recorder = demo_recorder(self, start_ns, self.record_to)
             start_all(self.children.values(), start_ns)

@@ -26,9 +26,9 @@ from schemas.codec import CodecError, decode
 from schemas.messages import RsuMetrics
 from v2i.runtime.transport import open_session
 
-from evaluation.children import READY_TIMEOUT_S, START_LEAD_S, DemoError, start_all
-from evaluation.demo import Demo
-from evaluation.inbox_scoring import obu_own_count, startup_summary
+from v2i.orchestration.children import READY_TIMEOUT_S, START_LEAD_S, DemoError, start_all
+from v2i.orchestration.demo import Demo
+from v2i.orchestration.inbox_scoring import obu_own_count, startup_summary
 from v2i.offline.recorded_run import RUN_METADATA, run_metadata, run_of, spec_of  # noqa: F401 - spec_of: the tests' import
 from v2i.offline.spec import build_report
 
