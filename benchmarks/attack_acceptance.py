@@ -26,7 +26,7 @@ import threading
 import time
 from pathlib import Path
 
-from evaluation.attack_messages import KINDS
+from v2i.adversary.attack_messages import KINDS
 from v2i.security.attacker_keys import prepare_attacker_pki
 
 ENDPOINTS = re.compile(r"endpoints: OBU (\S+), RSU (\S+), link (\S+)")

@@ -327,23 +327,23 @@ def cmd_chaos_run(args: argparse.Namespace) -> int:
 
 
 def cmd_fuzz(args: argparse.Namespace) -> int:
-    from evaluation.fuzz import summary
-    from evaluation.fuzz_targets import TARGETS
+    from v2i.adversary.fuzz import summary
+    from v2i.adversary.fuzz_targets import TARGETS
 
     _check_numbers(args)
     if args.json not in (None, "-"):
         _check_writable(Path(args.json), "--json")
     kinds = args.kinds.split(",") if args.kinds else None
     if args.target == "frames":
-        from evaluation.fuzz_frames import FramesFuzz as target
+        from v2i.adversary.fuzz_frames import FramesFuzz as target
     elif args.target == "obu-v2v":
-        from evaluation.fuzz_v2v import ObuV2vFuzz as target
+        from v2i.adversary.fuzz_v2v import ObuV2vFuzz as target
     elif args.target == "obu-signed":
-        from evaluation.fuzz_signed import ObuSignedFuzz as target
+        from v2i.adversary.fuzz_signed import ObuSignedFuzz as target
     elif args.fusion == "roif":
         if args.target != "obu":
             raise ValueError("--fusion roif fuzzes the OBU only: v2i fuzz --target obu --fusion roif")
-        from evaluation.fuzz_roif import ObuRoifFuzz as target
+        from v2i.adversary.fuzz_roif import ObuRoifFuzz as target
     else:
         target = TARGETS[args.target]
     run = target(args.count, seed=args.seed, rate_hz=args.rate, kinds=kinds, **_ready_timeout(args))
@@ -505,10 +505,10 @@ def _fuzz_options(fuzz: argparse.ArgumentParser) -> None:
                            "(--source video), read at min(--rate, 20) frames/s; obu-inputs / rsu-inputs: the "
                            "service with --source zenoh fed by v2i world, hostile SensorObjects / "
                            "LocalizationPose on its sensor keys; obu-v2v: the OBU with --v2v, hostile peer "
-                           "shared lists, time requests and replies on the V2V keys (evaluation.fuzz_v2v); obu-signed: RSU and "
+                           "shared lists, time requests and replies on the V2V keys (v2i.adversary.fuzz_v2v); obu-signed: RSU and "
                            "OBU with a site PKI and --security strict, hostile signed envelopes (kinds garbage_prefix, "
                            "truncated, huge_fields, bit_flips, signed_hostile: hostile payloads validly signed, "
-                           "special: replays; evaluation.fuzz_signed)")
+                           "special: replays; v2i.adversary.fuzz_signed)")
     fuzz.add_argument("--fusion", choices=("roif",), help="with --target obu: an OBU fusing images (--fusion roif) "
                       "under hostile RsuImageFeatures (kinds: malformed, wrong_type, unknown_keys, non_finite, "
                       "out_of_image, oversized_counts, wrong_descriptor_length, bad_index, absurd_times, edge_valid, "
@@ -574,7 +574,7 @@ _OPTIONS = {
     "world": _service_options("v2i.world_node"), "router": _service_options("v2i.router"),
     "camera": _camera_options, "fuzz": _fuzz_options, "monitor": _service_options("v2i.monitor"),
     "record": _service_options("v2i.record"), "replay": _service_options("v2i.replay"),
-    "attack": _service_options("evaluation.attack"),
+    "attack": _service_options("v2i.adversary.attack"),
     "pki": _pki_options,
     "warm": _warm_options,
 }

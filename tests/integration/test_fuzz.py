@@ -4,7 +4,7 @@ survives and keeps its normal output on time (a short run; the full one is in th
 import pytest
 
 from v2i.orchestration.children import READY_TIMEOUT_S
-from evaluation.fuzz_targets import TARGETS
+from v2i.adversary.fuzz_targets import TARGETS
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(READY_TIMEOUT_S + 120)]
 # Outputs past their deadline a busy machine causes without any hostile input: with two busy loops on the
@@ -39,7 +39,7 @@ def test_a_service_survives_hostile_traffic_and_stays_on_time(target):
 
 
 def test_the_rsu_survives_hostile_frames_in_its_recording():
-    from evaluation.fuzz_frames import FramesFuzz
+    from v2i.adversary.fuzz_frames import FramesFuzz
 
     # 5 frames/s: with two busy loops on the 2 cores (load 13-14) the RSU read all 70 files at 5 Hz; at 20 Hz it
     # let 32-48 of their capture times pass (skipped: it publishes only what is current)

@@ -26,7 +26,7 @@ from pathlib import Path
 import pytest
 import test_netns as netns  # tests/integration is on sys.path (pytest's rootdir-less import)
 
-from evaluation.attack_messages import INTENDED, KINDS
+from v2i.adversary.attack_messages import INTENDED, KINDS
 from v2i.orchestration.children import READY_TIMEOUT_S, Child, start_all, wait_ready
 from v2i.security.attacker_keys import prepare_attacker_pki
 from v2i.security.site import write_site

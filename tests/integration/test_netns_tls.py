@@ -15,9 +15,9 @@ a judge (CN ``monitor``) watches the OBU's fused output and the emulator's stats
 1. a process without a client certificate tries the OBU and the control endpoint: it must not
    connect at all;
 2. ``vehicle-2`` connects to both (checked) and, for a few seconds, puts ghost pedestrians 8 m
-   ahead of the ego on ``v2x/rsu/{rsu_id}/objects`` (``evaluation.attack_messages``) and link
+   ahead of the ego on ``v2x/rsu/{rsu_id}/objects`` (``v2i.adversary.attack_messages``) and link
    outages on ``v2x/link/{id}/control``: no ghost may show in the fused output
-   (``evaluation.attack_ghosts.GhostWatch``) and the emulator's ``control.applied`` stays 0;
+   (``v2i.adversary.attack_ghosts.GhostWatch``) and the emulator's ``control.applied`` stays 0;
 3. positive controls, so that 2. cannot pass vacuously: the same ghosts put with the ``rsu``
    certificate (a name the OBU's ACL admits) do show, and one control put with the ``operator``
    certificate is applied. The OBU runs without ``--pki`` (security off) and the emulator with
@@ -235,7 +235,7 @@ def _attack(judge: Judge, session, rsu_id: str, seq0: int, seconds: float, contr
     """Ghost lists (on the victim RSU's key and, as ``FAKE_RSU``, on a key of their own: the OBU's
     metrics then show whether any arrived) and up to ``controls_max`` link outages from ``session``
     for ``seconds``; ghosts placed in the judge's watch."""
-    from evaluation.attack_messages import RSU_LATENCY_NS, ghost_list, ghost_xy
+    from v2i.adversary.attack_messages import RSU_LATENCY_NS, ghost_list, ghost_xy
     from schemas.codec import encode
     from schemas.keys import link_control, rsu_objects
     from schemas.messages import LinkControl
@@ -261,7 +261,7 @@ def _attack(judge: Judge, session, rsu_id: str, seq0: int, seconds: float, contr
 
 
 def _probe(args) -> dict:
-    from evaluation.attack_ghosts import GhostWatch
+    from v2i.adversary.attack_ghosts import GhostWatch
 
     folder = Path(args.tls_dir).parent
     judge = Judge(args, GhostWatch())

@@ -1,11 +1,11 @@
-"""The ghost recogniser of ``v2i attack`` (evaluation.attack_ghosts) on hand-made fused outputs."""
+"""The ghost recogniser of ``v2i attack`` (v2i.adversary.attack_ghosts) on hand-made fused outputs."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from evaluation.attack_ghosts import GhostWatch
-from evaluation.attack_messages import ghost_xy
+from v2i.adversary.attack_ghosts import GhostWatch
+from v2i.adversary.attack_messages import ghost_xy
 from v2i.core.frames import Pose2D, map_to_base_points
 from schemas.classes import ObjectClass
 from schemas.limits import SOURCE_RSU, SOURCE_VEHICLE

@@ -1,4 +1,4 @@
-"""Attack messages (evaluation.attack_messages) against the verifier they are built to fool.
+"""Attack messages (v2i.adversary.attack_messages) against the verifier they are built to fool.
 
 Each kind must be refused by ``v2i.security.envelope.Verifier`` under ``strict`` with the reason it
 was built for; and the same bytes must carry an accepted ghost when nothing checks (``off``), or
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluation.attack_messages import (CONTROL_VARIANTS, GHOST_AHEAD_M, GHOST_ID, INTENDED, LIST_KINDS, TIME_SHIFT_NS,
+from v2i.adversary.attack_messages import (CONTROL_VARIANTS, GHOST_AHEAD_M, GHOST_ID, INTENDED, LIST_KINDS, TIME_SHIFT_NS,
                                         AttackMessages, ghost_xy, signer_digest)
 from v2i.core.frames import Pose2D
 from schemas import keys

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from evaluation.attack_live import AttackRun, NotReady
+from v2i.adversary.attack_live import AttackRun, NotReady
 from v2i.cli import main
 
 

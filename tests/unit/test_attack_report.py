@@ -1,9 +1,9 @@
-"""Accounting of ``v2i attack`` (evaluation.attack_report): counter growth per phase, labels split by
+"""Accounting of ``v2i attack`` (v2i.adversary.attack_report): counter growth per phase, labels split by
 what the verifier did, and the verdict."""
 
 from __future__ import annotations
 
-from evaluation.attack_report import counter_delta, format_report, got_through, kind_row, split_labels
+from v2i.adversary.attack_report import counter_delta, format_report, got_through, kind_row, split_labels
 
 
 def test_counter_delta_keeps_only_what_grew():

@@ -1,4 +1,4 @@
-"""Hostile signed envelopes of ``v2i fuzz --target obu-signed`` (evaluation.fuzz_signed) against the
+"""Hostile signed envelopes of ``v2i fuzz --target obu-signed`` (v2i.adversary.fuzz_signed) against the
 verifier and the decoder: counted reasons, never an exception; validly signed garbage passes the
 verifier and is refused by the decoder."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluation.fuzz_signed import FUZZ_RSUS, SIGNED_KINDS, SignedHostile
-from evaluation.hostile import HostileInputs
+from v2i.adversary.fuzz_signed import FUZZ_RSUS, SIGNED_KINDS, SignedHostile
+from v2i.adversary.hostile import HostileInputs
 from schemas import keys
 from schemas.codec import CodecError, decode
 from schemas.messages import ObjectList, PredictionList

@@ -4,7 +4,7 @@ or decodes to a valid message (whose handling the pipelines must survive), never
 import numpy as np
 import pytest
 
-from evaluation.hostile import KINDS, TARGET_TYPES, HostileInputs
+from v2i.adversary.hostile import KINDS, TARGET_TYPES, HostileInputs
 from schemas import messages as m
 from schemas.codec import CodecError, decode
 

@@ -10,7 +10,7 @@ import stat
 
 import pytest
 
-from evaluation.attack import configure_parser as attack_parser
+from v2i.adversary.attack import configure_parser as attack_parser
 from v2i.security.attacker_keys import load_attacker_keys
 from v2i.security.envelope import Signer, Verifier
 from v2i.security.pki import load_signer, load_trust

@@ -206,8 +206,8 @@ def test_the_node_shell_counts_what_it_cannot_read():
 
 def test_hostile_v2v_messages_never_raise_past_the_codec():
     """Every hostile kind around every V2V message: decoded ones go through the intake without raising."""
-    from evaluation.fuzz_v2v import V2V_TYPES, V2vHostile
-    from evaluation.hostile import KINDS
+    from v2i.adversary.fuzz_v2v import V2V_TYPES, V2vHostile
+    from v2i.adversary.hostile import KINDS
     from schemas.codec import CodecError, decode
     from schemas.messages import TimeReply, TimeRequest
 

@@ -4,7 +4,7 @@
 (``KINDS``) are the issue's list: random bytes, truncated and bit-flipped messages, wrong
 envelope, versions and types, unknown keys, wrong shapes, non-finite and extreme values,
 absurd timestamps, over-long predictions, oversized payloads. Floods, replays, fake ids and
-forged time replies are made by the live driver (``evaluation.fuzz``) from these and from
+forged time replies are made by the live driver (``v2i.adversary.fuzz``) from these and from
 genuine traffic. Payloads are bytes; nothing here touches Zenoh or a clock.
 """
 

@@ -1,4 +1,4 @@
-"""The live driver of ``v2i attack`` (see ``evaluation.attack``): sessions, phases, accounting.
+"""The live driver of ``v2i attack`` (see ``v2i.adversary.attack``): sessions, phases, accounting.
 
 One main thread paces the sends and drains the inbox the callbacks fill; the time queryable
 answers in its callback (a Zenoh query is answered there), reading the attacker's clock estimate
@@ -27,10 +27,10 @@ from v2i.runtime.transport import open_session
 from v2i.security.envelope import PREFIX, parse
 from v2i.telemetry.live_line import StatusLine
 
-from evaluation.attack_ghosts import GhostWatch
-from evaluation.attack_messages import (CONTROL_VARIANTS, LIST_KINDS, TIME_VARIANTS, AttackerKeys, AttackMessages, ghost_xy,
+from v2i.adversary.attack_ghosts import GhostWatch
+from v2i.adversary.attack_messages import (CONTROL_VARIANTS, LIST_KINDS, TIME_VARIANTS, AttackerKeys, AttackMessages, ghost_xy,
                               signer_digest)
-from evaluation.attack_report import counter_delta, kind_row
+from v2i.adversary.attack_report import counter_delta, kind_row
 
 REPLAY_AGE_NS = (500_000_000, 3_000_000_000)  # replay captures this old: after the original, within freshness
 INBOX_MESSAGES = 10_000

@@ -1,6 +1,6 @@
 """``v2i fuzz --target obu-signed``: hostile *signed envelopes* against an OBU with ``--security strict``.
 
-The topology of ``obu`` (``evaluation.fuzz_targets.ObuFuzz``: an RSU, 250 ms clock offset, and the
+The topology of ``obu`` (``v2i.adversary.fuzz_targets.ObuFuzz``: an RSU, 250 ms clock offset, and the
 OBU connected to it), both with a site PKI made in a temporary directory: the RSU signs, the OBU
 verifies strictly. The site also has eight fuzzing RSUs ``x0`` .. ``x7`` whose keys the fuzzer
 holds, so that it can put a *valid* signature over anything. Kinds (``SIGNED_KINDS``), on the
@@ -13,7 +13,7 @@ keys ``v2x/rsu/x{i}/objects`` (``predictions`` for prediction lists):
   a 64 KiB signature, generation times of 2^64 and -1, six fields, a map for the payload, a
   signer field that decodes as a certificate of garbage (-> ``malformed`` / ``unknown_cert``);
 - ``bit_flips``: 1-8 bits flipped in a valid envelope (-> ``bad_signature``, ``malformed``, ...);
-- ``signed_hostile``: every ``evaluation.hostile`` payload (random bytes, wrong shapes,
+- ``signed_hostile``: every ``v2i.adversary.hostile`` payload (random bytes, wrong shapes,
   non-finite values, ...) validly signed by ``x{i}``: the verifier passes it and the decoder
   behind it must refuse it (``codec_*``, ``too_large``, ...), never crash;
 - ``special``: the genuine RSU's lists replayed on its own key (-> ``replayed``).
@@ -36,9 +36,9 @@ from v2i.security.envelope import PREFIX, Signer
 from v2i.security.pki import load_signer
 from v2i.security.site import write_site
 
-from evaluation.fuzz import POOL_PER_KIND
-from evaluation.fuzz_targets import CLOCK_OFFSET_MS, ObuFuzz
-from evaluation.hostile import KINDS as HOSTILE_KINDS
+from v2i.adversary.fuzz import POOL_PER_KIND
+from v2i.adversary.fuzz_targets import CLOCK_OFFSET_MS, ObuFuzz
+from v2i.adversary.hostile import KINDS as HOSTILE_KINDS
 
 SIGNED_KINDS = ("garbage_prefix", "truncated", "huge_fields", "bit_flips", "signed_hostile")
 FUZZ_RSUS = tuple(f"x{i}" for i in range(8))

@@ -1,12 +1,12 @@
 """``v2i fuzz``: hostile traffic against one live service, and what it did to the service.
 
-The target runs as its own process, as in ``v2i demo`` (``evaluation.fuzz_targets``: ``obu``
+The target runs as its own process, as in ``v2i demo`` (``v2i.adversary.fuzz_targets``: ``obu``
 with an RSU connected directly, ``rsu`` alone, ``link`` between the fuzzer's own RSU and
 vehicle sessions). The fuzzer's Zenoh sessions sit where an attacker would. The services start
 with the start handshake (``v2i.orchestration.children``): once every one is ready (one bound,
 ``ready_timeout_s``), the fuzzer subscribes and sends time zero. It waits until the target's
 normal output flows, then sends ``count`` hostile messages at ``rate_hz``: every
-kind of ``evaluation.hostile`` on every input the target has, plus floods (one payload again
+kind of ``v2i.adversary.hostile`` on every input the target has, plus floods (one payload again
 and again on one key), fake ids, replays of captured genuine lists and forged time replies
 (per target). It watches the normal output meanwhile and reports: messages sent by kind,
 refusals by reason (the target's own counters), crashes (the process exited), outputs late
@@ -29,7 +29,7 @@ from v2i.core.jit import load_kernels
 from v2i.runtime.transport import open_session
 
 from v2i.orchestration.children import READY_TIMEOUT_S, Child, DemoError, start_all, wait_ready
-from evaluation.hostile import KINDS, HostileInputs
+from v2i.adversary.hostile import KINDS, HostileInputs
 
 RSU_ID, VEHICLE_ID, LINK_ID = "rsu1", "ego", "link1"
 POOL_PER_KIND = 40  # distinct payloads per (kind, message type), sent round-robin

@@ -33,8 +33,8 @@ from schemas.messages import ObjectList, RsuMetrics
 from v2i.runtime.transport import free_tcp_endpoint, open_session
 
 from v2i.orchestration.children import READY_TIMEOUT_S, Child, start_all, wait_ready
-from evaluation.fuzz import RSU_ID, _r, rss_mb
-from evaluation.fuzz_targets import RSU_LATE_NS
+from v2i.adversary.fuzz import RSU_ID, _r, rss_mb
+from v2i.adversary.fuzz_targets import RSU_LATE_NS
 
 MAX_FRAME_RATE_HZ = 20.0  # the detector's pace on this machine, with margin
 WARMUP_FRAMES = 10  # genuine frames first: RSS is measured from the 10th list on (ONNX Runtime's arena is warm)

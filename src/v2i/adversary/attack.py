@@ -11,10 +11,10 @@ Sessions (one per endpoint: the attacker never bridges the RSU and vehicle sides
 - ``--control EP`` (the emulator's control endpoint, optional): the link outages (kind
   ``control``) and the emulator's ``v2x/link/{id}/stats``.
 
-Kinds (``evaluation.attack_messages``) run one after another, ``--count`` each at ``--rate-hz``,
+Kinds (``v2i.adversary.attack_messages``) run one after another, ``--count`` each at ``--rate-hz``,
 each followed by ``--settle-s``; the OBU's and the emulator's rejection counters grown over a
 kind's phase are what it caused. Before the first kind, ``--warmup-s`` of genuine traffic with
-*decoy* ghost placements measures the ghost rule's false positives (``evaluation.attack_ghosts``).
+*decoy* ghost placements measures the ghost rule's false positives (``v2i.adversary.attack_ghosts``).
 Callbacks only enqueue (a bounded queue; drops counted), except the time queryable, which must
 answer in its callback. Exit 0 when nothing got through, 1 when something did (or the site
 never became ready), 130 on Ctrl-C (a partial report is printed), 2 on bad input.
@@ -30,7 +30,7 @@ import sys
 
 from v2i.security.attacker_keys import STOLEN_RSU, STOLEN_VEHICLE
 
-from evaluation.attack_messages import KINDS
+from v2i.adversary.attack_messages import KINDS
 
 
 def configure_parser(p: argparse.ArgumentParser) -> None:
@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from v2i.security.pki import PkiError
 
     from v2i.security.attacker_keys import load_attacker_keys
-    from evaluation.attack_report import format_report, got_through
+    from v2i.adversary.attack_report import format_report, got_through
 
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
     unknown = sorted(set(kinds) - set(KINDS))
@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     except PkiError as exc:
         hint = prepare_command(args.pki, args.rsu_id, stolen)
         raise ValueError(f"--pki: {exc}; make the attacker's keys with: {hint}") from None
-    from evaluation.attack_live import AttackRun, NotReady
+    from v2i.adversary.attack_live import AttackRun, NotReady
 
     attack = AttackRun(args, kinds, attacker)
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -1,7 +1,7 @@
 """Hostile CPM / SDSM object lists for the fuzz command (pure, seeded): RSU lists in the standard
 encodings (``schemas.cpm``, ``schemas.sdsm``; RSU ``--wire cpm|sdsm``) broken every way UPER
 bytes break. ``StandardHostile(rng).make(wire, t_ns)`` gives one payload of a random kind
-(``STANDARD_KINDS``); the live driver (``evaluation.fuzz_targets``) publishes it on the RSU keys
+(``STANDARD_KINDS``); the live driver (``v2i.adversary.fuzz_targets``) publishes it on the RSU keys
 ``v2x/rsu/<id>/cpm`` / ``.../sdsm``, where the OBU must only ever count a rejection.
 """
 

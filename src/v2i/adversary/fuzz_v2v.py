@@ -2,7 +2,7 @@
 
 The ``obu`` target's topology (an RSU with a 250 ms clock offset, the OBU connected to it
 directly) with the OBU running ``--v2v``; the attacker's session reaches the OBU as a peer
-vehicle would. Every hostile kind of ``evaluation.hostile`` is made around each V2V message
+vehicle would. Every hostile kind of ``v2i.adversary.hostile`` is made around each V2V message
 (a peer's shared list, ``FusedObjectList``; a peer's time request; a peer's time reply) and
 put on the V2V keys of made-up peers (``v2x/v2v/x<k>/objects``, ``.../time``,
 ``.../time_reply/ego``). Special kinds: a flood of one peer's valid lists; valid lists from
@@ -28,9 +28,9 @@ from schemas.codec import encode
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, TimeReply
 from v2i.runtime.transport import free_tcp_endpoint
 
-from evaluation.fuzz import VEHICLE_ID
-from evaluation.fuzz_targets import CLOCK_OFFSET_MS, ObuFuzz
-from evaluation.hostile import MS, HostileInputs
+from v2i.adversary.fuzz import VEHICLE_ID
+from v2i.adversary.fuzz_targets import CLOCK_OFFSET_MS, ObuFuzz
+from v2i.adversary.hostile import MS, HostileInputs
 
 V2V_TYPES = ("fused_object_list", "time_request", "time_reply")
 

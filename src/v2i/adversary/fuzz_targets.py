@@ -1,9 +1,9 @@
-"""The three fuzz targets of ``v2i fuzz`` (``evaluation.fuzz``): where each service's inputs
+"""The three fuzz targets of ``v2i fuzz`` (``v2i.adversary.fuzz``): where each service's inputs
 are, what its normal output is and where it counts what it refused.
 
 - ``obu``: an RSU (clock offset 250 ms) and the OBU connected to it directly. The attacker's
   session reaches both: it publishes on the RSU keys of other ids (v2i lists, and CPM / SDSM
-  lists on ``.../cpm`` / ``.../sdsm``: ``evaluation.fuzz_standard``; and, as one special kind
+  lists on ``.../cpm`` / ``.../sdsm``: ``v2i.adversary.fuzz_standard``; and, as one special kind
   among the others, valid lists on the genuine RSU's own key: without signatures (``--security none``),
   those are indistinguishable from the RSU's), replays the genuine RSU's lists, and, once the OBU has synchronised and fuses RSU data, answers
   half of its time queries at once with a forged clock (245 ms further ahead, a
@@ -13,7 +13,7 @@ are, what its normal output is and where it counts what it refused.
 - ``rsu``: the RSU alone. The attacker sends hostile time queries; a probe asks the time
   genuinely at 10 Hz. Normal output: the object lists at the camera rate, late when the RSU
   stamped publish more than 250 ms after capture; and the probes' answers.
-- ``obu-inputs`` / ``rsu-inputs`` (``evaluation.fuzz_inputs``): ``v2i world`` feeding the
+- ``obu-inputs`` / ``rsu-inputs`` (``v2i.adversary.fuzz_inputs``): ``v2i world`` feeding the
   service with ``--source zenoh``, the attacker on its sensor input keys.
 - ``link``: the demo's topology (RSU, emulator with profile ``ideal``, OBU), the emulator
   also connected to the attacker's two sessions; the attacker sends hostile lists on the RSU
@@ -38,8 +38,8 @@ from schemas.messages import FusedObjectList, ObjectList, ObuMetrics, RsuMetrics
 from v2i.runtime.transport import free_tcp_endpoint
 from v2i.sim.scenario import load_scenario
 
-from evaluation.fuzz import LINK_ID, MS, RSU_ID, VEHICLE_ID, FuzzRun
-from evaluation.fuzz_standard import StandardHostile
+from v2i.adversary.fuzz import LINK_ID, MS, RSU_ID, VEHICLE_ID, FuzzRun
+from v2i.adversary.fuzz_standard import StandardHostile
 
 STANDARD_WIRES = "v2i,cpm,sdsm"  # the OBU takes every encoding: hostile CPM / SDSM reach it too
 
@@ -101,7 +101,7 @@ class ObuFuzz(FuzzRun):
                 *self._standard_actions()]
 
     def _standard_actions(self) -> list:
-        """Hostile CPM / SDSM lists (``evaluation.fuzz_standard``) on the RSU keys of other ids."""
+        """Hostile CPM / SDSM lists (``v2i.adversary.fuzz_standard``) on the RSU keys of other ids."""
         hostile, now, actions = StandardHostile(self.rng), time.time_ns(), []
         for wire, topic in (("cpm", keys.rsu_cpm), ("sdsm", keys.rsu_sdsm)):
             pool = itertools.cycle([hostile.make(wire, now)[1] for _ in range(64)])
@@ -357,6 +357,6 @@ class LinkFuzz(ObuFuzz):
                 "genuine_lists": {"published": published1 - published0, "accepted_by_obu": accepted1 - accepted0}}
 
 
-from evaluation.fuzz_inputs import ObuInputsFuzz, RsuInputsFuzz  # noqa: E402 (they build on FuzzRun, not on this module)
+from v2i.adversary.fuzz_inputs import ObuInputsFuzz, RsuInputsFuzz  # noqa: E402 (they build on FuzzRun, not on this module)
 
 TARGETS = {"obu": ObuFuzz, "rsu": RsuFuzz, "link": LinkFuzz, "obu-inputs": ObuInputsFuzz, "rsu-inputs": RsuInputsFuzz}

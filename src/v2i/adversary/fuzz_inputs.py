@@ -2,7 +2,7 @@
 
 - ``obu-inputs``: ``v2i world`` feeding ``v2i obu --source zenoh``; the attacker publishes on the
   OBU's own input keys (``v2x/sensor/vehicle/ego/objects|pose``): every hostile kind of
-  ``evaluation.hostile`` built around ``SensorObjects`` and ``LocalizationPose``, plus floods,
+  ``v2i.adversary.hostile`` built around ``SensorObjects`` and ``LocalizationPose``, plus floods,
   replays of the world's genuine frames, spoofed sensor ids, wrong frames and future stamps.
   Normal output: a fused list per 10 Hz cycle, late after 100 ms.
 - ``rsu-inputs``: ``v2i world`` feeding ``v2i rsu --source zenoh``, the attacker on
@@ -28,8 +28,8 @@ from v2i.runtime.transport import free_tcp_endpoint
 from schemas.wire_view import pack_view, unpack_view
 from v2i.sim.scenario import load_scenario
 
-from evaluation.fuzz import MS, RSU_ID, VEHICLE_ID, FuzzRun
-from evaluation.hostile import HostileInputs
+from v2i.adversary.fuzz import MS, RSU_ID, VEHICLE_ID, FuzzRun
+from v2i.adversary.hostile import HostileInputs
 
 RSU_LATE_NS = 250 * MS
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from evaluation.attack_messages import INTENDED
+from v2i.adversary.attack_messages import INTENDED
 
 DROP, ACCEPT = "security_", "security_accepted_"
 

@@ -43,8 +43,8 @@ from schemas.image_messages import (
 from v2i.runtime.transport import free_tcp_endpoint
 from v2i.sim.scenario import load_scenario
 
-from evaluation.fuzz import MS, VEHICLE_ID
-from evaluation.fuzz_targets import CLOCK_OFFSET_MS, REPLAY_AGE_NS, ObuFuzz
+from v2i.adversary.fuzz import MS, VEHICLE_ID
+from v2i.adversary.fuzz_targets import CLOCK_OFFSET_MS, REPLAY_AGE_NS, ObuFuzz
 
 SCENARIO = "roif-intersection"
 W, H = 1280, 720
