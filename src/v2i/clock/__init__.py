@@ -1,0 +1,1 @@
+"""Clock synchronisation (pure): RSU offset and drift from NTP-style four-timestamp exchanges."""

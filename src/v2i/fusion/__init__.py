@@ -1,0 +1,1 @@
+"""Pure fusion algorithms: motion models, Kalman filters, association, tracking, compensation, prediction, ROIF."""

@@ -1,0 +1,1 @@
+"""Reports of a run: pictures (matplotlib) and the chaos summary."""

@@ -1,0 +1,1 @@
+"""Service runtime: Zenoh sessions (transport), intake queues, config loading, process conventions, sensor screens."""

@@ -1,0 +1,1 @@
+"""Scoring fused outputs against ground truth: detection, tracking and consistency metrics (pure)."""

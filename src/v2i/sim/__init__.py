@@ -1,0 +1,1 @@
+"""The simulated world: scenarios (each with its site), world, sensor and clock models, rendered cameras."""
