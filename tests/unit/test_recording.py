@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from v2i.orchestration.replay_demo import run_metadata, spec_of
+from v2i.offline.recorded_run import run_metadata, spec_of
 from v2i.offline.spec import RunSpec
 from schemas import list_wire
 from schemas.codec import decode, encode

@@ -16,7 +16,7 @@ from schemas.messages import ObjectList, ObjectListHeader
 from v2i.telemetry import mcap_writer
 from v2i.telemetry.mcap_reader import Recording, RecordingError
 from v2i.telemetry.mcap_writer import RunWriter
-from v2i.record import _signals_deferred
+from v2i.telemetry.recorder import _signals_deferred
 
 T_NS = 1_795_545_547_592_119_513
 MESSAGES, PER_CHUNK = 60, 10

@@ -1,5 +1,5 @@
 """Signed RSU messages (``v2i.security.envelope``) in recordings: kept as on the wire, read and
-replayed from inside their envelopes (``telemetry.mcap_*``, ``v2i.replay``)."""
+replayed from inside their envelopes (``telemetry.mcap_*``, ``v2i.telemetry.replayer``)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from v2i.telemetry import mcap_channels as mc
 from v2i.telemetry.mcap_reader import Recording
 from v2i.telemetry.mcap_writer import RunWriter
 from v2i.telemetry.time_shift import shift_message, shift_payload
-from v2i.replay import Replayer
+from v2i.telemetry.replayer import Replayer
 
 T_NS = 1_795_545_547_592_119_513
 KEY = "v2x/rsu/rsu1/objects"

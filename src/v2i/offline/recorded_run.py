@@ -1,6 +1,6 @@
 """Which run a recording is of: the spec and scenario start that ``v2i replay --score`` needs.
 
-``v2i demo --record`` (``v2i.orchestration.replay_demo.demo_recorder``) writes them into the file as
+``v2i demo --record`` (``v2i.orchestration.demo_recording.demo_recorder``) writes them into the file as
 the MCAP metadata record ``run`` (``run_metadata``): the run's ``RunSpec`` as JSON, its scenario
 start (ns, host clock) and duration. A ``v2i record`` file of services started by hand carries
 none: the command line gives them (``v2i replay --score --scenario S --start-at-ns T0``, the

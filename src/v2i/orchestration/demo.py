@@ -132,7 +132,7 @@ class Demo(InboxScoring):
         """``ready_timeout_s``: every service must be ready within this (a restarted one too).
         ``chaos``: a timeline to play; its RSU clock step must already be in ``spec`` (``with_chaos``).
         ``outage`` (``--kill-link-at``) is played as its generated timeline; not with ``chaos``.
-        ``record_to``: an MCAP file recording both sides of the link (``v2i.orchestration.replay_demo``).
+        ``record_to``: an MCAP file recording both sides of the link (``v2i.orchestration.demo_recording``).
         ``pki_dir``: the site PKI to use and complete (``live_security.run_pki``); default: one in the
         run's temporary directory."""
         if outage is not None and chaos is not None:
@@ -181,7 +181,7 @@ class Demo(InboxScoring):
             start_ns = time.time_ns() + round(START_LEAD_S * 1e9)
             self._start_scoring(start_ns)
             if self.record_to:  # subscribed before the start line, so from the first time query on
-                from v2i.orchestration.replay_demo import demo_recorder
+                from v2i.orchestration.demo_recording import demo_recorder
 
                 recorder = demo_recorder(self, start_ns, self.record_to)
             start_all(self.children.values(), start_ns)

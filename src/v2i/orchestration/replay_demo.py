@@ -1,11 +1,11 @@
 """A recorded demo re-run: a fresh OBU fed by the replayed RSU traffic, scored like ``v2i demo``.
 
 ``v2i demo --record FILE`` (and ``v2i chaos run --record FILE``) record both sides of the link
-while the demo runs (``demo_recorder``): the RSU side (``rsu``: what the RSU published, and the
+while the demo runs (``v2i.orchestration.demo_recording``): the RSU side (``rsu``: what the RSU published, and the
 recorder's time exchanges with it), the vehicle side (``vehicle``: what reached the OBU after
 the link, and the OBU's outputs) and the emulator's control side (``link``: its JSON stats), with the run's spec, start and duration as MCAP metadata
 ``run``. ``v2i replay FILE --score`` (``ReplayDemo``) starts only an OBU with that spec (``--await-start``),
-and once it is ready and watched, gives it a new time zero and replays the vehicle side's RSU traffic into it (``v2i.replay.Replayer``: every stamp
+and once it is ready and watched, gives it a new time zero and replays the vehicle side's RSU traffic into it (``v2i.telemetry.replayer.Replayer``: every stamp
 moved to the new start, the RSU clock answered from the recorded exchanges) and scores its
 output with the demo's machinery (``InboxScoring``, ``build_report``): the same report keys,
 ``driver: replay``, plus ``replay`` (what was republished, how late) and ``recording``.
@@ -29,21 +29,8 @@ from v2i.runtime.transport import open_session
 from v2i.orchestration.children import READY_TIMEOUT_S, START_LEAD_S, DemoError, start_all
 from v2i.orchestration.demo import Demo
 from v2i.orchestration.inbox_scoring import obu_own_count, startup_summary
-from v2i.offline.recorded_run import RUN_METADATA, run_metadata, run_of, spec_of  # noqa: F401 - spec_of: the tests' import
+from v2i.offline.recorded_run import run_of
 from v2i.offline.spec import build_report
-
-
-def demo_recorder(demo: Demo, start_ns: int, path: str):
-    """A started ``v2i.record.Recorder`` on both sides of ``demo``'s link (time exchanges on the RSU side)."""
-    from v2i.record import Recorder
-
-    spec = demo.spec
-    meta = run_metadata(spec, start_ns, demo.duration_s, spec.obu_config().vehicle_id, spec.rsu_config().rsu_id)
-    sides = [("rsu", demo.rsu_ep), ("vehicle", demo.obu_ep), ("link", demo.control_ep)]  # link: its stats
-    recorder = Recorder(sides, path, time_from="rsu",
-                        metadata={RUN_METADATA: meta})
-    recorder.start()
-    return recorder
 
 
 class ReplayDemo(Demo):
@@ -54,7 +41,7 @@ class ReplayDemo(Demo):
         """``given``: the run's values from the command line (``recorded_run.run_of``: needed for a
         ``v2i record`` file, which carries no run metadata)."""
         from v2i.telemetry.mcap_reader import Recording
-        from v2i.replay import Replayer
+        from v2i.telemetry.replayer import Replayer
 
         self.recording = Recording(recording_path)
         spec, recorded_start_ns = run_of(self.recording, given or {})

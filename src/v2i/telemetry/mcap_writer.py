@@ -11,7 +11,7 @@ the sender's publish stamp where the message has one (else the receive time), bo
 Bounded: a payload over ``derive_max_bytes``, or one that does not decode, is still written raw,
 but no derived message is made; both are counted in ``skipped`` by reason. The file is chunked
 (zstd) and ``close()`` writes the summary and index, so a recording stopped by Ctrl-C / SIGTERM
-is a valid MCAP. Not thread-safe: one thread writes (``v2i.record`` has a queue in front).
+is a valid MCAP. Not thread-safe: one thread writes (``v2i.telemetry.recorder`` has a queue in front).
 
 Crash-safe: whatever stops it, the file is a complete MCAP or a valid MCAP *prefix* (whole
 records, no summary), which ``v2i.telemetry.mcap_reader`` reads back (``Recording.closed`` False).
@@ -21,7 +21,7 @@ the count of bytes really written), its end after each whole call remembered (``
 write that fails (a full disk, an I/O error) cuts the file back to that end (``rollback``), and
 the writer refuses every later call (its ``Writer`` may hold half a chunk): ``failed`` says why.
 ``flush()`` ends the chunk in progress and writes it, so a kill loses at most what came since the
-last flush (``v2i.record`` flushes every ``FLUSH_S``); a chunk of ``CHUNK_BYTES`` is written
+last flush (``v2i.telemetry.recorder`` flushes every ``FLUSH_S``); a chunk of ``CHUNK_BYTES`` is written
 without waiting.
 """
 
