@@ -31,7 +31,7 @@ from schemas.errors import (CodecError, InvalidMessage, MalformedMessage, Messag
                      SchemaVersionError, WrongMessageType)
 from schemas.messages import (SCHEMA_VERSION, FusedObjectList, Message, ObjectList, ObjectListHeader, PredictedPath,
                        PredictionList)
-from schemas.object_wire import EMPTY_SECTION, unpack_objects
+from schemas.object_wire import EMPTY_SECTION, unpack_objects, wire_section
 from schemas.object_wire import object_count as _section_count
 from schemas.sensor_messages import GroundTruth, SensorObjects
 
@@ -137,7 +137,7 @@ def encode(msg: Message, max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
         body = msg.__dict__ if _dumps_as_stored(type(msg)) else msg.model_dump(mode="python")
         envelope: Any = {"v": SCHEMA_VERSION, "t": msg.TYPE, "d": body}
     else:
-        envelope = [SCHEMA_VERSION, tag, _positional(msg), msg.objects.wire_section]  # = pack_objects(msg.objects)
+        envelope = [SCHEMA_VERSION, tag, _positional(msg), wire_section(msg.objects)]  # = pack_objects(msg.objects)
     try:
         data = msgpack.packb(envelope, use_bin_type=True)
     except (TypeError, ValueError, OverflowError) as exc:

@@ -2,7 +2,7 @@
 
 An :class:`ObjectColumns` holds N objects as one ``(N, K)`` int64 matrix of codes, one column
 per wire attribute (``OBJECT_SPECS``; fused lists add ``sources``). The rules are those of the
-per-object models :class:`~schemas.messages.ObjectState` / ``FusedObject`` (same ranges, same
+per-object models :class:`~schemas.object_state.ObjectState` / ``FusedObject`` (same ranges, same
 grids, same round-half-even quantisation, yaw wrapped into [-pi, pi)), applied to whole columns:
 a value ``v`` of a grid column is accepted iff it is finite and inside the column's bounds, and
 becomes ``k * step`` with ``k = rint(v / step)``. A failure is an ``InvalidMessage`` whose
@@ -25,7 +25,7 @@ from schemas.classes import ObjectClass
 from schemas.errors import InvalidMessage
 
 if TYPE_CHECKING:
-    from schemas.messages import ObjectState
+    from schemas.object_state import ObjectState
 
 _INT, _GRID, _YAW = "int", "grid", "yaw"
 _YAW_HALF_TURN = round(math.pi / q.YAW_RAD)  # 1800 codes: yaw codes live in [-1800, 1800)
@@ -185,7 +185,7 @@ def _first_bad(ok: np.ndarray, values: np.ndarray, layout: Layout, what: str) ->
 
 
 def _canonical_yaw(codes: np.ndarray) -> np.ndarray:
-    """Yaw codes wrapped into [-1800, 1800): ``messages._yaw`` on each value ``k * step``
+    """Yaw codes wrapped into [-1800, 1800): ``object_state._yaw`` on each value ``k * step``
     (wrap to [-pi, pi), re-quantise, fold 1800 onto -1800), vectorised."""
     outside = (codes < -_YAW_HALF_TURN) | (codes >= _YAW_HALF_TURN)
     if not outside.any():
@@ -264,7 +264,7 @@ class ObjectColumns:
         each validated by its model (a loop: for small, hand-made lists)."""
         if isinstance(states, ObjectColumns):
             return states.as_fused(fused)
-        from schemas.messages import FusedObject, ObjectState
+        from schemas.object_state import FusedObject, ObjectState
 
         model = FusedObject if fused else ObjectState
         _check_count(len(states))
@@ -291,14 +291,6 @@ class ObjectColumns:
         out.flags.writeable = False
         return out
 
-    @cached_property
-    def wire_section(self) -> tuple:
-        """The msgpack-ready objects section (``object_wire.pack_objects``), packed once: a list
-        and a prediction list carrying the same (immutable) columns share it."""
-        from schemas.object_wire import pack_objects
-
-        return tuple(pack_objects(self))
-
     @property
     def names(self) -> tuple[str, ...]:
         return layout_of(self.fused).names
@@ -314,7 +306,7 @@ class ObjectColumns:
 
     def row(self, i: int) -> ObjectState:
         """Object ``i`` as its model (``FusedObject`` when fused): convenient, not fast."""
-        from schemas.messages import FusedObject, ObjectState
+        from schemas.object_state import FusedObject, ObjectState
 
         model = FusedObject if self.fused else ObjectState
         integer = layout_of(self.fused).integer

@@ -65,6 +65,15 @@ def pack_objects(objects: ObjectColumns) -> list[Any]:
             ref.tolist(), scale[scale > 1].tolist(), bitpack.pack(fields, widths), tables]
 
 
+def wire_section(objects: ObjectColumns) -> tuple:
+    """The msgpack-ready objects section (``pack_objects``), packed once and kept on the columns
+    (immutable): a list and a prediction list carrying the same columns share it."""
+    section = objects.__dict__.get("wire_section")
+    if section is None:
+        section = objects.__dict__["wire_section"] = tuple(pack_objects(objects))
+    return section
+
+
 def _section_compiled(codes: np.ndarray, layout) -> list[Any]:
     """``pack_objects``' section by ``schemas.bit_rows.pack_section`` (the same bytes: test_object_wire_paths)."""
     mask, flags, ref, scales, rows, counts, sizes, blob = _compiled_section(codes, np.sort(codes, axis=0),

@@ -35,7 +35,7 @@ def grid_positions(values: np.ndarray) -> np.ndarray:
 
 
 def grid_yaws(values: np.ndarray) -> np.ndarray:
-    """``messages._yaw(v)`` of each value: wrapped to [-pi, pi) on the 0.1 deg grid; (K,) -> (K,)."""
+    """``object_state._yaw(v)`` of each value: wrapped to [-pi, pi) on the 0.1 deg grid; (K,) -> (K,)."""
     wrapped = np.remainder(values + math.pi, 2.0 * math.pi) - math.pi
     k = np.rint(wrapped / q.YAW_RAD) + 0.0
     return np.where(k >= 1800, k - 3600, k) * q.YAW_RAD

@@ -574,14 +574,14 @@ def test_an_object_section_is_packed_once_and_encodes_as_packed() -> None:
     bytes of the envelope with a fresh pack_objects, and a prediction list carrying a list's
     columns shares that list's section."""
     from schemas.codec import _positional
-    from schemas.object_wire import pack_objects
+    from schemas.object_wire import pack_objects, wire_section
 
     msg = object_list(40)
     fresh = [SCHEMA_VERSION, LIST_TAGS[ObjectList.TYPE], _positional(msg), pack_objects(msg.objects)]
     assert encode(msg) == msgpack.packb(fresh, use_bin_type=True)
     pred = PredictionList(header=msg.header, objects=msg.objects,
                           paths=tuple(PredictedPath(id=o.id) for o in msg.objects))
-    assert pred.objects.wire_section is msg.objects.wire_section
+    assert wire_section(pred.objects) is wire_section(msg.objects)
     assert decode(encode(pred), PredictionList).objects == msg.objects
 
 

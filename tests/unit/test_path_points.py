@@ -23,9 +23,9 @@ from schemas.messages import (
     PredictionList,
     Yaw,
     _path,
-    _yaw,
     predicted_paths,
 )
+from schemas.object_state import _yaw
 from schemas.path_points import grid_positions, grid_yaws, paths_from_dicts
 
 
