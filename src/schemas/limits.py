@@ -3,10 +3,10 @@
 import math
 
 from schemas import quantize as q
+# m^2/s^2 (100 m/s std): no velocity measured (ObjectArray's meaning too); equals the Variance maximum
+from v2i.core.objects import UNKNOWN_VELOCITY_VAR  # noqa: F401 (re-exported)
 
 MAX_OBJECTS = 1024
-
-UNKNOWN_VELOCITY_VAR = 1e4  # m^2/s^2 (100 m/s std): no velocity measured; equals the Variance maximum
 
 # Sources of a fused object (FusedObject.sources, one byte on the wire): SOURCE_VEHICLE, the
 # vehicle's own sensors; SOURCE_RSU, any cooperative source (an RSU or, later, a peer vehicle).

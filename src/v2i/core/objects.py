@@ -9,7 +9,9 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from schemas.messages import UNKNOWN_VELOCITY_VAR  # per-axis velocity variance meaning "no velocity"
+# m^2/s^2 (100 m/s std): the per-axis velocity variance meaning "no velocity measured"; the wire has the
+# same meaning for it (schemas.limits re-exports it: the largest variance an object can carry)
+UNKNOWN_VELOCITY_VAR = 1e4
 
 
 def _col(n: int, width: int | None = None, dtype=np.float64) -> np.ndarray:
