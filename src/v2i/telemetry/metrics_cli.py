@@ -10,11 +10,7 @@ import argparse
 import threading
 from typing import Any
 
-DEFAULT_ADDRESS = "127.0.0.1"
-
-
-class MetricsPortError(ValueError):
-    """The exporter cannot listen where it was told (port in use, bad address): a start-up error."""
+from v2i.telemetry.metrics_port import DEFAULT_ADDRESS, MetricsPortError  # noqa: F401 (MetricsPortError: re-exported)
 
 
 def add_metrics_options(p: argparse.ArgumentParser) -> None:

@@ -26,7 +26,7 @@ from prometheus_client.core import HistogramMetricFamily
 from prometheus_client.utils import floatToGoString
 
 from v2i.telemetry.latency import BUCKETS_S
-from v2i.telemetry.metrics_cli import DEFAULT_ADDRESS, MetricsPortError
+from v2i.telemetry.metrics_port import DEFAULT_ADDRESS, MetricsPortError
 
 MAX_LABEL_VALUES = 32  # distinct values per label of a family; later ones are summed under OTHER
 MAX_LABEL_CHARS = 64
