@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from v2i.orchestration.demo import Demo, LinkOutage
-from v2i.reports.run_report import chaos_spans, write_demo_report
+from v2i.reports.run_arrays import chaos_spans
+from v2i.reports.run_report import write_demo_report
 from v2i.offline.spec import RunSpec, summary
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]

@@ -11,7 +11,8 @@ import pytest
 from v2i.offline.chaos import ChaosTimeline, load_chaos, with_chaos
 from v2i.scoring.link_series import LinkSeries
 from v2i.scoring.metrics import deadline_miss_ratio
-from v2i.reports.run_report import chaos_spans, missed_cycles_ns, rsu_traces, vehicle_timeline, write_offline_report
+from v2i.reports.run_arrays import chaos_spans, missed_cycles_ns, rsu_traces, vehicle_timeline
+from v2i.reports.run_report import write_offline_report
 from v2i.offline.runner import OfflineRun
 from v2i.offline.spec import RunSpec
 from schemas.messages import RsuLinkStatus

@@ -13,7 +13,7 @@ from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from obu_service.fusion_mode import MODES
 
-from v2i.reports.run_report import BevVehicle, Span, VehicleTimeline
+from v2i.reports.run_arrays import BevVehicle, Span, VehicleTimeline
 from v2i.offline.spec import first_seen
 
 MODE_COLOURS = {"intra": "#2ca02c", "inter": "#1f77b4", "planning": "#ff7f0e", "vehicle-only": "#8c8c8c"}
