@@ -136,14 +136,12 @@ class RsuImageFeatures(Message):
         return self
 
     def view(self):
-        """The frame as ``v2i.fusion.roif_features.ViewFeatures`` (float64 px, uint8 descriptors)."""
+        """The frame as ``v2i.fusion.roif_features.ViewFeatures``: ``ViewFeatures.of_message(msg)``, which the
+        wire contract cannot name (it imports nothing above it). Kept until ``obu_service.image_fusion``, its
+        last caller, calls that instead; then it goes."""
         from v2i.fusion.roif_features import ViewFeatures
 
-        k = self.n_keypoints
-        return ViewFeatures.of(*self.boxes.arrays(), column(self.keypoints, F4, k, 2, "keypoints").astype(float),
-                               column(self.descriptors, U1, k, DESCRIPTOR_BYTES, "descriptors"),
-                               (self.image_width, self.image_height),
-                               column(self.keypoint_box, U2, k, 1, "keypoint_box").ravel())
+        return ViewFeatures.of_message(self)
 
     @classmethod
     def from_view(cls, rsu_id: str, seq: int, t_ns: int, view) -> RsuImageFeatures:

@@ -70,7 +70,7 @@ def test_round_trip_is_exact_and_columns_are_bytes():
     assert decode(data, RsuImageFeatures) == msg
     body = msgpack.unpackb(data, raw=False)["d"]
     assert isinstance(body["keypoints"], bytes) and len(body["descriptors"]) == 32 * 50
-    view = decode(data, RsuImageFeatures).view()
+    view = ViewFeatures.of_message(decode(data, RsuImageFeatures))
     np.testing.assert_array_equal(view.keypoints, np.frombuffer(msg.keypoints, F4).reshape(-1, 2))
     assert view.descriptors.dtype == np.uint8 and view.descriptors.shape == (50, 32)
     assert (view.box_index == 0).all()
@@ -119,7 +119,7 @@ def test_split_pipeline_equals_the_image_level_one_and_survives_the_wire(views):
     cfg = RoifConfig()
     old = roif_fuse_images(img_o, det_o, img_r, det_r, cfg)
     obu, rsu = view_features(img_o, det_o, cfg), view_features(img_r, det_r, cfg)
-    wire = decode(encode(RsuImageFeatures.from_view("rsu-1", 1, T0, rsu)), RsuImageFeatures).view()
+    wire = ViewFeatures.of_message(decode(encode(RsuImageFeatures.from_view("rsu-1", 1, T0, rsu)), RsuImageFeatures))
     assert old.fit.status == "ok" and old.mapped
     for new in (roif_fuse(obu, rsu, cfg), roif_fuse(obu, wire, cfg)):
         np.testing.assert_allclose(new.fused.xyxy, old.fused.xyxy, atol=1e-4)  # boxes travel as float32
@@ -204,7 +204,7 @@ def test_valid_degenerate_frames_fuse_without_error(views, n_boxes, n_kp, how):
     index = np.zeros(n_kp, np.int64)
     rsu = ViewFeatures.of(boxes, np.full(n_boxes, 0.5), np.ones(n_boxes), kp, rng.integers(0, 256, (n_kp, 32)),
                           (W, H), index)
-    wire = decode(encode(RsuImageFeatures.from_view("rsu-1", 1, T0, rsu)), RsuImageFeatures).view()
+    wire = ViewFeatures.of_message(decode(encode(RsuImageFeatures.from_view("rsu-1", 1, T0, rsu)), RsuImageFeatures))
     pipe = RoifFramePipeline()
     frame = pipe.step(view_features(img_o, det_o, pipe.roif), wire, 0.0)
     assert frame.view == VIEW_RSU and len(frame.fused.xyxy) >= n_boxes

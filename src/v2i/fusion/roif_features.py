@@ -46,6 +46,17 @@ class ViewFeatures:
                    np.asarray(descriptors, np.uint8).reshape(-1, DESCRIPTOR_BYTES), index,
                    (int(image_wh[0]), int(image_wh[1])))
 
+    @classmethod
+    def of_message(cls, msg) -> ViewFeatures:
+        """The frame of an RSU's ``schemas.image_messages.RsuImageFeatures`` (float64 px, uint8 descriptors)."""
+        from schemas import image_messages as wire
+
+        k = msg.n_keypoints
+        return cls.of(*msg.boxes.arrays(), wire.column(msg.keypoints, wire.F4, k, 2, "keypoints").astype(float),
+                      wire.column(msg.descriptors, wire.U1, k, wire.DESCRIPTOR_BYTES, "descriptors"),
+                      (msg.image_width, msg.image_height),
+                      wire.column(msg.keypoint_box, wire.U2, k, 1, "keypoint_box").ravel())
+
     @property
     def detections(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(xyxy (N, 4), scores (N,), cls (N,))."""

@@ -369,7 +369,7 @@ def _through_wire(rsu: ViewFeatures, seq: int, sizes: list) -> ViewFeatures:
 
     data = encode(RsuImageFeatures.from_view("rsu", seq, 10**18, rsu))
     sizes.append(len(data))
-    return decode(data, RsuImageFeatures).view()
+    return ViewFeatures.of_message(decode(data, RsuImageFeatures))
 
 
 def _percentiles(values: list) -> dict:
