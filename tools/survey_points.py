@@ -16,12 +16,12 @@ farthest-point sampling in the image (at most 24, at least 12 px apart). They ar
 through the TRUE camera (``v2i.sim.camera.rsu_camera``), clicked with Gaussian noise (0.7 px per
 axis), surveyed with 2 cm noise (3 cm vertical on buildings; road marks are on the ground
 plane z = 0), and one click is a gross mistake (20-40 px off) that RANSAC must reject. The
-points go to ``src/v2i/sim/calibrations/<scenario>.points.csv``; then ``v2i camera calibrate`` (its
+points go to ``src/v2i/perception/calibrations/<scenario>.points.csv``; then ``v2i camera calibrate`` (its
 very ``run``) fits them with K from the lens's field of view and writes ``<scenario>.calib.json``,
 and the map error on the visible lane centres at 20 / 50 / 80 m is printed. The RSU loads that
 file, never the true pose.
 
-    python tools/survey_points.py [--seed 0] [--out-dir src/v2i/sim/calibrations] [--scenario NAME ...]
+    python tools/survey_points.py [--seed 0] [--out-dir src/v2i/perception/calibrations] [--scenario NAME ...]
 """
 
 from __future__ import annotations
@@ -237,7 +237,8 @@ def calibrate(name: str, seed: int, out_dir: Path) -> Path:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seed", type=int, default=0, help="seed of the clicks and survey noise (default %(default)s)")
-    p.add_argument("--out-dir", type=Path, default=Path(__file__).resolve().parents[1] / "src" / "sim" / "calibrations")
+    shipped = Path(__file__).resolve().parents[1] / "src" / "v2i" / "perception" / "calibrations"
+    p.add_argument("--out-dir", type=Path, default=shipped)
     p.add_argument("--scenario", action="append", help="only these bundled scenarios (default: all)")
     args = p.parse_args(argv)
     args.out_dir.mkdir(parents=True, exist_ok=True)

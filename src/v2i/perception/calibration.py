@@ -395,8 +395,9 @@ def load_calibration(path: str | Path) -> Calibration:
 
 
 def bundled_calibration_dir() -> Path:
-    """The folder of the shipped calibrations, ``sim/calibrations``."""
-    return Path(str(resources.files("v2i.sim") / "calibrations"))
+    """The folder of the shipped calibrations (one per bundled scenario's RSU camera, made from points
+    surveyed in its simulated world: ``tools/survey_points.py``), ``perception/calibrations``."""
+    return Path(str(resources.files("v2i.perception") / "calibrations"))
 
 
 def calibration_path(scenario: str | Path) -> Path | None:

@@ -14,7 +14,7 @@ unknown yaw a (uniform) relative to n, X = (l |cos a| + w |sin a|) / 2:
     E[X^2] = (l^2 / 2 + w^2 / 2 + 2 l w / pi) / 4              (E cos^2 = 1/2, E|cos a sin a| = 1/pi)
     Var[X] = E[X^2] - E[X]^2   (a car 4.6 x 1.85 m: E = 2.05 m, std 0.46 m)
 
-Size comes from the class prior (``v2i.sim.sensors.CLASS_DEFAULT_LWH``); yaw 0 and no velocity:
+Size comes from the class prior (``schemas.classes.CLASS_DEFAULT_LWH``); yaw 0 and no velocity:
 the RSU tracker estimates both from the track.
 
 Covariance: Sigma = J_c J diag(sigma_u^2, sigma_v^2) J^T J_c^T + (Var[X] / (n . d)^2) d d^T, with
@@ -34,9 +34,8 @@ from __future__ import annotations
 import numpy as np
 
 from v2i.core.objects import ObjectArray
-from schemas.classes import ObjectClass
+from schemas.classes import CLASS_DEFAULT_LWH, ObjectClass
 from schemas.messages import SOURCE_RSU
-from v2i.sim.sensors import CLASS_DEFAULT_LWH
 
 from v2i.perception.calibration import Calibration
 
