@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import math
-import signal
 import sys
 from collections.abc import Iterable
 from pathlib import Path
+
+from v2i.console import check_folder, check_writable, emit, live, wrote
 
 SUBCOMMANDS = {
     "demo": "run RSU, link emulator and OBU as processes on loopback Zenoh and score the result",
@@ -95,19 +95,6 @@ def _security(args: argparse.Namespace) -> str | None:
     return None if policy == "none" else policy
 
 
-def _emit(report: dict, json_path: str | None, summary=None) -> None:
-    """Human summary (stderr when the JSON goes to stdout; default ``v2i.offline.spec.summary``) and
-    the JSON report."""
-    if summary is None:
-        from v2i.offline.spec import summary
-
-    print(summary(report), file=sys.stderr if json_path == "-" else sys.stdout)
-    if json_path == "-":
-        print(json.dumps(report, indent=2))
-    elif json_path:
-        Path(json_path).write_text(json.dumps(report, indent=2) + "\n")
-
-
 # RunSpec-backed config fields -> the flags that set them, so that errors name what the user typed
 _FLAG_OF_FIELD = {
     "seed": "--seed", "deadline_ms": "--deadline-ms", "fusion": "--fusion", "compensation": "--compensation",
@@ -136,11 +123,11 @@ def _check_inputs(args: argparse.Namespace) -> None:
     spec.rsu_config()  # pydantic ValidationError: summarised by main with the flags' names
     spec.obu_config()
     if args.json not in (None, "-"):
-        _check_writable(Path(args.json), "--json")
+        check_writable(Path(args.json), "--json")
     if getattr(args, "report", None):
-        _check_folder(Path(args.report), "--report")
+        check_folder(Path(args.report), "--report")
     if getattr(args, "record", None):
-        _check_writable(Path(args.record), "--record")
+        check_writable(Path(args.record), "--record")
 
 
 def _check_numbers(args: argparse.Namespace) -> None:
@@ -153,21 +140,6 @@ def _check_numbers(args: argparse.Namespace) -> None:
         if not math.isfinite(value) or value < 0 or (positive and value == 0):
             what = "a finite number > 0" if positive else "a finite number >= 0"
             raise ValueError(f"--{dest.replace('_', '-')} must be {what}, got {value:g}")
-
-
-def _check_writable(path: Path, flag: str) -> None:
-    """ValueError unless ``path`` names a file that can be created or replaced."""
-    if path.is_dir():
-        raise ValueError(f"{flag} {path} is a directory, not a file")
-    if not path.parent.is_dir():
-        raise ValueError(f"{flag} {path}: folder {path.parent} does not exist")
-
-
-def _check_folder(path: Path, flag: str) -> None:
-    """ValueError unless ``path`` is a folder or can be made one (its nearest existing ancestor is one)."""
-    existing = next(p for p in (path, *path.parents) if p.exists())
-    if not existing.is_dir():
-        raise ValueError(f"{flag} {path}: {existing} is a file, not a folder")
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -192,16 +164,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     report = run.report(driver="eval")
     if chaos:
         report["chaos"] = chaos.name
-    _emit(report, args.json)
+    emit(report, args.json)
     if args.report:
         from v2i.reports.run_report import write_offline_report
 
-        _wrote(write_offline_report(Path(args.report), report, run), "v2i eval")
+        wrote(write_offline_report(Path(args.report), report, run), "v2i eval")
     return 0
-
-
-def _wrote(paths: list[Path], prog: str) -> None:
-    print(f"{prog}: wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
 
 
 def cmd_eval_roif(args: argparse.Namespace) -> int:
@@ -212,10 +180,10 @@ def cmd_eval_roif(args: argparse.Namespace) -> int:
     load_scenario(args.scenario)
     _check_numbers(args)
     if args.json not in (None, "-"):
-        _check_writable(Path(args.json), "--json")
+        check_writable(Path(args.json), "--json")
     _no_run_report(args)
     report = run_image_fusion(args.scenario, seed=args.seed, duration_s=args.duration)
-    _emit(report, args.json, summary)
+    emit(report, args.json, summary)
     return 0
 
 
@@ -294,11 +262,11 @@ def _run_roif_demo(args: argparse.Namespace) -> int:
     if args.kill_link_at is not None:
         raise ValueError("--kill-link-at is not supported with --fusion roif")
     _no_run_report(args)
-    report = _live(ImageFusionDemo(_spec(args), progress=_progress(args), pki_dir=args.pki,
-                                   **_ready_timeout(args)).run, "v2i demo")
+    report = live(ImageFusionDemo(_spec(args), progress=_progress(args), pki_dir=args.pki,
+                                  **_ready_timeout(args)).run, "v2i demo")
     if isinstance(report, int):
         return report
-    _emit(report, args.json, summary)
+    emit(report, args.json, summary)
     return 0
 
 
@@ -332,7 +300,7 @@ def cmd_fuzz(args: argparse.Namespace) -> int:
 
     _check_numbers(args)
     if args.json not in (None, "-"):
-        _check_writable(Path(args.json), "--json")
+        check_writable(Path(args.json), "--json")
     kinds = args.kinds.split(",") if args.kinds else None
     if args.target == "frames":
         from v2i.adversary.fuzz_frames import FramesFuzz as target
@@ -347,27 +315,11 @@ def cmd_fuzz(args: argparse.Namespace) -> int:
     else:
         target = TARGETS[args.target]
     run = target(args.count, seed=args.seed, rate_hz=args.rate, kinds=kinds, **_ready_timeout(args))
-    report = _live(run.run, "v2i fuzz")
+    report = live(run.run, "v2i fuzz")
     if isinstance(report, int):
         return report
-    _emit(report, args.json, summary)
+    emit(report, args.json, summary)
     return 1 if report["crashes"] or report["outputs"]["late"] or report["outputs"]["missing"] else 0
-
-
-def _live(run, prog: str) -> dict | int:
-    """The report of a live run (services as processes), or its exit code: 1 when it failed,
-    130 when interrupted (SIGINT or SIGTERM); the run stops its services either way."""
-    from v2i.orchestration.demo import DemoError
-
-    _interrupt_on(signal.SIGINT, signal.SIGTERM)
-    try:
-        return run()
-    except DemoError as exc:
-        print(f"{prog}: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted; all services stopped", file=sys.stderr)
-        return 130
 
 
 def _run_demo(demo, json_path: str | None, prog: str, report_dir: str | None = None) -> int:
@@ -375,27 +327,17 @@ def _run_demo(demo, json_path: str | None, prog: str, report_dir: str | None = N
     130 when interrupted."""
     from v2i.reports.chaos_summary import format_chaos
 
-    report = _live(demo.run, prog)
+    report = live(demo.run, prog)
     if isinstance(report, int):
         return report
-    _emit(report, json_path)
+    emit(report, json_path)
     if chaos := format_chaos(report):
         print(chaos, file=sys.stderr if json_path == "-" else sys.stdout)
     if report_dir:
         from v2i.reports.run_report import write_demo_report
 
-        _wrote(write_demo_report(Path(report_dir), report, demo), prog)
+        wrote(write_demo_report(Path(report_dir), report, demo), prog)
     return 0
-
-
-def _interrupt_on(*signals: int) -> None:
-    """Turn these signals into KeyboardInterrupt, even where a parent shell ignored them."""
-
-    def _raise(signum, frame):
-        raise KeyboardInterrupt
-
-    for sig in signals:
-        signal.signal(sig, _raise)
 
 
 def build_parser(commands: Iterable[str] | None = None) -> argparse.ArgumentParser:
