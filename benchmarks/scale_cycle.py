@@ -8,8 +8,8 @@ The companion of ``benchmarks/scale.py`` (the live processes), free of process s
 and of the load others put on the machine: the same synthetic RSUs (``scale.Site``, the
 same clocks, phases and latency) drive an ``ObuPipeline`` configured as ``v2i obu`` with the
 K RSUs registered, through the calls the node makes, in simulated time: each RSU list is
-encoded as the RSU sends it, then decoded and admitted as ``ObuNode._handle_input`` does
-(``open_body``, ``header_of``, ``screen_list``, ``from_body``, ``on_rsu_message``); each 10 Hz
+encoded as the RSU sends it, then decoded and admitted as the OBU's inbox does (``obu_service.inbox``:
+``open_body``, ``header_of``, ``admit_list``, ``from_body``, ``take_list``); each 10 Hz
 cycle runs ``on_pose``, ``on_detections`` 50 ms after capture, ``fuse`` when ``ready``, the
 output's ``encode``, then ``metrics`` and its ``encode``; time replies come back 1 ms after
 each request. Each stage is timed with ``time.perf_counter`` (wall time of this process);
@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from scale import CLOCK_OFFSET_STEP_NS, PERIOD_NS, Site, parse_list, site_rsus
 
 from v2i.fusion.wire import states_from_objects
+from obu_service.admission import AdmittedList
 from obu_service.config import ObuConfig
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import SimulatedVehicle
@@ -128,10 +129,10 @@ class Driver:
                                   publish_time_ns=t_ns - LINK_NS + offset_ns, sensor="synthetic")
         payload = encode(ObjectList(header=header, objects=states_from_objects(objs)))
         body = self._timed("decode header", open_body, payload, ObjectList)
-        admitted = self._timed("screen_list", self.pipeline.screen_list, header_of(body), object_count(body), t_ns)
-        if admitted:
+        state = self._timed("admit_list", self.pipeline.admit_list, header_of(body), object_count(body), t_ns)
+        if state is not None:
             msg = self._timed("decode objects", from_body, body, ObjectList)
-            self._timed("on_rsu_message", self.pipeline.on_rsu_message, msg, t_ns)
+            self._timed("take_list", self.pipeline.take_list, AdmittedList(msg, state, t_ns))
 
 
 def stage_table(driver: Driver, warmup_cycles: int) -> str:

@@ -16,6 +16,9 @@ ego, for an RSU of unknown position), and ``not_ego`` the RSU's detection of thi
 vehicle (an RSU sees every vehicle it serves: an object centred within the ego's footprint
 grown by a margin, at the list's capture time, is the ego itself, never an obstacle).
 Every refusal is counted by reason in ``rejected``.
+
+What passes the header checks is an ``AdmittedList`` / ``AdmittedPaths``: the decoded message with
+the state of the RSU that admitted it, which the pipeline takes as is (admitted once per message).
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ import numpy as np
 
 from v2i.core.frames import Pose2D, outside_box_rows
 from v2i.core.objects import ObjectArray
-from schemas.messages import ObjectListHeader
+from schemas.messages import ObjectList, ObjectListHeader, PredictionList
 
 from obu_service.rsu_table import RsuState, RsuTable
 
@@ -42,6 +45,24 @@ class Limits:
     paths_max_age_ns: int
     site_radius_m: float
     ego_half_lw_m: tuple[float, float] = (0.0, 0.0)  # ego half length, half width + margin (m); 0: no filter
+
+
+@dataclass(frozen=True)
+class AdmittedList:
+    """An RSU object list whose header was admitted at ``receive_ns`` (OBU ns), to be taken at once."""
+
+    message: ObjectList
+    state: RsuState
+    receive_ns: int
+
+
+@dataclass(frozen=True)
+class AdmittedPaths:
+    """An RSU prediction list whose header was admitted at ``receive_ns`` (OBU ns), to be taken at once."""
+
+    message: PredictionList
+    state: RsuState
+    receive_ns: int
 
 
 class Admission:

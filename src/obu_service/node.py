@@ -3,8 +3,9 @@
 Zenoh callbacks only stamp the receive time and put the payload into a bounded,
 rate-limited ``Intake`` (registered RSUs served first); the loop in ``run`` owns the
 pipeline, wakes at each cycle's capture and fusion times and at each time-sync exchange,
-and publishes every cycle whether or not RSU data arrived. A list is decoded in stages:
-envelope and header first, and its objects only if the pipeline admits the header.
+and publishes every cycle whether or not RSU data arrived. An RSU message goes through the
+inbox (``obu_service.inbox``): envelope and header first, and its objects only if the pipeline
+admits the header.
 
 With ``--source zenoh`` the vehicle's own detections and pose come from outside, on
 ``v2x/sensor/vehicle/{vehicle_id}/objects`` and ``.../pose`` (``schemas.sensor_messages``),
@@ -18,20 +19,20 @@ capture + deadline - compute margin), a gap cycle without own objects goes out o
 
 from __future__ import annotations
 
-import dataclasses
 import heapq
 import threading
 import time
+from functools import cached_property
 
 import zenoh
 
 from v2i.core.jit import load_kernels
 from v2i.core.objects import ObjectArray
 from schemas import keys
-from schemas.codec import CodecError, decode, encode, from_body, header_of, object_count, open_body, path_point_count
+from schemas.codec import CodecError, encode
 from v2i.runtime.intake import Intake, Item
 from schemas import list_wire
-from schemas.messages import EgoPose, ObjectList, ObuMetrics, PredictionList, TimeReply
+from schemas.messages import EgoPose, ObuMetrics
 from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
 from v2i.runtime.sensor_screen import InputRefused, SensorLimits, SensorScreen
 from v2i.runtime.transport import open_session
@@ -42,6 +43,7 @@ from v2i.telemetry.latency import PeriodicSummary, StageLatency
 
 from obu_service.config import ObuConfig
 from obu_service.inbound_security import live_security
+from obu_service.inbox import KINDS as INBOX_KINDS, Inbox
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import ExternalCycles, OwnFrame, SimulatedVehicle, detections_of, pose_of
 from v2i.clock.time_requests import sync_times_ns
@@ -53,7 +55,6 @@ CHEAP_INPUT_BYTES = 4096  # decodes in well under 1 ms (schema 4: ~180 objects, 
 # paths are still one model each: 64 objects x 128 points decode in ~5 ms)
 # A CPM / SDSM (asn1tools, pure Python) decodes at ~1 us per byte: 8 objects 0.3 kB 0.3 ms, 255 objects 8 kB 8 ms
 CHEAP_STANDARD_BYTES = 512
-SIGNED_KINDS = ("rsu", "predictions", "time", "cpm", "sdsm")  # what the RSUs sign (obu_service.inbound_security)
 
 
 class ObuNode:
@@ -204,66 +205,29 @@ class ObuNode:
                 return
             getattr(self, f"_do_{kind}")(due_ns, arg)
 
+    @cached_property
+    def _inbox(self) -> Inbox:
+        """The RSU messages' way in (``obu_service.inbox``): envelope, header, admission, body, pipeline."""
+        return Inbox(self.pipeline, self._security, self.config.max_message_bytes, latency=self.latency,
+                     ticks=time.perf_counter_ns, details=self._details)
+
     def _handle_input(self, item: Item) -> None:
-        """One input off the intake. Stages: ``queue`` (Zenoh callback -> taken here), and for an RSU
-        object list ``decode`` (envelope, header, admission, objects), ``ingest`` (into the pipeline)
-        and ``rsu_to_obu`` (RSU publish stamp -> callback, in OBU time through the clock estimate)."""
+        """One input off the intake. Stage ``queue`` (Zenoh callback -> taken here); an RSU message goes
+        through the inbox (its stages ``verify``, ``decode``, ``ingest``, ``rsu_to_obu``)."""
         self.latency.observe_ns("queue", item.receive_ns, self.clock.now_ns())
-        max_bytes = self.config.max_message_bytes
-        if item.kind in SIGNED_KINDS and (item := self._verified(item)) is None:
+        if item.kind in INBOX_KINDS:
+            self._inbox.take(item.kind, item.source, item.payload, item.receive_ns)
             self._publish_if_ready()
             return
         try:
-            if item.kind == "time":
-                self.pipeline.on_time_reply(decode(item.payload, TimeReply, max_bytes), item.receive_ns)
-            elif item.kind.startswith("sensor_"):
+            if item.kind.startswith("sensor_"):
                 self._handle_sensor(item)
             elif item.kind in V2V_KINDS:
                 self._v2v.handle(item)
-            elif item.kind in ("cpm", "sdsm"):
-                self._handle_standard(item)
-            else:
-                lists = item.kind == "rsu"
-                model = ObjectList if lists else PredictionList
-                t0_ns = time.perf_counter_ns()
-                body = open_body(item.payload, model, max_bytes)
-                header, n = header_of(body), object_count(body)
-                admitted = (self.pipeline.screen_list(header, n, item.receive_ns) if lists else
-                            self.pipeline.screen_paths(header, n, path_point_count(body), item.receive_ns))
-                if admitted and lists:
-                    self._ingest_list(from_body(body, model), item.receive_ns, t0_ns)
-                elif admitted:
-                    self.pipeline.on_predictions(from_body(body, model), item.receive_ns)
         except CodecError as exc:  # InputRefused included
             self.pipeline.reject(exc.reason)
             self._details.setdefault(exc.reason, f"{item.kind} on {item.source}: {exc}")
         self._publish_if_ready()
-
-    def _verified(self, item: Item) -> Item | None:
-        """An RSU message with its signed envelope checked and removed, or None when it is dropped
-        (counted as ``security_<reason>``). Stage ``verify``."""
-        t0_ns = time.perf_counter_ns()
-        payload = self._security.open(item.payload, item.source, item.receive_ns, time_reply=item.kind == "time")
-        self.latency.observe_ns("verify", t0_ns, time.perf_counter_ns())
-        return None if payload is None else dataclasses.replace(item, payload=payload)
-
-    def _handle_standard(self, item: Item) -> None:
-        """An RSU object list as a CPM or SDSM (``schemas.list_wire``): decoded whole (the RSU named
-        by its key), then screened and fused as a v2i list."""
-        t0_ns = time.perf_counter_ns()
-        msg = list_wire.decode_list(item.payload, item.kind, keys.rsu_id_or_none(item.source),
-                                    self.config.max_message_bytes)
-        if self.pipeline.screen_list(msg.header, len(msg.objects), item.receive_ns):
-            self._ingest_list(msg, item.receive_ns, t0_ns)
-
-    def _ingest_list(self, msg: ObjectList, receive_ns: int, decode_start_ns: int) -> None:
-        """A decoded, admitted RSU list into the pipeline; its decode, ingest and rsu_to_obu stages."""
-        t1_ns = time.perf_counter_ns()
-        publish_obu_ns = self.pipeline.on_rsu_message(msg, receive_ns)
-        self.latency.observe_ns("decode", decode_start_ns, t1_ns)
-        self.latency.observe_ns("ingest", t1_ns, time.perf_counter_ns())
-        if publish_obu_ns is not None:
-            self.latency.observe_ns("rsu_to_obu", publish_obu_ns, receive_ns)
 
     def _handle_sensor(self, item: Item) -> None:
         """--source zenoh: a pose goes to the pipeline (and out as the vehicle's pose); a detection

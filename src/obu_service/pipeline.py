@@ -38,7 +38,7 @@ from v2i.fusion.wire import objects_from_states, wire_columns
 from schemas.messages import (MAX_OBJECTS, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics,
                               PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
 
-from obu_service.admission import Admission, Limits
+from obu_service.admission import Admission, AdmittedList, AdmittedPaths, Limits
 from v2i.clock.clock_sync import OffsetEstimate
 from obu_service.fusion_mode import FUSION_MODES, MODES, Feasible, ModePolicy
 from obu_service.methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_fusion, make_fusion
@@ -162,7 +162,8 @@ class ObuPipeline:
 
     def _sync(self, now_ns: int) -> None:
         """Feed the replies whose hold has passed to their RSU's clock filter. Every input that can change
-        what ModeInputs answers (a time reply, an RSU list or paths, admission, expiry) passes here first."""
+        what ModeInputs answers (a time reply, the admission of an RSU list or paths, a cycle's start with
+        its expiry) passes here first: ``on_time_reply``, ``admit_list``, ``admit_paths``, ``on_detections``."""
         self._inputs_version += 1
         for rsu_id, sample in self._requests.ripe(now_ns):
             state = self._rsus.admit(rsu_id, sample.t4_ns)
@@ -190,29 +191,33 @@ class ObuPipeline:
         return None if state is None else state.sync.naive()
 
     # --- admission (obu_service.admission) --------------------------------------------
-    def screen_list(self, header: ObjectListHeader, n_objects: int, receive_ns: int) -> bool:
-        """Whether an object list with this header may be decoded and fused (counted if not)."""
+    def admit_list(self, header: ObjectListHeader, n_objects: int, receive_ns: int) -> RsuState | None:
+        """The state of the RSU if an object list with this header may be decoded and fused, else None
+        (counted). ``take_list`` takes the decoded list of an admitted header (``obu_service.inbox``)."""
         self._sync(receive_ns)
-        return self._admission.lists(header, n_objects, receive_ns) is not None
+        return self._admission.lists(header, n_objects, receive_ns)
 
-    def screen_paths(self, header: ObjectListHeader, n_objects: int, n_points: int, receive_ns: int) -> bool:
-        """Whether a prediction list with this header and ``n_points`` predicted positions may be
-        decoded and kept (counted if not)."""
+    def admit_paths(self, header: ObjectListHeader, n_objects: int, n_points: int, receive_ns: int) -> RsuState | None:
+        """The state of the RSU if a prediction list with this header and ``n_points`` predicted positions
+        may be decoded and kept, else None (counted); ``take_paths`` takes it."""
         self._sync(receive_ns)
-        return self._admission.paths(header, n_objects, n_points, receive_ns) is not None
+        return self._admission.paths(header, n_objects, n_points, receive_ns)
 
     # --- inputs ----------------------------------------------------------------------
     def on_pose(self, t_ns: int, pose: Pose2D) -> None:
         self.poses.add(t_ns, pose)
 
     def on_rsu_message(self, msg: ObjectList, receive_ns: int) -> int | None:
-        """Take one RSU object list received at ``receive_ns`` (OBU clock). Returns its publish time
-        in OBU time through this RSU's clock estimate (None: refused, or no estimate yet)."""
+        """One decoded RSU object list received at ``receive_ns`` (OBU clock): admitted, then taken
+        (``take_list``). Returns its publish time in OBU time (None: refused, or no clock estimate yet)."""
+        state = self.admit_list(msg.header, len(msg.objects), receive_ns)
+        return None if state is None else self.take_list(AdmittedList(msg, state, receive_ns))
+
+    def take_list(self, admitted: AdmittedList) -> int | None:
+        """Keep an admitted RSU object list (its objects on the site, not the ego, in the RSU's slot).
+        Returns its publish time in OBU time through the RSU's clock estimate (None: no estimate yet)."""
+        msg, state, receive_ns = admitted.message, admitted.state, admitted.receive_ns
         header = msg.header
-        self._sync(receive_ns)
-        state = self._admission.lists(header, len(msg.objects), receive_ns)
-        if state is None:
-            return None
         state.lists_seen.add((header.seq, header.capture_time_ns))
         ego_now = self.poses.at(receive_ns, uncertainty=False)
         objects = self._admission.on_site(state, _rsu_objects(msg.objects), ego_now)
@@ -232,17 +237,20 @@ class ObuPipeline:
         return publish_obu_ns
 
     def on_predictions(self, msg: PredictionList, receive_ns: int) -> None:
-        """The RSU's long-horizon paths (planning fusion); the newest t0 is kept."""
+        """One decoded RSU prediction list (planning fusion): admitted, then taken (``take_paths``)."""
+        n_points = sum(len(p.x) for p in msg.paths)
+        state = self.admit_paths(msg.header, max(len(msg.objects), len(msg.paths)), n_points, receive_ns)
+        if state is not None:
+            self.take_paths(AdmittedPaths(msg, state, receive_ns))
+
+    def take_paths(self, admitted: AdmittedPaths) -> None:
+        """Keep an admitted prediction list's long-horizon paths: the newest t0 is kept."""
+        msg, state = admitted.message, admitted.state
         header = msg.header
-        self._sync(receive_ns)
-        state = self._admission.paths(header, max(len(msg.objects), len(msg.paths)), sum(len(p.x) for p in msg.paths),
-                                      receive_ns)
-        if state is None:
-            return
         state.predictions_seen.add((header.seq, header.capture_time_ns))
         if state.predictions is None or header.valid_time_ns > state.predictions.header.valid_time_ns:
             state.predictions = msg
-            state.last_receive_ns = receive_ns
+            state.last_receive_ns = admitted.receive_ns
 
     def on_detections(self, dets: ObjectArray, capture_ns: int) -> int:
         """Own LiDAR objects (base_link at capture_ns) start a cycle; returns its fuse_by_ns."""

@@ -156,8 +156,8 @@ def test_a_header_of_another_schema_version_is_refused_as_such():
 
 def test_lists_with_too_many_objects_are_refused_before_decoding():
     p = pipeline(max_objects_per_list=4)
-    assert not p.screen_list(header(T0 + 500 * MS), 5, T0 + 600 * MS)
-    assert p.screen_list(header(T0 + 500 * MS), 4, T0 + 600 * MS)
+    assert p.admit_list(header(T0 + 500 * MS), 5, T0 + 600 * MS) is None
+    assert p.admit_list(header(T0 + 500 * MS), 4, T0 + 600 * MS) is not None
     assert p.rejected == {"too_many_objects": 1}
 
 
@@ -288,7 +288,7 @@ def test_paths_are_bounded_in_points_and_kept_only_once_the_clock_is_known():
     p = pipeline(max_path_points=100)
     t = T0 + 1_000 * MS
     h = header(t - 100 * MS)
-    assert not p.screen_paths(h, 4, 101, t) and p.screen_paths(h, 4, 100, t)
+    assert p.admit_paths(h, 4, 101, t) is None and p.admit_paths(h, 4, 100, t) is not None
     unsynced = ObuPipeline(ObuPipelineConfig(fusion="iou-merge"))
     paths = PredictionList(header=h, objects=states_from_objects(objs([[5.0, -20.0]])),
                            paths=(PredictedPath(id=1, x=[5.0] * 50, y=[-20.0] * 50, yaw=[0.0] * 50),))

@@ -1,7 +1,7 @@
 """Offline, deterministic driver: the live pipelines fed from an event queue.
 
-The RSU pipeline, the OBU pipeline, the codec and the link channel model are the very
-objects the services use; only the clock (simulated) and the transport (an event
+The RSU pipeline, the OBU's inbox and pipeline, the codec and the link channel model are the
+very objects the services use; only the clock (simulated) and the transport (an event
 queue instead of Zenoh) differ. A 30 s scenario runs in a few seconds.
 
 V2V (the scenario's ``v2v``, or ``RunSpec.v2v``): after each output a vehicle sends its shared
@@ -28,6 +28,7 @@ from link_emulator.channel import LinkModel
 from link_emulator.control import apply_control
 from link_emulator.profile import LinkProfile, load_profile
 from obu_service.inbound_security import InboundSecurity, make_verifier
+from obu_service.inbox import Inbox, Outcome
 from obu_service.peers import PEER_REPLY_NS, shared_list
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import OwnFrame, SimulatedVehicle
@@ -37,8 +38,8 @@ from rsu_service.prediction import make_predictor
 from rsu_service.source import Frame, make_source
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
-from schemas.list_wire import decode_list, encode_list, list_key
-from schemas.messages import FusedObjectList, ObjectList, PredictionList, TimeReply, TimeRequest
+from schemas.list_wire import encode_list, list_key
+from schemas.messages import FusedObjectList, ObjectList, TimeReply, TimeRequest
 from v2i.security.envelope import Signer, sign
 from v2i.security.site import memory_site
 from v2i.sim.clock import SimClock
@@ -101,6 +102,7 @@ class _Vehicle:
     record: RunRecord
     links: list[LinkModel]
     security: InboundSecurity  # verifies RSU messages as the live OBU does (policy off: unsigned pass)
+    inbox: Inbox  # the live OBU's way in for RSU messages (envelope, header, admission, body), this security's
 
 
 class OfflineRun:
@@ -169,9 +171,10 @@ class OfflineRun:
         pair_seed = [self.spec.seed if index == k == 0 else [self.spec.seed, index, k] for k in range(len(profiles))]
         links = [LinkModel(p, seed) for p, seed in zip(profiles, pair_seed)]
         verifier = make_verifier(self.trust, self.spec.security or "off", self.obu_config.planning_max_age_s)
+        security = InboundSecurity(verifier, obu.clock_offset, obu.reject)
         return _Vehicle(name, world, SimulatedVehicle(world, self.spec.seed, self.start_ns), obu,
-                        RunRecord(world, self.start_ns, self.duration_s), links,
-                        InboundSecurity(verifier, obu.clock_offset, obu.reject))
+                        RunRecord(world, self.start_ns, self.duration_s), links, security,
+                        Inbox(obu, security, memo=self._memo))  # a broadcast's bytes read once for all
 
     def _new_v2v_links(self) -> dict[tuple[str, str], LinkModel]:
         """One channel per ordered vehicle pair (sender, receiver), its own draws; peers enabled."""
@@ -327,33 +330,17 @@ class OfflineRun:
 
     # --- OBU side ----------------------------------------------------------------------
     def _obu_receive(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
-        rsu_id = rsu.pipeline.config.rsu_id
-        payload = vehicle.security.open(data, rsu.list_key, self.clock.t_ns)
-        if payload is None:
+        """An RSU object list through the vehicle's inbox; then the cycle fuses if it was waiting for it."""
+        kind = "rsu" if self.spec.wire == "v2i" else self.spec.wire  # the inbox's kinds (obu_service.inbox)
+        outcome = vehicle.inbox.take(kind, rsu.list_key, data, self.clock.t_ns)
+        if outcome is Outcome.DROPPED:
             return
-        try:  # memoised per wire bytes object: its payload is the same for every receiver
-            msg = self._memo.decoded(data, ("list", self.spec.wire, rsu_id), lambda: self._decode_list(payload, rsu_id))
-            vehicle.obu.on_rsu_message(msg, self.clock.t_ns)
+        if outcome is Outcome.READ:
             vehicle.record.rsu_messages += 1
-        except CodecError as exc:
-            vehicle.obu.reject(exc.reason)
         self._obu_fuse_if_ready(vehicle)
 
-    def _decode_list(self, payload: bytes, rsu_id: str) -> ObjectList:
-        """``decode_list``; the v2i wire's section through the memo (its prediction list repeats it)."""
-        if self.spec.wire == "v2i":  # decode_list's v2i case, the section decoded once per content
-            return decode(payload, ObjectList, unpack=self._memo.unpack)
-        return decode_list(payload, self.spec.wire, rsu_id)
-
     def _obu_predictions(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
-        payload = vehicle.security.open(data, rsu.predictions_key, self.clock.t_ns)
-        if payload is None:
-            return
-        try:
-            vehicle.obu.on_predictions(self._memo.decoded(
-                data, PredictionList, lambda: decode(payload, PredictionList, unpack=self._memo.unpack)), self.clock.t_ns)
-        except CodecError as exc:
-            vehicle.obu.reject(exc.reason)
+        vehicle.inbox.take("predictions", rsu.predictions_key, data, self.clock.t_ns)
 
     def _obu_sync(self, vehicle: _Vehicle) -> None:
         """One time request, up the vehicle's channel to every RSU (each answers it), and one to every peer."""
@@ -365,9 +352,7 @@ class OfflineRun:
                                 self._peer_time_request)
 
     def _obu_time_reply(self, vehicle: _Vehicle, rsu: _Rsu, data: bytes) -> None:
-        payload = vehicle.security.open(data, rsu.time_key, self.clock.t_ns, time_reply=True)
-        if payload is not None:
-            vehicle.obu.on_time_reply(decode(payload, TimeReply), self.clock.t_ns)
+        vehicle.inbox.take("time", rsu.time_key, data, self.clock.t_ns)
 
     def _obu_capture(self, vehicle: _Vehicle) -> None:
         frame = vehicle.sensing.capture(self.clock.t_ns)
