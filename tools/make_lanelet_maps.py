@@ -21,7 +21,7 @@ import numpy as np
 from v2i.sim.maps.lanelet_build import load_map, write_map
 from v2i.sim.maps.road_network import NETWORKS, road_network
 
-DEFAULT_OUT = Path(__file__).resolve().parents[1] / "src" / "sim" / "maps"
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "src" / "v2i" / "sim" / "maps"
 
 
 def roundtrip_error_m(network, loaded) -> float:

@@ -17,7 +17,7 @@ RLR = "red-light-runner"
 
 
 def _rlr() -> dict:
-    return yaml.safe_load((files("sim") / "scenarios" / f"{RLR}.yaml").read_text())
+    return yaml.safe_load((files("v2i.sim") / "scenarios" / f"{RLR}.yaml").read_text())
 
 
 def _as_lists(data: dict) -> dict:

@@ -44,7 +44,7 @@ def _open_field(actors: list[dict], **sections) -> dict:
 
 
 def _rlr_dict() -> dict:
-    return yaml.safe_load((files("sim") / "scenarios" / f"{RLR}.yaml").read_text())
+    return yaml.safe_load((files("v2i.sim") / "scenarios" / f"{RLR}.yaml").read_text())
 
 
 # --- scenario loading -------------------------------------------------------------------

@@ -16,7 +16,7 @@ from v2i.runtime.config import FastUniqueKeyLoader, UniqueKeyLoader
 from v2i.sim.scenario import ScenarioError, bundled_scenarios, load_scenario
 
 REPO = Path(__file__).resolve().parents[2]
-RLR = REPO / "src" / "sim" / "scenarios" / "red-light-runner.yaml"
+RLR = REPO / "src" / "v2i" / "sim" / "scenarios" / "red-light-runner.yaml"
 
 
 def _load(text: str, loader: type):

@@ -71,7 +71,7 @@ class PerceptionTally:
         """An empty tally for an RSU source (``rsu_service.source``) whose camera is at
         ``camera_xy`` (2,) m; an image source's calibration error is noted."""
         perception = getattr(source, "perception", None)
-        return cls(calibration_reprojection_px=None if perception is None else v2i.perception.calibration.reprojection_px,
+        return cls(calibration_reprojection_px=None if perception is None else perception.calibration.reprojection_px,
                    camera_xy=np.asarray(camera_xy, dtype=float))
 
     def add_frame(self, frame) -> None:
