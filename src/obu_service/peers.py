@@ -65,7 +65,7 @@ from obu_service.admission import Admission
 from v2i.clock.clock_sync import OffsetEstimate
 from obu_service.methods import RsuFrame
 from obu_service.mode_inputs import ModeInputs, Received
-from obu_service.rsu_table import RSU_ID_BASE, RsuState, RsuTable
+from obu_service.rsu_table import MAX_RSUS, RSU_ID_BASE, RsuState, RsuTable
 from v2i.clock.time_requests import TimeRequests
 
 MAX_PEERS = 8  # peer slots (tracker source bits) an OBU gives to V2V peers by default
@@ -114,8 +114,6 @@ class PeerIntake:
     """
 
     def __init__(self, config, rejected: Counter, poses: PoseHistory, first_slot: int, max_peers: int = MAX_PEERS):
-        from obu_service.pipeline import MAX_RSUS  # the slot space is the pipeline's
-
         if not 1 <= max_peers or first_slot + max_peers > MAX_RSUS:
             raise ValueError(f"V2V: {max_peers} peer slots after {first_slot} RSU slots exceed the "
                              f"{MAX_RSUS} cooperative source bits")

@@ -33,7 +33,7 @@ from v2i.core.identity_memo import IdentityMemo
 from v2i.fusion.merger import iou_merge
 from v2i.core.objects import ObjectArray, read_only
 from v2i.fusion.pose_history import PoseHistory
-from v2i.fusion.tracking import SOURCE_BITS, slot_source
+from v2i.fusion.tracking import slot_source
 from v2i.fusion.wire import objects_from_states, wire_columns
 from schemas.messages import (MAX_OBJECTS, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics,
                               PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
@@ -45,12 +45,11 @@ from obu_service.methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_f
 from obu_service.mode_inputs import ModeInputs, Received
 from obu_service.peers import MAX_PEERS, PeerIntake
 from obu_service.planning import objects_at, retimed
-from obu_service.rsu_table import RSU_ID_BASE, RsuState, RsuTable
+from obu_service.rsu_table import MAX_RSUS, RSU_ID_BASE, RsuState, RsuTable
 from v2i.clock.time_requests import TimeRequests
 
 __all__ = ["COMPENSATIONS", "FUSION_METHODS", "FUSION_MODES", "RSU_ID_BASE", "ObuPipeline", "ObuPipelineConfig"]
 
-MAX_RSUS = SOURCE_BITS - 1  # RSU slots (known + unknown): one tracker source bit each (62; metrics list <= 64)
 # an RSU list's objects (map) as received: the same for every vehicle that hears it (read-only, shared)
 _rsu_objects = IdentityMemo(lambda columns: read_only(objects_from_states(columns)))
 

@@ -9,6 +9,8 @@ Memory and trust are bounded by rules, not by the order in which ids are heard:
 - an RSU not heard for ``expiry_ns`` is forgotten (its slot and index are free again).
 
 So a flood of fake ids can neither lock a registered RSU out nor hold the table for good.
+Every slot is a tracker source bit (``v2i.fusion.tracking.slot_source``): an OBU's tables (its RSUs',
+its V2V peers') share ``MAX_RSUS`` slots.
 """
 
 from __future__ import annotations
@@ -20,8 +22,10 @@ from dataclasses import dataclass, field
 from schemas.messages import PredictionList
 
 from v2i.clock.clock_sync import ClockSync
+from v2i.fusion.tracking import SOURCE_BITS
 from obu_service.link_monitor import LinkMonitor
 
+MAX_RSUS = SOURCE_BITS - 1  # slots of RSUs and peers together: one tracker source bit each (62; metrics list <= 64)
 RECENT_KEYS = 512  # (seq, capture) keys remembered per RSU and stream for duplicate detection
 RSU_ID_BASE = 1_000_000  # output ids of a slot's objects: RSU_ID_BASE * (slot index + 1) + track id mod base
 

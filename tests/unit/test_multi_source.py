@@ -15,7 +15,8 @@ from v2i.core.frames import Pose2D
 from v2i.core.objects import ObjectArray
 from v2i.fusion.tracking import SOURCE_BITS, Tracker, TrackerConfig, slot_source
 from v2i.fusion.wire import states_from_objects, wire_sources
-from obu_service.pipeline import MAX_RSUS, ObuPipeline, ObuPipelineConfig
+from obu_service.pipeline import ObuPipeline, ObuPipelineConfig
+from obu_service.rsu_table import MAX_RSUS
 from rsu_service.pipeline import answer_time_request
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, ObjectList, ObjectListHeader
 

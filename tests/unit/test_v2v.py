@@ -11,7 +11,8 @@ from v2i.core.objects import ObjectArray
 from v2i.fusion.tracking import slot_source
 from v2i.fusion.wire import states_from_objects
 from obu_service.peers import MAX_PEERS, shared_list
-from obu_service.pipeline import MAX_RSUS, RSU_ID_BASE, ObuPipeline, ObuPipelineConfig
+from obu_service.pipeline import RSU_ID_BASE, ObuPipeline, ObuPipelineConfig
+from obu_service.rsu_table import MAX_RSUS
 from schemas.codec import decode, encode
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList
 
