@@ -44,8 +44,8 @@ freeze_heap()  # as v2i eval does before its run
 # label -> "module:qualified name" of the functions timed by --stages
 STAGES = {
     "scenario YAML": "v2i.sim.scenario:load_scenario",
-    "LiDAR + localisation sim": "obu_service.source:SimulatedVehicle.capture",
-    "RSU camera sim": "rsu_service.source:SimulatedCamera.capture",
+    "LiDAR + localisation sim": "v2i.sim.obu_sources:SimulatedVehicle.capture",
+    "RSU camera sim": "v2i.sim.rsu_sources:SimulatedCamera.capture",
     "occlusion": "v2i.sim.occlusion:visible_fraction",
     "RSU on_frame": "rsu_service.pipeline:RsuPipeline.on_frame",
     "RSU predictions": "rsu_service.pipeline:RsuPipeline.predictions",

@@ -35,6 +35,7 @@ from rsu_service.pipeline import answer_time_request
 from schemas import keys
 from schemas.codec import encode
 from schemas.messages import ObjectList, ObjectListHeader
+from v2i.services import obu_node
 
 SRC = os.path.realpath(os.path.join(os.path.dirname(__file__), "..", "src")) + os.sep
 T0_NS = 1_767_225_600 * 10**9
@@ -78,7 +79,7 @@ def rsu_item(seq: int, capture_ns: int) -> Item:
 def prepared_node() -> tuple[ObuNode, StepClock, Item]:
     """A node with the RSU's clock known and an intra cycle waiting for the returned list."""
     clock = StepClock(T0_NS)
-    node = ObuNode(ObuConfig(duration_s=5.0, start_at_ns=T0_NS), clock)
+    node = obu_node(ObuConfig(duration_s=5.0, start_at_ns=T0_NS), clock)
     node._pub = {name: Sink() for name in ("objects", "metrics", "pose", "planning")}
     pipeline = node.pipeline
     for k in range(4):

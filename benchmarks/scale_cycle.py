@@ -36,11 +36,12 @@ from v2i.fusion.wire import states_from_objects
 from obu_service.admission import AdmittedList
 from obu_service.config import ObuConfig
 from obu_service.pipeline import ObuPipeline
-from obu_service.source import SimulatedVehicle
 from rsu_service.pipeline import answer_time_request
 from schemas.codec import encode, from_body, header_of, object_count, open_body
 from schemas.messages import ObjectList, ObjectListHeader
+from v2i.sim.obu_sources import SimulatedVehicle
 from v2i.sim.scenario import load_scenario
+from v2i.sim.scenario_site import scenario_site
 from v2i.sim.world import World
 
 START_NS = 1_700_000_000_000_000_000
@@ -57,7 +58,8 @@ class Driver:
         budget = {"max_rsu_objects_per_cycle": args.max_rsu_objects} if args.max_rsu_objects else {}
         config = ObuConfig(scenario=args.scenario, known_rsus=site_rsus(args.scenario, k), start_at_ns=START_NS,
                            **budget)
-        self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
+        site = scenario_site(args.scenario)
+        self.pipeline = ObuPipeline(config.pipeline_config(site), config.lanes(site))
         self.vehicle = SimulatedVehicle(world, args.seed, START_NS)
         seeds = np.random.SeedSequence(args.seed).spawn(2 * k)
         self.noise = [np.random.default_rng(s) for s in seeds[:k]]

@@ -27,7 +27,7 @@ import zenoh
 from v2i.runtime.config import ConfigError, load_config, one_line_error
 from v2i.runtime.process import freeze_heap, limit_malloc_arenas, log
 from v2i.security.pki import PkiError
-from v2i.sim.clock import SystemClock
+from v2i.core.clock import SystemClock
 from v2i.telemetry.metrics_cli import MetricsPortError, add_metrics_options, metrics_server
 
 from link_emulator.config import MAX_VEHICLES, LinkConfig

@@ -16,7 +16,7 @@ from typing import Any
 
 from v2i.runtime.intake import KeyedBuckets, TokenBucket
 from schemas.messages import EgoPose
-from v2i.sim.clock import Clock
+from v2i.core.clock import Clock
 
 from link_emulator.config import LinkConfig
 

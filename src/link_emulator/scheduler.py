@@ -23,7 +23,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from v2i.sim.clock import Clock
+from v2i.core.clock import Clock
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import zenoh
 
-from v2i.sim.clock import Clock
+from v2i.core.clock import Clock
 
 from link_emulator.config import LinkConfig
 from link_emulator.gate import Gate

@@ -45,7 +45,7 @@ from schemas.keys import link_control, link_stats, obu_pose, v2v_from
 from schemas.messages import EgoPose
 from v2i.runtime.process import MemoryTrim
 from v2i.runtime.transport import open_session
-from v2i.sim.clock import Clock
+from v2i.core.clock import Clock
 from v2i.telemetry.latency import StageLatency
 
 from link_emulator.channel import NS_PER_MS, LinkModel

@@ -1,8 +1,10 @@
-"""``v2i obu``: run the on-board unit service."""
+"""``v2i obu``: the on-board unit service's options, and its run with a node the composition root
+makes (``v2i.services.obu_node``: the site, own sensing or camera a configuration names)."""
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 
 from v2i.runtime.process import add_service_options, run_service
 from v2i.telemetry.metrics_cli import add_metrics_options, export_node
@@ -18,6 +20,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
         "publishes the fused list on v2x/obu/{id}/objects every 10 Hz cycle, RSU data or not."
     )
     add_service_options(p, "ObuConfig", "tcp/0.0.0.0:7448", "LiDAR and localisation noise")
+    p.add_argument("--site", metavar="FILE",
+                   help="site file (site.yaml: RSUs, vehicles, map origin, map) instead of a scenario, with "
+                        "--source zenoh: no scenario and no simulator is loaded; without --duration the OBU runs "
+                        "until stopped")
     p.add_argument("--vehicle-id", help="vehicle id used in key expressions (default ego)")
     p.add_argument("--connect", action="append", metavar="EP",
                    help="Zenoh endpoint to connect to, e.g. the RSU's when no link emulator is used (repeatable)")
@@ -65,21 +71,6 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     add_metrics_options(p)
 
 
-def run(args: argparse.Namespace) -> int:
-    def make_node(config: ObuConfig):
-        return export_node(_node(config), "obu", args)
-
-    return run_service("obu", ObuConfig, args, make_node)
-
-
-def _node(config: ObuConfig):
-    """The OBU node ``config`` asks for: object-level fusion, or image-level (roif)."""
-    if config.fusion == "roif":
-        if config.source != "sim":
-            raise ValueError("--source zenoh feeds object-level fusion; --fusion roif renders its own camera")
-        from obu_service.image_fusion_node import ImageFusionNode
-
-        return ImageFusionNode(config)
-    from obu_service.node import ObuNode
-
-    return ObuNode(config)
+def run(args: argparse.Namespace, make_node: Callable[[ObuConfig], object]) -> int:
+    """``v2i obu``: the node ``make_node`` makes of the configuration, run until its end or a signal."""
+    return run_service("obu", ObuConfig, args, lambda config: export_node(make_node(config), "obu", args))

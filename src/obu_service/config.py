@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import Field, field_validator, model_validator
 
 from v2i.runtime.config import ServiceConfig
+from v2i.runtime.site import Site, check_site_or_scenario, lane_predictor
 from schemas.keys import check_id
 
 from obu_service.methods import check_fusion
@@ -15,6 +16,8 @@ from obu_service.pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES, Ob
 
 class ObuConfig(ServiceConfig):
     vehicle_id: str = "ego"
+    site: str | None = Field(None, description="site file (v2i.runtime.site): the RSUs, vehicles, map origin "
+                             "and map this OBU runs in, instead of a scenario's; with source zenoh")
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7448"])
     fusion: Literal[(*FUSION_METHODS, "roif")] = Field("kf", description="object-level method, or roif: "
                                                        "image-level fusion of the ego camera with the RSU's "
@@ -36,7 +39,7 @@ class ObuConfig(ServiceConfig):
     # admission of RSU input (obu_service.pipeline module docstring)
     known_rsus: dict[str, tuple[float, float]] | None = Field(
         None, description="the site's registered RSUs: id -> map position (m); always admitted, the "
-                          "objects bounded by site_radius_m around them (default: the scenario's RSU)")
+                          "objects bounded by site_radius_m around them (default: the site's RSUs)")
     accept_unknown_rsus: bool = Field(True, description="admit RSU ids outside known_rsus (bounded)")
     max_unknown_rsus: int = Field(16, ge=0, le=64)
     rsu_expiry_s: float = Field(30.0, gt=0, le=3600, description="an RSU not heard this long is forgotten")
@@ -111,50 +114,39 @@ class ObuConfig(ServiceConfig):
         return self
 
     @model_validator(mode="after")
-    def _lane_needs_a_map(self) -> "ObuConfig":
-        from pathlib import Path
-
-        from v2i.sim.maps import bundled_maps, scenario_map
-
-        if self.compensation == "lane" and scenario_map(self.scenario) is None:
-            raise ValueError(
-                f"compensation 'lane' needs a Lanelet2 map of scenario {self.scenario!r}, and "
-                f"{Path(self.scenario).with_suffix('.osm')} does not exist (a <scenario>.osm beside the scenario "
-                f"YAML is picked up automatically; bundled scenarios with maps: {', '.join(bundled_maps())})")
+    def _site_or_scenario(self) -> "ObuConfig":
+        check_site_or_scenario(self, "OBU", ("zenoh",))
         return self
 
-    def lanes(self):
-        """The scenario's lane predictor when the ``lane`` compensation needs it, else None."""
-        from v2i.sim.maps import lane_predictor
+    def lanes(self, site: Site):
+        """The site map's lane predictor when the ``lane`` compensation needs it, else None;
+        ValueError when it needs one and the site has no map."""
+        if self.compensation != "lane":
+            return None
+        if site.map is None:
+            raise ValueError(f"compensation 'lane' needs a Lanelet2 map, and site {site.name!r} has none (a site "
+                             "file names one as map:, a scenario has <scenario>.osm beside its YAML)")
+        return lane_predictor(site)
 
-        return lane_predictor(self.scenario) if self.compensation == "lane" else None
+    def registered_rsus(self, site: Site) -> dict[str, tuple[float, float]]:
+        """known_rsus, or the site's RSUs when none are configured."""
+        return dict(self.known_rsus) if self.known_rsus is not None else site.rsu_positions()
 
-    def registered_rsus(self) -> dict[str, tuple[float, float]]:
-        """known_rsus, or the scenario's RSUs when none are configured."""
-        if self.known_rsus is not None:
-            return dict(self.known_rsus)
-        from v2i.sim.scenario import load_scenario
-
-        return {rsu.id: (rsu.position.x, rsu.position.y) for rsu in load_scenario(self.scenario).rsus}
-
-    def own_size_m(self) -> tuple[float, float]:
-        """Length, width (m) of this vehicle: the scenario's vehicle of this id, else its ego."""
-        from v2i.sim.scenario import load_scenario
-
-        scenario = load_scenario(self.scenario)
-        names = [v.name for v in scenario.vehicles]
-        size = scenario.vehicle(self.vehicle_id if self.vehicle_id in names else None).size
+    def own_size_m(self, site: Site) -> tuple[float, float]:
+        """Length, width (m) of this vehicle: the site's vehicle of this id, else its first."""
+        size = site.vehicle(self.vehicle_id).size_m
         return size[0], size[1]
 
-    def pipeline_config(self) -> ObuPipelineConfig:
+    def pipeline_config(self, site: Site) -> ObuPipelineConfig:
+        """The pipeline's configuration on ``site`` (its RSUs registered, this vehicle's size)."""
         return ObuPipelineConfig(
             vehicle_id=self.vehicle_id, fusion=self.fusion, compensation=self.compensation,
             fusion_mode=self.fusion_mode, iou_threshold=self.iou_threshold, inter_max_age_s=self.inter_max_age_s,
             planning_max_age_s=self.planning_max_age_s, deadline_ms=self.deadline_ms,
-            output_interval_ms=self.output_interval_ms, known_rsus=self.registered_rsus(),
+            output_interval_ms=self.output_interval_ms, known_rsus=self.registered_rsus(site),
             accept_unknown_rsus=self.accept_unknown_rsus, max_unknown_rsus=self.max_unknown_rsus,
             rsu_expiry_s=self.rsu_expiry_s, site_radius_m=self.site_radius_m,
             max_objects_per_list=self.max_objects_per_list, max_rsu_objects_per_cycle=self.max_rsu_objects_per_cycle,
             max_prediction_s=self.max_prediction_s, max_path_points=self.max_path_points,
-            future_tolerance_ms=self.future_tolerance_ms, ego_size_m=self.own_size_m(),
+            future_tolerance_ms=self.future_tolerance_ms, ego_size_m=self.own_size_m(site),
         )

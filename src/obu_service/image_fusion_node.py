@@ -4,7 +4,8 @@
 Zenoh callbacks only stamp the receive time and put the payload into the bounded, rate-limited
 ``Intake`` (registered RSUs first): RSU feature frames (``v2x/rsu/*/image_features``) and time
 replies. The one loop owns the pipeline: at each ego camera frame's capture time it renders,
-detects and extracts features (``EgoCamera``), queues the frame, and publishes every frame that
+detects and extracts features (its ``EgoCameraSource``: the simulator's ``v2i.sim.ego_camera``, handed
+over by ``v2i.services``), queues the frame, and publishes every frame that
 can be fused (``ImageFusedBoxes`` on ``v2x/obu/{id}/image_objects``) as soon as its RSU partner
 is decoded or its wait is over. Every RSU message is verified before it is decoded, as in the
 object-level node (``--pki``, ``--security``: ``inbound_security.InboundSecurity``; features
@@ -19,10 +20,12 @@ from __future__ import annotations
 
 import heapq
 import threading
+from typing import Protocol
 
 import numpy as np
 import zenoh
 
+from v2i.core.clock import Clock, SystemClock
 from v2i.fusion.roif_features import ViewFeatures
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
@@ -30,13 +33,10 @@ from schemas.image_messages import RsuImageFeatures
 from v2i.runtime.intake import Intake, Item
 from schemas.messages import TimeReply
 from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
+from v2i.runtime.site import Site
 from v2i.runtime.transport import open_session
-from v2i.sim.clock import Clock, SystemClock
-from v2i.sim.scenario import load_scenario
-from v2i.sim.world import World
 
 from obu_service.config import ObuConfig
-from obu_service.ego_camera import EgoCamera
 from obu_service.image_fusion import ImageFusionConfig, ImageFusionPipeline
 from obu_service.inbound_security import live_security
 from v2i.clock.time_requests import sync_times_ns
@@ -44,19 +44,36 @@ from v2i.clock.time_requests import sync_times_ns
 INPUTS_PER_LATE_EVENT = 8  # queued inputs taken before each overdue event (an RSU frame of 41 kB decodes in ~0.06 ms)
 
 
+class EgoCameraSource(Protocol):
+    """What the node needs of the vehicle's camera (the simulator's: ``v2i.sim.ego_camera``): its
+    frame period, image size and capture times from time zero, and each frame's boxes and features."""
+
+    @property
+    def period_ns(self) -> int: ...
+
+    @property
+    def image_size(self) -> tuple[int, int]: ...
+
+    def start_at(self, start_ns: int) -> None: ...
+
+    def frame_times_ns(self, duration_s: float) -> np.ndarray: ...
+
+    def capture(self, t_ns: int) -> ViewFeatures: ...
+
+
 class ImageFusionNode:
-    def __init__(self, config: ObuConfig, clock: Clock | None = None):
-        """The camera (renderer, detector) loads here; its time zero is set here too, unless
-        ``config.await_start``: then after the ready line (``_begin``)."""
+    def __init__(self, config: ObuConfig, site: Site, camera: EgoCameraSource, clock: Clock | None = None):
+        """``camera`` is loaded (renderer, detector); its time zero is set here, unless
+        ``config.await_start``: then after the ready line (``_begin``). The run lasts ``config.duration_s``."""
         self.config = config
         self.name = f"obu {config.vehicle_id}"  # in its log lines
         self.clock = clock or SystemClock()
         self.start_ns: int | None = None  # time zero (OBU clock), from _begin
-        self.world = World(load_scenario(config.scenario))
-        self.duration_s = config.duration_s or self.world.scenario.duration_s
-        self.camera = EgoCamera(self.world, config.seed, config.start_at_ns or self.clock.now_ns(), config.roif_model,
-                                threads=config.roif_threads)
-        known = tuple(config.registered_rsus())
+        if config.duration_s is None:
+            raise ValueError("image-level fusion runs for a set time: give duration_s (--duration)")
+        self.duration_s = config.duration_s
+        self.camera = camera
+        known = tuple(config.registered_rsus(site))
         self.pipeline = ImageFusionPipeline(ImageFusionConfig(
             vehicle_id=config.vehicle_id, known_rsus=known, pair_tolerance_ms=config.roif_pair_tolerance_ms,
             wait_ms=config.roif_wait_ms, deadline_ms=config.roif_deadline_ms, max_age_ms=config.roif_max_age_ms,
@@ -172,7 +189,7 @@ class ImageFusionNode:
         if self.clock.now_ns() - due_ns > self.camera.period_ns:  # fell behind: this frame's time has passed
             self.pipeline.reject("camera_frame_skipped")
             features = ViewFeatures.of(np.zeros((0, 4)), [], [], np.zeros((0, 2)), np.zeros((0, 32)),
-                                       (self.camera.config.image.width, self.camera.config.image.height))
+                                       self.camera.image_size)
         else:
             features = self.camera.capture(due_ns)
         fuse_by_ns = self.pipeline.on_frame(features, due_ns)

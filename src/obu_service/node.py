@@ -22,11 +22,13 @@ from __future__ import annotations
 import heapq
 import threading
 import time
+from collections.abc import Callable
 from functools import cached_property
 
 import zenoh
 
-from v2i.core.jit import load_kernels
+from v2i.core.clock import Clock, SystemClock
+from v2i.core.jit import SERVICE_KERNEL_MODULES, load_kernels
 from v2i.core.objects import ObjectArray
 from schemas import keys
 from schemas.codec import CodecError, encode
@@ -35,17 +37,15 @@ from schemas import list_wire
 from schemas.messages import EgoPose, ObuMetrics
 from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
 from v2i.runtime.sensor_screen import InputRefused, SensorLimits, SensorScreen
+from v2i.runtime.site import Site
 from v2i.runtime.transport import open_session
-from v2i.sim.clock import Clock, SystemClock
-from v2i.sim.scenario import load_scenario
-from v2i.sim.world import World
 from v2i.telemetry.latency import PeriodicSummary, StageLatency
 
 from obu_service.config import ObuConfig
 from obu_service.inbound_security import live_security
 from obu_service.inbox import KINDS as INBOX_KINDS, Inbox
 from obu_service.pipeline import ObuPipeline
-from obu_service.source import ExternalCycles, OwnFrame, SimulatedVehicle, detections_of, pose_of
+from obu_service.source import ExternalCycles, OwnFrame, OwnSensing, detections_of, pose_of
 from v2i.clock.time_requests import sync_times_ns
 from obu_service.v2v_shell import KINDS as V2V_KINDS, V2vShell
 
@@ -58,23 +58,28 @@ CHEAP_STANDARD_BYTES = 512
 
 
 class ObuNode:
-    def __init__(self, config: ObuConfig, clock: Clock | None = None):
+    def __init__(self, config: ObuConfig, site: Site, sensing: Callable[[int], OwnSensing] | None = None,
+                 clock: Clock | None = None):
         """Everything is loaded here; what depends on time zero (the vehicle's sampling, the cycle
-        clock: ``_begin``) too, unless ``config.await_start``: then after the ready line."""
+        clock: ``_begin``) too, unless ``config.await_start``: then after the ready line.
+        ``sensing(start_ns)``: the vehicle's own sensing run inside the OBU from time zero (``--source
+        sim``); None: its detections and pose come over Zenoh (``--source zenoh``), and without
+        ``config.duration_s`` it runs until stopped."""
         # the tracker's compiled loops load first (~0.3 s; compiled once per machine): not in a cycle, and
-        # before the start time, whose first cycles would otherwise be late
-        load_kernels()
+        # before the start time, whose first cycles would otherwise be late (the simulator's too where the
+        # composition root imported it for simulated sensing)
+        load_kernels(modules=SERVICE_KERNEL_MODULES)
         self.config = config
         self.name = f"obu {config.vehicle_id}"  # in its log lines
         self.clock = clock or SystemClock()
         self.start_ns: int | None = None  # time zero (OBU clock), from _begin
-        scenario = load_scenario(config.scenario)
-        # this vehicle's view when the scenario has it (its LiDAR, its streams), else the ego's
-        own = config.vehicle_id if config.vehicle_id in [v.name for v in scenario.vehicles] else None
-        self.world = World(scenario, ego=own)
-        self.duration_s = config.duration_s or self.world.scenario.duration_s
-        self.vehicle: SimulatedVehicle | None = None  # --source sim, from _begin
-        self.pipeline = ObuPipeline(config.pipeline_config(), config.lanes())
+        self.duration_s = config.duration_s  # None: until stopped
+        if sensing is not None and self.duration_s is None:
+            raise ValueError("own sensing runs for a set time: give duration_s (--duration)")
+        self._sensing = sensing
+        self._lidar_rate_hz = site.vehicle(config.vehicle_id).lidar_rate_hz  # --source zenoh: the cycle rate
+        self.vehicle: OwnSensing | None = None  # --source sim, from _begin
+        self.pipeline = ObuPipeline(config.pipeline_config(site), config.lanes(site))
         self._security = live_security(config.pki_dir, config.security_policy, config.planning_max_age_s,
                                        self.pipeline.clock_offset, self.pipeline.reject)
         known = set(self.pipeline.config.known_rsus)
@@ -103,11 +108,11 @@ class ObuNode:
         """Time zero (OBU clock): the simulated vehicle samples from it (--source sim), or the cycle
         clock's first slot is it (--source zenoh)."""
         self.start_ns = start_ns
-        if self.config.source == "sim":
-            self.vehicle = SimulatedVehicle(self.world, self.config.seed, start_ns)
+        if self._sensing is not None:
+            self.vehicle = self._sensing(start_ns)
         else:
             pc = self.pipeline.config
-            self._cycles = ExternalCycles(start_ns, round(1e9 / self.world.scenario.lidar.rate_hz),
+            self._cycles = ExternalCycles(start_ns, round(1e9 / self._lidar_rate_hz),
                                           round((pc.deadline_ms - pc.compute_margin_ms) * 1e6))
 
     def run(self, stop: threading.Event, await_start=read_start_line) -> None:
@@ -133,7 +138,7 @@ class ObuNode:
                 if wire in self.config.wires:
                     list_wire.prepare(wire)
                     entities.append(session.declare_subscriber(key, lambda sample, w=wire: self._put(w, sample)))
-            if self.config.source != "sim":
+            if self._sensing is None:
                 entities += [session.declare_subscriber(keys.sensor_vehicle_objects(vid),
                                                         lambda sample: self._put("sensor_objects", sample)),
                              session.declare_subscriber(keys.sensor_vehicle_pose(vid),
@@ -178,6 +183,10 @@ class ObuNode:
         for t in self.vehicle.cycle_times_ns(self.duration_s) if self.vehicle is not None else ():
             if t >= now:
                 heapq.heappush(self._events, (int(t), 1, "capture", None))
+        if self.duration_s is None:  # until stopped: each time-sync exchange schedules the next (_do_sync)
+            lead = sync_times_ns(now, self.start_ns, 0.0, self.config.sync_rate_hz)  # those before time zero
+            heapq.heappush(self._events, (lead[0] if lead else now, 2, "sync", None))
+            return
         for t in sync_times_ns(now, self.start_ns, self.duration_s, self.config.sync_rate_hz):
             heapq.heappush(self._events, (t, 2, "sync", None))
         heapq.heappush(self._events, (self.start_ns + round((self.duration_s + 1.0) * 1e9), 3, "end", None))
@@ -313,7 +322,9 @@ class ObuNode:
         refused = {r: n for r, n in self.pipeline.rejected.items() if not r.endswith("ego_self_detection")}
         self._log.totals(refused, self._details)
 
-    def _do_sync(self, _due_ns: int, _) -> None:
+    def _do_sync(self, due_ns: int, _) -> None:
+        if self.duration_s is None:  # until stopped: the next exchange
+            heapq.heappush(self._events, (due_ns + round(1e9 / self.config.sync_rate_hz), 2, "sync", None))
         if self._v2v is not None:
             self._v2v.sync(self.clock.now_ns())
         request = self.pipeline.make_time_request(self.clock.now_ns())

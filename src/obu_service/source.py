@@ -1,9 +1,11 @@
-"""The vehicle's own sensing: simulated LiDAR detections and localisation (``--source sim``), or
+"""The vehicle's own sensing: what one frame of it is (``OwnFrame``), what the OBU needs of sensing
+run inside it (``OwnSensing``: the simulator's LiDAR and localisation, ``v2i.sim.obu_sources``), and
 received detection frames and poses (``--source zenoh``) and the cycle clock they drive."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -12,9 +14,6 @@ from v2i.core.objects import ObjectArray
 from v2i.fusion.wire import objects_from_states
 from schemas.messages import SOURCE_VEHICLE
 from schemas.sensor_messages import LocalizationPose, SensorObjects
-from v2i.sim.seeding import stream
-from v2i.sim.sensors import Lidar, Localization, frame_times
-from v2i.sim.world import World
 
 
 @dataclass(frozen=True)
@@ -24,28 +23,13 @@ class OwnFrame:
     detections: ObjectArray  # base_link
 
 
-class SimulatedVehicle:
-    """Ego LiDAR (10 Hz) and localisation sampling the simulated world, seen from the vehicle
-    ``world`` is the view of (``World(scenario, ego=name)``); the k-th vehicle of a scenario
-    draws from the k-th streams."""
+class OwnSensing(Protocol):
+    """The vehicle's own sensing run inside the OBU (``--source sim``: ``v2i.sim.obu_sources``): its
+    cycle times (its LiDAR's capture times) and, at each, the frame."""
 
-    def __init__(self, world: World, seed: int, start_ns: int):
-        self.world = world
-        self.start_ns = start_ns
-        spec = world.scenario.vehicle(world.ego_name)
-        index = world.scenario.vehicles.index(spec)
-        self.rate_hz = spec.lidar.rate_hz
-        self.lidar = Lidar(spec.lidar, stream(seed, "lidar", index))
-        self.localization = Localization(spec.localization, stream(seed, "localization", index))
+    def cycle_times_ns(self, duration_s: float) -> np.ndarray: ...
 
-    def cycle_times_ns(self, duration_s: float) -> np.ndarray:
-        """(K,) int64 LiDAR capture times: the OBU's 10 Hz cycles."""
-        t_s = frame_times(self.rate_hz, duration_s)
-        return self.start_ns + np.round(t_s * 1e9).astype(np.int64)
-
-    def capture(self, capture_ns: int) -> OwnFrame:
-        t_s = (capture_ns - self.start_ns) * 1e-9
-        return OwnFrame(int(capture_ns), self.localization.measure(self.world, t_s), self.lidar.detect(self.world, t_s))
+    def capture(self, capture_ns: int) -> OwnFrame: ...
 
 
 def pose_of(msg: LocalizationPose) -> Pose2D:

@@ -24,7 +24,7 @@ from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from v2i.runtime.intake import Item
 from schemas.messages import FusedObjectList, TimeReply, TimeRequest
-from v2i.sim.clock import Clock
+from v2i.core.clock import Clock
 
 from obu_service.peers import PeerIntake, shared_list
 

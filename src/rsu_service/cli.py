@@ -1,8 +1,10 @@
-"""``v2i rsu``: run the roadside unit service."""
+"""``v2i rsu``: the roadside unit service's options, and its run with a node the composition root
+makes (``v2i.services.rsu_node``: the site, source and clock model a configuration names)."""
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 
 from schemas.list_wire import WIRES
 from v2i.runtime.process import add_service_options, run_service
@@ -18,6 +20,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
         "v2x/rsu/{id}/time. Its clock can be offset, drifting and stepped on purpose."
     )
     add_service_options(p, "RsuConfig", "tcp/0.0.0.0:7447", "camera noise")
+    p.add_argument("--site", metavar="FILE",
+                   help="site file (site.yaml: RSUs, vehicles, map origin, map) instead of a scenario, with "
+                        "--source zenoh or video: no scenario and no simulator is loaded; without --duration the "
+                        "RSU runs until stopped")
     p.add_argument("--rsu-id", help="RSU id used in key expressions (default rsu1)")
     p.add_argument("--connect", action="append", metavar="EP", help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--clock-offset-ms", type=float, help="RSU clock offset from true time, ms")
@@ -63,10 +69,6 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     add_metrics_options(p)
 
 
-def run(args: argparse.Namespace) -> int:
-    def make_node(config: RsuConfig):
-        from rsu_service.node import RsuNode
-
-        return export_node(RsuNode(config), "rsu", args)
-
-    return run_service("rsu", RsuConfig, args, make_node)
+def run(args: argparse.Namespace, make_node: Callable[[RsuConfig], object]) -> int:
+    """``v2i rsu``: the node ``make_node`` makes of the configuration, run until its end or a signal."""
+    return run_service("rsu", RsuConfig, args, lambda config: export_node(make_node(config), "rsu", args))

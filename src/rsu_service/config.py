@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from v2i.runtime.config import ServiceConfig
+from v2i.runtime.site import check_site_or_scenario
 from schemas.keys import check_id
 from schemas.list_wire import WIRES
-from v2i.sim.clock import Clock, ClockStep, DriftingClock
 
 PREDICTORS = ("auto", "lane", "cv")  # long-horizon path predictors, see rsu_service.prediction
 SOURCES = ("sim", "camera", "video", "zenoh")  # perception sources, see rsu_service.source
@@ -17,6 +17,8 @@ SOURCES = ("sim", "camera", "video", "zenoh")  # perception sources, see rsu_ser
 
 class RsuConfig(ServiceConfig):
     rsu_id: str = "rsu1"
+    site: str | None = Field(None, description="site file (v2i.runtime.site): the RSUs, vehicles, map origin "
+                             "and map this RSU runs in, instead of a scenario's; with source zenoh or video")
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     clock_offset_ms: float = Field(0.0, ge=-86_400_000, le=86_400_000)
     clock_drift_ppm: float = Field(0.0, ge=-1000, le=1000)
@@ -73,10 +75,14 @@ class RsuConfig(ServiceConfig):
     def _valid_id(cls, v: str) -> str:
         return check_id(v)
 
-    def clock(self, base: Clock, start_ns: int) -> DriftingClock:
-        """The RSU's own clock over the true ``base`` clock: offset, drifting, maybe stepping."""
-        steps = ()
-        if self.clock_step_ms and self.clock_step_at_s is not None:
-            steps = (ClockStep(start_ns + round(self.clock_step_at_s * 1e9), round(self.clock_step_ms * 1e6)),)
-        return DriftingClock(base, offset_ns=round(self.clock_offset_ms * 1e6), drift_ppm=self.clock_drift_ppm,
-                             ref_ns=start_ns, steps=steps)
+    @model_validator(mode="after")
+    def _site_or_scenario(self) -> "RsuConfig":
+        check_site_or_scenario(self, "RSU", ("zenoh", "video"))
+        return self
+
+    @property
+    def skewed_clock(self) -> bool:
+        """Whether the RSU's clock is offset, drifts or steps on purpose (the clock_* fields)."""
+        return bool(self.clock_offset_ms or self.clock_drift_ppm
+                    or (self.clock_step_ms and self.clock_step_at_s is not None))
+

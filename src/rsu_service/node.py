@@ -8,6 +8,11 @@ after it (``querier_rate_limited``), so a flood under one name does not starve t
 each refusal is counted by reason in ``v2x/rsu/{id}/metrics`` and logged in a throttled
 summary.
 
+The node is configured by a ``v2i.runtime.site.Site`` (its RSU's position and frame rate) and is
+handed its camera source (``rsu_service.source.RsuSource``) and clock model by the composition root
+(``v2i.services``): it never sees a scenario. The RSU's perception is scored when its source knows
+the truth (a simulated camera's frames carry what it could see).
+
 With ``--source zenoh`` the RSU runs no camera of its own: it subscribes to
 ``v2x/sensor/rsu/{rsu_id}/objects`` (``SensorObjects`` in ``map``, stamped in this host's
 clock), hands each payload from the Zenoh callback to a bounded, rate-limited ``Intake``, and
@@ -27,7 +32,8 @@ import numpy as np
 
 from v2i.perception.scoring import PerceptionTally
 from schemas import keys
-from v2i.core.jit import load_kernels
+from v2i.core.clock import Clock, ClockModel, LocalClock, SystemClock, UnskewedClock
+from v2i.core.jit import SERVICE_KERNEL_MODULES, load_kernels
 from v2i.fusion.wire import objects_from_states
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
 from schemas.list_wire import encode_list, list_key, prepare
@@ -36,10 +42,8 @@ from schemas.image_messages import RsuImageFeatures
 from schemas.messages import SOURCE_RSU, ObjectList, RsuMetrics, RsuPerception, TimeRequest
 from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
 from v2i.runtime.sensor_screen import InputRefused, SensorLimits, SensorScreen
+from v2i.runtime.site import Site
 from v2i.runtime.transport import open_session
-from v2i.sim.clock import Clock, SystemClock
-from v2i.sim.scenario import load_scenario
-from v2i.sim.world import World
 from v2i.security.envelope import Signer, sign
 from v2i.security.pki import PkiError, load_signer
 from v2i.telemetry.latency import PeriodicSummary, StageLatency
@@ -47,7 +51,7 @@ from v2i.telemetry.latency import PeriodicSummary, StageLatency
 from rsu_service.config import RsuConfig
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from rsu_service.prediction import make_predictor
-from rsu_service.source import Frame, make_source
+from rsu_service.source import Frame, RsuSource
 
 
 MAX_QUERIERS = 1024  # querier buckets kept
@@ -58,27 +62,33 @@ INPUT_QUEUE, INPUT_RATE_HZ, INPUT_BURST = 64, 50.0, 25  # --source zenoh: queued
 class RsuNode:
     """Publishes object lists at the camera rate and answers time queries."""
 
-    def __init__(self, config: RsuConfig, true_clock: Clock | None = None):
-        """Everything is loaded here; what depends on time zero (the RSU's clock model, the source's
-        capture times: ``_begin``) too, unless ``config.await_start``: then after the ready line."""
-        load_kernels()  # the tracker's compiled loops first (~0.3 s; compiled once per machine): not in a frame
+    def __init__(self, config: RsuConfig, site: Site, source: RsuSource | None = None,
+                 clock_model: ClockModel = UnskewedClock.of, true_clock: Clock | None = None):
+        """Everything is loaded here; what depends on time zero (the RSU's clock from ``clock_model``,
+        the source's capture times: ``_begin``) too, unless ``config.await_start``: then after the
+        ready line. ``source`` None: the RSU's input comes over Zenoh (``--source zenoh``), and
+        without ``config.duration_s`` it runs until stopped. A source (its renderer and detector
+        loaded: seconds) gets its time zero from ``_begin``."""
+        # the tracker's compiled loops first (~0.3 s; compiled once per machine): not in a frame; the simulator's
+        # too where the composition root imported it for a simulated source
+        load_kernels(modules=SERVICE_KERNEL_MODULES)
         self.config = config
         self.name = f"rsu {config.rsu_id}"  # in its log lines
         self.true_clock = true_clock or SystemClock()
         self.start_ns: int | None = None  # time zero (true clock), from _begin
-        self.clock: Clock | None = None  # the RSU's own clock (offset, drift, step from time zero), from _begin
-        self.world = World(load_scenario(config.scenario), site=True)  # the RSU sees every vehicle
-        self.duration_s = config.duration_s or self.world.scenario.duration_s
-        # a camera source loads its renderer and detector now (seconds); _begin sets its time zero
-        self.source = (None if config.source == "zenoh" else
-                       make_source(config, self.world, config.start_at_ns or self.true_clock.now_ns()))
+        self.clock: LocalClock | None = None  # the RSU's own clock (offset, drift, step from time zero), from _begin
+        self._clock_model = clock_model
+        self.duration_s = config.duration_s  # None: until stopped
+        if source is not None and self.duration_s is None:
+            raise ValueError("a camera source runs for a set time: give duration_s (--duration)")
+        self.source = source
         self._inputs = Intake(INPUT_QUEUE, config.input_max_bytes, INPUT_RATE_HZ, INPUT_BURST)
         self._screen = SensorScreen(config.rsu_id, "map", SensorLimits(config.input_max_objects,
                                                                       config.input_max_age_ms,
                                                                       config.input_future_ms, config.input_max_bytes))
         self.pipeline = RsuPipeline(RsuPipelineConfig(rsu_id=config.rsu_id, sensor=f"camera/{config.source}",
                                                       predict_ahead=config.predict_ahead),
-                                    make_predictor(config.predictor, config.scenario))
+                                    make_predictor(config.predictor, site))
         self.rejected: Counter[str] = Counter()
         self.published = 0
         self.skipped = 0  # frames not published because their time had passed (restart, stall)
@@ -96,8 +106,8 @@ class RsuNode:
         # one signer per thread (loop, time-query callback): each decides when its certificate travels
         self._loop_signer, self._query_signer = _signer(config), _signer(config)
         # scored when the source knows the truth (simulated world)
-        rsu = self.world.scenario.rsus[self.world.scenario.rsu_index(config.rsu_id)]
-        self.perception = PerceptionTally.of_source(self.source, (rsu.position.x, rsu.position.y))
+        rsu = site.rsu(config.rsu_id)
+        self.perception = PerceptionTally.of_source(self.source, rsu.xy)
         # predict-ahead publishes a frame's second list half a frame period after the first
         self._upsample_offset_ns = round(0.5e9 / rsu.rate_hz) if self.source is None else self.source.upsample_offset_ns
         if not config.await_start:
@@ -106,7 +116,7 @@ class RsuNode:
     def _begin(self, start_ns: int) -> None:
         """Time zero (true clock): the RSU's clock model and the source's capture times start from it."""
         self.start_ns = start_ns
-        self.clock = self.config.clock(self.true_clock, start_ns)
+        self.clock = self._clock_model(self.true_clock, start_ns)
         if self.source is not None:
             self.source.start_at(start_ns)
 
@@ -165,9 +175,12 @@ class RsuNode:
 
     def _publish_inputs(self, publisher, stop: threading.Event) -> None:
         """--source zenoh: each frame received and accepted is processed and published at once,
-        until the run's end (start + duration + 1 s)."""
-        end_ns = self.start_ns + round((self.duration_s + 1.0) * 1e9)
-        while not stop.is_set() and (remaining_ns := end_ns - self.true_clock.now_ns()) > 0:
+        until the run's end (start + duration + 1 s; no duration: until stopped)."""
+        end_ns = None if self.duration_s is None else self.start_ns + round((self.duration_s + 1.0) * 1e9)
+        while not stop.is_set():
+            remaining_ns = REPORT_EVERY_NS if end_ns is None else end_ns - self.true_clock.now_ns()
+            if remaining_ns <= 0:
+                return
             item = self._inputs.get(min(remaining_ns * 1e-9, 0.2))
             if self.true_clock.now_ns() - self._reported_ns > REPORT_EVERY_NS:  # refusals show while no frame comes
                 self._report()

@@ -112,6 +112,7 @@ def _check_inputs(args: argparse.Namespace) -> None:
     be loaded, a bad flag value, RSU/OBU configs that do not validate, an output path that cannot be
     written (before a run of many seconds, not after it)."""
     from link_emulator.profile import load_profile
+    from v2i.services import obu_scenario_site
     from v2i.sim.scenario import load_scenario
 
     load_scenario(args.scenario)
@@ -121,7 +122,7 @@ def _check_inputs(args: argparse.Namespace) -> None:
         raise ValueError(f"--fusion roif runs in v2i eval and v2i demo, not v2i {args.command}")
     spec = _spec(args)
     spec.rsu_config()  # pydantic ValidationError: summarised by main with the flags' names
-    spec.obu_config()
+    obu_scenario_site(spec.obu_config())  # and the map the lane compensation needs
     if args.json not in (None, "-"):
         check_writable(Path(args.json), "--json")
     if getattr(args, "report", None):
@@ -474,9 +475,10 @@ def _camera_options(camera: argparse.ArgumentParser) -> None:
         importlib.import_module(module).add_parser(camera_sub)
 
 
-def _service_options(module: str):
+def _service_options(module: str, run: str | None = None):
     """Options of a service command from its module's ``configure_parser`` and ``--zenoh-config``;
-    runs its ``run``."""
+    runs its ``run``, or ``v2i.services``' function named ``run`` (the RSU and OBU: the composition
+    root hands them their site, sources and clocks)."""
 
     def options(p: argparse.ArgumentParser) -> None:
         mod = importlib.import_module(module)
@@ -484,7 +486,7 @@ def _service_options(module: str):
         p.add_argument("--zenoh-config", dest="site_zenoh_config", metavar="FILE",
                        help="Zenoh JSON5 file merged into every session of this command (TLS, mutual TLS, "
                             "access control: deploy/zenoh/); the same as $V2I_ZENOH_CONFIG")
-        p.set_defaults(func=mod.run)
+        p.set_defaults(func=mod.run if run is None else getattr(importlib.import_module("v2i.services"), run))
 
     return options
 
@@ -511,8 +513,9 @@ def _pki_options(p: argparse.ArgumentParser) -> None:
 
 # command -> the function adding its options (and importing its modules: only when it is parsed)
 _OPTIONS = {
-    "demo": _demo_options, "eval": _eval_options, "chaos": _chaos_options, "rsu": _service_options("rsu_service.cli"),
-    "obu": _service_options("obu_service.cli"), "link": _service_options("link_emulator.cli"),
+    "demo": _demo_options, "eval": _eval_options, "chaos": _chaos_options,
+    "rsu": _service_options("rsu_service.cli", "run_rsu"), "obu": _service_options("obu_service.cli", "run_obu"),
+    "link": _service_options("link_emulator.cli"),
     "world": _service_options("v2i.world_node"), "router": _service_options("v2i.router"),
     "camera": _camera_options, "fuzz": _fuzz_options, "monitor": _service_options("v2i.monitor"),
     "record": _service_options("v2i.record"), "replay": _service_options("v2i.replay"),

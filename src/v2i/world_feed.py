@@ -1,8 +1,8 @@
 """What ``v2i world`` publishes, and when (pure: no Zenoh, no clock; times are true-clock ns).
 
 The simulated world of a scenario, sampled by the very sensor models the services embed with
-``--source sim``: each RSU's camera (``rsu_service.source.SimulatedCamera``, site view) and
-each vehicle's LiDAR and localisation (``obu_service.source.SimulatedVehicle``, the vehicle's
+``--source sim``: each RSU's camera (``v2i.sim.rsu_sources.SimulatedCamera``, site view) and
+each vehicle's LiDAR and localisation (``v2i.sim.obu_sources.SimulatedVehicle``, the vehicle's
 own view), with the same seeded streams, so a service fed by ``v2i world`` over ``--source
 zenoh`` receives the detections it would have sampled itself (quantised by the wire).
 
@@ -25,11 +25,11 @@ import numpy as np
 from v2i.core.frames import Pose2D
 from v2i.core.objects import ObjectArray
 from v2i.fusion.wire import fit_to_wire, states_from_objects
-from obu_service.source import SimulatedVehicle
-from rsu_service.source import SimulatedCamera
 from schemas import keys
 from schemas.messages import Message
 from schemas.sensor_messages import GroundTruth, LocalizationPose, SensorHeader, SensorObjects, VehicleTruth
+from v2i.sim.obu_sources import SimulatedVehicle
+from v2i.sim.rsu_sources import SimulatedCamera
 from v2i.sim.scenario import Scenario
 from v2i.sim.sensors import frame_times
 from v2i.sim.world import World

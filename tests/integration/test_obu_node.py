@@ -15,13 +15,12 @@ import pytest
 
 from v2i.orchestration.children import READY_TIMEOUT_S, START_LEAD_S
 from obu_service.config import ObuConfig
-from obu_service.node import ObuNode
 from rsu_service.config import RsuConfig
-from rsu_service.node import RsuNode
 from schemas import keys
 from schemas.codec import decode, encode
 from schemas.messages import FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics
 from v2i.runtime.transport import free_tcp_endpoint, open_session
+from v2i.services import obu_node, rsu_node
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60 + READY_TIMEOUT_S)]
 RUN_S = 60.0  # the nodes' run from time zero: longer than every wait of a test; its block's end stops them
@@ -113,8 +112,8 @@ def probe_session(endpoint: str):
 
 def test_obu_rejects_garbage_keeps_publishing_and_syncs_with_a_direct_rsu():
     rsu_ep, obu_ep = free_tcp_endpoint(), free_tcp_endpoint()
-    rsu = RsuNode(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=RUN_S, clock_offset_ms=250.0))
-    obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], await_start=True, duration_s=RUN_S))
+    rsu = rsu_node(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=RUN_S, clock_offset_ms=250.0))
+    obu = obu_node(ObuConfig(listen=[obu_ep], connect=[rsu_ep], await_start=True, duration_s=RUN_S))
     outputs, metrics = queue.Queue(), queue.Queue()
     with running(rsu, obu) as gate, probe_session(obu_ep) as (probe, entities):
         start_ns = gate.start_ns
@@ -149,7 +148,7 @@ def test_a_restarted_rsu_publishes_only_what_is_current():
     12 s ago) publishes at its frame rate from now on; the 60 frames it 'missed' are skipped and
     counted, not sent in a burst."""
     rsu_ep = free_tcp_endpoint()
-    rsu = RsuNode(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=30.0))
+    rsu = rsu_node(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=30.0))
     lists = queue.Queue()
     with running(rsu, lead_s=-12.0, start=False) as gate, probe_session(rsu_ep) as (probe, entities):
         entities.append(probe.declare_subscriber(keys.rsu_objects("rsu1"), lambda s: lists.put(time.monotonic())))

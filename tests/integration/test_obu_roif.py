@@ -15,13 +15,13 @@ from v2i.orchestration.children import READY_TIMEOUT_S, START_LEAD_S
 from v2i.fusion.roif import RoifConfig
 from v2i.fusion.roif_features import view_features
 from obu_service.config import ObuConfig
-from obu_service.image_fusion_node import ImageFusionNode
 from v2i.perception.detector import OnnxDetector
 from schemas import keys
 from schemas.codec import decode, encode
 from schemas.image_messages import ImageFusedBoxes, RsuImageFeatures
 from schemas.messages import ObuMetrics, TimeReply, TimeRequest
 from v2i.runtime.transport import free_tcp_endpoint, open_session
+from v2i.services import obu_node
 from v2i.sim.camera import rsu_camera
 from v2i.sim.render import SceneRenderer
 from v2i.sim.scenario import load_scenario
@@ -56,11 +56,11 @@ def test_obu_fuses_images_live_and_refuses_bad_features():
         d = detector.detect(frame.image)
         rsu_views.append(view_features(frame.image, (d.xyxy, d.scores, d.cls), RoifConfig(), 1000))
     ep = free_tcp_endpoint()
-    node = ImageFusionNode(ObuConfig(listen=[ep], scenario=SCENARIO, fusion="roif", await_start=True,
-                                     duration_s=FRAMES / RATE_HZ, roif_threads=1, sync_rate_hz=20.0,
-                                     # this process renders and detects for both cameras on 2 shared cores and
-                                     # one GIL: RSU frames arrive up to ~320 ms after capture at start-up
-                                     roif_wait_ms=400.0))
+    node = obu_node(ObuConfig(listen=[ep], scenario=SCENARIO, fusion="roif", await_start=True,
+                              duration_s=FRAMES / RATE_HZ, roif_threads=1, sync_rate_hz=20.0,
+                              # this process renders and detects for both cameras on 2 shared cores and
+                              # one GIL: RSU frames arrive up to ~320 ms after capture at start-up
+                              roif_wait_ms=400.0))
     # the start handshake in-process: the node, ready (listening, declared), waits for time zero from here
     ready, start_at = threading.Event(), queue.Queue()
     stop = threading.Event()

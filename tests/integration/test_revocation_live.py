@@ -12,15 +12,14 @@ import pytest
 
 from v2i.orchestration.children import READY_TIMEOUT_S
 from obu_service.config import ObuConfig
-from obu_service.node import ObuNode
 from rsu_service.config import RsuConfig
-from rsu_service.node import RsuNode
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import ObuMetrics
 from v2i.runtime.transport import free_tcp_endpoint
 from v2i.security.pki import CRL_FILE
 from v2i.security.site import write_site
+from v2i.services import obu_node, rsu_node
 
 from test_obu_node import probe_session, running, wait_for  # tests/integration is on sys.path (rootdir-less import)
 
@@ -45,8 +44,8 @@ def _accepted(m: ObuMetrics) -> int:
 def test_a_revocation_written_while_the_obu_runs_refuses_the_rsu_from_then_on(tmp_path, capsys):
     pki = write_site(tmp_path / "pki", time.time_ns() - 10**9, ["rsu1"], ["ego"])
     rsu_ep, obu_ep = free_tcp_endpoint(), free_tcp_endpoint()
-    rsu = RsuNode(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=180.0, pki_dir=str(pki)))
-    obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], await_start=True, duration_s=180.0, pki_dir=str(pki)))
+    rsu = rsu_node(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=180.0, pki_dir=str(pki)))
+    obu = obu_node(ObuConfig(listen=[obu_ep], connect=[rsu_ep], await_start=True, duration_s=180.0, pki_dir=str(pki)))
     assert obu.config.security_policy == "strict"
     metrics: queue.Queue = queue.Queue()
     with running(rsu, obu), probe_session(obu_ep) as (probe, entities):

@@ -12,11 +12,11 @@ import pytest
 
 from v2i.orchestration.children import READY_TIMEOUT_S, START_LEAD_S
 from rsu_service.config import RsuConfig
-from rsu_service.node import RsuNode
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import ObjectList, RsuMetrics
 from v2i.runtime.transport import free_tcp_endpoint
+from v2i.services import rsu_node
 from v2i.sim.camera import rsu_camera
 from v2i.sim.render import SceneRenderer
 from v2i.sim.scenario import load_scenario
@@ -45,8 +45,8 @@ def _recording(folder, times_s) -> None:
 def test_rsu_runs_the_detector_on_a_recording_and_refuses_bad_frames(tmp_path):
     _recording(tmp_path, times_s=np.arange(6.0, 7.6, 0.2))  # the adversary 60-40 m from the camera
     ep = free_tcp_endpoint()
-    rsu = RsuNode(RsuConfig(listen=[ep], source="video", video=str(tmp_path), rate_hz=RATE_HZ, await_start=True,
-                            duration_s=RUN_S))
+    rsu = rsu_node(RsuConfig(listen=[ep], source="video", video=str(tmp_path), rate_hz=RATE_HZ, await_start=True,
+                             duration_s=RUN_S))
     lists, metrics = queue.Queue(), queue.Queue()
     with running(rsu, start=False) as gate, probe_session(ep) as (probe, entities):
         entities += [

@@ -9,9 +9,7 @@ import pytest
 
 from v2i.orchestration.children import READY_TIMEOUT_S
 from obu_service.config import ObuConfig
-from obu_service.node import ObuNode
 from rsu_service.config import RsuConfig
-from rsu_service.node import RsuNode
 from schemas import keys
 from schemas.codec import decode, encode
 from schemas.limits import SOURCE_RSU
@@ -20,6 +18,7 @@ from v2i.runtime.transport import free_tcp_endpoint
 from v2i.security.envelope import Signer
 from v2i.security.pki import load_signer
 from v2i.security.site import write_site
+from v2i.services import obu_node, rsu_node
 
 from test_obu_node import RUN_S, probe_session, running, wait_for  # tests/integration is on sys.path (rootdir-less)
 
@@ -43,9 +42,9 @@ def _has_rsu_objects(out: FusedObjectList) -> bool:
 def test_strict_obu_fuses_the_signing_rsu_and_counts_every_injection(tmp_path):
     pki = write_site(tmp_path, time.time_ns() - 10**9, ["rsu1", "rsu2"], ["ego"])
     rsu_ep, obu_ep = free_tcp_endpoint(), free_tcp_endpoint()
-    rsu = RsuNode(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=RUN_S, clock_offset_ms=250.0,
-                            pki_dir=str(pki)))
-    obu = ObuNode(ObuConfig(listen=[obu_ep], connect=[rsu_ep], await_start=True, duration_s=RUN_S, pki_dir=str(pki)))
+    rsu = rsu_node(RsuConfig(listen=[rsu_ep], await_start=True, duration_s=RUN_S, clock_offset_ms=250.0,
+                             pki_dir=str(pki)))
+    obu = obu_node(ObuConfig(listen=[obu_ep], connect=[rsu_ep], await_start=True, duration_s=RUN_S, pki_dir=str(pki)))
     assert obu.config.security_policy == "strict"
     outputs, metrics, forged_replies = queue.Queue(), queue.Queue(), []
     with running(rsu, obu), probe_session(obu_ep) as (probe, entities):

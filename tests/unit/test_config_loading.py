@@ -20,10 +20,12 @@ from rsu_service.config import RsuConfig
 from v2i.runtime.config import ConfigError, UniqueKeyLoader, load_config, parse_yaml, validation_problems
 from v2i.sim.maps import bundled_maps, map_path
 from v2i.sim.scenario import ScenarioError, load_scenario
+from v2i.sim.scenario_site import site_of
+from v2i.services import obu_scenario_site
 from v2i.cli import main
 
 REPO = Path(__file__).resolve().parents[2]
-RLR = REPO / "src" / "sim" / "scenarios" / "red-light-runner.yaml"
+RLR = REPO / "src" / "v2i" / "sim" / "scenarios" / "red-light-runner.yaml"
 
 
 def _strict(text: str):
@@ -155,13 +157,17 @@ def test_model_validator_error_has_no_pydantic_prefix() -> None:
 def test_lane_without_map_says_which_map_and_where(tmp_path) -> None:
     scenario = tmp_path / "custom.yaml"
     shutil.copy(RLR, scenario)
-    with pytest.raises(ValidationError) as info:
-        ObuConfig(compensation="lane", scenario=str(scenario))
-    message = validation_problems(info.value)
+    config = ObuConfig(compensation="lane", scenario=str(scenario))
+    with pytest.raises(ValueError) as info:
+        obu_scenario_site(config)
+    message = str(info.value)
     assert str(tmp_path / "custom.osm") in message and "beside the scenario YAML" in message
     assert all(name in message for name in bundled_maps()) and "\n" not in message
+    with pytest.raises(ValueError, match="Lanelet2 map"):  # a site without a map, however it was made
+        config.lanes(site_of(load_scenario(scenario)))
     shutil.copy(map_path("red-light-runner"), tmp_path / "custom.osm")  # as the message says: picked up
-    assert ObuConfig(compensation="lane", scenario=str(scenario)).lanes() is not None
+    _, site = obu_scenario_site(config)
+    assert config.lanes(site) is not None
 
 
 # ---- the CLI: one line on stderr, exit code 2 ----------------------------------------------

@@ -148,12 +148,12 @@ def test_model_flag_runs_a_yolov8n_export_into_map_objects(tmp_path):
 
     config = RsuConfig(source="video", video=str(tmp_path), model=yolov8n_shaped(tmp_path / "m.onnx", ULTRALYTICS_NAMES),
                        calibration=str(calibration_path("red-light-runner")), score_threshold=0.25)
-    perception = open_perception(config, world=None)
+    perception = open_perception(config, site=None)
     frame = np.random.default_rng(2).integers(0, 256, (384, 640, 3), dtype=np.uint8)
-    dropped_before = v2i.perception.detector.dropped_unmapped  # open() ran the detector once on a blank frame
+    dropped_before = perception.detector.dropped_unmapped  # open() ran the detector once on a blank frame
     objects, detector_ms = perception.perceive(frame)
     found = Detections2D(*perception.last_detections)
-    check_detections(found, v2i.perception.detector.dropped_unmapped - dropped_before, 640, 384)
+    check_detections(found, perception.detector.dropped_unmapped - dropped_before, 640, 384)
     assert detector_ms > 0
     assert sorted(objects.cls.tolist()) == sorted([ObjectClass.BUS, ObjectClass.PEDESTRIAN, ObjectClass.TRUCK])
     assert np.isfinite(objects.xy).all()

@@ -173,7 +173,7 @@ def test_the_lidar_frames_truth_is_the_cycles_truth_and_a_stale_one_is_not_taken
     cycle's capture equals, array for array, the one CycleFrame.of derives itself; the scores of a
     record fed it equal those of one that is not; a truth of another time is not used."""
     from v2i.scoring.metrics import CycleFrame
-    from obu_service.source import SimulatedVehicle
+    from v2i.sim.obu_sources import SimulatedVehicle
 
     world = World(load_scenario("red-light-runner"))
     sensing = SimulatedVehicle(world, 0, EVAL_EPOCH_NS)

@@ -8,8 +8,9 @@ import itertools
 import threading
 
 from obu_service.config import ObuConfig
-from obu_service.image_fusion_node import INPUTS_PER_LATE_EVENT, ImageFusionNode
+from obu_service.image_fusion_node import INPUTS_PER_LATE_EVENT
 from schemas import keys
+from v2i.services import obu_node
 from v2i.sim.clock import SimClock
 
 SCENARIO, RSU_ID = "roif-intersection", "rsu-roif"
@@ -22,8 +23,8 @@ def _runs_of_inputs(log: list[str]) -> list[int]:
 
 def test_a_loop_behind_its_events_still_handles_queued_inputs_a_bounded_number_at_a_time():
     clock = SimClock(1_700_000_000_000_000_000)
-    node = ImageFusionNode(ObuConfig(scenario=SCENARIO, fusion="roif", roif_threads=1, start_at_ns=clock.t_ns,
-                                     duration_s=2.0, sync_rate_hz=20.0), clock=clock)
+    node = obu_node(ObuConfig(scenario=SCENARIO, fusion="roif", roif_threads=1, start_at_ns=clock.t_ns,
+                              duration_s=2.0, sync_rate_hz=20.0), clock=clock)
     log, stop = [], threading.Event()
 
     def capture(_due_ns: int) -> None:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from v2i.fusion import kalman
-from v2i.core.jit import Kernel, load_kernels
+from v2i.core.jit import EVALUATION_KERNEL_MODULES, Kernel, load_kernels
 
 
 def test_load_kernels_loads_every_kernel():
@@ -43,7 +43,7 @@ def test_a_division_by_zero_in_a_kernel_gives_nan_as_numpy_does():
 
 
 def test_load_kernels_loads_the_simulator_and_every_kernel_imported_before():
-    """v2i.sim.world's body states are in KERNEL_MODULES (the services import it); a kernel of a module imported before
+    """v2i.sim.world's body states are in KERNEL_MODULES (a simulated run's); a kernel of a module imported before
     the call (the evaluation's matching, imported by the offline evaluator) is loaded too."""
     import importlib
 
@@ -69,7 +69,22 @@ def test_kernel_modules_name_every_module_a_service_runs_kernels_of():
     code = ("from v2i.core.jit import Kernel, load_kernels; load_kernels(); "
             "print(' '.join(sorted({k.fn.__module__ for k in Kernel._all if k._compiled is not None})))")
     loaded = set(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split())
-    assert {m for m in declared if not m.startswith("evaluation.")} <= loaded
+    assert declared - set(EVALUATION_KERNEL_MODULES) <= loaded
+
+
+def test_a_service_loads_its_own_kernels_and_no_simulator():
+    """``load_kernels(modules=SERVICE_KERNEL_MODULES)``, as a node calls it (a fresh interpreter): the services'
+    kernels, no module of the simulator (a service on a site file runs none); with the simulator's modules,
+    every kernel a run needs."""
+    import subprocess
+    import sys
+
+    from v2i.core.jit import KERNEL_MODULES, SERVICE_KERNEL_MODULES, SIMULATOR_KERNEL_MODULES
+
+    assert KERNEL_MODULES == SERVICE_KERNEL_MODULES + SIMULATOR_KERNEL_MODULES
+    code = ("import sys; from v2i.core.jit import SERVICE_KERNEL_MODULES, load_kernels; "
+            "load_kernels(modules=SERVICE_KERNEL_MODULES); print(sorted(m for m in sys.modules if m.startswith('v2i.sim')))")
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split() == ["[]"]
 
 
 def test_load_kernels_reaches_scipys_blas_modules_without_importing_scipy_linalg():

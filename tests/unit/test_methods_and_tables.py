@@ -61,14 +61,15 @@ def test_lane_compensation_needs_a_map_and_follows_the_lane(tmp_path):
     from obu_service.methods import RsuFrame, compensate
     from rsu_service.prediction import make_predictor
     from v2i.sim.maps import lane_predictor
+    from v2i.sim.scenario_site import scenario_site
 
     with pytest.raises(ValueError, match="Lanelet2"):
         make_fusion("kf", "lane")
-    scenario = tmp_path / "custom.yaml"  # a scenario file with no map beside it
+    site = scenario_site("red-light-runner").model_copy(update={"map": None})  # a site with no map
     with pytest.raises(ValueError, match="Lanelet2 map"):
-        ObuConfig(compensation="lane", scenario=str(scenario))
+        ObuConfig(compensation="lane").lanes(site)
     with pytest.raises(ValueError, match="Lanelet2 map"):
-        make_predictor("lane", str(scenario))
+        make_predictor("lane", site)
     lanes = lane_predictor("red-light-runner")
     make_fusion("kf", "lane", lanes=lanes)
     # an eastbound car in the inner lane moves along it: same as constant velocity on a straight lane

@@ -20,6 +20,7 @@ from schemas.messages import TimeReply
 from v2i.security.envelope import Signer
 from v2i.security.pki import load_signer
 from v2i.security.site import write_site
+from v2i.services import obu_node
 
 SCENARIO, RSU_ID = "roif-intersection", "rsu-roif"
 THETA_NS = 25_000_000  # rsu - obu
@@ -34,8 +35,8 @@ def site(tmp_path_factory):
 
 
 def _node(pki_dir=None) -> ImageFusionNode:
-    return ImageFusionNode(ObuConfig(scenario=SCENARIO, fusion="roif", roif_threads=1,
-                                     pki_dir=None if pki_dir is None else str(pki_dir)))
+    return obu_node(ObuConfig(scenario=SCENARIO, fusion="roif", roif_threads=1,
+                              pki_dir=None if pki_dir is None else str(pki_dir)))
 
 
 def _exchange(node: ImageFusionNode, t1_ns: int, sign=None) -> Item:

@@ -17,9 +17,9 @@ import pytest
 
 from v2i.orchestration.children import Child, DemoError, start_all, wait_ready
 from rsu_service.config import RsuConfig
-from rsu_service.node import RsuNode
 from v2i.runtime.config import ConfigError, load_config
 from v2i.runtime.process import parse_start_line, read_start_line, start_line, start_when_told
+from v2i.services import rsu_node
 
 # A stand-in service: two stderr lines, ready after argv[1] s, then the start line -> "started", exit argv[2].
 FAKE = r"""
@@ -91,7 +91,7 @@ def test_one_time_zero_only():
 
 
 def test_an_rsu_awaiting_its_start_has_no_clock_yet_and_answers_no_time_query():
-    node = RsuNode(RsuConfig(await_start=True, duration_s=2.0))
+    node = rsu_node(RsuConfig(await_start=True, duration_s=2.0, clock_offset_ms=250.0))
     assert node.start_ns is None and node.clock is None
     replies = []
     query = SimpleNamespace(payload=None, key_expr="v2x/rsu/rsu1/time", reply=lambda *a: replies.append(a))

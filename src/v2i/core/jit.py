@@ -110,17 +110,21 @@ def kernel(*argument_types) -> Callable[[Callable], Kernel]:
 
 
 # the modules that declare kernels (with the modules they import): load_kernels imports them. The
-# evaluation's (EVALUATION_KERNEL_MODULES) are not listed, so that no service imports them: the
+# services' own (SERVICE_KERNEL_MODULES: a service on a site file loads no simulator), the simulator's, and
+# the evaluation's (EVALUATION_KERNEL_MODULES), not listed, so that no service imports them: the
 # offline evaluator has imported them before it calls load_kernels, which loads those too
-KERNEL_MODULES = ("v2i.fusion.tracking", "v2i.fusion.wire", "v2i.core.frames", "v2i.fusion.geometry", "v2i.fusion.lane_match",
-                  "v2i.sim.occlusion", "v2i.sim.world", "obu_service.admission", "v2i.clock.clock_envelope", "schemas.bit_rows")
+SERVICE_KERNEL_MODULES = ("v2i.fusion.tracking", "v2i.fusion.wire", "v2i.core.frames", "v2i.fusion.geometry",
+                          "v2i.fusion.lane_match", "obu_service.admission", "v2i.clock.clock_envelope", "schemas.bit_rows")
+SIMULATOR_KERNEL_MODULES = ("v2i.sim.occlusion", "v2i.sim.world")
+KERNEL_MODULES = SERVICE_KERNEL_MODULES + SIMULATOR_KERNEL_MODULES
 EVALUATION_KERNEL_MODULES = ("v2i.scoring.detection_metrics",)
 
 
-def load_kernels(extra_modules: tuple[str, ...] = ()) -> float:
-    """Load (or compile) every kernel of ``KERNEL_MODULES``, ``extra_modules`` and every module imported
-    before the call; seconds taken. A compile shows its progress on stderr (``CompileProgress``)."""
-    for name in (*KERNEL_MODULES, *extra_modules):
+def load_kernels(extra_modules: tuple[str, ...] = (), modules: tuple[str, ...] | None = None) -> float:
+    """Load (or compile) every kernel of ``modules`` (default ``KERNEL_MODULES``: the services' and the
+    simulator's), ``extra_modules`` and every module imported before the call; seconds taken. A compile
+    shows its progress on stderr (``CompileProgress``)."""
+    for name in (*(KERNEL_MODULES if modules is None else modules), *extra_modules):
         importlib.import_module(name)
     t0 = time.perf_counter()
     preload_scipy_blas()

@@ -31,19 +31,23 @@ from obu_service.inbound_security import InboundSecurity, make_verifier
 from obu_service.inbox import Inbox, Outcome
 from obu_service.peers import PEER_REPLY_NS, shared_list
 from obu_service.pipeline import ObuPipeline
-from obu_service.source import OwnFrame, SimulatedVehicle
+from obu_service.source import OwnFrame
 from v2i.perception.scoring import PerceptionTally
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from rsu_service.prediction import make_predictor
-from rsu_service.source import Frame, make_source
+from rsu_service.source import Frame
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.list_wire import encode_list, list_key
 from schemas.messages import FusedObjectList, ObjectList, TimeReply, TimeRequest
 from v2i.security.envelope import Signer, sign
 from v2i.security.site import memory_site
-from v2i.sim.clock import SimClock
+from v2i.sim.clock import SimClock, rsu_clock
+from v2i.sim.maps import scenario_map
+from v2i.sim.obu_sources import SimulatedVehicle
+from v2i.sim.rsu_sources import make_source
 from v2i.sim.scenario import RsuCameraConfig, V2vConfig, load_scenario
+from v2i.sim.scenario_site import site_of
 from v2i.sim.world import World
 
 from v2i.offline.chaos import SERVICES, ChaosTimeline
@@ -122,6 +126,7 @@ class OfflineRun:
         self.chaos = chaos
         self.scenario = load_scenario(spec.scenario)
         self.site = World(self.scenario, site=True)
+        self.site_config = site_of(self.scenario, scenario_map(spec.scenario))  # what configures the services
         self.duration_s = spec.duration_s or self.scenario.duration_s
         self.start_ns = start_ns
         self.clock = SimClock(start_ns)
@@ -154,19 +159,19 @@ class OfflineRun:
     def _new_rsu_site(self, index: int, cfg: RsuCameraConfig) -> _Rsu:
         config = self.rsu_config.model_copy(update={"rsu_id": cfg.id})
         return _Rsu(index, cfg, make_source(config, self.site, self.start_ns), self._new_pipeline(cfg.id),
-                    config.clock(self.clock, self.start_ns), Signer(self.identities[cfg.id]) if self.trust else None,
+                    rsu_clock(config, self.clock, self.start_ns), Signer(self.identities[cfg.id]) if self.trust else None,
                     list_key(self.spec.wire, cfg.id), keys.rsu_predictions(cfg.id), keys.rsu_time(cfg.id))
 
     def _new_pipeline(self, rsu_id: str) -> RsuPipeline:
         """A freshly started RSU (a restart loses its tracks and restarts its sequence numbers)."""
         return RsuPipeline(RsuPipelineConfig(rsu_id=rsu_id, predict_ahead=self.rsu_config.predict_ahead),
-                           make_predictor(self.rsu_config.predictor, self.spec.scenario))
+                           make_predictor(self.rsu_config.predictor, self.site_config))
 
     def _new_vehicle(self, index: int, profiles: list[LinkProfile]) -> _Vehicle:
         name = self.scenario.vehicles[index].name
         world = World(self.scenario, ego=name)
-        obu = ObuPipeline(self.obu_config.model_copy(update={"vehicle_id": name}).pipeline_config(),
-                          self.obu_config.lanes())
+        obu = ObuPipeline(self.obu_config.model_copy(update={"vehicle_id": name}).pipeline_config(self.site_config),
+                          self.obu_config.lanes(self.site_config))
         # pair (RSU k, vehicle v) draws from its own stream; the first pair keeps the run's seed
         pair_seed = [self.spec.seed if index == k == 0 else [self.spec.seed, index, k] for k in range(len(profiles))]
         links = [LinkModel(p, seed) for p, seed in zip(profiles, pair_seed)]

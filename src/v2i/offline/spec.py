@@ -13,7 +13,7 @@ from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObuMetrics, Predic
 from obu_service.config import ObuConfig
 from v2i.perception.scoring import PerceptionTally
 from rsu_service.config import RsuConfig
-from v2i.sim.clock import SystemClock
+from v2i.sim.clock import SystemClock, rsu_clock
 from v2i.sim.world import World
 
 from v2i.scoring.link_series import LinkSeries
@@ -137,7 +137,7 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
     scored its outputs against (a different one is an error: the scores would not be its)."""
     if record.world is not world:
         raise ValueError("build_report: the record was scored against another world")
-    truth_clock = spec.rsu_config().clock(SystemClock(), record.start_ns)
+    truth_clock = rsu_clock(spec.rsu_config(), SystemClock(), record.start_ns)
     step_ns = None if spec.rsu_clock_step_at_s is None else record.start_ns + round(spec.rsu_clock_step_at_s * 1e9)
     cycles = record.cycles
     return {

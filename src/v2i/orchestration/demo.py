@@ -32,13 +32,13 @@ from pathlib import Path
 
 from v2i.core.jit import load_kernels
 from link_emulator.control_auth import OPERATOR, sign_control
-from obu_service.source import SimulatedVehicle
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import FusedObjectList, LinkControl, ObuMetrics, PredictionList, RsuMetrics
 from v2i.runtime.process import log
 from v2i.runtime.transport import free_tcp_endpoint, open_session
 from v2i.security.pki import Identity, load_signer
+from v2i.sim.obu_sources import SimulatedVehicle
 from v2i.sim.scenario import load_scenario
 from v2i.sim.world import World
 from v2i.telemetry.live_line import LiveLine

@@ -43,13 +43,13 @@ from collections import Counter
 from pathlib import Path
 
 from v2i.core.jit import load_kernels
-from obu_service.source import SimulatedVehicle
 from v2i.perception.scoring import PerceptionTally
 from schemas import keys
 from schemas.codec import decode
 from schemas.messages import FusedObjectList, ObuMetrics, PredictionList, RsuMetrics
 from v2i.runtime.process import log
 from v2i.runtime.transport import free_tcp_endpoint, open_session
+from v2i.sim.obu_sources import SimulatedVehicle
 from v2i.sim.scenario import Scenario, load_scenario
 from v2i.sim.world import World
 from v2i.telemetry.live_line import LiveLine

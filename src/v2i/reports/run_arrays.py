@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from v2i.core.frames import base_to_map_points
-from v2i.sim.clock import SystemClock
+from v2i.sim.clock import SystemClock, rsu_clock
 from v2i.sim.world import World
 
 from v2i.offline.chaos import ChaosEvent, ChaosTimeline
@@ -124,7 +124,7 @@ def missed_cycles_ns(record: RunRecord, deadline_ms: float) -> np.ndarray:
 def rsu_traces(spec: RunSpec, record: RunRecord) -> list[RsuTrace]:
     """The record's link samples per RSU, clock errors against the injected RSU clock (every
     RSU of a run runs the same clock model, as ``build_report`` scores it)."""
-    truth = spec.rsu_config().clock(SystemClock(), record.start_ns)
+    truth = rsu_clock(spec.rsu_config(), SystemClock(), record.start_ns)
     order = [r.id for r in record.world.scenario.rsus]  # the scenario's order; unknown RSUs after
     traces = []
     for s in sorted(record.links.per_rsu(), key=lambda s: order.index(s.rsu_id) if s.rsu_id in order else len(order)):

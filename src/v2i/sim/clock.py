@@ -1,24 +1,17 @@
-"""Clock models. Pure code never reads a clock; services are handed one of these.
+"""Simulated clock models: the offline runner's clock, and a node clock that is offset, drifts and
+steps (``DriftingClock``; the RSU's in a run: ``rsu_clock``). They implement ``v2i.core.clock``'s
+``Clock`` and ``LocalClock``; ``Clock`` and ``SystemClock`` are re-exported from there.
 
 Every reading is ``int`` nanoseconds since the Unix epoch in that clock's own time base.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
-from typing import Protocol
 
+from v2i.core.clock import Clock, SystemClock
 
-class Clock(Protocol):
-    def now_ns(self) -> int: ...
-
-
-class SystemClock:
-    """The host's wall clock (taken as true time in simulations on one host)."""
-
-    def now_ns(self) -> int:
-        return time.time_ns()
+__all__ = ["Clock", "ClockStep", "DriftingClock", "SimClock", "SystemClock", "rsu_clock"]
 
 
 @dataclass
@@ -61,3 +54,13 @@ class DriftingClock:
 
     def now_ns(self) -> int:
         return self.local_from_true(self.base.now_ns())
+
+
+def rsu_clock(config, base: Clock, start_ns: int) -> DriftingClock:
+    """The RSU's own clock over the true ``base`` clock, as an ``RsuConfig`` sets it (``clock_offset_ms``,
+    ``clock_drift_ppm``, ``clock_step_ms`` at ``clock_step_at_s`` of the run): offset, drifting, maybe stepping."""
+    steps = ()
+    if config.clock_step_ms and config.clock_step_at_s is not None:
+        steps = (ClockStep(start_ns + round(config.clock_step_at_s * 1e9), round(config.clock_step_ms * 1e6)),)
+    return DriftingClock(base, offset_ns=round(config.clock_offset_ms * 1e6), drift_ppm=config.clock_drift_ppm,
+                         ref_ns=start_ns, steps=steps)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from v2i.core.clock import frame_times  # noqa: F401 (the sensors' capture times, imported from here too)
 from v2i.core.frames import Pose2D, PoseUncertainty, base_to_map_points, map_to_base, wrap_angle
 from v2i.core.objects import ObjectArray
 from schemas.classes import ObjectClass
@@ -34,12 +35,6 @@ CLASS_DEFAULT_LWH: dict[ObjectClass, tuple[float, float, float]] = {
     ObjectClass.MOTORCYCLE: (2.2, 0.8, 1.5),
 }
 _MIN_SIZE_M = 0.1
-
-
-def frame_times(rate_hz: float, duration_s: float, phase_s: float = 0.0) -> np.ndarray:
-    """Capture times (K,) s: t_k = phase + k / rate for every t_k in [phase, duration)."""
-    count = max(int(np.ceil((duration_s - phase_s) * rate_hz - 1e-9)), 0)
-    return phase_s + np.arange(count) / rate_hz
 
 
 # row c = the prior size of class code c (the codes are 0 .. len - 1; a gap fails here, at import)

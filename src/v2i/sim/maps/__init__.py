@@ -47,3 +47,11 @@ def lane_predictor(scenario: str):
         raise ValueError(f"no Lanelet2 map for scenario {scenario!r}: none bundled "
                          f"({', '.join(bundled_maps())}) and no {Path(scenario).with_suffix('.osm')} beside it")
     return LanePredictor.from_osm(path, MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG)
+
+
+def missing_map(scenario: str, needed_by: str) -> str:
+    """Why ``needed_by`` (e.g. "compensation 'lane'") cannot run on ``scenario``, which has no map, and
+    where a map would be found."""
+    return (f"{needed_by} needs a Lanelet2 map of scenario {scenario!r}, and "
+            f"{Path(scenario).with_suffix('.osm')} does not exist (a <scenario>.osm beside the scenario "
+            f"YAML is picked up automatically; bundled scenarios with maps: {', '.join(bundled_maps())})")

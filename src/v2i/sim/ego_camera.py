@@ -1,4 +1,5 @@
-"""The vehicle's front camera for image-level fusion (``--fusion roif``): render, detect, ORB.
+"""The vehicle's simulated front camera for image-level fusion (``--fusion roif``; the OBU's
+``obu_service.image_fusion_node.EgoCameraSource``): render, detect, ORB.
 
 Frame k is captured at start + k / ``scenario.ego_camera.rate_hz`` (OBU clock, the true clock
 in simulation): the scenario rendered (``v2i.sim.render.SceneRenderer``, textures by the run's seed,
@@ -15,8 +16,8 @@ import numpy as np
 from v2i.fusion.roif import RoifConfig
 from v2i.fusion.roif_features import ViewFeatures, view_features
 from schemas.image_messages import MAX_BOXES
+from v2i.core.clock import frame_times
 from v2i.sim.seeding import stream
-from v2i.sim.sensors import frame_times
 from v2i.sim.world import World
 
 
@@ -50,6 +51,11 @@ class EgoCamera:
     @property
     def period_ns(self) -> int:
         return round(1e9 / self.rate_hz)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """Width, height (px) of its frames."""
+        return self.config.image.width, self.config.image.height
 
     def frame_times_ns(self, duration_s: float) -> np.ndarray:
         """(K,) int64 capture times of the run."""
