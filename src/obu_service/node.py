@@ -20,10 +20,13 @@ capture + deadline - compute margin), a gap cycle without own objects goes out o
 from __future__ import annotations
 
 import heapq
+import itertools
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import cached_property
+from typing import ClassVar
 
 import zenoh
 
@@ -55,6 +58,55 @@ CHEAP_INPUT_BYTES = 4096  # decodes in well under 1 ms (schema 4: ~180 objects, 
 # paths are still one model each: 64 objects x 128 points decode in ~5 ms)
 # A CPM / SDSM (asn1tools, pure Python) decodes at ~1 us per byte: 8 objects 0.3 kB 0.3 ms, 255 objects 8 kB 8 ms
 CHEAP_STANDARD_BYTES = 512
+
+
+# --- the loop's timed events: small typed values, fired in due order; at one time by RANK (then as pushed) ---
+@dataclass(frozen=True)
+class Deadline:
+    """A cycle's fuse-by time: it goes out now if it still waits."""
+
+    RANK: ClassVar[int] = 0
+
+
+@dataclass(frozen=True)
+class Fuse:
+    """--source sim: the own objects of ``frame`` are ready (capture + fuse delay): its cycle starts."""
+
+    frame: OwnFrame
+    RANK: ClassVar[int] = 1
+
+
+@dataclass(frozen=True)
+class Capture:
+    """--source sim: the vehicle's LiDAR and localisation sample at the event's time."""
+
+    RANK: ClassVar[int] = 2
+
+
+@dataclass(frozen=True)
+class Gap:
+    """--source zenoh: the fuse-by time ``slot_due_ns`` of the next slot; its cycle goes out without own
+    objects unless a detection frame started it first."""
+
+    slot_due_ns: int
+    RANK: ClassVar[int] = 3
+
+
+@dataclass(frozen=True)
+class Sync:
+    """A time-sync exchange with the RSUs (and the V2V peers)."""
+
+    RANK: ClassVar[int] = 4
+
+
+@dataclass(frozen=True)
+class End:
+    """The run's end (its duration and a second after)."""
+
+    RANK: ClassVar[int] = 5
+
+
+Event = Deadline | Fuse | Capture | Gap | Sync | End
 
 
 class ObuNode:
@@ -176,20 +228,29 @@ class ObuNode:
         self._intake.put(kind, str(sample.key_expr), len(payload), self.clock.now_ns(), payload.to_bytes)
 
     # --- the loop ------------------------------------------------------------------------
+    @cached_property
+    def _order(self) -> itertools.count:
+        """Push order: the last tie-break between events of one time and rank."""
+        return itertools.count()
+
+    def _at(self, due_ns: int, event: Event) -> None:
+        """Fire ``event`` at ``due_ns`` (OBU clock)."""
+        heapq.heappush(self._events, (due_ns, event.RANK, next(self._order), event))
+
     def _schedule(self) -> None:
         now = self.clock.now_ns()
         if self.vehicle is None:
-            heapq.heappush(self._events, (self._cycles.gap_due_ns, 1, "gap", self._cycles.gap_due_ns))
+            self._at(self._cycles.gap_due_ns, Gap(self._cycles.gap_due_ns))
         for t in self.vehicle.cycle_times_ns(self.duration_s) if self.vehicle is not None else ():
             if t >= now:
-                heapq.heappush(self._events, (int(t), 1, "capture", None))
-        if self.duration_s is None:  # until stopped: each time-sync exchange schedules the next (_do_sync)
+                self._at(int(t), Capture())
+        if self.duration_s is None:  # until stopped: each time-sync exchange schedules the next (_sync)
             lead = sync_times_ns(now, self.start_ns, 0.0, self.config.sync_rate_hz)  # those before time zero
-            heapq.heappush(self._events, (lead[0] if lead else now, 2, "sync", None))
+            self._at(lead[0] if lead else now, Sync())
             return
         for t in sync_times_ns(now, self.start_ns, self.duration_s, self.config.sync_rate_hz):
-            heapq.heappush(self._events, (t, 2, "sync", None))
-        heapq.heappush(self._events, (self.start_ns + round((self.duration_s + 1.0) * 1e9), 3, "end", None))
+            self._at(t, Sync())
+        self._at(self.start_ns + round((self.duration_s + 1.0) * 1e9), End())
 
     def _loop(self, stop: threading.Event) -> None:
         """Fire each event at its time; between events, handle inputs. A large input (over
@@ -198,7 +259,7 @@ class ObuNode:
         after it: a cycle's output must not wait for it."""
         guard_s = self.config.input_guard_ms * 1e-3
         while not stop.is_set():
-            due_ns, _, kind, arg = self._events[0]
+            due_ns, *_, event = self._events[0]
             timeout_s = (due_ns - self.clock.now_ns()) * 1e-9
             if timeout_s > 0:
                 item, self._held = self._held or self._intake.get(min(timeout_s, 0.2)), None
@@ -210,9 +271,23 @@ class ObuNode:
                     self._handle_input(item)
                 continue
             heapq.heappop(self._events)
-            if kind == "end":
+            if isinstance(event, End):
                 return
-            getattr(self, f"_do_{kind}")(due_ns, arg)
+            self._fire(due_ns, event)
+
+    def _fire(self, due_ns: int, event: Event) -> None:
+        """One timed event, due at ``due_ns``."""
+        match event:
+            case Deadline():
+                self._publish_if_ready()
+            case Fuse(frame):
+                self._start_cycle(frame.capture_ns, frame.detections)
+            case Capture():
+                self._capture(due_ns)
+            case Gap(slot_due_ns):
+                self._gap(slot_due_ns)
+            case Sync():
+                self._sync(due_ns)
 
     @cached_property
     def _inbox(self) -> Inbox:
@@ -251,9 +326,9 @@ class ObuNode:
             raise InputRefused("input_late", f"frame captured at {capture_ns}: its cycle already went out")
         self._start_cycle(capture_ns, detections_of(msg))
 
-    def _do_gap(self, _due_ns: int, due_ns: int) -> None:
+    def _gap(self, slot_due_ns: int) -> None:
         """No detection frame by this slot's fuse-by time: the cycle goes out without own objects."""
-        if due_ns != self._cycles.gap_due_ns:
+        if slot_due_ns != self._cycles.gap_due_ns:
             return  # a frame started the slot's cycle meanwhile; its own gap event is queued
         capture_ns = self._cycles.gap(self.clock.now_ns())
         self.pipeline.reject("input_missing")
@@ -264,27 +339,20 @@ class ObuNode:
         self._pub["pose"].put(encode(EgoPose(vehicle_id=self.config.vehicle_id, t_ns=t_ns, x=pose.x, y=pose.y,
                                              yaw=pose.yaw, vx=pose.vx, vy=pose.vy)))
 
-    def _do_capture(self, due_ns: int, _) -> None:
+    def _capture(self, due_ns: int) -> None:
+        """--source sim: sample the vehicle (its pose out now); its objects are ready a fuse delay later."""
         frame = self.vehicle.capture(due_ns)
         self._on_pose(frame.capture_ns, frame.pose)
-        fuse_ns = frame.capture_ns + round(self.config.fuse_delay_ms * 1e6)
-        heapq.heappush(self._events, (fuse_ns, 0, "fuse", frame))
-
-    def _do_fuse(self, _due_ns: int, frame: OwnFrame) -> None:
-        self._start_cycle(frame.capture_ns, frame.detections)
+        self._at(frame.capture_ns + round(self.config.fuse_delay_ms * 1e6), Fuse(frame))
 
     def _start_cycle(self, capture_ns: int, detections: ObjectArray) -> None:
         """Own objects are ready: plan the cycle, then fuse now, on the awaited frame or at fuse_by."""
         if self.pipeline.pending:  # a cycle still waiting when the next starts: publish it first
             self._publish(self.clock.now_ns())
         fuse_by_ns = self.pipeline.on_detections(detections, capture_ns)
-        heapq.heappush(self._events, (fuse_by_ns, 0, "deadline", None))
+        self._at(fuse_by_ns, Deadline())
         if self.vehicle is None:  # --source zenoh: the next slot's gap cycle, unless a frame comes first
-            due_ns = self._cycles.gap_due_ns
-            heapq.heappush(self._events, (due_ns, 1, "gap", due_ns))
-        self._publish_if_ready()
-
-    def _do_deadline(self, _due_ns: int, _) -> None:
+            self._at(self._cycles.gap_due_ns, Gap(self._cycles.gap_due_ns))
         self._publish_if_ready()
 
     def _publish_if_ready(self) -> None:
@@ -322,9 +390,10 @@ class ObuNode:
         refused = {r: n for r, n in self.pipeline.rejected.items() if not r.endswith("ego_self_detection")}
         self._log.totals(refused, self._details)
 
-    def _do_sync(self, due_ns: int, _) -> None:
+    def _sync(self, due_ns: int) -> None:
+        """Time requests out: to the RSUs (a Zenoh query; replies come through the intake) and the peers."""
         if self.duration_s is None:  # until stopped: the next exchange
-            heapq.heappush(self._events, (due_ns + round(1e9 / self.config.sync_rate_hz), 2, "sync", None))
+            self._at(due_ns + round(1e9 / self.config.sync_rate_hz), Sync())
         if self._v2v is not None:
             self._v2v.sync(self.clock.now_ns())
         request = self.pipeline.make_time_request(self.clock.now_ns())
