@@ -1,5 +1,8 @@
 """A timed action queue: any thread pushes ``(due_ns, action)``, one thread fires them on time.
 
+The order is ``v2i.core.scheduler.Timeline``'s (due time, then push order); this module adds the
+lock, the condition variable and the sleeping.
+
 The link relay's timing accuracy is this module's (see ``benchmarks/relay_accuracy.py``):
 
 - The firing thread sleeps on a condition variable until the head is due; a push whose
@@ -15,8 +18,6 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import heapq
-import itertools
 import logging
 import sys
 import threading
@@ -24,6 +25,7 @@ import time
 from collections.abc import Callable
 
 from v2i.core.clock import Clock
+from v2i.core.scheduler import Timeline
 
 log = logging.getLogger(__name__)
 
@@ -51,21 +53,20 @@ def reduce_timer_slack(slack_ns: int = TIMER_SLACK_NS) -> bool:
 
 
 class EventScheduler:
-    """A heap of ``(due_ns, seq, action)``: any thread pushes, one thread (``run``) fires in due order."""
+    """Actions on a ``Timeline``: any thread pushes, one thread (``run``) fires them in due order."""
 
     def __init__(self, clock: Clock, max_wait_s: float = MAX_WAIT_S, spin_ns: int = SPIN_NS) -> None:
         self._clock = clock
         self._max_wait_s = max_wait_s
         self._spin_ns = spin_ns
-        self._heap: list[tuple[int, int, Action]] = []
-        self._seq = itertools.count()
+        self._timeline: Timeline[Action] = Timeline()
         self._cond = threading.Condition()
 
     def push(self, due_ns: int, action: Action) -> None:
         """Schedule ``action(fired_ns)`` at ``due_ns`` (clock ns); thread-safe."""
         with self._cond:
-            heapq.heappush(self._heap, (due_ns, next(self._seq), action))
-            if self._heap[0][2] is action:
+            self._timeline.push(due_ns, action)
+            if self._timeline.head()[1] is action:
                 self._cond.notify()  # a new head: the sleeper must re-compute its wake-up time
 
     def run(self, stop: threading.Event) -> None:
@@ -83,17 +84,15 @@ class EventScheduler:
     def clear(self) -> int:
         """Forget every pending action; returns how many there were."""
         with self._cond:
-            pending = len(self._heap)
-            self._heap.clear()
-            return pending
+            return self._timeline.clear()
 
     def _next_due(self) -> Action | None:
         """The head action once it is due, or None after a sleep (at most ``max_wait_s``)."""
         with self._cond:
-            if not self._heap:
+            if not self._timeline:
                 self._cond.wait(self._max_wait_s)
                 return None
-            due_ns = self._heap[0][0]
+            due_ns, _ = self._timeline.head()
             sleep_ns = due_ns - self._spin_ns - self._clock.now_ns()
             if sleep_ns > 0:
                 self._cond.wait(min(sleep_ns / 1e9, self._max_wait_s))
@@ -101,7 +100,7 @@ class EventScheduler:
         self._spin_until(due_ns)
         with self._cond:
             # The head is due: it is the one polled for, or an even earlier one pushed meanwhile.
-            return heapq.heappop(self._heap)[2] if self._heap else None
+            return self._timeline.pop()[1] if self._timeline else None
 
     def _spin_until(self, due_ns: int) -> None:
         """Poll until ``due_ns``, outside the lock; sleep(0) lets other threads take the GIL.

@@ -15,15 +15,15 @@ Per sensor frame captured at c (true clock):
 
 from __future__ import annotations
 
-import heapq
-import itertools
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from v2i.core.frames import Pose2D
 from v2i.core.objects import ObjectArray
+from v2i.core.scheduler import Timeline
 from v2i.fusion.wire import fit_to_wire, states_from_objects
 from schemas import keys
 from schemas.messages import Message
@@ -98,35 +98,32 @@ class WorldFeed:
 
     def publications(self) -> Iterator[Publication]:
         """Every publication of the run in non-decreasing ``t_ns``. A sensor is sampled when its
-        capture time comes up (each sensor's stream in capture order, as in the services)."""
-        order = itertools.count()
-        heap: list = []
+        capture time comes up (each sensor's stream in capture order, as in the services); at one
+        time, in the order scheduled (``v2i.core.scheduler.Timeline``)."""
+        timeline: Timeline[Publication | Callable[[int], list[Publication]]] = Timeline()
         for rsu_id, camera in self.cameras.items():
             for k, c in enumerate(camera.capture_times_ns(self.duration_s)):
-                heap.append((int(c), next(order), "camera", (rsu_id, k)))
+                timeline.push(int(c), partial(self._camera, rsu_id=rsu_id, seq=k))
         for vid, vehicle in self.vehicles.items():
             for k, c in enumerate(vehicle.cycle_times_ns(self.duration_s)):
-                heap.append((int(c), next(order), "vehicle", (vid, k)))
+                timeline.push(int(c), partial(self._vehicle, vid=vid, seq=k))
         for k, t_s in enumerate(frame_times(self.truth_rate_hz, self.duration_s)):
-            heap.append((self.start_ns + round(t_s * 1e9), next(order), "truth", k))
-        heapq.heapify(heap)
-        while heap:
-            t_ns, _, kind, arg = heapq.heappop(heap)
-            if kind == "publish":
-                yield arg
+            timeline.push(self.start_ns + round(t_s * 1e9), partial(self._truth, seq=k))
+        while timeline:
+            t_ns, event = timeline.pop()
+            if isinstance(event, Publication):
+                yield event
                 continue
-            for pub in getattr(self, f"_{kind}")(t_ns, arg):
-                heapq.heappush(heap, (pub.t_ns, next(order), "publish", pub))
+            for pub in event(t_ns):  # a sensor sampled at t_ns: what it publishes, and when
+                timeline.push(pub.t_ns, pub)
 
-    def _camera(self, capture_ns: int, arg: tuple[str, int]) -> list[Publication]:
-        rsu_id, seq = arg
+    def _camera(self, capture_ns: int, rsu_id: str, seq: int) -> list[Publication]:
         frame = self.cameras[rsu_id].capture(capture_ns)
         self.counts["rsu_objects"] += 1
         msg = sensor_objects(rsu_id, "camera", seq, "map", frame.capture_true_ns, frame.ready_true_ns, frame.detections)
         return [Publication(frame.ready_true_ns, keys.sensor_rsu_objects(rsu_id), msg)]
 
-    def _vehicle(self, capture_ns: int, arg: tuple[str, int]) -> list[Publication]:
-        vid, seq = arg
+    def _vehicle(self, capture_ns: int, vid: str, seq: int) -> list[Publication]:
         frame = self.vehicles[vid].capture(capture_ns)
         ready_ns = frame.capture_ns + self.lidar_delay_ns
         self.counts["poses"] += 1

@@ -15,8 +15,6 @@ clock estimate is its own error. Chaos link events act on the RSU links only.
 
 from __future__ import annotations
 
-import heapq
-import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -24,6 +22,7 @@ from functools import cached_property
 import numpy as np
 
 from v2i.core.jit import load_kernels
+from v2i.core.scheduler import Timeline
 from link_emulator.channel import LinkModel
 from link_emulator.control import apply_control
 from link_emulator.profile import LinkProfile, load_profile
@@ -58,20 +57,20 @@ RSU_REPLY_NS = 50_000  # RSU time between receiving a time query and answering i
 
 
 class EventQueue:
-    """Time-ordered callbacks; ties keep insertion order."""
+    """Time-ordered callbacks (``v2i.core.scheduler.Timeline``); ties keep insertion order."""
 
     def __init__(self, clock: SimClock):
         self.clock = clock
-        self._heap: list = []
-        self._order = itertools.count()
+        self._timeline: Timeline[tuple[Callable, tuple]] = Timeline()
 
     def at(self, t_ns: int, fn: Callable, *args) -> None:
-        heapq.heappush(self._heap, (int(t_ns), next(self._order), fn, args))
+        self._timeline.push(int(t_ns), (fn, args))
 
     def run(self) -> None:
-        while self._heap:
-            t_ns, _, fn, args = heapq.heappop(self._heap)
-            self.clock.t_ns = t_ns
+        """Each callback at its time: the clock set to it, then called."""
+        timeline = self._timeline
+        while timeline:
+            self.clock.t_ns, (fn, args) = timeline.pop()
             fn(*args)
 
 
