@@ -14,7 +14,8 @@ methods and library code are not counted), leaving out the own LiDAR objects' tr
 (``KalmanFusion._update`` with per-object sources), and stops at the ``Tracker.update`` carrying
 the RSU slot's source bit. Printed for the input stage (until the node's ``_publish_if_ready``)
 and for the whole path: files (in order of first visit), stops (distinct functions), calls
-(every call), calls into another file, and the functions entered more than once.
+(every call), calls into another file and how many of those go back into a file already visited,
+and the functions entered more than once.
 """
 
 from __future__ import annotations
@@ -136,11 +137,21 @@ def traced(node: ObuNode, item: Item) -> list[Call]:
     return calls
 
 
+def returns(calls: list[Call]) -> int:
+    """Calls from another file into a file the path had already been in (the walk going back)."""
+    seen, n = set(), 0
+    for path, _, caller in calls:
+        n += caller is not None and caller != path and path in seen
+        seen.add(path)
+    return n
+
+
 def summary(title: str, calls: list[Call]) -> None:
     files = list(dict.fromkeys(path for path, _, _ in calls))
     stops = list(dict.fromkeys((path, name) for path, name, _ in calls))
     crossings = sum(1 for path, _, caller in calls if caller and caller != path)
-    print(f"{title}: {len(files)} files, {len(stops)} stops, {len(calls)} calls, {crossings} into another file")
+    print(f"{title}: {len(files)} files, {len(stops)} stops, {len(calls)} calls, {crossings} into another file, "
+          f"{returns(calls)} of them back into a file already visited")
     for path in files:
         print(f"  {path}: " + ", ".join(name for p, name in stops if p == path))
     repeated = {f"{p}:{n}": k for (p, n), k in Counter((p, n) for p, n, _ in calls).items() if k > 1}
