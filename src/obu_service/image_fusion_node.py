@@ -1,5 +1,5 @@
 """OBU node for image-level fusion (``v2i obu --fusion roif``): the Zenoh shell around
-``image_fusion.ImageFusionPipeline`` and the ego camera.
+``image_fusion.ImageFusionPipeline`` and the ego camera (``shell.ObuShell``, shared with the object-level node).
 
 Zenoh callbacks only stamp the receive time and put the payload into the bounded, rate-limited
 ``Intake`` (registered RSUs first): RSU feature frames (``v2x/rsu/*/image_features``) and time
@@ -20,28 +20,30 @@ from __future__ import annotations
 
 import heapq
 import threading
-from typing import Protocol
+from dataclasses import dataclass
+from typing import ClassVar, Protocol
 
 import numpy as np
-import zenoh
 
-from v2i.core.clock import Clock, SystemClock
+from v2i.core.clock import Clock
 from v2i.fusion.roif_features import ViewFeatures
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.image_messages import RsuImageFeatures
-from v2i.runtime.intake import Intake, Item
+from v2i.runtime.intake import Item
 from schemas.messages import TimeReply
-from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
 from v2i.runtime.site import Site
-from v2i.runtime.transport import open_session
 
 from obu_service.config import ObuConfig
 from obu_service.image_fusion import ImageFusionConfig, ImageFusionPipeline
 from obu_service.inbound_security import live_security
-from v2i.clock.time_requests import sync_times_ns
+from obu_service.shell import CRITICAL, Capture, Deadline, End, ObuShell, Sync
 
 INPUTS_PER_LATE_EVENT = 8  # queued inputs taken before each overdue event (an RSU frame of 41 kB decodes in ~0.06 ms)
+
+# the loop's timed events (obu_service.shell): Capture (the camera's frame), Deadline (a frame's wait for its RSU
+# partner is over: it goes out without one), Sync, End
+Event = Deadline | Capture | Sync | End
 
 
 class EgoCameraSource(Protocol):
@@ -61,89 +63,54 @@ class EgoCameraSource(Protocol):
     def capture(self, t_ns: int) -> ViewFeatures: ...
 
 
-class ImageFusionNode:
+class ImageFusionNode(ObuShell):
+    READY: ClassVar[dict] = {"fusion": "roif"}
+
     def __init__(self, config: ObuConfig, site: Site, camera: EgoCameraSource, clock: Clock | None = None):
         """``camera`` is loaded (renderer, detector); its time zero is set here, unless
         ``config.await_start``: then after the ready line (``_begin``). The run lasts ``config.duration_s``."""
-        self.config = config
-        self.name = f"obu {config.vehicle_id}"  # in its log lines
-        self.clock = clock or SystemClock()
-        self.start_ns: int | None = None  # time zero (OBU clock), from _begin
         if config.duration_s is None:
             raise ValueError("image-level fusion runs for a set time: give duration_s (--duration)")
-        self.duration_s = config.duration_s
-        self.camera = camera
         known = tuple(config.registered_rsus(site))
+        super().__init__(config, clock, preferred=lambda key: keys.rsu_id_or_none(key) in known)
+        self.camera = camera
         self.pipeline = ImageFusionPipeline(ImageFusionConfig(
             vehicle_id=config.vehicle_id, known_rsus=known, pair_tolerance_ms=config.roif_pair_tolerance_ms,
             wait_ms=config.roif_wait_ms, deadline_ms=config.roif_deadline_ms, max_age_ms=config.roif_max_age_ms,
             future_tolerance_ms=config.future_tolerance_ms))
         self._security = live_security(config.pki_dir, config.security_policy, config.roif_max_age_ms * 1e-3,
                                        self.pipeline.clock_offset, self.pipeline.reject)
-        self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
-                              config.source_burst, max_queued_bytes=config.inbox_max_bytes,
-                              preferred=lambda key: keys.rsu_id_or_none(key) in known)
-        self._log, self._trim = ThrottledLog(self.name), MemoryTrim()
-        self._details: dict[str, str] = {}
-        self._events: list = []
-        if not config.await_start:
-            self._begin(config.start_at_ns or self.clock.now_ns())
+        self._begin_unless_awaited()
 
     def _begin(self, start_ns: int) -> None:
         """Time zero (OBU clock): the camera's frame k is captured at start + k / rate."""
         self.start_ns = start_ns
         self.camera.start_at(start_ns)
 
-    def run(self, stop: threading.Event, await_start=read_start_line) -> None:
-        """Declare, say ready, (``await_start``: wait for time zero, ``v2i.runtime.process.start_when_told``),
-        then run the frames until the run's end or ``stop``."""
-        session = open_session(self.config.listen, self.config.connect)
+    def _declare(self, session, entities: list) -> None:
+        """The image-level output (``CRITICAL``), the metrics, and the RSUs' image features in."""
         vid = self.config.vehicle_id
-        entities = []
-        try:
-            critical = dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME,
-                            express=True)
-            self._out = session.declare_publisher(keys.obu_image_objects(vid), **critical)
-            self._metrics = session.declare_publisher(keys.obu_metrics(vid))
-            entities = [self._out, self._metrics,
-                        session.declare_subscriber(keys.RSU_IMAGE_FEATURES_ALL, self._on_features_sample)]
-            self._session = session
-            announce("ready", "obu", vehicle_id=vid, listen=self.config.listen, fusion="roif")
-            if self.start_ns is None and not start_when_told(self.name, stop, self._begin, self.clock.now_ns,
-                                                             await_start):
-                return
-            self._schedule()
-            self._loop(stop)
-        finally:
-            for entity in entities:
-                entity.undeclare()
-            session.close()
-            p = self.pipeline
-            self._log.flush(force=True)
-            log(self.name, f"stopped: {p.cycles} image frames, {p.unpaired} without an RSU frame, "
-                       f"{p.deadline_misses} deadline misses, rejected {dict(p.rejected)}")
+        self._out = session.declare_publisher(keys.obu_image_objects(vid), **CRITICAL)
+        self._metrics = session.declare_publisher(keys.obu_metrics(vid))
+        entities += [self._out, self._metrics,
+                     session.declare_subscriber(keys.RSU_IMAGE_FEATURES_ALL, self._on_features_sample)]
+
+    def _stopped(self) -> str:
+        p = self.pipeline
+        return (f"stopped: {p.cycles} image frames, {p.unpaired} without an RSU frame, "
+                f"{p.deadline_misses} deadline misses, rejected {dict(p.rejected)}")
 
     # --- Zenoh callbacks: stamp and enqueue only ------------------------------------------
     def _on_features_sample(self, sample) -> None:
         self._put("features", sample)
-
-    def _on_time_reply(self, reply) -> None:
-        if reply.ok is not None:
-            self._put("time", reply.ok)
-
-    def _put(self, kind: str, sample) -> None:
-        payload = sample.payload
-        self._intake.put(kind, str(sample.key_expr), len(payload), self.clock.now_ns(), payload.to_bytes)
 
     # --- the loop ---------------------------------------------------------------------------
     def _schedule(self) -> None:
         now = self.clock.now_ns()
         for t in self.camera.frame_times_ns(self.duration_s):
             if t >= now:
-                heapq.heappush(self._events, (int(t), 1, "capture"))
-        for t in sync_times_ns(now, self.start_ns, self.duration_s, self.config.sync_rate_hz):
-            heapq.heappush(self._events, (t, 2, "sync"))
-        heapq.heappush(self._events, (self.start_ns + round((self.duration_s + 1.0) * 1e9), 3, "end"))
+                self._at(int(t), Capture())
+        self._schedule_syncs(now)
 
     def _loop(self, stop: threading.Event) -> None:
         """Fire each event at its time; between events, handle inputs. When the loop is behind (an
@@ -152,7 +119,7 @@ class ImageFusionNode:
         that complete the waiting ego frames would sit in the intake until every frame went out alone."""
         late_inputs = 0
         while not stop.is_set():
-            due_ns, _, kind = self._events[0]
+            due_ns, *_, event = self._events[0]
             timeout_s = (due_ns - self.clock.now_ns()) * 1e-9
             if timeout_s > 0 or late_inputs < INPUTS_PER_LATE_EVENT:
                 item = self._intake.get(min(max(timeout_s, 0.0), 0.2))
@@ -164,10 +131,18 @@ class ImageFusionNode:
                     continue
             heapq.heappop(self._events)
             late_inputs = 0
-            if kind == "end":
+            if isinstance(event, End):
                 return
-            getattr(self, f"_do_{kind}")(due_ns)
+            self._fire(due_ns, event)
             self._publish_ready()
+
+    def _fire(self, due_ns: int, event: Event) -> None:
+        """One timed event, due at ``due_ns``; a Deadline needs nothing more: ``_publish_ready`` follows."""
+        match event:
+            case Capture():
+                self._do_capture(due_ns)
+            case Sync():
+                self._do_sync(due_ns)
 
     def _handle_input(self, item: Item) -> None:
         max_bytes = self.config.max_message_bytes
@@ -193,10 +168,7 @@ class ImageFusionNode:
         else:
             features = self.camera.capture(due_ns)
         fuse_by_ns = self.pipeline.on_frame(features, due_ns)
-        heapq.heappush(self._events, (fuse_by_ns, 0, "wait_over"))
-
-    def _do_wait_over(self, _due_ns: int) -> None:
-        """A frame's wait for its RSU partner is over: ``_publish_ready`` fuses it without one."""
+        self._at(fuse_by_ns, Deadline())
 
     def _publish_ready(self) -> None:
         while self.pipeline.ready(now_ns := self.clock.now_ns()):
@@ -204,15 +176,8 @@ class ImageFusionNode:
             self._count_refusals()
             self._metrics.put(encode(self.pipeline.metrics(self.clock.now_ns())))
             self._trim.maybe()
-            if (change := self._security.poll_trust(self.clock.now_ns())) is not None:  # a revocation while running
-                log(self.name, change)
+            self._poll_trust()
 
-    def _count_refusals(self) -> None:
-        for reason, n in self._intake.take_counts().items():
-            self.pipeline.reject(reason, n)
-        self._log.totals(self.pipeline.rejected, self._details)
-
-    def _do_sync(self, _due_ns: int) -> None:
-        request = self.pipeline.make_time_request(self.clock.now_ns())
-        self._session.get(keys.RSU_TIME_ALL, self._on_time_reply, payload=encode(request),
-                          timeout=self.config.time_query_timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
+    def _do_sync(self, due_ns: int) -> None:
+        self._next_sync(due_ns)
+        self._query_time(self.pipeline.make_time_request(self.clock.now_ns()))

@@ -1,7 +1,7 @@
-"""OBU node: the Zenoh shell around the OBU pipeline.
+"""OBU node: the Zenoh shell around the OBU pipeline (``shell.ObuShell``, shared with the image-level node).
 
 Zenoh callbacks only stamp the receive time and put the payload into a bounded,
-rate-limited ``Intake`` (registered RSUs served first); the loop in ``run`` owns the
+rate-limited ``Intake`` (registered RSUs and the own sensors served first); the loop owns the
 pipeline, wakes at each cycle's capture and fusion times and at each time-sync exchange,
 and publishes every cycle whether or not RSU data arrived. An RSU message goes through the
 inbox (``obu_service.inbox``): envelope and header first, and its objects only if the pipeline
@@ -20,7 +20,6 @@ capture + deadline - compute margin), a gap cycle without own objects goes out o
 from __future__ import annotations
 
 import heapq
-import itertools
 import threading
 import time
 from collections.abc import Callable
@@ -28,28 +27,24 @@ from dataclasses import dataclass
 from functools import cached_property
 from typing import ClassVar
 
-import zenoh
-
-from v2i.core.clock import Clock, SystemClock
+from v2i.core.clock import Clock
 from v2i.core.jit import SERVICE_KERNEL_MODULES, load_kernels
 from v2i.core.objects import ObjectArray
 from schemas import keys
 from schemas.codec import CodecError, encode
-from v2i.runtime.intake import Intake, Item
+from v2i.runtime.intake import Item
 from schemas import list_wire
 from schemas.messages import EgoPose, ObuMetrics
-from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_start_line, start_when_told
 from v2i.runtime.sensor_screen import InputRefused, SensorLimits, SensorScreen
 from v2i.runtime.site import Site
-from v2i.runtime.transport import open_session
 from v2i.telemetry.latency import PeriodicSummary, StageLatency
 
 from obu_service.config import ObuConfig
 from obu_service.inbound_security import live_security
 from obu_service.inbox import KINDS as INBOX_KINDS, Inbox
 from obu_service.pipeline import ObuPipeline
+from obu_service.shell import CRITICAL, Capture, Deadline, End, ObuShell, Sync
 from obu_service.source import ExternalCycles, OwnFrame, OwnSensing, detections_of, pose_of
-from v2i.clock.time_requests import sync_times_ns
 from obu_service.v2v_shell import KINDS as V2V_KINDS, V2vShell
 
 
@@ -60,27 +55,14 @@ CHEAP_INPUT_BYTES = 4096  # decodes in well under 1 ms (schema 4: ~180 objects, 
 CHEAP_STANDARD_BYTES = 512
 
 
-# --- the loop's timed events: small typed values, fired in due order; at one time by RANK (then as pushed) ---
-@dataclass(frozen=True)
-class Deadline:
-    """A cycle's fuse-by time: it goes out now if it still waits."""
-
-    RANK: ClassVar[int] = 0
-
-
+# --- the loop's timed events: small typed values, fired in due order; at one time by RANK (then as pushed);
+# Deadline, Capture (--source sim: the vehicle's LiDAR and localisation sample), Sync and End: obu_service.shell
 @dataclass(frozen=True)
 class Fuse:
     """--source sim: the own objects of ``frame`` are ready (capture + fuse delay): its cycle starts."""
 
     frame: OwnFrame
     RANK: ClassVar[int] = 1
-
-
-@dataclass(frozen=True)
-class Capture:
-    """--source sim: the vehicle's LiDAR and localisation sample at the event's time."""
-
-    RANK: ClassVar[int] = 2
 
 
 @dataclass(frozen=True)
@@ -92,24 +74,10 @@ class Gap:
     RANK: ClassVar[int] = 3
 
 
-@dataclass(frozen=True)
-class Sync:
-    """A time-sync exchange with the RSUs (and the V2V peers)."""
-
-    RANK: ClassVar[int] = 4
-
-
-@dataclass(frozen=True)
-class End:
-    """The run's end (its duration and a second after)."""
-
-    RANK: ClassVar[int] = 5
-
-
 Event = Deadline | Fuse | Capture | Gap | Sync | End
 
 
-class ObuNode:
+class ObuNode(ObuShell):
     def __init__(self, config: ObuConfig, site: Site, sensing: Callable[[int], OwnSensing] | None = None,
                  clock: Clock | None = None):
         """Everything is loaded here; what depends on time zero (the vehicle's sampling, the cycle
@@ -121,40 +89,28 @@ class ObuNode:
         # before the start time, whose first cycles would otherwise be late (the simulator's too where the
         # composition root imported it for simulated sensing)
         load_kernels(modules=SERVICE_KERNEL_MODULES)
-        self.config = config
-        self.name = f"obu {config.vehicle_id}"  # in its log lines
-        self.clock = clock or SystemClock()
-        self.start_ns: int | None = None  # time zero (OBU clock), from _begin
-        self.duration_s = config.duration_s  # None: until stopped
-        if sensing is not None and self.duration_s is None:
+        if sensing is not None and config.duration_s is None:
             raise ValueError("own sensing runs for a set time: give duration_s (--duration)")
+        pipeline = ObuPipeline(config.pipeline_config(site), config.lanes(site))
+        known, vid = set(pipeline.config.known_rsus), config.vehicle_id
+        own = {keys.sensor_vehicle_objects(vid), keys.sensor_vehicle_pose(vid)}
+        super().__init__(config, clock, preferred=lambda key: key in own or keys.rsu_id_or_none(key) in known)
         self._sensing = sensing
-        self._lidar_rate_hz = site.vehicle(config.vehicle_id).lidar_rate_hz  # --source zenoh: the cycle rate
+        self._lidar_rate_hz = site.vehicle(vid).lidar_rate_hz  # --source zenoh: the cycle rate
         self.vehicle: OwnSensing | None = None  # --source sim, from _begin
-        self.pipeline = ObuPipeline(config.pipeline_config(site), config.lanes(site))
+        self.pipeline = pipeline
         self._security = live_security(config.pki_dir, config.security_policy, config.planning_max_age_s,
                                        self.pipeline.clock_offset, self.pipeline.reject)
-        known = set(self.pipeline.config.known_rsus)
-        vid = config.vehicle_id
         self._v2v = (V2vShell(vid, self.pipeline.enable_v2v(config.max_peers), self.clock, config.max_message_bytes)
                      if config.v2v else None)  # V2V peers (obu_service.v2v_shell)
-        own = {keys.sensor_vehicle_objects(vid), keys.sensor_vehicle_pose(vid)}
-        self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
-                              config.source_burst, max_queued_bytes=config.inbox_max_bytes,
-                              preferred=lambda key: key in own or keys.rsu_id_or_none(key) in known)
         self._screen = SensorScreen(vid, "base_link", SensorLimits(config.max_objects_per_list, INPUT_MAX_AGE_MS,
                                                                   config.future_tolerance_ms, config.max_message_bytes))
         self._cycles: ExternalCycles | None = None  # --source zenoh, from _begin
-        self._log = ThrottledLog(self.name)
-        self._trim = MemoryTrim()
-        self._details: dict[str, str] = {}  # first codec error message per reason
-        self._events: list = []
         self._held: Item | None = None  # a large input held until after the next event
         self.latency = StageLatency()  # per-stage durations (v2i.telemetry.latency); read by other threads
         self._latency_summary = PeriodicSummary(self.latency)  # into the metrics, recomputed once a second
         self.last_metrics: ObuMetrics | None = None  # the latest published; one assignment, read by other threads
-        if not config.await_start:
-            self._begin(config.start_at_ns or self.clock.now_ns())
+        self._begin_unless_awaited()
 
     def _begin(self, start_ns: int) -> None:
         """Time zero (OBU clock): the simulated vehicle samples from it (--source sim), or the cycle
@@ -167,50 +123,34 @@ class ObuNode:
             self._cycles = ExternalCycles(start_ns, round(1e9 / self._lidar_rate_hz),
                                           round((pc.deadline_ms - pc.compute_margin_ms) * 1e6))
 
-    def run(self, stop: threading.Event, await_start=read_start_line) -> None:
-        """Declare, say ready, (``await_start``: wait for time zero, ``v2i.runtime.process.start_when_told``),
-        then run the cycles until the run's end or ``stop``."""
-        session = open_session(self.config.listen, self.config.connect)
+    def _declare(self, session, entities: list) -> None:
+        """The outputs (the planner-facing ones ``CRITICAL``) and the inputs: RSU lists in the subscribed
+        wires, predictions, the own sensors with --source zenoh, the V2V keys with --v2v."""
         vid = self.config.vehicle_id
-        entities = []
-        try:
-            # the planner-facing outputs must not be dropped under load: block, real-time, unbatched
-            critical = dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME,
-                            express=True)
-            self._pub = {name: session.declare_publisher(key, **(critical if name in ("objects", "planning") else {}))
-                         for name, key in (("objects", keys.obu_objects(vid)), ("metrics", keys.obu_metrics(vid)),
-                                           ("pose", keys.obu_pose(vid)), ("planning", keys.obu_planning(vid)))}
-            entities = [*self._pub.values(),
-                        session.declare_subscriber(keys.RSU_PREDICTIONS_ALL, self._on_predictions_sample)]
-            if "v2i" in self.config.wires:
-                entities.append(session.declare_subscriber(keys.RSU_OBJECTS_ALL, self._on_rsu_sample))
-            # object lists in a standard encoding (RSU --wire cpm|sdsm), fused the same way; their ASN.1 is
-            # compiled now: on a thread it held the GIL long enough to make the first cycles late
-            for wire, key in (("cpm", keys.RSU_CPM_ALL), ("sdsm", keys.RSU_SDSM_ALL)):
-                if wire in self.config.wires:
-                    list_wire.prepare(wire)
-                    entities.append(session.declare_subscriber(key, lambda sample, w=wire: self._put(w, sample)))
-            if self._sensing is None:
-                entities += [session.declare_subscriber(keys.sensor_vehicle_objects(vid),
-                                                        lambda sample: self._put("sensor_objects", sample)),
-                             session.declare_subscriber(keys.sensor_vehicle_pose(vid),
-                                                        lambda sample: self._put("sensor_pose", sample))]
-            if self._v2v is not None:
-                entities += self._v2v.declare(session, self._put)
-            self._session = session
-            announce("ready", "obu", vehicle_id=vid, listen=self.config.listen)
-            if self.start_ns is None and not start_when_told(self.name, stop, self._begin, self.clock.now_ns,
-                                                             await_start):
-                return
-            self._schedule()
-            self._loop(stop)
-        finally:
-            for entity in entities:
-                entity.undeclare()
-            session.close()
-            p = self.pipeline
-            self._log.flush(force=True)
-            log(self.name, f"stopped: {p.cycles} cycles, {p.deadline_misses} deadline misses, rejected {dict(p.rejected)}")
+        self._pub = {name: session.declare_publisher(key, **(CRITICAL if name in ("objects", "planning") else {}))
+                     for name, key in (("objects", keys.obu_objects(vid)), ("metrics", keys.obu_metrics(vid)),
+                                       ("pose", keys.obu_pose(vid)), ("planning", keys.obu_planning(vid)))}
+        entities += [*self._pub.values(),
+                     session.declare_subscriber(keys.RSU_PREDICTIONS_ALL, self._on_predictions_sample)]
+        if "v2i" in self.config.wires:
+            entities.append(session.declare_subscriber(keys.RSU_OBJECTS_ALL, self._on_rsu_sample))
+        # object lists in a standard encoding (RSU --wire cpm|sdsm), fused the same way; their ASN.1 is
+        # compiled now: on a thread it held the GIL long enough to make the first cycles late
+        for wire, key in (("cpm", keys.RSU_CPM_ALL), ("sdsm", keys.RSU_SDSM_ALL)):
+            if wire in self.config.wires:
+                list_wire.prepare(wire)
+                entities.append(session.declare_subscriber(key, lambda sample, w=wire: self._put(w, sample)))
+        if self._sensing is None:
+            entities += [session.declare_subscriber(keys.sensor_vehicle_objects(vid),
+                                                    lambda sample: self._put("sensor_objects", sample)),
+                         session.declare_subscriber(keys.sensor_vehicle_pose(vid),
+                                                    lambda sample: self._put("sensor_pose", sample))]
+        if self._v2v is not None:
+            entities += self._v2v.declare(session, self._put)
+
+    def _stopped(self) -> str:
+        p = self.pipeline
+        return f"stopped: {p.cycles} cycles, {p.deadline_misses} deadline misses, rejected {dict(p.rejected)}"
 
     # --- Zenoh callbacks: stamp and enqueue only ---------------------------------------
     def _on_rsu_sample(self, sample) -> None:
@@ -219,24 +159,7 @@ class ObuNode:
     def _on_predictions_sample(self, sample) -> None:
         self._put("predictions", sample)
 
-    def _on_time_reply(self, reply) -> None:
-        if reply.ok is not None:
-            self._put("time", reply.ok)
-
-    def _put(self, kind: str, sample) -> None:
-        payload = sample.payload
-        self._intake.put(kind, str(sample.key_expr), len(payload), self.clock.now_ns(), payload.to_bytes)
-
     # --- the loop ------------------------------------------------------------------------
-    @cached_property
-    def _order(self) -> itertools.count:
-        """Push order: the last tie-break between events of one time and rank."""
-        return itertools.count()
-
-    def _at(self, due_ns: int, event: Event) -> None:
-        """Fire ``event`` at ``due_ns`` (OBU clock)."""
-        heapq.heappush(self._events, (due_ns, event.RANK, next(self._order), event))
-
     def _schedule(self) -> None:
         now = self.clock.now_ns()
         if self.vehicle is None:
@@ -244,13 +167,7 @@ class ObuNode:
         for t in self.vehicle.cycle_times_ns(self.duration_s) if self.vehicle is not None else ():
             if t >= now:
                 self._at(int(t), Capture())
-        if self.duration_s is None:  # until stopped: each time-sync exchange schedules the next (_sync)
-            lead = sync_times_ns(now, self.start_ns, 0.0, self.config.sync_rate_hz)  # those before time zero
-            self._at(lead[0] if lead else now, Sync())
-            return
-        for t in sync_times_ns(now, self.start_ns, self.duration_s, self.config.sync_rate_hz):
-            self._at(t, Sync())
-        self._at(self.start_ns + round((self.duration_s + 1.0) * 1e9), End())
+        self._schedule_syncs(now)
 
     def _loop(self, stop: threading.Event) -> None:
         """Fire each event at its time; between events, handle inputs. A large input (over
@@ -378,25 +295,11 @@ class ObuNode:
         self._pub["metrics"].put(encode(metrics))
         self.last_metrics = metrics
         self._trim.maybe()  # just published: the next deadline is a cycle away
-        if (change := self._security.poll_trust(self.clock.now_ns())) is not None:  # a revocation while running
-            log(self.name, change)
-
-    def _count_refusals(self) -> None:
-        """The intake's refusals into the pipeline's counters; the new ones to the throttled log."""
-        for reason, n in self._intake.take_counts().items():
-            self.pipeline.reject(reason, n)
-        # an RSU or a peer that sees this vehicle reports it too: dropping that is normal work, not a refusal
-        # worth a log line (still counted in the metrics)
-        refused = {r: n for r, n in self.pipeline.rejected.items() if not r.endswith("ego_self_detection")}
-        self._log.totals(refused, self._details)
+        self._poll_trust()
 
     def _sync(self, due_ns: int) -> None:
         """Time requests out: to the RSUs (a Zenoh query; replies come through the intake) and the peers."""
-        if self.duration_s is None:  # until stopped: the next exchange
-            self._at(due_ns + round(1e9 / self.config.sync_rate_hz), Sync())
+        self._next_sync(due_ns)
         if self._v2v is not None:
             self._v2v.sync(self.clock.now_ns())
-        request = self.pipeline.make_time_request(self.clock.now_ns())
-        # every reply, unmerged: two replies on one RSU's key are a conflict the pipeline must see
-        self._session.get(keys.RSU_TIME_ALL, self._on_time_reply, payload=encode(request),
-                          timeout=self.config.time_query_timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
+        self._query_time(self.pipeline.make_time_request(self.clock.now_ns()))

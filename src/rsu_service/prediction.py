@@ -3,7 +3,8 @@
 
 from __future__ import annotations
 
-from v2i.fusion.lane_prediction import LanePredictor  # noqa: F401 (imported here: its compiled loops load with the service's kernels)
+# (imported here: its compiled loops load with the service's kernels)
+from v2i.fusion.lane_prediction import LanePredictor  # noqa: F401
 from v2i.fusion.motion import trajectories_cv
 from v2i.runtime.site import Site, lane_predictor
 

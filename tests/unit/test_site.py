@@ -94,7 +94,8 @@ def test_services_on_a_site_file_load_no_scenario_and_no_simulator():
             f"rsu = rsu_node(RsuConfig(site={str(EXAMPLE)!r}, source='zenoh'))\n"
             f"obu = obu_node(ObuConfig(site={str(EXAMPLE)!r}, source='zenoh'))\n"
             "assert rsu.duration_s is None and obu.duration_s is None  # until stopped\n"
-            "assert obu.pipeline.config.known_rsus == {'rsu1': (60.0, 10.0)} and obu.pipeline.config.ego_size_m == (4.6, 1.9)\n"
+            "assert obu.pipeline.config.known_rsus == {'rsu1': (60.0, 10.0)}\n"
+            "assert obu.pipeline.config.ego_size_m == (4.6, 1.9)\n"
             "print('LOADED', sorted(m for m in sys.modules if m.startswith('v2i.sim')))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert ast.literal_eval(out.rsplit("LOADED ", 1)[1]) == []

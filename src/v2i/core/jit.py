@@ -114,7 +114,8 @@ def kernel(*argument_types) -> Callable[[Callable], Kernel]:
 # the evaluation's (EVALUATION_KERNEL_MODULES), not listed, so that no service imports them: the
 # offline evaluator has imported them before it calls load_kernels, which loads those too
 SERVICE_KERNEL_MODULES = ("v2i.fusion.tracking", "v2i.fusion.wire", "v2i.core.frames", "v2i.fusion.geometry",
-                          "v2i.fusion.lane_match", "obu_service.admission", "v2i.clock.clock_envelope", "schemas.bit_rows")
+                          "v2i.fusion.lane_match", "obu_service.admission", "v2i.clock.clock_envelope",
+                          "schemas.bit_rows")
 SIMULATOR_KERNEL_MODULES = ("v2i.sim.occlusion", "v2i.sim.world")
 KERNEL_MODULES = SERVICE_KERNEL_MODULES + SIMULATOR_KERNEL_MODULES
 EVALUATION_KERNEL_MODULES = ("v2i.scoring.detection_metrics",)
