@@ -18,7 +18,6 @@ frame and counted (``camera_frame_skipped``), never silently dropped. Metrics
 
 from __future__ import annotations
 
-import heapq
 import threading
 from dataclasses import dataclass
 from typing import ClassVar, Protocol
@@ -119,7 +118,7 @@ class ImageFusionNode(ObuShell):
         that complete the waiting ego frames would sit in the intake until every frame went out alone."""
         late_inputs = 0
         while not stop.is_set():
-            due_ns, *_, event = self._events[0]
+            due_ns, event = self._events.head()
             timeout_s = (due_ns - self.clock.now_ns()) * 1e-9
             if timeout_s > 0 or late_inputs < INPUTS_PER_LATE_EVENT:
                 item = self._intake.get(min(max(timeout_s, 0.0), 0.2))
@@ -129,7 +128,7 @@ class ImageFusionNode(ObuShell):
                     continue
                 if timeout_s > 0:
                     continue
-            heapq.heappop(self._events)
+            self._events.pop()
             late_inputs = 0
             if isinstance(event, End):
                 return

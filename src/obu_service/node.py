@@ -19,7 +19,6 @@ capture + deadline - compute margin), a gap cycle without own objects goes out o
 
 from __future__ import annotations
 
-import heapq
 import threading
 import time
 from collections.abc import Callable
@@ -176,7 +175,7 @@ class ObuNode(ObuShell):
         after it: a cycle's output must not wait for it."""
         guard_s = self.config.input_guard_ms * 1e-3
         while not stop.is_set():
-            due_ns, *_, event = self._events[0]
+            due_ns, event = self._events.head()
             timeout_s = (due_ns - self.clock.now_ns()) * 1e-9
             if timeout_s > 0:
                 item, self._held = self._held or self._intake.get(min(timeout_s, 0.2)), None
@@ -187,7 +186,7 @@ class ObuNode(ObuShell):
                 elif item is not None:
                     self._handle_input(item)
                 continue
-            heapq.heappop(self._events)
+            self._events.pop()
             if isinstance(event, End):
                 return
             self._fire(due_ns, event)

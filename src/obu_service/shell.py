@@ -6,8 +6,8 @@ and the image-level one (``image_fusion_node.ImageFusionNode``) both do around t
 - The run: open the session, declare (the node's ``_declare``), say ready, wait for time zero
   (``v2i.runtime.process.start_when_told``), schedule and loop (the node's ``_schedule`` and
   ``_loop``), then undeclare, close and log the node's closing line (``_stopped``).
-- The timed events: typed values on one heap, fired in due order, at one time by ``RANK``, then
-  as pushed (``_at``); the time-sync exchanges and the run's end (``_schedule_syncs``; without a
+- The timed events: typed values on one ``v2i.core.scheduler.Timeline``, fired in due order, at
+  one time by ``RANK``, then as pushed (``_at``); the time-sync exchanges and the run's end (``_schedule_syncs``; without a
   duration the run goes on until stopped and each exchange schedules the next).
 - The time queries to every RSU (``_query_time``, replies through the intake), the refusals
   counted into the pipeline and the throttled log, a trust change (revocation) logged.
@@ -15,17 +15,15 @@ and the image-level one (``image_fusion_node.ImageFusionNode``) both do around t
 
 from __future__ import annotations
 
-import heapq
-import itertools
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import cached_property
 from typing import ClassVar
 
 import zenoh
 
 from v2i.core.clock import Clock, SystemClock
+from v2i.core.scheduler import Timeline
 from schemas import keys
 from schemas.codec import encode
 from schemas.messages import TimeRequest
@@ -86,7 +84,7 @@ class ObuShell:
                               config.source_burst, max_queued_bytes=config.inbox_max_bytes, preferred=preferred)
         self._log, self._trim = ThrottledLog(self.name), MemoryTrim()
         self._details: dict[str, str] = {}  # first codec error message per reason
-        self._events: list = []
+        self._events: Timeline = Timeline()  # the node's timed events (their RANK: which of one time first)
 
     def _begin_unless_awaited(self) -> None:
         """Time zero now (``config.start_at_ns`` or the clock), unless ``config.await_start``: then after
@@ -125,14 +123,9 @@ class ObuShell:
         self._intake.put(kind, str(sample.key_expr), len(payload), self.clock.now_ns(), payload.to_bytes)
 
     # --- timed events ----------------------------------------------------------------------
-    @cached_property
-    def _order(self) -> itertools.count:
-        """Push order: the last tie-break between events of one time and rank."""
-        return itertools.count()
-
     def _at(self, due_ns: int, event) -> None:
-        """Fire ``event`` at ``due_ns`` (OBU clock)."""
-        heapq.heappush(self._events, (due_ns, event.RANK, next(self._order), event))
+        """Fire ``event`` at ``due_ns`` (OBU clock); at one time by its ``RANK``, then as pushed."""
+        self._events.push(due_ns, event, event.RANK)
 
     def _schedule_syncs(self, now_ns: int) -> None:
         """The run's time-sync exchanges and its end; without a duration the first exchange only (each
