@@ -25,6 +25,7 @@ from contextlib import contextmanager
 import zenoh
 
 from v2i.runtime.config import ConfigError, load_config, one_line_error
+from v2i.runtime.site import load_site
 from v2i.runtime.process import freeze_heap, limit_malloc_arenas, log
 from v2i.security.pki import PkiError
 from v2i.core.clock import SystemClock
@@ -44,6 +45,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--config", metavar="FILE", help="YAML file with LinkConfig fields; the options below override it"
     )
     parser.add_argument("--link-id", help="link name used in v2x/link/{link_id}/stats (default link1)")
+    parser.add_argument("--site", metavar="FILE", help="site file (site.yaml): its RSU's position (--rsu-id, or "
+                        "the site's only RSU) is rsu_position, so that the channel depends on the vehicle's distance")
+    parser.add_argument("--rsu-id", help="with --site: the RSU of the site this link serves")
     parser.add_argument("--vehicle-id", help="with --vehicle-connect: the vehicle whose ego poses set the RSU "
                         "distance (default: the first one heard; poses of others, and implausible jumps, are refused)")
     parser.add_argument(
@@ -103,6 +107,23 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     text = "change a running link emulator: switch its profile, clear or add an impairment"
     configure_set_parser(sub.add_parser("set", help=text, description=SET_DESCRIPTION,
                                         formatter_class=argparse.RawDescriptionHelpFormatter))
+
+
+def site_rsu_position(site_path: str | None, rsu_id: str | None) -> tuple[float, float] | None:
+    """The map position (m) of the RSU ``rsu_id`` of the site file (None: its only RSU); None without a
+    site. ConfigError naming the file or the RSU ids there are."""
+    if site_path is None:
+        if rsu_id is not None:
+            raise ConfigError("--rsu-id names an RSU of a site: give the site (--site FILE)")
+        return None
+    site = load_site(site_path)
+    if rsu_id is None and len(site.rsus) != 1:
+        raise ConfigError(f"site {site_path} has {len(site.rsus)} RSUs ({[r.id for r in site.rsus]}): "
+                          "name this link's with --rsu-id")
+    try:
+        return site.rsu(rsu_id or site.rsus[0].id).xy
+    except ValueError as exc:
+        raise ConfigError(f"{site_path}: {exc}") from None
 
 
 def parse_vehicle(text: str) -> dict[str, object]:
@@ -166,6 +187,7 @@ def run(args: argparse.Namespace) -> int:
         "insecure_control": args.insecure_control,
     }
     try:
+        overrides["rsu_position"] = site_rsu_position(args.site, args.rsu_id)
         config = load_config(LinkConfig, args.config, overrides)
         relay = V2vRelay(config, SystemClock()) if config.v2v else LinkRelay(config, SystemClock())
         server = metrics_server(relay, "link", args)  # /metrics with --metrics-port

@@ -31,7 +31,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clock-step-ms", type=float, help="RSU clock step size, ms (with --clock-step-at-s)")
     p.add_argument("--clock-step-at-s", type=float, help="scenario time of the RSU clock step, s")
     p.add_argument("--predictor", choices=PREDICTORS,
-                   help="5 s paths on v2x/rsu/{id}/predictions: lane-following on the scenario's Lanelet2 map, "
+                   help="5 s paths on v2x/rsu/{id}/predictions: lane-following on the site's Lanelet2 map, "
                         "constant velocity, or auto (lane when a map exists; default)")
     p.add_argument("--source", choices=SOURCES,
                    help="perception: sim (the scenario's camera noise model; default), camera (the scenario "

@@ -25,7 +25,7 @@ class RsuConfig(ServiceConfig):
     clock_step_ms: float = Field(0.0, ge=-86_400_000, le=86_400_000)
     clock_step_at_s: float | None = Field(None, ge=0, description="scenario time of the clock step")
     predictor: Literal[PREDICTORS] = Field("auto", description="long-horizon paths: lane (Lanelet2 map), cv, or auto "
-                                               "(lane when the scenario has a map)")
+                                               "(lane when the site has a map)")
     wire: Literal[WIRES] = Field("v2i", description="object list encoding: v2i (msgpack columns on "
                                  "v2x/rsu/{id}/objects), cpm (ETSI CPM, UPER, on .../cpm) or sdsm (SAE J3224 SDSM, "
                                  "UPER, on .../sdsm); see schemas.list_wire")

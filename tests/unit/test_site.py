@@ -99,3 +99,19 @@ def test_services_on_a_site_file_load_no_scenario_and_no_simulator():
             "print('LOADED', sorted(m for m in sys.modules if m.startswith('v2i.sim')))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert ast.literal_eval(out.rsplit("LOADED ", 1)[1]) == []
+
+
+def test_the_link_takes_its_rsus_position_from_a_site(tmp_path):
+    from link_emulator.cli import site_rsu_position
+    from v2i.runtime.config import ConfigError
+
+    assert site_rsu_position(str(EXAMPLE), None) == site_rsu_position(str(EXAMPLE), "rsu1") == (60.0, 10.0)
+    assert site_rsu_position(None, None) is None
+    text = EXAMPLE.read_text()
+    second = text[text.index("  - id: rsu1"):text.index("vehicles:")].replace("rsu1", "rsu2").replace("60.0", "-60.0")
+    two = _site_file(tmp_path, text.replace("vehicles:", second + "vehicles:"))
+    assert site_rsu_position(str(two), "rsu2") == (-60.0, 10.0)
+    with pytest.raises(ConfigError, match="--rsu-id"):
+        site_rsu_position(str(two), None)
+    with pytest.raises(ConfigError, match="no RSU 'rsu3'"):
+        site_rsu_position(str(two), "rsu3")
