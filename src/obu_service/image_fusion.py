@@ -137,7 +137,7 @@ class ImageFusionPipeline:
         self._seen.append(key)
         if any(abs(t_obu - t) <= c.pair_tolerance_ms * NS_PER_MS for t in self._alone):
             return self._refuse("features_late")
-        self._rsu_frames.append(_RsuFrame(msg.rsu_id, msg.seq, msg.t_ns, t_obu, msg.view()))
+        self._rsu_frames.append(_RsuFrame(msg.rsu_id, msg.seq, msg.t_ns, t_obu, ViewFeatures.of_message(msg)))
         while len(self._rsu_frames) > c.max_rsu_frames:
             self._rsu_frames.popleft()
         self.accepted += 1

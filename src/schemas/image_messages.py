@@ -135,14 +135,6 @@ class RsuImageFeatures(Message):
             raise ValueError(f"keypoint_box: keypoint {i} names box {int(index[i])}, the frame has {self.boxes.n}")
         return self
 
-    def view(self):
-        """The frame as ``v2i.fusion.roif_features.ViewFeatures``: ``ViewFeatures.of_message(msg)``, which the
-        wire contract cannot name (it imports nothing above it). Kept until ``obu_service.image_fusion``, its
-        last caller, calls that instead; then it goes."""
-        from v2i.fusion.roif_features import ViewFeatures
-
-        return ViewFeatures.of_message(self)
-
     @classmethod
     def from_view(cls, rsu_id: str, seq: int, t_ns: int, view) -> RsuImageFeatures:
         """The message of a ``ViewFeatures`` (keypoints in no box are not sent)."""
