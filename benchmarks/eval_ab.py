@@ -47,8 +47,8 @@ def _run(tree: Path, args: list[str]) -> str:
 
 
 # every kernel of a tree (the services' and the evaluator's) loaded, compiled first where its cache lacks it
-WARM = ("import importlib; from v2i.core.jit import load_kernels; "
-        "importlib.import_module('v2i.scoring.detection_metrics'); load_kernels()")
+WARM = ("from v2i.core.jit import load_kernels; from v2i.offline.kernels import ALL_KERNEL_MODULES; "
+        "load_kernels(ALL_KERNEL_MODULES)")
 
 
 def x_real(tree: Path, scenario: str, seed: int) -> tuple[float, float]:

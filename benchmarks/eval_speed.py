@@ -36,8 +36,9 @@ from v2i.runtime.process import freeze_heap
 from v2i.cli import _spec, build_parser
 
 from v2i.core.jit import load_kernels
+from v2i.offline.kernels import RUN_KERNEL_MODULES
 
-load_kernels()  # the tracker's compiled loops: loaded once per process, like the imports
+load_kernels(RUN_KERNEL_MODULES)  # the tracker's compiled loops: loaded once per process, like the imports
 IMPORT_S = time.perf_counter() - _T0
 freeze_heap()  # as v2i eval does before its run
 

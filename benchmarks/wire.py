@@ -248,7 +248,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--numpy-bits", action="store_true", help="v2i rows packed by numpy, not the compiled loops")
     args = ap.parse_args(argv)
     if not args.numpy_bits:
-        load_kernels()
+        load_kernels(("schemas.bit_rows",))
     ns = [int(v) for v in args.n.split(",")]
     codecs = {name: c for name, make in CODECS.items() if (c := make()) is not None}
     rng = np.random.default_rng(args.seed)

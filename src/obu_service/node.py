@@ -27,7 +27,8 @@ from functools import cached_property
 from typing import ClassVar
 
 from v2i.core.clock import Clock
-from v2i.core.jit import SERVICE_KERNEL_MODULES, load_kernels
+from obu_service import KERNEL_MODULES
+from v2i.core.jit import load_kernels
 from v2i.core.objects import ObjectArray
 from schemas import keys
 from schemas.codec import CodecError, encode
@@ -87,7 +88,7 @@ class ObuNode(ObuShell):
         # the tracker's compiled loops load first (~0.3 s; compiled once per machine): not in a cycle, and
         # before the start time, whose first cycles would otherwise be late (the simulator's too where the
         # composition root imported it for simulated sensing)
-        load_kernels(modules=SERVICE_KERNEL_MODULES)
+        load_kernels(KERNEL_MODULES)
         if sensing is not None and config.duration_s is None:
             raise ValueError("own sensing runs for a set time: give duration_s (--duration)")
         pipeline = ObuPipeline(config.pipeline_config(site), config.lanes(site))

@@ -33,7 +33,8 @@ import numpy as np
 from v2i.perception.scoring import PerceptionTally
 from schemas import keys
 from v2i.core.clock import Clock, ClockModel, LocalClock, SystemClock, UnskewedClock
-from v2i.core.jit import SERVICE_KERNEL_MODULES, load_kernels
+from rsu_service import KERNEL_MODULES
+from v2i.core.jit import load_kernels
 from v2i.fusion.wire import objects_from_states
 from schemas.codec import CodecError, MalformedMessage, MessageTooLarge, decode, encode
 from schemas.list_wire import encode_list, list_key, prepare
@@ -71,7 +72,7 @@ class RsuNode:
         loaded: seconds) gets its time zero from ``_begin``."""
         # the tracker's compiled loops first (~0.3 s; compiled once per machine): not in a frame; the simulator's
         # too where the composition root imported it for a simulated source
-        load_kernels(modules=SERVICE_KERNEL_MODULES)
+        load_kernels(KERNEL_MODULES)
         self.config = config
         self.name = f"rsu {config.rsu_id}"  # in its log lines
         self.true_clock = true_clock or SystemClock()

@@ -500,8 +500,9 @@ def _warm_options(p: argparse.ArgumentParser) -> None:
 def cmd_warm(args: argparse.Namespace) -> int:
     """``v2i warm``: every compiled kernel loaded or compiled (progress on stderr), one closing line."""
     from v2i.core.jit import warm
+    from v2i.offline.kernels import ALL_KERNEL_MODULES
 
-    line, compiled = warm()
+    line, compiled = warm(ALL_KERNEL_MODULES)
     print(line)
     return 1 if args.check and compiled else 0
 

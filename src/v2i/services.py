@@ -56,11 +56,14 @@ def rsu_node(config: RsuConfig, true_clock: Clock | None = None):
         site = load_site(config.site)
         source = video_source(config, site, start_ns) if config.source == "video" else None
         return RsuNode(config, site, source, _rsu_clock_model(config), true_clock)
+    import rsu_service
+    from v2i import sim
     from v2i.core.jit import load_kernels
     from v2i.sim.rsu_sources import make_source
     from v2i.sim.world import World
 
-    load_kernels()  # the compiled loops, the simulator's too (~0.3 s), before a source is built, as the node's
+    # the compiled loops, the simulator's too (~0.3 s), before a source is built, as the node's
+    load_kernels((*rsu_service.KERNEL_MODULES, *sim.KERNEL_MODULES))
     scenario, site = _scenario_and_site(config.scenario)
     config = _for_scenario(config, scenario)
     # a camera sees every vehicle of the site (World(site=True))
@@ -93,11 +96,14 @@ def obu_node(config: ObuConfig, clock: Clock | None = None):
         camera = EgoCamera(World(scenario), config.seed, config.start_at_ns or clock.now_ns(), config.roif_model,
                            threads=config.roif_threads)
         return ImageFusionNode(config, site, camera, clock)
+    import obu_service
     from obu_service.node import ObuNode
+    from v2i import sim
     from v2i.core.jit import load_kernels
     from v2i.sim.obu_sources import SimulatedVehicle
 
-    load_kernels()  # the compiled loops, the simulator's too (~0.3 s), before the world is built, as the node's
+    # the compiled loops, the simulator's too (~0.3 s), before the world is built, as the node's
+    load_kernels((*obu_service.KERNEL_MODULES, *sim.KERNEL_MODULES))
     sensing = None
     if config.source == "sim":
         # this vehicle's view when the scenario has it (its LiDAR, its streams), else the ego's

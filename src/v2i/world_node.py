@@ -15,6 +15,7 @@ import threading
 from pydantic import Field, field_validator
 
 from v2i.core.jit import load_kernels
+from v2i.offline.kernels import RUN_KERNEL_MODULES
 from schemas.codec import encode
 from v2i.runtime.config import ServiceConfig
 from v2i.runtime.process import add_service_options, announce, log, read_start_line, run_service, start_when_told
@@ -58,7 +59,8 @@ class WorldNode:
     def __init__(self, config: WorldConfig, clock: Clock | None = None):
         """The scenario and the feed load here (its renames checked); with ``config.await_start`` the
         feed is built again from time zero after the ready line (``_begin``, ~1 ms)."""
-        load_kernels()  # the sensors' compiled line of sight (~0.2 s), before the start time: not in the first frame
+        # the sensors' compiled line of sight (~0.2 s), before the start time: not in the first frame
+        load_kernels(RUN_KERNEL_MODULES)
         self.config, self.clock = config, clock or SystemClock()
         self.scenario = load_scenario(config.scenario)
         self.duration_s = config.duration_s or self.scenario.duration_s

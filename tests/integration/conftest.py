@@ -4,9 +4,10 @@ where they were never compiled (a fresh clone), they are compiled here, once, be
 
 import pytest
 
-from v2i.core.jit import EVALUATION_KERNEL_MODULES, load_kernels
+from v2i.core.jit import load_kernels
+from v2i.offline.kernels import ALL_KERNEL_MODULES
 
 
 @pytest.fixture(scope="session", autouse=True)
 def compiled_kernels() -> None:
-    load_kernels(EVALUATION_KERNEL_MODULES)
+    load_kernels(ALL_KERNEL_MODULES)

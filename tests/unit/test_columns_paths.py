@@ -60,7 +60,7 @@ def tables(draw):
 def kernels():
     from v2i.core.jit import load_kernels
 
-    load_kernels()
+    load_kernels(("schemas.bit_rows",))
     assert columns._compiled_values is not None
 
 

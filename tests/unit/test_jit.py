@@ -5,11 +5,12 @@ import numpy as np
 import pytest
 
 from v2i.fusion import kalman
-from v2i.core.jit import EVALUATION_KERNEL_MODULES, Kernel, load_kernels
+from v2i.core.jit import Kernel, load_kernels
+from v2i.offline.kernels import ALL_KERNEL_MODULES, RUN_KERNEL_MODULES
 
 
 def test_load_kernels_loads_every_kernel():
-    load_kernels()
+    load_kernels(RUN_KERNEL_MODULES)
     names = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all}
     assert {"v2i.fusion.kalman.update_rows", "v2i.fusion.gating._gate_single_pairs", "v2i.fusion.association._split",
             "v2i.fusion.covariance_intersection.ci_fuse_objects", "v2i.sim.occlusion._blocked"} <= names
@@ -43,22 +44,21 @@ def test_a_division_by_zero_in_a_kernel_gives_nan_as_numpy_does():
 
 
 def test_load_kernels_loads_the_simulator_and_every_kernel_imported_before():
-    """v2i.sim.world's body states are in KERNEL_MODULES (a simulated run's); a kernel of a module imported before
+    """v2i.sim.world's body states are in RUN_KERNEL_MODULES (a simulated run's); a kernel of a module imported before
     the call (the evaluation's matching, imported by the offline evaluator) is loaded too."""
     import importlib
 
-    from v2i.core.jit import KERNEL_MODULES
-
-    assert "v2i.sim.world" in KERNEL_MODULES
+    assert "v2i.sim.world" in RUN_KERNEL_MODULES
     importlib.import_module("v2i.scoring.detection_metrics")
-    load_kernels()
+    load_kernels(RUN_KERNEL_MODULES)
     loaded = {k.fn.__module__ + "." + k.fn.__name__ for k in Kernel._all if k._compiled is not None}
     assert {"v2i.sim.world._states", "v2i.scoring.detection_metrics._frame_flags"} <= loaded
 
 
 def test_kernel_modules_name_every_module_a_service_runs_kernels_of():
-    """Every module under src/ that declares a kernel, but the offline evaluation's, is loaded by load_kernels
-    alone (a fresh interpreter): otherwise a service would compile or load that kernel at its first call, mid-run."""
+    """Every module under src/ that declares a kernel, but the offline evaluation's, is loaded by
+    load_kernels(RUN_KERNEL_MODULES) alone (a fresh interpreter): otherwise a service would compile or load that
+    kernel at its first call, mid-run; with the evaluation's (ALL_KERNEL_MODULES, v2i warm's), every one."""
     import subprocess
     import sys
     from pathlib import Path
@@ -66,24 +66,29 @@ def test_kernel_modules_name_every_module_a_service_runs_kernels_of():
     src = Path(__file__).resolve().parents[2] / "src"
     declared = {str(p.relative_to(src).with_suffix("")).replace("/", ".") for p in src.rglob("*.py")
                 if "@kernel(" in p.read_text()}
-    code = ("from v2i.core.jit import Kernel, load_kernels; load_kernels(); "
+    code = ("from v2i.core.jit import Kernel, load_kernels; from v2i.offline.kernels import RUN_KERNEL_MODULES; "
+            "load_kernels(RUN_KERNEL_MODULES); "
             "print(' '.join(sorted({k.fn.__module__ for k in Kernel._all if k._compiled is not None})))")
     loaded = set(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split())
-    assert declared - set(EVALUATION_KERNEL_MODULES) <= loaded
+    evaluation = set(ALL_KERNEL_MODULES) - set(RUN_KERNEL_MODULES)
+    assert evaluation == {"v2i.scoring.detection_metrics"} and declared - evaluation <= loaded
 
 
-def test_a_service_loads_its_own_kernels_and_no_simulator():
-    """``load_kernels(modules=SERVICE_KERNEL_MODULES)``, as a node calls it (a fresh interpreter): the services'
-    kernels, no module of the simulator (a service on a site file runs none); with the simulator's modules,
+@pytest.mark.parametrize("service", ["rsu_service", "obu_service"])
+def test_a_service_loads_its_own_kernels_and_no_simulator(service):
+    """``load_kernels(KERNEL_MODULES)`` with the service's own list, as its node calls it (a fresh interpreter):
+    its kernels, no module of the simulator (a service on a site file runs none); with the simulator's modules,
     every kernel a run needs."""
     import subprocess
     import sys
 
-    from v2i.core.jit import KERNEL_MODULES, SERVICE_KERNEL_MODULES, SIMULATOR_KERNEL_MODULES
+    import obu_service
+    import rsu_service
+    from v2i import sim
 
-    assert KERNEL_MODULES == SERVICE_KERNEL_MODULES + SIMULATOR_KERNEL_MODULES
-    code = ("import sys; from v2i.core.jit import SERVICE_KERNEL_MODULES, load_kernels; "
-            "load_kernels(modules=SERVICE_KERNEL_MODULES); print(sorted(m for m in sys.modules if m.startswith('v2i.sim')))")
+    assert set(RUN_KERNEL_MODULES) == {*rsu_service.KERNEL_MODULES, *obu_service.KERNEL_MODULES, *sim.KERNEL_MODULES}
+    code = (f"import sys; from {service} import KERNEL_MODULES; from v2i.core.jit import load_kernels; "
+            "load_kernels(KERNEL_MODULES); print(sorted(m for m in sys.modules if m.startswith('v2i.sim')))")
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split() == ["[]"]
 
 
@@ -98,7 +103,8 @@ def test_load_kernels_reaches_scipys_blas_modules_without_importing_scipy_linalg
 import sys
 import numpy as np
 from v2i.core.jit import SCIPY_BLAS_MODULES, load_kernels
-load_kernels()
+from v2i.offline.kernels import RUN_KERNEL_MODULES
+load_kernels(RUN_KERNEL_MODULES)
 assert "scipy.linalg" not in sys.modules, "load_kernels imported scipy.linalg"
 preloaded = [sys.modules[name] for name in SCIPY_BLAS_MODULES]
 import numba
@@ -211,9 +217,7 @@ def test_v2i_warm_loads_every_kernel_and_says_how_long_and_where():
     import subprocess
     import sys
 
-    from v2i.core.jit import EVALUATION_KERNEL_MODULES
-
-    load_kernels(EVALUATION_KERNEL_MODULES)  # every module that declares a kernel (the test above checks the list)
+    load_kernels(ALL_KERNEL_MODULES)  # every module that declares a kernel (the test above checks the list)
     out = subprocess.run([sys.executable, "-m", "v2i", "warm", "--check"], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr  # --check: all of them came from the cache
     line = out.stdout.strip()
@@ -226,7 +230,7 @@ def test_v2i_warm_check_fails_when_a_kernel_had_to_compile(tmp_path):
     import sys
 
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
-    code = "import v2i.core.jit as j; j.KERNEL_MODULES = ('v2i.fusion.wire',); j.EVALUATION_KERNEL_MODULES = (); " \
+    code = "import v2i.offline.kernels as k; k.ALL_KERNEL_MODULES = ('v2i.fusion.wire',); " \
            "from v2i.cli import main; raise SystemExit(main(['warm', '--check']))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 1 and "compiled) in " in out.stdout and "(0 compiled)" not in out.stdout, out.stderr
@@ -260,7 +264,7 @@ def test_kernels_of_two_modules_compile_in_two_worker_processes(tmp_path):
 def test_compile_groups_keep_a_module_whole_and_balance_the_source():
     from v2i.core.jit import _groups, _jitted_size
 
-    load_kernels()
+    load_kernels(RUN_KERNEL_MODULES)
     groups = _groups(Kernel._all, 2)
     modules = [{k.fn.__module__ for k in g} for g in groups]
     assert len(groups) == 2 and not modules[0] & modules[1]  # no module in both

@@ -141,5 +141,5 @@ def test_the_compiled_path_is_the_one_the_services_use() -> None:
     from v2i.core.jit import load_kernels
     from schemas import bit_rows
 
-    load_kernels()
+    load_kernels(("schemas.bit_rows",))
     assert object_wire._compiled_section is bit_rows.pack_section

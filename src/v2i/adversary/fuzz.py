@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from v2i.core.jit import load_kernels
+from v2i.offline.kernels import RUN_KERNEL_MODULES
 from v2i.runtime.transport import open_session
 
 from v2i.orchestration.children import READY_TIMEOUT_S, Child, DemoError, start_all, wait_ready
@@ -141,7 +142,8 @@ class FuzzRun(ABC):
 
     # --- the run ------------------------------------------------------------------------------
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (v2i.core.jit: tens of seconds) here, not in each child
+        # compiled once per machine (v2i.core.jit: tens of seconds) here, not in each child
+        load_kernels(RUN_KERNEL_MODULES)
         # from time zero: the warm-up, the sending (twice its time at the rate) and the settling, with a margin
         duration_s = WARM_UP_S + 2.0 * self.count / self.rate_hz + self.settle_s + 60.0
         try:

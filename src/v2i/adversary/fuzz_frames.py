@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from v2i.core.jit import load_kernels
+from v2i.offline.kernels import RUN_KERNEL_MODULES
 from schemas import keys
 from schemas.codec import CodecError, decode
 from schemas.messages import ObjectList, RsuMetrics
@@ -113,7 +114,8 @@ class FramesFuzz:
         return sent
 
     def run(self) -> dict:
-        load_kernels()  # compiled once per machine (v2i.core.jit: tens of seconds) here, not in the child
+        # compiled once per machine (v2i.core.jit: tens of seconds) here, not in the child
+        load_kernels(RUN_KERNEL_MODULES)
         with tempfile.TemporaryDirectory(prefix="v2i-fuzz-frames-") as tmp:
             sent = self._write(Path(tmp))
             files = WARMUP_FRAMES + 2 * self.count

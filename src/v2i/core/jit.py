@@ -16,8 +16,9 @@ IoU, ``v2i.fusion.lane_match`` and ``schemas.bit_rows``. The commits that remove
 own assignment solver, the codec's unpacking, one-line checks) give their measurements.
 
 ``kernel(*argument_types)`` compiles a function for exactly those argument types (and no others)
-at its first call, or when ``load_kernels`` loads every kernel: the services and the offline
-evaluator do that before they start, so that no cycle ever waits for the compiler. The machine
+at its first call, or when ``load_kernels`` loads the kernels of the modules its caller names: the
+services and the offline evaluator do that before they start, so that no cycle ever waits for the
+compiler. The machine
 code is cached under ``__pycache__`` (or the user's cache directory where the package is not
 writable): compiled once per machine (``v2i warm`` does it ahead), then loaded in ~0.35-0.45 s
 per process (most of it numba's own set-up at the first load; its check for BLAS and LAPACK
@@ -47,7 +48,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Callable, TextIO
+from typing import Callable, Iterable, TextIO
 
 from numba import njit, types
 from numba.core import event
@@ -109,23 +110,14 @@ def kernel(*argument_types) -> Callable[[Callable], Kernel]:
     return lambda fn: Kernel(fn, argument_types)
 
 
-# the modules that declare kernels (with the modules they import): load_kernels imports them. The
-# services' own (SERVICE_KERNEL_MODULES: a service on a site file loads no simulator), the simulator's, and
-# the evaluation's (EVALUATION_KERNEL_MODULES), not listed, so that no service imports them: the
-# offline evaluator has imported them before it calls load_kernels, which loads those too
-SERVICE_KERNEL_MODULES = ("v2i.fusion.tracking", "v2i.fusion.wire", "v2i.core.frames", "v2i.fusion.geometry",
-                          "v2i.fusion.lane_match", "obu_service.admission", "v2i.clock.clock_envelope",
-                          "schemas.bit_rows")
-SIMULATOR_KERNEL_MODULES = ("v2i.sim.occlusion", "v2i.sim.world")
-KERNEL_MODULES = SERVICE_KERNEL_MODULES + SIMULATOR_KERNEL_MODULES
-EVALUATION_KERNEL_MODULES = ("v2i.scoring.detection_metrics",)
-
-
-def load_kernels(extra_modules: tuple[str, ...] = (), modules: tuple[str, ...] | None = None) -> float:
-    """Load (or compile) every kernel of ``modules`` (default ``KERNEL_MODULES``: the services' and the
-    simulator's), ``extra_modules`` and every module imported before the call; seconds taken. A compile
-    shows its progress on stderr (``CompileProgress``)."""
-    for name in (*(KERNEL_MODULES if modules is None else modules), *extra_modules):
+def load_kernels(modules: Iterable[str] = ()) -> float:
+    """Load (or compile) every kernel of ``modules`` (imported here) and of every module imported before
+    the call; seconds taken. The caller names the modules whose kernels it will run, the core none above
+    it: each package lists the modules of its process (``rsu_service.KERNEL_MODULES``,
+    ``obu_service.KERNEL_MODULES``), or of its own kernels (``v2i.sim.KERNEL_MODULES``,
+    ``v2i.scoring.KERNEL_MODULES``); ``v2i.offline.kernels`` those of a whole run. A compile shows its
+    progress on stderr (``CompileProgress``)."""
+    for name in modules:
         importlib.import_module(name)
     t0 = time.perf_counter()
     preload_scipy_blas()
@@ -133,12 +125,12 @@ def load_kernels(extra_modules: tuple[str, ...] = (), modules: tuple[str, ...] |
     return time.perf_counter() - t0
 
 
-def warm() -> tuple[str, int]:
-    """``v2i warm``: load or compile every kernel, the services' and the offline evaluator's, ahead of
-    any run (a compile shows its progress); the closing line (how many, the seconds taken, the cache)
-    and how many of them compiled."""
+def warm(modules: Iterable[str]) -> tuple[str, int]:
+    """``v2i warm``: load or compile every kernel of ``modules`` (the command names them all: the services'
+    and the offline evaluator's) ahead of any run (a compile shows its progress); the closing line (how
+    many, the seconds taken, the cache) and how many of them compiled."""
     t0 = time.perf_counter()
-    for name in (*KERNEL_MODULES, *EVALUATION_KERNEL_MODULES):
+    for name in modules:
         importlib.import_module(name)
     preload_scipy_blas()
     compiled = load_each(Kernel._all)

@@ -22,6 +22,7 @@ from functools import cached_property
 import numpy as np
 
 from v2i.core.jit import load_kernels
+from v2i.offline.kernels import RUN_KERNEL_MODULES
 from v2i.core.scheduler import Timeline
 from link_emulator.channel import LinkModel
 from link_emulator.control import apply_control
@@ -119,7 +120,7 @@ class OfflineRun:
         ``link_profile``: every pair's profile (default: the RSU's ``link_profile``, else ``spec.profile``).
         ``link_series``: after each cycle, each record keeps the OBU's RSU link status (the metrics
         a live OBU publishes per cycle) for the run report (``RunRecord.links``; ~5 % slower)."""
-        load_kernels()  # the compiled loops, as the services run them (the codec's bit packing too)
+        load_kernels(RUN_KERNEL_MODULES)  # the compiled loops, as the services run them (the codec's bit packing too)
         self.spec = spec
         self.link_series = link_series
         self.chaos = chaos

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from v2i.core.jit import load_kernels
+from v2i.offline.kernels import RUN_KERNEL_MODULES
 from link_emulator.control_auth import OPERATOR, sign_control
 from schemas import keys
 from schemas.codec import decode
@@ -171,7 +172,8 @@ class Demo(InboxScoring):
 
     def run(self) -> dict:
         """Start the services, wait until each is ready, subscribe, send time zero, watch, score."""
-        load_kernels()  # compiled once per machine (v2i.core.jit: tens of seconds) here, not in each child
+        # compiled once per machine (v2i.core.jit: tens of seconds) here, not in each child
+        load_kernels(RUN_KERNEL_MODULES)
         recorder, sessions, subs = None, [], []
         try:
             for name in ("rsu", "obu", "link"):

@@ -22,6 +22,7 @@ import threading
 import time
 
 from v2i.core.jit import load_kernels
+from v2i.offline.kernels import RUN_KERNEL_MODULES
 from schemas.codec import CodecError, decode
 from schemas.messages import RsuMetrics
 from v2i.runtime.transport import open_session
@@ -54,7 +55,8 @@ class ReplayDemo(Demo):
     def run(self) -> dict:
         """Start the OBU, wait until it is ready, subscribe and declare the replayed RSU clocks, then
         give it time zero (aligned to a whole ms of shift) and replay from it."""
-        load_kernels()  # compiled once per machine (v2i.core.jit: tens of seconds) here, not in the child
+        # compiled once per machine (v2i.core.jit: tens of seconds) here, not in the child
+        load_kernels(RUN_KERNEL_MODULES)
         stop, sessions, entities, player = threading.Event(), [], [], None
         try:
             self.children["obu"] = self._child("obu")

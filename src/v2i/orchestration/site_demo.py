@@ -43,6 +43,7 @@ from collections import Counter
 from pathlib import Path
 
 from v2i.core.jit import load_kernels
+from v2i.offline.kernels import RUN_KERNEL_MODULES
 from v2i.perception.scoring import PerceptionTally
 from schemas import keys
 from schemas.codec import decode
@@ -115,7 +116,8 @@ class SiteDemo(InboxScoring):
 
     def run(self) -> dict:
         """Start every node, wait until each is ready, connect the watcher, send time zero, watch, score."""
-        load_kernels()  # compiled once per machine (v2i.core.jit: tens of seconds) here, not in each child
+        # compiled once per machine (v2i.core.jit: tens of seconds) here, not in each child
+        load_kernels(RUN_KERNEL_MODULES)
         watcher, subs = None, []
         try:
             self._start_children()
