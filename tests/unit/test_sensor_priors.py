@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas.classes import ObjectClass
-from v2i.sim.sensors import CLASS_DEFAULT_LWH, _default_lwh
+from schemas.classes import CLASS_DEFAULT_LWH, ObjectClass
+from v2i.sim.sensors import _default_lwh
 
 
 def test_prior_sizes_by_class_code_match_the_table():
@@ -14,9 +14,3 @@ def test_prior_sizes_by_class_code_match_the_table():
     np.testing.assert_array_equal(_default_lwh(codes), want)
     np.testing.assert_array_equal(_default_lwh(np.array([ObjectClass.BUS])), [[12.0, 2.55, 3.2]])
     assert _default_lwh(np.zeros(0, dtype=np.int64)).shape == (0, 3)
-
-
-def test_the_simulated_camera_and_the_ground_projection_share_one_prior():
-    from schemas.classes import CLASS_DEFAULT_LWH as PRIOR
-
-    assert CLASS_DEFAULT_LWH == PRIOR

@@ -12,7 +12,7 @@ import numpy as np
 from v2i.core.clock import frame_times  # noqa: F401 (the sensors' capture times, imported from here too)
 from v2i.core.frames import Pose2D, PoseUncertainty, base_to_map_points, map_to_base, wrap_angle
 from v2i.core.objects import ObjectArray
-from schemas.classes import ObjectClass
+from schemas.classes import CLASS_DEFAULT_LWH, ObjectClass
 from schemas.messages import UNKNOWN_VELOCITY_VAR
 
 from v2i.sim.occlusion import visible_fraction
@@ -22,18 +22,6 @@ from v2i.sim.world import World
 SOURCE_VEHICLE = 1
 SOURCE_RSU = 2
 
-# Class-typical box sizes l, w, h (m): a monocular detector reports the class prior size
-# (Saravanan et al. Sec. I: 3D-Net / CAROM take dimensions from the recognised vehicle type).
-CLASS_DEFAULT_LWH: dict[ObjectClass, tuple[float, float, float]] = {
-    ObjectClass.UNKNOWN: (4.0, 1.8, 1.6),
-    ObjectClass.CAR: (4.6, 1.85, 1.5),
-    ObjectClass.VAN: (5.9, 2.0, 2.6),
-    ObjectClass.TRUCK: (8.0, 2.5, 3.5),
-    ObjectClass.BUS: (12.0, 2.55, 3.2),
-    ObjectClass.PEDESTRIAN: (0.6, 0.6, 1.75),
-    ObjectClass.CYCLIST: (1.8, 0.6, 1.7),
-    ObjectClass.MOTORCYCLE: (2.2, 0.8, 1.5),
-}
 _MIN_SIZE_M = 0.1
 
 
