@@ -38,17 +38,19 @@ def extract(rev: str, into: Path) -> Path:
     return into
 
 
+def isolate(base: Path) -> None:
+    """The base tree must not see this tree's ``src/`` (on ``sys.path`` through the editable install):
+    a package with an ``__init__`` there would win over the base's namespace package of the same name.
+    ``base/sitecustomize.py`` takes it off ``sys.path`` in every base process."""
+    (base / "sitecustomize.py").write_text(f"import sys\nsys.path[:] = [p for p in sys.path if p != {str(HEAD / 'src')!r}]\n")
+
+
 def _run(tree: Path, args: list[str]) -> str:
-    env = dict(os.environ, PYTHONPATH=str(tree / "src"))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree / "src")] + ([] if tree == HEAD else [str(tree)])))
     out = subprocess.run([sys.executable, *args], env=env, capture_output=True, text=True, cwd=tree)
     if out.returncode != 0:
         raise RuntimeError(f"{' '.join(args[:2])} failed in {tree}:\n{out.stderr[-2000:]}")
     return out.stdout
-
-
-# every kernel of a tree (the services' and the evaluator's) loaded, compiled first where its cache lacks it
-WARM = ("from v2i.core.jit import load_kernels; from v2i.offline.kernels import ALL_KERNEL_MODULES; "
-        "load_kernels(ALL_KERNEL_MODULES)")
 
 
 def x_real(tree: Path, scenario: str, seed: int) -> tuple[float, float]:
@@ -83,8 +85,9 @@ def main(argv: list[str] | None = None) -> int:
     names = args.scenarios.split(",")
     with tempfile.TemporaryDirectory(prefix="v2i-eval-ab-") as tmp:
         base = extract(args.base, Path(tmp))
+        isolate(base)
         for tree in (base, HEAD):  # a fresh extract compiles its kernels once, here, not in a timed import_s
-            _run(tree, ["-c", WARM])
+            _run(tree, ["-c", CLI, "warm"])  # every kernel, through the command both trees have
         runs: dict[tuple[str, str], list[float]] = {(t, s): [] for t in ("base", "head") for s in names}
         start_s: dict[str, list[float]] = {"base": [], "head": []}
         for r in range(args.rounds):
