@@ -66,6 +66,11 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                         "features message and time reply (ECDSA P-256 or Ed25519, the certificate's digest, the "
                         "generation time; the full certificate once a second) as --identity")
     p.add_argument("--identity", help="certificate subject to sign as (default: the RSU id)")
+    p.add_argument("--save-wire", metavar="DIR",
+                   help="save every object list this RSU sends, exactly as sent in its --wire (before any --pki "
+                        "signature), one file per list: DIR/<rsu-id>/NNNNNN.v2i.msgpack | .cpm.uper | .sdsm.uper, "
+                        "NNNNNN counting the lists in send order (continued after files already there); the folder is "
+                        "created, an unwritable one refused at start, a failed write counted and logged once")
     add_metrics_options(p)
 
 

@@ -69,6 +69,9 @@ class RsuConfig(ServiceConfig):
     pki_dir: str | None = Field(None, description="site PKI directory (v2i pki): sign object lists, prediction "
                                 "lists, image features and time replies with <identity>.key / .cert from it")
     identity: str | None = Field(None, description="the certificate subject to sign as (default: rsu_id)")
+    save_wire: str | None = Field(None, description="save every object list sent, as sent (before any signature), "
+                                  "one file per list: <save_wire>/<rsu_id>/<6-digit index in send order>.<wire>."
+                                  "<msgpack|uper> (v2i.runtime.wire_files)")
 
     @field_validator("rsu_id")
     @classmethod

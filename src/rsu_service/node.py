@@ -45,6 +45,7 @@ from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_st
 from v2i.runtime.sensor_screen import InputRefused, SensorLimits, SensorScreen
 from v2i.runtime.site import Site
 from v2i.runtime.transport import open_session
+from v2i.runtime.wire_files import WireFiles
 from v2i.security.envelope import Signer, sign
 from v2i.security.pki import PkiError, load_signer
 from v2i.telemetry.latency import PeriodicSummary, StageLatency
@@ -106,6 +107,9 @@ class RsuNode:
         self.last_metrics: RsuMetrics | None = None  # the latest published; one assignment, read by other threads
         # one signer per thread (loop, time-query callback): each decides when its certificate travels
         self._loop_signer, self._query_signer = _signer(config), _signer(config)
+        # --save-wire: every list as sent (unsigned), one file each; an unwritable folder fails here, at start
+        self._wire_files = (None if config.save_wire is None else
+                            WireFiles(config.save_wire, config.rsu_id, config.wire, self.name))
         # scored when the source knows the truth (simulated world)
         rsu = site.rsu(config.rsu_id)
         self.perception = PerceptionTally.of_source(self.source, rsu.xy)
@@ -150,6 +154,8 @@ class RsuNode:
             self._log.flush(force=True)
             log(self.name, f"stopped: {self.published} object lists published, {self.skipped} past frames skipped, "
                        f"rejected {dict(self._refusals())}")
+            if self._wire_files is not None:
+                log(self.name, self._wire_files.summary())
 
     def _publish_frames(self, publisher, stop: threading.Event) -> None:
         """Capture, process and publish each frame at its time. Only what is current is
@@ -239,7 +245,7 @@ class RsuNode:
         t2_ns = time.perf_counter_ns()
         if data is None:
             return
-        data = sign(data, self._loop_signer, stamp.wall_ns, str(publisher.key_expr))
+        unsigned, data = data, sign(data, self._loop_signer, stamp.wall_ns, str(publisher.key_expr))
         t3_ns = time.perf_counter_ns()
         publisher.put(data)
         t4_ns = time.perf_counter_ns()
@@ -249,6 +255,8 @@ class RsuNode:
             self.latency.observe_ns("sign", t2_ns, t3_ns)
         self.latency.observe_ns("put", t3_ns, t4_ns)
         self.latency.observe_ns("stamp_to_put", stamp.mono_ns, self.true_clock.now_ns())
+        if self._wire_files is not None:  # after the put: the file never delays the list
+            self._wire_files.save(unsigned)
 
     def _now(self) -> Stamp:
         """Now on the RSU's wall clock and on its monotonic clock (the simulation's true

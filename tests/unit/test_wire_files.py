@@ -76,3 +76,49 @@ def test_saving_stops_at_the_bound(tmp_path, monkeypatch):
     files = WireFiles(tmp_path, "rsu1", "sdsm", log=lambda name, text: lines.append(text))
     assert [files.save(b"z") is not None for _ in range(4)] == [True, True, False, False]
     assert files.over_limit == 2 and len(lines) == 1
+
+
+class _Publisher:
+    """A Zenoh publisher stand-in: its key and what was put on it."""
+
+    def __init__(self, key: str):
+        self.key_expr, self.puts = key, []
+
+    def put(self, data: bytes) -> None:
+        self.puts.append(bytes(data))
+
+
+def test_rsu_node_saves_each_list_it_sends_unsigned(tmp_path):
+    """``v2i rsu --save-wire``: each list put is saved, the signed one as its payload, and decodes."""
+    import threading
+    import time
+
+    from rsu_service.config import RsuConfig
+    from schemas.keys import rsu_cpm
+    from schemas.list_wire import decode_list
+    from v2i.security.envelope import Signer, unwrap
+    from v2i.security.site import memory_site
+    from v2i.services import rsu_node
+
+    node = rsu_node(RsuConfig(await_start=True, duration_s=2.0, wire="cpm", save_wire=str(tmp_path / "w")))
+    start_ns = time.time_ns() - 2_000_000_000  # frames 0-2 s in are due already: no wait
+    node._begin(start_ns)
+    node._loop_signer = Signer(memory_site(start_ns, ["rsu1"])[1]["rsu1"])
+    lists = _Publisher(rsu_cpm("rsu1"))
+    node._predictions, node._metrics, node._features = (_Publisher(k) for k in ("p", "m", "f"))
+    for capture_ns in list(node.source.capture_times_ns(2.0))[:5]:
+        assert node._publish(lists, node.source.capture(int(capture_ns)), threading.Event())
+    saved = sorted((tmp_path / "w" / "rsu1").iterdir())
+    assert [p.name for p in saved] == [f"{k:06d}.cpm.uper" for k in range(5)]
+    assert [p.read_bytes() for p in saved] == [unwrap(data) for data in lists.puts]
+    assert all(p.read_bytes() != data for p, data in zip(saved, lists.puts))  # the signature is not saved
+    assert sum(len(decode_list(p.read_bytes(), "cpm", "rsu1").objects) for p in saved) > 0
+
+
+def test_rsu_node_refuses_an_unwritable_folder_at_start(tmp_path):
+    from rsu_service.config import RsuConfig
+    from v2i.services import rsu_node
+
+    (tmp_path / "file").write_text("")
+    with pytest.raises(ValueError, match="--save-wire"):
+        rsu_node(RsuConfig(await_start=True, duration_s=2.0, save_wire=str(tmp_path / "file" / "w")))
