@@ -129,6 +129,32 @@ def _check_inputs(args: argparse.Namespace) -> None:
         check_folder(Path(args.report), "--report")
     if getattr(args, "record", None):
         check_writable(Path(args.record), "--record")
+    _save_wire(args)
+
+
+SAVE_WIRE_HELP = ("save every object list each RSU sends, exactly as sent in the run's --wire (the bytes before any "
+                  "signature), one file per list: DIR/<rsu-id>/NNNNNN.v2i.msgpack | NNNNNN.cpm.uper | "
+                  "NNNNNN.sdsm.uper, NNNNNN counting that RSU's lists from 000000 in send order (continued after "
+                  "files already there; 10^6 at most); the folder is created, an unwritable one refused at start "
+                  "(docs/messages.md, 'Saved wire files')")
+
+
+def _add_save_wire(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--save-wire", metavar="DIR", help=SAVE_WIRE_HELP)
+
+
+def _save_wire(args: argparse.Namespace) -> str | None:
+    """``--save-wire DIR``: the folder, absolute (the RSU processes run elsewhere), created and shown
+    writable; None when not given. ValueError where the run sends no RSU object lists to save."""
+    folder = getattr(args, "save_wire", None)
+    if folder is None:
+        return None
+    if args.fusion == "roif" or getattr(args, "table", None):
+        flag = "--fusion roif" if args.fusion == "roif" else "--table"
+        raise ValueError(f"--save-wire saves one run's RSU object lists, not with {flag}")
+    from v2i.runtime.wire_files import check_wire_folder
+
+    return str(check_wire_folder(folder, "--save-wire").resolve())
 
 
 def _check_numbers(args: argparse.Namespace) -> None:
@@ -160,12 +186,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from v2i.runtime.process import freeze_heap
 
     freeze_heap()  # the start-up's objects: no full collection of them during the run
-    run = OfflineRun(with_chaos(_spec(args), chaos), chaos=chaos, link_series=bool(args.report))
+    run = OfflineRun(with_chaos(_spec(args), chaos), chaos=chaos, link_series=bool(args.report),
+                     save_wire=_save_wire(args))
     run.execute()
     report = run.report(driver="eval")
     if chaos:
         report["chaos"] = chaos.name
     emit(report, args.json)
+    for files in run.wire_files.values():
+        print(f"v2i eval: {files.summary()}", file=sys.stderr)
     if args.report:
         from v2i.reports.run_report import write_offline_report
 
@@ -183,6 +212,7 @@ def cmd_eval_roif(args: argparse.Namespace) -> int:
     if args.json not in (None, "-"):
         check_writable(Path(args.json), "--json")
     _no_run_report(args)
+    _save_wire(args)
     report = run_image_fusion(args.scenario, seed=args.seed, duration_s=args.duration)
     emit(report, args.json, summary)
     return 0
@@ -216,7 +246,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return _run_roif_demo(args)
     outage = LinkOutage(args.kill_link_at, args.link_down_s) if args.kill_link_at is not None else None
     return _run_demo(Demo(_spec(args), outage=outage, record_to=args.record, progress=_progress(args),
-                          metrics_ports=args.metrics_ports, pki_dir=args.pki, **_ready_timeout(args)),
+                          metrics_ports=args.metrics_ports, pki_dir=args.pki, save_wire=_save_wire(args),
+                          **_ready_timeout(args)),
                      args.json, "v2i demo", args.report)
 
 
@@ -252,7 +283,8 @@ def _run_site_demo(args: argparse.Namespace) -> int:
         flag = "--kill-link-at" if args.kill_link_at is not None else "--fusion roif"
         raise ValueError(f"{flag} runs a single RSU and vehicle; scenario {args.scenario!r} has several "
                          "(v2i demo runs every node of it, without chaos or image fusion)")
-    return _run_demo(SiteDemo(_spec(args), progress=_progress(args), pki_dir=args.pki, **_ready_timeout(args)),
+    return _run_demo(SiteDemo(_spec(args), progress=_progress(args), pki_dir=args.pki, save_wire=_save_wire(args),
+                              **_ready_timeout(args)),
                      args.json, "v2i demo", args.report)
 
 
@@ -366,6 +398,7 @@ def _eval_options(ev: argparse.ArgumentParser) -> None:
     ev.add_argument("--workers", type=int, default=2, help="with --table: parallel runs (default %(default)s)")
     ev.add_argument("--chaos", metavar="FILE", help="chaos timeline YAML: timed link faults, service kills and "
                     "restarts, an RSU clock step (see evaluation/chaos.py)")
+    _add_save_wire(ev)
     ev.set_defaults(func=cmd_eval)
 
 
@@ -408,6 +441,7 @@ def _demo_options(demo: argparse.ArgumentParser) -> None:
     demo.add_argument("--metrics-ports", type=_metrics_base, metavar="BASE",
                       help="serve each service's Prometheus /metrics on 127.0.0.1: rsu BASE, link BASE+1, obu BASE+2 "
                            "(e.g. 9101: the ports of deploy/prometheus/prometheus.yml); default: none")
+    _add_save_wire(demo)
     demo.set_defaults(func=cmd_demo)
 
 

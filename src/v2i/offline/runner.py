@@ -42,6 +42,7 @@ from schemas.list_wire import encode_list, list_key
 from schemas.messages import FusedObjectList, ObjectList, TimeReply, TimeRequest
 from v2i.security.envelope import Signer, sign
 from v2i.security.site import memory_site
+from v2i.runtime.wire_files import WireFiles
 from v2i.sim.clock import SimClock, rsu_clock
 from v2i.sim.maps import scenario_map
 from v2i.sim.obu_sources import SimulatedVehicle
@@ -115,11 +116,12 @@ class OfflineRun:
     ``records`` holds every vehicle's, ``report()`` scores them all."""
 
     def __init__(self, spec: RunSpec, start_ns: int = EVAL_EPOCH_NS, link_profile: LinkProfile | None = None,
-                 chaos: ChaosTimeline | None = None, link_series: bool = False):
+                 chaos: ChaosTimeline | None = None, link_series: bool = False, save_wire: str | None = None):
         """``chaos``: timed faults; its RSU clock step must already be in ``spec`` (``with_chaos``).
         ``link_profile``: every pair's profile (default: the RSU's ``link_profile``, else ``spec.profile``).
         ``link_series``: after each cycle, each record keeps the OBU's RSU link status (the metrics
-        a live OBU publishes per cycle) for the run report (``RunRecord.links``; ~5 % slower)."""
+        a live OBU publishes per cycle) for the run report (``RunRecord.links``; ~5 % slower).
+        ``save_wire``: a folder where every RSU's lists are saved as sent (``--save-wire``; ``wire_files``)."""
         load_kernels(RUN_KERNEL_MODULES)  # the compiled loops, as the services run them (the codec's bit packing too)
         self.spec = spec
         self.link_series = link_series
@@ -150,6 +152,8 @@ class OfflineRun:
         self.perception = {r.cfg.id: PerceptionTally.of_source(r.camera, r.xy) for r in self.rsus}
         self.record.perception = self.perception[self.rsus[0].cfg.id]
         self._down = {name: self._windows_ns(name) for name in SERVICES}
+        self.wire_files = ({} if save_wire is None else  # RSU id -> its saved lists (v2i.runtime.wire_files)
+                           {r.cfg.id: WireFiles(save_wire, r.cfg.id, spec.wire, "eval") for r in self.rsus})
 
     @property
     def link(self) -> LinkModel:
@@ -285,6 +289,8 @@ class OfflineRun:
         """An object list in the run's encoding (``spec.wire``: v2i, cpm or sdsm; an SDSM has none for no objects)."""
         data = encode_list(msg, self.spec.wire)
         if data is not None:
+            if self.wire_files:
+                self.wire_files[rsu.cfg.id].save(data)  # as sent, before any signature
             self._broadcast(rsu, sign(data, rsu.signer, msg.header.publish_time_ns, rsu.list_key), self._obu_receive)
 
     def _rsu_now(self, rsu: _Rsu) -> Stamp:

@@ -129,13 +129,14 @@ class ControlChannel:
 class Demo(InboxScoring):
     def __init__(self, spec: RunSpec, ready_timeout_s: float = READY_TIMEOUT_S, outage: LinkOutage | None = None,
                  chaos: ChaosTimeline | None = None, record_to: str | None = None,
-                 progress: str | None = None, metrics_ports: int | None = None, pki_dir: str | None = None):
+                 progress: str | None = None, metrics_ports: int | None = None, pki_dir: str | None = None,
+                 save_wire: str | None = None):
         """``ready_timeout_s``: every service must be ready within this (a restarted one too).
         ``chaos``: a timeline to play; its RSU clock step must already be in ``spec`` (``with_chaos``).
         ``outage`` (``--kill-link-at``) is played as its generated timeline; not with ``chaos``.
         ``record_to``: an MCAP file recording both sides of the link (``v2i.orchestration.demo_recording``).
         ``pki_dir``: the site PKI to use and complete (``live_security.run_pki``); default: one in the
-        run's temporary directory."""
+        run's temporary directory. ``save_wire``: the RSU saves every list it sends there (``--save-wire``)."""
         if outage is not None and chaos is not None:
             raise ValueError("a link outage and a chaos timeline together: put the kill and restart in the timeline")
         self.spec = spec
@@ -145,6 +146,7 @@ class Demo(InboxScoring):
         self.ready_s: float | None = None  # launch -> every service ready, s
         self.start_ns: int | None = None  # the run's time zero, sent when every service is ready
         self.record_to = record_to
+        self.save_wire = save_wire
         self.metrics_ports = metrics_ports  # /metrics of the children: rsu BASE, link BASE+1, obu BASE+2; None: off
         self.outage = outage
         self.chaos = outage.timeline() if outage else chaos
@@ -282,7 +284,8 @@ class Demo(InboxScoring):
                                                               "--clock-step-at-s", str(s.rsu_clock_step_at_s)]
             return base + ["--listen", self.rsu_ep, *common, "--clock-offset-ms", str(s.rsu_clock_offset_ms),
                            "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead, "--source", s.rsu_source,
-                           "--wire", s.wire, *security_argv(s, name, self.pki_dir)]
+                           "--wire", s.wire, *security_argv(s, name, self.pki_dir),
+                           *(["--save-wire", str(self.save_wire)] if self.save_wire else [])]
         if name == "obu":
             return base + ["--listen", self.obu_ep, *common, "--fusion", s.fusion, "--compensation", s.compensation,
                            "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms), "--wires", s.wire,

@@ -83,10 +83,12 @@ class SiteDemo(InboxScoring):
     """Every node of ``spec.scenario`` as its own process; ``run()`` returns the site report."""
 
     def __init__(self, spec: RunSpec, ready_timeout_s: float = READY_TIMEOUT_S, progress: str | None = None,
-                 pki_dir: str | None = None):
+                 pki_dir: str | None = None, save_wire: str | None = None):
         """``ready_timeout_s``: every service must be ready within this; the run starts when all are.
         ``progress``: the live line's name (``v2i.telemetry.live_line``), None for no line.
-        ``pki_dir``: the site PKI to use and complete; default: one in the run's temporary directory."""
+        ``pki_dir``: the site PKI to use and complete; default: one in the run's temporary directory.
+        ``save_wire``: every RSU saves each list it sends there (``--save-wire``), in its own subfolder."""
+        self.save_wire = save_wire
         self.progress = progress
         self._live: LiveLine | None = None
         self.spec = spec
@@ -185,14 +187,15 @@ class SiteDemo(InboxScoring):
         return [sys.executable, "-m", "v2i", "rsu", "--rsu-id", rsu_id, "--listen", self.rsu_eps[rsu_id],
                 *self._common(), "--clock-offset-ms", str(s.rsu_clock_offset_ms),
                 "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead, "--source", s.rsu_source,
-                *security_argv(s, "rsu", self.pki_dir)]
+                "--wire", s.wire, *security_argv(s, "rsu", self.pki_dir),
+                *(["--save-wire", str(self.save_wire)] if self.save_wire else [])]
 
     def _obu_argv(self, name: str) -> list[str]:
         s = self.spec
         v2v = [] if self.v2v is None else ["--v2v", "--max-peers", str(self.v2v.max_peers)]
         return [sys.executable, "-m", "v2i", "obu", "--vehicle-id", name, "--listen", self.obu_eps[name],
                 *self._common(), "--fusion", s.fusion, "--compensation", s.compensation,
-                "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms), *v2v,
+                "--fusion-mode", s.fusion_mode, "--deadline-ms", str(s.deadline_ms), "--wires", s.wire, *v2v,
                 *security_argv(s, "obu", self.pki_dir)]
 
     def _v2v_link_argv(self) -> list[str]:
