@@ -1,7 +1,7 @@
 """Bytes and times of an RSU object list on each wire, and today's codec as the baseline, in one run.
 
     python benchmarks/wire.py                    # N = 10, 50, 100, 200, 1000
-    python benchmarks/wire.py --n 200 --repeat 9
+    python benchmarks/wire.py --n 200 --repeat 9  # ends with one line per standard wire at 200 objects
 
 Every codec is driven through one interface, ``encode(header, objects) -> bytes`` and
 ``decode(bytes) -> (header, objects)``, ``objects`` an ``ObjectArray`` in and whatever the codec
@@ -240,6 +240,26 @@ def time_table(ns: list[int], objs_by_n: dict, codecs: dict, repeat: int) -> Non
         print(f"{n:>6} " + " ".join(row) + f" {ratio} {only[0]:>15.1f} {only[1]:>15.1f}")
 
 
+def standard_summary(codecs: dict, seed: int, repeat: int, n: int = 200) -> None:
+    """One line per standard wire: bytes per object (typical and rich, native resolution) and the
+    encode / decode time of one message of ``n`` rich objects (issue 30's acceptance figures)."""
+    print(f"\nstandard wires at {n} objects: bytes per object = (bytes({n}) - header) / {n}; ms per message")
+    for name in ("cpm", "sdsm"):
+        if name not in codecs:
+            continue
+        enc, dec = codecs[name]
+        head = header_bytes(enc)
+        per = []
+        for rich in (False, True):
+            objs = rsu_tracks(n, np.random.default_rng(seed), rich)
+            base = len(enc(HEADER, objs.take(0))) if head == "n/a" else head
+            per.append((len(enc(HEADER, objs)) - base) / (n - 1 if head == "n/a" else n))
+        data = enc(HEADER, objs)
+        t_enc, t_dec = per_call_us(lambda: enc(HEADER, objs), repeat), per_call_us(lambda: dec(data), repeat)
+        print(f"{name}: {per[0]:.1f} B/object typical, {per[1]:.1f} B/object rich, header {head if head == "n/a" else f"{head} B"}; "
+              f"{n} objects: encode {t_enc / 1e3:.2f} ms, decode {t_dec / 1e3:.2f} ms ({len(data)} B)")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", default="10,50,100,200,1000", help="object counts, comma-separated")
@@ -258,6 +278,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"\n=== {'rich objects (accelerations, yaw rates, correlated covariances)' if rich else 'typical objects (no acceleration, yaw rate or correlation)'}")
         size_table(ns, objs_by_n, {n: o for n, o in cpm_res.items() if o is not None}, codecs)
     time_table(ns, objs_by_n, codecs, args.repeat)
+    standard_summary(codecs, args.seed, args.repeat)
 
 
 if __name__ == "__main__":
