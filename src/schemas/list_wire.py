@@ -61,15 +61,29 @@ def fit_standard(objects: Any, wire: str) -> tuple[dict[str, np.ndarray], Counte
     return cols, +counts
 
 
-def encode_list(msg: ObjectList, wire: str) -> bytes | None:
+Origin = tuple[float, float]  # a site's WGS84 origin: latitude, longitude (degrees)
+
+
+def _origin_kw(wire: str, origin: Origin | None) -> dict[str, Any]:
+    """The origin keyword of a standard codec (the CPM takes degrees, the SDSM 0.1 microdegrees)."""
+    if origin is None:
+        return {}
+    if wire == "cpm":
+        return {"origin": origin}
+    return {"origin_e7": (int(round(origin[0] * 1e7)), int(round(origin[1] * 1e7)))}
+
+
+def encode_list(msg: ObjectList, wire: str, origin: Origin | None = None) -> bytes | None:
     """Wire bytes of an RSU object list in encoding ``wire`` (standard: after ``fit_standard``);
-    None where the encoding has no message for it (an SDSM carries at least one object)."""
+    None where the encoding has no message for it (an SDSM carries at least one object).
+    ``origin``: the site's WGS84 origin (the ``map`` frame's), a standard message's reference
+    position (None: 0 N 0 E)."""
     if wire == "v2i":
         return encode(msg)
     cols = fit_standard(msg.objects, wire)[0]
     if wire == "sdsm" and not len(cols["id"]):
         return None
-    return _module(wire).encode(msg.header, cols)
+    return _module(wire).encode(msg.header, cols, **_origin_kw(wire, origin))
 
 
 def prepare(wire: str) -> None:
@@ -78,10 +92,13 @@ def prepare(wire: str) -> None:
         sw.compiled(_module(wire).ASN1_FILE)
 
 
-def decode_list(data: bytes, wire: str, rsu_id: str | None = None, max_bytes: int = MAX_MESSAGE_BYTES) -> ObjectList:
+def decode_list(data: bytes, wire: str, rsu_id: str | None = None, max_bytes: int = MAX_MESSAGE_BYTES,
+                origin: Origin | None = None) -> ObjectList:
     """The validated ObjectList of wire bytes in encoding ``wire``; ``rsu_id``: the RSU of the key
-    it came on (a standard message names its station by number). Every failure is a CodecError."""
+    it came on (a standard message names its station by number); ``origin``: the receiver's site
+    origin (a standard message is placed in its ``map``; None: 0 N 0 E). Every failure is a CodecError."""
     if wire == "v2i":
         return decode(data, ObjectList, max_bytes)
-    header, columns = _module(wire).decode(data, rsu_id, max_bytes=min(max_bytes, sw.MAX_STANDARD_BYTES))
+    header, columns = _module(wire).decode(data, rsu_id, max_bytes=min(max_bytes, sw.MAX_STANDARD_BYTES),
+                                           **_origin_kw(wire, origin))
     return sw.object_list(header, columns)

@@ -10,7 +10,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from schemas import cpm, list_wire, sdsm
+from schemas import cpm, its_time, list_wire, sdsm
+from schemas import cpm_objects
 from schemas import standard_wire as sw
 from schemas.codec import CodecError, InvalidMessage, MessageTooLarge
 from schemas.messages import UNKNOWN_VELOCITY_VAR, ObjectList, ObjectListHeader
@@ -47,8 +48,10 @@ def _angle_err(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def test_cpm_round_trip_within_its_resolution() -> None:
     cols = _columns(np.random.default_rng(3), 60)
     header, out = cpm.decode(cpm.encode(_header(prediction_ns=40_000_000), cols), "rsu-a")
-    assert (header.rsu_id, header.seq, header.prediction_ns) == ("rsu-a", 41, 40_000_000)
-    assert header.capture_time_ns == T0 - 456_789 and header.publish_time_ns == T0 - 456_789 + 88_000_000  # 1 ms grid
+    # referenceTime = publish (TAI), each object at capture + prediction: the header's capture is that
+    # time, prediction 0, and seq the reference time in ms (a CPM has no sequence number)
+    assert (header.rsu_id, header.seq, header.prediction_ns) == ("rsu-a", its_time.its_ms(T0 + 87_654_321), 0)
+    assert header.capture_time_ns == T0 - 456_789 + 40_000_000 and header.publish_time_ns == T0 - 456_789 + 88_000_000
     np.testing.assert_array_equal(out["id"], cols["id"])
     np.testing.assert_array_equal(out["cls"], cols["cls"])
     for name, tol in (("x", 0.005), ("y", 0.005), ("vx", 0.005), ("vy", 0.005), ("ax", 0.05), ("ay", 0.05),
@@ -71,7 +74,7 @@ def test_cpm_unknown_velocity_and_wide_speed_confidence() -> None:
     cols["cov_vxx"][1] = cols["cov_vyy"][1] = 4.0  # 95 % bound 3.9 m/s > 1.25: outOfRange
     _, out = cpm.decode(cpm.encode(_header(), cols))
     assert out["vx"][0] == 0.0 and out["cov_vxx"][0] == UNKNOWN_VELOCITY_VAR
-    assert out["cov_vxx"][1] == pytest.approx(cpm.SPEED_OUT_OF_RANGE_SIGMA**2)
+    assert out["cov_vxx"][1] == pytest.approx(cpm_objects.SPEED_OUT_OF_RANGE_SIGMA**2)
 
 
 def test_sdsm_round_trip_within_its_resolution() -> None:
@@ -90,15 +93,15 @@ def test_sdsm_round_trip_within_its_resolution() -> None:
     assert np.abs(out["length"][vehicles] - cols["length"][vehicles]).max() <= 0.005 + 1e-9
 
 
-def test_standard_message_without_v2i_additions_decodes() -> None:
-    """A third-party CPM has no v2iSequence / v2iPublishDelta: seq falls back to its reference ms."""
+def test_cpm_carries_no_private_data() -> None:
+    """No v2i extension on the standard wire: seq comes from the reference time."""
     data = cpm.encode(_header(), _columns(np.random.default_rng(6), 3))
     spec = sw.compiled(cpm.ASN1_FILE)
     msg = spec.decode("CollectivePerceptionMessage", data)
-    del msg["payload"]["managementContainer"]["v2iSequence"], msg["payload"]["managementContainer"]["v2iPublishDelta"]
-    header, out = cpm.decode(spec.encode("CollectivePerceptionMessage", msg))
+    assert set(msg["payload"]["managementContainer"]) == {"referenceTime", "referencePosition"}
+    header, out = cpm.decode(data)
     assert header.rsu_id == f"station{cpm.station_id('rsu-a')}"
-    assert header.seq == sw.its_ms(T0) and header.publish_time_ns == header.capture_time_ns
+    assert header.seq == its_time.its_ms(T0 + 87_654_321)
     assert len(out["id"]) == 3
 
 
@@ -115,7 +118,7 @@ def test_limits_and_fit() -> None:
     cols, counts = list_wire.fit_standard(_columns(rng, 300), "sdsm")
     assert len(cols["id"]) == 255 and counts == {"truncated": 45}
     assert list_wire.encode_list(ObjectList(header=_header()), "sdsm") is None  # an SDSM carries >= 1 object
-    assert list_wire.decode_list(list_wire.encode_list(ObjectList(header=_header()), "cpm"), "cpm", "rsu-a").header.seq == 41
+    assert list_wire.decode_list(list_wire.encode_list(ObjectList(header=_header()), "cpm"), "cpm", "rsu-a").header.seq == its_time.its_ms(T0 + 87_654_321)
     with pytest.raises(MessageTooLarge):
         cpm.decode(b"\x00" * (sw.MAX_STANDARD_BYTES + 1))
 
