@@ -90,11 +90,13 @@ class Opened:
         return self.decoded
 
 
-def opened(payload: bytes, kind: str, key_expr: str, max_bytes: int) -> Opened:
+def opened(payload: bytes, kind: str, key_expr: str, max_bytes: int,
+           origin: tuple[float, float] | None = None) -> Opened:
     """``payload`` (no envelope) of a ``kind`` list heard on ``key_expr``, read up to its header and
-    counts; a standard encoding is decoded whole (its RSU named by the key). CodecError if unreadable."""
+    counts; a standard encoding is decoded whole (its RSU named by the key), placed in the ``map``
+    of the site whose WGS84 ``origin`` (lat, lon degrees) is given. CodecError if unreadable."""
     if kind in STANDARD_WIRES:
-        msg = list_wire.decode_list(payload, kind, rsu_id_or_none(key_expr), max_bytes)
+        msg = list_wire.decode_list(payload, kind, rsu_id_or_none(key_expr), max_bytes, origin)
         return Opened(msg.header, len(msg.objects), 0, None, ObjectList, msg)
     model = PredictionList if kind == "predictions" else ObjectList
     body = open_body(payload, model, max_bytes)
@@ -106,16 +108,19 @@ class Inbox:
     """One OBU's RSU input (see the module docstring). ``pipeline``: an ``ObuPipeline``; ``security``:
     its ``InboundSecurity``; ``max_bytes``: the largest payload read; ``memo``: reads a broadcast once
     (None: every message read anew, as a live OBU's, each with one receiver); ``details``: reason ->
-    the first codec error message (the node's log)."""
+    the first codec error message (the node's log); ``origin``: the site's WGS84 origin (lat, lon
+    degrees), where a standard message (CPM, SDSM) is placed."""
 
     def __init__(self, pipeline, security: InboundSecurity, max_bytes: int = MAX_MESSAGE_BYTES,
                  memo: Memo | None = None, latency: StageRecorder | None = None,
-                 ticks: Callable[[], int] = int, details: dict[str, str] | None = None):
+                 ticks: Callable[[], int] = int, details: dict[str, str] | None = None,
+                 origin: tuple[float, float] | None = None):
         """``latency``: where the stage durations go, timed by ``ticks`` (a monotonic ns counter; the
         default ``int`` reads 0: no timing)."""
         self.pipeline, self.security, self.max_bytes, self.memo = pipeline, security, max_bytes, memo
         self.latency, self.ticks = latency, ticks
         self.details = {} if details is None else details
+        self.origin = origin
 
     def take(self, kind: str, key_expr: str, data: bytes, receive_ns: int) -> Outcome:
         """One message of ``kind`` (``KINDS``) heard on ``key_expr`` at ``receive_ns``, as received.
@@ -142,8 +147,8 @@ class Inbox:
         object list: ``decode`` (header, admission, objects), ``ingest`` (the pipeline takes it) and
         ``rsu_to_obu`` (RSU publish stamp -> receive, in OBU time through the clock estimate)."""
         t0_ns, memo = self.ticks(), self.memo
-        head = (opened(payload, kind, key_expr, self.max_bytes) if memo is None else
-                memo.decoded(data, (kind, key_expr), lambda: opened(payload, kind, key_expr, self.max_bytes)))
+        head = (opened(payload, kind, key_expr, self.max_bytes, self.origin) if memo is None else
+                memo.decoded(data, (kind, key_expr), lambda: opened(payload, kind, key_expr, self.max_bytes, self.origin)))
         unpack = unpack_objects if memo is None else memo.unpack
         if kind == "predictions":
             state = self.pipeline.admit_paths(head.header, head.n_objects, head.n_points, receive_ns)

@@ -97,6 +97,7 @@ class ObuNode(ObuShell):
         super().__init__(config, clock, preferred=lambda key: key in own or keys.rsu_id_or_none(key) in known)
         self._sensing = sensing
         self._lidar_rate_hz = site.vehicle(vid).lidar_rate_hz  # --source zenoh: the cycle rate
+        self._origin = (site.origin.lat_deg, site.origin.lon_deg)  # where a CPM / SDSM is placed
         self.vehicle: OwnSensing | None = None  # --source sim, from _begin
         self.pipeline = pipeline
         self._security = live_security(config.pki_dir, config.security_policy, config.planning_max_age_s,
@@ -210,7 +211,7 @@ class ObuNode(ObuShell):
     def _inbox(self) -> Inbox:
         """The RSU messages' way in (``obu_service.inbox``): envelope, header, admission, body, pipeline."""
         return Inbox(self.pipeline, self._security, self.config.max_message_bytes, latency=self.latency,
-                     ticks=time.perf_counter_ns, details=self._details)
+                     ticks=time.perf_counter_ns, details=self._details, origin=self._origin)
 
     def _handle_input(self, item: Item) -> None:
         """One input off the intake. Stage ``queue`` (Zenoh callback -> taken here); an RSU message goes

@@ -217,6 +217,17 @@ def read(data: bytes, max_bytes: int = sw.MAX_STANDARD_BYTES) -> Reading:
         segment=None if segment is None else (segment["thisMsgNo"], segment["totalMsgNo"]), root_size=root_size)
 
 
+def shifted(data: bytes, shift_ms: int) -> bytes:
+    """The CPM ``data`` with its referenceTime moved by ``shift_ms`` (every time in a CPM is relative
+    to it), all else byte for byte as decoded (a replay's time shift). CodecError if unreadable."""
+    spec = _spec()
+    msg, root_size = _top(spec, sw.check_size(data, sw.MAX_STANDARD_BYTES, "cpm"))
+    management = msg["payload"]["managementContainer"]
+    management["referenceTime"] += int(shift_ms)
+    top = "CollectivePerceptionMessageRootSize" if root_size else "CollectivePerceptionMessage"
+    return sw.asn1_encode(spec, top, msg, "cpm")
+
+
 # ---------------------------------------------------------------- place
 
 

@@ -73,7 +73,11 @@ def shift_payload(kind: str, model: type[Message] | None, payload: bytes, shift_
         return payload
     if model is not None:
         return encode(shift_message(decode(payload, model), shift_ns))
-    if kind in ("cpm", "sdsm"):
+    if kind == "cpm":  # at the byte level: the reference position and every field stay as sent
+        from schemas import cpm
+
+        return cpm.shifted(payload, shift_ns // 1_000_000)
+    if kind == "sdsm":
         msg = shift_message(list_wire.decode_list(payload, kind, rsu_id), shift_ns)
         assert isinstance(msg, ObjectList)
         data = list_wire.encode_list(msg, kind)
