@@ -261,10 +261,9 @@ def place(reading: Reading, origin: tuple[float, float] | None = None) -> dict[s
                                  "originatingVehicleContainer.orientationAngle")
         # vehicle x axis at heading h (clockwise from north) is at 90 - h degrees counter-clockwise from east
         _rotate(cols, np.radians(90.0 - reading.orientation_deg))
-    o = origin or ORIGIN_DEG
-    ref_x, ref_y = enu.geo_to_enu(reading.lat_deg, reading.lon_deg, o)
-    cols["x"] = cols["x"] + ref_x
-    cols["y"] = cols["y"] + ref_y
+    o, ref = origin or ORIGIN_DEG, (reading.lat_deg, reading.lon_deg)
+    if ref != o:  # east / north of the reference -> east / north of the receiver's origin (through ECEF)
+        cols["x"], cols["y"] = enu.between(cols["x"], cols["y"], ref, o)
     if len(reading.delta_ms):
         dt = (reading.delta_ms.max() - reading.delta_ms) * 1e-3
         known = cols["cov_vxx"] < UNKNOWN_VELOCITY_VAR

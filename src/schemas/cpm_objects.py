@@ -147,14 +147,10 @@ def object_of(c: dict[str, list], i: int, delta_ms: int) -> dict:
 
 def cls_of(classification: list | None) -> int:
     """The v2i class of a classification list: its entry of highest confidence (101, unavailable,
-    counts as 0). InvalidMessage for a vehicleSubClass the standard does not allow."""
+    counts as 0; ``read_objects`` has refused a vehicleSubClass the standard does not allow)."""
     if not classification:
         return int(ObjectClass.UNKNOWN)
     best = max(classification, key=lambda e: 0 if e["confidence"] == 101 else e["confidence"])
-    for entry in classification:
-        kind, value = entry["objectClass"]
-        if kind == "vehicleSubClass" and value not in VEHICLE_SUBCLASSES:
-            raise InvalidMessage(f"cpm vehicleSubClass {value} is not allowed (0, 5..11, 14)", "classification")
     kind, value = best["objectClass"]
     if kind == "vehicleSubClass":
         return int(_VEHICLE_TO_V2I.get(value, ObjectClass.UNKNOWN))
@@ -273,6 +269,11 @@ def read_objects(objects: list[dict], skipped: Counter) -> tuple[dict[str, np.nd
     for k, obj in enumerate(objects):
         if "objectId" not in obj:  # required by the container (WITH COMPONENTS objectId PRESENT): its index
             skipped["object_id_absent"] += 1
+        for entry in obj.get("classification") or ():
+            kind, value = entry["objectClass"]
+            if kind == "vehicleSubClass" and value not in VEHICLE_SUBCLASSES:
+                raise InvalidMessage(f"cpm vehicleSubClass {value} is not allowed (0, 5..11, 14)",
+                                     f"perceivedObjects.{k}.classification")
         xy = (obj["position"]["xCoordinate"]["value"], obj["position"]["yCoordinate"]["value"])
         if any(v in (-131072, 131071) for v in xy):
             skipped["object_position_out_of_range"] += 1
