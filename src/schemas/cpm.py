@@ -211,7 +211,7 @@ def read(data: bytes, max_bytes: int = sw.MAX_STANDARD_BYTES) -> Reading:
     segment = management.get("segmentationInfo")
     return Reading(
         station_id=head["stationId"], reference_time_ms=management["referenceTime"],
-        lat_deg=None if lat == LAT_UNAVAILABLE else lat * 1e-7, lon_deg=None if lon == LON_UNAVAILABLE else lon * 1e-7,
+        lat_deg=None if lat == LAT_UNAVAILABLE else lat / 1e7, lon_deg=None if lon == LON_UNAVAILABLE else lon / 1e7,
         originator="vehicle" if VEHICLE_CONTAINER in found else "rsu" if RSU_CONTAINER in found else "unknown",
         orientation_deg=orientation, columns=columns, delta_ms=delta_ms, skipped=skipped,
         segment=None if segment is None else (segment["thisMsgNo"], segment["totalMsgNo"]), root_size=root_size)

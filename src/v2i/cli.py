@@ -30,6 +30,7 @@ SUBCOMMANDS = {
     "pki": "the site's certificate authority: init, issue, revoke, list, a whole site, the attacker's keys, "
            "Zenoh TLS material",
     "warm": "compile the numba kernels of the services and the evaluator ahead of the first run (once per machine)",
+    "wire": "wire tools: decode saved RSU object-list messages (CPM, SDSM, v2i) and print what they say",
 }
 
 
@@ -541,6 +542,11 @@ def cmd_warm(args: argparse.Namespace) -> int:
     return 1 if args.check and compiled else 0
 
 
+def _wire_options(p: argparse.ArgumentParser) -> None:
+    """``v2i wire``: files only, so no --zenoh-config (its configure_parser sets its ``run``)."""
+    importlib.import_module("v2i.wire_cli").configure_parser(p)
+
+
 def _pki_options(p: argparse.ArgumentParser) -> None:
     """``v2i pki``: files only, so no --zenoh-config (its configure_parser sets its ``run``)."""
     importlib.import_module("v2i.security.pki_cli").configure_parser(p)
@@ -556,7 +562,7 @@ _OPTIONS = {
     "record": _service_options("v2i.record"), "replay": _service_options("v2i.replay"),
     "attack": _service_options("v2i.adversary.attack"),
     "pki": _pki_options,
-    "warm": _warm_options,
+    "warm": _warm_options, "wire": _wire_options,
 }
 
 
