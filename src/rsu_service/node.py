@@ -112,6 +112,7 @@ class RsuNode:
                             WireFiles(config.save_wire, config.rsu_id, config.wire, self.name))
         # scored when the source knows the truth (simulated world)
         rsu = site.rsu(config.rsu_id)
+        self._origin = (site.origin.lat_deg, site.origin.lon_deg)  # a CPM / SDSM's reference position
         self.perception = PerceptionTally.of_source(self.source, rsu.xy)
         # predict-ahead publishes a frame's second list half a frame period after the first
         self._upsample_offset_ns = round(0.5e9 / rsu.rate_hz) if self.source is None else self.source.upsample_offset_ns
@@ -241,7 +242,7 @@ class RsuNode:
         t0_ns = time.perf_counter_ns()
         msg = message(stamp)
         t1_ns = time.perf_counter_ns()
-        data = None if msg is None else encode_list(msg, self.config.wire)
+        data = None if msg is None else encode_list(msg, self.config.wire, self._origin)
         t2_ns = time.perf_counter_ns()
         if data is None:
             return

@@ -183,7 +183,7 @@ class OfflineRun:
         security = InboundSecurity(verifier, obu.clock_offset, obu.reject)
         return _Vehicle(name, world, SimulatedVehicle(world, self.spec.seed, self.start_ns), obu,
                         RunRecord(world, self.start_ns, self.duration_s), links, security,
-                        Inbox(obu, security, memo=self._memo))  # a broadcast's bytes read once for all
+                        Inbox(obu, security, memo=self._memo, origin=self._origin))  # a broadcast's bytes read once for all
 
     def _new_v2v_links(self) -> dict[tuple[str, str], LinkModel]:
         """One channel per ordered vehicle pair (sender, receiver), its own draws; peers enabled."""
@@ -287,11 +287,16 @@ class OfflineRun:
 
     def _broadcast_list(self, rsu: _Rsu, msg: ObjectList) -> None:
         """An object list in the run's encoding (``spec.wire``: v2i, cpm or sdsm; an SDSM has none for no objects)."""
-        data = encode_list(msg, self.spec.wire)
+        data = encode_list(msg, self.spec.wire, self._origin)
         if data is not None:
             if self.wire_files:
                 self.wire_files[rsu.cfg.id].save(data)  # as sent, before any signature
             self._broadcast(rsu, sign(data, rsu.signer, msg.header.publish_time_ns, rsu.list_key), self._obu_receive)
+
+    @property
+    def _origin(self) -> tuple[float, float]:
+        """The site's WGS84 origin (lat, lon degrees): a CPM's reference position, where the OBU places it."""
+        return self.site_config.origin.lat_deg, self.site_config.origin.lon_deg
 
     def _rsu_now(self, rsu: _Rsu) -> Stamp:
         """Now on the RSU's wall clock (offset, drift, steps) and its monotonic clock (the true one)."""
