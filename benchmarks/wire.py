@@ -255,8 +255,9 @@ def standard_summary(codecs: dict, seed: int, repeat: int, n: int = 200) -> None
             base = len(enc(HEADER, objs.take(0))) if head == "n/a" else head
             per.append((len(enc(HEADER, objs)) - base) / (n - 1 if head == "n/a" else n))
         data = enc(HEADER, objs)
+        head_text = "none" if head == "n/a" else f"{head} B"
         t_enc, t_dec = per_call_us(lambda: enc(HEADER, objs), repeat), per_call_us(lambda: dec(data), repeat)
-        print(f"{name}: {per[0]:.1f} B/object typical, {per[1]:.1f} B/object rich, header {head if head == "n/a" else f"{head} B"}; "
+        print(f"{name}: {per[0]:.1f} B/object typical, {per[1]:.1f} B/object rich, header {head_text}; "
               f"{n} objects: encode {t_enc / 1e3:.2f} ms, decode {t_dec / 1e3:.2f} ms ({len(data)} B)")
 
 
