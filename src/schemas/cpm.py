@@ -16,7 +16,7 @@ v2i                         CPM                                                q
 rsu_id                      header.stationId (``station_id``, default crc32)   decode: the key's id
 publish_time_ns             managementContainer.referenceTime (TAI)            1 ms (``its_time``)
 capture + prediction        perceivedObject.measurementDeltaTime               1 ms after referenceTime
-seq                         (none) decode: referenceTime in ms                 time-derived
+seq                         (none) decode: 8 referenceTime + segment - 1       time-derived
 site origin (``map`` 0, 0)  managementContainer.referencePosition              0.1 microdegree
 id                          objectId                                           modulo 65536
 x, y, z                     position.{x,y,z}Coordinate.value (east, north, up)  0.01 m, +-1310.7 m
@@ -247,9 +247,9 @@ def _rotate(cols: dict[str, np.ndarray], theta: float) -> None:
 
 def place(reading: Reading, origin: tuple[float, float] | None = None) -> dict[str, np.ndarray]:
     """The reading's objects in ``map`` (east-north-up at ``origin``, the receiver's site origin in
-    degrees), all at the latest object time (each moved there at its velocity). Refuses (InvalidMessage,
-    naming the reason) a CPM that cannot be placed: no reference position, or a vehicle's without
-    its orientation."""
+    degrees; None: at the message's reference position), all at the latest object time (each moved
+    there at its velocity). Refuses (InvalidMessage, naming the reason) a CPM that cannot be placed:
+    no reference position, or a vehicle's without its orientation."""
     from schemas import enu
 
     if reading.lat_deg is None or reading.lon_deg is None:
@@ -261,7 +261,8 @@ def place(reading: Reading, origin: tuple[float, float] | None = None) -> dict[s
                                  "originatingVehicleContainer.orientationAngle")
         # vehicle x axis at heading h (clockwise from north) is at 90 - h degrees counter-clockwise from east
         _rotate(cols, np.radians(90.0 - reading.orientation_deg))
-    o, ref = origin or ORIGIN_DEG, (reading.lat_deg, reading.lon_deg)
+    ref = (reading.lat_deg, reading.lon_deg)
+    o = ref if origin is None else origin
     if ref != o:  # east / north of the reference -> east / north of the receiver's origin (through ECEF)
         cols["x"], cols["y"] = enu.between(cols["x"], cols["y"], ref, o)
     if len(reading.delta_ms):
@@ -272,13 +273,19 @@ def place(reading: Reading, origin: tuple[float, float] | None = None) -> dict[s
     return cols
 
 
+def sequence(reference_ms: int, segment: int = 0) -> int:
+    """The v2i sequence number of a CPM (it has none): 8 referenceTime + (thisMsgNo - 1), unique and
+    increasing per station, segments of one generation event included."""
+    return 8 * int(reference_ms) + int(segment)
+
+
 @sw.guarded("cpm")
 def decode(data: bytes, rsu_id: str | None = None, max_bytes: int = sw.MAX_STANDARD_BYTES,
            origin: tuple[float, float] | None = None) -> tuple[ObjectListHeader, dict[str, np.ndarray]]:
     """(header, object columns in ``map``) of a UPER CPM; ``origin``: the receiver's site origin (lat,
     lon degrees). ``rsu_id``: the id the message came under (its key); None names the RSU
     ``station<stationId>``. Header: publish = referenceTime, capture = the latest object time,
-    prediction 0, seq = referenceTime (ms). Every failure is a CodecError."""
+    prediction 0, seq = ``sequence`` (from referenceTime and the segment). Every failure is a CodecError."""
     reading = read(data, max_bytes)
     cols = place(reading, origin)
     reference_ms = reading.reference_time_ms
@@ -286,8 +293,9 @@ def decode(data: bytes, rsu_id: str | None = None, max_bytes: int = sw.MAX_STAND
     capture_ns, publish_ns = its_time.unix_ns(capture_ms), its_time.unix_ns(reference_ms)
     if capture_ns < 0 or publish_ns < 0:
         raise InvalidMessage(f"cpm referenceTime {reference_ms} is before 1970", "referenceTime")
-    hdr = sw.header(rsu_id or f"station{reading.station_id}", reference_ms, capture_ns, max(publish_ns, capture_ns),
-                    0, SENSOR)
+    segment = 0 if reading.segment is None else reading.segment[0] - 1
+    hdr = sw.header(rsu_id or f"station{reading.station_id}", sequence(reference_ms, segment), capture_ns,
+                    max(publish_ns, capture_ns), 0, SENSOR)
     return hdr, cols
 
 

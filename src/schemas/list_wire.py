@@ -96,7 +96,8 @@ def decode_list(data: bytes, wire: str, rsu_id: str | None = None, max_bytes: in
                 origin: Origin | None = None) -> ObjectList:
     """The validated ObjectList of wire bytes in encoding ``wire``; ``rsu_id``: the RSU of the key
     it came on (a standard message names its station by number); ``origin``: the receiver's site
-    origin (a standard message is placed in its ``map``; None: 0 N 0 E). Every failure is a CodecError."""
+    origin (a standard message is placed in its ``map``; None: about the message's own reference
+    position). Every failure is a CodecError."""
     if wire == "v2i":
         return decode(data, ObjectList, max_bytes)
     header, columns = _module(wire).decode(data, rsu_id, max_bytes=min(max_bytes, sw.MAX_STANDARD_BYTES),

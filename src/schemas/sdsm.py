@@ -251,8 +251,9 @@ def _fill_detail(cols: dict[str, np.ndarray], i: int, kind: str, detail: tuple |
 
 @sw.guarded("sdsm")
 def decode(data: bytes, rsu_id: str | None = None, max_bytes: int = sw.MAX_STANDARD_BYTES,
-           origin_e7: tuple[int, int] = sw.SITE_ORIGIN_E7) -> tuple[ObjectListHeader, dict[str, np.ndarray]]:
-    """(header, object columns) of a UPER SDSM; ``rsu_id`` as in ``cpm.decode``. Every failure is a CodecError."""
+           origin_e7: tuple[int, int] | None = None) -> tuple[ObjectListHeader, dict[str, np.ndarray]]:
+    """(header, object columns) of a UPER SDSM; ``rsu_id`` as in ``cpm.decode``; ``origin_e7``: the
+    receiver's site origin (None: the message's own reference position). Every failure is a CodecError."""
     msg = sw.asn1_decode(_spec(), "SensorDataSharingMessage", sw.check_size(data, max_bytes, "sdsm"), "sdsm")
     objects = msg["objects"]
     deltas = {o["detObjCommon"]["measurementTime"] for o in objects}
@@ -264,7 +265,7 @@ def decode(data: bytes, rsu_id: str | None = None, max_bytes: int = sw.MAX_STAND
     ref = msg["refPos"]
     if ref["lat"] > 900_000_000 or ref["long"] > 1_800_000_000:
         raise InvalidMessage("sdsm reference position unavailable", "refPos")
-    ref_xy = sw.geo_e7_to_map(ref["lat"], ref["long"], origin_e7)
+    ref_xy = sw.geo_e7_to_map(ref["lat"], ref["long"], (ref["lat"], ref["long"]) if origin_e7 is None else origin_e7)
     cols = sw.empty_columns(len(objects))
     for i, obj in enumerate(objects):
         _fill(cols, i, obj, ref_xy)

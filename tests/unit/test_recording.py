@@ -58,8 +58,8 @@ def test_shift_payload_cpm_is_exact_for_whole_milliseconds():
     original = list_wire.decode_list(list_wire.encode_list(object_list(), "cpm"), "cpm", "rsu1")
     data = shift_payload("cpm", None, list_wire.encode_list(original, "cpm"), 3_000_000_000, "rsu1")
     shifted = shift_message(original, 3_000_000_000)
-    # a CPM's sequence number is its reference time (ms): it moves with the shift
-    expected = shifted.model_copy(update={"header": shifted.header.model_copy(update={"seq": original.header.seq + 3000})})
+    # a CPM's sequence number comes from its reference time (8 a ms): it moves with the shift
+    expected = shifted.model_copy(update={"header": shifted.header.model_copy(update={"seq": original.header.seq + 8 * 3000})})
     assert list_wire.decode_list(data, "cpm", "rsu1") == expected
 
 

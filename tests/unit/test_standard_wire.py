@@ -49,8 +49,8 @@ def test_cpm_round_trip_within_its_resolution() -> None:
     cols = _columns(np.random.default_rng(3), 60)
     header, out = cpm.decode(cpm.encode(_header(prediction_ns=40_000_000), cols), "rsu-a")
     # referenceTime = publish (TAI), each object at capture + prediction: the header's capture is that
-    # time, prediction 0, and seq the reference time in ms (a CPM has no sequence number)
-    assert (header.rsu_id, header.seq, header.prediction_ns) == ("rsu-a", its_time.its_ms(T0 + 87_654_321), 0)
+    # time, prediction 0, and seq 8 x the reference time in ms (a CPM has no sequence number)
+    assert (header.rsu_id, header.seq, header.prediction_ns) == ("rsu-a", 8 * its_time.its_ms(T0 + 87_654_321), 0)
     assert header.capture_time_ns == T0 - 456_789 + 40_000_000 and header.publish_time_ns == T0 - 456_789 + 88_000_000
     np.testing.assert_array_equal(out["id"], cols["id"])
     np.testing.assert_array_equal(out["cls"], cols["cls"])
@@ -101,7 +101,7 @@ def test_cpm_carries_no_private_data() -> None:
     assert set(msg["payload"]["managementContainer"]) == {"referenceTime", "referencePosition"}
     header, out = cpm.decode(data)
     assert header.rsu_id == f"station{cpm.station_id('rsu-a')}"
-    assert header.seq == its_time.its_ms(T0 + 87_654_321)
+    assert header.seq == cpm.sequence(its_time.its_ms(T0 + 87_654_321))
     assert len(out["id"]) == 3
 
 
@@ -118,7 +118,7 @@ def test_limits_and_fit() -> None:
     cols, counts = list_wire.fit_standard(_columns(rng, 300), "sdsm")
     assert len(cols["id"]) == 255 and counts == {"truncated": 45}
     assert list_wire.encode_list(ObjectList(header=_header()), "sdsm") is None  # an SDSM carries >= 1 object
-    assert list_wire.decode_list(list_wire.encode_list(ObjectList(header=_header()), "cpm"), "cpm", "rsu-a").header.seq == its_time.its_ms(T0 + 87_654_321)
+    assert list_wire.decode_list(list_wire.encode_list(ObjectList(header=_header()), "cpm"), "cpm", "rsu-a").header.seq == 8 * its_time.its_ms(T0 + 87_654_321)
     with pytest.raises(MessageTooLarge):
         cpm.decode(b"\x00" * (sw.MAX_STANDARD_BYTES + 1))
 
