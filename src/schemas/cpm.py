@@ -137,6 +137,7 @@ class Reading:
     delta_ms: np.ndarray
     skipped: Counter = field(default_factory=Counter)
     segment: tuple[int, int] | None = None  # (thisMsgNo, totalMsgNo)
+    beyond: list[dict] = field(default_factory=list)  # objects only "out of range" in x or y: id, x_m, y_m (bounds)
     root_size: bool = False  # read with the container list's size constraint without its extension bit
 
 
@@ -207,14 +208,16 @@ def read(data: bytes, max_bytes: int = sw.MAX_STANDARD_BYTES) -> Reading:
     if vehicle is not None and vehicle["orientationAngle"]["value"] < 3600:
         orientation = vehicle["orientationAngle"]["value"] * 0.1
     objects = (found.get(OBJECT_CONTAINER) or {}).get("perceivedObjects", [])
-    columns, delta_ms = read_objects(objects, skipped)
+    beyond: list[dict] = []
+    columns, delta_ms = read_objects(objects, skipped, beyond)
     segment = management.get("segmentationInfo")
     return Reading(
         station_id=head["stationId"], reference_time_ms=management["referenceTime"],
         lat_deg=None if lat == LAT_UNAVAILABLE else lat / 1e7, lon_deg=None if lon == LON_UNAVAILABLE else lon / 1e7,
         originator="vehicle" if VEHICLE_CONTAINER in found else "rsu" if RSU_CONTAINER in found else "unknown",
         orientation_deg=orientation, columns=columns, delta_ms=delta_ms, skipped=skipped,
-        segment=None if segment is None else (segment["thisMsgNo"], segment["totalMsgNo"]), root_size=root_size)
+        segment=None if segment is None else (segment["thisMsgNo"], segment["totalMsgNo"]), root_size=root_size,
+        beyond=beyond)
 
 
 def shifted(data: bytes, shift_ms: int) -> bytes:

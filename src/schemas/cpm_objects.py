@@ -261,10 +261,12 @@ def _fill(cols: dict[str, np.ndarray], i: int, obj: dict) -> None:
     cols["cls"][i] = cls_of(obj.get("classification"))
 
 
-def read_objects(objects: list[dict], skipped: Counter) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def read_objects(objects: list[dict], skipped: Counter,
+                 beyond: list[dict] | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """(object columns in the message's frame, measurementDeltaTime per object) of decoded
-    PerceivedObjects. An object without objectId is refused (the standard requires it); one whose
-    x or y is only "out of range" cannot be placed: left out, counted in ``skipped``."""
+    PerceivedObjects. An object without the objectId the container requires gets its index (counted);
+    one whose x or y is only "out of range" (beyond +-1310.70 m) cannot be placed: left out,
+    counted in ``skipped`` and listed in ``beyond`` (id, x_m, y_m: the range's bound, m)."""
     keep = []
     for k, obj in enumerate(objects):
         if "objectId" not in obj:  # required by the container (WITH COMPONENTS objectId PRESENT): its index
@@ -277,6 +279,8 @@ def read_objects(objects: list[dict], skipped: Counter) -> tuple[dict[str, np.nd
         xy = (obj["position"]["xCoordinate"]["value"], obj["position"]["yCoordinate"]["value"])
         if any(v in (-131072, 131071) for v in xy):
             skipped["object_position_out_of_range"] += 1
+            if beyond is not None:
+                beyond.append({"id": obj.get("objectId", k), "x_m": xy[0] / 100, "y_m": xy[1] / 100})
             continue
         for key in ("mapPosition", "sensorIdList"):
             if key in obj:

@@ -6,6 +6,8 @@ Per file one JSON line: ``{"file", "ok": true, "reference": {"lat_deg", "lon_deg
 of the message's reference position in metres (a vehicle-originated CPM: in the vehicle's own
 frame, x along its ``orientation_deg``, y to its left), or ``{"file", "ok": false, "reason"}``.
 A v2i list has no geodetic reference (its ``map`` frame's origin is the site's): lat / lon null.
+A CPM's objects whose x or y is only "out of range" are not placed: listed apart
+(``objects_out_of_range``: id and the range's bounds as x_m, y_m).
 """
 
 from __future__ import annotations
@@ -54,7 +56,8 @@ def _cpm(data: bytes) -> dict[str, Any]:
     r = cpm.read(data)
     return {"reference": {"lat_deg": r.lat_deg, "lon_deg": r.lon_deg, "time_tai_ms": r.reference_time_ms},
             "station_id": r.station_id, "originator": r.originator, "orientation_deg": r.orientation_deg,
-            "segment": r.segment, "skipped": dict(r.skipped), "objects": _objects(r.columns, r.delta_ms)}
+            "segment": r.segment, "skipped": dict(r.skipped), "objects": _objects(r.columns, r.delta_ms),
+            "objects_out_of_range": r.beyond}
 
 
 def _sdsm(data: bytes) -> dict[str, Any]:

@@ -40,6 +40,10 @@ def test_vectors_decode_with_their_positions(tmp_path: Path, capsys) -> None:
         assert [(o["x_m"], o["y_m"]) for o in row["objects"]] == [
             (o["position"]["xCoordinate"]["value"] / 100, o["position"]["yCoordinate"]["value"] / 100) for o in objects]
         assert row["reference"]["time_tai_ms"] == v["message"]["payload"]["managementContainer"]["referenceTime"]
+        beyond = [o for c in v["containers"] if c["containerId"] == 5 for o in c["value"]["perceivedObjects"]
+                  if o not in objects]
+        assert [(o["x_m"], o["y_m"]) for o in row["objects_out_of_range"]] == [
+            (o["position"]["xCoordinate"]["value"] / 100, o["position"]["yCoordinate"]["value"] / 100) for o in beyond]
 
 
 def test_each_wire_and_a_refusal(tmp_path: Path) -> None:
