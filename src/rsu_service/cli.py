@@ -58,6 +58,14 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                         "default), cpm (ETSI collective perception message, UPER, on v2x/rsu/{id}/cpm) or sdsm "
                         "(SAE J3224 sensor data sharing message, UPER, on v2x/rsu/{id}/sdsm); a v2i OBU fuses all "
                         "three, at the standard's resolution")
+    p.add_argument("--cpm-rules", action="store_true", default=None,
+                   help="with --wire cpm: ETSI TS 103 324 generation rules: an object goes when new, moved > 4 m, its "
+                        "speed changed > 0.5 m/s or its heading > 4 degrees since last sent, or 1 s after; pedestrians "
+                        "and cyclists all together every 500 ms; a CPM at most every 100 ms and at least every 1 s; a "
+                        "CPM over --cpm-mtu-bytes split into segments (segmentationInfo). Default: every object in "
+                        "every list, one CPM")
+    p.add_argument("--cpm-mtu-bytes", type=int, metavar="N",
+                   help="with --cpm-rules: the largest CPM; larger ones are segmented (default 1100)")
     p.add_argument("--predict-ahead", action="store_true", default=None,
                    help="track-predict compensation: publish tracks predicted to the publish time, "
                         "and once more half a frame later (5 Hz camera -> 10 Hz lists)")

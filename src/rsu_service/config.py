@@ -29,6 +29,13 @@ class RsuConfig(ServiceConfig):
     wire: Literal[WIRES] = Field("v2i", description="object list encoding: v2i (msgpack columns on "
                                  "v2x/rsu/{id}/objects), cpm (ETSI CPM, UPER, on .../cpm) or sdsm (SAE J3224 SDSM, "
                                  "UPER, on .../sdsm); see schemas.list_wire")
+    cpm_rules: bool = Field(False, description="with wire cpm: ETSI TS 103 324 generation rules (an object goes "
+                            "when new, moved > 4 m, speed changed > 0.5 m/s, heading > 4 degrees, or 1 s since last "
+                            "sent; pedestrians and cyclists every 500 ms) and segmentation to cpm_mtu_bytes; see "
+                            "rsu_service.cpm_rules (off: every object in every list, one CPM)")
+    cpm_mtu_bytes: int = Field(1100, ge=200, le=65_535, description="with cpm_rules: a larger CPM is split into "
+                               "segments (segmentationInfo, at most 8) of at most this many bytes (default: TR 103 "
+                               "562's 1100 B)")
     predict_ahead: bool = Field(False, description="track-predict: publish tracks predicted to the publish "
                                                    "time and upsample 5 Hz to 10 Hz (Saravanan et al. Algorithm 1)")
     source: Literal[SOURCES] = Field("sim", description="sim: the scenario's camera noise model (fast); camera: "
@@ -81,6 +88,8 @@ class RsuConfig(ServiceConfig):
     @model_validator(mode="after")
     def _site_or_scenario(self) -> "RsuConfig":
         check_site_or_scenario(self, "RSU", ("zenoh", "video"))
+        if self.cpm_rules and self.wire != "cpm":
+            raise ValueError(f"cpm_rules (--cpm-rules) applies to wire cpm, not {self.wire}")
         return self
 
     @property

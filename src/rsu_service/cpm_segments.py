@@ -16,9 +16,10 @@ default MTU, 1100 bytes, is the segmentation threshold of the ETSI CPM simulatio
 would need a ninth segment are not sent in this event and stay due (not committed).
 
 The OBU takes each segment on its own, as the standard means it (no reassembly buffer, no
-timeout; a lost segment loses its own objects only): each segment is an ObjectList with the
-event's capture time and its own sequence number. With ``--cpm-rules`` the sequence numbers
-count the CPMs sent (segments included), so a gap still means a lost message.
+timeout; a lost segment loses its own objects only): each segment decodes to an ObjectList of
+its objects with the event's times. (A CPM carries no sequence number: ``schemas.cpm`` derives
+the list's from ``referenceTime``, the same for every segment of an event, so the OBU's
+duplicate check needs the segment number too; see tests/unit/test_eval_runner_cpm_rules.py.)
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from rsu_service.cpm_rules import CpmInclusion, CpmRulesConfig
 
 DEFAULT_MTU_BYTES = 1100  # TR 103 562 V2.1.1 §5.5: the segmentation threshold of ETSI's CPM simulations
 MAX_SEGMENTS = 8  # MessageSegmentationInfo: totalMsgNo, thisMsgNo INTEGER (1..8)
-SEGMENT_MARGIN_BYTES = 4  # segmentationInfo (7 bits) and a sequence number one byte longer
+SEGMENT_MARGIN_BYTES = 2  # segmentationInfo: 7 bits
 
 
 def with_segment_info(data: bytes, this_no: int, total_no: int) -> bytes:
@@ -62,7 +63,6 @@ class CpmSender:
         self.encode = encode
         self.mtu_bytes = mtu_bytes
         self.inclusion = CpmInclusion(rules)
-        self._seq = 0
         self.segmented = 0  # generation events split over several CPMs
         self.overflow = 0  # objects left for a later event: past MAX_SEGMENTS segments
 
@@ -82,18 +82,17 @@ class CpmSender:
 
     def _segments(self, msg: ObjectList, rows: np.ndarray) -> tuple[list[bytes], np.ndarray]:
         """(CPMs, rows sent) of the objects at ``rows``: one CPM if it fits the MTU, else segments."""
-        whole = self._encode(msg, rows, self._seq)
+        whole = self._encode(msg, rows)
         if whole is None:
             return [], rows[:0]
         if len(whole) <= self.mtu_bytes or len(rows) <= 1:
-            self._seq += 1
             return [whole], rows
-        empty = len(self._encode(msg, rows[:0], self._seq) or b"")
+        empty = len(self._encode(msg, rows[:0]) or b"")
         per_object = (len(whole) - empty) / len(rows)  # mean encoded bytes per object
         per_segment = max(int((self.mtu_bytes - empty - SEGMENT_MARGIN_BYTES) // per_object), 1)
         while True:
             chunks = [rows[i:i + per_segment] for i in range(0, len(rows), per_segment)][:MAX_SEGMENTS]
-            parts = [self._encode(msg, chunk, self._seq + k) for k, chunk in enumerate(chunks)]
+            parts = [self._encode(msg, chunk) for chunk in chunks]
             parts = [with_segment_info(p, k + 1, len(parts)) for k, p in enumerate(parts)]
             if per_segment == 1 or max(map(len, parts)) <= self.mtu_bytes:
                 break
@@ -101,12 +100,10 @@ class CpmSender:
         sent = np.concatenate(chunks)
         self.overflow += len(rows) - len(sent)
         self.segmented += 1
-        self._seq += len(parts)
         return parts, sent
 
-    def _encode(self, msg: ObjectList, rows: np.ndarray, seq: int) -> bytes | None:
-        """The codec's CPM of ``msg`` with the objects at ``rows`` only and sequence number ``seq``."""
+    def _encode(self, msg: ObjectList, rows: np.ndarray) -> bytes | None:
+        """The codec's CPM of ``msg`` with the objects at ``rows`` only."""
         objects = msg.objects
         subset = type(objects)(objects.codes[rows], objects.fused)  # (trusted: rows of valid codes)
-        return self.encode(msg.model_copy(update={"header": msg.header.model_copy(update={"seq": seq}),
-                                                  "objects": subset}))
+        return self.encode(msg.model_copy(update={"objects": subset}))

@@ -51,6 +51,7 @@ from v2i.security.pki import PkiError, load_signer
 from v2i.telemetry.latency import PeriodicSummary, StageLatency
 
 from rsu_service.config import RsuConfig
+from rsu_service.cpm_segments import CpmSender
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from rsu_service.prediction import make_predictor
 from rsu_service.source import Frame, RsuSource
@@ -110,6 +111,8 @@ class RsuNode:
         # --save-wire: every list as sent (unsigned), one file each; an unwritable folder fails here, at start
         self._wire_files = (None if config.save_wire is None else
                             WireFiles(config.save_wire, config.rsu_id, config.wire, self.name))
+        # --cpm-rules: the CPMs of each list under TS 103 324's generation rules, segmented to the MTU
+        self._cpm = CpmSender(self._encode_list, config.cpm_mtu_bytes) if config.cpm_rules else None
         # scored when the source knows the truth (simulated world)
         rsu = site.rsu(config.rsu_id)
         self._origin = (site.origin.lat_deg, site.origin.lon_deg)  # a CPM / SDSM's reference position
@@ -235,29 +238,39 @@ class RsuNode:
 
     def _put_list(self, publisher, message: Callable[[Stamp], ObjectList | None]) -> None:
         """Stamp the publish time, build the list (``message(stamp)``), encode it (--wire; an SDSM has
-        none for an empty list), sign it (--pki) and put it. Stages: ``message``, ``encode``, ``sign``, ``put``
+        none for an empty list; --cpm-rules: the rules' CPMs, none, one or segments), sign (--pki) and put
+        each. Stages: ``message``, ``encode``, ``sign``, ``put``
         and ``stamp_to_put`` (the header's publish stamp -> put returned: the RSU's share of the OBU's
         one-way delay)."""
         stamp = self._now()
         t0_ns = time.perf_counter_ns()
         msg = message(stamp)
         t1_ns = time.perf_counter_ns()
-        data = None if msg is None else encode_list(msg, self.config.wire, self._origin)
-        t2_ns = time.perf_counter_ns()
-        if data is None:
+        if msg is None:
             return
-        unsigned, data = data, sign(data, self._loop_signer, stamp.wall_ns, str(publisher.key_expr))
-        t3_ns = time.perf_counter_ns()
-        publisher.put(data)
-        t4_ns = time.perf_counter_ns()
-        self.latency.observe_ns("message", t0_ns, t1_ns)
-        self.latency.observe_ns("encode", t1_ns, t2_ns)
-        if self._loop_signer is not None:
-            self.latency.observe_ns("sign", t2_ns, t3_ns)
-        self.latency.observe_ns("put", t3_ns, t4_ns)
-        self.latency.observe_ns("stamp_to_put", stamp.mono_ns, self.true_clock.now_ns())
-        if self._wire_files is not None:  # after the put: the file never delays the list
-            self._wire_files.save(unsigned)
+        # --cpm-rules: the CPMs the rules send (none, one, or segments), on the monotonic clock
+        datas = self._cpm.messages(msg, stamp.mono_ns) if self._cpm is not None else [self._encode_list(msg)]
+        t2_ns = time.perf_counter_ns()
+        for unsigned in datas:
+            if unsigned is None:
+                return
+            data = sign(unsigned, self._loop_signer, stamp.wall_ns, str(publisher.key_expr))
+            t3_ns = time.perf_counter_ns()
+            publisher.put(data)
+            t4_ns = time.perf_counter_ns()
+            self.latency.observe_ns("message", t0_ns, t1_ns)
+            self.latency.observe_ns("encode", t1_ns, t2_ns)
+            if self._loop_signer is not None:
+                self.latency.observe_ns("sign", t2_ns, t3_ns)
+            self.latency.observe_ns("put", t3_ns, t4_ns)
+            self.latency.observe_ns("stamp_to_put", stamp.mono_ns, self.true_clock.now_ns())
+            if self._wire_files is not None:  # after the put: the file never delays the list
+                self._wire_files.save(unsigned)
+            t2_ns = time.perf_counter_ns()
+
+    def _encode_list(self, msg: ObjectList) -> bytes | None:
+        """The wire bytes of one list in --wire (None: an SDSM has none for an empty list)."""
+        return encode_list(msg, self.config.wire, self._origin)
 
     def _now(self) -> Stamp:
         """Now on the RSU's wall clock and on its monotonic clock (the simulation's true

@@ -67,6 +67,11 @@ def _run_options(p: argparse.ArgumentParser) -> None:
                    help="RSU object list encoding: v2i (compact msgpack columns), cpm (ETSI collective perception "
                         "message, UPER) or sdsm (SAE J3224, UPER); the OBU fuses each at its resolution "
                         "(default %(default)s)")
+    p.add_argument("--cpm-rules", action="store_true",
+                   help="with --wire cpm: the RSUs send by ETSI TS 103 324's generation rules (an object when new, "
+                        "moved > 4 m, its speed changed > 0.5 m/s or its heading > 4 degrees since last sent, or 1 s "
+                        "after; pedestrians and cyclists all together every 500 ms; a CPM over 1100 B in segments) "
+                        "instead of every object in every list; the report adds rsu_lists (bytes, objects by rule)")
     p.add_argument("--security", choices=("strict", "permissive", "off", "none"),
                    help="signed V2X messages: the RSUs sign object lists, predictions and time replies "
                         "with a site PKI's certificates and the OBU verifies them: strict drops what fails (counted "
@@ -85,6 +90,7 @@ def _spec(args: argparse.Namespace):
         rsu_clock_step_ms=args.rsu_clock_step_ms, rsu_clock_step_at_s=args.rsu_clock_step_at_s,
         deadline_ms=args.deadline_ms, rsu_source=args.rsu_source,
         v2v=None if getattr(args, "v2v", None) is None else args.v2v == "on", wire=getattr(args, "wire", "v2i"),
+        cpm_rules=bool(getattr(args, "cpm_rules", False)),
         security=_security(args),
     )
 

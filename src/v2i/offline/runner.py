@@ -15,6 +15,8 @@ clock estimate is its own error. Chaos link events act on the RSU links only.
 
 from __future__ import annotations
 
+from array import array
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -33,6 +35,7 @@ from obu_service.peers import PEER_REPLY_NS, shared_list
 from obu_service.pipeline import ObuPipeline
 from obu_service.source import OwnFrame
 from v2i.perception.scoring import PerceptionTally
+from rsu_service.cpm_segments import CpmSender
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from rsu_service.prediction import make_predictor
 from rsu_service.source import Frame
@@ -89,6 +92,7 @@ class _Rsu:
     list_key: str  # its key expressions: object lists (in the run's wire), predictions, time queries
     predictions_key: str
     time_key: str
+    cpm: CpmSender | None = None  # --cpm-rules: the CPMs of each list under the generation rules
 
     @cached_property
     def xy(self) -> tuple[float, float]:
@@ -152,6 +156,7 @@ class OfflineRun:
         self.perception = {r.cfg.id: PerceptionTally.of_source(r.camera, r.xy) for r in self.rsus}
         self.record.perception = self.perception[self.rsus[0].cfg.id]
         self._down = {name: self._windows_ns(name) for name in SERVICES}
+        self.list_bytes = array("I")  # the size of every RSU object list sent (rsu_lists_sent)
         self.wire_files = ({} if save_wire is None else  # RSU id -> its saved lists (v2i.runtime.wire_files)
                            {r.cfg.id: WireFiles(save_wire, r.cfg.id, spec.wire, "eval") for r in self.rsus})
 
@@ -164,7 +169,13 @@ class OfflineRun:
         config = self.rsu_config.model_copy(update={"rsu_id": cfg.id})
         return _Rsu(index, cfg, make_source(config, self.site, self.start_ns), self._new_pipeline(cfg.id),
                     rsu_clock(config, self.clock, self.start_ns), Signer(self.identities[cfg.id]) if self.trust else None,
-                    list_key(self.spec.wire, cfg.id), keys.rsu_predictions(cfg.id), keys.rsu_time(cfg.id))
+                    list_key(self.spec.wire, cfg.id), keys.rsu_predictions(cfg.id), keys.rsu_time(cfg.id),
+                    self._new_cpm_sender())
+
+    def _new_cpm_sender(self) -> CpmSender | None:
+        """--cpm-rules: a freshly started RSU's CPM generation (no object sent yet); None without."""
+        config = self.rsu_config
+        return CpmSender(self._encode_list, config.cpm_mtu_bytes) if config.cpm_rules else None
 
     def _new_pipeline(self, rsu_id: str) -> RsuPipeline:
         """A freshly started RSU (a restart loses its tracks and restarts its sequence numbers)."""
@@ -224,6 +235,7 @@ class OfflineRun:
     def _restart_rsus(self) -> None:
         for rsu in self.rsus:
             rsu.pipeline = self._new_pipeline(rsu.cfg.id)
+            rsu.cpm = self._new_cpm_sender()
 
     def execute(self) -> RunRecord:
         self._schedule_chaos()
@@ -254,6 +266,8 @@ class OfflineRun:
         # RunSpec.security: each vehicle's verification outcomes (ok, or a rejection reason) by count
         report["security_outcomes"] = (None if self.spec.security is None else
                                        {v.name: dict(sorted(v.security.verifier.counts.items())) for v in self.vehicles})
+        if self.spec.cpm_rules:
+            report["rsu_lists"] = self.rsu_lists_sent()
         end_ns = self.start_ns + round(self.duration_s * 1e9)
         for v in self.vehicles if self.v2v is not None else ():
             report["vehicles"][v.name]["peers"] = v.obu.peers.summary(end_ns)
@@ -287,16 +301,35 @@ class OfflineRun:
 
     def _broadcast_list(self, rsu: _Rsu, msg: ObjectList) -> None:
         """An object list in the run's encoding (``spec.wire``: v2i, cpm or sdsm; an SDSM has none for no objects)."""
-        data = encode_list(msg, self.spec.wire, self._origin)
-        if data is not None:
+        # --cpm-rules: the rules' CPMs (none, one or segments) at the generation event's (monotonic) time
+        for data in rsu.cpm.messages(msg, self.clock.t_ns) if rsu.cpm else [self._encode_list(msg)]:
+            if data is None:
+                continue
+            self.list_bytes.append(len(data))
             if self.wire_files:
                 self.wire_files[rsu.cfg.id].save(data)  # as sent, before any signature
             self._broadcast(rsu, sign(data, rsu.signer, msg.header.publish_time_ns, rsu.list_key), self._obu_receive)
+
+    def _encode_list(self, msg: ObjectList) -> bytes | None:
+        return encode_list(msg, self.spec.wire, self._origin)
 
     @property
     def _origin(self) -> tuple[float, float]:
         """The site's WGS84 origin (lat, lon degrees): a CPM's reference position, where the OBU places it."""
         return self.site_config.origin.lat_deg, self.site_config.origin.lon_deg
+
+    def rsu_lists_sent(self) -> dict:
+        """What the RSUs sent as object lists: messages, bytes (in all and per second of the run) and, with
+        --cpm-rules, the objects the rules included by rule, CPMs segmented and generation events by outcome."""
+        senders = [r.cpm for r in self.rsus if r.cpm is not None]
+        total = sum(self.list_bytes)
+        out = {"messages": len(self.list_bytes), "bytes": total, "bytes_per_s": round(total / self.duration_s, 1)}
+        if senders:
+            by_rule = sum((s.inclusion.included_by for s in senders), Counter())
+            out.update(objects=sum(by_rule.values()), included_by=dict(sorted(by_rule.items())),
+                       segmented=sum(s.segmented for s in senders), overflow=sum(s.overflow for s in senders),
+                       events=dict(sorted(sum((s.inclusion.events for s in senders), Counter()).items())))
+        return out
 
     def _rsu_now(self, rsu: _Rsu) -> Stamp:
         """Now on the RSU's wall clock (offset, drift, steps) and its monotonic clock (the true one)."""

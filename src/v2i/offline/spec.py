@@ -42,6 +42,7 @@ class RunSpec:
     rsu_source: str = "sim"  # sim (noise model) or camera (rendered, detector, calibration)
     v2v: bool | None = None  # vehicles share lists (V2V): None as the scenario says, True / False on / off
     wire: str = "v2i"  # RSU object list encoding: v2i, cpm or sdsm (schemas.list_wire)
+    cpm_rules: bool = False  # with wire cpm: TS 103 324 generation rules and segmentation (rsu_service.cpm_rules)
     security: str | None = None  # RSUs sign and the OBU verifies: strict, permissive or off; None: nothing signed
 
     def rsu_config(self, **fields) -> RsuConfig:
@@ -49,7 +50,7 @@ class RunSpec:
         return RsuConfig(clock_offset_ms=self.rsu_clock_offset_ms, clock_drift_ppm=self.rsu_clock_drift_ppm,
                          clock_step_ms=self.rsu_clock_step_ms, clock_step_at_s=self.rsu_clock_step_at_s,
                          seed=self.seed, scenario=self.scenario, predict_ahead=self.compensation == "track-predict",
-                         source=self.rsu_source, wire=self.wire, **fields)
+                         source=self.rsu_source, wire=self.wire, cpm_rules=self.cpm_rules, **fields)
 
     def obu_config(self, **fields) -> ObuConfig:
         """The OBU service configuration this run implies."""
@@ -142,7 +143,7 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
     cycles = record.cycles
     return {
         "driver": driver,
-        **{k: v for k, v in asdict(spec).items() if k not in ("duration_s",)},
+        **{k: v for k, v in asdict(spec).items() if k not in ("duration_s",) and (k, v) not in _UNSAID},
         "duration_s": record.duration_s,
         "cycles": len(record.cycle_times_ns),
         "outputs": len(cycles),
@@ -163,6 +164,7 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
     }
 
 
+_UNSAID = {("cpm_rules", False)}  # options a report names only when on (reports without them stay as they were)
 _RUN_KEYS = ("driver", *RunSpec.__dataclass_fields__)  # what describes the run, not one vehicle's scores
 
 

@@ -284,7 +284,8 @@ class Demo(InboxScoring):
                                                               "--clock-step-at-s", str(s.rsu_clock_step_at_s)]
             return base + ["--listen", self.rsu_ep, *common, "--clock-offset-ms", str(s.rsu_clock_offset_ms),
                            "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead, "--source", s.rsu_source,
-                           "--wire", s.wire, *security_argv(s, name, self.pki_dir),
+                           "--wire", s.wire, *(["--cpm-rules"] if s.cpm_rules else []),
+                           *security_argv(s, name, self.pki_dir),
                            *(["--save-wire", str(self.save_wire)] if self.save_wire else [])]
         if name == "obu":
             return base + ["--listen", self.obu_ep, *common, "--fusion", s.fusion, "--compensation", s.compensation,

@@ -187,7 +187,8 @@ class SiteDemo(InboxScoring):
         return [sys.executable, "-m", "v2i", "rsu", "--rsu-id", rsu_id, "--listen", self.rsu_eps[rsu_id],
                 *self._common(), "--clock-offset-ms", str(s.rsu_clock_offset_ms),
                 "--clock-drift-ppm", str(s.rsu_clock_drift_ppm), *step, *ahead, "--source", s.rsu_source,
-                "--wire", s.wire, *security_argv(s, "rsu", self.pki_dir),
+                "--wire", s.wire, *(["--cpm-rules"] if s.cpm_rules else []),
+                *security_argv(s, "rsu", self.pki_dir),
                 *(["--save-wire", str(self.save_wire)] if self.save_wire else [])]
 
     def _obu_argv(self, name: str) -> list[str]:
