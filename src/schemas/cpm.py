@@ -161,9 +161,10 @@ def _read_whole(spec, type_name: str, value: dict, data: bytes) -> bool:
         return False
 
 
-def _containers(spec, wrapped: list[dict], skipped: Counter) -> dict[int, Any]:
+def _containers(spec, wrapped: list[dict], skipped: Counter, count_unread: bool) -> dict[int, Any]:
     """Containers 1-5 decoded by id; others skipped and counted. Refuses a repeated container and a
-    message with both originating containers."""
+    message with both originating containers. ``count_unread``: check each container for octets
+    read past (an encode more: the OBU's path leaves it out)."""
     found: dict[int, Any] = {}
     for c in wrapped:
         cid = c["containerId"]
@@ -175,7 +176,7 @@ def _containers(spec, wrapped: list[dict], skipped: Counter) -> dict[int, Any]:
             continue
         name = CONTAINER_TYPES[cid]
         found[cid] = sw.asn1_decode(spec, name, c["containerData"], f"cpm {name}")
-        if not _read_whole(spec, name, found[cid], c["containerData"]):
+        if count_unread and not _read_whole(spec, name, found[cid], c["containerData"]):
             skipped[f"unread_{name}"] += 1
     if VEHICLE_CONTAINER in found and RSU_CONTAINER in found:
         raise InvalidMessage("cpm has both an originating vehicle and an originating RSU container", "cpmContainers")
@@ -186,8 +187,10 @@ def _containers(spec, wrapped: list[dict], skipped: Counter) -> dict[int, Any]:
 
 
 @sw.guarded("cpm")
-def read(data: bytes, max_bytes: int = sw.MAX_STANDARD_BYTES) -> Reading:
-    """A UPER CPM in its own frame (``Reading``). Every failure is a CodecError."""
+def read(data: bytes, max_bytes: int = sw.MAX_STANDARD_BYTES, count_unread: bool = True) -> Reading:
+    """A UPER CPM in its own frame (``Reading``). ``count_unread``: count extension additions and
+    trailing octets that the decoder read past (``unread_<type>``; costs an encode of the message,
+    which ``decode`` spares the OBU). Every failure is a CodecError."""
     spec = _spec()
     raw = sw.check_size(data, max_bytes, "cpm")
     msg, root_size = _top(spec, raw)
@@ -197,9 +200,9 @@ def read(data: bytes, max_bytes: int = sw.MAX_STANDARD_BYTES) -> Reading:
                                f"where a CPM (id {MESSAGE_ID}, version {PROTOCOL_VERSION}) was expected")
     skipped: Counter = Counter()
     top_type = "CollectivePerceptionMessageRootSize" if root_size else "CollectivePerceptionMessage"
-    if not _read_whole(spec, top_type, msg, raw):
+    if count_unread and not _read_whole(spec, top_type, msg, raw):
         skipped["unread_CollectivePerceptionMessage"] += 1
-    found = _containers(spec, payload["cpmContainers"], skipped)
+    found = _containers(spec, payload["cpmContainers"], skipped, count_unread)
     management = payload["managementContainer"]
     position = management["referencePosition"]
     lat, lon = position["latitude"], position["longitude"]
@@ -289,7 +292,7 @@ def decode(data: bytes, rsu_id: str | None = None, max_bytes: int = sw.MAX_STAND
     lon degrees). ``rsu_id``: the id the message came under (its key); None names the RSU
     ``station<stationId>``. Header: publish = referenceTime, capture = the latest object time,
     prediction 0, seq = ``sequence`` (from referenceTime and the segment). Every failure is a CodecError."""
-    reading = read(data, max_bytes)
+    reading = read(data, max_bytes, count_unread=False)
     cols = place(reading, origin)
     reference_ms = reading.reference_time_ms
     capture_ms = reference_ms + (int(reading.delta_ms.max()) if len(reading.delta_ms) else 0)
