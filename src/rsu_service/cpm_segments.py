@@ -17,9 +17,9 @@ would need a ninth segment are not sent in this event and stay due (not committe
 
 The OBU takes each segment on its own, as the standard means it (no reassembly buffer, no
 timeout; a lost segment loses its own objects only): each segment decodes to an ObjectList of
-its objects with the event's times. (A CPM carries no sequence number: ``schemas.cpm`` derives
-the list's from ``referenceTime``, the same for every segment of an event, so the OBU's
-duplicate check needs the segment number too; see tests/unit/test_eval_runner_cpm_rules.py.)
+its objects with the event's times and its own sequence number (a CPM carries none:
+``schemas.cpm.sequence`` makes it of ``referenceTime`` and ``thisMsgNo``, so no segment is taken
+for a duplicate of another).
 """
 
 from __future__ import annotations
