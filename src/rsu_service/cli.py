@@ -56,8 +56,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--wire", choices=WIRES,
                    help="object list encoding: v2i (the project's compact msgpack columns on v2x/rsu/{id}/objects; "
                         "default), cpm (ETSI collective perception message, UPER, on v2x/rsu/{id}/cpm) or sdsm "
-                        "(SAE J3224 sensor data sharing message, UPER, on v2x/rsu/{id}/sdsm); a v2i OBU fuses all "
-                        "three, at the standard's resolution")
+                        "(a sensor data sharing message with SAE J3224's fields and resolution, UPER, on "
+                        "v2x/rsu/{id}/sdsm, but not J3224's bytes: a decoder generated from the J3224-2024 ASN.1 reads "
+                        "none of them, v2i reads only its own, no other stack was tried; docs/messages.md); a v2i OBU "
+                        "fuses all three, at the standard's resolution")
     p.add_argument("--cpm-rules", action="store_true", default=None,
                    help="with --wire cpm: ETSI TS 103 324 generation rules: an object goes when new, moved > 4 m, its "
                         "speed changed > 0.5 m/s or its heading > 4 degrees since last sent, or 1 s after; pedestrians "

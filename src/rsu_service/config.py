@@ -28,7 +28,7 @@ class RsuConfig(ServiceConfig):
                                                "(lane when the site has a map)")
     wire: Literal[WIRES] = Field("v2i", description="object list encoding: v2i (msgpack columns on "
                                  "v2x/rsu/{id}/objects), cpm (ETSI CPM, UPER, on .../cpm) or sdsm (SAE J3224 SDSM, "
-                                 "UPER, on .../sdsm); see schemas.list_wire")
+                                 "UPER, on .../sdsm: J3224's fields, not its bytes, docs/messages.md); see schemas.list_wire")
     cpm_rules: bool = Field(False, description="with wire cpm: ETSI TS 103 324 generation rules (an object goes "
                             "when new, moved > 4 m, speed changed > 0.5 m/s, heading > 4 degrees, or 1 s since last "
                             "sent; pedestrians and cyclists every 500 ms) and segmentation to cpm_mtu_bytes; see "

@@ -65,8 +65,9 @@ def _run_options(p: argparse.ArgumentParser) -> None:
                    "(V2V, through a channel per vehicle pair; obu_service/peers.py): default as the scenario's v2v says")
     p.add_argument("--wire", default="v2i", choices=("v2i", "cpm", "sdsm"),
                    help="RSU object list encoding: v2i (compact msgpack columns), cpm (ETSI collective perception "
-                        "message, UPER) or sdsm (SAE J3224, UPER); the OBU fuses each at its resolution "
-                        "(default %(default)s)")
+                        "message, UPER) or sdsm (SAE J3224's fields and resolution in UPER, but not J3224's bytes: "
+                        "a J3224-2024 decoder reads none of v2i's SDSMs, and no other stack was tried; "
+                        "docs/messages.md); the OBU fuses each at its resolution (default %(default)s)")
     p.add_argument("--cpm-rules", action="store_true",
                    help="with --wire cpm: the RSUs send by ETSI TS 103 324's generation rules (an object when new, "
                         "moved > 4 m, its speed changed > 0.5 m/s or its heading > 4 degrees since last sent, or 1 s "
