@@ -331,7 +331,8 @@ def cmd_chaos_run(args: argparse.Namespace) -> int:
         raise ValueError(f"chaos timeline {args.timeline}: profile {unknown[0]!r} is not bundled (the emulator "
                          f"switches to bundled profiles only): {', '.join(bundled_profiles())}")
     return _run_demo(Demo(with_chaos(_spec(args), chaos), chaos=chaos, record_to=args.record,
-                          progress=_progress(args), pki_dir=args.pki, **_ready_timeout(args)),
+                          progress=_progress(args), pki_dir=args.pki, save_wire=_save_wire(args),
+                          **_ready_timeout(args)),
                      args.json, "v2i chaos run", args.report)
 
 
@@ -476,6 +477,7 @@ def _chaos_options(chaos: argparse.ArgumentParser) -> None:
     chaos_run.add_argument("--report", metavar="DIR", help=_REPORT_HELP)
     chaos_run.add_argument("--record", metavar="FILE", help=_RECORD_HELP)
     chaos_run.add_argument("--pki", metavar="DIR", help=_PKI_HELP)
+    _add_save_wire(chaos_run)
     chaos_run.set_defaults(func=cmd_chaos_run)
 
 
