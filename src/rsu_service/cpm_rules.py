@@ -15,7 +15,10 @@ rule                           value       source
 T_GenCpmMin: generation        100 ms      §6.1.2.1; Table F.1. A generation event sooner than
 events no closer than                      this after the last CPM sends nothing.
 T_GenCpmMax: a CPM at least    1000 ms     §6.1.2.1; Table F.1. With no object to include, a CPM
-this often                                 (empty) still goes once this long has passed.
+this often                                 (empty) still goes once this long has passed: the
+                                           standard's periodic content, the sensor information
+                                           container (every T_AddSensorInformation, 1 s, §6.1.2.2),
+                                           is not sent by v2i; the empty CPM keeps the RSU heard.
 Type-B (vehicles,              4 m         §6.1.2.3 rule 2: included when first detected since
 motorcyclists)                 0.5 m/s     the last generation event (a), or, since it was last
                                4 degrees   included, its position moved more than 4 m (b), its
@@ -137,17 +140,9 @@ class CpmInclusion:
         rule = np.full(len(ids), "", dtype=object)
         rule[~known] = "new"  # rules 1 a, 2 a: first detected since the last generation event
         k = np.flatnonzero(known)
-        r = row[k]
-        age_ns = t_ns - self._sent.t_ns[r]
+        age_ns = t_ns - self._sent.t_ns[row[k]]
         b = ~vru[k]
-        # rule 2 b: |p - p_last| > 4 m; 2 c: ||v| - |v_last|| > 0.5 m/s;
-        # 2 d: |wrap(course - course_last)| > 4 degrees; 2 e: t - t_last >= T_GenCpmMax
-        moved = np.hypot(*(xy[k] - self._sent.xy[r]).T) > cfg.min_position_change_m
-        sped = np.abs(speed[k] - self._sent.speed[r]) > cfg.min_speed_change_mps
-        turn = np.abs(np.angle(np.exp(1j * (course[k] - self._sent.course[r]))))
-        turned = turn > np.deg2rad(cfg.min_orientation_change_deg)
-        stale = age_ns >= cfg.t_gen_cpm_max_ns
-        for name, fired in (("refresh", stale), ("heading", turned), ("speed", sped), ("position", moved)):
+        for name, fired in self._type_b_rules(row[k], xy[k], speed[k], course[k], age_ns):
             rule[k[b & fired]] = name  # the last assignment wins: position, speed, heading, refresh
         # rule 1 b: a known Type-A object T_GenCpmMax / 2 or more without inclusion brings every Type-A object
         if (vru[k] & (age_ns >= cfg.type_a_refresh_ns)).any():
@@ -183,6 +178,18 @@ class CpmInclusion:
         self._ids = all_ids[order]
         self._sent = _Sent(*(np.concatenate([a[old], c])[order]
                              for a, c in zip(vars(self._sent).values(), vars(new).values())))
+
+    def _type_b_rules(self, r: np.ndarray, xy: np.ndarray, speed: np.ndarray, course: np.ndarray,
+                      age_ns: np.ndarray) -> tuple[tuple[str, np.ndarray], ...]:
+        """Rules 2 e, d, c, b as (name, fired (K,)) for K known objects whose last-sent states are rows ``r``."""
+        cfg, last = self.config, self._sent
+        # 2 b: |p - p_last| > 4 m; 2 c: ||v| - |v_last|| > 0.5 m/s
+        moved = np.hypot(*(xy - last.xy[r]).T) > cfg.min_position_change_m
+        sped = np.abs(speed - last.speed[r]) > cfg.min_speed_change_mps
+        # 2 d: |wrap(course - course_last)| > 4 degrees, wrap to (-pi, pi] by the angle of exp(i d)
+        turned = np.abs(np.angle(np.exp(1j * (course - last.course[r])))) > np.deg2rad(cfg.min_orientation_change_deg)
+        # 2 e: t - t_last >= T_GenCpmMax
+        return ("refresh", age_ns >= cfg.t_gen_cpm_max_ns), ("heading", turned), ("speed", sped), ("position", moved)
 
     def _too_soon(self, t_ns: int) -> bool:
         """Whether ``t_ns`` is less than T_GenCpmMin after the last CPM."""
