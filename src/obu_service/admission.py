@@ -30,6 +30,7 @@ import numpy as np
 
 from v2i.core.frames import Pose2D, outside_box_rows
 from v2i.core.objects import ObjectArray
+from schemas.list_wire import UNCOUNTED_SENSORS
 from schemas.messages import ObjectList, ObjectListHeader, PredictionList
 
 from obu_service.rsu_table import RsuState, RsuTable
@@ -140,5 +141,6 @@ class Admission:
             return None
         if not paths and self.link_stats:
             state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns),
-                                     est.to_obu_ns(header.publish_time_ns), receive_ns)
+                                     est.to_obu_ns(header.publish_time_ns), receive_ns,
+                                     header.sensor not in UNCOUNTED_SENSORS)
         return "stale"

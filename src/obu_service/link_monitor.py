@@ -14,6 +14,9 @@ and the OBU receive time. Over the last ``window_ns`` of arrivals the monitor re
                    late (reordered) arrivals fill their gap, duplicates are counted and ignored.
                    A backward jump of more than ``max_misorder`` or a forward jump of more than
                    ``max_dropout`` is an RSU restart (RFC 3550 A.1): a new epoch begins.
+                   A list whose number is no message counter (a CPM's, made from its time: the
+                   standard carries no counter) counts for delay and latency, not for loss: with
+                   only such lists the loss is unknown (None), not the gaps between timestamps.
 - data age at fusion, recorded once per OBU cycle with ``on_fusion``.
 
 ``arrival_probability(W)`` answers "a frame captured at t: is it here by t + W?":
@@ -40,6 +43,9 @@ class Arrival:
     epoch: int  # sequence epoch (a new one after each RSU restart)
     latency_ms: float | None  # receive - capture (OBU time)
     delay_ms: float | None  # receive - publish (OBU time)
+
+
+UNCOUNTED_EPOCH = -1  # the epoch of arrivals whose number is no message counter (epochs count up from 0)
 
 
 def gap_loss(seqs: Iterable[int], epochs: Iterable[int]) -> tuple[int, int]:
@@ -87,23 +93,27 @@ class LinkMonitor:
 
     # --- input -----------------------------------------------------------------------------
     def on_message(self, seq: int, capture_obu_ns: int | None, publish_obu_ns: int | None,
-                   receive_obu_ns: int) -> bool:
+                   receive_obu_ns: int, counted: bool = True) -> bool:
         """Record an arrival; False for a duplicate (same epoch and seq still in the window).
 
         capture/publish are the RSU's stamps in OBU time (None while the clock is unknown: the
-        arrival then counts for loss only).
+        arrival then counts for loss only). ``counted``: ``seq`` is a message counter; False for a
+        number that only tells lists apart (``UNCOUNTED_EPOCH``: no loss, no restarts from it).
         """
         self.expire(receive_obu_ns)
         self._last_receive_ns = receive_obu_ns
-        self._track_sequence(seq)
-        if (self._epoch, seq) in self._seen:
+        if counted:
+            self._track_sequence(seq)  # first: a restart starts the new epoch with this arrival
+        epoch = self._epoch if counted else UNCOUNTED_EPOCH
+        if (epoch, seq) in self._seen:
             self.duplicates_total += 1
             return False
         latency = None if capture_obu_ns is None else (receive_obu_ns - capture_obu_ns) / NS_PER_MS
         delay = None if publish_obu_ns is None else (receive_obu_ns - publish_obu_ns) / NS_PER_MS
-        self._arrivals.append(Arrival(receive_obu_ns, seq, self._epoch, latency, delay))
-        self._seen.add((self._epoch, seq))
-        insort(self._epoch_seqs.setdefault(self._epoch, []), seq)
+        self._arrivals.append(Arrival(receive_obu_ns, seq, epoch, latency, delay))
+        self._seen.add((epoch, seq))
+        if counted:
+            insort(self._epoch_seqs.setdefault(epoch, []), seq)
         if latency is not None:
             insort(self._latencies, latency)
         while len(self._arrivals) > self.max_records:
@@ -208,9 +218,10 @@ class LinkMonitor:
     def _drop_oldest(self) -> None:
         old = self._arrivals.popleft()
         self._seen.discard((old.epoch, old.seq))
-        seqs = self._epoch_seqs[old.epoch]
-        del seqs[bisect_left(seqs, old.seq)]
-        if not seqs:
-            del self._epoch_seqs[old.epoch]
+        if old.epoch != UNCOUNTED_EPOCH:
+            seqs = self._epoch_seqs[old.epoch]
+            del seqs[bisect_left(seqs, old.seq)]
+            if not seqs:
+                del self._epoch_seqs[old.epoch]
         if old.latency_ms is not None:
             del self._latencies[bisect_left(self._latencies, old.latency_ms)]

@@ -35,6 +35,7 @@ from v2i.core.objects import ObjectArray, read_only
 from v2i.fusion.pose_history import PoseHistory
 from v2i.fusion.tracking import slot_source
 from v2i.fusion.wire import objects_from_states, wire_columns
+from schemas.list_wire import UNCOUNTED_SENSORS
 from schemas.messages import (MAX_OBJECTS, SOURCE_VEHICLE, FusedObjectList, ObjectList, ObjectListHeader, ObuMetrics,
                               PredictionList, RsuLinkStatus, TimeReply, TimeRequest)
 
@@ -230,7 +231,8 @@ class ObuPipeline:
         state.last_receive_ns = receive_ns
         publish_obu_ns = None if est is None else est.to_obu_ns(header.publish_time_ns)
         if est is not None:
-            state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns), publish_obu_ns, receive_ns)
+            state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns), publish_obu_ns, receive_ns,
+                                     header.sensor not in UNCOUNTED_SENSORS)
         while len(state.frames) > self.config.frames_kept:
             state.frames.popleft()
         return publish_obu_ns

@@ -31,6 +31,22 @@ def test_reordering_fills_the_gap_and_duplicates_are_ignored():
     assert mon.summary()["messages"] == 8
 
 
+def test_numbers_that_are_no_counter_count_for_latency_not_for_loss():
+    """A CPM's seq is 8 x its referenceTime (ms): 800 apart at 10 Hz. As counters those gaps would
+    be 99.9 % loss; uncounted, the loss is unknown and the arrival probability is the latency's."""
+    mon = LinkMonitor(max_records=8)
+    for i in range(20):
+        capture = T0 + i * PERIOD
+        mon.on_message(8 * (capture // MS), capture, capture + 100 * MS, capture + 120 * MS, counted=False)
+    assert mon.loss() == (0, 0) and mon.loss_ratio() is None and mon.restarts_total == 0
+    assert mon.arrival_probability(150.0) == 1.0 and mon.arrival_probability(110.0) == 0.0
+    assert len(mon.latencies_ms()) == 8  # bounded memory holds for them too
+    assert not mon.on_message(8 * ((T0 + 19 * PERIOD) // MS), None, None, T0 + 19 * PERIOD + 130 * MS, counted=False)
+    assert mon.duplicates_total == 1
+    feed(mon, [0, 1, 3], start_ns=T0 + 20 * PERIOD)  # a counting wire beside them: its gaps only
+    assert mon.loss() == (1, 4)
+
+
 def test_rsu_restart_starts_a_new_sequence_epoch():
     mon = LinkMonitor()
     feed(mon, range(1000, 1020))
