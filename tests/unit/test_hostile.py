@@ -35,3 +35,17 @@ def test_valid_messages_are_valid_and_extreme_ones_stay_within_the_wire():
         decode(hostile.valid(typ, T0), model)
     extreme = decode(hostile.extreme_values("object_list", T0), m.ObjectList)
     assert max(abs(o.x) for o in extreme.objects) > 1e5 and {abs(o.vx) for o in extreme.objects} == {200.0}
+
+
+def test_the_fuzzers_valid_cpm_lands_in_the_targets_map():
+    """A 'valid' hostile CPM is placed at the target's site origin: its objects decode where they were put
+    (within +-80 m of the origin), not near 0 N 0 E (~930 km away from a site at 49 N 8.4 E)."""
+    import time
+
+    from schemas import cpm
+    from v2i.adversary.fuzz_standard import StandardHostile
+
+    origin = (49.0, 8.4)
+    payload = StandardHostile(np.random.default_rng(3), origin=origin).valid("cpm", time.time_ns())
+    _, cols = cpm.decode(payload, "x1", origin=origin)
+    assert len(cols["x"]) == 8 and np.all(np.abs(cols["x"]) <= 80.01) and np.all(np.abs(cols["y"]) <= 80.01)

@@ -21,8 +21,10 @@ WIRES = {"cpm": cpm, "sdsm": sdsm}
 class StandardHostile:
     """Hostile payloads around a valid CPM or SDSM of ``n_objects`` objects (map frame) at ``t_ns``."""
 
-    def __init__(self, rng: np.random.Generator, rsu_id: str = "rsu1"):
-        self.rng, self.rsu_id = rng, rsu_id
+    def __init__(self, rng: np.random.Generator, rsu_id: str = "rsu1", origin: tuple[float, float] | None = None):
+        """``origin``: the target's site origin (WGS84 lat, lon degrees), a valid CPM's reference position,
+        so that its objects land in the target's map (None: 0 N 0 E, thousands of km from any site)."""
+        self.rng, self.rsu_id, self.origin = rng, rsu_id, origin
 
     def valid(self, wire: str, t_ns: int, n_objects: int = 8, capture_ns: int | None = None) -> bytes:
         n = n_objects
@@ -34,7 +36,7 @@ class StandardHostile:
         capture = t_ns - 150 * MS if capture_ns is None else capture_ns
         header = ObjectListHeader(rsu_id=self.rsu_id, seq=int(self.rng.integers(1 << 40)), capture_time_ns=capture,
                                   publish_time_ns=capture + 100 * MS)
-        return WIRES[wire].encode(header, cols)
+        return cpm.encode(header, cols, origin=self.origin) if wire == "cpm" else WIRES[wire].encode(header, cols)
 
     def make(self, wire: str, t_ns: int) -> tuple[str, bytes]:
         """(kind, payload): one hostile ``wire`` message of a random kind."""

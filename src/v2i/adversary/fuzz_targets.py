@@ -36,6 +36,7 @@ from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.messages import FusedObjectList, ObjectList, ObuMetrics, RsuMetrics, TimeReply, TimeRequest
 from v2i.runtime.transport import free_tcp_endpoint
+from v2i.sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG
 from v2i.sim.scenario import load_scenario
 
 from v2i.adversary.fuzz import LINK_ID, MS, RSU_ID, VEHICLE_ID, FuzzRun
@@ -102,7 +103,9 @@ class ObuFuzz(FuzzRun):
 
     def _standard_actions(self) -> list:
         """Hostile CPM / SDSM lists (``v2i.adversary.fuzz_standard``) on the RSU keys of other ids."""
-        hostile, now, actions = StandardHostile(self.rng), time.time_ns(), []
+        # the OBU's scenario site: every bundled scenario's map has this origin (v2i.sim.scenario_site)
+        hostile = StandardHostile(self.rng, origin=(MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG))
+        now, actions = time.time_ns(), []
         for wire, topic in (("cpm", keys.rsu_cpm), ("sdsm", keys.rsu_sdsm)):
             pool = itertools.cycle([hostile.make(wire, now)[1] for _ in range(64)])
             actions.append((wire, lambda topic=topic, pool=pool: self.deliver(
