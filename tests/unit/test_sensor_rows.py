@@ -6,9 +6,10 @@ import pytest
 
 from v2i.core.frames import map_to_base, wrap_angle
 from v2i.core.objects import ObjectArray
+from v2i.core.objects import diagonal_covariances as _diagonal_covariances
 from v2i.sim.scenario import load_scenario
 from v2i.sim.sensors import (_MIN_SIZE_M, SOURCE_RSU, SOURCE_VEHICLE, Lidar, RsuCamera, _default_lwh,
-                         _diagonal_covariances, mean_error_at, per_axis_sigma)
+                         mean_error_at, per_axis_sigma)
 from v2i.sim.world import World
 
 COLUMNS = ("ids", "cls", "xy", "z", "lwh", "yaw", "vxy", "axy", "yaw_rate", "cov_xy", "confidence", "cov_vxy",

@@ -119,7 +119,7 @@ class ObjectArray:
         return ObjectArray(**{name: np.concatenate([getattr(p, name) for p in parts]) for name in _FIELDS})
 
 
-_TILES: dict[float, np.ndarray] = {}  # variance -> (K, 2, 2) var I_2, K grown as needed
+_TILES: dict[float, np.ndarray] = {}  # variance -> (K, 2, 2) var I_2, K grown as needed; 64 variances at most
 
 
 def read_only(objs: ObjectArray) -> ObjectArray:
@@ -129,11 +129,13 @@ def read_only(objs: ObjectArray) -> ObjectArray:
     return objs
 
 
-def _diagonal_covariances(variance: float, n: int) -> np.ndarray:
+def diagonal_covariances(variance: float, n: int) -> np.ndarray:
     """(n, 2, 2) fresh copies of var I_2: ``np.tile(np.eye(2) * var, (n, 1, 1))`` (~4 us), copied from a slice
-    of a kept tile (~0.5 us)."""
+    of a kept tile (~0.5 us). Shared by the simulated sensors."""
     tile = _TILES.get(variance)
     if tile is None or len(tile) < n:
+        if tile is None and len(_TILES) >= 64:
+            _TILES.clear()
         rows = max(n, 64 if tile is None else 2 * len(tile))
         tile = _TILES[variance] = np.tile(np.eye(2) * variance, (rows, 1, 1))
     return tile[:n].copy()
@@ -142,9 +144,9 @@ def _diagonal_covariances(variance: float, n: int) -> np.ndarray:
 _DEFAULTS = (  # (column, rows -> default) for the columns that may be left out
     ("axy", lambda n: _col(n, 2)),
     ("yaw_rate", _col),
-    ("cov_xy", lambda n: _diagonal_covariances(1.0, n)),
+    ("cov_xy", lambda n: diagonal_covariances(1.0, n)),
     ("confidence", np.ones),
-    ("cov_vxy", lambda n: _diagonal_covariances(UNKNOWN_VELOCITY_VAR, n)),
+    ("cov_vxy", lambda n: diagonal_covariances(UNKNOWN_VELOCITY_VAR, n)),
     ("age_s", _col),
     ("sources", lambda n: _col(n, dtype=np.int64)),
 )

@@ -11,7 +11,7 @@ import numpy as np
 
 from v2i.core.clock import frame_times  # noqa: F401 (the sensors' capture times, imported from here too)
 from v2i.core.frames import Pose2D, PoseUncertainty, base_to_map_points, map_to_base, wrap_angle
-from v2i.core.objects import ObjectArray
+from v2i.core.objects import ObjectArray, diagonal_covariances
 from schemas.classes import CLASS_DEFAULT_LWH, ObjectClass
 from schemas.messages import UNKNOWN_VELOCITY_VAR
 
@@ -32,19 +32,6 @@ _DEFAULT_LWH_BY_CODE = np.array([CLASS_DEFAULT_LWH[ObjectClass(c)] for c in rang
 def _default_lwh(cls: np.ndarray) -> np.ndarray:
     """Class prior sizes (N, 3) m for class codes (N,)."""
     return _DEFAULT_LWH_BY_CODE[np.asarray(cls, dtype=np.int64)].reshape(-1, 3)
-
-
-_DIAGONALS: dict[float, np.ndarray] = {}  # variance -> (K, 2, 2) var I_2, grown as needed
-
-
-def _diagonal_covariances(variance: float, n: int) -> np.ndarray:
-    """(n, 2, 2) fresh copies of var I_2 (m^2): ``np.tile(np.eye(2) * var, (n, 1, 1))``, sliced from a kept tile."""
-    tile = _DIAGONALS.get(variance)
-    if tile is None or len(tile) < n:
-        if len(_DIAGONALS) >= 64:
-            _DIAGONALS.clear()
-        tile = _DIAGONALS[variance] = np.tile(np.eye(2) * variance, (max(n, 64), 1, 1))
-    return tile[:n].copy()
 
 
 def _confidence_clip(score: np.ndarray) -> np.ndarray:
@@ -103,8 +90,8 @@ class Lidar:
         k = int(np.count_nonzero(keep))  # the kept rows alone
         return ObjectArray(
             ids=np.full(k, -1, dtype=np.int64), cls=truth.cls[keep], xy=xy[keep], z=z[keep], lwh=lwh[keep],
-            yaw=yaw[keep], vxy=vxy[keep], cov_xy=_diagonal_covariances(c.position_noise_std_m**2, k),
-            confidence=confidence[keep], cov_vxy=_diagonal_covariances(c.velocity_noise_std_mps**2, k),
+            yaw=yaw[keep], vxy=vxy[keep], cov_xy=diagonal_covariances(c.position_noise_std_m**2, k),
+            confidence=confidence[keep], cov_vxy=diagonal_covariances(c.velocity_noise_std_mps**2, k),
             sources=np.full(k, SOURCE_VEHICLE, dtype=np.int64),
         )
 
@@ -191,7 +178,7 @@ class RsuCamera:
             ids=np.full(k, -1, dtype=np.int64), cls=truth.cls[keep], xy=xy[keep], z=lwh[:, 2] / 2.0, lwh=lwh,
             yaw=yaw[keep], vxy=np.zeros((k, 2)), cov_xy=sigma[:, None, None] ** 2 * np.eye(2),
             confidence=_confidence_clip(1.0 - 0.5 * rng_m[keep] / c.range_m),
-            cov_vxy=_diagonal_covariances(UNKNOWN_VELOCITY_VAR, k),  # ObjectArray's default: no velocity measured
+            cov_vxy=diagonal_covariances(UNKNOWN_VELOCITY_VAR, k),  # ObjectArray's default: no velocity measured
             sources=np.full(k, SOURCE_RSU, dtype=np.int64),
         )
         return out, delay_s
