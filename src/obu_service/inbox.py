@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
 from schemas import list_wire
+from schemas.list_wire import STANDARD_WIRES  # object lists in a standard encoding
 from schemas.codec import (MAX_MESSAGE_BYTES, CodecError, decode, from_body, header_of, object_count, open_body,
                            path_point_count)
 from schemas.columns import ObjectColumns
@@ -39,7 +40,6 @@ from obu_service.admission import AdmittedList, AdmittedPaths
 from obu_service.inbound_security import InboundSecurity
 
 T = TypeVar("T")
-STANDARD_WIRES = ("cpm", "sdsm")  # object lists in a standard encoding (schemas.list_wire)
 KINDS = ("rsu", "predictions", "time", *STANDARD_WIRES)  # what the inbox takes: every RSU message, all signed
 
 

@@ -24,6 +24,7 @@ from schemas.messages import ObjectList
 
 Wire = Literal["v2i", "cpm", "sdsm"]
 WIRES: tuple[str, ...] = ("v2i", "cpm", "sdsm")
+STANDARD_WIRES: tuple[str, ...] = ("cpm", "sdsm")  # the standards' encodings (UPER), each on its own key
 TOPIC_WIRE = {"objects": "v2i", "cpm": "cpm", "sdsm": "sdsm"}
 # the wires whose header seq is no message counter (a CPM has none: schemas.cpm.sequence makes one from
 # its time), by the header's ``sensor``: a receiver measures no loss from their gaps

@@ -17,12 +17,12 @@ import dataclasses
 import json
 from typing import Any
 
+from schemas.list_wire import STANDARD_WIRES
 from v2i.offline.spec import RunSpec
 
 RUN_METADATA = "run"
 REQUIRED_FLAGS = {"scenario": "--scenario", "start_ns": "--start-at-ns"}  # what a score cannot guess
 RSU_TRAFFIC = "v2x/rsu/**"
-STANDARD_WIRES = ("cpm", "sdsm")
 
 
 def run_metadata(spec: RunSpec, start_ns: int, duration_s: float, vehicle_id: str, rsu_id: str) -> dict[str, str]:

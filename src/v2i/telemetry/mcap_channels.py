@@ -50,12 +50,12 @@ from pydantic.json_schema import GenerateJsonSchema
 from v2i.core.frames import Pose2D, base_to_map_points
 from schemas import image_messages, messages, sensor_messages  # noqa: F401 (register every Message type)
 from schemas.codec import LIST_TAGS, MAX_CONTAINER_LEN
+from schemas.list_wire import STANDARD_WIRES  # key suffix -> UPER message of that standard
 from schemas.messages import FusedObjectList, Message, ObjectList
 from v2i.security.envelope import unwrap
 
 V2I_ENCODING = "v2i-msgpack"
 SIGNED_ENCODING = "v2i-signed+"  # prefix of a signed channel's message encoding (+ the payload's)
-STANDARD_WIRES = ("cpm", "sdsm")  # key suffix -> UPER message of that standard
 UNKNOWN = "unknown"
 SCENE_SCHEMA = "foxglove.SceneUpdate"
 # RGBA per source: RSU lists orange; fused objects blue when the RSU contributed, grey when own LiDAR only
