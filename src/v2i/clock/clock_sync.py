@@ -127,6 +127,19 @@ class OffsetEstimate:
 
 
 @dataclass(frozen=True)
+class ConfirmedStep:
+    """The last RSU clock step confirmed: it happened (OBU time) after ``after_ns`` (the latest t1 of
+    an exchange that still agreed with the old clock) and before ``before_ns`` (the t4 of the first
+    exchange that showed it); ``previous`` is the old clock's estimate when it was confirmed (it places
+    what the RSU stamped before the step, extrapolated with its drift); ``segment`` the new clock segment."""
+
+    segment: int
+    after_ns: int
+    before_ns: int
+    previous: OffsetEstimate
+
+
+@dataclass(frozen=True)
 class _Fit:
     """The window's fit at t_ref (the newest t4); readings are relative to theta_ref (floats stay small)."""
 
@@ -203,6 +216,7 @@ class ClockSync:
         self._hypotheses: list[_Hypothesis] = []  # competing suspected steps (disjoint suspect clusters)
         self._last_step = (0.0, 0.0)  # feasible sizes (ns) of the last confirmed step
         self._step_first_t4_ns = 0  # arrival of its first suspect
+        self.last_step: ConfirmedStep | None = None
         self._last: SyncSample | None = None
         self._total = 0
         self.outliers_rejected = 0  # suspects refuted or left unconfirmed, exchanges outside the consensus
@@ -358,15 +372,19 @@ class ClockSync:
         """The RSU clock stepped: a new segment starts with the suspects and the samples since the
         first of them that agree with the step; older segments keep informing the drift. The
         suspects of competing hypotheses are outliers."""
+        previous = self.estimate_at(hyp.first_t4_ns)
         self._hypotheses.remove(hyp)
         for other in list(self._hypotheses):
             self._reject(other)
+        after_ns = max((s.t1_ns for _, seg, s in self._samples if seg == self._segment and s.t1_ns < hyp.first_t4_ns),
+                       default=previous.at_ns)
         moved = {id(s) for s, interval in hyp.since if hyp.overlaps(interval)}
         self._segment += 1
         self._relabel(moved)
         for _, s in hyp.suspects:
             self._insert(s, self._segment)
         self._last_step, self._step_first_t4_ns = (hyp.low, hyp.high), hyp.first_t4_ns
+        self.last_step = ConfirmedStep(self._segment, after_ns, hyp.first_t4_ns, previous)
         self._fit = None
 
     # --- fit --------------------------------------------------------------------------------
