@@ -76,6 +76,10 @@ class StatelessFusion:
     def __init__(self, method: str, compensation: str, iou_threshold: float, motion: Motion = predict_ca):
         self.method, self.compensation, self.iou_threshold, self.motion = method, compensation, iou_threshold, motion
 
+    def used(self, newest: list[RsuFrame], fresh: list[RsuFrame]) -> list[RsuFrame]:
+        """The frames ``fuse`` puts into its output: the newest of each RSU (none for vehicle-only)."""
+        return [] if self.method == "vehicle-only" else newest
+
     def fuse(self, cycle_ns: int, ego: Pose2D, own: ObjectArray, newest: list[RsuFrame], fresh: list[RsuFrame]) -> ObjectArray:
         if self.method == "vehicle-only":
             return own
@@ -112,6 +116,10 @@ class KalmanFusion:
         self._ego_map = EgoMapTracker(tracker)  # a Tracker in the map of the drifting pose estimate
         self.tracker = OosmTracker(self._ego_map) if compensation == "oosm" else self._ego_map
         self._ref_ns: int | None = None
+
+    def used(self, newest: list[RsuFrame], fresh: list[RsuFrame]) -> list[RsuFrame]:
+        """The frames ``fuse`` feeds to the tracker: the fresh ones (none for kf-vehicle)."""
+        return fresh if self.use_rsu else []
 
     def fuse(self, cycle_ns: int, ego: Pose2D, own: ObjectArray, newest: list[RsuFrame], fresh: list[RsuFrame]) -> ObjectArray:
         if self._ref_ns is None:

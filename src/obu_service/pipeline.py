@@ -129,6 +129,10 @@ class ObuPipeline:
         self.covered_cycles = 0
         self.last_mode = "vehicle-only"
         self.last_planning: PredictionList | None = None  # planner-facing output of the last cycle
+        # ids of the RSUs whose data the last cycle's output used: frames fed to the fusion method in
+        # intra / inter (the tracker's fresh frames for kf, the newest for the stateless methods), the
+        # paths merged in planning; () when none
+        self.last_rsu_inputs: tuple[str, ...] = ()
         self._policy = ModePolicy(config.fusion_mode, config.hysteresis_cycles)
         self._fusion = make_fusion(config.fusion, config.compensation, config.iou_threshold, lanes)
         self._rsus = RsuTable(config.known_rsus, config.max_unknown_rsus, round(config.rsu_expiry_s * 1e9),
@@ -313,13 +317,16 @@ class ObuPipeline:
             newest, fresh = newest + peer_newest, fresh + peer_fresh
             self.peers.consume(peer_fresh, t_c)
         fused = self._fusion.fuse(t_c, ego, own, newest, fresh)
-        self._inputs.consume(fresh, t_c)
+        used = {f.rsu_index for f in self._fusion.used(newest, fresh)}
         for state in self._rsus:
             ages = [(t_c - f.valid_ns) * 1e-6 for f in newest if f.rsu_index == state.index]
             state.monitor.on_fusion(t_c, ages[0] if ages else None)
+        self._inputs.consume(fresh, t_c)
         self.last_planning = None
         if mode == "planning":
             fused = self._with_planning(fused, planning, t_c, ego, now_ns)
+            used = {self._rsus.get(pred.header.rsu_id).index for pred, _ in planning}
+        self.last_rsu_inputs = tuple(s.rsu_id for s in self._rsus if s.index in used)  # (peers' slots are not RSUs)
         self._account(t_c, mode, now_ns)
         self._out_seq += 1
         objects, dropped = wire_columns(fused, MAX_OBJECTS, fused=True)  # fit_to_wire, then its wire columns
