@@ -30,6 +30,11 @@ class ObuConfig(ServiceConfig):
     iou_threshold: float = Field(0.1, gt=0, le=1)
     inter_max_age_s: float = Field(0.6, gt=0, le=30, description="inter-frame fusion uses RSU data up to this old")
     planning_max_age_s: float = Field(5.0, gt=0, le=60, description="planning fusion uses RSU paths up to this old")
+    max_clock_uncertainty_ms: float = Field(50.0, ge=0, le=60_000, description="intra and inter fuse an RSU's "
+                                            "lists only while its stated clock uncertainty is at most this "
+                                            "(1.5 m allowed / 30 m/s fastest = 50 ms; ObuPipelineConfig)")
+    planning_max_clock_uncertainty_ms: float = Field(500.0, ge=0, le=60_000, description="planning uses an RSU's "
+                                                     "paths only while its stated clock uncertainty is at most this")
     deadline_ms: float = Field(100.0, gt=0, le=10_000, description="end-to-end: own LiDAR capture -> fused output")
     output_interval_ms: float = Field(150.0, gt=0, le=10_000, description="longest allowed gap between two outputs")
     fuse_delay_ms: float = Field(50.0, ge=0, le=10_000, description="own perception latency: LiDAR capture -> fusion")
@@ -108,6 +113,14 @@ class ObuConfig(ServiceConfig):
         return self.security or ("strict" if self.pki_dir else "off")
 
     @model_validator(mode="after")
+    def _clock_bounds_ordered(self) -> "ObuConfig":
+        if self.max_clock_uncertainty_ms > self.planning_max_clock_uncertainty_ms:
+            raise ValueError(f"max_clock_uncertainty_ms ({self.max_clock_uncertainty_ms}) exceeds "
+                             f"planning_max_clock_uncertainty_ms ({self.planning_max_clock_uncertainty_ms}): "
+                             "planning's bound is the looser one")
+        return self
+
+    @model_validator(mode="after")
     def _method_fits_compensation(self) -> "ObuConfig":
         if self.fusion != "roif":
             check_fusion(self.fusion, self.compensation)
@@ -143,6 +156,8 @@ class ObuConfig(ServiceConfig):
             vehicle_id=self.vehicle_id, fusion=self.fusion, compensation=self.compensation,
             fusion_mode=self.fusion_mode, iou_threshold=self.iou_threshold, inter_max_age_s=self.inter_max_age_s,
             planning_max_age_s=self.planning_max_age_s, deadline_ms=self.deadline_ms,
+            max_clock_uncertainty_ms=self.max_clock_uncertainty_ms,
+            planning_max_clock_uncertainty_ms=self.planning_max_clock_uncertainty_ms,
             output_interval_ms=self.output_interval_ms, known_rsus=self.registered_rsus(site),
             accept_unknown_rsus=self.accept_unknown_rsus, max_unknown_rsus=self.max_unknown_rsus,
             rsu_expiry_s=self.rsu_expiry_s, site_radius_m=self.site_radius_m,

@@ -17,6 +17,22 @@ so the policy moves between them every cycle as the intra wait budget allows.
 At fusion time the planned mode may turn out unavailable (the awaited frame did not come):
 ``adaptive`` then falls back to the next available mode within the same cycle; a fixed
 mode falls back to ``vehicle-only`` (and that cycle counts as an RSU deadline miss).
+
+An RSU's data is offered to a mode only while its clock is known well enough for it
+(``obu_service.mode_inputs``: tracking modes up to ``max_clock_uncertainty_ms``, planning up
+to ``planning_max_clock_uncertainty_ms``). Each output says why its mode is the one it is
+(``FusedObjectList.mode_reason``, ``mode_reason`` below), the first that applies of:
+
+- ``best``: the most accurate mode the configuration allows ran (adaptive: intra or inter;
+  a fixed mode: that mode; ``--fusion vehicle-only``: vehicle-only);
+- ``hysteresis``: a better level is feasible, but adaptive has not seen it feasible for
+  ``hysteresis_cycles`` cycles in a row yet;
+- ``clock_uncertainty``: a better level was not feasible because the data some RSU had for
+  it was withheld for its clock uncertainty;
+- ``intra_frame_late``: the fixed intra mode waited for its slot's frame and it did not come
+  by the fusion deadline;
+- ``not_synced``: an RSU's data is there but its clock is not synchronised yet;
+- ``no_rsu_data``: no RSU data for a better mode (none heard, or too old).
 """
 
 from __future__ import annotations
@@ -26,6 +42,7 @@ from dataclasses import dataclass
 MODES = ("intra", "inter", "planning", "vehicle-only")  # most to least accurate
 TRACKING_MODES = ("intra", "inter")  # the modes that feed RSU data to the tracker
 FUSION_MODES = ("adaptive", *MODES)
+MODE_REASONS = ("best", "hysteresis", "clock_uncertainty", "intra_frame_late", "not_synced", "no_rsu_data")
 
 
 @dataclass(frozen=True)
@@ -77,3 +94,35 @@ class ModePolicy:
         if self.fusion_mode != "adaptive":
             return "vehicle-only"
         return next(m for m in MODES[MODES.index(planned):] if m in available)
+
+
+_LEVELS = ("tracking", "planning", "vehicle-only")  # most to least accurate
+
+
+def _level(mode: str) -> str:
+    """The level a mode belongs to: "tracking" (intra, inter), "planning" or "vehicle-only"."""
+    return "tracking" if mode in TRACKING_MODES else mode
+
+
+def mode_reason(fusion_mode: str, mode: str, feasible: Feasible, withheld: set[str], *,
+                intra_late: bool = False, not_synced: bool = False) -> str:
+    """Why a cycle ran ``mode`` (one of ``MODE_REASONS``; the module doc defines them).
+
+    ``feasible``: what the data allowed at fusion time; ``withheld``: the levels ("tracking",
+    "planning") whose data some RSU's clock withheld (``ModeInputs.withheld``); ``intra_late``:
+    the fixed intra mode waited for a slot's frame that did not come; ``not_synced``: an RSU's
+    data is there without a clock estimate."""
+    if fusion_mode == "adaptive":
+        better = list(_LEVELS[:_LEVELS.index(_level(mode))])
+    else:
+        better = [] if mode == fusion_mode else [_level(fusion_mode)]
+    if not better:
+        return "best"
+    if fusion_mode == "adaptive" and any(
+            feasible.intra or feasible.inter if lv == "tracking" else feasible.planning for lv in better):
+        return "hysteresis"
+    if withheld.intersection(better):
+        return "clock_uncertainty"
+    if intra_late:
+        return "intra_frame_late"
+    return "not_synced" if not_synced else "no_rsu_data"

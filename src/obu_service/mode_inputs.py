@@ -7,6 +7,14 @@ and the future tolerance) is left out. ``inter``: the newest frame of each RSU a
 not yet fed to the tracker within ``inter_max_age_s``; ``intra_slots`` / ``intra``: the frame
 of each RSU's sensing slot; ``planning``: the newest paths that still cover the cycle;
 ``consume`` marks frames fed to the tracker (each list is a measurement once).
+
+Clock gating: an RSU's data is only as well placed in time as its clock estimate. An RSU
+whose stated uncertainty at the cycle (``OffsetEstimate.uncertainty_ns``, a bound on
+|estimate - truth|) exceeds ``max_clock_uncertainty_ms`` offers no frames to intra or inter,
+and one past ``planning_max_clock_uncertainty_ms`` no paths to planning (the bounds and their
+derivation: ``ObuPipelineConfig``); another RSU with a good clock still offers its own.
+``withheld`` says which modes' data some RSU's clock withheld at a cycle (the cycle's
+``mode_reason``, ``obu_service.fusion_mode``).
 """
 
 from __future__ import annotations
@@ -98,19 +106,47 @@ class ModeInputs:
             placed.append((raw, previous))
         return placed
 
+    def clock_ok(self, state: RsuState, t_ns: int, planning: bool = False) -> bool:
+        """Whether the RSU's clock is known well enough at ``t_ns`` for the tracking modes (intra, inter)
+        or, with ``planning``, for planning paths: stated uncertainty <= the mode's bound."""
+        est = state.sync.estimate_at(t_ns)
+        if est is None:
+            return False
+        bound_ms = self.config.planning_max_clock_uncertainty_ms if planning else self.config.max_clock_uncertainty_ms
+        return est.uncertainty_ns <= bound_ms * 1e6
+
     def inter(self, t_c: int) -> tuple[list[RsuFrame], list[RsuFrame]]:
-        """(newest frame of each RSU, frames not yet consumed) within inter_max_age_s of the cycle."""
+        """(newest frame of each RSU, frames not yet consumed) within inter_max_age_s of the cycle,
+        of the RSUs whose clock passes the tracking bound (``clock_ok``)."""
         newest, fresh = [], []
-        limit_ns = self.config.inter_max_age_s * 1e9
         for state in self.rsus:
-            placed = self.placed(state, t_c)
-            if not placed:
-                continue
-            state.last_age_ms = (t_c - placed[-1][1].valid_ns) * 1e-6
-            if abs(t_c - placed[-1][1].valid_ns) <= limit_ns:
-                newest.append(placed[-1][1])
-            fresh += [f for raw, f in placed if not raw.used and f.valid_ns <= t_c and t_c - f.valid_ns <= limit_ns]
+            got_newest, got_fresh = self._inter_of(state, t_c)
+            if (got_newest or got_fresh) and self.clock_ok(state, t_c):
+                newest += got_newest
+                fresh += got_fresh
         return newest, fresh
+
+    def _inter_of(self, state: RsuState, t_c: int) -> tuple[list[RsuFrame], list[RsuFrame]]:
+        """One RSU's part of ``inter``, whatever its clock (and its ``last_age_ms`` at the cycle)."""
+        placed = self.placed(state, t_c)
+        if not placed:
+            return [], []
+        limit_ns = self.config.inter_max_age_s * 1e9
+        state.last_age_ms = (t_c - placed[-1][1].valid_ns) * 1e-6
+        newest = [placed[-1][1]] if abs(t_c - placed[-1][1].valid_ns) <= limit_ns else []
+        fresh = [f for raw, f in placed if not raw.used and f.valid_ns <= t_c and t_c - f.valid_ns <= limit_ns]
+        return newest, fresh
+
+    def withheld(self, t_c: int) -> set[str]:
+        """The levels ("tracking": intra / inter, "planning") for which some RSU had data at the cycle
+        that its clock's uncertainty withheld (past the level's bound)."""
+        out = set()
+        for state in self.rsus:
+            if not self.clock_ok(state, t_c) and any(self._inter_of(state, t_c)):
+                out.add("tracking")
+            if not self.clock_ok(state, t_c, planning=True) and self._paths_of(state, t_c) is not None:
+                out.add("planning")
+        return out
 
     def intra(self, capture_ns: int, slots: dict[str, int]) -> tuple[list[RsuFrame], list[RsuFrame]]:
         """(frames of the cycle's sensing slot, those of them not yet fed to the tracker), once
@@ -118,7 +154,7 @@ class ModeInputs:
         frames, fresh = [], []
         for rsu_id, slot_ns in slots.items():
             state = self.rsus.get(rsu_id)
-            if state is None:  # expired meanwhile
+            if state is None or not self.clock_ok(state, capture_ns):  # expired, or its clock got uncertain, meanwhile
                 return [], []
             placement = self._placement(state, capture_ns)
             match = [] if placement is None else [(raw, f) for raw, f in placement.placed
@@ -144,7 +180,7 @@ class ModeInputs:
         slots = {}
         for state in self.rsus:
             placement = self._placement(state, t_c)
-            if placement is None:
+            if placement is None or not self.clock_ok(state, t_c):
                 continue
             est, period_ns = placement.estimate, placement.period_ns
             reach_ns = t_c + min(max(est.uncertainty_ns, MIN_SLOT_TOLERANCE_NS), period_ns // 2)
@@ -170,16 +206,24 @@ class ModeInputs:
                 raw.used = raw.used or late or (state.index, raw.seq) in done
 
     def planning(self, t_c: int) -> list[tuple[PredictionList, int]]:
-        """(paths, t0 in OBU ns) of each RSU whose newest paths still cover the cycle."""
+        """(paths, t0 in OBU ns) of each RSU whose newest paths still cover the cycle and whose clock
+        passes the planning bound (``clock_ok``)."""
         out = []
         for state in self.rsus:
-            pred, est = state.predictions, state.sync.estimate_at(t_c)
-            if pred is None or est is None:
-                continue
-            t0_ns = est.to_obu_ns(pred.header.valid_time_ns)
-            if 0 <= t_c - t0_ns <= min(self.config.planning_max_age_s * 1e9, pred.horizon_ns):
-                out.append((pred, t0_ns))
+            item = self._paths_of(state, t_c)
+            if item is not None and self.clock_ok(state, t_c, planning=True):
+                out.append(item)
         return out
+
+    def _paths_of(self, state: RsuState, t_c: int) -> tuple[PredictionList, int] | None:
+        """The RSU's newest paths and their t0 (OBU ns) if they cover the cycle, whatever its clock."""
+        pred, est = state.predictions, state.sync.estimate_at(t_c)
+        if pred is None or est is None:
+            return None
+        t0_ns = est.to_obu_ns(pred.header.valid_time_ns)
+        if 0 <= t_c - t0_ns <= min(self.config.planning_max_age_s * 1e9, pred.horizon_ns):
+            return pred, t0_ns
+        return None
 
 
 _valid_rsu_ns = attrgetter("valid_rsu_ns")

@@ -41,7 +41,7 @@ from schemas.messages import (MAX_OBJECTS, SOURCE_VEHICLE, FusedObjectList, Obje
 
 from obu_service.admission import Admission, AdmittedList, AdmittedPaths, Limits
 from v2i.clock.clock_sync import OffsetEstimate
-from obu_service.fusion_mode import FUSION_MODES, MODES, Feasible, ModePolicy
+from obu_service.fusion_mode import FUSION_MODES, MODES, Feasible, ModePolicy, mode_reason
 from obu_service.methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_fusion, make_fusion
 from obu_service.mode_inputs import ModeInputs, Received
 from obu_service.peers import MAX_PEERS, PeerIntake
@@ -64,6 +64,17 @@ class ObuPipelineConfig:
     iou_threshold: float = 0.1  # Saravanan et al.'s merger: an RSU object this overlapping an own one is a duplicate
     inter_max_age_s: float = 0.6  # IAAD, Liu et al.: inter-frame fusion tolerates RSU data this old
     planning_max_age_s: float = 5.0  # IAAD, Liu et al.: the RSU's paths are usable this long after t0
+    # the largest stated clock uncertainty (OffsetEstimate.uncertainty_ns) an RSU's data is fused through
+    # (obu_service.mode_inputs). A clock error e places an object moving at v off by v e, so
+    #   e_max = position error allowed / fastest speed expected = 1.5 m / 30 m/s = 50 ms
+    # (1.5 m: about the RSU's own position error at range, 0.8-1.4 m measured by the eval; 30 m/s: the
+    # fastest actors of the bundled scenarios, highway-merge's 27-30.5 m/s; 50 ms moves 30.5 m/s 1.53 m).
+    max_clock_uncertainty_ms: float = 50.0  # intra, inter: frames fed to the tracker
+    # planning hands the RSU's 5 s paths to the planner, which keeps a time gap to them (2 s, the
+    # headway rule and the scenarios' traffic), not a box in the tracker: a timing error of a
+    # quarter of that gap, 2 s / 4 = 500 ms (15 m at 30.5 m/s of a 61 m gap; 7 m at 13.9 m/s
+    # urban), a tenth of the 5 s horizon, still leaves the planner three quarters of its margin
+    planning_max_clock_uncertainty_ms: float = 500.0
     deadline_ms: float = 100.0  # end-to-end: own LiDAR capture -> publish
     output_interval_ms: float = 150.0  # bound on the time between two consecutive outputs
     compute_margin_ms: float = 10.0  # fusion compute + publish must fit between fuse_by and the deadline
@@ -95,6 +106,9 @@ class ObuPipelineConfig:
     def __post_init__(self) -> None:
         check_fusion(self.fusion, self.compensation)
         ModePolicy(self.fusion_mode, self.hysteresis_cycles)  # validates the mode
+        if not 0 <= self.max_clock_uncertainty_ms <= self.planning_max_clock_uncertainty_ms:
+            raise ValueError(f"need 0 <= max_clock_uncertainty_ms ({self.max_clock_uncertainty_ms}) <= "
+                             f"planning_max_clock_uncertainty_ms ({self.planning_max_clock_uncertainty_ms})")
         slots = len(self.known_rsus) + (self.max_unknown_rsus if self.accept_unknown_rsus else 0)
         if slots > MAX_RSUS:
             raise ValueError(f"known_rsus ({len(self.known_rsus)}) + max_unknown_rsus ({self.max_unknown_rsus}) "
@@ -123,6 +137,7 @@ class ObuPipeline:
         self.rejected: Counter[str] = Counter()
         self.output_dropped: Counter[str] = Counter()  # output objects clipped or dropped to fit the wire
         self.modes: Counter[str] = Counter({m: 0 for m in MODES})
+        self.mode_reasons: Counter[str] = Counter()  # outputs by mode_reason (obu_service.fusion_mode)
         self.cycles = 0
         self.deadline_misses = 0
         self.rsu_deadline_misses = 0
@@ -307,9 +322,11 @@ class ObuPipeline:
         intra = self._asked(cycle, "intra", lambda: self._inputs.intra(t_c, cycle.intra_slots))
         inter = self._asked(cycle, "inter", lambda: self._inputs.inter(t_c))
         planning = self._asked(cycle, "planning", lambda: self._inputs.planning(t_c))
-        mode = self._policy.resolve(cycle.mode, Feasible(bool(intra[0]), bool(inter[0]), bool(planning)))
+        feasible = Feasible(bool(intra[0]), bool(inter[0]), bool(planning))
+        mode = self._policy.resolve(cycle.mode, feasible)
         if self.config.fusion == "vehicle-only":
             mode = "vehicle-only"
+        reason = self._reason(cycle, mode, feasible)
         own = cycle.own.with_(ids=np.arange(1, len(cycle.own) + 1))
         newest, fresh = (self._within_budget(frames) for frames in {"intra": intra, "inter": inter}.get(mode, ([], [])))
         if self.peers is not None and self.config.fusion != "vehicle-only":  # V2V: every cycle, inter-frame
@@ -328,12 +345,14 @@ class ObuPipeline:
             used = {self._rsus.get(pred.header.rsu_id).index for pred, _ in planning}
         self.last_rsu_inputs = tuple(s.rsu_id for s in self._rsus if s.index in used)  # (peers' slots are not RSUs)
         self._account(t_c, mode, now_ns)
+        self.mode_reasons[reason] += 1
         self._out_seq += 1
         objects, dropped = wire_columns(fused, MAX_OBJECTS, fused=True)  # fit_to_wire, then its wire columns
         self.output_dropped.update(dropped)
         return FusedObjectList(
             vehicle_id=self.config.vehicle_id, seq=self._out_seq, cycle_time_ns=t_c, publish_time_ns=now_ns,
-            fusion=self.config.fusion, mode=mode, ego_x=ego.x, ego_y=ego.y, ego_yaw=ego.yaw, objects=objects,
+            fusion=self.config.fusion, mode=mode, mode_reason=reason, ego_x=ego.x, ego_y=ego.y, ego_yaw=ego.yaw,
+            objects=objects,
         )
 
     def _asked(self, cycle: _Cycle, what: str, ask):
@@ -342,6 +361,18 @@ class ObuPipeline:
         ``last_age_ms`` the same value)."""
         version, answer = cycle.asked.get(what, (None, None))
         return answer if version == self._inputs_version else ask()
+
+    def _reason(self, cycle: _Cycle, mode: str, feasible: Feasible) -> str:
+        """Why the cycle ran ``mode`` (``obu_service.fusion_mode.mode_reason``)."""
+        if self.config.fusion == "vehicle-only":
+            return "best"
+        fusion_mode, t_c = self.config.fusion_mode, cycle.capture_ns
+        reason = mode_reason(fusion_mode, mode, feasible, set())  # the usual case: no RSU state looked at
+        if reason in ("best", "hysteresis"):
+            return reason
+        return mode_reason(fusion_mode, mode, feasible, self._inputs.withheld(t_c),
+                           intra_late=fusion_mode == "intra" and bool(cycle.intra_slots),
+                           not_synced=any(s.sync.estimate() is None and (s.frames or s.predictions) for s in self._rsus))
 
     def _within_budget(self, frames: list[RsuFrame]) -> list[RsuFrame]:
         """The frames a cycle may fuse: at most max_rsu_objects_per_cycle objects in all, known
@@ -397,6 +428,7 @@ class ObuPipeline:
             vehicle_id=self.config.vehicle_id, t_ns=now_ns, cycles=self.cycles,
             output_deadline_misses=self.deadline_misses, rsu_deadline_misses=self.rsu_deadline_misses,
             covered_cycles=self.covered_cycles, mode=self.last_mode, mode_counts=dict(self.modes),
+            mode_reasons=dict(self.mode_reasons),
             rsus=tuple(self._rsu_status(s, now_ns) for s in self._rsus), rejected=dict(self.rejected),
             output_dropped=dict(self.output_dropped), latency_ms=latency_ms or {},
         )

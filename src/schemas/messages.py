@@ -183,6 +183,9 @@ class FusedObjectList(Message):
     ego_x: Position = 0.0
     ego_y: Position = 0.0
     ego_yaw: Yaw = 0.0
+    # why the cycle ran ``mode`` (obu_service.fusion_mode: best, hysteresis, clock_uncertainty, ...); ""
+    # from producers that do not say. Last of the positional fields, so their shorter lists still decode
+    mode_reason: Annotated[str, Field(max_length=32)] = ""
     objects: FusedObjects = EMPTY_FUSED
 
 
@@ -281,6 +284,7 @@ class ObuMetrics(Message):
     covered_cycles: Count = 0  # cycles with an RSU heard recently
     mode: Annotated[str, Field(max_length=32)] = ""
     mode_counts: dict[Annotated[str, Field(max_length=32)], Count] = Field(default_factory=dict, max_length=8)
+    mode_reasons: dict[Annotated[str, Field(max_length=32)], Count] = Field(default_factory=dict, max_length=8)
     rsus: Annotated[tuple[RsuLinkStatus, ...], Field(max_length=64)] = ()
     rejected: dict[Annotated[str, Field(max_length=64)], Count] = Field(
         default_factory=dict, max_length=64

@@ -114,6 +114,7 @@ def fused_object_lists(draw) -> FusedObjectList:
         ego_x=draw(floats(-1e6, 1e6)),
         ego_y=draw(floats(-1e6, 1e6)),
         ego_yaw=draw(floats(-100, 100)),
+        mode_reason=draw(labels),
         objects=tuple(draw(st.lists(fused_objects, max_size=12))),
     )
 
