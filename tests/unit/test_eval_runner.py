@@ -54,7 +54,13 @@ def test_clock_offset_is_recovered_offline():
 
 def test_vehicle_only_fusion_never_uses_rsu():
     r = report(0, fusion="vehicle-only")
-    assert r["target"]["first_detection_distance_m"] == r["vehicle_only"]["first_detection_distance_m"]
+    assert r["mode_share"]["vehicle_only"] == 1.0
+
+
+def test_own_only_kf_is_the_vehicle_only_baseline():
+    """--fusion kf-vehicle runs the baseline's tracker (v2i.offline.baseline) on the same own frames."""
+    r = report(0, fusion="kf-vehicle")
+    assert r["target"] == r["vehicle_only"] and r["target"]["detected_cycles"] > 0
 
 
 def test_cli_rejects_unknown_scenario_and_profile(capsys):

@@ -69,11 +69,15 @@ def test_bev_iou_pairs_equal_the_matrix_row_by_row_on_hard_boxes():
 
 
 class _ReferenceTargetTally:
-    """The previous TargetTally: each pair's IoU, NEES and distance computed when it is added."""
+    """The previous TargetTally: each pair's IoU, NEES and distance computed when it is added; its id
+    switches motmetrics' (a MotTally of the kept outputs and the actors within 80 m, distances its own)."""
 
     def __init__(self, target_id: int, sources_mask: int | None = None):
+        from v2i.scoring.detection_metrics import MotTally
+
         self.target_id, self.sources_mask = target_id, sources_mask
         self.rows: list[tuple] = []
+        self.mot = MotTally()
 
     def add(self, frame) -> None:
         from v2i.scoring.detection_metrics import nees_values
@@ -81,6 +85,11 @@ class _ReferenceTargetTally:
         from v2i.fusion.geometry import bev_iou_matrix
 
         truth, out = frame.truth, frame.out
+        near_t = np.linalg.norm(truth.xy, axis=1) <= 80.0
+        near_o = np.linalg.norm(out.xy, axis=1) <= 80.0
+        if self.sources_mask is not None:
+            near_o &= (out.sources & self.sources_mask) != 0
+        self.mot.add_frame(truth.ids[near_t], truth.xy[near_t], out.ids[near_o], out.xy[near_o])
         rows = np.flatnonzero(truth.ids == self.target_id)
         if self.sources_mask is None:
             k = _match_target_cost(frame.distances_m, truth.ids, self.target_id, rows)
@@ -114,7 +123,7 @@ class _ReferenceTargetTally:
             first_detection_distance_m=float(col["dist"][0]) if detected else None,
             first_detection_time_s=float(col["t_s"][0]) if detected else None,
             nees_mean=consistency["mean"], nees_fraction_inside=consistency["fraction_inside"],
-            track_ids=len(np.unique(ids)), id_switches=int(np.count_nonzero(np.diff(ids))))
+            track_ids=len(np.unique(ids)), id_switches=self.mot.switches_of[self.target_id])
 
 
 def _frames(rng: np.random.Generator, count: int) -> list:

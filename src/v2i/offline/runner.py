@@ -255,7 +255,14 @@ class OfflineRun:
             vehicle.record.covered_cycles = vehicle.obu.covered_cycles
             vehicle.record.rsu_deadline_misses = vehicle.obu.rsu_deadline_misses
             vehicle.record.rejected = dict(vehicle.obu.rejected)
+            vehicle.record.clock_steps = {r.cfg.id: self._steps(vehicle.obu, r.cfg.id) for r in self.rsus}
         return self.record
+
+    @staticmethod
+    def _steps(obu: ObuPipeline, rsu_id: str) -> int:
+        """The RSU clock steps the vehicle's estimator confirmed (0: never synced)."""
+        est = obu.clock_offset(rsu_id)
+        return 0 if est is None else est.steps
 
     def report(self, driver: str = "eval") -> dict:
         """The ego's report (``build_report``), with every vehicle's scores under ``vehicles``
@@ -405,6 +412,8 @@ class OfflineRun:
 
     def _obu_capture(self, vehicle: _Vehicle) -> None:
         frame = vehicle.sensing.capture(self.clock.t_ns)
+        # the vehicle-only baseline gets every own frame, whatever the OBU does with it (truth derived at capture)
+        vehicle.record.add_own_frame(frame, vehicle.sensing.lidar.last_truth, self.site_config)
         vehicle.obu.on_pose(frame.capture_ns, frame.pose)
         self.queue.at(frame.capture_ns + round(self.obu_config.fuse_delay_ms * 1e6), self._obu_fuse, vehicle, frame)
 
@@ -424,10 +433,22 @@ class OfflineRun:
             vehicle.record.links.add(self.clock.t_ns, obu.metrics(self.clock.t_ns).rsus)
         if self.v2v is not None:
             self._v2v_broadcast(vehicle, encode(shared_list(out)), self._peer_list)
-        rsu_id = self.rsus[0].cfg.id  # every RSU runs the same clock model: the first one is scored
-        est, naive = obu.clock_offset(rsu_id, self.clock.t_ns), obu.naive_clock_offset(rsu_id)
-        if est is not None:
-            vehicle.record.add_offset_sample(self.clock.t_ns, est.offset_ns, naive.offset_ns, est.drift_ppm)
+        self._record_clocks(vehicle, out)
+
+    def _record_clocks(self, vehicle: _Vehicle, out: FusedObjectList) -> None:
+        """Every synced RSU's clock estimate now (as the live OBU's metrics carry them), and the estimate at
+        the cycle time of each RSU whose data the cycle used (``ObuPipeline.last_rsu_inputs``)."""
+        obu, record = vehicle.obu, vehicle.record
+        for rsu in self.rsus:
+            rsu_id = rsu.cfg.id
+            est, naive = obu.clock_offset(rsu_id, self.clock.t_ns), obu.naive_clock_offset(rsu_id)
+            if est is not None:
+                record.add_offset_sample(self.clock.t_ns, est.offset_ns, naive.offset_ns, est.drift_ppm, rsu_id)
+        for rsu_id in obu.last_rsu_inputs:  # intra / inter: lists fused; planning: paths placed
+            est = obu.clock_offset(rsu_id, out.cycle_time_ns)
+            if est is not None:
+                record.add_used_clock(out.cycle_time_ns, rsu_id, est.offset_at_ns(out.cycle_time_ns),
+                                      planned=out.mode == "planning")
 
     # --- V2V ---------------------------------------------------------------------------
     def _v2v_broadcast(self, sender: _Vehicle, data: bytes, deliver: Callable) -> None:

@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from v2i.core.objects import ObjectArray
-from schemas.messages import SOURCE_VEHICLE, FusedObjectList, ObuMetrics, PredictionList
+from schemas.messages import FusedObjectList, ObuMetrics, PredictionList
 from obu_service.config import ObuConfig
 from v2i.perception.scoring import PerceptionTally
 from rsu_service.config import RsuConfig
@@ -17,8 +17,10 @@ from v2i.sim.clock import SystemClock, rsu_clock
 from v2i.sim.world import World
 
 from v2i.scoring.link_series import LinkSeries
-from v2i.scoring.metrics import (CycleFrame, CycleLog, DetectionTally, DisplacementTally, TargetTally, clock_errors,
-                      deadline_miss_ratio, mode_share)
+from v2i.scoring.metrics import (FUSED, PLANNED, CycleFrame, CycleLog, DetectionTally, DisplacementTally, TargetTally,
+                                 clock_errors, deadline_miss_ratio, mode_share)
+from v2i.offline.baseline import OwnBaseline, own_baseline
+from obu_service.source import OwnFrame
 
 # Offline runs start at a fixed epoch (2026-01-01T00:00:00Z) so that reports are reproducible.
 EVAL_EPOCH_NS = 1_767_225_600 * 10**9
@@ -75,13 +77,20 @@ class RunRecord:
         self.world, self.start_ns, self.duration_s = world, start_ns, duration_s
         self.cycle_times_ns = np.asarray(cycle_times_ns, dtype=np.int64)  # expected cycles (K,) ns
         self.cycles = CycleLog()
-        self.target = TargetTally(world.target_id)
-        self.vehicle_target = TargetTally(world.target_id, sources_mask=SOURCE_VEHICLE)
         self.detection = DetectionTally()
+        self.target = TargetTally(world.target_id, mot=self.detection.mot)  # id switches: the run's MotTally's
+        # the vehicle-only baseline (v2i.offline.baseline): the own sensors through a fixed own-only tracker,
+        # fed by the driver (add_own_frame) or, when it fed none, computed by build_report
+        self.baseline: OwnBaseline | None = None
+        self._computed_baseline: TargetTally | None = None
         self.displacement = DisplacementTally(world, start_ns)
         self.planning_handoffs = 0  # paths handed to the planner (OBU clock)
-        # clock-offset samples: t_ns, estimated theta_ns, naive theta_ns, estimated drift ppm
-        self._offsets = (array("q"), array("q"), array("q"), array("d"))
+        # clock-offset samples: t_ns, estimated theta_ns, naive theta_ns, estimated drift ppm, RSU index
+        self._offsets = (array("q"), array("q"), array("q"), array("d"), array("h"))
+        self.rsu_ids: list[str] = []  # RSU index -> id, in order of first sample
+        # the clock of the cycles that used RSU data: cycle t_ns, theta_ns at it, RSU index, FUSED or PLANNED
+        self._used_clock = (array("q"), array("q"), array("h"), array("b"))
+        self.clock_steps: dict[str, int] | None = None  # RSU id -> steps its estimator confirmed (None: unknown)
         self.perception = PerceptionTally()  # the RSU's raw detections against the truth it could see
         # live runs: each service's latest per-stage latency ("rsu", "link", "obu": {stage: {count, p50, p95,
         # p99}} in ms, v2i.telemetry.latency); offline none (its clock is simulated)
@@ -101,7 +110,7 @@ class RunRecord:
         (t_s, the truth in base_link) derived at the cycle's capture (``CycleFrame.of``)."""
         self.cycles.add(output)
         frame = CycleFrame.of(self.world, output, self.start_ns, truth)
-        for tally in (self.target, self.vehicle_target, self.detection):
+        for tally in (self.target, self.detection):
             tally.add(frame)
         if planning is not None:
             self.add_planning(planning)
@@ -110,8 +119,35 @@ class RunRecord:
         self.planning_handoffs += 1
         self.displacement.add(planning)
 
-    def add_offset_sample(self, t_ns: int, theta_ns: int, naive_theta_ns: int, drift_ppm: float) -> None:
-        for column, value in zip(self._offsets, (t_ns, theta_ns, naive_theta_ns, drift_ppm)):
+    def add_own_frame(self, frame: OwnFrame, truth: tuple[float, ObjectArray] | None = None, site=None) -> None:
+        """One of the vehicle's own frames into the vehicle-only baseline (every cycle, whatever the OBU did
+        with it); ``truth`` as in ``add_output``; ``site``: the scenario's (``site_of``) on the first frame."""
+        if self.baseline is None:
+            self.baseline = OwnBaseline(self.world, self.start_ns, site)
+        self.baseline.add(frame, truth)
+
+    @property
+    def vehicle_target(self) -> TargetTally:
+        """The vehicle-only baseline's target tally fed so far (``own_baseline`` computes it when none was fed)."""
+        if self.baseline is not None:
+            return self.baseline.tally
+        return self._computed_baseline or TargetTally(self.world.target_id)
+
+    def _rsu_index(self, rsu_id: str) -> int:
+        if rsu_id not in self.rsu_ids:
+            self.rsu_ids.append(rsu_id)
+        return self.rsu_ids.index(rsu_id)
+
+    def add_offset_sample(self, t_ns: int, theta_ns: int, naive_theta_ns: int, drift_ppm: float,
+                          rsu_id: str = "") -> None:
+        """One RSU's clock estimate at OBU time t_ns (scored against that RSU's true clock)."""
+        for column, value in zip(self._offsets, (t_ns, theta_ns, naive_theta_ns, drift_ppm, self._rsu_index(rsu_id))):
+            column.append(value)
+
+    def add_used_clock(self, cycle_ns: int, rsu_id: str, theta_ns: int, planned: bool = False) -> None:
+        """A cycle fused (intra, inter) the RSU's data, or placed its paths (``planned``), through the
+        offset estimate theta_ns at the cycle time."""
+        for column, value in zip(self._used_clock, (cycle_ns, theta_ns, self._rsu_index(rsu_id), PLANNED if planned else FUSED)):
             column.append(value)
 
     def add_obu_metrics(self, metrics: ObuMetrics) -> None:
@@ -119,7 +155,13 @@ class RunRecord:
         replace the record's (the last message holds the run's totals)."""
         for r in metrics.rsus:
             if None not in (r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm):
-                self.add_offset_sample(metrics.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm)
+                self.add_offset_sample(metrics.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm,
+                                       r.rsu_id)
+                if metrics.mode in ("intra", "inter", "planning"):  # which RSUs a live cycle used is not sent: all synced
+                    self.add_used_clock(metrics.t_ns, r.rsu_id, r.clock_offset_ns, planned=metrics.mode == "planning")
+            steps = getattr(r, "clock_steps", None)  # sent once RsuLinkStatus carries it
+            if steps is not None:
+                self.clock_steps = {**(self.clock_steps or {}), r.rsu_id: steps}
         self.rsu_messages = sum(r.messages_accepted for r in metrics.rsus)  # every RSU's, as offline
         self.covered_cycles, self.rsu_deadline_misses = metrics.covered_cycles, metrics.rsu_deadline_misses
         self.obu_cycles, self.obu_output_deadline_misses = metrics.cycles, metrics.output_deadline_misses
@@ -129,8 +171,21 @@ class RunRecord:
         self.links.add(metrics.t_ns, metrics.rsus)
 
     def offset_samples(self) -> np.ndarray:
-        """(K, 4) float64: t_ns, theta_ns, naive theta_ns, drift ppm."""
-        return np.column_stack([np.array(c, dtype=float) for c in self._offsets]).reshape(-1, 4)
+        """(K, 5) float64: t_ns, theta_ns, naive theta_ns, drift ppm, RSU index (``rsu_ids``)."""
+        return np.column_stack([np.array(c, dtype=float) for c in self._offsets]).reshape(-1, 5)
+
+    def used_clock(self) -> np.ndarray:
+        """(F, 4) float64: cycle t_ns, theta_ns, RSU index, FUSED or PLANNED (``add_used_clock``)."""
+        return np.column_stack([np.array(c, dtype=float) for c in self._used_clock]).reshape(-1, 4)
+
+    def own_baseline(self, seed: int) -> TargetTally:
+        """The vehicle-only baseline's tally: the one fed frame by frame, else computed from the scenario,
+        ``seed``, the start and the cycle times (``v2i.offline.baseline.own_baseline``)."""
+        if self.baseline is not None:
+            return self.baseline.tally
+        if self._computed_baseline is None:  # computed once (build_report, the run report's arrays)
+            self._computed_baseline = own_baseline(self.world, seed, self.start_ns, self.cycle_times_ns)
+        return self._computed_baseline
 
 
 def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) -> dict:
@@ -138,7 +193,9 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
     scored its outputs against (a different one is an error: the scores would not be its)."""
     if record.world is not world:
         raise ValueError("build_report: the record was scored against another world")
-    truth_clock = rsu_clock(spec.rsu_config(), SystemClock(), record.start_ns)
+    # every RSU's true clock, by the record's RSU index (the sim gives each the same model: spec.rsu_config())
+    truth_clocks = [rsu_clock(spec.rsu_config(rsu_id=rid or "rsu"), SystemClock(), record.start_ns)
+                    for rid in record.rsu_ids]
     step_ns = None if spec.rsu_clock_step_at_s is None else record.start_ns + round(spec.rsu_clock_step_at_s * 1e9)
     cycles = record.cycles
     return {
@@ -156,8 +213,9 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
         "rsu_messages_received": record.rsu_messages,
         "obu_rejected": dict(sorted(record.rejected.items())),
         "target": record.target.score().as_dict(),
-        "vehicle_only": record.vehicle_target.score().as_dict(),
-        **clock_errors(record.offset_samples(), truth_clock, record.start_ns, step_ns),
+        "vehicle_only": record.own_baseline(spec.seed).score().as_dict(),
+        **clock_errors(record.offset_samples(), truth_clocks, record.start_ns, step_ns, record.used_clock(),
+                       record.clock_steps, record.rsu_ids),
         **record.detection.scores(),
         "rsu_perception": record.rsu_perception or record.perception.scores(),
         "latency_ms": dict(record.latency_ms),

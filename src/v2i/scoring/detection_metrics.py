@@ -401,6 +401,7 @@ class MotTally:
         self.max_distance_m = max_distance_m
         self._last: dict[int, int] = {}  # truth id -> hypothesis id it last matched (motmetrics' ``m``)
         self._pairs: Counter = Counter()  # (truth id, hyp id) -> frames within the gate
+        self.switches_of: Counter = Counter()  # truth id -> its identity switches (they sum to ``switches``)
         self.frames = self.matches = self.switches = self.misses = self.false_positives = 0
         self.num_truth = self.num_predictions = 0
         self._distance_sum_m = 0.0
@@ -469,6 +470,7 @@ class MotTally:
             o, h = oids[i], hids[j]
             if o in self._last and self._last[o] != h:
                 self.switches += 1
+                self.switches_of[o] += 1
             else:
                 self.matches += 1
             self._last[o] = h

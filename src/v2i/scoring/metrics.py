@@ -49,7 +49,7 @@ class TargetScore:
     nees_mean: float | None = None
     nees_fraction_inside: float | None = None
     track_ids: int = 0  # distinct output ids the target was detected under
-    id_switches: int = 0  # times its output id changed from one detected cycle to the next
+    id_switches: int = 0  # its identity switches as motmetrics counts them (MotTally: 2 m gate, within 80 m)
 
     def as_dict(self) -> dict:
         return {
@@ -183,8 +183,12 @@ class TargetTally:
 
     PENDING = 64
 
-    def __init__(self, target_id: int, sources_mask: int | None = None):
+    def __init__(self, target_id: int, sources_mask: int | None = None, mot: MotTally | None = None):
+        """``mot``: the run's ``MotTally`` over the same outputs (``DetectionTally.mot``), whose identity
+        switches of the target are its ``id_switches``; None: a tally of its own, fed by ``add``
+        (over the outputs ``sources_mask`` keeps)."""
         self.target_id, self.sources_mask = target_id, sources_mask
+        self.mot, self._own_mot = (MotTally(), True) if mot is None else (mot, False)
         self._cycle_ns, self._cols = array("q"), {k: array("d") for k in ("t_s", "iou", "sq_err", "eps")}
         self._ids = array("q")
         self._truth_xy = array("d")  # x, y interleaved (base_link, m)
@@ -195,11 +199,14 @@ class TargetTally:
         truth, out = frame.truth, frame.out
         rows = frame.truth_rows(self.target_id)
         if self.sources_mask is None:
+            kept = None
             k = _match_target_cost(frame.distances_m, truth.ids, self.target_id, rows)
         else:  # the kept outputs' columns of the cost
             kept = np.flatnonzero(out.sources & self.sources_mask)
             k = _match_target_cost(frame.distances_m[:, kept], truth.ids, self.target_id, rows)
             k = None if k is None else int(kept[k])  # the index in the whole output
+        if self._own_mot:
+            mot_frame(self.mot, frame, kept)
         if k is None:
             return
         i = rows.item(0)
@@ -246,7 +253,7 @@ class TargetTally:
             first_detection_distance_m=float(np.linalg.norm(first_xy)) if detected else None,
             first_detection_time_s=float(col["t_s"][0]) if detected else None,
             nees_mean=consistency["mean"], nees_fraction_inside=consistency["fraction_inside"],
-            track_ids=len(np.unique(ids)), id_switches=int(np.count_nonzero(np.diff(ids))),
+            track_ids=len(np.unique(ids)), id_switches=int(self.mot.switches_of[self.target_id]),
         )
 
     def series(self) -> TargetSeries:
@@ -320,8 +327,11 @@ def mode_share(modes: Sequence[str]) -> dict[str, float]:
 
 
 CLOCK_WARMUP_S = 5.0  # clock errors are scored after the estimator's first 5 s
-STEP_SETTLE_S = 3.0  # ... and outside the 3 s after an injected RSU clock step
-STEP_RECOVERED_MS = 1.0  # a step is recovered once the error stays below 1 ms
+STEP_SETTLE_S = 3.0  # the 3 s after an injected RSU clock step are scored apart (the step window)
+STEP_RECOVERED_MS = 1.0  # the recovery band is never narrower than 1 ms ...
+PRE_STEP_S = 3.0  # ... and otherwise set by the largest error in the 3 s before the step
+RECOVERY_MARGIN = 1.25  # band = 1.25 x max(that level, 1 ms)
+FUSED, PLANNED = 0, 1  # kinds of the clock errors of the cycles that used RSU data
 
 
 def _error_stats(err_ms: np.ndarray) -> dict:
@@ -333,37 +343,109 @@ def _error_stats(err_ms: np.ndarray) -> dict:
             "samples": int(len(err_ms))}
 
 
-def clock_errors(samples, truth, start_ns: int, step_ns: int | None) -> dict:
-    """Offset errors |estimate - truth| (ms) of the filter and of the naive single exchange,
-    drift error (ppm) and step recovery time, from (t_ns, theta_ns, naive theta_ns, drift ppm)
-    samples ((K, 4) array-like, as float64) scored against ``truth`` (a DriftingClock:
-    offset_at(t), drift_ppm).
+def _truth_ns(truth, t_ns: np.ndarray, rsu: np.ndarray) -> np.ndarray:
+    """(K,) true offsets (ns) at t_ns (K,) of the RSUs rsu (K,) (indexes into ``truth``, a sequence of
+    DriftingClocks; a single clock stands for every RSU's)."""
+    clocks = truth if isinstance(truth, (list, tuple)) else None
+    if clocks is None:
+        return np.array([truth.offset_at(int(t)) for t in t_ns], dtype=float)
+    return np.array([clocks[int(r)].offset_at(int(t)) for t, r in zip(t_ns, rsu)], dtype=float)
 
-    Scored samples: t >= start + CLOCK_WARMUP_S and, with a step, not within STEP_SETTLE_S after it.
+
+def clock_errors(samples, truth, start_ns: int, step_ns: int | None, fused=(), steps: dict | None = None,
+                 rsu_ids: Sequence[str] = ()) -> dict:
+    """The clock figures of a run.
+
+    ``samples``: (t_ns, theta_ns, naive theta_ns, drift ppm[, RSU index]) rows ((K, 4) or (K, 5)
+    array-like, float64), each RSU's estimate at t scored against its true clock (``truth``: one
+    DriftingClock per RSU index, or one for all: offset_at(t), drift_ppm).
+    - ``clock_offset_error_ms`` (and ``_naive_ms``, the single exchange): |estimate - truth| (ms) over
+      the steady state, t >= start + CLOCK_WARMUP_S and outside the step window [step, step + STEP_SETTLE_S);
+    - ``clock_offset_error_step_window_ms``: the same over the step window (no samples without a step);
+    - ``clock_drift_error_ppm``: median |drift - true drift| over the steady state;
+    - ``clock_step_recovery_s`` (with a step): ``_recovery_s`` of each RSU, the slowest (None if one
+      never recovered);
+    - ``clock_error_when_fused_max_ms`` / ``..._planning_max_ms``: max |estimate - truth| over ``fused``,
+      (t_ns, theta_ns, RSU index, kind FUSED or PLANNED) rows: each RSU whose data a cycle fused (intra,
+      inter) or whose paths it placed (planning), its estimate at the cycle time; None when no cycle did;
+    - ``clock_steps_detected``: the steps the OBU's estimators confirmed, summed over ``steps`` (RSU id ->
+      count; None: not known, e.g. a live OBU's metrics without them);
+    - ``clock_rsus``: per RSU id (``rsu_ids``, by index) its steps and steady-state offset error.
     """
-    rows = np.asarray(samples, dtype=float).reshape(-1, 4)
-    true_ns = np.array([truth.offset_at(int(t)) for t in rows[:, 0]], dtype=float)
+    rows = np.asarray(samples, dtype=float)
+    rows = rows.reshape(-1, rows.shape[1] if rows.ndim == 2 and rows.shape[1] == 5 else 4)
+    rsu = rows[:, 4].astype(np.int64) if rows.shape[1] == 5 else np.zeros(len(rows), dtype=np.int64)
+    true_ns = _truth_ns(truth, rows[:, 0], rsu)
     err_ms, naive_ms = np.abs(rows[:, 1] - true_ns) * 1e-6, np.abs(rows[:, 2] - true_ns) * 1e-6
-    scored = rows[:, 0] >= start_ns + CLOCK_WARMUP_S * 1e9
+    window = np.zeros(len(rows), dtype=bool)
     if step_ns is not None:
-        scored &= ~((rows[:, 0] >= step_ns) & (rows[:, 0] < step_ns + STEP_SETTLE_S * 1e9))
-    drift_err = np.abs(rows[scored, 3] - truth.drift_ppm)
+        window = (rows[:, 0] >= step_ns) & (rows[:, 0] < step_ns + STEP_SETTLE_S * 1e9)
+    scored = (rows[:, 0] >= start_ns + CLOCK_WARMUP_S * 1e9) & ~window
+    drift_err = np.abs(rows[scored, 3] - _drift_ppm(truth, rsu[scored]))
     report = {
         "clock_offset_error_ms": _error_stats(err_ms[scored]),
         "clock_offset_error_naive_ms": _error_stats(naive_ms[scored]),
+        "clock_offset_error_step_window_ms": _error_stats(err_ms[window]),
         "clock_drift_error_ppm": round(float(np.median(drift_err)), 3) if len(drift_err) else None,
+        **_fused_errors(fused, truth),
+        "clock_steps_detected": None if steps is None else int(sum(steps.values())),
+        "clock_rsus": {rid: {"steps_detected": None if steps is None else steps.get(rid, 0),
+                             "offset_error_ms": _error_stats(err_ms[scored & (rsu == k)])}
+                       for k, rid in enumerate(rsu_ids)},
     }
     if step_ns is not None:
-        report["clock_step_recovery_s"] = _recovery_s(rows[:, 0], err_ms, step_ns)
+        report["clock_step_recovery_s"] = _slowest_recovery_s(rows[:, 0], err_ms, rsu, step_ns)
     return report
 
 
+def _drift_ppm(truth, rsu: np.ndarray) -> np.ndarray | float:
+    """The true drift (ppm) of each sample's RSU (one clock: its drift)."""
+    if isinstance(truth, (list, tuple)):
+        return np.array([truth[int(r)].drift_ppm for r in rsu], dtype=float)
+    return truth.drift_ppm
+
+
+def _fused_errors(fused, truth) -> dict:
+    """max |theta - truth| (ms) over the FUSED rows and over the PLANNED rows of ``fused`` ((F, 4):
+    t_ns, theta_ns, RSU index, kind); None for a kind without rows."""
+    rows = np.asarray(fused, dtype=float).reshape(-1, 4)
+    err_ms = np.abs(rows[:, 1] - _truth_ns(truth, rows[:, 0], rows[:, 2].astype(np.int64))) * 1e-6
+    out = {}
+    for key, kind in (("clock_error_when_fused_max_ms", FUSED), ("clock_error_when_planning_max_ms", PLANNED)):
+        errors = err_ms[rows[:, 3] == kind]
+        out[key] = round(float(errors.max()), 4) if len(errors) else None
+    return out
+
+
+def _slowest_recovery_s(t_ns: np.ndarray, err_ms: np.ndarray, rsu: np.ndarray, step_ns: int) -> float | None:
+    """``_recovery_s`` of each RSU with samples after the step: the largest; None if one never
+    recovered (or no RSU has samples after the step)."""
+    times = []
+    for k in np.unique(rsu):
+        mine = rsu == k
+        if not np.any(t_ns[mine] >= step_ns):
+            continue
+        times.append(_recovery_s(t_ns[mine], err_ms[mine], step_ns))
+    return None if not times or None in times else max(times)
+
+
+def recovery_band_ms(t_ns: np.ndarray, err_ms: np.ndarray, step_ns: int) -> float:
+    """The error a step must come back within: RECOVERY_MARGIN x max(L, STEP_RECOVERED_MS), with
+    L = the largest |error| (ms) in the PRE_STEP_S before the step (0 without samples there).
+    On an asymmetric link the filter's honest error is the asymmetry bias, (up - down) / 2 (15 ms
+    for 40 / 10 ms): the band is then ~19 ms, where an absolute 1 ms would never be reached."""
+    before = (t_ns >= step_ns - PRE_STEP_S * 1e9) & (t_ns < step_ns)
+    level_ms = float(err_ms[before].max()) if np.any(before) else 0.0
+    return RECOVERY_MARGIN * max(level_ms, STEP_RECOVERED_MS)
+
+
 def _recovery_s(t_ns: np.ndarray, err_ms: np.ndarray, step_ns: int) -> float | None:
-    """Seconds from the step until the error is below STEP_RECOVERED_MS for good; None if never."""
+    """Seconds from the step until the error stays within ``recovery_band_ms`` for good (samples in
+    time order); 0 if it never left it; None if the run ends outside it or has no sample after the step."""
     after = t_ns >= step_ns
-    bad = np.flatnonzero(after & (err_ms >= STEP_RECOVERED_MS))
     if not after.any():
         return None
+    bad = np.flatnonzero(after & (err_ms > recovery_band_ms(t_ns, err_ms, step_ns)))
     if not len(bad):
         return 0.0
     if bad[-1] == len(t_ns) - 1:
@@ -445,6 +527,16 @@ class DetectionTally:
     def scores(self) -> dict:
         mot = self.mot.result()
         return {"detection": self.ap.result(), "tracking": {k: mot[k] for k in ("mota", "idf1", "id_switches")}}
+
+
+def mot_frame(mot: MotTally, frame: CycleFrame, kept: np.ndarray | None = None) -> None:
+    """One frame into ``mot`` as ``DetectionTally.add`` feeds its own: the actors and outputs within
+    MAX_RANGE_M of the ego; ``kept``: the output rows that count (all when None)."""
+    truth, out = frame.truth, frame.out
+    t = np.flatnonzero(_ranges_m(truth.xy) <= MAX_RANGE_M)
+    cols = np.arange(len(out)) if kept is None else np.asarray(kept, dtype=np.int64)
+    o = cols[_ranges_m(out.xy[cols]) <= MAX_RANGE_M]
+    mot.add_frame(truth.ids[t], truth.xy[t], out.ids[o], out.xy[o], frame.distances_m[np.ix_(t, o)])
 
 
 def detection_scores(world, outputs: Iterable[FusedObjectList], start_ns: int) -> dict:
