@@ -131,9 +131,9 @@ class ConfirmedStep:
     """The last RSU clock step confirmed: it happened (OBU time) after ``after_ns`` (the latest t1 of
     an exchange that still agreed with the old clock) and before ``before_ns`` (the t4 of the first
     exchange that showed it); ``previous`` is the old clock's estimate when it was confirmed (it places
-    what the RSU stamped before the step, extrapolated with its drift); ``segment`` the new clock segment."""
+    what the RSU stamped before the step, extrapolated with its drift)."""
 
-    segment: int
+    steps: int  # steps confirmed so far, this one included
     after_ns: int
     before_ns: int
     previous: OffsetEstimate
@@ -152,6 +152,24 @@ class _Fit:
     min_up: tuple[float, int]  # least settled detrended up reading of the current segment (ns) and its t1
     min_down: tuple[float, int]  # the same for down, and its t4
     armed: bool  # converged: enough settled samples in the current segment to judge new ones
+
+    @property
+    def width_ns(self) -> float:
+        """W = m_up + m_down >= 0: the width of the offsets the segment allows, F = [-m_down, m_up]
+        (detrended, relative to theta_ref; both delays >= 0), i.e. its least round trip."""
+        return max(0.0, self.min_up[0] + self.min_down[0])
+
+    def evident(self, low: float, high: float) -> bool:
+        """Whether every step in [low, high] is one that no queueing explains and that the estimate's
+        own uncertainty cannot hold: with the old readings, theta in F; with a step s, the new ones
+        allow theta + s; when both are genuine, s = theta' - theta lies in [low - W, high + W] (low,
+        high from ``step_interval``, which takes the least readings as exact). A step is confirmed
+        only when that widened interval excludes 0 (the new readings and F are disjoint: the old
+        readings can all be queued, the new ones too, and still not explain it) and its smallest
+        size exceeds the bound U of the estimate."""
+        w = self.width_ns
+        least = low if low > 0.0 else -high
+        return (low - w > 0.0 or high + w < 0.0) and least > self.bound_ns
 
     def step_interval(self, s: SyncSample, threshold_ns: float, sigmas: float) -> tuple[float, float]:
         """[low, high] of the clock steps that explain the sample (ns): x_up rises by a step, x_down falls.
@@ -174,6 +192,8 @@ class _Hypothesis:
     first_t4_ns: int
     suspects: list[tuple[int, SyncSample]] = field(default_factory=list)  # (arrival number, sample)
     since: list[tuple[SyncSample, tuple[float, float]]] = field(default_factory=list)
+
+    evident: int = 0  # how many of its suspects showed a step beyond queueing and the bound (``_Fit.evident``)
 
     def overlaps(self, interval: tuple[float, float]) -> bool:
         return interval[0] <= self.high and self.low <= interval[1]
@@ -212,7 +232,8 @@ class ClockSync:
         # sample in turn, and each one's segment
         self._times = array("q")
         self._segments = array("q")
-        self._segment = 0  # current clock segment (steps detected so far)
+        self._segment = 0  # current clock segment (a step, or readings that disagreed with the older ones)
+        self._steps = 0  # confirmed clock steps
         self._hypotheses: list[_Hypothesis] = []  # competing suspected steps (disjoint suspect clusters)
         self._last_step = (0.0, 0.0)  # feasible sizes (ns) of the last confirmed step
         self._step_first_t4_ns = 0  # arrival of its first suspect
@@ -229,7 +250,8 @@ class ClockSync:
 
     @property
     def steps_detected(self) -> int:
-        return self._segment
+        """RSU clock steps confirmed so far (new segments begun without a step are not counted)."""
+        return self._steps
 
     @property
     def converged(self) -> bool:
@@ -255,7 +277,7 @@ class ClockSync:
             if self._late_before_step(sample, interval):
                 return True
             if fit.armed:
-                self._suspect(sample, interval)
+                self._suspect(sample, interval, fit)
                 return True
         for hyp in list(self._hypotheses):
             hyp.since.append((sample, interval))
@@ -285,7 +307,7 @@ class ClockSync:
         if self._hypotheses:  # while a step is suspected, the clock may have stepped by anything in its [low, high]
             bound += max(max(abs(h.low), abs(h.high)) for h in self._hypotheses)
         est = OffsetEstimate(offset, math.ceil(bound), self._total, fit.drift / PPM_NS_PER_S, t_obu_ns,
-                             self._segment, fit.drift_sd / PPM_NS_PER_S)
+                             self._steps, fit.drift_sd / PPM_NS_PER_S)
         # while no step is suspected the answer is a function of (fit, t, total, segment) alone, and the
         # fit one of the exchanges added so far (total): kept with (t, total, segment)
         self._last_estimate = None if self._hypotheses else (key, est)
@@ -296,7 +318,7 @@ class ClockSync:
         last = self._last
         if last is None:
             return None
-        return OffsetEstimate(last.offset_ns, last.round_trip_ns // 2, self._total, 0.0, last.t4_ns, self._segment)
+        return OffsetEstimate(last.offset_ns, last.round_trip_ns // 2, self._total, 0.0, last.t4_ns, self._steps)
 
     def to_obu_ns(self, rsu_time_ns: int) -> int | None:
         """RSU clock reading -> OBU clock using offset and drift; None before the first exchange."""
@@ -336,17 +358,21 @@ class ClockSync:
         self._segments = array("q", [seg for _, seg, _ in self._samples])
 
     # --- steps and outliers -----------------------------------------------------------------
-    def _suspect(self, sample: SyncSample, interval: tuple[float, float]) -> None:
+    def _suspect(self, sample: SyncSample, interval: tuple[float, float], fit: _Fit) -> None:
         """Join the first hypothesis the sample agrees with, or start one (forged replies and a real
-        step then make separate clusters, and the forged ones cannot break up the step's)."""
+        step then make separate clusters, and the forged ones cannot break up the step's). It is
+        confirmed by step_confirm suspects that are each evident against the fit they met
+        (``_Fit.evident``: fits change as readings come and go, so intervals judged against
+        different ones are not intersected for this)."""
         hyp = next((h for h in self._hypotheses if h.overlaps(interval)), None)
         if hyp is None:
             hyp = _Hypothesis(interval[0], interval[1], sample.t4_ns)
             self._hypotheses.append(hyp)
         hyp.low, hyp.high = max(hyp.low, interval[0]), min(hyp.high, interval[1])
         hyp.suspects.append((self._total, sample))
-        if len(hyp.suspects) >= self.step_confirm:
-            self._confirm_step(hyp)
+        hyp.evident += fit.evident(*interval)
+        if hyp.evident >= self.step_confirm:
+            self._new_segment(hyp, confirmed=True)
 
     def _late_before_step(self, sample: SyncSample, interval: tuple[float, float]) -> bool:
         """A reply stamped before the last step that arrives after it (it agrees with the previous
@@ -360,31 +386,50 @@ class ClockSync:
         return True
 
     def _expire_hypotheses(self) -> None:
-        """Suspects not confirmed within step_span exchanges are rejected as outliers."""
+        """Suspects not confirmed within step_span exchanges: rejected as outliers when their step was
+        evident (too few to confirm it: forged or spurious); absorbed as ordinary exchanges when no
+        step explains them (their intervals are empty: one leg below its least reading, the other
+        not above its own by as much, so that least reading was queued); else the readings changed
+        in a way that queueing or the estimate's bound may explain as well as a step (the readings
+        before were all buffered, or the clock stepped by less than the uncertainty): the offset
+        starts afresh from them (a new segment, as after a step, so that old and new readings are
+        never intersected: the bound stays honest either way), but no step is counted."""
         for hyp in [h for h in self._hypotheses if h.suspects[0][0] <= self._total - self.step_span]:
-            self._reject(hyp)
+            if hyp not in self._hypotheses:  # absorbed by an earlier one's new segment
+                continue
+            if hyp.evident:
+                self._reject(hyp)
+            elif hyp.low > hyp.high:  # no step explains them: more prompt than the least readings on one
+                self._hypotheses.remove(hyp)  # leg, not moved on the other; those were queued, these narrow them
+                for _, s in hyp.suspects:
+                    self._insert(s, self._segment)
+            else:
+                self._new_segment(hyp, confirmed=False)
 
     def _reject(self, hyp: _Hypothesis) -> None:
         self.outliers_rejected += len(hyp.suspects)
         self._hypotheses.remove(hyp)
 
-    def _confirm_step(self, hyp: _Hypothesis) -> None:
-        """The RSU clock stepped: a new segment starts with the suspects and the samples since the
-        first of them that agree with the step; older segments keep informing the drift. The
-        suspects of competing hypotheses are outliers."""
+    def _new_segment(self, hyp: _Hypothesis, confirmed: bool) -> None:
+        """A new clock segment starts with the hypothesis' suspects and the samples since the first of
+        them that agree with it; older segments keep informing the drift. ``confirmed``: the RSU clock
+        stepped (counted, ``last_step``), and the suspects of competing hypotheses are outliers;
+        otherwise they join the new segment too (they disagreed with the same old readings)."""
         previous = self.estimate_at(hyp.first_t4_ns)
         self._hypotheses.remove(hyp)
-        for other in list(self._hypotheses):
-            self._reject(other)
+        others, self._hypotheses = self._hypotheses, []
         after_ns = max((s.t1_ns for _, seg, s in self._samples if seg == self._segment and s.t1_ns < hyp.first_t4_ns),
                        default=previous.at_ns)
         moved = {id(s) for s, interval in hyp.since if hyp.overlaps(interval)}
         self._segment += 1
         self._relabel(moved)
-        for _, s in hyp.suspects:
+        for _, s in hyp.suspects + [x for other in others for x in other.suspects] * (not confirmed):
             self._insert(s, self._segment)
         self._last_step, self._step_first_t4_ns = (hyp.low, hyp.high), hyp.first_t4_ns
-        self.last_step = ConfirmedStep(self._segment, after_ns, hyp.first_t4_ns, previous)
+        if confirmed:
+            self.outliers_rejected += sum(len(other.suspects) for other in others)
+            self._steps += 1
+            self.last_step = ConfirmedStep(self._steps, after_ns, hyp.first_t4_ns, previous)
         self._fit = None
 
     # --- fit --------------------------------------------------------------------------------
