@@ -52,16 +52,19 @@ def test_the_sort_and_quantiles_equal_numpy():
 
 
 def test_shared_slope_and_theil_sen_equal_the_library_fits():
+    """The weighted shared slope equals np.linalg.lstsq on rows scaled by sqrt(w) (equal weights: the plain
+    fit), Theil-Sen scipy's."""
     rng = np.random.default_rng(11)
     groups = [np.sort(rng.uniform(-60, 0, n)) for n in (7, 12, 5)]
     ys = [3.0 * t + c + rng.normal(0, 0.5, len(t)) for t, c in zip(groups, (10.0, -4.0, 100.0))]
     t, y, first = np.concatenate(groups), np.concatenate(ys), np.array([0, 7, 19, 24])
-    ok, d, se = shared_slope(t, y, first, 0.0)
-    want = ref.shared_slope([list(zip(a, b)) for a, b in zip(groups, ys)], 0.0)
-    assert ok and d == pytest.approx(want[0], rel=1e-9) and se == pytest.approx(want[1], rel=1e-9)
+    for w in (np.ones(len(t)), rng.integers(1, 21, len(t)).astype(float)):
+        ok, d, se = shared_slope(t, y, w, first, 0.0)
+        want = ref.shared_slope([list(zip(a, b, c)) for a, b, c in zip(groups, ys, np.split(w, first[1:-1]))], 0.0)
+        assert ok and d == pytest.approx(want[0], rel=1e-9) and se == pytest.approx(want[1], rel=1e-9)
     assert theil_sen_slope(groups[1], ys[1], np.array([0, 12])) == pytest.approx(theilslopes(ys[1], groups[1]).slope,
                                                                                   rel=1e-12)
-    assert not shared_slope(t[:9], y[:9], np.array([0, 7, 9]), 0.0)[0]  # only one group of >= 3
+    assert not shared_slope(t[:9], y[:9], w[:9], np.array([0, 7, 9]), 0.0)[0]  # only one group of >= 3
 
 
 def test_fit_drift_and_the_leg_envelope_equal_their_numpy_definitions():
@@ -92,6 +95,26 @@ def test_a_young_window_fits_the_prior_and_three_bins_on_two_legs_fit_the_readin
     assert fit_drift(*young, 2.0, 0.0, 0.1, *PRIOR, 50_000.0) == PRIOR
     drift, sd = fit_drift(*window(rng, 200), 2.0, 0.0, 0.1, *PRIOR, 50_000.0)
     assert sd < PRIOR[1] and abs(drift - 40_000.0) < 3 * sd
+
+
+def test_the_half_filled_bin_at_a_window_s_edge_counts_by_its_readings():
+    """4.4 s of readings at 10 Hz over bins of 2 s with edges at -4.0 and -2.0 s: the oldest bin holds
+    4 readings, the others 20. That bin is the fit's third (it used to be dropped as half-filled,
+    leaving the prior): weighted by its count, the drift shows (40 ppm = 40 us/s) within 3 sd, and
+    the fit equals its numpy definition."""
+    rng = np.random.default_rng(6)
+    drift = 40_000.0  # ns/s
+    t_up = -np.arange(44)[::-1] * 0.1 - 0.0015
+    t_down = t_up + 0.001
+    z_up = drift * t_up + rng.exponential(3e5, 44) + 1e6
+    z_down = -drift * t_down + rng.exponential(3e5, 44) + 1e6
+    group = np.zeros(44, np.int64)
+    bins = np.floor((t_up + 1.999) / 2.0)
+    assert sorted(np.unique(bins, return_counts=True)[1]) == [4, 20, 20]
+    got = fit_drift(t_up, z_up, t_down, z_down, group, 2.0, 1.999, 0.1, *PRIOR, 50_000.0)
+    assert got != PRIOR and got[1] < PRIOR[1] / 2 and abs(got[0] - drift) < 3 * got[1]
+    want = ref.fit_drift(legs_of(t_up, z_up, t_down, z_down, group), 2.0, 1.999, 0.1, PRIOR, 50_000.0)
+    assert got == pytest.approx(want, rel=1e-9, abs=1e-6)
 
 
 def test_consensus_equals_the_lexsort_of_openings_before_closings():

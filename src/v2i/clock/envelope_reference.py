@@ -31,32 +31,34 @@ def tail_mean_sd(r: np.ndarray, q: float) -> float:
 
 
 def bin_points(t: np.ndarray, r: np.ndarray, sign: float, d: float, bin_s: float, phase_s: float,
-               q: float) -> list[tuple[float, float]]:
-    """(mean t, sign E + d t) of each bin of un-queued readings holding at least half the median count."""
+               q: float) -> list[tuple[float, float, int]]:
+    """(mean t, sign E + d t, count) of each bin of un-queued readings."""
     bins = np.floor((t + phase_s) / bin_s)
     keep = r <= r.min() + QUEUED_NS
     t, r, bins = t[keep], r[keep], bins[keep]
     values, counts = np.unique(bins, return_counts=True)
-    points = [(t[bins == v].mean(), sign * np.sort(r[bins == v])[:tail_size(c, q)].mean())
-              for v, c in zip(values, counts) if c >= 0.5 * np.median(counts)]
-    return [(tb, e + d * tb) for tb, e in points]
+    points = [(t[bins == v].mean(), sign * np.sort(r[bins == v])[:tail_size(c, q)].mean(), c)
+              for v, c in zip(values, counts)]
+    return [(tb, e + d * tb, c) for tb, e, c in points]
 
 
-def shared_slope(groups: list[list[tuple[float, float]]], min_resid: float) -> tuple[float, float] | None:
-    """Least squares with one slope column and an intercept column per group (np.linalg.lstsq): (d, se),
-    None unless two groups have >= 3 points."""
+def shared_slope(groups: list[list[tuple[float, float, float]]], min_resid: float) -> tuple[float, float] | None:
+    """Weighted least squares (np.linalg.lstsq of the rows scaled by sqrt(w)) with one slope column and an
+    intercept column per group, points (t, y, w): (d, se), None unless two groups have >= 3 points."""
     groups = [g for g in groups if len(g) >= 2]
     if sum(len(g) >= 3 for g in groups) < 2:
         return None
     design = np.zeros((sum(map(len, groups)), 1 + len(groups)))
-    y, row = np.empty(len(design)), 0
+    y, w, row = np.empty(len(design)), np.empty(len(design)), 0
     for k, g in enumerate(groups):
         design[row:row + len(g), 0], design[row:row + len(g), 1 + k] = [p[0] for p in g], 1.0
-        y[row:row + len(g)] = [p[1] for p in g]
+        y[row:row + len(g)], w[row:row + len(g)] = [p[1] for p in g], [p[2] for p in g]
         row += len(g)
-    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
-    rss = float(np.sum((y - design @ coef) ** 2))
-    sxx = sum(np.sum((np.array([p[0] for p in g]) - np.mean([p[0] for p in g])) ** 2) for g in groups)
+    root = np.sqrt(w)
+    coef, *_ = np.linalg.lstsq(design * root[:, None], y * root, rcond=None)
+    rss = float(np.sum(w * (y - design @ coef) ** 2))
+    sxx = sum(np.sum(wg * (tg - np.average(tg, weights=wg)) ** 2)
+              for tg, wg in ((np.array([p[0] for p in g]), np.array([p[2] for p in g], float)) for g in groups))
     return coef[0], np.sqrt(max(rss / max(1, len(y) - len(groups) - 1), min_resid**2) / sxx)
 
 
@@ -67,18 +69,17 @@ def fit_drift(legs: list[tuple[np.ndarray, np.ndarray, float]], bin_s: float, ph
     if sum(len(np.unique(np.floor((t + phase_s) / bin_s))) >= 3 for t, _, _ in legs) < 2:
         return prior
     (d0, sd0), d = prior, prior[0]
-    n = sum(len(t) for t, _, _ in legs)
     for _ in range(2):
         detrended = [z - s * d * t for t, z, s in legs]
         groups = [bin_points(t, r, s, d, bin_s, phase_s, q) for (t, _, s), r in zip(legs, detrended)]
-        floor = max(min_resid, max(tail_mean_sd(r, q) for r in detrended)
-                    / np.sqrt(max(1.0, n / max(sum(map(len, groups)), 1))))
+        per_bin = np.mean([p[2] for g in groups for p in g])  # the mean count of a bin
+        floor = max(min_resid * np.sqrt(per_bin), max(tail_mean_sd(r, q) for r in detrended))  # per reading
         slopes = [(b[1] - a[1]) / (b[0] - a[0])
                   for g in groups for i, a in enumerate(g) for b in g[i + 1:] if b[0] != a[0]]
         if slopes:  # Theil-Sen per group; the points above its line by more than 3 floor (congested) left out
-            robust = np.median(slopes)
-            groups = [g if len(g) < 4 else [p for p, e in zip(g, excess) if e <= np.percentile(excess, 25) + 3 * floor]
-                      for g, (_, _, s) in zip(groups, legs) for excess in [[s * (y - robust * t) for t, y in g]]]
+            robust, cut = np.median(slopes), 3 * floor / np.sqrt(per_bin)
+            groups = [g if len(g) < 4 else [p for p, e in zip(g, excess) if e <= np.percentile(excess, 25) + cut]
+                      for g, (_, _, s) in zip(groups, legs) for excess in [[s * (y - robust * t) for t, y, _ in g]]]
         fit = shared_slope(groups, floor)
         if fit is None:
             return prior
