@@ -148,3 +148,23 @@ def test_eval_scores_every_rsus_clock():
     assert report["clock_steps_detected"] == 0
     assert report["clock_offset_error_ms"]["samples"] == sum(
         report["clock_rsus"][rid]["offset_error_ms"]["samples"] for rid in ids)
+
+
+def test_the_summary_states_the_clock_when_used_and_the_step():
+    from v2i.offline.spec import summary
+
+    seen = {"first_detection_distance_m": 40.0, "mean_bev_iou": 0.7, "rmse_m": 0.5, "detected_cycles": 9,
+            "track_ids": 1, "id_switches": 0}
+    report = {"scenario": "red-light-runner", "profile": "p", "fusion": "kf", "compensation": "predict",
+              "fusion_mode": "adaptive", "seed": 0, "duration_s": 30.0, "cycles": 300, "driver": "eval",
+              "target": seen, "vehicle_only": seen, "mode_share": {"intra": 1.0}, "output_deadline_miss_ratio": 0.0,
+              "rsu_deadline_miss_ratio": 0.0, "rsu_messages_received": 9, "rsu_perception": {"frames": 0},
+              "clock_offset_error_ms": {"p50": 15.0, "p95": 15.0, "max": 15.2}, "clock_offset_error_naive_ms": {"p95": 15.0},
+              "clock_drift_error_ppm": 0.1, "displacement_error_m": None, "clock_error_when_fused_max_ms": 15.243,
+              "clock_error_when_planning_max_ms": None, "clock_steps_detected": 1,
+              "clock_offset_error_step_window_ms": {"p50": 15.0, "p95": 715.0, "max": 715.0, "samples": 30},
+              "clock_step_recovery_s": 0.55}
+    text = summary(report)
+    assert ("clock when used: fused max 15.243 ms, planning max n/a; steps detected 1; step window p95 715.000 ms, "
+            "max 715.000 ms; recovered after 0.55 s") in text
+    assert "recovered never" in summary({**report, "clock_step_recovery_s": None})

@@ -67,8 +67,9 @@ class RunRecord:
 
     Nothing grows with the run but compact per-cycle numbers: per output 17 bytes
     (``CycleLog``) and 10 bytes per predicted object in range (``CenterDistanceAp``), 56
-    bytes per cycle the target is detected (twice: fused and vehicle-only), 32 bytes per
-    clock-offset sample; plus counts per track id for IDF1. For the run report
+    bytes per cycle the target is detected (twice: fused and the vehicle-only baseline), 34 bytes
+    per clock-offset sample (one per synced RSU per cycle), 19 per RSU a cycle used; plus counts
+    per track id for IDF1 (twice) and the baseline tracker's tracks. For the run report
     (``v2i.reports.run_report``): 17 more bytes per cycle the target is detected (twice), and
     41 bytes per RSU per OBU metrics sample (one per cycle; ``link_series.LinkSeries``).
     """
@@ -256,6 +257,10 @@ def summary(report: dict) -> str:
         f"(naive p95 {_f(report['clock_offset_error_naive_ms']['p95'])} ms); "
         f"drift error {_f(report['clock_drift_error_ppm'])} ppm",
     ]
+    if "clock_error_when_fused_max_ms" in report:  # (reports written before these figures have none)
+        lines.append(f"  clock when used: fused max {_ms(report['clock_error_when_fused_max_ms'])}, planning max "
+                     f"{_ms(report['clock_error_when_planning_max_ms'])}; steps detected "
+                     f"{_n(report['clock_steps_detected'])}" + _step_text(report))
     p = report["rsu_perception"]
     if p["frames"]:
         e, ms = p["mean_error_m"], p["detector_ms"]
@@ -273,6 +278,24 @@ def summary(report: dict) -> str:
         lines.append(f"  planning: {report['planning_handoffs']} hand-offs, displacement error "
                      f"{report['displacement_error_m']:.2f} m")
     return "\n".join(lines)
+
+
+def _step_text(report: dict) -> str:
+    """With an injected step: its window's errors and the recovery (empty without one)."""
+    if "clock_step_recovery_s" not in report:
+        return ""
+    w, rec = report["clock_offset_error_step_window_ms"], report["clock_step_recovery_s"]
+    return (f"; step window p95 {_ms(w['p95'])}, max {_ms(w['max'])}; recovered "
+            + ("never (the run ended outside the pre-step error)" if rec is None else f"after {rec:.2f} s"))
+
+
+def _ms(v) -> str:
+    """A figure in ms, or n/a (none: no cycle of that kind, no sample)."""
+    return "n/a" if v is None else f"{v:.3f} ms"
+
+
+def _n(v) -> str:
+    return "n/a" if v is None else str(v)
 
 
 def _own_count(report: dict) -> str:
