@@ -168,3 +168,27 @@ def test_the_summary_states_the_clock_when_used_and_the_step():
     assert ("clock when used: fused max 15.243 ms, planning max n/a; steps detected 1; step window p95 715.000 ms, "
             "max 715.000 ms; recovered after 0.55 s") in text
     assert "recovered never" in summary({**report, "clock_step_recovery_s": None})
+
+
+def test_switches_per_truth_id_are_motmetrics_switch_events():
+    """MotTally.switches_of (what target.id_switches reads) is motmetrics' SWITCH events per object id."""
+    import motmetrics as mm
+
+    from test_detection_metrics import generated_tracks
+    from v2i.scoring.detection_metrics import MotTally, _distance_matrix
+
+    rng = np.random.default_rng(31)
+    seen = 0
+    for _ in range(10):
+        frames = generated_tracks(rng, int(rng.integers(20, 80)))
+        acc, tally = mm.MOTAccumulator(auto_id=True), MotTally()
+        for truth_ids, truth_xy, hyp_ids, hyp_xy in frames:
+            acc.update(np.asarray(truth_ids).tolist(), np.asarray(hyp_ids).tolist(),
+                       _distance_matrix(truth_xy, hyp_xy, 2.0))
+            tally.add_frame(truth_ids, truth_xy, hyp_ids, hyp_xy)
+        events = acc.mot_events
+        want = events[events["Type"] == "SWITCH"]["OId"].astype(int).value_counts().to_dict()
+        assert dict(tally.switches_of) == want
+        assert sum(tally.switches_of.values()) == tally.result()["id_switches"]
+        seen += len(want)
+    assert seen > 5
