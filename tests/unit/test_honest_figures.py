@@ -192,3 +192,34 @@ def test_switches_per_truth_id_are_motmetrics_switch_events():
         assert sum(tally.switches_of.values()) == tally.result()["id_switches"]
         seen += len(want)
     assert seen > 5
+
+
+def test_a_demo_record_gets_the_evals_baseline_and_every_rsus_clock_from_the_obu_metrics():
+    """The live driver feeds no own frames: build_report computes the baseline from scenario, seed, start
+    and cycle times, the eval's figures for the same run; the OBU's metrics give each RSU's clock."""
+    from schemas.messages import ObuMetrics, RsuLinkStatus
+    from v2i.offline.runner import OfflineRun
+    from v2i.offline.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, build_report
+    from v2i.sim.obu_sources import SimulatedVehicle
+    from v2i.sim.world import World
+
+    spec = RunSpec(scenario="red-light-runner", seed=4, duration_s=12.0, rsu_clock_offset_ms=30.0)
+    run = OfflineRun(spec)
+    run.execute()
+    world = World(run.scenario, ego=run.scenario.vehicles[0].name)
+    cycles = SimulatedVehicle(world, spec.seed, EVAL_EPOCH_NS).cycle_times_ns(12.0)
+    record = RunRecord(world, EVAL_EPOCH_NS, 12.0, cycles)
+    t_ns = EVAL_EPOCH_NS + 6 * 10**9
+    true_ns = 30_000_000
+    for mode, off_ms in (("intra", 2.0), ("vehicle-only", 9.0)):
+        rsus = (RsuLinkStatus(rsu_id="rsu-a", clock_offset_ns=true_ns + round(off_ms * 1e6), clock_offset_naive_ns=true_ns,
+                              clock_drift_ppm=0.0),
+                RsuLinkStatus(rsu_id="rsu-b", clock_offset_ns=true_ns - 1_000_000, clock_offset_naive_ns=true_ns,
+                              clock_drift_ppm=0.0))
+        record.add_obu_metrics(ObuMetrics(vehicle_id="ego", t_ns=t_ns, mode=mode, rsus=rsus))
+        t_ns += 100_000_000
+    report = build_report(spec, world, record, "demo")
+    assert report["vehicle_only"] == run.report()["vehicle_only"]
+    assert set(report["clock_rsus"]) == {"rsu-a", "rsu-b"}
+    assert report["clock_error_when_fused_max_ms"] == pytest.approx(2.0)  # the intra cycle's, not the 9 ms
+    assert report["clock_offset_error_ms"]["max"] == pytest.approx(9.0)

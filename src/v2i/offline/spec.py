@@ -154,11 +154,14 @@ class RunRecord:
     def add_obu_metrics(self, metrics: ObuMetrics) -> None:
         """The OBU's metrics message (the live driver): its clock-offset samples; its counts
         replace the record's (the last message holds the run's totals)."""
+        # the RSUs the last cycle used: ObuMetrics.rsu_inputs once the metrics carry it (ObuPipeline.last_rsu_inputs),
+        # until then every synced RSU of a cycle in a mode that uses RSU data
+        used = getattr(metrics, "rsu_inputs", None)
         for r in metrics.rsus:
             if None not in (r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm):
                 self.add_offset_sample(metrics.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm,
                                        r.rsu_id)
-                if metrics.mode in ("intra", "inter", "planning"):  # which RSUs a live cycle used is not sent: all synced
+                if (r.rsu_id in used) if used is not None else metrics.mode in ("intra", "inter", "planning"):
                     self.add_used_clock(metrics.t_ns, r.rsu_id, r.clock_offset_ns, planned=metrics.mode == "planning")
             steps = getattr(r, "clock_steps", None)  # sent once RsuLinkStatus carries it
             if steps is not None:
