@@ -8,7 +8,8 @@ From the header alone, before any object is decoded (``lists``, ``paths``):
 - once the RSU's clock is known: valid no later than its arrival plus the clock uncertainty
   and ``future_tolerance_ns`` (else ``future_timestamp``), and no older than the oldest data a
   mode can use (``list_max_age_ns``, inter-frame fusion; ``paths_max_age_ns``, planning) plus the
-  uncertainty (else ``stale``; a stale list still tells the link monitor its delay). A replay
+  uncertainty (else ``stale``; a stale list still tells the link monitor its delay), placed by
+  the clock that stamped it around a confirmed clock step (``RsuState.clock_of``). A replay
   is a duplicate or stale. Paths are kept only once the clock is known (they cannot be placed
   before, and the next ones come within a period).
 Then ``on_site`` drops the objects farther than ``site_radius_m`` from their RSU (from the
@@ -133,14 +134,18 @@ class Admission:
         est = state.sync.estimate_at(receive_ns)
         if est is None:
             return None
-        valid_ns = est.to_obu_ns(header.valid_time_ns)
-        if valid_ns - receive_ns > est.uncertainty_ns + self.limits.future_tolerance_ns:
+        tolerance_ns = est.uncertainty_ns + self.limits.future_tolerance_ns
+        # around a confirmed clock step a list stamped before it is placed by the old clock (RsuState.clock_of;
+        # an ambiguous one is judged by the current clock here and dropped when taken)
+        place = state.clock_of(header.capture_time_ns, receive_ns, tolerance_ns)[0] or est
+        valid_ns = place.to_obu_ns(header.valid_time_ns)
+        if valid_ns - receive_ns > tolerance_ns:
             return "future_timestamp"
         max_age_ns = self.limits.paths_max_age_ns if paths else self.limits.list_max_age_ns
         if receive_ns - valid_ns <= max_age_ns + est.uncertainty_ns:
             return None
         if not paths and self.link_stats:
-            state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns),
-                                     est.to_obu_ns(header.publish_time_ns), receive_ns,
+            state.monitor.on_message(header.seq, place.to_obu_ns(header.capture_time_ns),
+                                     place.to_obu_ns(header.publish_time_ns), receive_ns,
                                      header.sensor not in UNCOUNTED_SENSORS)
         return "stale"

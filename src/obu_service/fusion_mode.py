@@ -26,7 +26,8 @@ to ``planning_max_clock_uncertainty_ms``). Each output says why its mode is the 
 - ``best``: the most accurate mode the configuration allows ran (adaptive: intra or inter;
   a fixed mode: that mode; ``--fusion vehicle-only``: vehicle-only);
 - ``hysteresis``: a better level is feasible, but adaptive has not seen it feasible for
-  ``hysteresis_cycles`` cycles in a row yet;
+  ``hysteresis_cycles`` cycles in a row yet (after a ``clock_uncertainty`` fallback that a
+  confirmed clock step explains, adaptive climbs back at once: ``climb_at_once``);
 - ``clock_uncertainty``: a better level was not feasible because the data some RSU had for
   it was withheld for its clock uncertainty;
 - ``intra_frame_late``: the fixed intra mode waited for its slot's frame and it did not come
@@ -86,6 +87,12 @@ class ModePolicy:
         if self._level == 0:
             return "intra" if feasible.intra else "inter"
         return MODES[self._level + 1]
+
+    def climb_at_once(self) -> None:
+        """Let the next cycle climb to any level feasible then without waiting ``hysteresis_cycles``:
+        after a fallback the link did not cause (an RSU's clock was uncertain while a step was
+        suspected; the step is now confirmed and its data placed again)."""
+        self._streak = [max(s, self.hysteresis_cycles - 1) for s in self._streak]
 
     def resolve(self, planned: str, available: Feasible) -> str:
         """The mode actually used at fusion time, given the data that is there now."""

@@ -15,6 +15,11 @@ and one past ``planning_max_clock_uncertainty_ms`` no paths to planning (the bou
 derivation: ``ObuPipelineConfig``); another RSU with a good clock still offers its own.
 ``withheld`` says which modes' data some RSU's clock withheld at a cycle (the cycle's
 ``mode_reason``, ``obu_service.fusion_mode``).
+
+Clock steps: a list stamped before a confirmed RSU clock step keeps the old clock's estimate
+(``Received.clock``, named by ``RsuState.clock_of``) and is placed by it, the others by the
+current one; the frames are ordered by their placed valid times (the RSU's stamps jump at a
+step), so the tracker keeps its tracks across the step.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import itertools
 import statistics
 from dataclasses import dataclass
 from functools import cached_property
-from operator import attrgetter, is_
+from operator import is_, itemgetter
 
 from v2i.core.objects import ObjectArray
 from schemas.messages import PredictionList
@@ -45,6 +50,9 @@ class Received:
     objects: ObjectArray  # map frame
     receive_ns: int
     used: bool = False  # consumed by a tracking fusion (each list is a measurement once)
+    # the estimate that places it instead of the RSU's current one: the old clock's for a list stamped
+    # before a confirmed clock step (RsuState.clock_of); None: the current estimate
+    clock: object = None
 
 
 @dataclass(frozen=True)
@@ -62,8 +70,9 @@ class Placement:
 
     @cached_property
     def period_ns(self) -> int:
-        """``rsu_period_ns`` of these frames (asked each cycle by intra_slots and intra)."""
-        return _median_period_ns(self.frames)
+        """``rsu_period_ns`` of these frames (asked each cycle by intra_slots and intra), from their
+        placed captures: across a clock step the RSU's own stamps jump."""
+        return _median_period_ns(f.capture_ns for _, f in self.placed)
 
 
 class ModeInputs:
@@ -93,15 +102,21 @@ class ModeInputs:
 
     def _place(self, state: RsuState, est) -> list[tuple[Received, RsuFrame]]:
         tolerance_ns = est.uncertainty_ns + self.config.future_tolerance_ms * 1e6
-        placed, previous = [], None
+        times = []
         # t_obu = t_rsu - theta(t): est.to_obu_ns, t = t0 + (r - t0 - theta0) / (1 + d), inlined (the
-        # same operations) for the tens of frames placed per RSU and cycle
+        # same operations) for the tens of frames placed per RSU and cycle; a frame stamped before a
+        # clock step by its old clock's estimate (raw.clock)
         at_ns, theta0_ns, scale = est.at_ns, est.offset_ns, 1.0 + est.drift_ppm * 1e-6
-        for raw in sorted(state.frames, key=_valid_rsu_ns):
-            valid_ns = at_ns + round((raw.valid_rsu_ns - at_ns - theta0_ns) / scale)
-            if valid_ns - raw.receive_ns > tolerance_ns:
-                continue
-            capture_ns = at_ns + round((raw.capture_rsu_ns - at_ns - theta0_ns) / scale)
+        for raw in state.frames:
+            if raw.clock is None:
+                valid_ns = at_ns + round((raw.valid_rsu_ns - at_ns - theta0_ns) / scale)
+                capture_ns = at_ns + round((raw.capture_rsu_ns - at_ns - theta0_ns) / scale)
+            else:
+                valid_ns, capture_ns = raw.clock.to_obu_ns(raw.valid_rsu_ns), raw.clock.to_obu_ns(raw.capture_rsu_ns)
+            if valid_ns - raw.receive_ns <= tolerance_ns:
+                times.append((valid_ns, capture_ns, raw))
+        placed, previous = [], None
+        for valid_ns, capture_ns, raw in sorted(times, key=_first):  # by valid time (OBU: stamps jump at a step)
             previous = RsuFrame(state.index, raw.seq, capture_ns, valid_ns, raw.objects, previous)
             placed.append((raw, previous))
         return placed
@@ -220,23 +235,23 @@ class ModeInputs:
         pred, est = state.predictions, state.sync.estimate_at(t_c)
         if pred is None or est is None:
             return None
-        t0_ns = est.to_obu_ns(pred.header.valid_time_ns)
+        t0_ns = (state.predictions_clock or est).to_obu_ns(pred.header.valid_time_ns)
         if 0 <= t_c - t0_ns <= min(self.config.planning_max_age_s * 1e9, pred.horizon_ns):
             return pred, t0_ns
         return None
 
 
-_valid_rsu_ns = attrgetter("valid_rsu_ns")
+_first = itemgetter(0)
 
 
 def rsu_period_ns(state: RsuState) -> int:
     """Median interval between the RSU's distinct captures (RSU clock; drift is negligible
     here), at least 1 ms. (At most ``frames_kept`` captures: plain Python beats numpy here.)"""
-    return _median_period_ns(state.frames)
+    return _median_period_ns(f.capture_rsu_ns for f in state.frames)
 
 
-def _median_period_ns(frames) -> int:
-    captures = sorted({f.capture_rsu_ns for f in frames})
+def _median_period_ns(capture_times_ns) -> int:
+    captures = sorted(set(capture_times_ns))
     if len(captures) < 2:
         return DEFAULT_RSU_PERIOD_NS
     return max(int(statistics.median(b - a for a, b in itertools.pairwise(captures))), 1_000_000)

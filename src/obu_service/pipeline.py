@@ -22,7 +22,7 @@ fitted to the wire (``v2i.fusion.wire.fit_to_wire``: clip, drop, truncate, each 
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -143,6 +143,7 @@ class ObuPipeline:
         self.rsu_deadline_misses = 0
         self.covered_cycles = 0
         self.last_mode = "vehicle-only"
+        self._last_reason = ""
         self.last_planning: PredictionList | None = None  # planner-facing output of the last cycle
         # ids of the RSUs whose data the last cycle's output used: frames fed to the fusion method in
         # intra / inter (the tracker's fresh frames for kf, the newest for the stateless methods), the
@@ -191,11 +192,38 @@ class ObuPipeline:
             elif not state.sync.add(sample):
                 self.rejected["time_reply_inconsistent"] += 1
             elif state.sync.steps_detected > state.steps_seen:
-                # the RSU clock stepped: what it stamped before is placed by the old clock, drop it
                 state.steps_seen = state.sync.steps_detected
-                self.rejected["stale_after_clock_step"] += len(state.frames) + (state.predictions is not None)
-                state.frames.clear()
+                self._restamp(state)
+                if self._last_reason == "clock_uncertainty":  # the step explains the fallback, not the link
+                    self._policy.climb_at_once()
+
+    def _restamp(self, state: RsuState) -> None:
+        """The RSU clock stepped (``ClockSync.last_step``): what it stamped before the step is placed by
+        the old clock's estimate from now on, what it stamped since by the new one (``RsuState.clock_of``);
+        only lists and paths whose stamps could be either's are dropped (``stale_after_clock_step``)."""
+        kept = deque()
+        for raw in state.frames:
+            if raw.clock is None:  # (one stamped before an earlier step keeps the clock that places it)
+                clock, which = self._clock_of(state, raw.capture_rsu_ns, raw.receive_ns)
+                if which == "ambiguous":
+                    self.rejected["stale_after_clock_step"] += 1
+                    continue
+                raw.clock = clock if which == "old" else None
+            kept.append(raw)
+        state.frames = kept
+        if state.predictions is not None and state.predictions_clock is None:
+            clock, which = self._clock_of(state, state.predictions.header.capture_time_ns, state.predictions_receive_ns)
+            if which == "ambiguous":
+                self.rejected["stale_after_clock_step"] += 1
                 state.predictions = None
+            elif which == "old":
+                state.predictions_clock = clock
+
+    def _clock_of(self, state: RsuState, stamp_rsu_ns: int, receive_ns: int) -> tuple[OffsetEstimate | None, str]:
+        """``RsuState.clock_of`` with this OBU's slack: the clock uncertainty and the future tolerance."""
+        est = state.sync.estimate_at(receive_ns)
+        slack_ns = (0 if est is None else est.uncertainty_ns) + round(self.config.future_tolerance_ms * 1e6)
+        return state.clock_of(stamp_rsu_ns, receive_ns, slack_ns)
 
     def clock_offset(self, rsu_id: str, t_ns: int | None = None) -> OffsetEstimate | None:
         """Offset estimate (theta = rsu - obu) of one RSU, at OBU time ``t_ns`` if given."""
@@ -239,13 +267,17 @@ class ObuPipeline:
         header = msg.header
         state.lists_seen.add((header.seq, header.capture_time_ns))
         ego_now = self.poses.at(receive_ns, uncertainty=False)
+        est, which = self._clock_of(state, header.capture_time_ns, receive_ns)
+        if which == "ambiguous":  # stamped around a clock step by either clock: it cannot be placed
+            self.rejected["stale_after_clock_step"] += 1
+            return None
         objects = self._admission.on_site(state, _rsu_objects(msg.objects), ego_now)
-        est = state.sync.estimate_at(receive_ns)
         capture_ns = receive_ns if est is None else est.to_obu_ns(header.capture_time_ns)
         objects = self._admission.not_ego(objects, self.poses.at(capture_ns, uncertainty=False))
         objects = objects.with_(ids=self._rsu_ids(state, objects.ids),
                                 sources=np.full(len(objects), slot_source(state.index), np.int64))
-        state.frames.append(Received(header.capture_time_ns, header.valid_time_ns, header.seq, objects, receive_ns))
+        state.frames.append(Received(header.capture_time_ns, header.valid_time_ns, header.seq, objects, receive_ns,
+                                     clock=est if which == "old" else None))
         state.accepted += 1
         state.last_receive_ns = receive_ns
         publish_obu_ns = None if est is None else est.to_obu_ns(header.publish_time_ns)
@@ -265,12 +297,27 @@ class ObuPipeline:
 
     def take_paths(self, admitted: AdmittedPaths) -> None:
         """Keep an admitted prediction list's long-horizon paths: the newest t0 is kept."""
-        msg, state = admitted.message, admitted.state
+        msg, state, receive_ns = admitted.message, admitted.state, admitted.receive_ns
         header = msg.header
         state.predictions_seen.add((header.seq, header.capture_time_ns))
-        if state.predictions is None or header.valid_time_ns > state.predictions.header.valid_time_ns:
-            state.predictions = msg
-            state.last_receive_ns = admitted.receive_ns
+        clock, which = self._clock_of(state, header.capture_time_ns, receive_ns)
+        if which == "ambiguous":
+            self.rejected["stale_after_clock_step"] += 1
+            return
+        if state.predictions is None or self._newer_paths(state, header.valid_time_ns, clock, which):
+            state.predictions, state.predictions_receive_ns = msg, receive_ns
+            state.predictions_clock = clock if which == "old" else None
+            state.last_receive_ns = receive_ns
+
+    @staticmethod
+    def _newer_paths(state: RsuState, valid_rsu_ns: int, clock: OffsetEstimate | None, which: str) -> bool:
+        """Whether paths valid at RSU time ``valid_rsu_ns``, read by the ``which`` clock (``clock`` places
+        them), are newer than the kept ones: in RSU time while both are the current clock's, else in OBU time."""
+        kept_rsu_ns, kept_clock = state.predictions.header.valid_time_ns, state.predictions_clock
+        if clock is None or which == "current" and kept_clock is None:
+            return valid_rsu_ns > kept_rsu_ns
+        current = clock if which == "current" else state.sync.estimate()
+        return clock.to_obu_ns(valid_rsu_ns) > (kept_clock or current).to_obu_ns(kept_rsu_ns)
 
     def on_detections(self, dets: ObjectArray, capture_ns: int) -> int:
         """Own LiDAR objects (base_link at capture_ns) start a cycle; returns its fuse_by_ns."""
@@ -346,6 +393,7 @@ class ObuPipeline:
         self.last_rsu_inputs = tuple(s.rsu_id for s in self._rsus if s.index in used)  # (peers' slots are not RSUs)
         self._account(t_c, mode, now_ns)
         self.mode_reasons[reason] += 1
+        self._last_reason = reason
         self._out_seq += 1
         objects, dropped = wire_columns(fused, MAX_OBJECTS, fused=True)  # fit_to_wire, then its wire columns
         self.output_dropped.update(dropped)

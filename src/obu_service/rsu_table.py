@@ -21,12 +21,15 @@ from dataclasses import dataclass, field
 
 from schemas.messages import PredictionList
 
-from v2i.clock.clock_sync import ClockSync
+from v2i.clock.clock_sync import ClockSync, OffsetEstimate
 from v2i.fusion.tracking import SOURCE_BITS
 from obu_service.link_monitor import LinkMonitor
 
 MAX_RSUS = SOURCE_BITS - 1  # slots of RSUs and peers together: one tracker source bit each (62; metrics list <= 64)
 RECENT_KEYS = 512  # (seq, capture) keys remembered per RSU and stream for duplicate detection
+# clock_of: a list's capture-to-arrival latency is plausible up to this quantile of the link's measured ones
+# (not the maximum: lists received while a step was suspected were measured through the old clock)
+LATENCY_QUANTILE = 0.95
 RSU_ID_BASE = 1_000_000  # output ids of a slot's objects: RSU_ID_BASE * (slot index + 1) + track id mod base
 
 
@@ -65,11 +68,49 @@ class RsuState:
     last_age_ms: float | None = None
     steps_seen: int = 0  # RSU clock steps already acted on
     placement: object = None  # obu_service.mode_inputs.Placement: its frames as last placed in OBU time
+    predictions_clock: OffsetEstimate | None = None  # places ``predictions`` when stamped before a step (clock_of)
+    predictions_receive_ns: int | None = None  # when ``predictions`` arrived
 
     @property
     def established(self) -> bool:
         """Clock synchronised and data accepted: a working RSU, not just a name heard."""
         return self.accepted > 0 and self.sync.estimate() is not None
+
+    def clock_of(self, stamp_rsu_ns: int, receive_ns: int, slack_ns: int) -> tuple[OffsetEstimate | None, str]:
+        """(the estimate that places an RSU time stamp of a message received at ``receive_ns``, which
+        clock read it: "current", "old" or "ambiguous"): the RSU's current estimate, or, around its
+        last confirmed clock step (``ClockSync.last_step``: between OBU times after_ns and
+        before_ns), the old clock's (``previous``, extrapolated with its drift) for a stamp read
+        before the step.
+
+        A stamp read by the old clock lies, placed by it, before the step (t_old <= before_ns); one
+        read by the new clock, placed by it, after (t_new >= after_ns); either is no later than its
+        arrival (t <= receive_ns + slack_ns). When exactly one reading holds it names the clock.
+        When both do (a stamp within |step| of the step), the latency each implies (receive - t)
+        decides if only one is within what the link delivers (``LATENCY_QUANTILE`` of the RSU's
+        measured capture-to-arrival latency, plus slack): after a step of -700 ms, a list
+        captured just after it would otherwise have taken 700 ms more than the link takes. Else
+        the stamp is ambiguous (None), unless the two placements differ by at most ``slack_ns``
+        (the current estimate then). Before sync: (None, "current")."""
+        est = self.sync.estimate_at(receive_ns)
+        step = self.sync.last_step
+        if est is None or step is None:
+            return est, "current"
+        t_old, t_new = step.previous.to_obu_ns(stamp_rsu_ns), est.to_obu_ns(stamp_rsu_ns)
+        latest_ns = receive_ns + slack_ns
+        old_ok = t_old <= min(step.before_ns, latest_ns)
+        new_ok = step.after_ns <= t_new <= latest_ns
+        if old_ok and new_ok and abs(t_old - t_new) > slack_ns:
+            old_ok, new_ok = self._within_link_latency(receive_ns - t_old, slack_ns), \
+                self._within_link_latency(receive_ns - t_new, slack_ns)
+        if old_ok == new_ok:  # (a step smaller than the slack: either places it within the slack)
+            return (est, "current") if abs(t_old - t_new) <= slack_ns else (None, "ambiguous")
+        return (step.previous, "old") if old_ok else (est, "current")
+
+    def _within_link_latency(self, latency_ns: int, slack_ns: int) -> bool:
+        """Whether the link delivers lists this late: latency <= its LATENCY_QUANTILE + slack (no: unmeasured)."""
+        bound_ms = self.monitor.latency_quantile_ms(LATENCY_QUANTILE)
+        return bound_ms is not None and latency_ns <= bound_ms * 1e6 + slack_ns
 
 
 class RsuTable:

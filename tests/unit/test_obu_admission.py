@@ -255,17 +255,6 @@ def test_pipeline_counts_conflicts_and_keeps_its_clock():
     assert abs(p.clock_offset("rsu1", t).offset_ns - THETA) < 1 * MS
 
 
-def test_frames_stamped_before_a_detected_clock_step_are_dropped(monkeypatch):
-    p = pipeline()
-    t = T0 + 1_000 * MS
-    p.on_rsu_message(rsu_list(t - 150 * MS, [[5.0, -20.0]]), t - 20 * MS)
-    state = p._rsus.get("rsu1")
-    monkeypatch.setattr(type(state.sync), "steps_detected", property(lambda self: 1))  # the filter saw a step
-    sync(p, "rsu1", t)
-    p.on_detections(objs([[10.0, 0.0]]), t + 200 * MS)  # the reply has reached the filter
-    assert not state.frames and p.rejected["stale_after_clock_step"] == 1
-
-
 # --- item 10: the intra slot does not depend on the sign of a sub-ms clock error ----------------------
 
 @pytest.mark.parametrize("error_us", [-400, -50, 0, 50, 400])
