@@ -476,7 +476,7 @@ class ObuPipeline:
             vehicle_id=self.config.vehicle_id, t_ns=now_ns, cycles=self.cycles,
             output_deadline_misses=self.deadline_misses, rsu_deadline_misses=self.rsu_deadline_misses,
             covered_cycles=self.covered_cycles, mode=self.last_mode, mode_counts=dict(self.modes),
-            mode_reasons=dict(self.mode_reasons),
+            mode_reasons=dict(self.mode_reasons), rsu_inputs=self.last_rsu_inputs,
             rsus=tuple(self._rsu_status(s, now_ns) for s in self._rsus), rejected=dict(self.rejected),
             output_dropped=dict(self.output_dropped), latency_ms=latency_ms or {},
         )
@@ -491,6 +491,7 @@ class ObuPipeline:
             clock_drift_ppm=None if est is None else est.drift_ppm,
             clock_offset_naive_ns=None if naive is None else naive.offset_ns,
             sync_samples=0 if est is None else est.samples, sync_outliers=state.sync.outliers_rejected,
+            clock_steps=state.sync.steps_detected,
             messages_accepted=state.accepted,
             last_data_age_ms=state.last_age_ms, delay_p50_ms=link["delay_p50_ms"], delay_p95_ms=link["delay_p95_ms"],
             jitter_ms=link["jitter_ms"], loss_ratio=link["loss_ratio"],

@@ -239,6 +239,7 @@ class RsuLinkStatus(Message):
     clock_offset_naive_ns: Int64 | None = None  # the latest single exchange, for comparison
     sync_samples: Count = 0
     sync_outliers: Count = 0  # time replies the clock filter rejected (forged, or outliers against its fit)
+    clock_steps: Count = 0  # RSU clock steps the clock filter confirmed
     messages_accepted: Count = 0
     last_data_age_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None
     delay_p50_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None  # one-way, RSU publish -> OBU
@@ -285,6 +286,8 @@ class ObuMetrics(Message):
     mode: Annotated[str, Field(max_length=32)] = ""
     mode_counts: dict[Annotated[str, Field(max_length=32)], Count] = Field(default_factory=dict, max_length=8)
     mode_reasons: dict[Annotated[str, Field(max_length=32)], Count] = Field(default_factory=dict, max_length=8)
+    # the RSUs whose data the last cycle used (ObuPipeline.last_rsu_inputs); None: not stated (older producers)
+    rsu_inputs: Annotated[tuple[NodeId, ...] | None, Field(max_length=64)] = None
     rsus: Annotated[tuple[RsuLinkStatus, ...], Field(max_length=64)] = ()
     rejected: dict[Annotated[str, Field(max_length=64)], Count] = Field(
         default_factory=dict, max_length=64

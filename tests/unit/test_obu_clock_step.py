@@ -76,7 +76,9 @@ def target_ids(outputs, since_ns: int) -> list[int | None]:
 @pytest.mark.parametrize("step_ms", [-700.0, 700.0, -5000.0])
 def test_a_confirmed_step_keeps_the_lists_and_the_track(step_ms):
     p, outputs = run(step_ms)
-    assert p.clock_offset("rsu1").steps == 1  # the filter confirmed the step
+    metrics = p.metrics(outputs[-1][0])
+    assert p.clock_offset("rsu1").steps == 1 == metrics.rsus[0].clock_steps  # the filter confirmed the step
+    assert metrics.rsu_inputs in ((), ("rsu1",))  # (kf: the RSU's list is fed every other cycle)
     ids = target_ids(outputs, T0 + 4_000 * MS)
     assert None not in ids and len(set(ids)) == 1  # one track throughout: no gap, no new id
     assert p.rejected["stale_after_clock_step"] <= 1  # only a list stamped inside the step's window

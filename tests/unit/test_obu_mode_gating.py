@@ -46,7 +46,7 @@ def rsu_frame(rsu_id: str, capture_obu_ns: int, xy, seq: int = 0) -> ObjectList:
 
 def test_an_rsu_with_an_uncertain_clock_is_not_fused_and_a_good_one_still_is():
     p = ObuPipeline(ObuPipelineConfig(fusion="iou-merge", fusion_mode="inter"))
-    sync(p, "good", 10 * MS)  # uncertainty ~5 ms: within the tracking bound (50 ms)
+    sync(p, "good", 10 * MS, T0 + 2_500 * MS)  # uncertainty ~5 ms: within the tracking bound (50 ms)
     sync(p, "vague", 2_000 * MS, T0 + 20 * MS)  # ~1 s: far past it
     cycle = T0 + 3_000 * MS
     p.on_pose(cycle, Pose2D(0.0, 0.0, 0.0))
@@ -65,13 +65,15 @@ def test_an_rsu_with_an_uncertain_clock_is_not_fused_and_a_good_one_still_is():
     assert len(out.objects) == 2  # own + the good RSU's (the vague one's at x = 21 m is not there)
     assert min(abs(o.x - 21.0) for o in out.objects) > 5.0
     assert p.mode_reasons == {"clock_uncertainty": 1, "best": 1}
-    assert p.metrics(cycle).mode_reasons == {"clock_uncertainty": 1, "best": 1}
+    metrics = p.metrics(cycle)
+    assert metrics.mode_reasons == {"clock_uncertainty": 1, "best": 1} and metrics.rsu_inputs == ("good",)
+    assert {r.rsu_id: r.clock_steps for r in metrics.rsus} == {"good": 0, "vague": 0}
 
 
 def test_planning_has_its_own_looser_bound():
     for round_trip_ms, mode, inputs in ((400, "planning", ("rsu1",)), (2_000, "vehicle-only", ())):
         p = ObuPipeline(ObuPipelineConfig(fusion="kf"))
-        sync(p, "rsu1", round_trip_ms * MS)  # uncertainty ~200 ms (within planning's 500 ms) or ~1 s (past it)
+        sync(p, "rsu1", round_trip_ms * MS, T0 + 800 * MS)  # uncertainty ~200 ms (within planning's 500 ms) or ~1 s
         cycle = T0 + 3_000 * MS
         p.on_pose(cycle, Pose2D(0.0, 0.0, 0.0))
         p.on_rsu_message(rsu_list(cycle - 100 * MS, [-40.0, 0.0], [10.0, 0.0]), cycle - 30 * MS)
