@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from link_emulator.channel import LinkModel
 from link_emulator.profile import load_profile
-from v2i.clock.clock_sync import ClockSync, SyncSample
+from v2i.clock.clock_sync import SILENT_BOUND_NS, ClockSync, SyncSample
 from v2i.sim.sync_sim import (LTE_DOWNLINK, LTE_UPLINK, BufferedLeg, buffer_episodes, exchanges, forged,
                                   run_sync)
 from v2i.sim.clock import ClockStep, DriftingClock, SimClock
@@ -299,6 +299,38 @@ def test_uncertainty_grows_with_the_drift_sd_while_no_exchange_arrives():
     for k in range(7):
         est = sync.estimate_at(t_last + k * 10 * S)
         assert abs(est.offset_ns - clock.offset_at(t_last + k * 10 * S)) <= est.uncertainty_ns
+
+
+def test_a_clock_not_heard_promptly_is_not_bounded():
+    """A step while no prompt exchange arrives (the uplink buffers: the RSU gets no query) cannot be
+    seen: past silence_ns after the last prompt exchange the bound is SILENT_BOUND_NS, and a prompt
+    one brings it back; buffered replies (round trip > silence_ns) do not."""
+    step_ns = T0 + 15 * S
+    clock, samples = lte_run(350 * MS, 60.0, 2, duration_s=30, steps=(ClockStep(step_ns, 500 * MS),))
+    silent = [s for s in samples if s.t1_ns < T0 + 12 * S]  # nothing sent after 12 s arrives before 25 s...
+    late = [SyncSample(s.t1_ns, s.t2_ns, s.t3_ns, T0 + 25 * S) for s in samples if T0 + 12 * S <= s.t1_ns < T0 + 20 * S]
+    sync, quiet = ClockSync(), ClockSync()
+    for s in silent:
+        sync.note_request(s.t1_ns)
+        sync.add(s)
+        quiet.add(s)
+    for t1_ns in range(T0 + 12 * S, T0 + 25 * S, S // 10):  # queries every 100 ms (no answer yet)
+        sync.note_request(t1_ns)
+    t_last = silent[-1].t4_ns
+    assert sync.estimate_at(t_last + S).uncertainty_ns < 30 * MS
+    est = sync.estimate_at(T0 + 20 * S)  # 500 ms wrong since 15 s: not bounded by the old fit
+    assert abs(est.offset_ns - clock.offset_at(T0 + 20 * S)) > 400 * MS
+    assert est.uncertainty_ns == SILENT_BOUND_NS
+    assert quiet.estimate_at(T0 + 20 * S).uncertainty_ns < 50 * MS  # (no queries noted: the rule is off)
+    for s in late:  # ... then the buffered ones, all at once: still nothing prompt
+        sync.add(s)
+    assert sync.estimate_at(T0 + 25 * S).uncertainty_ns >= SILENT_BOUND_NS
+    prompt = [s for s in samples if s.t1_ns >= T0 + 25 * S]
+    for s in prompt:
+        sync.note_request(s.t1_ns)
+        sync.add(s)
+    est = sync.estimate_at(prompt[-1].t4_ns)
+    assert est.uncertainty_ns < 30 * MS and abs(est.offset_ns - clock.offset_at(prompt[-1].t4_ns)) < 5 * MS
 
 
 def test_a_reply_stamped_before_a_step_and_delivered_after_it_is_no_step_back():

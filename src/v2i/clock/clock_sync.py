@@ -62,6 +62,7 @@ from __future__ import annotations
 import math
 from array import array
 from bisect import bisect_right
+from collections import deque
 from dataclasses import dataclass, field
 from operator import itemgetter
 
@@ -72,6 +73,10 @@ from v2i.clock.clock_envelope import fit_window
 NS_PER_S = 1_000_000_000
 PPM_NS_PER_S = 1_000.0  # 1 ppm = 1 us per s = 1000 ns per s
 MIN_RESID_NS = 50_000.0  # floor on the per-sample noise of a drift fit (no false certainty)
+# What the bound becomes while the RSU has not been heard promptly (ClockSync silence_ns): its clock
+# may have stepped meanwhile by any amount, which nothing bounds; an hour stands for "unbounded" in an
+# int64 ns field (no mode fuses through it, see obu_service.mode_inputs)
+SILENT_BOUND_NS = 3_600 * NS_PER_S
 _first = itemgetter(0)  # a window entry's t4
 
 
@@ -207,6 +212,11 @@ class ClockSync:
     is fitted over the whole window, the offset from the samples of the last offset_horizon_ns;
     quantile: the lower-tail fraction taken as the envelope of each leg; bound_sigmas: drift
     standard deviations the uncertainty allows for. Samples may arrive in any order.
+    silence_ns: a query (``note_request``) not answered by an exchange with a round trip of at most
+    silence_ns within silence_ns means the RSU clock has not been read since: it may have stepped
+    unseen, so the bound is SILENT_BOUND_NS until a prompt exchange sent after it arrives (a clock
+    that stepped while the uplink buffered would otherwise be fused through with its pre-step
+    bound). Without queries noted, the rule is off.
 
     Refits: until the fit is armed (converged) every exchange refits the window; after that
     every ``refit_every`` exchanges or ``refit_interval_ns`` of exchange time, whichever comes
@@ -219,7 +229,9 @@ class ClockSync:
                  offset_horizon_ns: int = 30 * NS_PER_S, bin_ns: int = 2 * NS_PER_S, quantile: float = 0.1,
                  drift_prior_ppm: float = 100.0, max_drift_ppm: float = 500.0, step_threshold_ns: int = 2_000_000,
                  step_confirm: int = 3, step_span: int = 10, step_armed_after: int = 30, bound_sigmas: float = 3.0,
-                 refit_every: int = 5, refit_interval_ns: int = NS_PER_S):
+                 refit_every: int = 5, refit_interval_ns: int = NS_PER_S, silence_ns: int = 2 * NS_PER_S):
+        self.silence_ns = silence_ns
+        self._unanswered: deque[int] = deque(maxlen=window)  # t1 of queries sent after the last prompt exchange's
         self.max_samples, self.horizon_ns, self.offset_horizon_ns = window, horizon_ns, offset_horizon_ns
         self.bin_ns, self.quantile = bin_ns, quantile
         self.max_drift, self.bound_sigmas = max_drift_ppm * PPM_NS_PER_S, bound_sigmas
@@ -270,6 +282,9 @@ class ClockSync:
             return False
         self._total += 1
         self._last = sample
+        if sample.round_trip_ns <= self.silence_ns:  # the RSU clock was read at most silence_ns after t1
+            while self._unanswered and self._unanswered[0] <= sample.t1_ns:
+                self._unanswered.popleft()
         self._expire_hypotheses()
         fit = self._current_fit()
         interval = None if fit is None else fit.step_interval(sample, self.step_threshold_ns, self.bound_sigmas)
@@ -286,13 +301,18 @@ class ClockSync:
         self._insert(sample, self._segment)
         return True
 
+    def note_request(self, t1_ns: int) -> None:
+        """A query was sent to the RSU at OBU time t1 (see silence_ns)."""
+        if not self._unanswered or t1_ns > self._unanswered[-1]:
+            self._unanswered.append(t1_ns)
+
     def estimate(self) -> OffsetEstimate | None:
         """The estimate at the newest OBU receive time (t4) seen."""
         return None if not self._samples else self.estimate_at(self._samples[-1][0])
 
     def estimate_at(self, t_obu_ns: int) -> OffsetEstimate | None:
         """The estimate extrapolated to OBU time t: theta(t) = theta0 + drift (t - t0), with U(t)."""
-        key = (t_obu_ns, type(t_obu_ns), self._total, self._segment)
+        key = (t_obu_ns, type(t_obu_ns), self._total, self._segment, self._unanswered[0] if self._unanswered else None)
         last = self._last_estimate  # a cycle asks for the same instant several times
         if last is not None and last[0] == key:
             # no exchange since (the same total): the same fit (only ``add`` inserts samples, arms a
@@ -306,6 +326,8 @@ class ClockSync:
         bound = fit.bound_ns + self.bound_sigmas * fit.drift_sd * abs(dt_s)
         if self._hypotheses:  # while a step is suspected, the clock may have stepped by anything in its [low, high]
             bound += max(max(abs(h.low), abs(h.high)) for h in self._hypotheses)
+        if self._unanswered and t_obu_ns - self._unanswered[0] > self.silence_ns:
+            bound = max(bound, SILENT_BOUND_NS)  # asked and not answered promptly: a step may have gone unseen
         est = OffsetEstimate(offset, math.ceil(bound), self._total, fit.drift / PPM_NS_PER_S, t_obu_ns,
                              self._steps, fit.drift_sd / PPM_NS_PER_S)
         # while no step is suspected the answer is a function of (fit, t, total, segment) alone, and the

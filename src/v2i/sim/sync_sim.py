@@ -139,12 +139,18 @@ def forged(t1_ns: int, theta_ns: int, shift_ns: int, round_trip_ns: int, hold_ns
 
 
 def run_sync(rsu_clock: DriftingClock, samples: list[SyncSample], start_ns: int, duration_ns: int,
-             sync: ClockSync | None = None, grid_ns: int = 20 * NS_PER_MS) -> SyncRun:
-    """Feed samples in arrival order and score estimate_at(t) and naive() against the truth."""
+             sync: ClockSync | None = None, grid_ns: int = 20 * NS_PER_MS, rate_hz: float | None = 10.0) -> SyncRun:
+    """Feed samples in arrival order and score estimate_at(t) and naive() against the truth; the
+    queries (``ClockSync.note_request``) sent at ``rate_hz`` from start as ``exchanges`` sends them
+    (None: none noted, the silence rule off)."""
     sync = sync if sync is not None else ClockSync()
     ts, err, naive_err, unc = [], [], [], []
-    k = 0
+    k, query_ns = 0, start_ns
+    period_ns = None if rate_hz is None else round(NS_PER_S / rate_hz)
     for t in range(start_ns, start_ns + duration_ns, grid_ns):
+        while period_ns is not None and query_ns <= t:
+            sync.note_request(query_ns)
+            query_ns += period_ns
         while k < len(samples) and samples[k].t4_ns <= t:
             sync.add(samples[k])
             k += 1
