@@ -93,6 +93,8 @@ class ImageFusionPipeline:
 
     # --- clock ------------------------------------------------------------------------------
     def make_time_request(self, t1_ns: int) -> TimeRequest:
+        for sync in self._sync.values():  # a clock asked and not answered promptly is not trusted
+            sync.note_request(t1_ns)
         return self._requests.make(t1_ns)
 
     def on_time_reply(self, reply: TimeReply, t4_ns: int) -> None:
