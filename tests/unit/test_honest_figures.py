@@ -211,15 +211,20 @@ def test_a_demo_record_gets_the_evals_baseline_and_every_rsus_clock_from_the_obu
     record = RunRecord(world, EVAL_EPOCH_NS, 12.0, cycles)
     t_ns = EVAL_EPOCH_NS + 6 * 10**9
     true_ns = 30_000_000
-    for mode, off_ms in (("intra", 2.0), ("vehicle-only", 9.0)):
+    # (mode, rsu-a's error, the RSUs the cycle used: None from a producer that does not say, rsu-a's steps)
+    for mode, off_ms, inputs, steps in (("intra", 2.0, None, 0), ("vehicle-only", 9.0, None, 0),
+                                        ("inter", 20.0, ("rsu-b",), 1)):
         rsus = (RsuLinkStatus(rsu_id="rsu-a", clock_offset_ns=true_ns + round(off_ms * 1e6), clock_offset_naive_ns=true_ns,
-                              clock_drift_ppm=0.0),
+                              clock_drift_ppm=0.0, clock_steps=steps),
                 RsuLinkStatus(rsu_id="rsu-b", clock_offset_ns=true_ns - 1_000_000, clock_offset_naive_ns=true_ns,
                               clock_drift_ppm=0.0))
-        record.add_obu_metrics(ObuMetrics(vehicle_id="ego", t_ns=t_ns, mode=mode, rsus=rsus))
+        record.add_obu_metrics(ObuMetrics(vehicle_id="ego", t_ns=t_ns, mode=mode, rsus=rsus, rsu_inputs=inputs))
         t_ns += 100_000_000
     report = build_report(spec, world, record, "demo")
     assert report["vehicle_only"] == run.report()["vehicle_only"]
     assert set(report["clock_rsus"]) == {"rsu-a", "rsu-b"}
-    assert report["clock_error_when_fused_max_ms"] == pytest.approx(2.0)  # the intra cycle's, not the 9 ms
-    assert report["clock_offset_error_ms"]["max"] == pytest.approx(9.0)
+    # the intra cycle's 2 ms (every synced RSU: no rsu_inputs), not the vehicle-only 9 ms nor rsu-a's 20 ms
+    # in a cycle that used rsu-b only
+    assert report["clock_error_when_fused_max_ms"] == pytest.approx(2.0)
+    assert report["clock_offset_error_ms"]["max"] == pytest.approx(20.0)
+    assert report["clock_steps_detected"] == 1 and report["clock_rsus"]["rsu-a"]["steps_detected"] == 1

@@ -154,18 +154,16 @@ class RunRecord:
     def add_obu_metrics(self, metrics: ObuMetrics) -> None:
         """The OBU's metrics message (the live driver): its clock-offset samples; its counts
         replace the record's (the last message holds the run's totals)."""
-        # the RSUs the last cycle used: ObuMetrics.rsu_inputs once the metrics carry it (ObuPipeline.last_rsu_inputs),
-        # until then every synced RSU of a cycle in a mode that uses RSU data
-        used = getattr(metrics, "rsu_inputs", None)
+        # the RSUs the last cycle used (ObuPipeline.last_rsu_inputs); from a producer that does not say (None),
+        # every synced RSU of a cycle in a mode that uses RSU data
+        used = metrics.rsu_inputs
         for r in metrics.rsus:
             if None not in (r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm):
                 self.add_offset_sample(metrics.t_ns, r.clock_offset_ns, r.clock_offset_naive_ns, r.clock_drift_ppm,
                                        r.rsu_id)
                 if (r.rsu_id in used) if used is not None else metrics.mode in ("intra", "inter", "planning"):
                     self.add_used_clock(metrics.t_ns, r.rsu_id, r.clock_offset_ns, planned=metrics.mode == "planning")
-            steps = getattr(r, "clock_steps", None)  # sent once RsuLinkStatus carries it
-            if steps is not None:
-                self.clock_steps = {**(self.clock_steps or {}), r.rsu_id: steps}
+            self.clock_steps = {**(self.clock_steps or {}), r.rsu_id: r.clock_steps}  # the latest: the run's so far
         self.rsu_messages = sum(r.messages_accepted for r in metrics.rsus)  # every RSU's, as offline
         self.covered_cycles, self.rsu_deadline_misses = metrics.covered_cycles, metrics.rsu_deadline_misses
         self.obu_cycles, self.obu_output_deadline_misses = metrics.cycles, metrics.output_deadline_misses
