@@ -148,7 +148,8 @@ class RunRecord:
     def add_used_clock(self, cycle_ns: int, rsu_id: str, theta_ns: int, planned: bool = False) -> None:
         """A cycle fused (intra, inter) the RSU's data, or placed its paths (``planned``), through the
         offset estimate theta_ns at the cycle time."""
-        for column, value in zip(self._used_clock, (cycle_ns, theta_ns, self._rsu_index(rsu_id), PLANNED if planned else FUSED)):
+        values = (cycle_ns, theta_ns, self._rsu_index(rsu_id), PLANNED if planned else FUSED)
+        for column, value in zip(self._used_clock, values):
             column.append(value)
 
     def add_obu_metrics(self, metrics: ObuMetrics) -> None:
