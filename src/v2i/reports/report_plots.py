@@ -191,10 +191,10 @@ def _clock(ax, tl: VehicleTimeline) -> None:
 
 
 def _target(ax, tl: VehicleTimeline) -> None:
-    """Target position error per detected cycle, fused vs vehicle only; off-scale points at the top."""
+    """Target position error per detected cycle, fused vs the vehicle-only baseline; off-scale points at the top."""
     errors = np.concatenate([tl.target.error_m, tl.vehicle_only.error_m])
     top = max(1.0, float(np.percentile(errors, 99)) * 1.3) if len(errors) else 1.0
-    styles = ((tl.vehicle_only, "vehicle-only view", {"ms": 6, "mfc": "none", "mec": "#1f77b4", "marker": "s"}),
+    styles = ((tl.vehicle_only, "vehicle-only baseline", {"ms": 6, "mfc": "none", "mec": "#1f77b4", "marker": "s"}),
               (tl.target, "fused output", {"ms": 3.5, "color": "#2ca02c", "marker": "o"}))
     for series, label, style in styles:  # vehicle only hollow and larger: the fused dots show inside
         ax.plot(series.t_s, np.minimum(series.error_m, top * 0.97), ls="none", alpha=0.85,

@@ -143,7 +143,8 @@ def vehicle_timeline(spec: RunSpec, name: str, record: RunRecord) -> VehicleTime
         name=name, deadline_ms=spec.deadline_ms, cycle_s=(cycle_ns[order] - record.start_ns) * 1e-9,
         latency_ms=(publish_ns[order] - cycle_ns[order]) * 1e-6, modes=[modes[i] for i in order],
         missed_s=(missed_cycles_ns(record, spec.deadline_ms) - record.start_ns) * 1e-9,
-        rsus=rsu_traces(spec, record), target=record.target.series(), vehicle_only=record.own_baseline(spec.seed).series())
+        rsus=rsu_traces(spec, record), target=record.target.series(),
+        vehicle_only=record.own_baseline(spec.seed).series())  # the baseline (v2i.offline.baseline)
 
 
 @dataclass(frozen=True)
