@@ -486,13 +486,15 @@ class DisplacementTally:
         if not len(matches):
             return np.zeros(0)
         paths = path_array(pred)[matches[:, 0]]  # (M, K + 1, 3)
+        ids = truth.ids[matches[:, 1]]  # (M,) the matched actors, followed by id (actors come and go)
         errors = []
         for j in range(1, paths.shape[1]):
             t_s = t0_s + j * pred.step_ns * 1e-9
             if t_s > self.world.scenario.duration_s:
                 break
-            true_xy = self.world.actors_at(t_s).xy[matches[:, 1]]  # actor order is fixed by the world
-            errors.append(np.linalg.norm(paths[:, j, :2] - true_xy, axis=1))
+            later = self.world.actors_at(t_s)
+            kept, rows = np.nonzero(ids[:, None] == later.ids[None, :])  # (matched, row at t_s) of those still there
+            errors.append(np.linalg.norm(paths[kept, j, :2] - later.xy[rows], axis=1))
         return np.concatenate(errors) if errors else np.zeros(0)
 
     def value(self) -> float | None:
