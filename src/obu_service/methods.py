@@ -47,6 +47,7 @@ from v2i.fusion.tclf import tclf_compensate, tclf_fuse
 from v2i.fusion.tracking import TrackerConfig, slot_source
 
 FUSION_METHODS = ("kf", "iou-merge", "nms", "tclf", "rsu-only", "vehicle-only", "kf-vehicle", "kf-rsu")
+OWN_ONLY_METHODS = ("vehicle-only", "kf-vehicle")  # the vehicle's own data only: no RSU frames, paths or peers
 COMPENSATIONS = ("predict", "none", "track-predict", "lane", "oosm")
 Motion = Callable[[ObjectArray, float], ObjectArray]  # (objects, dt_s) -> objects dt_s later
 

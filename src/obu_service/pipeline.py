@@ -42,7 +42,7 @@ from schemas.messages import (MAX_OBJECTS, SOURCE_VEHICLE, FusedObjectList, Obje
 from obu_service.admission import Admission, AdmittedList, AdmittedPaths, Limits
 from v2i.clock.clock_sync import OffsetEstimate
 from obu_service.fusion_mode import FUSION_MODES, MODES, Feasible, ModePolicy, mode_reason
-from obu_service.methods import COMPENSATIONS, FUSION_METHODS, RsuFrame, check_fusion, make_fusion
+from obu_service.methods import COMPENSATIONS, FUSION_METHODS, OWN_ONLY_METHODS, RsuFrame, check_fusion, make_fusion
 from obu_service.mode_inputs import ModeInputs, Received
 from obu_service.peers import MAX_PEERS, PeerIntake
 from obu_service.planning import objects_at, retimed
@@ -170,7 +170,10 @@ class ObuPipeline:
 
     # --- clock synchronisation -------------------------------------------------------
     def make_time_request(self, t1_ns: int) -> TimeRequest:
-        """A request to send now (t1 = OBU send time); replies are matched by seq."""
+        """A request to send now (t1 = OBU send time); replies are matched by seq. Every RSU's clock
+        filter notes it: one asked and not answered promptly is not trusted (ClockSync.silence_ns)."""
+        for state in self._rsus:
+            state.sync.note_request(t1_ns)
         return self._requests.make(t1_ns)
 
     def on_time_reply(self, reply: TimeReply, t4_ns: int) -> None:
@@ -371,12 +374,12 @@ class ObuPipeline:
         planning = self._asked(cycle, "planning", lambda: self._inputs.planning(t_c))
         feasible = Feasible(bool(intra[0]), bool(inter[0]), bool(planning))
         mode = self._policy.resolve(cycle.mode, feasible)
-        if self.config.fusion == "vehicle-only":
+        if self.config.fusion in OWN_ONLY_METHODS:
             mode = "vehicle-only"
         reason = self._reason(cycle, mode, feasible)
         own = cycle.own.with_(ids=np.arange(1, len(cycle.own) + 1))
         newest, fresh = (self._within_budget(frames) for frames in {"intra": intra, "inter": inter}.get(mode, ([], [])))
-        if self.peers is not None and self.config.fusion != "vehicle-only":  # V2V: every cycle, inter-frame
+        if self.peers is not None and self.config.fusion not in OWN_ONLY_METHODS:  # V2V: every cycle, inter-frame
             peer_newest, peer_fresh = self.peers.frames(t_c)
             newest, fresh = newest + peer_newest, fresh + peer_fresh
             self.peers.consume(peer_fresh, t_c)
@@ -412,7 +415,7 @@ class ObuPipeline:
 
     def _reason(self, cycle: _Cycle, mode: str, feasible: Feasible) -> str:
         """Why the cycle ran ``mode`` (``obu_service.fusion_mode.mode_reason``)."""
-        if self.config.fusion == "vehicle-only":
+        if self.config.fusion in OWN_ONLY_METHODS:
             return "best"
         fusion_mode, t_c = self.config.fusion_mode, cycle.capture_ns
         reason = mode_reason(fusion_mode, mode, feasible, set())  # the usual case: no RSU state looked at
