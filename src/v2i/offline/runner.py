@@ -255,6 +255,7 @@ class OfflineRun:
             vehicle.record.covered_cycles = vehicle.obu.covered_cycles
             vehicle.record.rsu_deadline_misses = vehicle.obu.rsu_deadline_misses
             vehicle.record.rejected = dict(vehicle.obu.rejected)
+            vehicle.record.mode_reasons = dict(vehicle.obu.mode_reasons)
             vehicle.record.clock_steps = {r.cfg.id: self._steps(vehicle.obu, r.cfg.id) for r in self.rsus}
         return self.record
 

@@ -99,6 +99,7 @@ class RunRecord:
         self.rsu_perception: dict | None = None  # or the RSU's own scores (live: from its metrics)
         self.rsu_messages = 0
         self.rejected: dict[str, int] = {}  # the OBU's refused inputs by reason (codec, admission, security_*)
+        self.mode_reasons: dict[str, int] = {}  # the OBU's outputs by mode_reason (obu_service.fusion_mode)
         self.covered_cycles = 0  # the OBU's own count: cycles with an RSU heard recently
         self.obu_cycles: int | None = None  # live: the OBU's own count of cycles published (None: no metrics)
         self.obu_output_deadline_misses = 0  # live: the OBU's own count of those published late
@@ -169,6 +170,7 @@ class RunRecord:
         self.covered_cycles, self.rsu_deadline_misses = metrics.covered_cycles, metrics.rsu_deadline_misses
         self.obu_cycles, self.obu_output_deadline_misses = metrics.cycles, metrics.output_deadline_misses
         self.rejected = dict(metrics.rejected)
+        self.mode_reasons = dict(metrics.mode_reasons)
         if metrics.latency_ms:
             self.latency_ms["obu"] = {stage: q.model_dump() for stage, q in metrics.latency_ms.items()}
         self.links.add(metrics.t_ns, metrics.rsus)
@@ -215,6 +217,7 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
         "planning_handoffs": record.planning_handoffs,
         "rsu_messages_received": record.rsu_messages,
         "obu_rejected": dict(sorted(record.rejected.items())),
+        "mode_reasons": dict(sorted(record.mode_reasons.items())),
         "target": record.target.score().as_dict(),
         "vehicle_only": record.own_baseline(spec.seed).score().as_dict(),
         **clock_errors(record.offset_samples(), truth_clocks, record.start_ns, step_ns, record.used_clock(),
