@@ -27,6 +27,7 @@ from schemas import keys
 from schemas.codec import encode
 from schemas.messages import SOURCE_RSU, SOURCE_VEHICLE, FusedObjectList, TimeReply
 from v2i.runtime.transport import free_tcp_endpoint
+from obu_service.fusion_mode import MODE_REASONS, MODES
 
 from v2i.adversary.fuzz import VEHICLE_ID
 from v2i.adversary.fuzz_targets import CLOCK_OFFSET_MS, ObuFuzz
@@ -54,13 +55,15 @@ class V2vHostile(HostileInputs):
         cycle_ns = t_ns - 100 * MS
         values = dict(vehicle_id="x0", seq=int(self.rng.integers(1 << 40)), cycle_time_ns=cycle_ns,
                       publish_time_ns=cycle_ns + 50 * MS, ego_x=float(self.rng.uniform(-50, 50)),
-                      ego_y=float(self.rng.uniform(-50, 50)), ego_yaw=float(self.rng.uniform(-3, 3)))
+                      ego_y=float(self.rng.uniform(-50, 50)), ego_yaw=float(self.rng.uniform(-3, 3)),
+                      mode=str(self.rng.choice(MODES)), mode_reason=str(self.rng.choice(MODE_REASONS)))
         return FusedObjectList(**{**values, **fields}, objects=states_from_objects(objs, fused=True))
 
     def extreme_values(self, type_name: str, t_ns: int) -> bytes:
         if type_name != "fused_object_list":
             return super().extreme_values(type_name, t_ns)
-        return encode(self.shared(t_ns, int(self.rng.choice([1, 256])), spread_m=1e6, ego_x=1e6, ego_y=-1e6))
+        return encode(self.shared(t_ns, int(self.rng.choice([1, 256])), spread_m=1e6, ego_x=1e6, ego_y=-1e6,
+                                  mode_reason="r" * 32))  # (the longest a mode_reason may be)
 
 
 class ObuV2vFuzz(ObuFuzz):
