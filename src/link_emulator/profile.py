@@ -24,6 +24,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from v2i.core.files import MiB
 from v2i.runtime.config import ConfigError, bundled_names, load_bundled_or_file
 
 from link_emulator.distributions import (  # re-exported: the jitter models are part of a profile
@@ -45,6 +46,7 @@ __all__ = [
     "TraceReplay", "UniformJitter", "bundled_profiles", "load_profile",
 ]
 
+PROFILE_LIMIT_BYTES = 1 * MiB  # a link profile: a few dozen fields (a trace is a file of its own)
 _PROFILE_DIR = "profiles"  # data folder inside the link_emulator package
 _STRICT = ConfigDict(frozen=True, extra="forbid")
 
@@ -203,4 +205,5 @@ def load_profile(name_or_path: str | Path) -> LinkProfile:
     Raises ProfileError listing the bundled names when neither exists, or naming the bad
     field when the YAML does not validate.
     """
-    return load_bundled_or_file(LinkProfile, name_or_path, "link_emulator", _PROFILE_DIR, "link profile", ProfileError)
+    return load_bundled_or_file(LinkProfile, name_or_path, "link_emulator", _PROFILE_DIR, "link profile", ProfileError,
+                                PROFILE_LIMIT_BYTES)

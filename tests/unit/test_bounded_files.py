@@ -30,7 +30,7 @@ def _refusal(path, limit_bytes=1 * MiB) -> str:
     with pytest.raises(FileRefused) as caught:
         read_bounded(path, limit_bytes, "config")
     message = str(caught.value)
-    assert "\n" not in message and message.startswith(f"config {path}: ")
+    assert "\n" not in message and message.startswith(f"cannot read config {path}: ")
     return message
 
 
@@ -100,7 +100,7 @@ def test_an_unreadable_file_is_refused_with_the_reason(tmp_path):
     path = tmp_path / "secret.yaml"
     path.write_text("a: 1\n")
     path.chmod(0)
-    assert "cannot open (permission denied)" in _refusal(path)
+    assert f"config {path}: permission denied" in _refusal(path)
 
 
 def test_a_file_that_grows_while_read_is_refused(tmp_path):

@@ -6,8 +6,8 @@ a directory, a 100 GB file. Each reader states its limit next to itself and read
 :func:`read_bounded` / :func:`read_text`, or, where the file is streamed (a recording, a video)
 or a library opens the path itself (Lanelet2, OpenCV), checks it with :func:`open_regular` /
 :func:`check_regular`. What is not a regular file under the limit is refused with a one-line
-:class:`FileRefused` (an ``OSError``) naming what the file is for, the path, what was found and
-the limit, before any byte of it is read.
+:class:`FileRefused` (an ``OSError``): ``cannot read <what> <path>: <what was found>; a <what>
+must be a regular file of at most <limit>``, before any byte of it is read.
 
 How (no time-of-check/time-of-use gap): ``stat`` first, so that a device or FIFO is never even
 opened; then ``open(O_NONBLOCK)`` (a FIFO swapped in meanwhile cannot block the open) and
@@ -57,14 +57,14 @@ def _kind(mode: int) -> str:
 
 
 def _refused(path: str | Path, what: str, finding: str, limit_bytes: int | None) -> FileRefused:
-    return FileRefused(f"{what} {path}: {finding}; {_rule(what, limit_bytes)}")
+    return FileRefused(f"cannot read {what} {path}: {finding}; {_rule(what, limit_bytes)}")
 
 
 def _os_error(path: str | Path, what: str, exc: OSError) -> FileRefused:
     """``exc`` of stat or open as a FileRefused naming the file (FileMissing when it is not there)."""
     if isinstance(exc, FileNotFoundError):
-        return FileMissing(f"{what} {path}: no such file")
-    return FileRefused(f"{what} {path}: cannot open ({(exc.strerror or str(exc)).lower()})")
+        return FileMissing(f"cannot read {what} {path}: no such file")
+    return FileRefused(f"cannot read {what} {path}: {(exc.strerror or str(exc)).lower()}")
 
 
 def _check(st: os.stat_result, path: str | Path, what: str, limit_bytes: int | None) -> None:
@@ -126,4 +126,4 @@ def read_text(path: str | Path, limit_bytes: int, what: str) -> str:
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise FileRefused(f"{what} {path}: not UTF-8 text (byte {exc.start})") from None
+        raise FileRefused(f"cannot read {what} {path}: not UTF-8 text (byte {exc.start})") from None

@@ -46,11 +46,14 @@ import numpy as np
 
 from schemas.classes import ObjectClass
 
+from v2i.core.files import MiB, check_regular
 from v2i.core.frames import wrap_angle
 from v2i.fusion.lane_match import chain_frame_points, match_segments
 from v2i.fusion.motion import predict_cv
 from v2i.core.objects import ObjectArray
 
+# A Lanelet2 OSM map: a bundled intersection is 110 kB, a city district some MB.
+MAP_LIMIT_BYTES = 64 * MiB
 EXTEND_M = 1000.0  # straight extension before / after every lane sequence
 HEADING_BASE_M = 0.5  # half base of the central chord giving the lane heading
 ROAD_CLASSES = (ObjectClass.CAR, ObjectClass.VAN, ObjectClass.TRUCK, ObjectClass.BUS, ObjectClass.CYCLIST,
@@ -315,10 +318,13 @@ class LanePredictor:
     @classmethod
     def from_osm(cls, path: str | Path, origin_lat_deg: float, origin_lon_deg: float,
                  config: LanePredictionConfig | None = None) -> LanePredictor:
-        """Load a Lanelet2 OSM map projected local-cartesian about the origin (x east, y north, m)."""
+        """Load a Lanelet2 OSM map projected local-cartesian about the origin (x east, y north, m);
+        a regular file of at most ``MAP_LIMIT_BYTES`` (FileRefused otherwise; Lanelet2 opens the path
+        itself, after this check)."""
         import lanelet2
         from lanelet2.projection import LocalCartesianProjector
 
+        check_regular(path, MAP_LIMIT_BYTES, "Lanelet2 map")
         proj = LocalCartesianProjector(lanelet2.io.Origin(origin_lat_deg, origin_lon_deg))
         return cls.from_lanelet_map(lanelet2.io.load(str(path), proj), config)
 

@@ -24,6 +24,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from v2i.core.files import MiB
 from v2i.runtime.config import ConfigError, read_yaml, validate
 from schemas.messages import LinkControl
 
@@ -31,6 +32,7 @@ from v2i.offline.spec import RunSpec
 
 SERVICES = ("link", "rsu")  # what a timeline may kill and restart (the OBU is the system under test)
 Direction = Literal["uplink", "downlink", "both"]
+CHAOS_LIMIT_BYTES = 1 * MiB  # a timeline: tens of steps, a few kB
 _STRICT = ConfigDict(frozen=True, extra="forbid")
 
 
@@ -180,7 +182,8 @@ class ChaosTimeline(BaseModel):
 
 def load_chaos(path: str | Path) -> ChaosTimeline:
     """A validated timeline from a YAML file; ChaosError naming the file and field otherwise."""
-    return validate(ChaosTimeline, read_yaml(path, "chaos timeline", ChaosError), f"chaos timeline {path}", ChaosError)
+    data = read_yaml(path, "chaos timeline", CHAOS_LIMIT_BYTES, ChaosError)
+    return validate(ChaosTimeline, data, f"chaos timeline {path}", ChaosError)
 
 
 def with_chaos(spec: RunSpec, chaos: ChaosTimeline | None) -> RunSpec:

@@ -7,6 +7,7 @@ file and the bad field.
 
 from __future__ import annotations
 
+import os
 from importlib import resources
 from pathlib import Path
 from typing import Any, TypeVar
@@ -14,7 +15,13 @@ from typing import Any, TypeVar
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from v2i.core.files import FileRefused, MiB, read_text
+
 M = TypeVar("M", bound=BaseModel)
+
+# A service's config file: a few kB of fields; 1 MiB leaves room and bounds what a wrong path
+# (``/dev/zero``, a FIFO, a log file) can cost before it is refused.
+CONFIG_LIMIT_BYTES = 1 * MiB
 
 
 class ConfigError(ValueError):
@@ -136,10 +143,11 @@ def _parse_cached(text: str, file: str, error: type[ConfigError]) -> Any:
     return data
 
 
-def read_yaml(path: str | Path, kind: str, error: type[ConfigError] = ConfigError) -> Any:
-    """The YAML file at ``path`` as Python data; ``error`` naming ``kind``, the file and the line
-    when it cannot be read or parsed."""
-    return parse_yaml(_read(Path(path), f"{kind} {path}", error), str(path), error)
+def read_yaml(path: str | Path, kind: str, limit_bytes: int, error: type[ConfigError] = ConfigError) -> Any:
+    """The YAML file at ``path`` as Python data: a regular file of at most ``limit_bytes`` (each
+    reader states its own); ``error`` naming ``kind``, the file and the line when it cannot be read
+    or parsed."""
+    return parse_yaml(_read(Path(path), kind, limit_bytes, error), str(path), error)
 
 
 def _problem(e: dict, names: dict[str, str]) -> str:
@@ -180,13 +188,13 @@ def validate(model: type[M], data: Any, source: str, error: type[ConfigError] = 
         raise error(f"invalid {source}: {validation_problems(exc)}") from None
 
 
-def _read(path: Path, source: str, error: type[ConfigError]) -> str:
+def _read(path: Path, kind: str, limit_bytes: int, error: type[ConfigError]) -> str:
+    """The text of the regular file ``path`` of at most ``limit_bytes`` (``v2i.core.files``);
+    ``error`` naming ``kind`` and the file otherwise."""
     try:
-        return path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise error(f"cannot read {source}: {exc.strerror or exc}") from None
-    except UnicodeDecodeError as exc:
-        raise error(f"cannot read {source}: not UTF-8 text (byte {exc.start})") from None
+        return read_text(path, limit_bytes, kind)
+    except FileRefused as exc:
+        raise error(str(exc)) from None
 
 
 def load_config(model: type[M], path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> M:
@@ -194,7 +202,7 @@ def load_config(model: type[M], path: str | Path | None = None, overrides: dict[
     data: dict[str, Any] = {}
     source = model.__name__
     if path is not None:
-        loaded = read_yaml(path, "config", ConfigError)
+        loaded = read_yaml(path, "config", CONFIG_LIMIT_BYTES, ConfigError)
         if loaded is not None and not isinstance(loaded, dict):
             raise ConfigError(f"config {path} must be a mapping, got {type(loaded).__name__}")
         data.update(loaded or {})
@@ -210,9 +218,11 @@ def bundled_names(package: str, folder: str) -> list[str]:
 
 
 def load_bundled_or_file(
-    model: type[M], name_or_path: str | Path, package: str, folder: str, kind: str, error: type[ConfigError]
+    model: type[M], name_or_path: str | Path, package: str, folder: str, kind: str, error: type[ConfigError],
+    limit_bytes: int,
 ) -> M:
-    """A bundled YAML by name (``package/folder/<name>.yaml``) or a YAML file by path, as ``model``.
+    """A bundled YAML by name (``package/folder/<name>.yaml``) or a YAML file by path, as ``model``;
+    either a regular file of at most ``limit_bytes``.
 
     ``kind`` names the sort of file in messages ("scenario", "link profile"); an unknown
     name lists the bundled ones.
@@ -220,11 +230,11 @@ def load_bundled_or_file(
     names = bundled_names(package, folder)
     if str(name_or_path) in names:
         source = f"bundled {kind} {str(name_or_path)!r}"
-        path = resources.files(package) / folder / f"{name_or_path}.yaml"
-        data = _parse_cached(path.read_text(encoding="utf-8"), str(path), error)
-    elif Path(name_or_path).is_file():
+        path = Path(str(resources.files(package) / folder / f"{name_or_path}.yaml"))
+        data = _parse_cached(_read(path, kind, limit_bytes, error), str(path), error)
+    elif os.path.exists(name_or_path):  # a FIFO or a device too: refused by _read, by what it is
         source = f"{kind} {name_or_path}"
-        data = _parse_cached(_read(Path(name_or_path), f"{kind} {name_or_path}", error), str(name_or_path), error)
+        data = _parse_cached(_read(Path(name_or_path), kind, limit_bytes, error), str(name_or_path), error)
     else:
         raise error(f"unknown {kind} {str(name_or_path)!r}: neither a bundled one ({', '.join(names)}) nor an existing file")
     return validate(model, data, source, error)

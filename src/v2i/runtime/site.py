@@ -17,7 +17,11 @@ from typing import Annotated
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from schemas.keys import check_id
+from v2i.core.files import FileMissing, FileRefused, MiB, check_regular
 from v2i.runtime.config import ConfigError, read_yaml, validate
+
+# A site file: at most 62 RSUs and 64 vehicles, ~10 kB; 1 MiB bounds a wrong path's cost.
+SITE_LIMIT_BYTES = 1 * MiB
 
 PosFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -90,8 +94,14 @@ class Site(_Frozen):
     @field_validator("map")
     @classmethod
     def _map_exists(cls, path: Path | None) -> Path | None:
-        if path is not None and not path.is_file():
-            raise ValueError(f"no Lanelet2 map file {path}")
+        if path is None:
+            return None
+        try:
+            check_regular(path, None, "Lanelet2 map")  # its size: LanePredictor.from_osm, which reads it
+        except FileMissing:
+            raise ValueError(f"no Lanelet2 map file {path}") from None
+        except FileRefused as exc:
+            raise ValueError(str(exc)) from None
         return path
 
     @model_validator(mode="after")
@@ -136,7 +146,7 @@ def check_site_or_scenario(config, service: str, site_sources: tuple[str, ...]) 
 def load_site(path: str | Path) -> Site:
     """The site file at ``path``; its ``map`` is relative to the file's folder. SiteError naming the
     file and the bad field when it cannot be used."""
-    data = read_yaml(path, "site", SiteError)
+    data = read_yaml(path, "site", SITE_LIMIT_BYTES, SiteError)
     if isinstance(data, dict) and isinstance(data.get("map"), str):
         data = {**data, "map": Path(path).parent / data["map"]}
     return validate(Site, data, f"site {path}", SiteError)

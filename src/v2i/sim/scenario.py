@@ -30,6 +30,7 @@ from shapely.geometry import Polygon
 from shapely.validation import explain_validity
 
 from schemas.classes import ObjectClass
+from v2i.core.files import MiB
 from v2i.runtime.config import ConfigError, bundled_names, load_bundled_or_file
 
 from v2i.sim.paths import rounded_path, speed_keys_from_distance
@@ -280,6 +281,8 @@ class VehicleSpec(Body):
         return self
 
 
+# A scenario file: the densest bundled one is 28 kB; 4 MiB holds thousands of actors and waypoints.
+SCENARIO_LIMIT_BYTES = 4 * MiB
 _SINGLE_VEHICLE_KEYS = ("lidar", "localization", "ego_camera")
 
 
@@ -406,4 +409,5 @@ def bundled_scenarios() -> list[str]:
 
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """A bundled scenario by name (e.g. ``"red-light-runner"``) or a YAML file by path."""
-    return load_bundled_or_file(Scenario, name_or_path, "v2i.sim", "scenarios", "scenario", ScenarioError)
+    return load_bundled_or_file(Scenario, name_or_path, "v2i.sim", "scenarios", "scenario", ScenarioError,
+                                SCENARIO_LIMIT_BYTES)
