@@ -22,6 +22,7 @@ import stat
 from dataclasses import dataclass
 from pathlib import Path
 
+from v2i.core.files import FileMissing, FileRefused, KiB, MiB, open_regular, read_open
 from v2i.security import algorithms as alg
 from v2i.security import certificates as certs
 from v2i.security.certificates import Certificate, CertificateError, RevocationList
@@ -29,6 +30,10 @@ from v2i.security.certificates import Certificate, CertificateError, RevocationL
 NS_PER_DAY = 86_400 * 10**9
 CA_NAME = "ca"
 CRL_FILE = "revoked.crl"
+# A certificate or private key: ~150-250 bytes (a certificate listing many keys, a few kB).
+PKI_FILE_LIMIT_BYTES = 64 * KiB
+# The revocation list: ~34 bytes per revoked certificate, so 1 MiB lists ~30,000.
+CRL_LIMIT_BYTES = 1 * MiB
 
 
 class PkiError(RuntimeError):
@@ -66,19 +71,22 @@ def _write(path: Path, data: bytes, mode: int) -> None:
     os.replace(tmp, path)
 
 
-def _read(path: Path, what: str) -> bytes:
+def read_pki_file(path: Path, what: str, limit_bytes: int = PKI_FILE_LIMIT_BYTES) -> tuple[bytes, int]:
+    """The bytes and the mode bits of the regular file ``path`` of at most ``limit_bytes`` (both of
+    the one descriptor read: ``v2i.core.files``); PkiError naming the file otherwise."""
     try:
-        return path.read_bytes()
-    except FileNotFoundError:
+        with open_regular(path, what, limit_bytes) as f:
+            return read_open(f, limit_bytes, what, path), stat.S_IMODE(os.fstat(f.fileno()).st_mode)
+    except FileMissing:
         raise PkiError(f"{path}: missing {what}") from None
-    except OSError as exc:
-        raise PkiError(f"{path}: cannot read {what}: {exc.strerror}") from None
+    except FileRefused as exc:
+        raise PkiError(str(exc)) from None
 
 
 def read_cert(path: Path) -> Certificate:
     """The certificate in ``path``; PkiError if missing or corrupt."""
     try:
-        return certs.decode(_read(path, "certificate"))
+        return certs.decode(read_pki_file(path, "certificate")[0])
     except CertificateError as exc:
         raise PkiError(f"{path}: corrupt certificate: {exc}") from None
 
@@ -86,8 +94,7 @@ def read_cert(path: Path) -> Certificate:
 def read_key(path: Path, cert: Certificate) -> alg.PrivateKey:
     """The private key in ``path``, checked to be private (no group/other access) and to match
     ``cert``'s public key; PkiError otherwise."""
-    data = _read(path, "private key")
-    mode = stat.S_IMODE(path.stat().st_mode)
+    data, mode = read_pki_file(path, "private key")
     if mode & 0o077:
         raise PkiError(f"{path}: private key is accessible by others (mode {mode:04o}); chmod 600 it")
     try:
@@ -106,7 +113,7 @@ def read_crl(directory: Path, ca: Certificate, ca_key: alg.PublicKey) -> Revocat
     if not path.exists():
         return None
     try:
-        return certs.decode_revocations(_read(path, "revocation list"), ca, ca_key)
+        return certs.decode_revocations(read_pki_file(path, "revocation list", CRL_LIMIT_BYTES)[0], ca, ca_key)
     except CertificateError as exc:
         raise PkiError(f"{path}: {exc}") from None
 

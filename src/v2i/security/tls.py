@@ -23,7 +23,6 @@ from __future__ import annotations
 import datetime as dt
 import ipaddress
 import re
-import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +33,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from v2i.security.pki import CA_NAME as SIGNING_CA_NAME
 from v2i.security.pki import PkiError
+from v2i.security.pki import read_pki_file
 from v2i.security.pki import _write as write_atomic
 
 TLS_CA = "tls-ca"
@@ -106,17 +106,17 @@ def _load_ca(directory: Path) -> tuple[ec.EllipticCurvePrivateKey, x509.Certific
     corrupt or not a pair."""
     key_path, cert_path = directory / f"{TLS_CA}.key", directory / f"{TLS_CA}.pem"
     for path in (key_path, cert_path):
-        if not path.is_file():
+        if not path.exists():
             raise PkiError(f"{path}: missing (the TLS CA has only one of its two files)")
-    mode = stat.S_IMODE(key_path.stat().st_mode)
+    key_pem, mode = read_pki_file(key_path, "private key")
     if mode & 0o077:
         raise PkiError(f"{key_path}: private key is accessible by others (mode {mode:04o}); chmod 600 it")
     try:
-        key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
+        key = serialization.load_pem_private_key(key_pem, password=None)
     except (ValueError, TypeError) as exc:
         raise PkiError(f"{key_path}: corrupt private key: {exc}") from None
     try:
-        cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
+        cert = x509.load_pem_x509_certificate(read_pki_file(cert_path, "certificate")[0])
     except ValueError as exc:
         raise PkiError(f"{cert_path}: corrupt certificate: {exc}") from None
     if not isinstance(key, ec.EllipticCurvePrivateKey) or key.public_key() != cert.public_key():
