@@ -47,6 +47,7 @@ def rsu_node(config: RsuConfig, true_clock: Clock | None = None):
     from rsu_service.node import RsuNode
     from v2i.core.clock import SystemClock
 
+    _pki_first(config.pki_dir, signer=config.identity or config.rsu_id)
     true_clock = true_clock or SystemClock()
     start_ns = config.start_at_ns or true_clock.now_ns()
     if config.site is not None:
@@ -77,6 +78,7 @@ def obu_node(config: ObuConfig, clock: Clock | None = None):
     at ``config.start_at_ns`` or now)."""
     from v2i.core.clock import SystemClock
 
+    _pki_first(config.pki_dir)
     clock = clock or SystemClock()
     if config.fusion == "roif" and config.source != "sim":
         raise ValueError("--source zenoh feeds object-level fusion; --fusion roif renders its own camera")
@@ -110,6 +112,21 @@ def obu_node(config: ObuConfig, clock: Clock | None = None):
         own = config.vehicle_id if config.vehicle_id in [v.name for v in scenario.vehicles] else None
         sensing = partial(SimulatedVehicle, World(scenario, ego=own), config.seed)
     return ObuNode(config, site, sensing, clock)
+
+
+def _pki_first(pki_dir: str | None, signer: str | None = None) -> None:
+    """Read the PKI files a service is about to load (its trust, or ``signer``'s key and certificate)
+    before the slow part of its start-up (compiled kernels, a simulated world, a detector: 1-3 s), so
+    that a bad one (``/dev/zero``, a FIFO, a corrupt certificate) is refused at once; ValueError naming
+    the file. The node reads them again as it is built (a few small files, ~1 ms)."""
+    if pki_dir is None:
+        return
+    from v2i.security.pki import PkiError, load_signer, load_trust
+
+    try:
+        load_signer(pki_dir, signer) if signer is not None else load_trust(pki_dir)
+    except PkiError as exc:
+        raise ValueError(str(exc)) from None
 
 
 def obu_scenario_site(config: ObuConfig) -> tuple[Scenario, Site]:
