@@ -22,6 +22,7 @@ citation) and are named by their path below it, e.g. ``cicv5g/urban_n78_v20_run0
 from __future__ import annotations
 
 import gzip
+import io
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from importlib import resources
@@ -29,7 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
+from v2i.core.files import FileMissing, FileRefused, MiB, read_bounded, size_text
+
 _TRACE_DIR = "traces"
+# A delay trace, read whole and, gzipped, decompressed whole: the bundled one is 105 kB gzipped, ~30
+# bytes a row; 64 MiB holds two million rows (a gzip bomb stops there too).
+TRACE_LIMIT_BYTES = 64 * MiB
 REQUIRED_COLUMNS = ("pub_time(ms)", "sub_time(ms)", "delay(ms)")
 
 
@@ -175,17 +181,27 @@ def bundled_traces() -> list[str]:
 @lru_cache(maxsize=16)
 def load_trace(name_or_path: str) -> DelayTrace:
     """A bundled trace by name or a trace file by path (``.gz`` is decompressed); cached."""
-    bundled = resources.files("link_emulator") / _TRACE_DIR / name_or_path
-    if bundled.is_file():
-        raw, source = bundled.read_bytes(), f"bundled {name_or_path}"
-    else:
-        try:
-            raw, source = Path(name_or_path).read_bytes(), str(name_or_path)
-        except OSError as exc:
-            raise TraceError(f"cannot read trace {name_or_path!r}: not a bundled trace "
-                             f"({', '.join(bundled_traces())}) nor a readable file ({exc.strerror})") from None
+    bundled = Path(str(resources.files("link_emulator") / _TRACE_DIR)) / name_or_path
+    path, source = (bundled, f"bundled {name_or_path}") if bundled.is_file() else (Path(name_or_path), str(name_or_path))
     try:
-        text = (gzip.decompress(raw) if str(name_or_path).endswith(".gz") else raw).decode("utf-8")
+        raw = read_bounded(path, TRACE_LIMIT_BYTES, "trace")
+    except FileMissing:
+        raise TraceError(f"cannot read trace {name_or_path!r}: not a bundled trace "
+                         f"({', '.join(bundled_traces())}) nor an existing file") from None
+    except FileRefused as exc:
+        raise TraceError(str(exc)) from None
+    try:
+        text = (_gunzip(raw, source) if str(name_or_path).endswith(".gz") else raw).decode("utf-8")
     except (OSError, UnicodeDecodeError, EOFError) as exc:
         raise TraceError(f"trace {source}: cannot decode ({exc})") from None
     return parse_cicv5g(text, source)
+
+
+def _gunzip(raw: bytes, source: str) -> bytes:
+    """``raw`` decompressed, at most ``TRACE_LIMIT_BYTES``; TraceError beyond."""
+    with gzip.GzipFile(fileobj=io.BytesIO(raw)) as f:
+        data = f.read(TRACE_LIMIT_BYTES + 1)
+    if len(data) > TRACE_LIMIT_BYTES:
+        raise TraceError(f"trace {source}: over {size_text(TRACE_LIMIT_BYTES)} decompressed; a trace must be "
+                         f"at most {size_text(TRACE_LIMIT_BYTES)}")
+    return data

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from v2i.core.files import FileRefused, KiB, MiB, read_text
 from v2i.perception.calibration import (
     DEFAULT_RANSAC_PX,
     Calibration,
@@ -22,6 +23,8 @@ from v2i.perception.calibration import (
     save_calibration,
 )
 
+POINTS_LIMIT_BYTES = 1 * MiB  # a points file: tens of clicked correspondences, ~40 bytes a line
+INTRINSICS_LIMIT_BYTES = 64 * KiB  # an intrinsics JSON: K, dist and the image size
 HEADERS = (("u_px", "v_px", "x_m", "y_m"), ("u_px", "v_px", "x_m", "y_m", "z_m"))
 
 DESCRIPTION = """\
@@ -69,9 +72,9 @@ def read_points(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Pixels (N, 2), map points (N, 3) (z = 0 without a z_m column) and each line's comment."""
     rows, notes, header = [], [], None
     try:
-        lines = Path(path).read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CalibrationError(f"cannot read points file {path}: {getattr(exc, 'strerror', None) or exc}") from None
+        lines = read_text(path, POINTS_LIMIT_BYTES, "points file").splitlines()
+    except FileRefused as exc:
+        raise CalibrationError(str(exc)) from None
     for number, line in enumerate(lines, 1):
         text, _, note = line.partition("#")
         if not text.strip():
@@ -110,18 +113,28 @@ def _image_size(text: str) -> tuple[int, int]:
     return size
 
 
+def _read_json(path: str, limit_bytes: int, what: str):
+    """The JSON in the regular file ``path`` of at most ``limit_bytes``; ValueError naming it otherwise."""
+    try:
+        return json.loads(read_text(path, limit_bytes, what))
+    except FileRefused as exc:
+        raise ValueError(str(exc)) from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{what} {path}: not valid JSON ({exc})") from None
+
+
 def _intrinsics(args) -> tuple[np.ndarray | None, np.ndarray | None, tuple[int, int] | None, str]:
     """K, dist, image size and a description of where they came from, from the arguments."""
     size = _image_size(args.image_size) if args.image_size else None
     if args.intrinsics and args.fov_deg is not None:
         raise ValueError("give --intrinsics or --fov-deg, not both")
     if args.intrinsics:
+        data = _read_json(args.intrinsics, INTRINSICS_LIMIT_BYTES, "intrinsics file")
         try:
-            data = json.loads(Path(args.intrinsics).read_text(encoding="utf-8"))
             K = np.array(data["K"], dtype=float)
             dist = np.array(data.get("dist", [0.0] * 5), dtype=float).ravel()
             size = size or tuple(int(v) for v in data["image_size"])
-        except (OSError, ValueError, KeyError, TypeError) as exc:
+        except (ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"--intrinsics {args.intrinsics}: needs JSON with 'K' (3x3), optional 'dist' and "
                              f"'image_size' (or --image-size): {type(exc).__name__}: {exc}") from None
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or not np.all(np.isfinite(dist)) or len(size) != 2:

@@ -22,10 +22,12 @@ import numpy as np
 
 from schemas import its_time
 from schemas.classes import ObjectClass
-from schemas.codec import CodecError
+from schemas.codec import MAX_MESSAGE_BYTES, CodecError
 from schemas.messages import UNKNOWN_VELOCITY_VAR
+from v2i.core.files import FileRefused, read_bounded
 
 WIRES = ("cpm", "sdsm", "v2i")
+WIRE_FILE_LIMIT_BYTES = MAX_MESSAGE_BYTES  # a file holds one message, and no message is larger
 
 
 def _objects(cols: dict[str, np.ndarray], delta_ms: np.ndarray | None = None) -> list[dict[str, Any]]:
@@ -83,9 +85,9 @@ def _v2i(data: bytes) -> dict[str, Any]:
 def decode_file(path: Path, wire: str) -> dict[str, Any]:
     """The JSON object of one file (module docstring)."""
     try:
-        data = path.read_bytes()
-    except OSError as exc:
-        return {"file": str(path), "ok": False, "reason": f"unreadable: {exc.strerror or exc}"}
+        data = read_bounded(path, WIRE_FILE_LIMIT_BYTES, "message file")
+    except FileRefused as exc:
+        return {"file": str(path), "ok": False, "reason": f"unreadable: {exc}"}
     try:
         body = {"cpm": _cpm, "sdsm": _sdsm, "v2i": _v2i}[wire](data)
     except CodecError as exc:

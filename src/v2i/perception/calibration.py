@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from v2i.core.files import FileRefused, MiB, read_text
 from v2i.runtime.config import ConfigError, validate
 
 SCHEMA = "v2i-calibration/1"
@@ -43,6 +44,7 @@ DEFAULT_RANSAC_PX = 3.0  # inlier threshold: ~4 sigma of a careful click (0.5-1 
 _COLLINEAR_RATIO = 1e-3  # second / first singular value of centred points below this: on a line
 _SINGULAR_COND = 1e12  # condition number of the unit-norm H above which it is singular
 _DIST_LENGTHS = (4, 5, 8, 12, 14)  # OpenCV distortion vector lengths
+CALIBRATION_LIMIT_BYTES = 1 * MiB  # a calibration file: a homography, intrinsics and points, ~2 kB
 
 
 class CalibrationError(ConfigError):
@@ -376,10 +378,10 @@ def load_calibration(path: str | Path) -> Calibration:
     """A calibration file, validated: CalibrationError naming the file and the bad field."""
     source = f"calibration {path}"
     try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise CalibrationError(f"cannot read {source}: {exc.strerror or exc}") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        data = json.loads(read_text(path, CALIBRATION_LIMIT_BYTES, "calibration"))
+    except FileRefused as exc:
+        raise CalibrationError(str(exc)) from None
+    except json.JSONDecodeError as exc:
         raise CalibrationError(f"{source}: not valid JSON ({exc})") from None
     f = validate(_CalibrationFile, data, source, CalibrationError)
     if f.n_inliers > f.n_points:

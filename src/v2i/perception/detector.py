@@ -43,8 +43,12 @@ import numpy as np
 import onnxruntime as ort
 
 from schemas.classes import ObjectClass
+from v2i.core.files import FileMissing, FileRefused, MiB, read_bounded
 
 SHIPPED_MODEL = Path(__file__).with_name("models") / "v2i-det.onnx"
+# A model file, read whole and handed to ONNX Runtime as bytes: the shipped one is 3.4 MB, the largest
+# YOLOv8 export (x) ~270 MB. (A model with its weights in external data files is not read.)
+MODEL_LIMIT_BYTES = 512 * MiB
 DEFAULT_INPUT_WH = (640, 384)
 STRIDE_PX = 32
 PAD_VALUE = 114
@@ -200,13 +204,17 @@ def _providers(pinned) -> list:
 
 
 def _open_session(path: Path, providers, threads: int | None) -> ort.InferenceSession:
-    if not path.is_file():
-        raise DetectorModelError(f"detector model not found: {path}")
+    try:
+        model = read_bounded(path, MODEL_LIMIT_BYTES, "detector model")
+    except FileMissing:
+        raise DetectorModelError(f"detector model not found: {path}") from None
+    except FileRefused as exc:
+        raise DetectorModelError(str(exc)) from None
     options = ort.SessionOptions()
     if threads:
         options.intra_op_num_threads = int(threads)
     try:
-        return ort.InferenceSession(str(path), options, providers=_providers(providers))
+        return ort.InferenceSession(model, options, providers=_providers(providers))
     except Exception as exc:  # onnxruntime raises its own Fail / InvalidProtobuf / InvalidGraph types
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DetectorModelError(f"cannot load detector model {path}: {first}") from None
