@@ -14,8 +14,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from v2i.core.files import FileRefused, FileTooLarge, check_regular, read_bounded
+
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
-MAX_IMAGE_BYTES = 64 << 20  # a larger file is refused unread
+MAX_IMAGE_BYTES = 64 << 20  # a larger file (or not a regular file) is refused unread
 MAX_IMAGE_PIXELS = 1 << 25  # 33 Mpx (8K is 33.2 Mpx): a larger header is refused undecoded
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 DEFAULT_FOLDER_FPS = 10.0
@@ -42,7 +44,8 @@ class ImageFrames:
             if not self._files:
                 raise RecordingError(f"{self.path}: no images ({', '.join(IMAGE_SUFFIXES)}) in this folder")
             self.fps, self.count = folder_fps, len(self._files)
-        elif self.path.is_file():
+        elif self.path.exists():
+            self._check_video()
             self._video = cv2.VideoCapture(str(self.path))
             if not self._video.isOpened():
                 raise RecordingError(f"{self.path}: OpenCV cannot open this file as a video")
@@ -52,6 +55,13 @@ class ImageFrames:
             self.count = count if count > 0 else None  # unknown for some containers: read to the end
         else:
             raise RecordingError(f"{self.path}: no such video file or image folder")
+
+    def _check_video(self) -> None:
+        """The video is a regular file (OpenCV streams it: any size); RecordingError naming it otherwise."""
+        try:
+            check_regular(self.path, None, "video")
+        except FileRefused as exc:
+            raise RecordingError(str(exc)) from None
 
     @property
     def position(self) -> int:
@@ -94,9 +104,7 @@ class ImageFrames:
             return None
         path = self._files[index]
         try:
-            if path.stat().st_size > MAX_IMAGE_BYTES:
-                return self._refuse("too_large")
-            data = np.fromfile(path, dtype=np.uint8)
+            data = np.frombuffer(read_bounded(path, MAX_IMAGE_BYTES, "image"), dtype=np.uint8)
             wh = image_size(data[:65536].tobytes())
             if wh is None:
                 return self._refuse("unreadable")
@@ -105,7 +113,9 @@ class ImageFrames:
             if not complete(data[-12:].tobytes()):
                 return self._refuse("truncated")
             image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-        except (OSError, cv2.error):
+        except FileTooLarge:
+            return self._refuse("too_large")
+        except (OSError, cv2.error):  # FileRefused too: a FIFO, a device, a directory named *.png
             image = None
         return image if image is not None else self._refuse("unreadable")
 

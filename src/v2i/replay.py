@@ -51,6 +51,7 @@ import threading
 import time
 from pathlib import Path
 
+from v2i.core.files import check_regular
 from v2i.telemetry.replayer import LATE_NS, Replayer
 
 DEFAULT_LEAD_S = 2.0
@@ -138,8 +139,7 @@ def run(args: argparse.Namespace) -> int:
     from v2i.runtime.process import stop_on_signals
     from v2i.telemetry.mcap_reader import Recording
 
-    if not Path(args.recording).is_file():
-        raise ValueError(f"{args.recording}: no such file")
+    check_regular(args.recording, None, "recording")  # streamed record by record: any size
     if args.json not in (None, "-"):
         from v2i.console import check_writable
 

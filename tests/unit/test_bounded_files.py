@@ -9,8 +9,8 @@ import time
 
 import pytest
 
-from v2i.core.files import (FileMissing, FileRefused, KiB, MiB, check_regular, open_regular, read_bounded, read_open,
-                            read_text, size_text)
+from v2i.core.files import (FileMissing, FileRefused, FileTooLarge, KiB, MiB, check_regular, open_regular,
+                            read_bounded, read_open, read_text, size_text)
 
 
 @pytest.fixture
@@ -83,6 +83,8 @@ def test_an_oversized_sparse_file_is_refused_unread(tmp_path):
     with open(path, "wb") as f:
         f.truncate(100 * MiB)
     assert f"{100 * MiB} bytes; a config must be a regular file of at most 1 MiB" in _refusal(path)
+    with pytest.raises(FileTooLarge):
+        read_bounded(path, MiB, "config")
 
 
 def test_a_directory_a_socket_and_a_missing_file_are_refused(tmp_path):
@@ -109,7 +111,7 @@ def test_a_file_that_grows_while_read_is_refused(tmp_path):
     with open_regular(path, "config", 100) as f:
         with open(path, "ab") as grow:
             grow.write(b"y" * 200)
-        with pytest.raises(FileRefused, match="it grew while read"):
+        with pytest.raises(FileTooLarge, match="it grew while read"):
             read_open(f, 100, "config", path)
 
 

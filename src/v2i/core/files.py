@@ -39,6 +39,10 @@ class FileMissing(FileRefused, FileNotFoundError):
     """A file that is not there (also a ``FileNotFoundError``)."""
 
 
+class FileTooLarge(FileRefused):
+    """A regular file over its limit (when checked, or grown while read)."""
+
+
 def size_text(n_bytes: int) -> str:
     """``n_bytes`` as a limit is written: ``1 MiB``, ``64 KiB``, else ``N bytes``."""
     for unit, name in ((MiB, "MiB"), (KiB, "KiB")):
@@ -56,8 +60,9 @@ def _kind(mode: int) -> str:
     return next((name for test, name in _KINDS if test(mode)), "not a regular file")
 
 
-def _refused(path: str | Path, what: str, finding: str, limit_bytes: int | None) -> FileRefused:
-    return FileRefused(f"cannot read {what} {path}: {finding}; {_rule(what, limit_bytes)}")
+def _refused(path: str | Path, what: str, finding: str, limit_bytes: int | None,
+             kind: type[FileRefused] = FileRefused) -> FileRefused:
+    return kind(f"cannot read {what} {path}: {finding}; {_rule(what, limit_bytes)}")
 
 
 def _os_error(path: str | Path, what: str, exc: OSError) -> FileRefused:
@@ -71,7 +76,7 @@ def _check(st: os.stat_result, path: str | Path, what: str, limit_bytes: int | N
     if not stat.S_ISREG(st.st_mode):
         raise _refused(path, what, _kind(st.st_mode), limit_bytes)
     if limit_bytes is not None and st.st_size > limit_bytes:
-        raise _refused(path, what, f"{st.st_size} bytes", limit_bytes)
+        raise _refused(path, what, f"{st.st_size} bytes", limit_bytes, FileTooLarge)
 
 
 def check_regular(path: str | Path, limit_bytes: int | None, what: str) -> int:
@@ -109,7 +114,7 @@ def read_open(f: BinaryIO, limit_bytes: int, what: str, path: str | Path) -> byt
     if len(data) > expected:
         data += f.read(limit_bytes + 1 - len(data))
     if len(data) > limit_bytes:
-        raise _refused(path, what, f"over {size_text(limit_bytes)} (it grew while read)", limit_bytes)
+        raise _refused(path, what, f"over {size_text(limit_bytes)} (it grew while read)", limit_bytes, FileTooLarge)
     return data
 
 

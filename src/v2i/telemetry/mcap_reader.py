@@ -1,6 +1,7 @@
 """Reading a ``v2i record`` MCAP file back: its sides, samples, metadata and RSU time exchanges.
 
-A recording is untrusted input: the file is read once through at open (CRCs checked, records and
+A recording is untrusted input: it must be a regular file (``v2i.core.files``: not a FIFO or a
+device; any size, as it is streamed), it is read once through at open (CRCs checked, records and
 chunks at most ``MAX_CHUNK_BYTES`` compressed or not, every message decoded from its chunk), and
 anything wrong with it is a ``RecordingError`` (a ``ValueError``) naming the file, never a traceback.
 
@@ -28,6 +29,7 @@ from mcap.records import Channel, Header, Message, Metadata
 
 from schemas.codec import CodecError, decode
 from schemas.messages import TimeReply
+from v2i.core.files import FileRefused, open_regular
 from v2i.security.envelope import unwrap
 
 from v2i.telemetry.mcap_channels import models_by_type
@@ -109,7 +111,7 @@ class Recording:
     def _summary(self, reader: SeekingReader):
         """The file's summary, or None (``closed`` False, ``problem`` set) when it has none that reads."""
         summary = None
-        with open(self.path, "rb") as f:
+        with self._open() as f:
             f.seek(max(f.seek(0, io.SEEK_END) - len(MAGIC), 0))
             ends_with_magic = f.read() == MAGIC
         if not ends_with_magic:
@@ -157,14 +159,22 @@ class Recording:
     @contextmanager
     def _reader(self) -> Iterator[SeekingReader]:
         """A reader of the file whose every failure is a ``RecordingError`` naming it."""
-        with self._named_errors(), open(self.path, "rb") as f:
+        with self._named_errors(), self._open() as f:
             yield SeekingReader(f, validate_crcs=True, record_size_limit=MAX_CHUNK_BYTES)
 
     @contextmanager
     def _prefix(self) -> Iterator[PrefixReader]:
         """A prefix reader of the file (``v2i.telemetry.mcap_prefix``); failures as in ``_reader``."""
-        with self._named_errors(), open(self.path, "rb") as f:
+        with self._named_errors(), self._open() as f:
             yield PrefixReader(f, MAX_CHUNK_BYTES)
+
+    def _open(self):
+        """The file, opened for reading: a regular file (a recording is streamed: any size); a
+        RecordingError naming it otherwise."""
+        try:
+            return open_regular(self.path, "recording")
+        except FileRefused as exc:
+            raise RecordingError(str(exc)) from None
 
     @contextmanager
     def _named_errors(self) -> Iterator[None]:
