@@ -51,12 +51,12 @@ def zenoh_router_config(config: RouterConfig):
     """
     import zenoh
 
-    from v2i.runtime.transport import session_config
+    from v2i.runtime.transport import read_config_file, session_config
 
     if config.zenoh_config is None:
         listen = config.listen or ([] if config.connect else list(DEFAULT_LISTEN))
         return session_config(listen, config.connect, mode="router"), listen, list(config.connect)
-    conf = zenoh.Config.from_file(str(config.zenoh_config))
+    conf = read_config_file(config.zenoh_config)
     mode = json.loads(conf.get_json("mode"))
     if mode not in (None, "router"):
         raise ValueError(f"{config.zenoh_config}: mode is {mode!r}; v2i router runs a Zenoh router (mode: router)")

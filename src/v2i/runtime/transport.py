@@ -19,9 +19,11 @@ import socket
 from collections.abc import Sequence
 from pathlib import Path
 
+import yaml
 import zenoh
 
 from schemas.codec import MAX_MESSAGE_BYTES
+from v2i.core.files import FileMissing, FileRefused, KiB, MiB, check_regular, read_text
 
 # Services are Zenoh peers unless this variable says ``client``: behind a ``v2i router`` they
 # must be clients, because a Zenoh 1.10 router forwards for its clients, never between peers.
@@ -35,6 +37,10 @@ TLS_DIR_ENV = "V2I_TLS_DIR"
 DEFAULT_TLS_DIR = "/pki/tls"
 TLS_FILE_KEYS = ("root_ca_certificate", "listen_certificate", "listen_private_key", "connect_certificate",
                  "connect_private_key")
+# A Zenoh configuration file, read here and parsed by Zenoh: deploy/router.json5 is ~3 kB.
+ZENOH_CONFIG_LIMIT_BYTES = 1 * MiB
+# A TLS certificate or key it names (PEM, opened by Zenoh after this check): ~1-2 kB, a chain a few.
+TLS_FILE_LIMIT_BYTES = 64 * KiB
 
 
 def session_mode() -> str:
@@ -54,23 +60,43 @@ def load_config_file(path: str | Path) -> zenoh.Config:
     """The Zenoh configuration in ``path`` with ``${V2I_TLS_DIR}`` expanded in its TLS file paths.
     ValueError naming the file when it cannot be read or parsed, or names a TLS file that is missing."""
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"Zenoh config {path}: no such file")
-    try:
-        conf = zenoh.Config.from_file(str(path))
-    except zenoh.ZError as exc:
-        raise ValueError(f"Zenoh config {path}: {_zenoh_reason(exc)}") from None
+    conf = read_config_file(path)
     tls_dir = os.environ.get(TLS_DIR_ENV, "").strip() or DEFAULT_TLS_DIR
     for key in TLS_FILE_KEYS:
         value = json.loads(conf.get_json(f"transport/link/tls/{key}"))
         if not isinstance(value, str):
             continue
         value = value.replace("${" + TLS_DIR_ENV + "}", tls_dir)
-        if not Path(value).is_file():
+        try:
+            check_regular(value, TLS_FILE_LIMIT_BYTES, "TLS file")
+        except FileMissing:
             raise ValueError(f"Zenoh config {path}: transport/link/tls/{key} {value}: no such file "
-                             f"(${TLS_DIR_ENV}={tls_dir}; v2i pki tls writes them)")
+                             f"(${TLS_DIR_ENV}={tls_dir}; v2i pki tls writes them)") from None
+        except FileRefused as exc:
+            raise ValueError(f"Zenoh config {path}: transport/link/tls/{key}: {exc}") from None
         conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
     return conf
+
+
+def read_config_file(path: str | Path) -> zenoh.Config:
+    """The Zenoh configuration in ``path`` as ``zenoh.Config.from_file`` reads it (``.json``,
+    ``.json5`` or ``.yaml``), but from a regular file of at most ``ZENOH_CONFIG_LIMIT_BYTES`` read
+    here; ValueError naming the file otherwise."""
+    try:
+        text = read_text(path, ZENOH_CONFIG_LIMIT_BYTES, "Zenoh config")
+    except FileMissing:
+        raise ValueError(f"Zenoh config {path}: no such file") from None
+    except FileRefused as exc:
+        raise ValueError(str(exc)) from None
+    suffix = Path(path).suffix
+    try:
+        if suffix == ".yaml":
+            return zenoh.Config.from_json5(json.dumps(yaml.safe_load(text)))
+        if suffix in (".json", ".json5"):
+            return zenoh.Config.from_json5(text)
+    except (zenoh.ZError, yaml.YAMLError) as exc:
+        raise ValueError(f"Zenoh config {path}: {_zenoh_reason(exc)}") from None
+    raise ValueError(f"Zenoh config {path}: unsupported file type {suffix!r} (.json, .json5 and .yaml are supported)")
 
 
 def use_config_file(path: str | Path) -> None:
