@@ -28,6 +28,8 @@ from lanelet2.core import (
 from lanelet2.io import Origin
 from lanelet2.projection import LocalCartesianProjector
 
+from v2i.core.files import check_regular
+from v2i.fusion.lane_prediction import MAP_LIMIT_BYTES
 from v2i.sim.maps import MAP_ORIGIN_LAT_DEG, MAP_ORIGIN_LON_DEG
 from v2i.sim.maps.road_network import (
     CENTRE,
@@ -128,5 +130,7 @@ def write_map(network: RoadNetwork, path: str | Path) -> LaneletMap:
 
 
 def load_map(path: str | Path) -> LaneletMap:
-    """A Lanelet2 OSM file in the scenario map frame (projected about MAP_ORIGIN)."""
+    """A Lanelet2 OSM file in the scenario map frame (projected about MAP_ORIGIN); a regular file of at
+    most ``MAP_LIMIT_BYTES`` (FileRefused otherwise)."""
+    check_regular(path, MAP_LIMIT_BYTES, "Lanelet2 map")
     return lanelet2.io.load(str(path), projector())
