@@ -43,6 +43,7 @@ class InboundSecurity:
         self._clock_offset = clock_offset
         self._reject = reject
         self._reload = reload  # the --pki directory's revocation list, watched while running (None: not watched)
+        self.verified = False  # whether the last message opened was signed and verified (``open``)
 
     def poll_trust(self, now_ns: int) -> str | None:
         """Between messages: take a changed revocation list (looked at once a second at most); the
@@ -60,6 +61,7 @@ class InboundSecurity:
         unchecked = time_reply or self.verifier.policy == "off"
         now_ns = None if unchecked else self._rsu_now_ns(key_expr, receive_ns)
         payload, reason = self.verifier.verify(data, key_expr, now_ns)
+        self.verified = reason == "ok"  # the last message's signature checked against the site's trust
         if reason in REJECTIONS:
             self._reject(("security_" if payload is None else "security_accepted_") + reason)
         return payload

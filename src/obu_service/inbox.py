@@ -133,7 +133,7 @@ class Inbox:
             return Outcome.DROPPED
         try:
             if kind == "time":
-                self.pipeline.on_time_reply(decode(payload, TimeReply, self.max_bytes), receive_ns)
+                self.pipeline.on_time_reply(decode(payload, TimeReply, self.max_bytes), receive_ns, self.security.verified)
             else:
                 self._list(kind, key_expr, data, payload, receive_ns)
         except CodecError as exc:

@@ -176,9 +176,10 @@ class ObuPipeline:
             state.sync.note_request(t1_ns)
         return self._requests.make(t1_ns)
 
-    def on_time_reply(self, reply: TimeReply, t4_ns: int) -> None:
-        """A reply is held briefly (``TimeRequests``: a conflicting second reply voids both)."""
-        refused = self._requests.match(reply, t4_ns)
+    def on_time_reply(self, reply: TimeReply, t4_ns: int, verified: bool = False) -> None:
+        """A reply is held briefly (``TimeRequests``: the first verified reply to a request counts; of
+        unverified ones, a conflicting second reply voids both). ``verified``: its signature checked."""
+        refused = self._requests.match(reply, t4_ns, verified)
         if refused is not None:
             self.rejected[refused] += 1
         self._sync(t4_ns)

@@ -55,6 +55,7 @@ from rsu_service.cpm_segments import CpmSender
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from rsu_service.prediction import make_predictor
 from rsu_service.source import Frame, RsuSource
+from rsu_service.time_answers import TimeAnswers
 
 
 MAX_QUERIERS = 1024  # querier buckets kept
@@ -99,6 +100,7 @@ class RsuNode:
         self._lock = threading.Lock()  # rejected, time_replies and the bucket: the query callback's
         self._queries = TokenBucket(config.query_rate_hz, config.query_burst, self.true_clock.now_ns())
         self._queriers = KeyedBuckets(config.querier_rate_hz, config.querier_burst, MAX_QUERIERS)  # by obu_id
+        self._answers = TimeAnswers()
         self._log = ThrottledLog(self.name)
         self._trim = MemoryTrim()
         self._details: dict[str, str] = {}
@@ -334,6 +336,8 @@ class RsuNode:
             with self._lock:
                 if not self._queriers.take(request.obu_id, self.true_clock.now_ns()):
                     raise _Refused("querier_rate_limited")
+                if not self._answers.first(request):  # one answer per query (rsu_service.time_answers)
+                    raise _Refused("time_query_repeated")
         except (CodecError, _Refused) as exc:
             with self._lock:
                 self.rejected[exc.reason] += 1

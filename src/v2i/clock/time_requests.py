@@ -2,12 +2,21 @@
 
 A request goes to every RSU (``v2x/rsu/*/time``), so each RSU may answer it once. A reply
 is matched by ``seq`` and the echoed ``t1``. It is then *held* for ``hold_ns`` before it
-reaches the clock filter (``ripe``): a second, different reply from the same RSU id for the
-same request within that time is a conflict (one of the two is forged, and which is unknown),
-so both are discarded; a repeated identical reply is a duplicate. A forger that answers first
-therefore cannot push its reply in ahead of the genuine one; one that answers later than
-``hold_ns`` after the genuine reply is refused as a conflict; a forger the genuine RSU never
-contradicts in time is left to the clock filter's outlier test. Requests stay matchable for
+reaches the clock filter (``ripe``); a repeated identical reply is a duplicate.
+
+- A *verified* reply (its signature checked against the site's trust: ``match(...,
+  verified=True)``) is the RSU's own reading, even when someone relayed it: the first one to a
+  request counts, later different ones from the same RSU are ignored (``time_reply_later``),
+  never voided. (A relay that got the RSU to answer a copy of the query can only add delay: the
+  clock filter's envelope discounts a longer round trip, and a step needs evidence queueing
+  cannot explain.) Voiding both let a relay that doubled every genuine reply stop the clock.
+- An unverified reply (no PKI, or a permissive one that failed): a second, different reply from
+  the same RSU id for the same request within ``hold_ns`` is a conflict (one of the two is
+  forged, and which is unknown), so both are discarded. A forger that answers first therefore
+  cannot push its reply in ahead of the genuine one; one that answers later than ``hold_ns``
+  after the genuine reply is refused as a conflict; a forger the genuine RSU never contradicts
+  in time is left to the clock filter's outlier test. A verified reply after an unverified one
+  takes its place. Requests stay matchable for
 ``keep_ns`` (replies over a buffering cellular link can take tens of seconds), at most
 ``capacity`` are kept.
 """
@@ -30,6 +39,8 @@ class _Reply:
     t3_ns: int
     t4_ns: int
     conflicted: bool = False
+    verified: bool = False
+    used: bool = False  # handed to the clock filter
 
 
 @dataclass
@@ -58,9 +69,10 @@ class TimeRequests:
             self._pending.popitem(last=False)
         return TimeRequest(obu_id=self.obu_id, seq=self._seq, t1_ns=t1_ns)
 
-    def match(self, reply: TimeReply, t4_ns: int) -> str | None:
+    def match(self, reply: TimeReply, t4_ns: int, verified: bool = False) -> str | None:
         """Hold a reply for ``ripe``; or why it is refused: ``time_reply_unmatched`` (no such
-        request), ``time_reply_duplicate``, ``time_reply_conflict`` (both replies are dropped)."""
+        request), ``time_reply_duplicate``, ``time_reply_later`` (a verified reply came first),
+        ``time_reply_conflict`` (two unverified ones: both are dropped)."""
         pending = self._pending.get(reply.seq)
         if pending is None or pending.t1_ns != reply.t1_ns:
             return "time_reply_unmatched"
@@ -68,9 +80,13 @@ class TimeRequests:
         if before is not None:
             if (before.t2_ns, before.t3_ns) == (reply.t2_ns, reply.t3_ns):
                 return "time_reply_duplicate"
-            before.conflicted = True
-            return "time_reply_conflict"
-        pending.replies[reply.rsu_id] = _Reply(reply.t2_ns, reply.t3_ns, t4_ns)
+            if before.verified:
+                return "time_reply_later"
+            if not verified:
+                before.conflicted = True
+                return "time_reply_conflict"
+            # a verified reply replaces an unverified one (which then never ripens: see ripe)
+        pending.replies[reply.rsu_id] = _Reply(reply.t2_ns, reply.t3_ns, t4_ns, verified=verified)
         self._held.append((t4_ns, reply.seq, reply.rsu_id))
         return None
 
@@ -78,10 +94,11 @@ class TimeRequests:
         """(rsu id, exchange) of the held replies older than hold_ns that no conflict voided."""
         out = []
         while self._held and now_ns - self._held[0][0] >= self.hold_ns:
-            _, seq, rsu_id = self._held.popleft()
+            t4_ns, seq, rsu_id = self._held.popleft()
             pending = self._pending.get(seq)
             reply = None if pending is None else pending.replies[rsu_id]
-            if reply is not None and not reply.conflicted:
+            if reply is not None and reply.t4_ns == t4_ns and not (reply.conflicted or reply.used):  # (not replaced)
+                reply.used = True
                 out.append((rsu_id, SyncSample(pending.t1_ns, reply.t2_ns, reply.t3_ns, reply.t4_ns)))
         return out
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 from array import array
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -38,6 +38,7 @@ from v2i.perception.scoring import PerceptionTally
 from rsu_service.cpm_segments import CpmSender
 from rsu_service.pipeline import RsuPipeline, RsuPipelineConfig, Stamp, answer_time_request
 from rsu_service.prediction import make_predictor
+from rsu_service.time_answers import TimeAnswers
 from rsu_service.source import Frame
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
@@ -93,6 +94,7 @@ class _Rsu:
     predictions_key: str
     time_key: str
     cpm: CpmSender | None = None  # --cpm-rules: the CPMs of each list under the generation rules
+    answers: TimeAnswers = field(default_factory=TimeAnswers)  # one answer per time query, as the live RSU
 
     @cached_property
     def xy(self) -> tuple[float, float]:
@@ -236,6 +238,7 @@ class OfflineRun:
         for rsu in self.rsus:
             rsu.pipeline = self._new_pipeline(rsu.cfg.id)
             rsu.cpm = self._new_cpm_sender()
+            rsu.answers = TimeAnswers()
 
     def execute(self) -> RunRecord:
         self._schedule_chaos()
@@ -347,6 +350,8 @@ class OfflineRun:
         if not self._up("rsu"):
             return
         request = self._memo.decoded(data, TimeRequest, lambda: decode(data, TimeRequest))  # one per broadcast
+        if not rsu.answers.first(request):  # (the link duplicated the query)
+            return
         t2 = rsu.clock.now_ns()
         reply = answer_time_request(request, rsu.pipeline.config.rsu_id, t2, t2 + RSU_REPLY_NS)
         data = sign(encode(reply), rsu.signer, reply.t3_ns, rsu.time_key)
