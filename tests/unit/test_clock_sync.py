@@ -484,3 +484,16 @@ def test_an_estimate_asked_again_is_the_one_computed_afresh():
             want = sync.estimate_at(t_ns)
             assert got == want and type(got.at_ns) is type(t_ns)
     assert sync.steps_detected == 1 and suspected > 0 and kept > 0
+
+
+@pytest.mark.parametrize("delay_ms", [100, 30_000])
+def test_request_legs_delayed_by_a_relay_never_make_a_step(delay_ms):
+    """Issue 32: someone holds back every third query for 100 ms or 30 s before the RSU sees it (its
+    reply then leaves late too): longer round trips, which queueing explains; no step, the bound holds."""
+    clock, samples = lte_run(350 * MS, 60.0, 4, duration_s=40)
+    delayed = sorted((SyncSample(s.t1_ns, s.t2_ns + delay_ms * MS, s.t3_ns + delay_ms * MS, s.t4_ns + delay_ms * MS)
+                      if k % 3 == 0 else s for k, s in enumerate(samples)), key=lambda s: s.t4_ns)
+    run = run_sync(clock, delayed, T0, 40 * S)
+    assert run.steps_detected == 0
+    assert len(run.unbounded()) == 0
+    assert run.stats_ms(after_ns=5 * S)["p95_ms"] < 2.0
