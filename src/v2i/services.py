@@ -44,17 +44,16 @@ def run_obu(args: argparse.Namespace) -> int:
 def rsu_node(config: RsuConfig, true_clock: Clock | None = None):
     """The ``rsu_service.node.RsuNode`` that ``config`` describes, its source loaded (a renderer and
     detector take seconds) and started at ``config.start_at_ns`` or now (``true_clock``)."""
+    _pki_first(config.pki_dir, signer=config.identity or config.rsu_id)  # before the node's imports (~0.3 s)
+    site = _site_first(config.site)
     from rsu_service.node import RsuNode
     from v2i.core.clock import SystemClock
 
-    _pki_first(config.pki_dir, signer=config.identity or config.rsu_id)
     true_clock = true_clock or SystemClock()
     start_ns = config.start_at_ns or true_clock.now_ns()
-    if config.site is not None:
+    if site is not None:
         from rsu_service.source import video_source
-        from v2i.runtime.site import load_site
 
-        site = load_site(config.site)
         source = video_source(config, site, start_ns) if config.source == "video" else None
         return RsuNode(config, site, source, _rsu_clock_model(config), true_clock)
     import rsu_service
@@ -83,10 +82,10 @@ def obu_node(config: ObuConfig, clock: Clock | None = None):
     if config.fusion == "roif" and config.source != "sim":
         raise ValueError("--source zenoh feeds object-level fusion; --fusion roif renders its own camera")
     if config.site is not None:
+        site = _site_first(config.site)
         from obu_service.node import ObuNode
-        from v2i.runtime.site import load_site
 
-        return ObuNode(config, load_site(config.site), None, clock)
+        return ObuNode(config, site, None, clock)
     from v2i.sim.world import World
 
     scenario, site = obu_scenario_site(config)
@@ -127,6 +126,15 @@ def _pki_first(pki_dir: str | None, signer: str | None = None) -> None:
         load_signer(pki_dir, signer) if signer is not None else load_trust(pki_dir)
     except PkiError as exc:
         raise ValueError(str(exc)) from None
+
+
+def _site_first(path: str | None) -> Site | None:
+    """The site file at ``path`` (None without one), read before the node's imports (~0.3 s)."""
+    if path is None:
+        return None
+    from v2i.runtime.site import load_site
+
+    return load_site(path)
 
 
 def obu_scenario_site(config: ObuConfig) -> tuple[Scenario, Site]:
