@@ -206,4 +206,4 @@ def load_profile(name_or_path: str | Path) -> LinkProfile:
     field when the YAML does not validate.
     """
     return load_bundled_or_file(LinkProfile, name_or_path, "link_emulator", _PROFILE_DIR, "link profile", ProfileError,
-                                PROFILE_LIMIT_BYTES)
+                                limit_bytes=PROFILE_LIMIT_BYTES)

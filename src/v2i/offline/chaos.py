@@ -182,7 +182,7 @@ class ChaosTimeline(BaseModel):
 
 def load_chaos(path: str | Path) -> ChaosTimeline:
     """A validated timeline from a YAML file; ChaosError naming the file and field otherwise."""
-    data = read_yaml(path, "chaos timeline", CHAOS_LIMIT_BYTES, ChaosError)
+    data = read_yaml(path, "chaos timeline", ChaosError, limit_bytes=CHAOS_LIMIT_BYTES)
     return validate(ChaosTimeline, data, f"chaos timeline {path}", ChaosError)
 
 

@@ -143,7 +143,7 @@ def _parse_cached(text: str, file: str, error: type[ConfigError]) -> Any:
     return data
 
 
-def read_yaml(path: str | Path, kind: str, limit_bytes: int, error: type[ConfigError] = ConfigError) -> Any:
+def read_yaml(path: str | Path, kind: str, error: type[ConfigError] = ConfigError, *, limit_bytes: int) -> Any:
     """The YAML file at ``path`` as Python data: a regular file of at most ``limit_bytes`` (each
     reader states its own); ``error`` naming ``kind``, the file and the line when it cannot be read
     or parsed."""
@@ -202,7 +202,7 @@ def load_config(model: type[M], path: str | Path | None = None, overrides: dict[
     data: dict[str, Any] = {}
     source = model.__name__
     if path is not None:
-        loaded = read_yaml(path, "config", CONFIG_LIMIT_BYTES, ConfigError)
+        loaded = read_yaml(path, "config", ConfigError, limit_bytes=CONFIG_LIMIT_BYTES)
         if loaded is not None and not isinstance(loaded, dict):
             raise ConfigError(f"config {path} must be a mapping, got {type(loaded).__name__}")
         data.update(loaded or {})
@@ -218,7 +218,7 @@ def bundled_names(package: str, folder: str) -> list[str]:
 
 
 def load_bundled_or_file(
-    model: type[M], name_or_path: str | Path, package: str, folder: str, kind: str, error: type[ConfigError],
+    model: type[M], name_or_path: str | Path, package: str, folder: str, kind: str, error: type[ConfigError], *,
     limit_bytes: int,
 ) -> M:
     """A bundled YAML by name (``package/folder/<name>.yaml``) or a YAML file by path, as ``model``;

@@ -146,7 +146,7 @@ def check_site_or_scenario(config, service: str, site_sources: tuple[str, ...]) 
 def load_site(path: str | Path) -> Site:
     """The site file at ``path``; its ``map`` is relative to the file's folder. SiteError naming the
     file and the bad field when it cannot be used."""
-    data = read_yaml(path, "site", SITE_LIMIT_BYTES, SiteError)
+    data = read_yaml(path, "site", SiteError, limit_bytes=SITE_LIMIT_BYTES)
     if isinstance(data, dict) and isinstance(data.get("map"), str):
         data = {**data, "map": Path(path).parent / data["map"]}
     return validate(Site, data, f"site {path}", SiteError)

@@ -410,4 +410,4 @@ def bundled_scenarios() -> list[str]:
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """A bundled scenario by name (e.g. ``"red-light-runner"``) or a YAML file by path."""
     return load_bundled_or_file(Scenario, name_or_path, "v2i.sim", "scenarios", "scenario", ScenarioError,
-                                SCENARIO_LIMIT_BYTES)
+                                limit_bytes=SCENARIO_LIMIT_BYTES)
