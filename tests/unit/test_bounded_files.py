@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import signal
 import socket
 import time
 
@@ -11,19 +10,6 @@ import pytest
 
 from v2i.core.files import (FileMissing, FileRefused, FileTooLarge, KiB, MiB, check_regular, open_regular,
                             read_bounded, read_open, read_text, size_text)
-
-
-@pytest.fixture
-def alarm():
-    """Fail (not hang) a test whose read blocks for 5 s."""
-    def _timeout(signum, frame):
-        raise AssertionError("the read blocked")
-
-    old = signal.signal(signal.SIGALRM, _timeout)
-    signal.alarm(5)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
 
 
 def _refusal(path, limit_bytes=1 * MiB) -> str:

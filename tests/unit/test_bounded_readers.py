@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import gzip
 import os
-import signal
 from pathlib import Path
 
 import cv2
@@ -15,19 +14,6 @@ import numpy as np
 import pytest
 
 from v2i.core.files import MiB
-
-
-@pytest.fixture
-def alarm():
-    """Fail (not hang) a test whose read blocks for 10 s."""
-    def _timeout(signum, frame):
-        raise AssertionError("a read blocked")
-
-    old = signal.signal(signal.SIGALRM, _timeout)
-    signal.alarm(10)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
 
 
 @pytest.fixture
