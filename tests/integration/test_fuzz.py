@@ -13,10 +13,16 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(READY_TIMEOUT_S + 120
 LATE_SHARE = 0.2
 
 
+# the RSU publishes at 5 Hz: 1.5 s of fuzzing is 7 lists, too few for a share of missing ones (under
+# two busy loops 0-4 of 7 missing, the limit 3); 3 s gives 14 (3-5 missing measured, the limit 7)
+MESSAGES = {"rsu-inputs": 3000}
+
+
 @pytest.mark.parametrize("target", sorted(TARGETS))
 def test_a_service_survives_hostile_traffic_and_stays_on_time(target):
-    report = TARGETS[target](1500, seed=3, rate_hz=1000.0).run()
-    assert report["sent"] == 1500 and report["crashes"] == 0, report
+    n = MESSAGES.get(target, 1500)
+    report = TARGETS[target](n, seed=3, rate_hz=1000.0).run()
+    assert report["sent"] == n and report["crashes"] == 0, report
     outputs = report["outputs"]
     if target.endswith("-inputs"):
         # every hostile input goes to the key the genuine sensor publishes on, at 1000/s: without
