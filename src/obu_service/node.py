@@ -33,10 +33,12 @@ from v2i.core.objects import ObjectArray
 from schemas import keys
 from schemas.codec import CodecError, encode
 from v2i.runtime.intake import Item
+from v2i.runtime.process import log
 from schemas import list_wire
 from schemas.messages import EgoPose, ObuMetrics
 from v2i.runtime.sensor_screen import InputRefused, SensorLimits, SensorScreen
 from v2i.runtime.site import Site
+from v2i.security.pki import start_warnings
 from v2i.telemetry.latency import PeriodicSummary, StageLatency
 
 from obu_service.config import ObuConfig
@@ -102,6 +104,8 @@ class ObuNode(ObuShell):
         self.pipeline = pipeline
         self._security = live_security(config.pki_dir, config.security_policy, config.planning_max_age_s,
                                        self.pipeline.clock_offset, self.pipeline.reject)
+        for warning in [] if config.pki_dir is None else start_warnings(config.pki_dir, time.time_ns()):
+            log(self.name, f"WARNING: {warning}")
         self._v2v = (V2vShell(vid, self.pipeline.enable_v2v(config.max_peers), self.clock, config.max_message_bytes)
                      if config.v2v else None)  # V2V peers (obu_service.v2v_shell)
         self._screen = SensorScreen(vid, "base_link", SensorLimits(config.max_objects_per_list, INPUT_MAX_AGE_MS,

@@ -47,7 +47,7 @@ from v2i.runtime.site import Site
 from v2i.runtime.transport import open_session
 from v2i.runtime.wire_files import WireFiles
 from v2i.security.envelope import Signer, sign
-from v2i.security.pki import PkiError, load_signer
+from v2i.security.pki import PkiError, load_signer, start_warnings
 from v2i.telemetry.latency import PeriodicSummary, StageLatency
 
 from rsu_service.config import RsuConfig
@@ -110,6 +110,9 @@ class RsuNode:
         self.last_metrics: RsuMetrics | None = None  # the latest published; one assignment, read by other threads
         # one signer per thread (loop, time-query callback): each decides when its certificate travels
         self._loop_signer, self._query_signer = _signer(config), _signer(config)
+        for warning in [] if config.pki_dir is None else start_warnings(config.pki_dir, time.time_ns(),
+                                                                         config.identity or config.rsu_id):
+            log(self.name, f"WARNING: {warning}")
         # --save-wire: every list as sent (unsigned), one file each; an unwritable folder fails here, at start
         self._wire_files = (None if config.save_wire is None else
                             WireFiles(config.save_wire, config.rsu_id, config.wire, self.name))

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import stat
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -147,6 +148,37 @@ def load_signer(directory: str | Path, subject: str) -> Identity:
     if cert.role not in certs.SIGNER_ROLES:
         raise PkiError(f"{directory / f'{subject}.cert'}: role {cert.role!r} may not sign messages")
     return Identity(cert, read_key(directory / f"{subject}.key", cert))
+
+
+def start_warnings(directory: str | Path, now_ns: int, own: str | None = None) -> list[str]:
+    """What a service says loudly at start about the PKI in ``directory`` (each a line; [] when
+    all is well): private keys that others on the host can read (anyone there can sign as their
+    subject: the CA's key, on a service host, should not be there at all); and for ``own``, the
+    subject the service signs as, a certificate that is not valid at ``now_ns`` (host clock) or
+    that the directory's revocation list revokes: every receiver drops what it signs."""
+    directory = Path(directory)
+    warnings = []
+    for path in sorted(directory.glob("*.key")):
+        mode = stat.S_IMODE(os.stat(path).st_mode)
+        if mode & 0o077:
+            warnings.append(f"{path}: private key readable by others on this host (mode {mode:04o}): "
+                            f"anyone here can sign as {path.stem!r}; chmod 600 it"
+                            + (" (and keep the CA's key off service hosts)" if path.stem == CA_NAME else ""))
+    if own is not None:
+        cert = read_cert(directory / f"{own}.cert")
+        if not cert.valid_at(now_ns):
+            when = "expired" if now_ns > cert.valid_until_ns else "not yet valid"
+            warnings.append(f"{directory / f'{own}.cert'}: own certificate {when} (valid "
+                            f"{_utc(cert.valid_from_ns)} to {_utc(cert.valid_until_ns)}): every receiver "
+                            "will drop what this service signs")
+        if (directory / f"{CA_NAME}.cert").exists() and cert.digest in load_trust(directory).revoked:
+            warnings.append(f"{directory / f'{own}.cert'}: own certificate revoked by {directory / CRL_FILE}: "
+                            "every receiver will drop what this service signs")
+    return warnings
+
+
+def _utc(t_ns: int) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t_ns // 1_000_000_000))
 
 
 class Pki:
