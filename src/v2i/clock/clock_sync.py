@@ -445,7 +445,8 @@ class ClockSync:
         moved = {id(s) for s, interval in hyp.since if hyp.overlaps(interval)}
         self._segment += 1
         self._relabel(moved)
-        for _, s in hyp.suspects + [x for other in others for x in other.suspects] * (not confirmed):
+        joining = hyp.suspects if confirmed else hyp.suspects + [x for other in others for x in other.suspects]
+        for _, s in joining:
             self._insert(s, self._segment)
         self._last_step, self._step_first_t4_ns = (hyp.low, hyp.high), hyp.first_t4_ns
         if confirmed:
