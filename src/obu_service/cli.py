@@ -4,9 +4,10 @@ makes (``v2i.services.obu_node``: the site, own sensing or camera a configuratio
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
-from v2i.runtime.process import add_service_options, run_service
+from v2i.runtime.process import add_service_options, log, run_service
+from v2i.security.pki_registry import unregistered_warnings
 from v2i.telemetry.metrics_cli import add_metrics_options, export_node
 
 from obu_service.config import ObuConfig
@@ -63,6 +64,11 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pki", dest="pki_dir", metavar="DIR",
                    help="site PKI directory (v2i pki): verify RSU object lists, prediction lists and time replies "
                         "against its CA, revocation list and certificates")
+    p.add_argument("--known-rsus", type=rsu_ids, metavar="ID[,ID...]",
+                   help="the RSUs to register (served first by the intake, always admitted, their objects bounded "
+                        "around them): each stands where the site places it (its RSU of that id, or a single-RSU "
+                        "site's only RSU, as v2i rsu --rsu-id runs it). Default: the site's RSUs and, with --pki, the "
+                        "RSU ids its certificates certify that the site places; the OBU logs them at start")
     p.add_argument("--security", choices=("strict", "permissive", "off"),
                    help="strict drops, and counts by reason (security_<reason> in the metrics), anything unsigned, "
                         "forged, from an unknown, revoked or expired certificate, on a key its certificate does not "
@@ -71,6 +77,30 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     add_metrics_options(p)
 
 
+def rsu_ids(text: str) -> tuple[str, ...]:
+    """``--known-rsus``: comma-separated ids (checked by ``ObuConfig``)."""
+    return tuple(rsu_id.strip() for rsu_id in text.split(",") if rsu_id.strip())
+
+
+def registration_lines(config: ObuConfig, known: Mapping[str, tuple[float, float]] | tuple[str, ...]) -> list[str]:
+    """What the OBU says at start about the RSUs it registered (``known``: the pipeline's, id -> map
+    position, or ids): the list, then a WARNING for each RSU its ``--pki`` certifies and it left out."""
+    where = {rsu_id: f" at ({known[rsu_id][0]:g}, {known[rsu_id][1]:g})" if isinstance(known, Mapping) else ""
+             for rsu_id in known}
+    source = "--known-rsus" if config.known_rsus is not None else (
+        "the site and the RSU certificates of --pki" if config.pki_dir else "the site")
+    listed = ", ".join(f"{rsu_id}{where[rsu_id]}" for rsu_id in known) or "none"
+    lines = [f"registered RSUs (from {source}; served first, always admitted): {listed}"]
+    return lines + [f"WARNING: {w}" for w in unregistered_warnings(config.certified_rsus(), list(known))]
+
+
 def run(args: argparse.Namespace, make_node: Callable[[ObuConfig], object]) -> int:
-    """``v2i obu``: the node ``make_node`` makes of the configuration, run until its end or a signal."""
-    return run_service("obu", ObuConfig, args, lambda config: export_node(make_node(config), "obu", args))
+    """``v2i obu``: the node ``make_node`` makes of the configuration, run until its end or a signal;
+    the RSUs it registered said at start (``registration_lines``)."""
+    def made(config: ObuConfig):
+        node = make_node(config)
+        for line in registration_lines(config, node.pipeline.config.known_rsus):
+            log(getattr(node, "name", f"obu {config.vehicle_id}"), line)
+        return export_node(node, "obu", args)
+
+    return run_service("obu", ObuConfig, args, made)

@@ -2,16 +2,30 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 
 from v2i.runtime.config import ServiceConfig
 from v2i.runtime.site import Site, check_site_or_scenario, lane_predictor
+from v2i.security.pki import PkiError
+from v2i.security.pki_registry import certified_rsus
 from schemas.keys import check_id
 
 from obu_service.methods import check_fusion
 from obu_service.pipeline import COMPENSATIONS, FUSION_METHODS, FUSION_MODES, ObuPipelineConfig
+from obu_service.rsu_table import MAX_RSUS
+
+
+def site_position(site: Site, rsu_id: str) -> tuple[float, float] | None:
+    """Where RSU ``rsu_id`` stands on ``site``: the site's RSU of that id, or the only RSU of a
+    single-RSU site whatever the id (as an RSU service of that id runs it: ``Site.rsu``); None
+    when the site cannot place it."""
+    try:
+        return site.rsu(rsu_id).xy
+    except ValueError:
+        return None
 
 
 class ObuConfig(ServiceConfig):
@@ -42,9 +56,12 @@ class ObuConfig(ServiceConfig):
     time_query_timeout_s: float = Field(60.0, gt=0, le=600, description="replies later than this are lost "
                                         "(a buffering cellular link can deliver tens of seconds late)")
     # admission of RSU input (obu_service.pipeline module docstring)
-    known_rsus: dict[str, tuple[float, float]] | None = Field(
-        None, description="the site's registered RSUs: id -> map position (m); always admitted, the "
-                          "objects bounded by site_radius_m around them (default: the site's RSUs)")
+    known_rsus: dict[str, tuple[float, float] | None] | None = Field(
+        None, description="the registered RSUs (--known-rsus ID,ID): a list of ids, or id -> map position (m); "
+                          "an id without one stands where the site places it (its RSU of that id, or a single-RSU "
+                          "site's only RSU). Registered RSUs are served first by the intake, always admitted, and "
+                          "their objects bounded by site_radius_m around them (default: the site's RSUs and the "
+                          "RSU ids the pki_dir's certificates certify that the site places; ObuConfig.registration)")
     accept_unknown_rsus: bool = Field(True, description="admit RSU ids outside known_rsus (bounded)")
     max_unknown_rsus: int = Field(16, ge=0, le=64)
     rsu_expiry_s: float = Field(30.0, gt=0, le=3600, description="an RSU not heard this long is forgotten")
@@ -89,9 +106,19 @@ class ObuConfig(ServiceConfig):
     roif_model: str | None = Field(None, description="ONNX detector of the ego camera (default: the shipped one)")
     roif_threads: int | None = Field(None, ge=1, le=256, description="ONNX Runtime threads of the ego camera")
 
+    @field_validator("known_rsus", mode="before")
+    @classmethod
+    def _ids_or_positions(cls, v):
+        """A list of ids (``--known-rsus``, YAML ``[rsu1, rsu2]``) as ids without a position."""
+        if isinstance(v, (list, tuple)) and all(isinstance(rsu_id, str) for rsu_id in v):
+            if len(set(v)) != len(v):
+                raise ValueError(f"an RSU id given twice: {list(v)}")
+            return dict.fromkeys(v)
+        return v
+
     @field_validator("known_rsus")
     @classmethod
-    def _valid_rsu_ids(cls, v: dict[str, tuple[float, float]] | None) -> dict[str, tuple[float, float]] | None:
+    def _valid_rsu_ids(cls, v: dict[str, tuple[float, float] | None] | None):
         for rsu_id in v or {}:
             check_id(rsu_id)
         return v
@@ -142,8 +169,50 @@ class ObuConfig(ServiceConfig):
         return lane_predictor(site)
 
     def registered_rsus(self, site: Site) -> dict[str, tuple[float, float]]:
-        """known_rsus, or the site's RSUs when none are configured."""
-        return dict(self.known_rsus) if self.known_rsus is not None else site.rsu_positions()
+        """RSU id -> map position (m) of the RSUs registered on ``site`` (``registration``)."""
+        return self.registration(site, self.certified_rsus())
+
+    def certified_rsus(self) -> dict[str, Path]:
+        """RSU id -> certificate file, for the RSU ids the ``pki_dir`` certifies (``v2i.security.pki_registry``;
+        {} without one); ValueError naming a file that cannot be read."""
+        if self.pki_dir is None:
+            return {}
+        try:
+            return certified_rsus(self.pki_dir)
+        except PkiError as exc:
+            raise ValueError(str(exc)) from None
+
+    def registration(self, site: Site, certified: dict[str, Path]) -> dict[str, tuple[float, float]]:
+        """RSU id -> map position (m) of the RSUs this OBU registers on ``site``, in order, ``certified``
+        being ``certified_rsus()``:
+
+        - ``known_rsus`` when given (``--known-rsus``): exactly those, each at its own position or where
+          the site places it (``site_position``); ValueError for one the site cannot place;
+        - else the site's RSUs, then each RSU the PKI certifies that the site places (on a single-RSU site:
+          whatever id ``v2i rsu`` runs as, e.g. the README's ``rsu1`` on a scenario whose RSU is ``rsu-nw``),
+          while RSU slots are left (``MAX_RSUS`` less the unknown RSUs' and the V2V peers').
+
+        Those the PKI certifies and this leaves out the OBU names at start (``obu_service.cli``)."""
+        if self.known_rsus is not None:
+            return {rsu_id: self._known_position(site, rsu_id, xy) for rsu_id, xy in self.known_rsus.items()}
+        rsus = site.rsu_positions()
+        room = MAX_RSUS - len(rsus) - (self.max_unknown_rsus if self.accept_unknown_rsus else 0) \
+            - (self.max_peers if self.v2v else 0)
+        for rsu_id in certified:
+            xy = site_position(site, rsu_id)
+            if rsu_id not in rsus and xy is not None and room > 0:
+                rsus[rsu_id], room = xy, room - 1
+        return rsus
+
+    @staticmethod
+    def _known_position(site: Site, rsu_id: str, xy: tuple[float, float] | None) -> tuple[float, float]:
+        """``xy``, or where ``site`` places ``rsu_id``; ValueError when neither says."""
+        xy = xy if xy is not None else site_position(site, rsu_id)
+        if xy is None:
+            raise ValueError(f"known_rsus: site {site.name!r} has no RSU {rsu_id!r} (its RSUs: "
+                             f"{[r.id for r in site.rsus]}) to place it at: give its map position "
+                             f"(known_rsus: {{{rsu_id}: [x, y]}} in --config) or a site that lists it")
+        return xy
 
     def own_size_m(self, site: Site) -> tuple[float, float]:
         """Length, width (m) of this vehicle: the site's vehicle of this id, else its first."""

@@ -24,7 +24,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="site file (site.yaml: RSUs, vehicles, map origin, map) instead of a scenario, with "
                         "--source zenoh or video: no scenario and no simulator is loaded; without --duration the "
                         "RSU runs until stopped")
-    p.add_argument("--rsu-id", help="RSU id used in key expressions (default rsu1)")
+    p.add_argument("--rsu-id", help="RSU id used in key expressions and, by default, the --pki certificate it signs "
+                   "with (default rsu1); it runs the site's RSU of that id, or a single-RSU site's only RSU whatever "
+                   "the id. An OBU registers it when its site lists the id, its --pki holds this RSU's certificate "
+                   "and the site places it, or it is in the OBU's --known-rsus")
     p.add_argument("--connect", action="append", metavar="EP", help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--clock-offset-ms", type=float, help="RSU clock offset from true time, ms")
     p.add_argument("--clock-drift-ppm", type=float, help="RSU clock drift, ppm")

@@ -16,7 +16,10 @@ SOURCES = ("sim", "camera", "video", "zenoh")  # perception sources, see rsu_ser
 
 
 class RsuConfig(ServiceConfig):
-    rsu_id: str = "rsu1"
+    rsu_id: str = Field("rsu1", description="the id in its key expressions (v2x/rsu/{rsu_id}/*) and, by default, "
+                        "the certificate it signs with; the site's RSU of that id, or a single-RSU site's only RSU "
+                        "whatever the id (Site.rsu). An OBU registers it from its site, its pki_dir's certificate of "
+                        "this id, or its known_rsus (ObuConfig.registration)")
     site: str | None = Field(None, description="site file (v2i.runtime.site): the RSUs, vehicles, map origin "
                              "and map this RSU runs in, instead of a scenario's; with source zenoh or video")
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
