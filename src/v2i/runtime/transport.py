@@ -9,6 +9,14 @@ services sets it). The file is the base; the session's own endpoints replace the
 safety settings (no scouting or gossip, no shared memory, the codec's message size bound) are
 applied over it. ``tls/HOST:PORT`` endpoints then work wherever ``tcp/`` ones do. In the file's
 TLS paths ``${V2I_TLS_DIR}`` stands for ``$V2I_TLS_DIR`` (default ``/pki/tls``).
+
+What a listen endpoint admits is bounded too (``session_bounds``): at most ``MAX_SESSIONS`` Zenoh
+sessions with other nodes at once, ``ACCEPT_PENDING`` handshakes in progress, each given
+``ACCEPT_TIMEOUT_MS`` to complete (a socket that connects and then trickles or says nothing is
+closed after that), one link per session. Zenoh's defaults are 1000 sessions and 100 pending
+handshakes of 10 s each. ``$V2I_ZENOH_BOUNDS=site`` leaves these four to the site file (or to
+Zenoh's defaults where the file says nothing): for a deployment that needs more, or to measure
+without them.
 """
 
 from __future__ import annotations
@@ -37,6 +45,24 @@ TLS_DIR_ENV = "V2I_TLS_DIR"
 DEFAULT_TLS_DIR = "/pki/tls"
 TLS_FILE_KEYS = ("root_ca_certificate", "listen_certificate", "listen_private_key", "connect_certificate",
                  "connect_private_key")
+BOUNDS_ENV = "V2I_ZENOH_BOUNDS"  # v2i (default): the bounds below; site: the site file's / Zenoh's
+BOUNDS_CHOICES = ("v2i", "site")
+# A service's session reaches a handful of nodes: its link emulator(s) (one per RSU of the site at the
+# OBU, the V2V relay), a watcher or monitor, a recorder, a replay, an operator's CLI; the largest bundled
+# site (connected-intersection: 2 RSUs, 3 vehicles) gives an OBU 4-6 and the demo watcher 6. Zenoh counts
+# the sessions a node opened with those it accepted. 32 leaves room for a larger site and bounds the
+# memory a stranger's sessions can take (each may hold a reassembly buffer of the message size bound).
+MAX_SESSIONS = 32
+# A router serves every client of its side (RSUs, vehicles, consumers): Zenoh's default were too many
+# to bound memory, 256 is more than any site here has nodes.
+ROUTER_MAX_SESSIONS = 256
+# Handshakes in progress at once: genuine peers connect one at a time (at start, after a restart).
+ACCEPT_PENDING = 16
+# A Zenoh handshake is 2 round trips (InitSyn/Ack, OpenSyn/Ack), TLS adds 1-2: well under 1 s on a
+# site network or cellular backhaul (RTT <= 200 ms), 2 s allows 10 round trips. A socket that has not
+# completed its handshake by then is closed, so a trickle holds a pending slot 2 s, not Zenoh's 10 s.
+ACCEPT_TIMEOUT_MS = 2_000
+MAX_LINKS = 1  # one link per session (no multilink): a peer cannot add links to its session
 # A Zenoh configuration file, read here and parsed by Zenoh: deploy/router.json5 is ~3 kB.
 ZENOH_CONFIG_LIMIT_BYTES = 1 * MiB
 # A TLS certificate or key it names (PEM, opened by Zenoh after this check): ~1-2 kB, a chain a few.
@@ -118,6 +144,22 @@ def _base_config() -> tuple[zenoh.Config, str | None]:
     return conf, json.loads(conf.get_json("mode"))
 
 
+def bounds_source() -> str:
+    """``v2i`` or ``site`` from ``$V2I_ZENOH_BOUNDS`` (default v2i); ValueError naming it otherwise."""
+    choice = os.environ.get(BOUNDS_ENV, "").strip() or "v2i"
+    if choice not in BOUNDS_CHOICES:
+        raise ValueError(f"{BOUNDS_ENV}={choice!r}: must be v2i (the default) or site")
+    return choice
+
+
+def session_bounds(mode: str) -> dict[str, int]:
+    """The Zenoh settings that bound what a session in ``mode`` admits (key -> value)."""
+    return {"transport/unicast/max_sessions": ROUTER_MAX_SESSIONS if mode == "router" else MAX_SESSIONS,
+            "transport/unicast/accept_pending": ACCEPT_PENDING,
+            "transport/unicast/accept_timeout": ACCEPT_TIMEOUT_MS,
+            "transport/unicast/max_links": MAX_LINKS}
+
+
 def session_config(listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str | None = None) -> zenoh.Config:
     """A config that listens on and connects to exactly these endpoints, over the site file of
     ``$V2I_ZENOH_CONFIG`` if set; ``mode`` one of ``SESSION_MODES``: the argument, else
@@ -144,10 +186,14 @@ def session_config(listen: Sequence[str] = (), connect: Sequence[str] = (), mode
     # service allocate that much. Nothing on the wire is larger than the codec's limit.
     file_bound = json.loads(conf.get_json("transport/link/rx/max_message_size"))
     conf.insert_json5("transport/link/rx/max_message_size", str(min(file_bound or MAX_MESSAGE_BYTES, MAX_MESSAGE_BYTES)))
+    if bounds_source() == "v2i":
+        for key, value in session_bounds(mode).items():
+            conf.insert_json5(key, str(value))
     return conf
 
 
 def open_session(listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str | None = None) -> zenoh.Session:
+    """A Zenoh session on :func:`session_config`."""
     return zenoh.open(session_config(listen, connect, mode))
 
 
