@@ -10,8 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from v2i.adversary.attack_messages import (CONTROL_VARIANTS, GHOST_AHEAD_M, GHOST_ID, INTENDED, LIST_KINDS, TIME_SHIFT_NS,
-                                        AttackMessages, ghost_xy, signer_digest)
+from v2i.adversary.attack_messages import (ALL_KINDS, CONTROL_VARIANTS, FLOOD_VARIANTS, GHOST_AHEAD_M, GHOST_ID,
+                                           HOSTILE_KINDS, INTENDED, JUNK_BYTES, KINDS, LIST_KINDS, RELAY_KINDS,
+                                           TIME_SHIFT_NS, AttackMessages, ghost_xy, signer_digest)
 from v2i.core.frames import Pose2D
 from schemas import keys
 from schemas.classes import ObjectClass
@@ -19,7 +20,7 @@ from schemas.codec import decode, encode
 from schemas.messages import LinkControl, ObjectList, ObjectListHeader, TimeReply, TimeRequest
 from v2i.security.attacker_keys import (STOLEN_RSU, STOLEN_VEHICLE, load_attacker_keys, prepare_attacker_pki,
                                     revoked_subject)
-from v2i.security.envelope import Signer, Verifier
+from v2i.security.envelope import PREFIX, Signer, Verifier, parse
 from v2i.security.pki import Pki, PkiError, load_signer, load_trust
 from v2i.security.site import write_site
 
@@ -176,3 +177,41 @@ def test_prepare_on_an_empty_directory_makes_a_ca(tmp_path):
     prepare_attacker_pki(tmp_path, NOW_NS, "rsu-9")
     assert Pki.load(tmp_path).ca.cert.role == "ca"
     assert load_attacker_keys(tmp_path, "rsu-9").revoked.cert.subject == "rsu-9-revoked"
+
+
+def test_flood_variants_are_refused_for_their_reasons_and_carry_a_ghost_unchecked(pki_dir, genuine):
+    """Junk is unsigned or malformed, the rest a ghost list unsigned or forged on the genuine digest."""
+    trust = load_trust(pki_dir)
+    strict, off = Verifier(trust, "strict", roles=("rsu",)), Verifier(trust, "off")
+    messages, key_expr = attack(pki_dir, genuine), keys.rsu_objects(RSU)
+    reasons: dict[str, set[str]] = {v: set() for v in FLOOD_VARIANTS}
+    for _ in range(40):
+        for variant in FLOOD_VARIANTS:
+            data = messages.flood(variant, T_NS, EGO)
+            payload, reason = strict.verify(data, key_expr, T_NS)
+            assert payload is None and reason in INTENDED["flood"]
+            reasons[variant].add(reason)
+            if variant != "junk":
+                ghost = decode(off.verify(data, key_expr, T_NS)[0], ObjectList)
+                assert [o.cls for o in ghost.objects] == [ObjectClass.PEDESTRIAN]
+            else:
+                assert JUNK_BYTES[0] <= len(data) <= JUNK_BYTES[1] + len(PREFIX)
+    assert reasons == {"junk": {"unsigned", "malformed"}, "unsigned": {"unsigned"}, "forged": {"bad_signature"}}
+    forged = messages.flood("forged", T_NS, EGO)
+    assert signer_digest(forged) == genuine.digest and parse(forged).generation_ns == T_NS  # fresh: costs a verify
+
+
+def test_flood_reuses_a_given_payload_and_refuses_unknown_variants(pki_dir, genuine):
+    messages = attack(pki_dir, genuine)
+    payload = messages.ghost_payload(T_NS, EGO)
+    assert messages.flood("unsigned", T_NS, EGO, payload) == payload
+    assert parse(messages.flood("forged", T_NS, EGO, payload)).payload == payload
+    with pytest.raises(ValueError, match="unknown flood variant"):
+        messages.flood("loud", T_NS, EGO)
+    with pytest.raises(ValueError, match="digest"):
+        AttackMessages(RSU, load_attacker_keys(pki_dir, RSU), np.random.default_rng(0)).flood("forged", T_NS, EGO)
+
+
+def test_the_opt_in_kinds_are_not_in_the_default_list():
+    assert not set(HOSTILE_KINDS) & set(KINDS) and ALL_KINDS == KINDS + HOSTILE_KINDS
+    assert set(RELAY_KINDS) < set(HOSTILE_KINDS) and "flood" not in RELAY_KINDS

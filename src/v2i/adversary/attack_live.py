@@ -28,8 +28,9 @@ from v2i.security.envelope import PREFIX, parse
 from v2i.telemetry.live_line import StatusLine
 
 from v2i.adversary.attack_ghosts import GhostWatch
-from v2i.adversary.attack_messages import (CONTROL_VARIANTS, LIST_KINDS, TIME_VARIANTS, AttackerKeys, AttackMessages, ghost_xy,
-                              signer_digest)
+from v2i.adversary.attack_hostile import HostilePhases, NotReady
+from v2i.adversary.attack_messages import (CONTROL_VARIANTS, HOSTILE_KINDS, LIST_KINDS, TIME_VARIANTS, AttackerKeys,
+                                           AttackMessages, ghost_xy, signer_digest)
 from v2i.adversary.attack_report import counter_delta, kind_row
 
 REPLAY_AGE_NS = (500_000_000, 3_000_000_000)  # replay captures this old: after the original, within freshness
@@ -37,13 +38,10 @@ INBOX_MESSAGES = 10_000
 PROGRESS_S = 5.0
 READY_TIMEOUT_S = 120.0  # default --ready-timeout: the site shows what the attack needs within this
 OFFSET_SAMPLES = 32  # RSU clock offset: median of the latest this many captures
+METRICS_KEPT = 20_000  # OBU metrics kept for the windows of the opt-in kinds: 10 Hz x 33 min
 
 
-class NotReady(RuntimeError):
-    """The site never showed what the attack needs (genuine lists, the ego pose, OBU metrics)."""
-
-
-class AttackRun:
+class AttackRun(HostilePhases):
     def __init__(self, args, kinds: list[str], attacker: AttackerKeys):
         self.args, self.kinds = args, kinds
         self.rng = np.random.default_rng(args.seed)
@@ -65,6 +63,9 @@ class AttackRun:
         self.genuine_lists: list[int] = []  # local receive ns of each sniffed genuine list
         self.rows: dict[str, dict] = {}
         self.clock_rows: list[tuple[int, int]] = []  # (t_ns, OBU's offset estimate of the RSU)
+        self.metrics_log: deque[ObuMetrics] = deque(maxlen=METRICS_KEPT)  # every OBU metrics message, in order
+        self.relay = None  # a TimeRelay while a relay kind runs: the time queryable hands it the queries
+        self.sniff = None  # the session that reaches the RSU
         self._sessions, self._declared = [], []
         self._decoys = False
         self._marks: dict[str, tuple] = {}
@@ -72,7 +73,7 @@ class AttackRun:
     # --- sessions ---------------------------------------------------------------------------------
     def open(self) -> None:
         a, vid = self.args, self.args.vehicle_id
-        sniff = self._session(a.sniff)
+        sniff = self.sniff = self._session(a.sniff)
         self._declare(sniff.declare_subscriber(keys.rsu_objects(a.rsu_id), lambda s: self._put("genuine", s)))
         self.vehicle = self._session(a.connect)
         for kind, key in (("pose", keys.obu_pose(vid)), ("fused", keys.obu_objects(vid)),
@@ -96,6 +97,9 @@ class AttackRun:
         return entity
 
     def close(self) -> None:
+        if self.relay is not None:
+            self.relay.stop()
+            self.relay = None
         for entity in self._declared:
             entity.undeclare()
         for session in self._sessions:
@@ -148,6 +152,7 @@ class AttackRun:
 
     def _on_metrics(self, t_ns: int, data: bytes) -> None:
         self.metrics = decode(data, ObuMetrics)
+        self.metrics_log.append(self.metrics)
         for r in self.metrics.rsus:
             if r.rsu_id == self.args.rsu_id and r.clock_offset_ns is not None:
                 self.clock_rows.append((self.metrics.t_ns, r.clock_offset_ns))
@@ -170,6 +175,10 @@ class AttackRun:
 
     # --- the time queryable (Zenoh callback thread) -----------------------------------------------
     def _on_time_query(self, query) -> None:
+        relay = self.relay
+        if relay is not None:  # a relay kind: the genuine RSU's replies, not forged ones
+            relay.on_query(query)
+            return
         try:
             request = decode(query.payload.to_bytes(), TimeRequest)
         except (CodecError, AttributeError):
@@ -187,9 +196,15 @@ class AttackRun:
     # --- the run ----------------------------------------------------------------------------------
     def run(self) -> dict:
         self.open()
+        kinds = list(self.kinds)
+        if getattr(self.args, "from_start", False):  # a relay kind from the OBU's first query on
+            self.announce_ready()
+            self._phase(kinds.pop(0))
+            if not kinds:
+                return self.report()
         self._wait_ready()
         self._baseline()
-        for kind in self.kinds:
+        for kind in kinds:
             self._phase(kind)
         return self.report()
 
@@ -252,6 +267,9 @@ class AttackRun:
             self.pump(time.monotonic() + 0.05)
 
     def _phase(self, kind: str) -> None:
+        if kind in HOSTILE_KINDS:
+            self.rows[kind] = self._phase_flood() if kind == "flood" else self._phase_relay(kind)
+            return
         before, t0 = self._snapshot(), time.monotonic()
         clock_from = len(self.clock_rows)
         if kind == "time":

@@ -30,6 +30,18 @@ Kinds (``KINDS``) and the :class:`v2i.security.envelope.Verifier` reason each is
 - ``control``: a LinkControl outage of the whole link for an hour, unsigned and signed by a
   non-operator (stolen) key -> ``unsigned`` / ``wrong_role`` at the link emulator.
 
+Opt-in kinds against the genuine RSU's share of the OBU (``HOSTILE_KINDS``, issue 32; not in the
+default list, each runs for seconds rather than a count):
+
+- ``flood``: at a high rate on the genuine RSU's own ``v2x/rsu/{rsu_id}/objects``, junk (random
+  bytes, half of them behind the envelope prefix), unsigned ghost lists and forged envelopes
+  naming the genuine digest with a random signature and a fresh generation time
+  (``FLOOD_VARIANTS``) -> ``unsigned`` / ``malformed`` / ``bad_signature``; what it costs is
+  the genuine RSU's lists the OBU no longer takes;
+- ``time_doubled`` / ``time_delayed``: no bytes of the attacker's own: the OBU's time queries are
+  relayed to the genuine RSU and its signed replies returned twice, or the request leg delayed
+  (``v2i.adversary.attack_relay``).
+
 Generation times are the RSU's clock as the attacker estimates it from captured envelopes
 (``generation_ns`` minus local receive time), so forged messages are fresh and cost the verifier
 a signature check. Nothing here reads a clock or touches Zenoh; randomness from the injected rng.
@@ -54,12 +66,18 @@ from v2i.security.envelope import MAGIC, PREFIX, Signer, parse, signed_bytes
 
 KINDS = ("unsigned", "forged", "replayed", "wrong_key", "revoked", "time", "control")
 LIST_KINDS = KINDS[:5]  # object lists on v2x/rsu/{rsu_id}/objects
+HOSTILE_KINDS = ("flood", "time_doubled", "time_delayed")  # opt-in, timed: against the genuine RSU's share
+ALL_KINDS = KINDS + HOSTILE_KINDS
+RELAY_KINDS = HOSTILE_KINDS[1:]  # genuine time replies relayed
+FLOOD_VARIANTS = ("junk", "unsigned", "forged")
+JUNK_BYTES = (8, 512)  # a junk message's length, drawn uniformly in [lo, hi)
 # the stolen RSU key fails on coverage (wrong_key); the stolen vehicle key already on its role where
 # the verifier takes RSU certificates only (the OBU), and both where only operators may (link control)
 INTENDED: dict[str, tuple[str, ...]] = {
     "unsigned": ("unsigned",), "forged": ("bad_signature",), "replayed": ("replayed", "stale"),
     "wrong_key": ("wrong_key", "wrong_role"), "revoked": ("revoked",),
     "time": ("unsigned", "wrong_key", "wrong_role", "bad_signature"), "control": ("unsigned", "wrong_role", "wrong_key"),
+    "flood": ("unsigned", "malformed", "bad_signature"),
 }
 TIME_VARIANTS = ("unsigned", "wrong_key", "forged")
 CONTROL_VARIANTS = ("unsigned", "wrong_key")
@@ -152,6 +170,26 @@ class AttackMessages:
         else:
             signature = alg.sign(self._own_key, signed_bytes(payload, digest, generation_ns, key_expr))
         return _envelope(payload, digest, generation_ns, signature)
+
+    def flood(self, variant: str, rsu_now_ns: int, ego: Pose2D, payload: bytes | None = None) -> bytes:
+        """One flood message of ``variant`` (``FLOOD_VARIANTS``) for the victim's objects key, stamped
+        at ``rsu_now_ns`` (RSU clock): junk, an unsigned ghost list, or a ghost list in an envelope
+        naming the genuine digest with a random signature (no signing cost to the attacker; the
+        same verify cost to the OBU as any bad signature). ``payload``: a ghost list made by
+        :meth:`ghost_payload` to reuse (encoding one costs ~150 us; at 2000/s the sender reuses
+        one per batch), default a new one."""
+        if variant == "junk":
+            junk = self.rng.bytes(int(self.rng.integers(*JUNK_BYTES)))
+            # half behind the envelope prefix: the verifier parses it before refusing it as malformed
+            return PREFIX + junk if self.rng.random() < 0.5 else junk
+        payload = self.ghost_payload(rsu_now_ns, ego) if payload is None else payload
+        if variant == "unsigned":
+            return payload
+        if variant == "forged":
+            if self.genuine_digest is None:
+                raise ValueError("forging needs the genuine RSU's certificate digest (capture one of its messages)")
+            return _envelope(payload, self.genuine_digest, rsu_now_ns, self.rng.bytes(alg.SIGNATURE_BYTES))
+        raise ValueError(f"unknown flood variant {variant!r}: one of {', '.join(FLOOD_VARIANTS)}")
 
     # --- time replies -----------------------------------------------------------------------------
     def time_reply(self, request: TimeRequest, rsu_offset_ns: int, variant: str) -> bytes:

@@ -9,11 +9,15 @@ later refusal (e.g. admission's ``duplicate`` for a replay the verifier let thro
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from bisect import bisect_right
+from collections.abc import Mapping, Sequence
 
-from v2i.adversary.attack_messages import INTENDED
+from v2i.adversary.attack_messages import HOSTILE_KINDS, INTENDED
 
 DROP, ACCEPT = "security_", "security_accepted_"
+TRACKING_MODES = ("intra", "inter")  # the cycles that fuse RSU data into the tracks
+GENUINE_ACCEPTED_MIN = 0.95  # a flood costs the genuine RSU nothing: >= 95 % of its lists accepted
+FIRST_SYNC_MAX_S = 3.0  # a time relay from the OBU's start: synchronised within this
 
 
 def counter_delta(after: Mapping[str, int], before: Mapping[str, int]) -> dict[str, int]:
@@ -60,6 +64,9 @@ def got_through(report: dict) -> list[str]:
     """What of the attack got through (empty: everything was stopped)."""
     notes = []
     for kind, row in report["kinds"].items():
+        if kind in HOSTILE_KINDS:
+            notes += hostile_notes(kind, row)
+            continue
         if row["accepted"]:
             notes.append(f"{kind}: {sum(row['accepted'].values())} of {row['sent']} failed verification and were accepted")
         elif row["rejected_total"] + sum(row["other_refusals"].values()) < row["sent"]:
@@ -99,6 +106,9 @@ def format_report(report: dict) -> str:
              f"  {'kind':<10}{'sent':>6}{'rejected':>9}  {'rejected by reason':<44}{'accepted (permissive)':<32}"
              f"{'other refusals':<24}reached the output"]
     for kind, row in report["kinds"].items():
+        if kind in HOSTILE_KINDS:
+            lines.append(_hostile_line(kind, row))
+            continue
         lines.append(f"  {kind:<10}{row['sent']:>6}{row['rejected_total']:>9}  {_reasons(row['rejected']):<44}"
                      f"{_reasons(row['accepted']):<32}{_reasons(row['other_refusals']):<24}{_effect(kind, row)}")
     g, b = report["genuine"], report["baseline"]
@@ -113,3 +123,95 @@ def format_report(report: dict) -> str:
     notes = got_through(report)
     lines.append("  got through: " + ("; ".join(notes) if notes else "nothing"))
     return "\n".join(lines)
+
+
+# --- the opt-in kinds against the genuine RSU's share (issue 32) ---------------------------------------
+def genuine_sent_in(sniffed_ns: Sequence[int], t0_ns: int, t1_ns: int, delay_ns: int) -> int:
+    """Genuine lists (sniffed at the RSU at ``sniffed_ns``, sorted) that reached the OBU in its
+    metrics window (t0, t1]: sniffed in (t0 - delay, t1 - delay], ``delay`` the one-way RSU ->
+    OBU delay (the OBU's ``delay_p50_ms``), so that lists in flight at either end count once."""
+    return bisect_right(sniffed_ns, t1_ns - delay_ns) - bisect_right(sniffed_ns, t0_ns - delay_ns)
+
+
+def tracking_share(modes: Mapping[str, int]) -> float | None:
+    """The share of cycles in intra- or inter-frame mode (None without cycles)."""
+    total = sum(modes.values())
+    return sum(modes.get(m, 0) for m in TRACKING_MODES) / total if total else None
+
+
+def flood_row(sent: Mapping[str, int], rate_hz: float, send_s: float, genuine_sent: int, genuine_accepted: int,
+              obu_delta: Mapping[str, int], modes: Mapping[str, int], misses: int, cycles: int, ghost_outputs: int,
+              outputs: int, window_s: float) -> dict:
+    """The ``flood`` kind's line: what it sent (by variant, the rate asked and achieved), what the
+    OBU refused, and what the genuine RSU lost in the window (its lists sent and accepted)."""
+    dropped, accepted, other = split_labels(obu_delta)
+    total = sum(sent.values())
+    return {"sent": total, "variants": dict(sent), "rate_hz": rate_hz,
+            "achieved_hz": round(total / send_s, 1) if send_s > 0 else 0.0, "send_s": round(send_s, 2),
+            "rejected": dropped, "rejected_total": sum(dropped.values()),
+            "rejected_as_intended": sum(dropped.get(r, 0) for r in INTENDED["flood"]), "accepted": accepted,
+            "other_refusals": other, "genuine_sent": genuine_sent, "genuine_accepted": genuine_accepted,
+            "modes": dict(modes), "output_deadline_misses": misses, "cycles": cycles,
+            "ghost_outputs": ghost_outputs, "outputs": outputs, "window_s": round(window_s, 2)}
+
+
+def relay_row(relay: Mapping[str, int], before, after, first_sync_s: float | None, reference_offset_ns: int | None,
+              clock_samples: Sequence[tuple[int, int, int]], obu_delta: Mapping[str, int], modes: Mapping[str, int],
+              misses: int, cycles: int, window_s: float, delay_ms: float = 0.0) -> dict:
+    """A time relay kind's line. ``relay``: the relay's counts; ``before`` / ``after``: the RSU's
+    ``RsuLinkStatus`` in the OBU's metrics at the window's ends (``before`` None: from the OBU's
+    start); ``clock_samples``: (t_ns, offset_ns, uncertainty_ns) of the OBU's estimate in the window;
+    ``reference_offset_ns``: the attacker's own estimate of the RSU clock (captured generation time
+    minus receive time); the offset error is the OBU's last estimate minus it."""
+    last = clock_samples[-1] if clock_samples else None
+    error_ms = None if last is None or reference_offset_ns is None else (last[1] - reference_offset_ns) / 1e6
+    grown = lambda field: getattr(after, field, 0) - getattr(before, field, 0) if after else 0  # noqa: E731
+    return {"relay": dict(relay), "delay_ms": delay_ms, "first_sync_s": first_sync_s,
+            "sync_samples": grown("sync_samples"), "clock_steps": grown("clock_steps"),
+            "offset_ms": None if last is None else round(last[1] / 1e6, 3),
+            "uncertainty_ms": None if last is None else round(last[2] / 1e6, 3),
+            "reference_offset_ms": None if reference_offset_ns is None else round(reference_offset_ns / 1e6, 3),
+            "offset_error_ms": None if error_ms is None else round(error_ms, 3),
+            "clock_samples": [list(s) for s in clock_samples], "rejected": dict(obu_delta), "modes": dict(modes),
+            "tracking_share": tracking_share(modes), "output_deadline_misses": misses, "cycles": cycles,
+            "window_s": round(window_s, 2)}
+
+
+def hostile_notes(kind: str, row: dict) -> list[str]:
+    """What an opt-in kind cost the genuine RSU (empty: nothing)."""
+    notes = []
+    if kind == "flood":
+        if row["genuine_accepted"] < GENUINE_ACCEPTED_MIN * row["genuine_sent"]:
+            notes.append(f"flood: the OBU accepted {row['genuine_accepted']} of the genuine RSU's {row['genuine_sent']} "
+                         f"lists (at {row['achieved_hz']:g} msg/s)")
+        if row["accepted"]:
+            notes.append(f"flood: {sum(row['accepted'].values())} of {row['sent']} failed verification and were accepted")
+        if row["ghost_outputs"]:
+            notes.append(f"flood: a ghost in {row['ghost_outputs']} fused outputs")
+        return notes
+    sync = row["first_sync_s"]
+    if sync is None:
+        notes.append(f"{kind}: the OBU never synchronised its clock to the RSU")
+    elif sync > FIRST_SYNC_MAX_S:
+        notes.append(f"{kind}: the OBU's clock synchronised only {sync:.1f} s after its start")
+    if row["clock_steps"]:
+        notes.append(f"{kind}: {row['clock_steps']} RSU clock steps confirmed (none happened)")
+    return notes
+
+
+def _hostile_line(kind: str, row: dict) -> str:
+    modes = ", ".join(f"{m} {n}" for m, n in row["modes"].items()) or "-"
+    if kind == "flood":
+        return (f"  {kind:<10}{row['sent']:>6}{row['rejected_total']:>9}  {_reasons(row['rejected']):<44}"
+                f"at {row['achieved_hz']:g}/s (asked {row['rate_hz']:g}); genuine accepted {row['genuine_accepted']} of "
+                f"{row['genuine_sent']}; ghost in {row['ghost_outputs']} of {row['outputs']} outputs; output misses "
+                f"{row['output_deadline_misses']} of {row['cycles']} cycles; modes {modes}")
+    relay = row["relay"]
+    sync = "never" if row["first_sync_s"] is None else f"{row['first_sync_s']:.1f} s"
+    share = "-" if row["tracking_share"] is None else f"{100 * row['tracking_share']:.0f} %"
+    return (f"  {kind:<12} relayed {relay.get('forwarded', 0)} of {relay.get('queries', 0)} queries "
+            f"(delay {row['delay_ms']:g} ms), RSU answered {relay.get('rsu_replies', 0)}, returned "
+            f"{relay.get('returned', 0)}; synced {sync}; samples +{row['sync_samples']}, steps +{row['clock_steps']}; "
+            f"offset {row['offset_ms']} ms +- {row['uncertainty_ms']} (attacker's reference "
+            f"{row['reference_offset_ms']} ms); intra/inter {share} of {row['cycles']} cycles; misses "
+            f"{row['output_deadline_misses']}; time replies refused {_reasons(row['rejected'])}")
