@@ -194,7 +194,8 @@ def run_baseline(pki: Path, known: bool, seconds: float) -> dict:
             watch.close()
     finally:
         site.stop()
-    numbers["first_sync_s"] = None if numbers["first_sync_ns"] is None else (numbers["first_sync_ns"] - start_ns) / 1e9
+    synced = numbers["first_sync_ns"]
+    numbers["first_sync_s"] = None if synced is None else round((synced - start_ns) / 1e9, 2)
     return numbers
 
 
@@ -287,7 +288,8 @@ def print_flood(rate: float, row: dict) -> None:
     print(f"flood {rate:g}/s for {row['send_s']:g} s: load {row['achieved_hz']:g} msg/s ({_modes(row['variants'])}); "
           f"genuine accepted {row['genuine_accepted']} of {row['genuine_sent']}; ghosts {row['ghost_outputs']} in "
           f"{row['outputs']} outputs; output misses {row['output_deadline_misses']} of {row['cycles']} cycles; "
-          f"modes {_modes(row['modes'])}; refused {_modes(row['rejected'])}", flush=True)
+          f"modes {_modes(row['modes'])}; verifier refused {_modes(row['rejected'])}; intake refused "
+          f"{_modes(row['other_refusals'])}", flush=True)
 
 
 def print_doubled(doubled: dict, baseline: dict | None) -> None:
@@ -304,7 +306,9 @@ def print_doubled(doubled: dict, baseline: dict | None) -> None:
     if baseline:
         base_share = baseline["tracking_share"]
         line += (f" | without attack: first estimate {baseline['first_sync_s']} s after time zero; intra or inter "
-                 f"{'-' if base_share is None else f'{100 * base_share:.1f} %'} of {baseline['cycles']} cycles")
+                 f"{'-' if base_share is None else f'{100 * base_share:.1f} %'} of {baseline['cycles']} cycles; "
+                 f"genuine lists accepted {baseline['genuine_accepted']} of {baseline['genuine_sent']}; steps "
+                 f"{baseline['clock_steps']}")
     print(line, flush=True)
 
 

@@ -204,8 +204,9 @@ def _hostile_line(kind: str, row: dict) -> str:
     if kind == "flood":
         return (f"  {kind:<10}{row['sent']:>6}{row['rejected_total']:>9}  {_reasons(row['rejected']):<44}"
                 f"at {row['achieved_hz']:g}/s (asked {row['rate_hz']:g}); genuine accepted {row['genuine_accepted']} of "
-                f"{row['genuine_sent']}; ghost in {row['ghost_outputs']} of {row['outputs']} outputs; output misses "
-                f"{row['output_deadline_misses']} of {row['cycles']} cycles; modes {modes}")
+                f"{row['genuine_sent']}; other refusals {_reasons(row['other_refusals'])}; ghost in {row['ghost_outputs']} "
+                f"of {row['outputs']} outputs; output misses {row['output_deadline_misses']} of {row['cycles']} cycles; "
+                f"modes {modes}")
     relay = row["relay"]
     sync = "never" if row["first_sync_s"] is None else f"{row['first_sync_s']:.1f} s"
     share = "-" if row["tracking_share"] is None else f"{100 * row['tracking_share']:.0f} %"
