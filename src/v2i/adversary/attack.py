@@ -38,7 +38,8 @@ from v2i.adversary.attack_messages import ALL_KINDS, HOSTILE_KINDS, KINDS, RELAY
 def configure_parser(p: argparse.ArgumentParser) -> None:
     p.description = ("Attack a running v2i site as someone near the RSU would: ghost pedestrians 8 m ahead of the "
                      "ego (unsigned, forged, signed with stolen or revoked keys), replays of captured genuine "
-                     "lists, forged time replies and link-control outages; report per kind what the OBU and the "
+                     "lists, forged time replies and link-control outages (opt-in: a flood on the genuine RSU's key and relays of "
+                     "its own time replies, doubled or delayed); report per kind what the OBU and the "
                      "link emulator rejected (by reason), what they let through, and whether a ghost reached the "
                      "fused output. v2i demo logs the endpoints. Exit 1 when anything got through. First make the "
                      "attacker's keys in the site PKI the services use: v2i pki attacker DIR --rsu-id RSU_ID (a "
