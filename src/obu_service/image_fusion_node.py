@@ -71,14 +71,16 @@ class ImageFusionNode(ObuShell):
         if config.duration_s is None:
             raise ValueError("image-level fusion runs for a set time: give duration_s (--duration)")
         known = tuple(config.registered_rsus(site))
-        super().__init__(config, clock, preferred=lambda key: keys.rsu_id_or_none(key) in known)
+        super().__init__(config, clock, preferred=lambda key: keys.rsu_id_or_none(key) in known,
+                         signed_kinds=frozenset({"features", "time"}))
         self.camera = camera
         self.pipeline = ImageFusionPipeline(ImageFusionConfig(
             vehicle_id=config.vehicle_id, known_rsus=known, pair_tolerance_ms=config.roif_pair_tolerance_ms,
             wait_ms=config.roif_wait_ms, deadline_ms=config.roif_deadline_ms, max_age_ms=config.roif_max_age_ms,
             future_tolerance_ms=config.future_tolerance_ms))
         self._security = live_security(config.pki_dir, config.security_policy, config.roif_max_age_ms * 1e-3,
-                                       self.pipeline.clock_offset, self.pipeline.reject)
+                                       self.pipeline.clock_offset, self.pipeline.reject, config.source_rate_hz,
+                                       config.source_burst)
         self._begin_unless_awaited()
 
     def _begin(self, start_ns: int) -> None:
@@ -146,6 +148,7 @@ class ImageFusionNode(ObuShell):
     def _handle_input(self, item: Item) -> None:
         max_bytes = self.config.max_message_bytes
         payload = self._security.open(item.payload, item.source, item.receive_ns, time_reply=item.kind == "time")
+        self._charge_if_unverified(item.source)
         if payload is None:  # dropped unverified, counted as security_<reason>
             self._publish_ready()
             return

@@ -9,6 +9,13 @@ Every RSU object list (any wire), prediction list and time reply is verified
 - a time reply is never judged fresh or stale (it carries its own exchange: the pipeline matches
   it to its request by the echoed t1 and seq), only signed, covered and not replayed.
 
+Then the rate budget of *that signer*: a token bucket per verified certificate and key
+(``SIGNER_RATE_HZ`` sustained, ``SIGNER_BURST`` at once, the OBU's ``source_rate_hz`` / ``source_burst``);
+over it the message is dropped as ``signer_rate_limited``. A genuine RSU's budget is drawn by its own
+messages only: what does not verify never reaches it (the live intake bounds what fails verification
+with a separate budget: ``v2i.runtime.intake``, ``unverified_budget``). Under ``off`` nothing is verified
+and the intake's per-key budget applies instead.
+
 Outcomes are counted through ``reject(label)``: ``security_<reason>`` for a drop (``strict``, and
 ``malformed`` under ``permissive``), ``security_accepted_<reason>`` for a failure ``permissive``
 let through. Under ``off`` (no ``--pki``) envelopes are unwrapped unchecked and unsigned bytes pass
@@ -26,11 +33,15 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from schemas.keys import rsu_id_or_none
+from v2i.runtime.intake import KeyedBuckets
 from v2i.security.envelope import REJECTIONS, Verifier
 from v2i.security.pki import PkiError, Trust
 from v2i.security.trust_reload import TrustReload
 
 FUTURE_S = 1.0  # how far ahead of the estimated RSU clock a generation time may be
+# a verified signer's budget per key: an RSU sends 5-10 lists, paths and time replies a second on each key
+SIGNER_RATE_HZ, SIGNER_BURST = 50.0, 25
+SILENT_S = 10.0  # messages received and none verified this long: warn (a wrong CA?)
 ClockOffset = Callable[[str, int], "object | None"]  # (rsu_id, obu t_ns) -> estimate with .offset_ns, or None
 
 
@@ -38,12 +49,20 @@ class InboundSecurity:
     """Verifies RSU messages for one OBU; ``reject(label)`` counts each failure."""
 
     def __init__(self, verifier: Verifier, clock_offset: ClockOffset, reject: Callable[[str], None],
-                 reload: TrustReload | None = None):
+                 reload: TrustReload | None = None, signer_rate_hz: float = SIGNER_RATE_HZ,
+                 signer_burst: int = SIGNER_BURST):
         self.verifier = verifier
         self._clock_offset = clock_offset
         self._reject = reject
         self._reload = reload  # the --pki directory's revocation list, watched while running (None: not watched)
+        self._budgets = KeyedBuckets(signer_rate_hz, signer_burst)  # per (verified signer, key)
         self.verified = False  # whether the last message opened was signed and verified (``open``)
+        self._silence = _Silence(round(SILENT_S * 1e9))
+
+    @property
+    def checks(self) -> bool:
+        """Whether messages are verified at all (not under policy ``off``)."""
+        return self.verifier.policy != "off"
 
     def poll_trust(self, now_ns: int) -> str | None:
         """Between messages: take a changed revocation list (looked at once a second at most); the
@@ -64,13 +83,51 @@ class InboundSecurity:
         self.verified = reason == "ok"  # the last message's signature checked against the site's trust
         if reason in REJECTIONS:
             self._reject(("security_" if payload is None else "security_accepted_") + reason)
+        self._silence.note(receive_ns, self.verified, reason)
+        if self.verified and not self._budgets.take((self.verifier.last_signer, key_expr), receive_ns):
+            self._reject("signer_rate_limited")
+            return None
         return payload
+
+    def silence_warning(self, now_ns: int) -> str | None:
+        """Once per silence: a warning when messages kept coming for ``SILENT_S`` and none verified
+        (likely the wrong CA in --pki); None otherwise (and always under policy ``off``)."""
+        return self._silence.warning(now_ns) if self.checks else None
 
     def _rsu_now_ns(self, key_expr: str, receive_ns: int) -> int | None:
         """The receive time on the sending RSU's clock, or None before its clock is estimated."""
         rsu_id = rsu_id_or_none(key_expr)
         estimate = None if rsu_id is None else self._clock_offset(rsu_id, receive_ns)
         return None if estimate is None else receive_ns + round(estimate.offset_ns)
+
+
+class _Silence:
+    """Whether anything received verified lately: the failures since the last verified message
+    (or the first message), by reason, and when they began."""
+
+    def __init__(self, after_ns: int):
+        self.after_ns = after_ns
+        self._since_ns: int | None = None  # first failure since the last verified message
+        self._reasons: dict[str, int] = {}
+        self._warned = False
+
+    def note(self, receive_ns: int, verified: bool, reason: str) -> None:
+        if verified:
+            self._since_ns, self._reasons, self._warned = None, {}, False
+            return
+        if self._since_ns is None:
+            self._since_ns = receive_ns
+        if len(self._reasons) < 16 or reason in self._reasons:
+            self._reasons[reason] = self._reasons.get(reason, 0) + 1
+
+    def warning(self, now_ns: int) -> str | None:
+        if self._warned or self._since_ns is None or now_ns - self._since_ns < self.after_ns:
+            return None
+        self._warned = True
+        reasons = ", ".join(f"{r} {n}" for r, n in sorted(self._reasons.items(), key=lambda rn: -rn[1]))
+        hint = "; --pki may hold another site's CA" if "unknown_cert" in self._reasons else ""
+        return (f"WARNING: nothing received verified for {(now_ns - self._since_ns) / 1e9:.0f} s "
+                f"({sum(self._reasons.values())} refused: {reasons}){hint}")
 
 
 def make_verifier(trust: Trust | None, policy: str, freshness_s: float) -> Verifier:
@@ -87,13 +144,15 @@ def make_verifier(trust: Trust | None, policy: str, freshness_s: float) -> Verif
 
 
 def live_security(pki_dir: str | None, policy: str, freshness_s: float, clock_offset: ClockOffset,
-                  reject: Callable[[str], None]) -> InboundSecurity:
+                  reject: Callable[[str], None], signer_rate_hz: float = SIGNER_RATE_HZ,
+                  signer_burst: int = SIGNER_BURST) -> InboundSecurity:
     """A live OBU's gate: ``pki_dir``'s trust under ``policy`` (:func:`make_verifier`), its revocation
-    list watched while running unless nothing is checked (no directory, or policy off); ValueError
-    naming a bad file."""
+    list watched while running unless nothing is checked (no directory, or policy off), each verified
+    signer's budget ``signer_rate_hz`` / ``signer_burst`` per key; ValueError naming a bad file."""
     try:
         reload = None if pki_dir is None else TrustReload(pki_dir)
     except PkiError as exc:
         raise ValueError(str(exc)) from None
     verifier = make_verifier(None if reload is None else reload.trust, policy, freshness_s)
-    return InboundSecurity(verifier, clock_offset, reject, None if policy == "off" else reload)
+    return InboundSecurity(verifier, clock_offset, reject, None if policy == "off" else reload, signer_rate_hz,
+                           signer_burst)

@@ -84,6 +84,8 @@ class LinkMonitor:
         self._ages: deque[tuple[int, float]] = deque()  # (cycle OBU ns, data age ms)
         self._epoch = 0
         self._highest: int | None = None  # highest seq of the current epoch
+        self._lowest: int | None = None  # lowest seq of the current epoch
+        self._sent_before = 0  # lists numbered in the epochs before the current one (sent_total)
         self.duplicates_total = self.reordered_total = self.restarts_total = 0
         self._last_receive_ns: int | None = None
         # the window's latencies (ms) sorted, and each epoch's sequence numbers sorted, kept as arrivals
@@ -164,6 +166,13 @@ class LinkMonitor:
             lost += span - len(seqs)
         return lost, expected
 
+    def sent_total(self) -> int | None:
+        """Lists the RSU numbered since the first counted arrival: per epoch, highest - lowest + 1 of the
+        sequence numbers seen (whatever arrived or not); None before any counted arrival."""
+        if self._highest is None:
+            return None
+        return self._sent_before + self._highest - self._lowest + 1
+
     def loss_ratio(self) -> float | None:
         lost, expected = self.loss()
         return lost / expected if expected else None
@@ -203,17 +212,19 @@ class LinkMonitor:
     def _track_sequence(self, seq: int) -> None:
         """Advance the highest seq, count reordering, start a new epoch on a restart jump."""
         if self._highest is None:
-            self._highest = seq
+            self._highest = self._lowest = seq
             return
         jump = seq - self._highest
         if jump < -self.max_misorder or jump > self.max_dropout:  # RSU restarted (or renumbered)
+            self._sent_before = self.sent_total()
             self._epoch += 1
             self.restarts_total += 1
-            self._highest = seq
+            self._highest = self._lowest = seq
         elif jump > 0:
             self._highest = seq
         elif (self._epoch, seq) not in self._seen:
             self.reordered_total += 1  # late, but new: it fills its gap
+        self._lowest = min(self._lowest, seq)
 
     def _drop_oldest(self) -> None:
         old = self._arrivals.popleft()

@@ -96,14 +96,16 @@ class ObuNode(ObuShell):
         pipeline = ObuPipeline(config.pipeline_config(site), config.lanes(site))
         known, vid = set(pipeline.config.known_rsus), config.vehicle_id
         own = {keys.sensor_vehicle_objects(vid), keys.sensor_vehicle_pose(vid)}
-        super().__init__(config, clock, preferred=lambda key: key in own or keys.rsu_id_or_none(key) in known)
+        super().__init__(config, clock, preferred=lambda key: key in own or keys.rsu_id_or_none(key) in known,
+                         signed_kinds=frozenset(INBOX_KINDS))
         self._sensing = sensing
         self._lidar_rate_hz = site.vehicle(vid).lidar_rate_hz  # --source zenoh: the cycle rate
         self._origin = (site.origin.lat_deg, site.origin.lon_deg)  # where a CPM / SDSM is placed
         self.vehicle: OwnSensing | None = None  # --source sim, from _begin
         self.pipeline = pipeline
         self._security = live_security(config.pki_dir, config.security_policy, config.planning_max_age_s,
-                                       self.pipeline.clock_offset, self.pipeline.reject)
+                                       self.pipeline.clock_offset, self.pipeline.reject, config.source_rate_hz,
+                                       config.source_burst)
         for warning in [] if config.pki_dir is None else start_warnings(config.pki_dir, time.time_ns()):
             log(self.name, f"WARNING: {warning}")
         self._v2v = (V2vShell(vid, self.pipeline.enable_v2v(config.max_peers), self.clock, config.max_message_bytes)
@@ -223,6 +225,7 @@ class ObuNode(ObuShell):
         self.latency.observe_ns("queue", item.receive_ns, self.clock.now_ns())
         if item.kind in INBOX_KINDS:
             self._inbox.take(item.kind, item.source, item.payload, item.receive_ns)
+            self._charge_if_unverified(item.source)
             self._publish_if_ready()
             return
         try:
@@ -287,6 +290,7 @@ class ObuNode(ObuShell):
         t0_ns = time.perf_counter_ns()
         out = self.pipeline.fuse(now_ns)
         t1_ns = time.perf_counter_ns()
+        self._count_crowded_out(out.mode_reason)
         self._pub["objects"].put(encode(out))
         self.latency.observe_ns("fuse", t0_ns, t1_ns)
         self.latency.observe_ns("publish", t1_ns, time.perf_counter_ns())

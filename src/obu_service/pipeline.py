@@ -142,6 +142,7 @@ class ObuPipeline:
         self.deadline_misses = 0
         self.rsu_deadline_misses = 0
         self.covered_cycles = 0
+        self.crowded_out_cycles = 0  # cycles that fell back while the intake refused genuine input (live node)
         self.last_mode = "vehicle-only"
         self._last_reason = ""
         self.last_planning: PredictionList | None = None  # planner-facing output of the last cycle
@@ -479,7 +480,8 @@ class ObuPipeline:
         return ObuMetrics(
             vehicle_id=self.config.vehicle_id, t_ns=now_ns, cycles=self.cycles,
             output_deadline_misses=self.deadline_misses, rsu_deadline_misses=self.rsu_deadline_misses,
-            covered_cycles=self.covered_cycles, mode=self.last_mode, mode_counts=dict(self.modes),
+            covered_cycles=self.covered_cycles, crowded_out_cycles=self.crowded_out_cycles, mode=self.last_mode,
+            mode_counts=dict(self.modes),
             mode_reasons=dict(self.mode_reasons), rsu_inputs=self.last_rsu_inputs,
             rsus=tuple(self._rsu_status(s, now_ns) for s in self._rsus), rejected=dict(self.rejected),
             output_dropped=dict(self.output_dropped), latency_ms=latency_ms or {},
@@ -496,7 +498,7 @@ class ObuPipeline:
             clock_offset_naive_ns=None if naive is None else naive.offset_ns,
             sync_samples=0 if est is None else est.samples, sync_outliers=state.sync.outliers_rejected,
             clock_steps=state.sync.steps_detected,
-            messages_accepted=state.accepted,
+            messages_accepted=state.accepted, messages_sent=state.monitor.sent_total(),
             last_data_age_ms=state.last_age_ms, delay_p50_ms=link["delay_p50_ms"], delay_p95_ms=link["delay_p95_ms"],
             jitter_ms=link["jitter_ms"], loss_ratio=link["loss_ratio"],
         )

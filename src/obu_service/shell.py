@@ -34,6 +34,7 @@ from v2i.runtime.transport import open_session
 
 from obu_service.config import ObuConfig
 
+CROWDED_WINDOW_S = 1.0  # a cycle that fell back this soon after a registered input was refused: crowded out
 # the planner-facing outputs must not be dropped under load: block, real-time, unbatched
 CRITICAL = dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME, express=True)
 
@@ -83,15 +84,21 @@ class ObuShell:
 
     READY: ClassVar[dict] = {}  # more fields of the ready line
 
-    def __init__(self, config: ObuConfig, clock: Clock | None, preferred: Callable[[str], bool]):
-        """``preferred(key)``: whose inputs the intake serves first (registered RSUs, own sensors)."""
+    def __init__(self, config: ObuConfig, clock: Clock | None, preferred: Callable[[str], bool],
+                 signed_kinds: frozenset[str] = frozenset()):
+        """``preferred(key)``: whose inputs the intake serves first (registered RSUs, own sensors);
+        ``signed_kinds``: the kinds verified before they are read, whose rate budget is the verified
+        signer's (``inbound_security``) and, before verification, the intake's unverified one; none
+        under policy off."""
         self.config = config
         self.name = f"obu {config.vehicle_id}"  # in its log lines
         self.clock = clock or SystemClock()
         self.start_ns: int | None = None  # time zero (OBU clock), from _begin
         self.duration_s = config.duration_s  # None: until stopped
+        signed = signed_kinds if config.security_policy != "off" else frozenset()
         self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
-                              config.source_burst, max_queued_bytes=config.inbox_max_bytes, preferred=preferred)
+                              config.source_burst, max_queued_bytes=config.inbox_max_bytes, preferred=preferred,
+                              signed_kinds=signed)
         self._log, self._trim = ThrottledLog(self.name), MemoryTrim()
         self._details: dict[str, str] = {}  # first codec error message per reason
         self._events: Timeline = Timeline()  # the node's timed events (their RANK: which of one time first)
@@ -174,7 +181,24 @@ class ObuShell:
         refused = {r: n for r, n in self.pipeline.rejected.items() if not r.endswith("ego_self_detection")}
         self._log.totals(refused, self._details)
 
+    def _charge_if_unverified(self, source: str) -> None:
+        """After a signed message of ``source`` went through ``self._security``: if it failed verification,
+        it draws from its source's unverified budget (``Intake.charge_unverified``)."""
+        if self._security.checks and not self._security.verified:
+            self._intake.charge_unverified(source)
+
+    def _count_crowded_out(self, mode_reason: str) -> None:
+        """A cycle that did not run its best mode (``mode_reason`` other than ``best``) within
+        ``CROWDED_WINDOW_S`` of the intake refusing a preferred source's message (a registered RSU's, an
+        own sensor's) fell back because genuine input was crowded out (``ObuMetrics.crowded_out_cycles``)."""
+        if mode_reason != "best" and self._intake.crowded_within(round(CROWDED_WINDOW_S * 1e9)):
+            self.pipeline.crowded_out_cycles += 1
+
     def _poll_trust(self) -> None:
-        """A change of the site's trust (a revocation while running), logged."""
-        if (change := self._security.poll_trust(self.clock.now_ns())) is not None:
+        """A change of the site's trust (a revocation while running), logged; and a site whose messages
+        have all failed verification for a while (a wrong CA?), warned about once."""
+        now_ns = self.clock.now_ns()
+        if (change := self._security.poll_trust(now_ns)) is not None:
             log(self.name, change)
+        if (warning := self._security.silence_warning(now_ns)) is not None:
+            log(self.name, warning)

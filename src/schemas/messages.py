@@ -241,6 +241,9 @@ class RsuLinkStatus(Message):
     sync_outliers: Count = 0  # time replies the clock filter rejected (forged, or outliers against its fit)
     clock_steps: Count = 0  # RSU clock steps the clock filter confirmed
     messages_accepted: Count = 0
+    # lists the RSU numbered since the OBU first heard it (the span of their sequence numbers, per restart);
+    # None: not counted (no list with a message counter yet)
+    messages_sent: Count | None = None
     last_data_age_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None
     delay_p50_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None  # one-way, RSU publish -> OBU
     delay_p95_ms: Annotated[float | None, Field(allow_inf_nan=False)] = None
@@ -283,6 +286,9 @@ class ObuMetrics(Message):
     output_deadline_misses: Count = 0  # published after capture + deadline, or after the interval bound
     rsu_deadline_misses: Count = 0  # covered cycles fused without RSU data (IAAD's metric)
     covered_cycles: Count = 0  # cycles with an RSU heard recently
+    # cycles that fell back from their best mode within 1 s of the intake refusing a registered RSU's (or an own
+    # sensor's) message: genuine input crowded out by a flood (obu_service.shell)
+    crowded_out_cycles: Count = 0
     mode: Annotated[str, Field(max_length=32)] = ""
     mode_counts: dict[Annotated[str, Field(max_length=32)], Count] = Field(default_factory=dict, max_length=8)
     mode_reasons: dict[Annotated[str, Field(max_length=32)], Count] = Field(default_factory=dict, max_length=8)

@@ -33,18 +33,29 @@ def misses_text(ratios: dict[str, float | None]) -> str:
     return f"{pct(ratios['run'])} / {pct(ratios['window'])}"
 
 
+def crowded_text(cycles: int) -> str:
+    """The cycles that fell back while genuine input was crowded out, when there are any."""
+    return f", [bold red]crowded out {cycles}[/bold red]" if cycles else ""
+
+
+def lists_text(accepted: int, sent: int | None) -> str:
+    """Lists accepted, of those the RSU numbered (when known)."""
+    return str(accepted) if sent is None else f"{accepted}/{sent}"
+
+
 def vehicle_table(vid: str, v: dict[str, Any], window_s: float) -> Table:
     """One vehicle: its deadline misses and modes in the title, one row per RSU it hears."""
     title = (f"vehicle {vid}: {v['cycles']} cycles, output misses {misses_text(v['output_miss_ratio'])}, "
-             f"RSU misses {misses_text(v['rsu_miss_ratio'])} (run / {window_s:g} s); mode [bold]{v['mode'] or '-'}"
+             f"RSU misses {misses_text(v['rsu_miss_ratio'])} (run / {window_s:g} s)"
+             f"{crowded_text(v['crowded_out_cycles'])}; mode [bold]{v['mode'] or '-'}"
              f"[/bold]; run {shares_text(v['mode_share'])}; {window_s:g} s {shares_text(v['mode_share_window'])}")
     table = Table(title=title, title_justify="left", expand=False)
-    for column in ("RSU", "lists", "delay p50", "delay p95", "jitter", "loss", "data age", "clock offset", "drift"):
+    for column in ("RSU", "lists (of sent)", "delay p50", "delay p95", "jitter", "loss", "data age", "clock offset", "drift"):
         table.add_column(column, justify="left" if column == "RSU" else "right")
     for rid, r in v["rsus"].items():
         offset = ("-" if r["clock_offset_ms"] is None else
                   f"{r['clock_offset_ms']:+.3f} ± {num(r['clock_uncertainty_ms'], '.3f')} ms")
-        table.add_row(rid, str(r["messages_accepted"]), num(r["delay_p50_ms"], ".1f", " ms"),
+        table.add_row(rid, lists_text(r["messages_accepted"], r["messages_sent"]), num(r["delay_p50_ms"], ".1f", " ms"),
                       num(r["delay_p95_ms"], ".1f", " ms"), num(r["jitter_ms"], ".1f", " ms"), pct(r["loss_ratio"]),
                       num(r["data_age_ms"], ".0f", " ms"), offset, num(r["clock_drift_ppm"], ".1f", " ppm"))
     if not v["rsus"]:

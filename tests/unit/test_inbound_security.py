@@ -77,3 +77,46 @@ def test_policy_off_asks_no_clock_estimate_and_passes_what_it_gets():
                              lambda label: None)
     strict.open(_signed(b"fresh", 0.05), KEY, NOW_NS)
     assert checked == ["rsu1"]  # a checking policy still asks
+
+
+def test_each_verified_signer_has_its_own_budget_that_forgeries_naming_it_cannot_spend():
+    counts: Counter = Counter()
+    gate = InboundSecurity(make_verifier(TRUST, "strict", 5.0), lambda rsu_id, t_ns: SimpleNamespace(offset_ns=OFFSET_NS),
+                           lambda label: counts.update([label]), signer_rate_hz=10.0, signer_burst=3)
+    genuine = [_signed(b"g%d" % k, 0.01 * k) for k in range(4)]
+    forged = bytearray(genuine[0])
+    forged[-1] ^= 0xFF  # the genuine signer named, the signature broken
+    for k in range(100):  # a flood naming rsu1 costs one verify each and never takes rsu1's tokens
+        assert gate.open(bytes(forged[:-8]) + bytes([k]) * 8, KEY, NOW_NS) is None
+    assert [gate.open(g, KEY, NOW_NS) for g in genuine[:3]] == [b"g0", b"g1", b"g2"]  # the burst, all genuine
+    assert gate.open(genuine[3], KEY, NOW_NS) is None  # rsu1 itself over its own budget
+    other = "v2x/rsu/rsu2/objects"
+    assert gate.open(_signed(b"r2", 0.0, other, who="rsu2"), other, NOW_NS) == b"r2"  # another signer's is its own
+    assert counts == Counter({"security_bad_signature": 100, "signer_rate_limited": 1})
+    assert gate.open(genuine[3], KEY, NOW_NS + 10**8) is None  # replayed now (it was verified once)
+
+
+def test_a_site_whose_messages_never_verify_is_warned_about_once_until_one_does():
+    gate, counts = _gate()
+    t = NOW_NS
+    for k in range(11):  # every second for 10 s, a message whose signature does not hold
+        gate.open(_signed(b"x%d" % k, -k)[:-64] + bytes(64), KEY, t + k * 10**9)
+    assert gate.silence_warning(t + 9 * 10**9) is None
+    warning = gate.silence_warning(t + 10 * 10**9)
+    assert warning.startswith("WARNING: nothing received verified for 10 s (11 refused: bad_signature 11)")
+    assert gate.silence_warning(t + 11 * 10**9) is None  # once
+    assert gate.open(_signed(b"ok", -11.0), KEY, t + 11 * 10**9) == b"ok"  # generated when received
+    gate.open(b"\x94unsigned", KEY, t + 12 * 10**9)
+    assert gate.silence_warning(t + 21 * 10**9) is None  # a verified message restarted the count
+    assert "(1 refused: unsigned 1)" in gate.silence_warning(t + 22 * 10**9)
+    off, _ = _gate("off")
+    off.open(b"\x94plain", KEY, t)
+    assert off.silence_warning(t + 60 * 10**9) is None  # nothing is verified under off: nothing to warn about
+
+
+def test_the_silence_warning_names_a_foreign_ca():
+    foreign, foreign_ids = memory_site(NOW_NS - 86_400 * 10**9, ["rsu1"], [])
+    gate, _ = _gate()
+    data = Signer(foreign_ids["rsu1"]).sign(b"x", NOW_NS + OFFSET_NS, KEY)
+    gate.open(data, KEY, NOW_NS)
+    assert "another site's CA" in gate.silence_warning(NOW_NS + 10 * 10**9)

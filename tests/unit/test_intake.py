@@ -134,3 +134,53 @@ def test_throttled_log_takes_a_services_counters_as_they_grow(capsys):
         "[rsu] refused (too_large): 2 input(s); further refusals are summarised every 10 s",
         "[rsu] refused in the last 10 s: malformed 4, too_large 1",
     ]
+
+
+def test_signed_kinds_meet_only_the_unverified_budget_which_failures_alone_draw():
+    clock = FakeClock()
+    intake = Intake(rate_hz=5.0, burst=2, clock_ns=clock, signed_kinds=frozenset({"rsu"}), unverified_rate_hz=10.0,
+                    unverified_burst=3, preferred=lambda source: source.startswith("v2x/rsu/"))  # registered RSUs
+    # a verified signer's messages never draw from it: 100 at once all pass (their budget is the signer's, later)
+    assert all(put(intake, "v2x/rsu/rsu1/objects") for _ in range(100))
+    # each failed verification spends a token; once spent, the source's signed messages are refused unread
+    for _ in range(3):
+        intake.charge_unverified("v2x/rsu/rsu1/objects")
+    read = []
+    assert not intake.put("rsu", "v2x/rsu/rsu1/objects", 1, 0, lambda: read.append(1) or b"x") and read == []
+    assert put(intake, "v2x/rsu/rsu2/objects")  # another source keeps its own
+    clock.t_ns = S // 10  # one token back
+    assert put(intake, "v2x/rsu/rsu1/objects")
+    # kinds not verified keep the per-source rate at the door
+    assert [put(intake, "v2x/rsu/rsu1/objects", kind="sensor_pose") for _ in range(3)] == [True, True, False]
+    assert intake.take_counts() == {"unverified_budget": 1, "rate_limited": 1}
+
+
+def test_a_failure_debt_must_be_paid_before_the_source_passes_again():
+    clock = FakeClock()
+    intake = Intake(clock_ns=clock, signed_kinds=frozenset({"rsu"}), unverified_rate_hz=10.0, unverified_burst=2)
+    for _ in range(4):  # failures already queued when the budget ran out: a debt of 2, down to -burst at most
+        intake.charge_unverified("k")
+    clock.t_ns = 3 * S // 10  # 3 tokens back: 1 of them left after the debt
+    assert put(intake, "k")
+    intake.charge_unverified("k")
+    assert not put(intake, "k")
+
+
+def test_a_flood_on_other_keys_cannot_spend_a_preferred_sources_unverified_budget():
+    clock = FakeClock()
+    intake = Intake(clock_ns=clock, signed_kinds=frozenset({"rsu"}), unverified_rate_hz=100.0, unverified_burst=5,
+                    unverified_total_hz=10.0, preferred=lambda source: source == "registered")
+    for k in range(10):  # ten keys, each within its own budget, together over the shared one
+        intake.charge_unverified(f"fake{k}")
+    assert not put(intake, "fake-new") and put(intake, "registered")
+    assert intake.take_counts() == {"unverified_budget": 1}
+    assert not intake.crowded_within(S)  # refusing a non-preferred source crowds nothing out
+
+
+def test_refusing_a_preferred_sources_message_is_timed_as_crowding_out():
+    clock = FakeClock()
+    intake = Intake(rate_hz=1.0, burst=1, clock_ns=clock, preferred=lambda source: source == "registered")
+    assert put(intake, "registered", kind="sensor_pose") and not intake.crowded_within(S)
+    assert not put(intake, "registered", kind="sensor_pose")  # over its rate
+    clock.t_ns = S // 2
+    assert intake.crowded_within(S) and not intake.crowded_within(S // 4)

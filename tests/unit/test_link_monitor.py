@@ -131,3 +131,16 @@ def test_fusion_age_and_unknown_clock():
     mon.on_message(2, None, None, T0 + 2 * PERIOD)
     assert mon.loss() == (1, 3) and mon.delay_quantile_ms(0.5) is None
     assert mon.summary(T0 + 20 * 10**9)["fusion_age_mean_ms"] is None
+
+
+def test_sent_counts_every_numbered_list_since_first_heard_across_restarts_and_window():
+    mon = LinkMonitor(window_ns=500 * MS)
+    assert mon.sent_total() is None
+    feed(mon, [5, 6, 8, 7, 11])  # 5..11 numbered, 9 and 10 never arrived, 7 late
+    assert mon.sent_total() == 7
+    feed(mon, [4], start_ns=T0)  # a late one below the first: the span grows
+    assert mon.sent_total() == 8
+    feed(mon, range(200, 230))  # past the window: the total is not windowed
+    assert mon.sent_total() == 226  # 4..229, whatever arrived
+    feed(mon, [0, 1, 3], start_ns=T0 + 900_000 * MS)  # the RSU restarts: a new span on top
+    assert mon.restarts_total == 1 and mon.sent_total() == 226 + 4  # 0..3 after it

@@ -179,6 +179,7 @@ class Verifier:
         self._cache: OrderedDict[bytes, _Entry] = OrderedDict()
         self.counts: Counter[str] = Counter()
         self.wanted: OrderedDict[bytes, None] = OrderedDict()
+        self.last_signer: bytes | None = None  # the last verified message's certificate digest (verify)
 
     def set_trust(self, trust: Trust) -> None:
         """Take a reloaded trust directory (e.g. a new revocation list); revocation applies to
@@ -241,7 +242,7 @@ class Verifier:
         digest, entry = self._resolve(env.signer)
         if isinstance(entry, str):
             return entry
-        cert = entry.cert
+        self.last_signer, cert = digest, entry.cert
         if digest in self.trust.revoked:
             return "revoked"
         if not cert.valid_at(env.generation_ns):
@@ -267,8 +268,10 @@ class Verifier:
     def verify(self, data: bytes, key_expr: str, now_ns: int | None) -> tuple[bytes | None, str]:
         """(payload or None, reason) for the bytes received on ``key_expr`` at ``now_ns`` (signer's
         clock, or None: no freshness check). ``reason`` is ``ok``, ``unchecked`` (policy off) or
-        one of :data:`REJECTIONS`; never raises on any input bytes."""
+        one of :data:`REJECTIONS`; never raises on any input bytes. ``last_signer``: the digest of
+        the certificate that signed it, once the envelope named one the verifier knows (else None)."""
         data = bytes(data)
+        self.last_signer = None
         if not data.startswith(PREFIX):
             return self._outcome(data, "unchecked" if self.policy == "off" else "unsigned")
         env = parse(data)

@@ -95,6 +95,8 @@ class ObuCollector(Collector):
         yield _counter("v2i_obu_rsu_deadline_misses_total", "covered cycles fused without RSU data", ids,
                        m.rsu_deadline_misses)
         yield _counter("v2i_obu_covered_cycles_total", "cycles with an RSU heard recently", ids, m.covered_cycles)
+        yield _counter("v2i_obu_crowded_out_cycles_total", "cycles that fell back from their best mode while the "
+                       "intake refused a registered RSU's (or own sensor's) message", ids, m.crowded_out_cycles)
         yield _by_label(CounterMetricFamily, "v2i_obu_mode_cycles_total", "cycles by fusion mode", ids, "mode",
                         m.mode_counts, self._cap("mode"))
         yield _by_label(GaugeMetricFamily, "v2i_obu_fusion_mode", "the latest cycle's fusion mode (1)", ids,
@@ -123,6 +125,8 @@ class ObuCollector(Collector):
              "sync_outliers", 1),
             ("v2i_obu_rsu_lists_accepted_total", CounterMetricFamily, "RSU object lists accepted",
              "messages_accepted", 1),
+            ("v2i_obu_rsu_lists_sent_total", CounterMetricFamily, "RSU object lists numbered since first heard "
+             "(sequence span)", "messages_sent", 1),
             ("v2i_obu_rsu_data_age_seconds", GaugeMetricFamily, "age of the newest RSU data at the latest cycle",
              "last_data_age_ms", MS_TO_S),
             ("v2i_obu_rsu_delay_p50_seconds", GaugeMetricFamily, "one-way delay median (link monitor window)",

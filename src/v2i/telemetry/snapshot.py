@@ -17,18 +17,19 @@ schema; payloads that do not decode are counted in ``intake.undecodable``, never
 in the names):
 
 - ``window_s``; ``totals``: ``vehicles``, ``cycles``, ``output_deadline_misses``,
-  ``covered_cycles``, ``rsu_deadline_misses``, ``output_miss_ratio`` / ``rsu_miss_ratio``
+  ``covered_cycles``, ``rsu_deadline_misses``, ``crowded_out_cycles``, ``output_miss_ratio`` / ``rsu_miss_ratio``
   (``{"run", "window"}``: summed over vehicles), ``modes`` (current mode -> vehicles),
   ``rsu_lists_received``, ``vehicles_hearing_no_rsu`` (vehicles whose latest metrics name no RSU);
 - ``vehicles.{vid}``: ``messages``, ``age_s`` (since the latest), ``cycles``, ``covered_cycles``,
-  ``output_deadline_misses``, ``rsu_deadline_misses``, ``output_miss_ratio`` and
+  ``output_deadline_misses``, ``rsu_deadline_misses``, ``crowded_out_cycles`` (fell back while the intake
+  refused a registered RSU's input), ``output_miss_ratio`` and
   ``rsu_miss_ratio`` (``{"run", "window"}``; RSU misses per covered cycle, as the report),
   ``mode``, ``mode_share`` (run), ``mode_share_window``, ``window_span_s``, ``restarts``
   (counters that went down), ``rsu_lists_received``, ``rsu_heard`` (False until its metrics
   name an RSU: before the first list arrives, ``rsus`` is empty), ``rsus.{rsu_id}`` (``delay_p50_ms``,
   ``delay_p95_ms``, ``jitter_ms``, ``loss_ratio``, ``data_age_ms``, ``clock_offset_ms``,
   ``clock_uncertainty_ms``, ``clock_drift_ppm``, ``sync_samples``, ``sync_outliers``,
-  ``messages_accepted``), ``rejected`` and ``output_dropped`` (reason -> count), ``latency_ms``
+  ``messages_accepted``, ``messages_sent``: lists the RSU numbered since first heard, or None), ``rejected`` and ``output_dropped`` (reason -> count), ``latency_ms``
   (stage -> p50/p95/p99, when the OBU sends it, else None);
 - ``rsus.{rsu_id}``: ``messages``, ``age_s``, ``published``, ``skipped``, ``skipped_ratio``,
   ``time_replies``, ``rejected``, ``perception`` (``frames``, ``recall``, ``precision`` or None),
@@ -61,7 +62,7 @@ WINDOW_S = 10.0
 MAX_NODES = 64  # vehicles, RSUs and links tracked, each
 MAX_STATS_BYTES = 1 << 20  # a link stats JSON larger than this is refused (20 pairs: ~10 kB)
 NS_PER_MS = 1_000_000
-_COUNTERS = ("cycles", "output_deadline_misses", "covered_cycles", "rsu_deadline_misses")
+_COUNTERS = ("cycles", "output_deadline_misses", "covered_cycles", "rsu_deadline_misses", "crowded_out_cycles")
 
 
 def _ms(ns: int | None) -> float | None:
@@ -74,7 +75,8 @@ def rsu_status_view(r: RsuLinkStatus) -> dict[str, Any]:
             "loss_ratio": r.loss_ratio, "data_age_ms": r.last_data_age_ms,
             "clock_offset_ms": _ms(r.clock_offset_ns), "clock_uncertainty_ms": _ms(r.clock_uncertainty_ns),
             "clock_drift_ppm": r.clock_drift_ppm, "sync_samples": r.sync_samples,
-            "sync_outliers": r.sync_outliers, "messages_accepted": r.messages_accepted}
+            "sync_outliers": r.sync_outliers, "messages_accepted": r.messages_accepted,
+            "messages_sent": r.messages_sent}
 
 
 class VehicleView:
