@@ -122,6 +122,11 @@ class LinkMonitor:
             self._drop_oldest()
         return True
 
+    def note_sequence(self, seq: int) -> None:
+        """A counted list's number alone (no arrival recorded: its times cannot be placed yet), for the
+        sequence epochs and ``sent_total``."""
+        self._track_sequence(seq)
+
     def on_fusion(self, t_obu_ns: int, age_ms: float | None) -> None:
         """Record the age of the RSU data used at a fusion cycle (None: no RSU data used)."""
         self.expire(t_obu_ns)

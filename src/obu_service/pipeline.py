@@ -286,9 +286,12 @@ class ObuPipeline:
         state.accepted += 1
         state.last_receive_ns = receive_ns
         publish_obu_ns = None if est is None else est.to_obu_ns(header.publish_time_ns)
+        counted = header.sensor not in UNCOUNTED_SENSORS
         if est is not None:
             state.monitor.on_message(header.seq, est.to_obu_ns(header.capture_time_ns), publish_obu_ns, receive_ns,
-                                     header.sensor not in UNCOUNTED_SENSORS)
+                                     counted)
+        elif counted:  # no delay without a clock estimate, but the numbering counts (messages_sent)
+            state.monitor.note_sequence(header.seq)
         while len(state.frames) > self.config.frames_kept:
             state.frames.popleft()
         return publish_obu_ns

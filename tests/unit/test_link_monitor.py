@@ -144,3 +144,11 @@ def test_sent_counts_every_numbered_list_since_first_heard_across_restarts_and_w
     assert mon.sent_total() == 226  # 4..229, whatever arrived
     feed(mon, [0, 1, 3], start_ns=T0 + 900_000 * MS)  # the RSU restarts: a new span on top
     assert mon.restarts_total == 1 and mon.sent_total() == 226 + 4  # 0..3 after it
+
+
+def test_numbers_heard_before_the_clock_is_known_count_as_sent_not_as_arrivals():
+    mon = LinkMonitor()
+    for seq in (3, 4, 6):
+        mon.note_sequence(seq)
+    feed(mon, [7, 8])
+    assert mon.sent_total() == 6 and mon.loss() == (0, 2)  # 3..8 numbered; loss only over what was timed

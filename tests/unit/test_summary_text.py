@@ -43,3 +43,12 @@ def test_a_detected_target_reads_its_distance_and_accuracy():
     assert "vehicle ego: target first seen at 79.5 m (vehicle-only: first seen at 31.2 m), RMSE 0.50 m," in text
     assert "target first seen at 79.5 m (vehicle only: first seen at 31.2 m), RMSE 0.50 m" in title_lines(
         _report(SEEN, {**UNSEEN, "first_detection_distance_m": 31.2}), None)
+
+
+def test_crowded_out_cycles_and_lists_lost_before_fusion_are_said_only_when_there_are_any():
+    quiet = summary({**_report(SEEN, SEEN), "crowded_out_cycles": 0, "rsu_lists": {"rsu1": {"accepted": 99, "sent": 99}}})
+    assert "crowded out" not in quiet and "RSU lists received 99\n" in quiet
+    flooded = summary({**_report(SEEN, SEEN), "crowded_out_cycles": 67,
+                       "rsu_lists": {"rsu1": {"accepted": 44, "sent": 101}, "cpm": {"accepted": 5, "sent": None}}})
+    assert "RSU 1.0%, 67 cycles crowded out; modes:" in flooded
+    assert "RSU lists received 99, accepted 44 of 101 sent\n" in flooded  # an RSU that numbers none is left out

@@ -57,7 +57,7 @@ from v2i.sim.world import World
 
 from v2i.offline.chaos import SERVICES, ChaosTimeline
 from v2i.offline.decode_memo import DecodeMemo
-from v2i.offline.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, site_report
+from v2i.offline.spec import EVAL_EPOCH_NS, RunRecord, RunSpec, rsu_lists, site_report
 
 RSU_REPLY_NS = 50_000  # RSU time between receiving a time query and answering it
 
@@ -259,6 +259,7 @@ class OfflineRun:
             vehicle.record.rsu_deadline_misses = vehicle.obu.rsu_deadline_misses
             vehicle.record.rejected = dict(vehicle.obu.rejected)
             vehicle.record.mode_reasons = dict(vehicle.obu.mode_reasons)
+            vehicle.record.rsu_lists = rsu_lists(vehicle.obu.metrics(end_ns))
             vehicle.record.clock_steps = {r.cfg.id: self._steps(vehicle.obu, r.cfg.id) for r in self.rsus}
         return self.record
 

@@ -104,6 +104,8 @@ class RunRecord:
         self.obu_cycles: int | None = None  # live: the OBU's own count of cycles published (None: no metrics)
         self.obu_output_deadline_misses = 0  # live: the OBU's own count of those published late
         self.rsu_deadline_misses = 0
+        self.crowded_out_cycles = 0  # live: cycles that fell back while the OBU's intake refused genuine input
+        self.rsu_lists: dict[str, dict[str, int | None]] = {}  # per RSU: lists "accepted", "sent" (numbered)
         self.links = LinkSeries()  # per-cycle RSU link samples (live: ObuMetrics; offline: link_series=True)
 
     def add_output(self, output: FusedObjectList, planning: PredictionList | None = None,
@@ -168,6 +170,7 @@ class RunRecord:
             self.clock_steps = {**(self.clock_steps or {}), r.rsu_id: r.clock_steps}  # the latest: the run's so far
         self.rsu_messages = sum(r.messages_accepted for r in metrics.rsus)  # every RSU's, as offline
         self.covered_cycles, self.rsu_deadline_misses = metrics.covered_cycles, metrics.rsu_deadline_misses
+        self.crowded_out_cycles, self.rsu_lists = metrics.crowded_out_cycles, rsu_lists(metrics)
         self.obu_cycles, self.obu_output_deadline_misses = metrics.cycles, metrics.output_deadline_misses
         self.rejected = dict(metrics.rejected)
         self.mode_reasons = dict(metrics.mode_reasons)
@@ -193,6 +196,11 @@ class RunRecord:
         return self._computed_baseline
 
 
+def rsu_lists(metrics: ObuMetrics) -> dict[str, dict[str, int | None]]:
+    """Per RSU id: the lists the OBU ``accepted`` and those the RSU numbered (``sent``, None: not known)."""
+    return {r.rsu_id: {"accepted": r.messages_accepted, "sent": r.messages_sent} for r in metrics.rsus}
+
+
 def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) -> dict:
     """The metrics JSON: same keys from ``eval`` and ``demo``. ``world``: the one the record
     scored its outputs against (a different one is an error: the scores would not be its)."""
@@ -216,6 +224,8 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
         "displacement_error_m": record.displacement.value(),
         "planning_handoffs": record.planning_handoffs,
         "rsu_messages_received": record.rsu_messages,
+        "rsu_lists": dict(sorted(record.rsu_lists.items())),
+        "crowded_out_cycles": record.crowded_out_cycles,
         "obu_rejected": dict(sorted(record.rejected.items())),
         "mode_reasons": dict(sorted(record.mode_reasons.items())),
         "target": record.target.score().as_dict(),
@@ -257,7 +267,8 @@ def summary(report: dict) -> str:
         f"  target ({report['scenario']}): {first_seen(fd)} with V2I, {first_seen(vd)} vehicle-only{gain}",
         f"  target: {_accuracy(t)}",
         f"  deadline misses: output {report['output_deadline_miss_ratio']:.1%}{_own_count(report)}, "
-        f"RSU {report['rsu_deadline_miss_ratio']:.1%}; modes: {share}; RSU lists received {report['rsu_messages_received']}",
+        f"RSU {report['rsu_deadline_miss_ratio']:.1%}{_crowded(report)}; modes: {share}; RSU lists received "
+        f"{report['rsu_messages_received']}{_sent(report)}",
         f"  clock offset error p50 {_f(c['p50'])} ms, p95 {_f(c['p95'])} ms, max {_f(c['max'])} ms "
         f"(naive p95 {_f(report['clock_offset_error_naive_ms']['p95'])} ms); "
         f"drift error {_f(report['clock_drift_error_ppm'])} ppm",
@@ -307,6 +318,20 @@ def _own_count(report: dict) -> str:
     """A live run's OBU's own count beside the output misses (empty offline or without its metrics)."""
     own = next(iter((report.get("obu_output_deadline_misses") or {}).values()), None)
     return "" if own is None else f" (the OBU's own count: {own['misses']} of {own['cycles']} late)"
+
+
+def _crowded(report: dict) -> str:
+    """The cycles that fell back while genuine input was crowded out, when any (live only)."""
+    n = report.get("crowded_out_cycles")
+    return f", {n} cycles crowded out" if n else ""
+
+
+def _sent(report: dict) -> str:
+    """Lists accepted of those the RSUs sent (by their numbering), when some were not."""
+    lists = (report.get("rsu_lists") or {}).values()
+    sent = [r["sent"] for r in lists if r["sent"] is not None]
+    accepted = sum(r["accepted"] for r in lists if r["sent"] is not None)
+    return f", accepted {accepted} of {sum(sent)} sent" if sent and sum(sent) > accepted else ""
 
 
 def first_seen(distance_m: float | None) -> str:
