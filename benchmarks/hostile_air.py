@@ -288,8 +288,8 @@ def print_flood(rate: float, row: dict) -> None:
     print(f"flood {rate:g}/s for {row['send_s']:g} s: load {row['achieved_hz']:g} msg/s ({_modes(row['variants'])}); "
           f"genuine accepted {row['genuine_accepted']} of {row['genuine_sent']}; ghosts {row['ghost_outputs']} in "
           f"{row['outputs']} outputs; output misses {row['output_deadline_misses']} of {row['cycles']} cycles; "
-          f"modes {_modes(row['modes'])}; verifier refused {_modes(row['rejected'])}; intake refused "
-          f"{_modes(row['other_refusals'])}", flush=True)
+          f"modes {_modes(row['modes'])}, crowded out {row['crowded_out_cycles']}; verifier refused "
+          f"{_modes(row['rejected'])}; intake refused {_modes(row['other_refusals'])}", flush=True)
 
 
 def print_doubled(doubled: dict, baseline: dict | None) -> None:

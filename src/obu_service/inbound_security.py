@@ -34,7 +34,7 @@ from collections.abc import Callable
 
 from schemas.keys import rsu_id_or_none
 from v2i.runtime.intake import KeyedBuckets
-from v2i.security.envelope import REJECTIONS, Verifier
+from v2i.security.envelope import PREFIX, REJECTIONS, Verifier
 from v2i.security.pki import PkiError, Trust
 from v2i.security.trust_reload import TrustReload
 
@@ -99,6 +99,15 @@ class InboundSecurity:
         rsu_id = rsu_id_or_none(key_expr)
         estimate = None if rsu_id is None else self._clock_offset(rsu_id, receive_ns)
         return None if estimate is None else receive_ns + round(estimate.offset_ns)
+
+
+def envelope_screen(policy: str) -> Callable[[bytes], str | None]:
+    """What the live intake refuses before queueing (``v2i.runtime.intake``, ``screen``): under ``strict``,
+    bytes without an envelope (``security_unsigned``, a check of 4 bytes: the verifier would drop them
+    first thing); under the other policies nothing."""
+    if policy != "strict":
+        return lambda data: None
+    return lambda data: None if data.startswith(PREFIX) else "security_unsigned"
 
 
 class _Silence:

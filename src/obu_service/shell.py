@@ -33,6 +33,7 @@ from v2i.runtime.process import MemoryTrim, ThrottledLog, announce, log, read_st
 from v2i.runtime.transport import open_session
 
 from obu_service.config import ObuConfig
+from obu_service.inbound_security import envelope_screen
 
 CROWDED_WINDOW_S = 1.0  # a cycle that fell back this soon after a registered input was refused: crowded out
 # the planner-facing outputs must not be dropped under load: block, real-time, unbatched
@@ -98,7 +99,7 @@ class ObuShell:
         signed = signed_kinds if config.security_policy != "off" else frozenset()
         self._intake = Intake(config.inbox_capacity, config.max_message_bytes, config.source_rate_hz,
                               config.source_burst, max_queued_bytes=config.inbox_max_bytes, preferred=preferred,
-                              signed_kinds=signed)
+                              signed_kinds=signed, screen=envelope_screen(config.security_policy))
         self._log, self._trim = ThrottledLog(self.name), MemoryTrim()
         self._details: dict[str, str] = {}  # first codec error message per reason
         self._events: Timeline = Timeline()  # the node's timed events (their RANK: which of one time first)

@@ -3,7 +3,7 @@
 from collections import Counter
 from types import SimpleNamespace
 
-from obu_service.inbound_security import InboundSecurity, make_verifier
+from obu_service.inbound_security import InboundSecurity, envelope_screen, make_verifier
 from v2i.security.envelope import Signer
 from v2i.security.site import memory_site
 
@@ -120,3 +120,9 @@ def test_the_silence_warning_names_a_foreign_ca():
     data = Signer(foreign_ids["rsu1"]).sign(b"x", NOW_NS + OFFSET_NS, KEY)
     gate.open(data, KEY, NOW_NS)
     assert "another site's CA" in gate.silence_warning(NOW_NS + 10 * 10**9)
+
+
+def test_the_intake_screen_refuses_bytes_without_an_envelope_only_under_strict():
+    genuine = _signed(b"x", 0.0)
+    assert envelope_screen("strict")(b"\x94plain") == "security_unsigned" and envelope_screen("strict")(genuine) is None
+    assert envelope_screen("permissive")(b"\x94plain") is None and envelope_screen("off")(b"\x94plain") is None

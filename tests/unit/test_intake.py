@@ -184,3 +184,17 @@ def test_refusing_a_preferred_sources_message_is_timed_as_crowding_out():
     assert not put(intake, "registered", kind="sensor_pose")  # over its rate
     clock.t_ns = S // 2
     assert intake.crowded_within(S) and not intake.crowded_within(S // 4)
+
+
+def test_a_screened_payload_is_refused_before_the_queue_at_no_cost_to_the_unverified_budget():
+    clock = FakeClock()
+    intake = Intake(clock_ns=clock, signed_kinds=frozenset({"rsu"}), unverified_rate_hz=10.0, unverified_burst=2,
+                    screen=lambda data: None if data.startswith(b"ENV") else "security_unsigned")
+    assert not any(put(intake, "k", b"junk") for _ in range(10)) and len(intake) == 0
+    assert put(intake, "k", b"ENV-forged?") and len(intake) == 1  # left to the verifier
+    assert put(intake, "sensor", b"junk", kind="sensor_pose")  # only signed kinds are screened
+    intake.charge_unverified("k")
+    intake.charge_unverified("k")  # what the verifier refused spends the budget
+    assert not put(intake, "k", b"ENV-genuine")
+    assert intake.take_counts() == {"security_unsigned": 10, "unverified_budget": 1}
+    assert not intake.crowded_within(S)  # junk refused for what it is crowds nothing out

@@ -79,7 +79,8 @@ class HostilePhases:
                          counter_delta(self.metrics.rejected, m0.rejected),
                          counter_delta(m1.mode_counts, m0.mode_counts),
                          m1.output_deadline_misses - m0.output_deadline_misses, m1.cycles - m0.cycles,
-                         sum(1 for g in ghosts if g), len(ghosts), (m1.t_ns - m0.t_ns) * 1e-9)
+                         sum(1 for g in ghosts if g), len(ghosts), (m1.t_ns - m0.t_ns) * 1e-9,
+                         m1.crowded_out_cycles - m0.crowded_out_cycles)
 
     def _send_flood(self, rate_hz: float, duration_s: float) -> tuple[Counter, float]:
         """Flood messages in turn at ``rate_hz`` for ``duration_s``; (sent by variant, seconds sent)."""

@@ -141,9 +141,10 @@ def tracking_share(modes: Mapping[str, int]) -> float | None:
 
 def flood_row(sent: Mapping[str, int], rate_hz: float, send_s: float, genuine_sent: int, genuine_accepted: int,
               obu_delta: Mapping[str, int], modes: Mapping[str, int], misses: int, cycles: int, ghost_outputs: int,
-              outputs: int, window_s: float) -> dict:
+              outputs: int, window_s: float, crowded_out: int = 0) -> dict:
     """The ``flood`` kind's line: what it sent (by variant, the rate asked and achieved), what the
-    OBU refused, and what the genuine RSU lost in the window (its lists sent and accepted)."""
+    OBU refused, and what the genuine RSU lost in the window (its lists sent and accepted, the cycles
+    the OBU counted as crowded out)."""
     dropped, accepted, other = split_labels(obu_delta)
     total = sum(sent.values())
     return {"sent": total, "variants": dict(sent), "rate_hz": rate_hz,
@@ -151,7 +152,7 @@ def flood_row(sent: Mapping[str, int], rate_hz: float, send_s: float, genuine_se
             "rejected": dropped, "rejected_total": sum(dropped.values()),
             "rejected_as_intended": sum(dropped.get(r, 0) for r in INTENDED["flood"]), "accepted": accepted,
             "other_refusals": other, "genuine_sent": genuine_sent, "genuine_accepted": genuine_accepted,
-            "modes": dict(modes), "output_deadline_misses": misses, "cycles": cycles,
+            "modes": dict(modes), "output_deadline_misses": misses, "cycles": cycles, "crowded_out_cycles": crowded_out,
             "ghost_outputs": ghost_outputs, "outputs": outputs, "window_s": round(window_s, 2)}
 
 
@@ -206,7 +207,7 @@ def _hostile_line(kind: str, row: dict) -> str:
                 f"at {row['achieved_hz']:g}/s (asked {row['rate_hz']:g}); genuine accepted {row['genuine_accepted']} of "
                 f"{row['genuine_sent']}; other refusals {_reasons(row['other_refusals'])}; ghost in {row['ghost_outputs']} "
                 f"of {row['outputs']} outputs; output misses {row['output_deadline_misses']} of {row['cycles']} cycles; "
-                f"modes {modes}")
+                f"modes {modes}; crowded out {row['crowded_out_cycles']}")
     relay = row["relay"]
     sync = "never" if row["first_sync_s"] is None else f"{row['first_sync_s']:.1f} s"
     share = "-" if row["tracking_share"] is None else f"{100 * row['tracking_share']:.0f} %"

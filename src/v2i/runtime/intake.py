@@ -17,7 +17,10 @@ copied out of Zenoh only once admitted), so a flood costs the flooder, not the s
   failed verification draw from (``charge_unverified``, called by the loop after verifying). A
   verified RSU never spends it; it only runs dry under a flood of failures faster than the budget
   (what the OBU verifies on one core without missing cycles: docs/security.md), and then a
-  signed message of that source is refused unread (``unverified_budget``), genuine or not;
+  signed message of that source is refused unread (``unverified_budget``), genuine or not. A signed
+  kind's payload that fails a check needing no signature (``screen``: e.g. no envelope at all under
+  a strict policy) is refused at once, counted under its reason; it cost no verification, so it
+  draws nothing from that budget;
 - the queue holds at most ``capacity`` items and ``max_queued_bytes``; beyond, the oldest
   item of the source with the most queued items is dropped (``queue_full``): the flooder
   loses its backlog, the others keep theirs.
@@ -125,16 +128,19 @@ class Intake:
                  preferred: Callable[[str], bool] = lambda source: False,
                  clock_ns: Callable[[], int] = time.monotonic_ns, signed_kinds: frozenset[str] = frozenset(),
                  unverified_rate_hz: float = UNVERIFIED_RATE_HZ, unverified_burst: int = UNVERIFIED_BURST,
-                 unverified_total_hz: float = UNVERIFIED_TOTAL_HZ):
+                 unverified_total_hz: float = UNVERIFIED_TOTAL_HZ,
+                 screen: Callable[[bytes], str | None] = lambda payload: None):
         """``signed_kinds``: the kinds the loop verifies before reading (their budget: ``charge_unverified``
-        here, the verified signer's after verification); the others are rate-limited per source here."""
+        here, the verified signer's after verification); the others are rate-limited per source here.
+        ``screen(payload)``: a signed kind's refusal reason found without verifying (e.g. no envelope
+        where one is required), or None; such a payload is refused here, never queued."""
         self.capacity, self.max_bytes, self.max_queued_bytes = capacity, max_bytes, max_queued_bytes
         self._preferred, self._clock_ns = preferred, clock_ns
         self._cond = threading.Condition()
         self._queues: dict[str, deque[Item]] = {}
         self._rings: tuple[OrderedDict[str, None], OrderedDict[str, None]] = (OrderedDict(), OrderedDict())
         self._buckets = KeyedBuckets(rate_hz, burst, max_sources)
-        self._signed_kinds = signed_kinds
+        self._signed_kinds, self._screen = signed_kinds, screen
         self._unverified = KeyedBuckets(unverified_rate_hz, unverified_burst, max_sources)
         self._unverified_total = TokenBucket(unverified_total_hz, unverified_burst, clock_ns())
         self._counts: Counter[str] = Counter()
@@ -157,6 +163,10 @@ class Intake:
         if refusal is not None:
             return self._refuse(refusal, source)
         payload = read()
+        if kind in self._signed_kinds and (reason := self._screen(payload)) is not None:
+            with self._cond:  # refused here as the loop would, at no verification cost (nothing charged)
+                self._counts[reason] += 1
+            return False
         with self._cond:
             queue = self._queues.setdefault(source, deque())
             queue.append(Item(kind, source, payload, receive_ns))
