@@ -11,6 +11,14 @@ and again on one key), fake ids, replays of captured genuine lists and forged ti
 (per target). It watches the normal output meanwhile and reports: messages sent by kind,
 refusals by reason (the target's own counters), crashes (the process exited), outputs late
 or missing in the fuzzing window, and the target's RSS before and after.
+
+Kind ``trickle`` (alone; ``v2i.adversary.trickle``) sends no message: ``trickle_connections`` raw
+TCP sockets (default 300) to the target's listen endpoint, one byte each per tick, reopened when
+the listener closed them. ``count`` and ``rate_hz`` keep their meaning with each byte a hostile
+message: the trickle lasts ``count / rate_hz`` seconds and each socket sends a byte every
+``trickle_connections / rate_hz`` seconds (``--kinds trickle --count 3000 --rate 150``: 300 sockets,
+a byte every 2 s each, 20 s). The report adds what the trickle did (opens, reopens, refused
+connects, bytes) and, for the OBU, the genuine RSU lists published and accepted meanwhile.
 """
 
 from __future__ import annotations
@@ -31,6 +39,7 @@ from v2i.runtime.transport import open_session
 
 from v2i.orchestration.children import READY_TIMEOUT_S, Child, DemoError, start_all, wait_ready
 from v2i.adversary.hostile import KINDS, HostileInputs
+from v2i.adversary.trickle import TrickleSpec, parse_endpoint, run_trickle
 
 RSU_ID, VEHICLE_ID, LINK_ID = "rsu1", "ego", "link1"
 POOL_PER_KIND = 40  # distinct payloads per (kind, message type), sent round-robin
@@ -40,6 +49,8 @@ MS = 1_000_000
 # starts 1 s before time zero); generous for a loaded machine, where a cycle can take several times longer
 WARM_UP_S = 30.0
 FLOWING_OUTPUTS = 5  # normal outputs seen before the fuzzing starts
+TRICKLE = "trickle"  # the kind that sends no message: raw TCP sockets trickling bytes (v2i.adversary.trickle)
+TRICKLE_CONNECTIONS = 300  # sockets of a trickle: 3 times Zenoh's default pending handshakes (100)
 
 
 def rss_mb(pid: int) -> float | None:
@@ -67,18 +78,23 @@ class FuzzRun(ABC):
 
     name = "?"
     input_types: tuple[str, ...] = ()
+    trickle_target: str | None = None  # the ``eps`` entry a trickle goes to (the target's listen endpoint)
 
     def __init__(self, count: int, seed: int = 0, rate_hz: float = 2000.0, ready_timeout_s: float = READY_TIMEOUT_S,
                  settle_s: float = 3.0, deadline_ms: float = 100.0, kinds: list[str] | None = None,
-                 progress=sys.stderr):
+                 progress=sys.stderr, trickle_connections: int = TRICKLE_CONNECTIONS):
         """``ready_timeout_s``: every service must say it is ready within this (``--ready-timeout``);
-        ``progress``: where the progress lines go (None: nowhere)."""
+        ``progress``: where the progress lines go (None: nowhere); ``trickle_connections``: the
+        sockets of kind ``trickle``."""
         if count < 1 or not rate_hz > 0:
             raise ValueError("--count must be >= 1 and --rate > 0")
-        unknown = sorted(set(kinds or ()) - set(KINDS) - {"special"})
+        unknown = sorted(set(kinds or ()) - set(KINDS) - {"special", TRICKLE})
         if unknown:
-            raise ValueError(f"unknown hostile kind(s) {', '.join(unknown)}; kinds: {', '.join(KINDS)}, special")
+            raise ValueError(f"unknown hostile kind(s) {', '.join(unknown)}; kinds: {', '.join(KINDS)}, special, "
+                             f"{TRICKLE}")
         self.kinds = list(kinds or [*KINDS, "special"])
+        self.trickle = self._trickle_spec(count, rate_hz, trickle_connections) if TRICKLE in self.kinds else None
+        self.trickled: dict | None = None  # what the trickle did (TrickleCounts.as_dict)
         if not ready_timeout_s > 0:
             raise ValueError("--ready-timeout must be > 0")
         self.count, self.rate_hz, self.ready_timeout_s, self.settle_s = count, rate_hz, ready_timeout_s, settle_s
@@ -97,6 +113,15 @@ class FuzzRun(ABC):
         self._sessions: list = []
         self._declared: list = []
         self._refused_at_start: Counter[str] = Counter()
+
+    def _trickle_spec(self, count: int, rate_hz: float, connections: int) -> TrickleSpec:
+        """``connections`` sockets, ``count`` bytes at ``rate_hz`` in all: a byte every
+        connections / rate_hz seconds each, for count / rate_hz seconds."""
+        if self.kinds != [TRICKLE]:
+            raise ValueError(f"kind {TRICKLE} runs alone (--kinds {TRICKLE})")
+        if self.trickle_target is None:
+            raise ValueError(f"fuzz target {self.name}: no listen endpoint to trickle")
+        return TrickleSpec(connections=connections, byte_interval_s=connections / rate_hz, duration_s=count / rate_hz)
 
     # --- what a target provides ---------------------------------------------------------------
     @abstractmethod
@@ -161,7 +186,10 @@ class FuzzRun(ABC):
             t0_ns = time.time_ns()
             crash = None
             try:
-                self._send_all()
+                if self.trickle:
+                    self._trickle()
+                else:
+                    self._send_all()
                 t1_ns = time.time_ns()
                 self._sleep(self.settle_s)
             except Crashed as exc:
@@ -236,6 +264,39 @@ class FuzzRun(ABC):
                     last_note = time.monotonic()
                     print(f"v2i fuzz {self.name}: {i + 1}/{self.count} sent", file=self.progress, flush=True)
 
+    def _trickle(self) -> None:
+        """The trickle against the target's listen endpoint for its duration, in a thread of its
+        own while this one watches the services; each byte counts as one hostile message."""
+        host, port = parse_endpoint(self.eps[self.trickle_target])
+        done = threading.Event()
+        result: dict = {}
+
+        def trickle() -> None:
+            try:
+                result["counts"] = run_trickle(host, port, self.trickle, self.stop)
+            except OSError as exc:  # out of file descriptors: said in the report
+                result["error"] = str(exc)
+            finally:
+                done.set()
+
+        if self.progress is not None:
+            print(f"v2i fuzz {self.name}: trickle of {self.trickle.connections} connections to "
+                  f"{self.eps[self.trickle_target]}, a byte every {self.trickle.byte_interval_s:g} s each, "
+                  f"{self.trickle.duration_s:g} s", file=self.progress, flush=True)
+        thread = threading.Thread(target=trickle, name="trickle", daemon=True)
+        thread.start()
+        try:
+            while not done.wait(0.05):
+                self._check_alive()
+        finally:
+            if not done.is_set():  # a service crashed: the trickle ends with the run
+                self.stop.set()
+            thread.join(timeout=5.0)
+        counts = result.get("counts")
+        self.trickled = {"connections": self.trickle.connections, "byte_interval_s": self.trickle.byte_interval_s,
+                         **(counts.as_dict() if counts else {}), **({"error": result["error"]} if "error" in result else {})}
+        self.sent[TRICKLE] = counts.bytes_sent if counts else 0
+
     def _plan(self):
         """An endless stream of (kind, send) over the target's inputs, shuffled each round."""
         now = time.time_ns()
@@ -266,6 +327,7 @@ class FuzzRun(ABC):
             "rss_mb": {"before": _r(before), "after": _r(after),
                        "growth": None if before is None or after is None else _r(after - before)},
             "startup": {"ready_s": _r(self.ready_s), "warm_up_s": _r(self.warm_up_s)},
+            **({"trickle": self.trickled} if self.trickled is not None else {}),
             **self.extra(),
         }
 
@@ -279,12 +341,26 @@ def summary(report: dict) -> str:
     o, r = report["outputs"], report["rss_mb"]
     top = ", ".join(f"{k} {v}" for k, v in sorted(report["rejected"].items(), key=lambda kv: -kv[1])[:8])
     return "\n".join([
-        f"v2i fuzz {report['target']}: {report['sent']} hostile messages in {report['fuzz_s']} s "
+        f"v2i fuzz {report['target']}: {report['sent']} {'bytes trickled' if 'trickle' in report else 'hostile messages'}"
+        f" in {report['fuzz_s']} s "
         f"({report['rate_hz']}/s); crashes {report['crashes']}" + (f" ({report['crash']})" if report["crash"] else ""),
         f"  outputs during fuzzing: {o['received']}/{o['expected']} expected, {o['late']} late, {o['missing']} missing"
         + (f", {o['skipped']} skipped (their time had passed: a busy machine)" if o.get("skipped") else "")
         + (f"; modes {', '.join(f'{m} {n}' for m, n in sorted(o['modes'].items()))}" if "modes" in o else ""),
         *([f"  hostile files read {report['hostile_read']} of {report['sent']}"] if "hostile_read" in report else []),
+        *([_trickle_line(report["trickle"])] if "trickle" in report else []),
+        *([_genuine_line(report["genuine_lists"])] if "genuine_lists" in report else []),
         f"  RSS {r['before']} -> {r['after']} MB (growth {r['growth']} MB)",
         f"  refused {report['rejected_total']}: {top}",
     ])
+
+
+def _trickle_line(t: dict) -> str:
+    return (f"  trickle: {t['connections']} connections, a byte every {t['byte_interval_s']:g} s each: "
+            f"{t.get('opens', 0)} opened, {t.get('reopens', 0)} reopened after the target closed them, "
+            f"{t.get('refused', 0)} connects refused, {t.get('bytes_sent', 0)} bytes"
+            + (f"; {t['error']}" if "error" in t else ""))
+
+
+def _genuine_line(lists: dict) -> str:
+    return f"  genuine RSU lists: {lists['accepted_by_obu']} accepted by the OBU of {lists['published']} published"

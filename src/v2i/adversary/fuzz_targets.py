@@ -9,9 +9,11 @@ are, what its normal output is and where it counts what it refused.
   half of its time queries at once with a forged clock (245 ms further ahead, a
   precise-looking round trip). Normal output: a fused list per 10 Hz cycle, late after the
   100 ms deadline. Also reported: the OBU's clock error against its stated uncertainty
-  while the forger is active.
-- ``rsu``: the RSU alone. The attacker sends hostile time queries; a probe asks the time
-  genuinely at 10 Hz. Normal output: the object lists at the camera rate, late when the RSU
+  while the forger is active, and the genuine RSU's lists published and accepted by the OBU in
+  the window. Kind ``trickle``: raw TCP sockets to the OBU's listen endpoint instead of messages
+  (``v2i.adversary.fuzz``); its RSU lists keep coming over the OBU's own connection to the RSU.
+- ``rsu``: the RSU alone. The attacker sends hostile time queries (or trickles to its listen
+  endpoint); a probe asks the time genuinely at 10 Hz. Normal output: the object lists at the camera rate, late when the RSU
   stamped publish more than 250 ms after capture; and the probes' answers.
 - ``obu-inputs`` / ``rsu-inputs`` (``v2i.adversary.fuzz_inputs``): ``v2i world`` feeding the
   service with ``--source zenoh``, the attacker on its sensor input keys.
@@ -57,6 +59,7 @@ def _ignore(_reply) -> None:
 class ObuFuzz(FuzzRun):
     name = "obu"
     input_types = ("object_list", "prediction_list")
+    trickle_target = "obu"
 
     def argv(self, duration_s: float) -> dict[str, list[str]]:
         self.eps = {"rsu": free_tcp_endpoint(), "obu": free_tcp_endpoint()}
@@ -70,11 +73,15 @@ class ObuFuzz(FuzzRun):
         self.clock_rows: list[tuple[int, int, int]] = []  # (t, offset, uncertainty) ns while fuzzing
         self.genuine: list[tuple[int, bytes]] = []
         self.forged = 0
-        self.fuzzing = False
+        self.fuzzing = False  # hostile messages sent: the forger answers time queries from then on
+        self.watching = False  # the fuzzing window began: the clock rows are kept from then on
+        self.rsu_published: int | None = None  # lists the RSU says it published, latest
+        self.lists_at_start: tuple[int, int] | None = None  # (published, accepted by the OBU) at fuzz start
         s = self.attacker = self.session(connect=[self.eps["obu"], self.eps["rsu"]])
         self.declare(s.declare_subscriber(keys.obu_objects(VEHICLE_ID), self._on_fused))
         self.declare(s.declare_subscriber(keys.obu_metrics(VEHICLE_ID), self._on_metrics))
         self.declare(s.declare_subscriber(keys.rsu_objects(RSU_ID), self._on_genuine))
+        self.declare(s.declare_subscriber(keys.rsu_metrics(RSU_ID), self._on_rsu_metrics))
         for rsu_id in (RSU_ID, "forger"):
             self.declare(s.declare_queryable(keys.rsu_time(rsu_id), lambda q, rsu_id=rsu_id: self._forge_reply(q, rsu_id)))
 
@@ -135,13 +142,37 @@ class ObuFuzz(FuzzRun):
             return
         with self.lock:
             self.metrics = metrics.model_dump()
-            if self.fuzzing:
+            if self.watching:
                 self.clock_rows += [(metrics.t_ns, r.clock_offset_ns, r.clock_uncertainty_ns or 0)
                                     for r in metrics.rsus if r.rsu_id == RSU_ID and r.clock_offset_ns is not None]
 
     def _on_genuine(self, sample) -> None:
         with self.lock:
             self.genuine = [*self.genuine[-63:], (time.time_ns(), sample.payload.to_bytes())]
+
+    def _on_rsu_metrics(self, sample) -> None:
+        try:
+            published = decode(sample.payload.to_bytes(), RsuMetrics).published
+        except CodecError:
+            return
+        with self.lock:
+            self.rsu_published = published
+
+    def _lists(self) -> tuple[int, int]:
+        """(lists the RSU published, lists the OBU accepted from it) so far."""
+        with self.lock:
+            rsus = (self.metrics or {}).get("rsus", [])
+            accepted = next((r["messages_accepted"] for r in rsus if r["rsu_id"] == RSU_ID), 0)
+            return self.rsu_published or 0, accepted
+
+    def at_fuzz_start(self) -> None:
+        self.lists_at_start = self._lists()
+        self.watching = True
+
+    def _genuine_lists(self) -> dict:
+        """The genuine RSU's lists published and accepted by the OBU since the fuzzing began."""
+        (published0, accepted0), (published1, accepted1) = self.lists_at_start or (0, 0), self._lists()
+        return {"published": published1 - published0, "accepted_by_obu": accepted1 - accepted0}
 
     def warmed_up(self) -> bool:
         """The OBU has an RSU clock estimate and has accepted RSU lists."""
@@ -183,6 +214,7 @@ class ObuFuzz(FuzzRun):
             "obu_cycles": metrics.get("cycles"),
             "clock": {"samples": len(rows), "max_error_ms": _ms(max(errors, default=None)),
                       "max_error_beyond_uncertainty_ms": _ms(max(beyond, default=None))},
+            "genuine_lists": self._genuine_lists(),
         }
 
 
@@ -193,6 +225,7 @@ def _ms(v: float | None) -> float | None:
 class RsuFuzz(FuzzRun):
     name = "rsu"
     input_types = ("time_request",)
+    trickle_target = "rsu"
 
     def argv(self, duration_s: float) -> dict[str, list[str]]:
         self.eps = {"rsu": free_tcp_endpoint()}
@@ -283,7 +316,7 @@ class LinkFuzz(ObuFuzz):
                          "--vehicle-connect", self.eps["obu"], "--vehicle-connect", self.eps["attacker_vehicle_side"]]}
 
     def open(self) -> None:
-        self.metrics, self.clock_rows, self.forged, self.fuzzing = None, [], 0, False
+        self.metrics, self.clock_rows, self.forged, self.fuzzing, self.watching = None, [], 0, False, False
         self.stats: dict = {}
         self.rsu_published: int | None = None  # lists the RSU says it published, latest
         self.lists_at_start: tuple[int, int] | None = None  # (published, accepted by the OBU) at fuzz start
@@ -317,24 +350,6 @@ class LinkFuzz(ObuFuzz):
 
         return [("flood", lambda: self.deliver("object_list", flood, keys.rsu_objects("flood"))), ("fake_id", fake_id)]
 
-    def _on_rsu_metrics(self, sample) -> None:
-        try:
-            published = decode(sample.payload.to_bytes(), RsuMetrics).published
-        except CodecError:
-            return
-        with self.lock:
-            self.rsu_published = published
-
-    def _lists(self) -> tuple[int, int]:
-        """(lists the RSU published, lists the OBU accepted from it) so far."""
-        with self.lock:
-            rsus = (self.metrics or {}).get("rsus", [])
-            accepted = next((r["messages_accepted"] for r in rsus if r["rsu_id"] == RSU_ID), 0)
-            return self.rsu_published or 0, accepted
-
-    def at_fuzz_start(self) -> None:
-        self.lists_at_start = self._lists()
-
     def _on_stats(self, sample) -> None:
         try:
             stats = json.loads(sample.payload.to_bytes())
@@ -354,10 +369,9 @@ class LinkFuzz(ObuFuzz):
     def extra(self) -> dict:
         with self.lock:
             stats, metrics = self.stats, self.metrics or {}
-        (published0, accepted0), (published1, accepted1) = self.lists_at_start, self._lists()
         return {"relay": {k: stats.get(k) for k in ("downlink", "uplink", "lateness_ms", "in_flight", "open_queries")},
                 "obu_output_deadline_misses": metrics.get("output_deadline_misses"), "obu_cycles": metrics.get("cycles"),
-                "genuine_lists": {"published": published1 - published0, "accepted_by_obu": accepted1 - accepted0}}
+                "genuine_lists": self._genuine_lists()}
 
 
 from v2i.adversary.fuzz_inputs import ObuInputsFuzz, RsuInputsFuzz  # noqa: E402 (they build on FuzzRun, not on this module)
