@@ -507,7 +507,9 @@ def _fuzz_options(fuzz: argparse.ArgumentParser) -> None:
                       "random_bytes, truncated, bit_flips, wrong_envelope, header_version, unknown_keys, "
                       "wrong_shapes, non_finite, extreme_values, absurd_times, oversized, large_malformed, and "
                       "special (the target's floods, fake ids, replays); for frames: random_bytes, truncated, "
-                      "empty, pixel_bomb, wrong_size, deep, huge_file")
+                      "empty, pixel_bomb, wrong_size, deep, huge_file; trickle (alone; obu, rsu, link): no message "
+                      "but 300 raw TCP sockets at the target's listen endpoint, each a byte every 300 / --rate s, "
+                      "for --count / --rate s (--count 3000 --rate 150: a byte every 2 s for 20 s)")
     _add_ready_timeout(fuzz)
     fuzz.add_argument("--json", metavar="PATH", help="write the report JSON to PATH ('-' for stdout)")
     fuzz.set_defaults(func=cmd_fuzz)
