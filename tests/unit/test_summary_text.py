@@ -46,9 +46,9 @@ def test_a_detected_target_reads_its_distance_and_accuracy():
 
 
 def test_crowded_out_cycles_and_lists_lost_before_fusion_are_said_only_when_there_are_any():
-    quiet = summary({**_report(SEEN, SEEN), "crowded_out_cycles": 0, "rsu_lists": {"rsu1": {"accepted": 99, "sent": 99}}})
+    quiet = summary({**_report(SEEN, SEEN), "crowded_out_cycles": 0, "rsu_lists_accepted": {"rsu1": {"accepted": 99, "sent": 99}}})
     assert "crowded out" not in quiet and "RSU lists received 99\n" in quiet
     flooded = summary({**_report(SEEN, SEEN), "crowded_out_cycles": 67,
-                       "rsu_lists": {"rsu1": {"accepted": 44, "sent": 101}, "cpm": {"accepted": 5, "sent": None}}})
+                       "rsu_lists_accepted": {"rsu1": {"accepted": 44, "sent": 101}, "cpm": {"accepted": 5, "sent": None}}})
     assert "RSU 1.0%, 67 cycles crowded out; modes:" in flooded
     assert "RSU lists received 99, accepted 44 of 101 sent\n" in flooded  # an RSU that numbers none is left out

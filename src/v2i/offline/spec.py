@@ -224,7 +224,7 @@ def build_report(spec: RunSpec, world: World, record: RunRecord, driver: str) ->
         "displacement_error_m": record.displacement.value(),
         "planning_handoffs": record.planning_handoffs,
         "rsu_messages_received": record.rsu_messages,
-        "rsu_lists": dict(sorted(record.rsu_lists.items())),
+        "rsu_lists_accepted": dict(sorted(record.rsu_lists.items())),
         "crowded_out_cycles": record.crowded_out_cycles,
         "obu_rejected": dict(sorted(record.rejected.items())),
         "mode_reasons": dict(sorted(record.mode_reasons.items())),
@@ -328,7 +328,7 @@ def _crowded(report: dict) -> str:
 
 def _sent(report: dict) -> str:
     """Lists accepted of those the RSUs sent (by their numbering), when some were not."""
-    lists = (report.get("rsu_lists") or {}).values()
+    lists = (report.get("rsu_lists_accepted") or {}).values()
     sent = [r["sent"] for r in lists if r["sent"] is not None]
     accepted = sum(r["accepted"] for r in lists if r["sent"] is not None)
     return f", accepted {accepted} of {sum(sent)} sent" if sent and sum(sent) > accepted else ""
