@@ -100,7 +100,7 @@ def run(args: argparse.Namespace, make_node: Callable[[ObuConfig], object]) -> i
     def made(config: ObuConfig):
         node = make_node(config)
         for line in registration_lines(config, node.pipeline.config.known_rsus):
-            log(getattr(node, "name", f"obu {config.vehicle_id}"), line)
+            log(node.name, line)
         return export_node(node, "obu", args)
 
     return run_service("obu", ObuConfig, args, made)

@@ -28,14 +28,13 @@ from v2i.security.envelope import PREFIX, parse
 from v2i.telemetry.live_line import StatusLine
 
 from v2i.adversary.attack_ghosts import GhostWatch
-from v2i.adversary.attack_hostile import HostilePhases, NotReady
+from v2i.adversary.attack_hostile import PROGRESS_S, HostilePhases, NotReady, rsu_status
 from v2i.adversary.attack_messages import (CONTROL_VARIANTS, HOSTILE_KINDS, LIST_KINDS, TIME_VARIANTS, AttackerKeys,
                                            AttackMessages, ghost_xy, signer_digest)
 from v2i.adversary.attack_report import counter_delta, kind_row
 
 REPLAY_AGE_NS = (500_000_000, 3_000_000_000)  # replay captures this old: after the original, within freshness
 INBOX_MESSAGES = 10_000
-PROGRESS_S = 5.0
 READY_TIMEOUT_S = 120.0  # default --ready-timeout: the site shows what the attack needs within this
 OFFSET_SAMPLES = 32  # RSU clock offset: median of the latest this many captures
 METRICS_KEPT = 20_000  # OBU metrics kept for the windows of the opt-in kinds: 10 Hz x 33 min
@@ -164,10 +163,6 @@ class AttackRun(HostilePhases):
         with self.lock:
             return int(statistics.median(self.offsets)) if self.offsets else 0
 
-    def _rsu_status(self):
-        rows = self.metrics.rsus if self.metrics else ()
-        return next((r for r in rows if r.rsu_id == self.args.rsu_id), None)
-
     def _ego_at(self, t_ns: int) -> Pose2D:
         """The ego pose extrapolated to ``t_ns`` at its velocity: p(t) = p + v (t - t_pose)."""
         p, dt_s = self.pose, (t_ns - self.pose.t_ns) * 1e-9
@@ -210,7 +205,7 @@ class AttackRun(HostilePhases):
 
     def _missing(self) -> list[str]:
         """What the attack needs and has not seen yet (its words, for the progress line and the error)."""
-        status = self._rsu_status()
+        status = rsu_status(self.metrics, self.args.rsu_id)
         return [what for what, ok in (
             ("genuine signed lists of the RSU (is it signing? --sniff reaches it?)", len(self.captured) >= 3),
             ("the ego's pose", self.pose is not None),
@@ -238,7 +233,7 @@ class AttackRun(HostilePhases):
         self.messages = AttackMessages(self.args.rsu_id, self.attacker, self.rng, self.digest, self.args.link_id)
 
     def _snapshot(self) -> tuple:
-        status = self._rsu_status()
+        status = rsu_status(self.metrics, self.args.rsu_id)
         control = self.link_stats.get("control", {}) if self.link_stats else {}
         m = self.metrics
         return (time.time_ns(), dict(m.rejected) if m else {}, dict(control.get("rejected", {})),
